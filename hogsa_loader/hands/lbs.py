@@ -1,0 +1,148 @@
+"""Linear blend skinning, one function per step.
+
+Notation: B batch, V vertices, J joints, S shape coefficients, P = 9 (J - 1) pose features.
+All functions are differentiable and device/dtype agnostic.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hogsa_loader.geometry.rotations import axis_angle_to_matrix
+
+__all__ = [
+    "blend_shapes",
+    "regress_joints",
+    "pose_features",
+    "kinematic_chain",
+    "skin_vertices",
+    "lbs",
+]
+
+
+def blend_shapes(coeffs: Tensor, dirs: Tensor) -> Tensor:
+    """Linear blend-shape offsets.
+
+    Args:
+        coeffs: (B, S) coefficients (betas).
+        dirs: (V, 3, S) blend shapes.
+
+    Returns:
+        (B, V, 3) offsets ``sum_s coeffs[b, s] * dirs[v, :, s]``.
+    """
+    return torch.einsum("bs,vcs->bvc", coeffs, dirs)
+
+
+def regress_joints(J_regressor: Tensor, vertices: Tensor) -> Tensor:
+    """Joint locations as linear combinations of vertices.
+
+    Args:
+        J_regressor: (J, V).
+        vertices: (B, V, 3).
+
+    Returns:
+        (B, J, 3).
+    """
+    return torch.einsum("jv,bvc->bjc", J_regressor, vertices)
+
+
+def pose_features(rot_mats: Tensor) -> Tensor:
+    """Pose-corrective features ``R_j - I`` of every non-root joint, row-major.
+
+    Args:
+        rot_mats: (B, J, 3, 3) local joint rotations.
+
+    Returns:
+        (B, 9 (J - 1)).
+    """
+    eye = torch.eye(3, dtype=rot_mats.dtype, device=rot_mats.device)
+    return (rot_mats[:, 1:] - eye).flatten(1)
+
+
+def kinematic_chain(rot_mats: Tensor, joints: Tensor, parents: Tensor) -> tuple[Tensor, Tensor]:
+    """Compose local joint rotations along the kinematic tree.
+
+    Args:
+        rot_mats: (B, J, 3, 3) local rotations.
+        joints: (B, J, 3) rest joint locations.
+        parents: (J,) parent indices, -1 for the root, parents[j] < j.
+
+    Returns:
+        posed_joints: (B, J, 3) joint locations after posing.
+        rel_transforms: (B, J, 4, 4) transforms mapping rest-pose points to posed points,
+            ``G_j`` with the rest joint removed (``G_j = A_j * T(-j_rest)``).
+    """
+    B, J = joints.shape[:2]
+    parent_list = parents.tolist()
+    rel_joints = joints.clone()
+    rel_joints[:, 1:] = joints[:, 1:] - joints[:, parent_list[1:]]
+    local = torch.zeros(B, J, 4, 4, dtype=joints.dtype, device=joints.device)
+    local[..., :3, :3] = rot_mats
+    local[..., :3, 3] = rel_joints
+    local[..., 3, 3] = 1.0
+    world = [local[:, 0]]
+    for j in range(1, J):
+        world.append(world[parent_list[j]] @ local[:, j])
+    A = torch.stack(world, dim=1)
+    posed_joints = A[..., :3, 3]
+    # Remove the rest joint: G = A - [0 | A_R j_rest]
+    shift = torch.einsum("bjrc,bjc->bjr", A[..., :3, :3], joints)
+    G = A.clone()
+    G[..., :3, 3] = A[..., :3, 3] - shift
+    return posed_joints, G
+
+
+def skin_vertices(vertices: Tensor, weights: Tensor, transforms: Tensor) -> Tensor:
+    """Blend per-joint rigid transforms with skinning weights and apply them.
+
+    Args:
+        vertices: (B, V, 3) rest-pose (shaped + pose-corrected) vertices.
+        weights: (V, J) skinning weights.
+        transforms: (B, J, 4, 4) from :func:`kinematic_chain`.
+
+    Returns:
+        (B, V, 3) posed vertices.
+    """
+    T = torch.einsum("vj,bjrc->bvrc", weights, transforms[..., :3, :])
+    return torch.einsum("bvrc,bvc->bvr", T[..., :3], vertices) + T[..., 3]
+
+
+def lbs(
+    betas: Tensor,
+    pose: Tensor,
+    v_template: Tensor,
+    shapedirs: Tensor,
+    posedirs: Tensor,
+    J_regressor: Tensor,
+    parents: Tensor,
+    weights: Tensor,
+    pose_is_rotmat: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Shape, pose-correct, and skin a template (SMPL/MANO-style LBS).
+
+    Args:
+        betas: (B, S) shape coefficients.
+        pose: (B, J * 3) axis-angle per joint (root first), or (B, J, 3, 3) with
+            ``pose_is_rotmat=True``.
+        v_template: (V, 3) rest template.
+        shapedirs: (V, 3, S) shape blend shapes.
+        posedirs: (V, 3, 9 (J - 1)) pose-corrective blend shapes.
+        J_regressor: (J, V) joint regressor.
+        parents: (J,) kinematic tree.
+        weights: (V, J) skinning weights.
+
+    Returns:
+        vertices: (B, V, 3) posed vertices.
+        joints: (B, J, 3) posed joints.
+        rot_mats: (B, J, 3, 3) local joint rotations.
+    """
+    B = betas.shape[0]
+    J = parents.shape[0]
+    v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
+    rest_joints = regress_joints(J_regressor, v_shaped)
+    rot_mats = pose if pose_is_rotmat else axis_angle_to_matrix(pose.reshape(B, J, 3))
+    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), posedirs)
+    joints, transforms = kinematic_chain(rot_mats, rest_joints, parents)
+    vertices = skin_vertices(v_posed, weights, transforms)
+    return vertices, joints, rot_mats

@@ -1,0 +1,570 @@
+"""Reading and writing MANO model files without chumpy.
+
+The official ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl`` are Python-2 pickles (read with
+``encoding="latin1"``) that hold numpy arrays, a ``scipy.sparse`` ``J_regressor`` and
+chumpy objects. Unpickling them normally needs chumpy (broken on numpy >= 1.24) and, worse,
+lets the file run arbitrary code. :class:`RestrictedUnpickler` resolves only an allow-list of
+numpy / scipy.sparse / copyreg globals, maps every ``chumpy.*`` class to an inert stub that
+keeps its pickled state, and refuses anything else with :class:`UnsafePickleError`.
+
+Also here:
+- :class:`ManoModelData`: the validated arrays of one hand model, plus the metadata the
+  project needs (side, fingertip vertices, prior-contact vertices, vertex colours).
+- :func:`load_mano`: ``.pkl`` (restricted unpickler) or ``.npz`` (no pickle allowed).
+- :func:`convert_mano_to_npz`: one-shot conversion of a pickle to a chumpy-free ``.npz``.
+- :func:`write_mano_pickle`: writes a model in the exact legacy MANO pickle schema
+  (protocol 2, Python-2 names, chumpy ``Ch`` for ``shapedirs``, CSC ``J_regressor``), used for
+  the project's synthetic hand so that every reader is exercised on the real format.
+"""
+
+from __future__ import annotations
+
+import copyreg
+import io
+import json
+import os
+import pickle
+from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING, REVERSE_IMPORT_MAPPING, REVERSE_NAME_MAPPING
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping, Optional
+
+import numpy as np
+import scipy.sparse as sp
+
+from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
+
+__all__ = [
+    "ARCTIC_TIP_ORDER",
+    "MANO_RELEASE_NUM_VERTS",
+    "MANO_RELEASE_TIP_IDS",
+    "ManoModelData",
+    "RestrictedUnpickler",
+    "convert_mano_to_npz",
+    "load_mano",
+    "write_mano_pickle",
+]
+
+#: Order of the five fingertips appended as joints 16..20 (ARCTIC, ``arctic_format.md`` §5).
+ARCTIC_TIP_ORDER = ("thumb", "index", "middle", "ring", "pinky")
+
+#: Vertex count of the official MANO release; only used to recognise it and pick the
+#: published fingertip vertices below. Every other count is read from the model file.
+MANO_RELEASE_NUM_VERTS = 778
+
+#: Fingertip vertex ids used by ARCTIC (smplx ``VERTEX_IDS['mano']``), thumb->pinky.
+MANO_RELEASE_TIP_IDS = {"right": (744, 320, 443, 554, 671), "left": (744, 320, 443, 554, 671)}
+
+#: Key under which the project stores its own metadata inside a MANO-schema file.
+META_KEY = "hogsa_meta"
+
+_REQUIRED_KEYS = (
+    "v_template",
+    "shapedirs",
+    "posedirs",
+    "J_regressor",
+    "weights",
+    "kintree_table",
+    "f",
+    "hands_components",
+    "hands_mean",
+)
+
+
+# ----------------------------------------------------------------------------------------
+# Restricted unpickling
+# ----------------------------------------------------------------------------------------
+class ChumpyStub:
+    """Inert stand-in for any ``chumpy`` class found in a pickle.
+
+    It never runs chumpy code: unpickling only stores the pickled state, and
+    :meth:`to_array` reads the value out of it (``x`` for ``Ch``; ``a``/``idxs``/
+    ``preferred_shape`` for ``chumpy.reordering.Select``).
+    """
+
+    chumpy_name = "chumpy.ch.Ch"
+
+    def __setstate__(self, state: Any) -> None:
+        self.__dict__["_state"] = state
+
+    def to_array(self, where: str = "<pickle>") -> np.ndarray:
+        state = self.__dict__.get("_state")
+        if not isinstance(state, dict):
+            raise AssetError(where, f"chumpy object {self.chumpy_name} has no readable state")
+        if "x" in state:
+            return _as_array(state["x"], where)
+        if "a" in state and "idxs" in state:  # chumpy.reordering.Select
+            base = _as_array(state["a"], where).ravel()
+            out = base[np.asarray(state["idxs"]).ravel()]
+            shape = state.get("preferred_shape")
+            return out.reshape(shape) if shape is not None else out
+        if "r" in state:
+            return _as_array(state["r"], where)
+        raise AssetError(
+            where,
+            f"chumpy object {self.chumpy_name} with state keys {sorted(state)} cannot be "
+            "turned into an array without chumpy; convert the file where chumpy is installed",
+        )
+
+
+_STUB_CLASSES: dict[str, type] = {}
+
+
+def _chumpy_stub(module: str, name: str) -> type:
+    full = f"{module}.{name}"
+    if full not in _STUB_CLASSES:
+        _STUB_CLASSES[full] = type(f"Chumpy_{name}", (ChumpyStub,), {"chumpy_name": full})
+    return _STUB_CLASSES[full]
+
+
+def _allowed_globals() -> dict[tuple[str, str], Any]:
+    reconstruct = np.ndarray.__reduce__(np.zeros(1))[0]
+    scalar = np.float64(0).__reduce__()[0]
+    allowed: dict[tuple[str, str], Any] = {
+        ("copyreg", "_reconstructor"): copyreg._reconstructor,
+        ("builtins", "object"): object,
+        ("builtins", "set"): set,
+        ("builtins", "frozenset"): frozenset,
+        ("builtins", "slice"): slice,
+        ("_codecs", "encode"): __import__("codecs").encode,
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+    }
+    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed[(mod, "_reconstruct")] = reconstruct
+        allowed[(mod, "scalar")] = scalar
+    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
+        allowed[(mod, "_frombuffer")] = _frombuffer
+    for fmt, cls in (("csc", sp.csc_matrix), ("csr", sp.csr_matrix), ("coo", sp.coo_matrix)):
+        for mod in (f"scipy.sparse.{fmt}", f"scipy.sparse._{fmt}", "scipy.sparse"):
+            allowed[(mod, f"{fmt}_matrix")] = cls
+    return allowed
+
+
+def _frombuffer(buf: bytes, dtype: Any, shape: tuple, order: str) -> np.ndarray:
+    return np.frombuffer(buf, dtype=dtype).reshape(shape, order=order)
+
+
+class RestrictedUnpickler(pickle.Unpickler):
+    """Unpickler that resolves only numpy / scipy.sparse / copyreg globals and chumpy stubs.
+
+    Any other global (``os.system``, ``builtins.eval``, a user class, ...) raises
+    :class:`UnsafePickleError` naming the file and the refused global; nothing from the
+    file runs.
+    """
+
+    def __init__(self, file: io.BufferedIOBase, path: PathLike = "<pickle>") -> None:
+        super().__init__(file, encoding="latin1", fix_imports=True)
+        self._path = os.fspath(path)
+        self._allowed = _allowed_globals()
+
+    def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
+        # Python-2 names (copy_reg, __builtin__) -> Python 3, as pickle's fix_imports does
+        if (module, name) in NAME_MAPPING:
+            module, name = NAME_MAPPING[(module, name)]
+        elif module in IMPORT_MAPPING:
+            module = IMPORT_MAPPING[module]
+        if module == "chumpy" or module.startswith("chumpy."):
+            return _chumpy_stub(module, name)
+        try:
+            return self._allowed[(module, name)]
+        except KeyError:
+            raise UnsafePickleError(
+                self._path,
+                f"refusing to load global '{module}.{name}': only numpy, scipy.sparse and "
+                "chumpy data may appear in a MANO model file",
+            ) from None
+
+    def persistent_load(self, pid: Any) -> Any:
+        raise UnsafePickleError(self._path, "persistent ids are not allowed in a MANO model file")
+
+
+def _as_array(value: Any, where: str) -> np.ndarray:
+    """Turn an unpickled value (array, chumpy stub, sparse matrix, list) into a dense array."""
+    if isinstance(value, ChumpyStub):
+        return value.to_array(where)
+    if sp.issparse(value):
+        try:
+            return np.asarray(value.toarray())
+        except Exception:  # old scipy pickles: rebuild from the raw fields
+            d = value.__dict__
+            shape = d.get("_shape", d.get("shape"))
+            return sp.csc_matrix((d["data"], d["indices"], d["indptr"]), shape=shape).toarray()
+    if isinstance(value, (str, bytes)):
+        raise AssetError(where, f"expected an array, found a string {value!r:.40}")
+    return np.asarray(value)
+
+
+# ----------------------------------------------------------------------------------------
+# The model container
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ManoModelData:
+    """Validated arrays of one MANO-schema hand model (numpy, float64 where real-valued).
+
+    Attributes:
+        v_template: (V, 3) rest vertices, metres.
+        shapedirs: (V, 3, S) shape blend shapes.
+        posedirs: (V, 3, 9 * (J - 1)) pose-corrective blend shapes.
+        J_regressor: (J, V) dense joint regressor.
+        weights: (V, J) skinning weights (rows sum to 1).
+        parents: (J,) parent joint index, -1 for the root; parents[j] < j.
+        faces: (F, 3) int64 triangles.
+        hands_components: (C, 45) PCA basis of the articulation (rows = components).
+        hands_mean: (45,) mean articulation, added when ``flat_hand_mean=False``.
+        hands_coeffs: (N, 45) PCA coefficients of the source poses, or None.
+        side: ``"right"`` or ``"left"``.
+        tip_vertex_ids: (5,) fingertip vertices in ARCTIC order thumb, index, middle, ring, pinky.
+        contact_vertex_ids: named prior-contact vertex sets (finger pads, palm) or empty.
+        vertex_colors: (V, 3) albedo in [0, 1] or None.
+        meta: free-form JSON-able metadata (generator, units, provenance).
+        source: the file it was read from ("" if built in memory).
+    """
+
+    v_template: np.ndarray
+    shapedirs: np.ndarray
+    posedirs: np.ndarray
+    J_regressor: np.ndarray
+    weights: np.ndarray
+    parents: np.ndarray
+    faces: np.ndarray
+    hands_components: np.ndarray
+    hands_mean: np.ndarray
+    hands_coeffs: Optional[np.ndarray]
+    side: str
+    tip_vertex_ids: np.ndarray
+    contact_vertex_ids: Mapping[str, np.ndarray] = field(default_factory=dict)
+    vertex_colors: Optional[np.ndarray] = None
+    meta: Mapping[str, Any] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def num_verts(self) -> int:
+        return int(self.v_template.shape[0])
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.parents.shape[0])
+
+    @property
+    def num_betas(self) -> int:
+        return int(self.shapedirs.shape[2])
+
+    def replace(self, **changes: Any) -> "ManoModelData":
+        """A copy with some fields replaced (validated again)."""
+        out = replace(self, **changes)
+        validate_model(out)
+        return out
+
+
+def validate_model(m: ManoModelData) -> None:
+    """Check every shape and invariant; raise :class:`AssetError` naming the source file."""
+    where = m.source or "<in-memory MANO model>"
+
+    def fail(msg: str) -> None:
+        raise AssetError(where, msg)
+
+    V = m.v_template.shape[0] if m.v_template.ndim == 2 else -1
+    if m.v_template.ndim != 2 or m.v_template.shape[1] != 3 or V < 4:
+        fail(f"v_template must be (V, 3), got {m.v_template.shape}")
+    J = m.parents.shape[0]
+    if m.shapedirs.ndim != 3 or m.shapedirs.shape[:2] != (V, 3):
+        fail(f"shapedirs must be ({V}, 3, S), got {m.shapedirs.shape}")
+    if m.posedirs.shape != (V, 3, 9 * (J - 1)):
+        fail(f"posedirs must be ({V}, 3, {9 * (J - 1)}), got {m.posedirs.shape}")
+    if m.J_regressor.shape != (J, V):
+        fail(f"J_regressor must be ({J}, {V}), got {m.J_regressor.shape}")
+    if m.weights.shape != (V, J):
+        fail(f"weights must be ({V}, {J}), got {m.weights.shape}")
+    if m.parents[0] != -1 or np.any(m.parents[1:] < 0) or np.any(m.parents[1:] >= np.arange(1, J)):
+        fail(f"kintree_table parents must be -1 for the root and < child index, got {m.parents.tolist()}")
+    if m.faces.ndim != 2 or m.faces.shape[1] != 3 or m.faces.min() < 0 or m.faces.max() >= V:
+        fail(f"faces must be (F, 3) indices into {V} vertices")
+    if m.hands_components.ndim != 2 or m.hands_components.shape[1] != 3 * (J - 1):
+        fail(f"hands_components must be (C, {3 * (J - 1)}), got {m.hands_components.shape}")
+    if m.hands_mean.shape != (3 * (J - 1),):
+        fail(f"hands_mean must be ({3 * (J - 1)},), got {m.hands_mean.shape}")
+    if m.side not in ("right", "left"):
+        fail(f"side must be 'right' or 'left', got {m.side!r}")
+    if m.tip_vertex_ids.shape != (5,) or m.tip_vertex_ids.min() < 0 or m.tip_vertex_ids.max() >= V:
+        fail(f"tip_vertex_ids must be 5 indices into {V} vertices, got {m.tip_vertex_ids.tolist()}")
+    for name, arr in (
+        ("v_template", m.v_template),
+        ("shapedirs", m.shapedirs),
+        ("posedirs", m.posedirs),
+        ("J_regressor", m.J_regressor),
+        ("weights", m.weights),
+        ("hands_components", m.hands_components),
+        ("hands_mean", m.hands_mean),
+    ):
+        if not np.all(np.isfinite(arr)):
+            fail(f"{name} contains NaN or inf")
+    if np.abs(m.weights.sum(1) - 1.0).max() > 1e-3:
+        fail("skinning weights rows must sum to 1")
+    if m.vertex_colors is not None and m.vertex_colors.shape != (V, 3):
+        fail(f"vertex_colors must be ({V}, 3), got {m.vertex_colors.shape}")
+    for key, ids in m.contact_vertex_ids.items():
+        if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= V)):
+            fail(f"contact_vertex_ids[{key!r}] must be indices into {V} vertices")
+
+
+# ----------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------
+def _side_from_name(path: str) -> Optional[str]:
+    base = os.path.basename(path).upper()
+    if "RIGHT" in base:
+        return "right"
+    if "LEFT" in base:
+        return "left"
+    return None
+
+
+def _read_pickle(path: str) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            data = RestrictedUnpickler(fh, path).load()
+    except UnsafePickleError:
+        raise
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as exc:
+        raise AssetError(path, f"not a readable MANO pickle ({type(exc).__name__}: {exc})") from None
+    if not isinstance(data, dict):
+        raise AssetError(path, f"expected a dict of arrays at the top level, found {type(data).__name__}")
+    return data
+
+
+def _read_npz(path: str) -> dict:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except ValueError as exc:
+        raise AssetError(path, f"npz holds pickled objects, which are not allowed ({exc})") from None
+    except (OSError, EOFError) as exc:
+        raise AssetError(path, f"not a readable npz file ({exc})") from None
+    if META_KEY in data:  # stored as a JSON string inside the npz
+        data[META_KEY] = json.loads(str(data[META_KEY]))
+    return data
+
+
+def _meta_arrays(meta: Mapping[str, Any]) -> dict:
+    return {k: np.asarray(v, dtype=np.int64) for k, v in (meta.get("contact_vertex_ids") or {}).items()}
+
+
+def model_from_dict(
+    data: Mapping[str, Any],
+    source: str = "",
+    side: Optional[str] = None,
+    tip_vertex_ids: Optional[tuple[int, ...]] = None,
+) -> ManoModelData:
+    """Build and validate a :class:`ManoModelData` from a MANO-schema dict.
+
+    Args:
+        data: the unpickled (or npz) dict: MANO keys, chumpy stubs and sparse allowed.
+        source: file name used in error messages.
+        side: ``"right"``/``"left"``; default from the metadata, then the file name.
+        tip_vertex_ids: override of the fingertip vertices (thumb..pinky).
+    """
+    where = source or "<MANO dict>"
+    missing = [k for k in _REQUIRED_KEYS if k not in data]
+    if missing:
+        raise AssetError(where, f"missing MANO keys {missing}")
+    arr = {k: _as_array(data[k], f"{where}[{k}]") for k in _REQUIRED_KEYS}
+    meta = dict(data.get(META_KEY) or {})
+    if not isinstance(meta, dict):
+        raise AssetError(where, f"{META_KEY} must be a dict")
+    kintree = arr["kintree_table"].astype(np.int64)
+    if kintree.ndim != 2 or kintree.shape[0] != 2:
+        raise AssetError(where, f"kintree_table must be (2, J), got {kintree.shape}")
+    parents = kintree[0].copy()
+    parents[0] = -1  # the release stores a large sentinel for the root
+    side = side or meta.get("side") or _side_from_name(where)
+    if side is None:
+        raise AssetError(where, "cannot tell the hand side: name the file *RIGHT*/*LEFT* or pass side=")
+    V = arr["v_template"].shape[0]
+    if tip_vertex_ids is None:
+        if "tip_vertex_ids" in meta:
+            tip_vertex_ids = tuple(meta["tip_vertex_ids"])
+        elif V == MANO_RELEASE_NUM_VERTS:
+            tip_vertex_ids = MANO_RELEASE_TIP_IDS[side]
+        else:
+            raise AssetError(
+                where,
+                f"model has {V} vertices and no fingertip metadata ('{META_KEY}.tip_vertex_ids'); "
+                "pass tip_vertex_ids=(thumb, index, middle, ring, pinky)",
+            )
+    coeffs = data.get("hands_coeffs")
+    colors = meta.get("vertex_colors")
+    model = ManoModelData(
+        v_template=arr["v_template"].astype(np.float64),
+        shapedirs=arr["shapedirs"].astype(np.float64),
+        posedirs=arr["posedirs"].astype(np.float64),
+        J_regressor=arr["J_regressor"].astype(np.float64),
+        weights=arr["weights"].astype(np.float64),
+        parents=parents,
+        faces=arr["f"].astype(np.int64),
+        hands_components=arr["hands_components"].astype(np.float64),
+        hands_mean=arr["hands_mean"].astype(np.float64).reshape(-1),
+        hands_coeffs=None if coeffs is None else _as_array(coeffs, where).astype(np.float64),
+        side=side,
+        tip_vertex_ids=np.asarray(tip_vertex_ids, dtype=np.int64),
+        contact_vertex_ids=_meta_arrays(meta),
+        vertex_colors=None if colors is None else np.asarray(colors, dtype=np.float64),
+        meta={k: v for k, v in meta.items() if k not in ("vertex_colors", "contact_vertex_ids")},
+        source=source,
+    )
+    validate_model(model)
+    return model
+
+
+def load_mano(
+    path: PathLike,
+    side: Optional[str] = None,
+    tip_vertex_ids: Optional[tuple[int, ...]] = None,
+) -> ManoModelData:
+    """Load a MANO model from a ``.pkl`` (restricted unpickler) or a converted ``.npz``.
+
+    Args:
+        path: ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl`` (real or project-generated), a ``.npz``
+            written by :func:`convert_mano_to_npz`, or a folder holding ``MANO_<SIDE>.pkl``
+            (then ``side`` is required).
+        side: ``"right"``/``"left"``; inferred from metadata or the file name when omitted.
+        tip_vertex_ids: override of the five fingertip vertices (thumb..pinky).
+
+    Raises:
+        AssetError: missing file, unreadable content, wrong shapes (message names the file).
+        UnsafePickleError: the pickle references a global outside the allow-list.
+    """
+    p = os.fspath(path)
+    if os.path.isdir(p):
+        if side not in ("right", "left"):
+            raise AssetError(p, "a folder was given: pass side='right' or 'left'")
+        cands = [os.path.join(p, f"MANO_{side.upper()}.{ext}") for ext in ("pkl", "npz")]
+        found = [c for c in cands if os.path.isfile(c)]
+        if not found:
+            raise AssetError(p, f"no MANO_{side.upper()}.pkl or .npz in this folder")
+        p = found[0]
+    if not os.path.isfile(p):
+        raise AssetError(p, "MANO model file not found (MANO cannot be downloaded here: "
+                            "register at mano.is.tue.mpg.de, or run `hogsa assets` for the synthetic hand)")
+    data = _read_npz(p) if p.endswith(".npz") else _read_pickle(p)
+    return model_from_dict(data, source=p, side=side, tip_vertex_ids=tip_vertex_ids)
+
+
+# ----------------------------------------------------------------------------------------
+# Writing
+# ----------------------------------------------------------------------------------------
+def _schema_dict(m: ManoModelData) -> dict[str, Any]:
+    kintree = np.stack([m.parents, np.arange(m.num_joints)]).astype(np.int64)
+    kintree[0, 0] = 4294967295  # the release's root sentinel (uint32 -1)
+    meta = dict(m.meta)
+    meta.update(
+        side=m.side,
+        tip_vertex_ids=[int(i) for i in m.tip_vertex_ids],
+        contact_vertex_ids={k: [int(i) for i in v] for k, v in m.contact_vertex_ids.items()},
+    )
+    if m.vertex_colors is not None:
+        meta["vertex_colors"] = np.round(m.vertex_colors, 6).tolist()
+    out: dict[str, Any] = {
+        "hands_components": m.hands_components,
+        "f": m.faces.astype(np.uint32),
+        "J_regressor": sp.csc_matrix(m.J_regressor),
+        "kintree_table": kintree,
+        "J": m.J_regressor @ m.v_template,
+        "bs_style": "lbs",
+        "hands_coeffs": m.hands_coeffs if m.hands_coeffs is not None else np.zeros((0, m.hands_mean.shape[0])),
+        "weights": m.weights,
+        "posedirs": m.posedirs,
+        "hands_mean": m.hands_mean,
+        "v_template": m.v_template,
+        "shapedirs": m.shapedirs,
+        "bs_type": "lrotmin",
+        META_KEY: meta,
+    }
+    return out
+
+
+class _ChumpyCh:
+    """Writer-side placeholder pickled as ``chumpy.ch.Ch`` with state ``{'x': array}``."""
+
+    def __init__(self, x: np.ndarray) -> None:
+        self.x = x
+
+    def __reduce__(self) -> tuple:
+        return (copyreg._reconstructor, (_ChumpyCh, object, None), {"x": self.x})
+
+
+class _LegacyPickler(pickle._Pickler):  # type: ignore[name-defined]
+    """Protocol-2 pickler that writes the global names of a Python-2 MANO file.
+
+    numpy's ``_core`` is written as ``core``, scipy's private ``_csc`` module as ``csc``, the
+    chumpy placeholder as ``chumpy.ch.Ch``, and ``bytes`` as Python-2 ``str`` (BINSTRING), so
+    that readers meet exactly what the official files contain.
+    """
+
+    _RENAMES = {
+        "numpy._core.multiarray": "numpy.core.multiarray",
+        "numpy._core.numeric": "numpy.core.numeric",
+        "scipy.sparse._csc": "scipy.sparse.csc",
+    }
+    dispatch = dict(pickle._Pickler.dispatch)  # type: ignore[attr-defined]
+
+    def save_global(self, obj: Any, name: Optional[str] = None) -> None:  # noqa: D401
+        if obj is _ChumpyCh:
+            module, qual = "chumpy.ch", "Ch"
+        else:
+            module, qual = obj.__module__, name or obj.__qualname__
+            module = self._RENAMES.get(module, module)
+        if (module, qual) in REVERSE_NAME_MAPPING:
+            module, qual = REVERSE_NAME_MAPPING[(module, qual)]
+        module = REVERSE_IMPORT_MAPPING.get(module, module)
+        self.write(pickle.GLOBAL + f"{module}\n{qual}\n".encode("latin1"))
+        self.memoize(obj)
+
+    def save_bytes_py2(self, obj: bytes) -> None:
+        n = len(obj)
+        if n < 256:
+            self.write(pickle.SHORT_BINSTRING + bytes([n]) + obj)
+        else:
+            self.write(pickle.BINSTRING + n.to_bytes(4, "little") + obj)
+        self.memoize(obj)
+
+    dispatch[bytes] = save_bytes_py2
+
+
+def write_mano_pickle(model: ManoModelData, path: PathLike) -> None:
+    """Write ``model`` as a legacy MANO pickle (the schema of ``MANO_RIGHT.pkl``).
+
+    ``shapedirs`` is stored as a chumpy ``Ch`` (as in the release), ``J_regressor`` as a
+    ``scipy.sparse`` CSC matrix, ``kintree_table`` with the uint32 root sentinel, and the
+    project metadata (side, fingertips, contact sets, colours) under ``hogsa_meta``.
+    The file is written atomically.
+    """
+    p = os.fspath(path)
+    d = _schema_dict(model)
+    d["shapedirs"] = _ChumpyCh(np.ascontiguousarray(d["shapedirs"]))
+    buf = io.BytesIO()
+    _LegacyPickler(buf, protocol=2, fix_imports=True).dump(d)
+    os.makedirs(os.path.dirname(os.path.abspath(p)), exist_ok=True)
+    tmp = p + ".tmp"
+    with open(tmp, "wb") as fh:
+        fh.write(buf.getvalue())
+    os.replace(tmp, p)
+
+
+def convert_mano_to_npz(src: PathLike, dst: PathLike, side: Optional[str] = None) -> ManoModelData:
+    """Convert a MANO pickle into a chumpy-free, pickle-free ``.npz`` (smplx-compatible keys).
+
+    Returns the loaded model. The npz holds dense arrays only; the metadata is a JSON string.
+    """
+    model = load_mano(src, side=side)
+    d = _schema_dict(model)
+    d["J_regressor"] = model.J_regressor
+    d[META_KEY] = json.dumps(d[META_KEY])
+    d["bs_style"] = np.array("lbs")
+    d["bs_type"] = np.array("lrotmin")
+    d["f"] = model.faces.astype(np.int64)
+    out = os.fspath(dst)
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    with open(out + ".tmp", "wb") as fh:
+        np.savez(fh, **d)
+    os.replace(out + ".tmp", out)
+    return model

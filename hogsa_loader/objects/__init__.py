@@ -1,0 +1,58 @@
+"""Objects: ARCTIC articulated templates and layer, H2O rigid poses, procedural objects.
+
+Conventions follow the ARCTIC specification (``arctic_format.md`` §1.6, §2): templates in
+metres in a canonical frame whose z axis is the hinge; ``parts.json`` 0 = top
+(articulated), 1 = bottom (base); the top rotates by ``R_z(-θ)`` before the global pose.
+"""
+
+from hogsa_loader.objects.articulated import (
+    ARTICULATION_AXIS,
+    ArticulatedObjectLayer,
+    articulate,
+    articulation_matrix,
+)
+from hogsa_loader.objects.procedural import (
+    PROCEDURAL_NAMES,
+    make_object,
+    write_procedural_objects,
+)
+from hogsa_loader.objects.rigid import (
+    H2O_OBJECT_NAMES,
+    parse_h2o_obj_pose_rt,
+    pose_rigid,
+    read_h2o_obj_pose_rt,
+)
+from hogsa_loader.objects.template import (
+    BOTTOM,
+    OBJECT_NAMES,
+    TOP,
+    ObjectTemplate,
+    load_object_template,
+    load_object_templates,
+    read_object_meta,
+    write_object_meta,
+    write_object_template,
+)
+
+__all__ = [
+    "ARTICULATION_AXIS",
+    "ArticulatedObjectLayer",
+    "BOTTOM",
+    "H2O_OBJECT_NAMES",
+    "OBJECT_NAMES",
+    "ObjectTemplate",
+    "PROCEDURAL_NAMES",
+    "TOP",
+    "articulate",
+    "articulation_matrix",
+    "load_object_template",
+    "load_object_templates",
+    "make_object",
+    "parse_h2o_obj_pose_rt",
+    "pose_rigid",
+    "read_h2o_obj_pose_rt",
+    "read_object_meta",
+    "write_object_meta",
+    "write_object_template",
+    "write_procedural_objects",
+]

@@ -1,0 +1,659 @@
+"""ARCTIC object templates: reading and writing ``meta/object_vtemplates/<obj>/``.
+
+The folder layout follows the ARCTIC specification (``arctic_format.md`` §1.6):
+
+============================  ===========================================================
+file                          content (units as stored on disk)
+============================  ===========================================================
+``mesh.obj``                  the mesh all numbers refer to (mm), read with trimesh
+                              ``process=False``
+``parts.json``                one int per ``mesh.obj`` vertex, values in {0, 1}
+``object_params.json``        ``mocap_top``/``mocap_bottom`` (M,3), ``bbox_top``/
+                              ``bbox_bottom`` (8,3), ``keypoints_top``/
+                              ``keypoints_bottom`` (16,3), mm
+``top_keypoints_300.json``    ``{"keypoints": 300x3}`` farthest-point samples of the top
+``bottom_keypoints_300.json`` same for the bottom part
+``top.obj``/``bottom.obj``    the two parts as separate meshes (mm, optional)
+``mesh_tex.obj`` + ``material.mtl`` + ``material.jpg``  textured mesh (mm, optional)
+============================  ===========================================================
+
+Part labels follow the **code** convention of ARCTIC (spec §1.6, DOC≠CODE note): in
+``parts.json`` **0 = top (articulated) and 1 = bottom (base)**; the object layer adds 1
+(``parts_ids``), so ``parts_ids == 1`` is the top and ``parts_ids == 2`` the bottom.
+
+In memory every length is in metres (the files are in mm and are divided by 1000 on load,
+as ARCTIC's ``ObjectTensors`` does), in the object's canonical frame whose z axis is the
+articulation axis.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from hogsa_loader.errors import AssetError, PathLike
+
+__all__ = [
+    "OBJECT_NAMES",
+    "TOP",
+    "BOTTOM",
+    "BBOX_CORNER_ORDER",
+    "ObjectTemplate",
+    "load_object_template",
+    "load_object_templates",
+    "read_object_meta",
+    "write_object_template",
+    "write_object_meta",
+    "bbox_corners",
+    "farthest_point_sampling",
+    "max_pairwise_distance",
+]
+
+#: ARCTIC's 11 objects; the position in this tuple is ARCTIC's object index
+#: (``common/object_tensors.py`` ``OBJECTS``, spec §1.2).
+OBJECT_NAMES: tuple[str, ...] = (
+    "capsulemachine",
+    "box",
+    "ketchup",
+    "laptop",
+    "microwave",
+    "mixer",
+    "notebook",
+    "espressomachine",
+    "waffleiron",
+    "scissors",
+    "phone",
+)
+
+#: ``parts.json`` value of the articulated (top) part (ARCTIC code convention).
+TOP = 0
+#: ``parts.json`` value of the base (bottom) part (ARCTIC code convention).
+BOTTOM = 1
+
+#: Order of the 8 corners written by :func:`bbox_corners`: corner ``k`` takes the max of
+#: x if ``k & 4``, of y if ``k & 2`` and of z if ``k & 1`` (the min otherwise), i.e.
+#: ``itertools.product((xmin, xmax), (ymin, ymax), (zmin, zmax))``.
+BBOX_CORNER_ORDER = "itertools.product((xmin,xmax),(ymin,ymax),(zmin,zmax))"
+
+MESH_FILE = "mesh.obj"
+PARTS_FILE = "parts.json"
+PARAMS_FILE = "object_params.json"
+TOP300_FILE = "top_keypoints_300.json"
+BOTTOM300_FILE = "bottom_keypoints_300.json"
+TEX_MESH_FILE = "mesh_tex.obj"
+TEX_IMAGE_FILE = "material.jpg"
+TEX_MTL_FILE = "material.mtl"
+OBJECT_META_FILE = "object_meta.json"
+VTEMPLATES_DIR = "object_vtemplates"
+
+MM_PER_M = 1000.0
+NUM_KEYPOINTS = 16
+NUM_SUB = 300
+JPEG_QUALITY = 95
+
+
+# --------------------------------------------------------------------------------------
+# Data class
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class ObjectTemplate:
+    """One articulated object in its canonical frame (metres, numpy arrays).
+
+    Attributes:
+        name: object name (e.g. ``"box"``).
+        verts: (V, 3) float32 ``mesh.obj`` vertices.
+        faces: (F, 3) int64 triangles into ``verts``.
+        parts: (V,) int64 ``parts.json`` labels, 0 = top (articulated), 1 = bottom.
+        kp_top, kp_bottom: (16, 3) keypoints of each part.
+        bbox_top, bbox_bottom: (8, 3) box corners of each part (order:
+            :data:`BBOX_CORNER_ORDER` for the templates this project generates; read as
+            stored for real ARCTIC files).
+        mocap_top, mocap_bottom: (M, 3) MoCap marker positions (M may be 0).
+        sub_top, sub_bottom: (300, 3) farthest-point samples of each part.
+        diameter: metres, from ``object_meta.json`` when known, else the largest
+            distance between two vertices.
+        tex_verts: optional (Vt, 3) float32 vertices of the textured mesh.
+        tex_faces: optional (Ft, 3) int64 triangles into ``tex_verts``.
+        tex_uv: optional (Vt, 2) float32 texture coordinates, OBJ convention (origin at
+            the bottom-left of the image, v pointing up).
+        texture: optional (H, W, 3) uint8 RGB image.
+        tex_parts: optional (Vt,) int64 part labels of the textured vertices (0/1 as
+            ``parts``).
+    """
+
+    name: str
+    verts: np.ndarray
+    faces: np.ndarray
+    parts: np.ndarray
+    kp_top: np.ndarray
+    kp_bottom: np.ndarray
+    bbox_top: np.ndarray
+    bbox_bottom: np.ndarray
+    mocap_top: np.ndarray
+    mocap_bottom: np.ndarray
+    sub_top: np.ndarray
+    sub_bottom: np.ndarray
+    diameter: float
+    tex_verts: Optional[np.ndarray] = None
+    tex_faces: Optional[np.ndarray] = None
+    tex_uv: Optional[np.ndarray] = None
+    texture: Optional[np.ndarray] = None
+    tex_parts: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        f32 = np.float32
+        self.verts = np.ascontiguousarray(self.verts, dtype=f32).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        self.parts = np.ascontiguousarray(self.parts, dtype=np.int64).reshape(-1)
+        for key in ("kp_top", "kp_bottom", "bbox_top", "bbox_bottom", "mocap_top",
+                    "mocap_bottom", "sub_top", "sub_bottom"):
+            setattr(self, key, np.ascontiguousarray(getattr(self, key), dtype=f32).reshape(-1, 3))
+        self.diameter = float(self.diameter)
+        if self.tex_verts is not None:
+            self.tex_verts = np.ascontiguousarray(self.tex_verts, dtype=f32).reshape(-1, 3)
+            self.tex_faces = np.ascontiguousarray(self.tex_faces, dtype=np.int64).reshape(-1, 3)
+            self.tex_uv = np.ascontiguousarray(self.tex_uv, dtype=f32).reshape(-1, 2)
+            self.texture = np.ascontiguousarray(self.texture, dtype=np.uint8)
+            if self.tex_parts is not None:
+                self.tex_parts = np.ascontiguousarray(self.tex_parts, dtype=np.int64).reshape(-1)
+        if self.parts.shape[0] != self.verts.shape[0]:
+            raise ValueError(
+                f"object {self.name!r}: {self.parts.shape[0]} part labels for "
+                f"{self.verts.shape[0]} vertices"
+            )
+
+    @property
+    def has_texture(self) -> bool:
+        """True when a textured mesh and its image are attached."""
+        return self.tex_verts is not None and self.texture is not None
+
+    def part_mesh(self, part: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-mesh of one part (faces whose three vertices carry label ``part``).
+
+        Args:
+            part: :data:`TOP` (0) or :data:`BOTTOM` (1).
+
+        Returns:
+            (Vp, 3) float32 vertices and (Fp, 3) int64 faces re-indexed into them.
+        """
+        keep = self.parts == part
+        face_keep = keep[self.faces].all(axis=1)
+        new_index = np.cumsum(keep) - 1
+        return self.verts[keep], new_index[self.faces[face_keep]]
+
+    def part_points(self, part: int) -> np.ndarray:
+        """(Vp, 3) vertices of one part (0 = top, 1 = bottom)."""
+        return self.verts[self.parts == part]
+
+
+# --------------------------------------------------------------------------------------
+# Small geometric helpers shared with the procedural generator
+# --------------------------------------------------------------------------------------
+
+
+def bbox_corners(points: np.ndarray) -> np.ndarray:
+    """The 8 corners of the axis-aligned box of ``points``.
+
+    Args:
+        points: (N, 3) points.
+
+    Returns:
+        (8, 3) corners; corner ``k`` takes the max of x if ``k & 4``, of y if ``k & 2``,
+        of z if ``k & 1`` (see :data:`BBOX_CORNER_ORDER`).
+    """
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    bits = (np.arange(8)[:, None] >> np.array([2, 1, 0])[None, :]) & 1
+    return np.where(bits == 1, hi[None, :], lo[None, :])
+
+
+def farthest_point_sampling(points: np.ndarray, k: int, start: Optional[int] = None) -> np.ndarray:
+    """Deterministic farthest-point sampling.
+
+    Args:
+        points: (N, 3) candidate points.
+        k: number of samples (``k <= N``).
+        start: index of the first sample; default: the point farthest from the centroid.
+
+    Returns:
+        (k,) int64 indices into ``points``.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if k > pts.shape[0]:
+        raise ValueError(f"cannot pick {k} samples out of {pts.shape[0]} points")
+    if start is None:
+        start = int(np.argmax(((pts - pts.mean(axis=0)) ** 2).sum(axis=1)))
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = start
+    dist = ((pts - pts[start]) ** 2).sum(axis=1)
+    for i in range(1, k):
+        nxt = int(np.argmax(dist))
+        chosen[i] = nxt
+        dist = np.minimum(dist, ((pts - pts[nxt]) ** 2).sum(axis=1))
+    return chosen
+
+
+def max_pairwise_distance(points: np.ndarray) -> float:
+    """Largest distance between two of ``points`` (via the convex hull).
+
+    Args:
+        points: (N, 3) points.
+
+    Returns:
+        the diameter of the point set, in the unit of ``points``.
+    """
+    from scipy.spatial import ConvexHull
+    from scipy.spatial.distance import pdist
+
+    pts = np.asarray(points, dtype=np.float64)
+    try:
+        pts = pts[ConvexHull(pts).vertices]
+    except Exception:  # degenerate (flat) sets: fall back to all points
+        pass
+    if pts.shape[0] < 2:
+        return 0.0
+    return float(pdist(pts).max())
+
+
+# --------------------------------------------------------------------------------------
+# Validation helpers (every failure is an AssetError naming the file)
+# --------------------------------------------------------------------------------------
+
+
+def _read_json(path: Path) -> Any:
+    """Parse a JSON file, raising :class:`AssetError` when missing or malformed."""
+    if not path.is_file():
+        raise AssetError(path, "file is missing")
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            return json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise AssetError(path, f"cannot read file ({exc})") from exc
+
+
+def _points(value: Any, path: Path, key: str, count: Optional[int]) -> np.ndarray:
+    """Convert a JSON value to (count, 3) finite float64 points (mm)."""
+    if isinstance(value, Mapping):  # marker dicts {name: xyz} keep their stored order
+        value = list(value.values())
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise AssetError(path, f"{key!r} is not a list of numeric 3-vectors") from exc
+    if arr.size == 0 and count is None:
+        return np.zeros((0, 3))
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise AssetError(path, f"{key!r} has shape {arr.shape}, expected (N, 3)")
+    if count is not None and arr.shape[0] != count:
+        raise AssetError(path, f"{key!r} has {arr.shape[0]} points, expected {count}")
+    if not np.isfinite(arr).all():
+        raise AssetError(path, f"{key!r} contains NaN or infinite values")
+    return arr
+
+
+def _read_obj(path: Path) -> Any:
+    """Load an OBJ with trimesh (``process=False``, vertex order kept)."""
+    import trimesh
+
+    if not path.is_file():
+        raise AssetError(path, "file is missing")
+    try:
+        mesh = trimesh.load(
+            str(path), process=False, force="mesh", maintain_order=True, skip_materials=True
+        )
+    except Exception as exc:  # trimesh raises many kinds of errors on bad files
+        raise AssetError(path, f"cannot parse mesh ({exc})") from exc
+    verts = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if verts.ndim != 2 or verts.shape[0] == 0 or faces.ndim != 2 or faces.shape[0] == 0:
+        raise AssetError(path, "mesh has no vertices or no triangles")
+    if faces.shape[1] != 3:
+        raise AssetError(path, f"faces have {faces.shape[1]} corners, expected triangles")
+    if not np.isfinite(verts).all():
+        raise AssetError(path, "vertices contain NaN or infinite values")
+    if faces.min() < 0 or faces.max() >= verts.shape[0]:
+        raise AssetError(path, "a face refers to a vertex that does not exist")
+    return mesh
+
+
+def _read_parts(path: Path, num_verts: int) -> np.ndarray:
+    """Read and check ``parts.json`` against the vertex count of ``mesh.obj``."""
+    raw = _read_json(path)
+    if not isinstance(raw, list):
+        raise AssetError(path, f"expected a JSON list of part labels, got {type(raw).__name__}")
+    try:
+        arr = np.asarray(raw, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise AssetError(path, "part labels must be numbers") from exc
+    if arr.shape[0] != num_verts:
+        raise AssetError(
+            path, f"has {arr.shape[0]} labels but {MESH_FILE} has {num_verts} vertices"
+        )
+    if not np.isin(arr, (TOP, BOTTOM)).all():
+        bad = np.unique(arr[~np.isin(arr, (TOP, BOTTOM))])[:5]
+        raise AssetError(path, f"labels must be 0 (top) or 1 (bottom), found {bad.tolist()}")
+    parts = arr.astype(np.int64)
+    for label, word in ((TOP, "top"), (BOTTOM, "bottom")):
+        if not (parts == label).any():
+            raise AssetError(path, f"the {word} part (label {label}) has no vertex")
+    return parts
+
+
+def _read_sub(path: Path) -> np.ndarray:
+    """Read ``{"keypoints": 300x3}`` (mm)."""
+    raw = _read_json(path)
+    if not isinstance(raw, Mapping) or "keypoints" not in raw:
+        raise AssetError(path, 'expected a JSON object with key "keypoints"')
+    return _points(raw["keypoints"], path, "keypoints", NUM_SUB)
+
+
+def _read_texture(folder: Path, verts_mm: np.ndarray, parts: np.ndarray) -> dict[str, Any]:
+    """Read ``mesh_tex.obj`` + ``material.jpg``; label textured vertices by nearest vertex."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    obj_path = folder / TEX_MESH_FILE
+    img_path = folder / TEX_IMAGE_FILE
+    mesh = _read_obj(obj_path)
+    uv = getattr(mesh.visual, "uv", None)
+    tex_verts = np.asarray(mesh.vertices, dtype=np.float64)
+    if uv is None or np.asarray(uv).shape != (tex_verts.shape[0], 2):
+        raise AssetError(obj_path, "textured mesh has no per-vertex texture coordinates (vt)")
+    uv = np.asarray(uv, dtype=np.float64)
+    if not np.isfinite(uv).all():
+        raise AssetError(obj_path, "texture coordinates contain NaN or infinite values")
+    if not img_path.is_file():
+        raise AssetError(img_path, f"file is missing (needed by {TEX_MESH_FILE})")
+    bgr = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
+    if bgr is None or bgr.ndim != 3:
+        raise AssetError(img_path, "cannot decode image")
+    _, nearest = cKDTree(verts_mm).query(tex_verts)
+    return {
+        "tex_verts": tex_verts / MM_PER_M,
+        "tex_faces": np.asarray(mesh.faces, dtype=np.int64),
+        "tex_uv": uv,
+        "texture": np.ascontiguousarray(bgr[..., ::-1]),
+        "tex_parts": parts[nearest],
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------
+
+
+def read_object_meta(path: PathLike) -> dict[str, dict[str, float]]:
+    """Read ``meta/object_meta.json`` (``{obj: {"diameter": metres}}``).
+
+    Args:
+        path: the JSON file.
+
+    Returns:
+        ``{name: {"diameter": float}}``.
+    """
+    path = Path(path)
+    raw = _read_json(path)
+    if not isinstance(raw, Mapping):
+        raise AssetError(path, "expected a JSON object {name: {\"diameter\": ...}}")
+    out: dict[str, dict[str, float]] = {}
+    for name, entry in raw.items():
+        if not isinstance(entry, Mapping) or "diameter" not in entry:
+            raise AssetError(path, f"entry {name!r} has no 'diameter'")
+        try:
+            diameter = float(entry["diameter"])
+        except (TypeError, ValueError) as exc:
+            raise AssetError(path, f"diameter of {name!r} is not a number") from exc
+        if not math.isfinite(diameter) or diameter <= 0:
+            raise AssetError(path, f"diameter of {name!r} must be finite and > 0, got {diameter}")
+        out[str(name)] = dict(entry, diameter=diameter)
+    return out
+
+
+def load_object_template(
+    folder: PathLike,
+    name: Optional[str] = None,
+    object_meta: Optional[Mapping[str, Mapping[str, Any]]] = None,
+    load_texture: bool = True,
+) -> ObjectTemplate:
+    """Read one ARCTIC ``meta/object_vtemplates/<obj>/`` folder.
+
+    Args:
+        folder: the object's folder.
+        name: object name; default: the folder name.
+        object_meta: parsed ``object_meta.json`` (see :func:`read_object_meta`); when it
+            has an entry for ``name`` its diameter (metres) is used, otherwise the
+            diameter is the largest vertex-to-vertex distance.
+        load_texture: read ``mesh_tex.obj`` + ``material.jpg`` when ``mesh_tex.obj`` exists.
+
+    Returns:
+        the template in metres (files are mm and divided by 1000).
+
+    Raises:
+        AssetError: a file is missing, malformed or inconsistent (the message names it).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise AssetError(folder, "object template folder is missing")
+    name = folder.name if name is None else name
+
+    mesh = _read_obj(folder / MESH_FILE)
+    verts_mm = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    parts = _read_parts(folder / PARTS_FILE, verts_mm.shape[0])
+
+    params_path = folder / PARAMS_FILE
+    params = _read_json(params_path)
+    if not isinstance(params, Mapping):
+        raise AssetError(params_path, "expected a JSON object")
+    expected = {
+        "keypoints_top": NUM_KEYPOINTS,
+        "keypoints_bottom": NUM_KEYPOINTS,
+        "bbox_top": 8,
+        "bbox_bottom": 8,
+        "mocap_top": None,
+        "mocap_bottom": None,
+    }
+    arrays: dict[str, np.ndarray] = {}
+    for key, count in expected.items():
+        if key not in params:
+            raise AssetError(params_path, f"key {key!r} is missing")
+        arrays[key] = _points(params[key], params_path, key, count)
+
+    sub_top = _read_sub(folder / TOP300_FILE)
+    sub_bottom = _read_sub(folder / BOTTOM300_FILE)
+
+    if object_meta is not None and name in object_meta:
+        diameter = float(object_meta[name]["diameter"])
+    else:
+        diameter = max_pairwise_distance(verts_mm) / MM_PER_M
+
+    tex: dict[str, Any] = {}
+    if load_texture and (folder / TEX_MESH_FILE).is_file():
+        tex = _read_texture(folder, verts_mm, parts)
+
+    m = 1.0 / MM_PER_M
+    return ObjectTemplate(
+        name=name,
+        verts=verts_mm * m,
+        faces=faces,
+        parts=parts,
+        kp_top=arrays["keypoints_top"] * m,
+        kp_bottom=arrays["keypoints_bottom"] * m,
+        bbox_top=arrays["bbox_top"] * m,
+        bbox_bottom=arrays["bbox_bottom"] * m,
+        mocap_top=arrays["mocap_top"] * m,
+        mocap_bottom=arrays["mocap_bottom"] * m,
+        sub_top=sub_top * m,
+        sub_bottom=sub_bottom * m,
+        diameter=diameter,
+        **tex,
+    )
+
+
+def _sort_names(names: Iterable[str]) -> list[str]:
+    """ARCTIC objects first in ARCTIC index order, then any others alphabetically."""
+    names = list(names)
+    known = [n for n in OBJECT_NAMES if n in names]
+    return known + sorted(n for n in names if n not in OBJECT_NAMES)
+
+
+def load_object_templates(
+    meta_dir: PathLike,
+    names: Optional[Sequence[str]] = None,
+    load_texture: bool = True,
+) -> dict[str, ObjectTemplate]:
+    """Read every (or the named) object under ``meta_dir/object_vtemplates``.
+
+    Args:
+        meta_dir: ARCTIC's ``meta`` folder; ``meta_dir/object_meta.json`` is optional.
+        names: objects to read; default: every sub-folder.
+        load_texture: also read the textured meshes when present.
+
+    Returns:
+        ``{name: template}`` ordered as ARCTIC's object index (unknown names after,
+        alphabetically) unless ``names`` gives an order.
+    """
+    meta_dir = Path(meta_dir)
+    root = meta_dir / VTEMPLATES_DIR
+    if not root.is_dir():
+        raise AssetError(root, "object template folder is missing")
+    meta_path = meta_dir / OBJECT_META_FILE
+    meta = read_object_meta(meta_path) if meta_path.is_file() else None
+    if names is None:
+        names = _sort_names(p.name for p in root.iterdir() if p.is_dir())
+    out: dict[str, ObjectTemplate] = {}
+    for name in names:
+        out[name] = load_object_template(root / name, name=name, object_meta=meta,
+                                         load_texture=load_texture)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+def _fmt_rows(rows: np.ndarray, prefix: str) -> str:
+    """Lines ``prefix a b c`` with 6 decimals (mm -> nanometre resolution)."""
+    cols = rows.shape[1]
+    fmt = prefix + " " + " ".join(["%.6f"] * cols) + "\n"
+    return "".join(fmt % tuple(r) for r in rows.tolist())
+
+
+def _obj_text(verts_mm: np.ndarray, faces: np.ndarray, uv: Optional[np.ndarray] = None,
+              mtl: Optional[str] = None) -> str:
+    """Wavefront OBJ text; with ``uv`` the ``vt`` indices equal the ``v`` indices."""
+    lines = []
+    if mtl is not None:
+        lines.append(f"mtllib {mtl}\nusemtl material_0\n")
+    lines.append(_fmt_rows(verts_mm.astype(np.float64), "v"))
+    f1 = faces.astype(np.int64) + 1
+    if uv is not None:
+        lines.append(_fmt_rows(uv.astype(np.float64), "vt"))
+        lines.append("".join(f"f {a}/{a} {b}/{b} {c}/{c}\n" for a, b, c in f1.tolist()))
+    else:
+        lines.append("".join(f"f {a} {b} {c}\n" for a, b, c in f1.tolist()))
+    return "".join(lines)
+
+
+def _json_points(points_m: np.ndarray) -> list[list[float]]:
+    """Metres -> mm lists rounded to 6 decimals (stable, byte-reproducible JSON)."""
+    mm = np.asarray(points_m, dtype=np.float64).reshape(-1, 3) * MM_PER_M
+    return [[round(float(x), 6) for x in row] for row in mm]
+
+
+def _write_text(path: Path, text: str) -> None:
+    with open(path, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write(text)
+
+
+def write_object_template(template: ObjectTemplate, folder: PathLike) -> Path:
+    """Write ``template`` in the ARCTIC ``object_vtemplates/<obj>/`` layout (mm).
+
+    Writes ``mesh.obj``, ``parts.json``, ``object_params.json``,
+    ``top_keypoints_300.json``, ``bottom_keypoints_300.json``, ``top.obj``,
+    ``bottom.obj`` and, when a textured mesh is attached, ``mesh_tex.obj``,
+    ``material.mtl`` and ``material.jpg`` (JPEG quality 95, byte-reproducible).
+
+    Args:
+        template: the object (metres).
+        folder: destination folder (created).
+
+    Returns:
+        the folder.
+    """
+    import cv2
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    verts_mm = template.verts.astype(np.float64) * MM_PER_M
+
+    _write_text(folder / MESH_FILE, _obj_text(verts_mm, template.faces))
+    _write_text(folder / PARTS_FILE, json.dumps([int(p) for p in template.parts]))
+    params = {
+        "mocap_top": _json_points(template.mocap_top),
+        "mocap_bottom": _json_points(template.mocap_bottom),
+        "bbox_top": _json_points(template.bbox_top),
+        "bbox_bottom": _json_points(template.bbox_bottom),
+        "keypoints_top": _json_points(template.kp_top),
+        "keypoints_bottom": _json_points(template.kp_bottom),
+    }
+    _write_text(folder / PARAMS_FILE, json.dumps(params))
+    _write_text(folder / TOP300_FILE, json.dumps({"keypoints": _json_points(template.sub_top)}))
+    _write_text(folder / BOTTOM300_FILE,
+                json.dumps({"keypoints": _json_points(template.sub_bottom)}))
+    for part, fname in ((TOP, "top.obj"), (BOTTOM, "bottom.obj")):
+        pv, pf = template.part_mesh(part)
+        _write_text(folder / fname, _obj_text(pv.astype(np.float64) * MM_PER_M, pf))
+
+    if template.has_texture:
+        assert template.tex_verts is not None and template.tex_faces is not None
+        assert template.tex_uv is not None and template.texture is not None
+        _write_text(
+            folder / TEX_MESH_FILE,
+            _obj_text(template.tex_verts.astype(np.float64) * MM_PER_M, template.tex_faces,
+                      uv=template.tex_uv, mtl=TEX_MTL_FILE),
+        )
+        _write_text(
+            folder / TEX_MTL_FILE,
+            "newmtl material_0\nKa 1.000000 1.000000 1.000000\nKd 1.000000 1.000000 1.000000\n"
+            f"Ks 0.000000 0.000000 0.000000\nd 1.000000\nillum 1\nmap_Kd {TEX_IMAGE_FILE}\n",
+        )
+        ok = cv2.imwrite(str(folder / TEX_IMAGE_FILE),
+                         np.ascontiguousarray(template.texture[..., ::-1]),
+                         [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise AssetError(folder / TEX_IMAGE_FILE, "cv2 could not write the texture")
+    return folder
+
+
+def write_object_meta(meta_dir: PathLike, templates: Iterable[ObjectTemplate]) -> Path:
+    """Write ``meta_dir/object_meta.json`` = ``{name: {"diameter": metres}}``.
+
+    Entries already in the file for other objects are kept.
+
+    Args:
+        meta_dir: ARCTIC's ``meta`` folder.
+        templates: objects whose diameter to record.
+
+    Returns:
+        the JSON path.
+    """
+    meta_dir = Path(meta_dir)
+    meta_dir.mkdir(parents=True, exist_ok=True)
+    path = meta_dir / OBJECT_META_FILE
+    meta: dict[str, Any] = {}
+    if path.is_file():
+        meta = {k: dict(v) for k, v in read_object_meta(path).items()}
+    for t in templates:
+        meta[t.name] = {"diameter": round(float(t.diameter), 9)}
+    ordered = {k: meta[k] for k in _sort_names(meta.keys())}
+    _write_text(path, json.dumps(ordered, indent=1) + "\n")
+    return path

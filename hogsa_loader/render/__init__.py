@@ -1,0 +1,1 @@
+"""Classical rendering utilities (mesh rasterisation, previews)."""

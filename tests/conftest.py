@@ -1,0 +1,63 @@
+"""Shared fixtures: the synthetic MANO-schema hands written as real-format pickles."""
+
+from __future__ import annotations
+
+import os
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hogsa_loader.hands.mano_io import write_mano_pickle
+from hogsa_loader.hands.synthetic import synthetic_hand_pair
+
+torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+
+@pytest.fixture(scope="session")
+def hand_pair():
+    """(right, left) synthetic models (in memory)."""
+    return synthetic_hand_pair()
+
+
+@pytest.fixture(scope="session")
+def mano_dir(tmp_path_factory, hand_pair) -> Path:
+    """A ``body_models/mano`` folder with MANO_RIGHT.pkl / MANO_LEFT.pkl in the legacy schema."""
+    d = tmp_path_factory.mktemp("body_models") / "mano"
+    right, left = hand_pair
+    write_mano_pickle(right, d / "MANO_RIGHT.pkl")
+    write_mano_pickle(left, d / "MANO_LEFT.pkl")
+    return d
+
+
+class _ChumpyShim:
+    """Test-only stand-in for ``chumpy.ch.Ch`` so that smplx can read a chumpy pickle
+    through plain ``pickle.load`` (what smplx does) without installing chumpy."""
+
+    def __setstate__(self, state):
+        self.x = np.asarray(state["x"])
+
+    @property
+    def shape(self):
+        return self.x.shape
+
+    def __getitem__(self, item):
+        return self.x[item]
+
+    def __array__(self, dtype=None, copy=None):
+        return self.x if dtype is None else self.x.astype(dtype)
+
+
+@pytest.fixture
+def chumpy_shim(monkeypatch):
+    """Install a fake ``chumpy`` package for the duration of one test."""
+    pkg = types.ModuleType("chumpy")
+    ch = types.ModuleType("chumpy.ch")
+    ch.Ch = _ChumpyShim
+    pkg.ch = ch
+    monkeypatch.setitem(sys.modules, "chumpy", pkg)
+    monkeypatch.setitem(sys.modules, "chumpy.ch", ch)
+    yield
