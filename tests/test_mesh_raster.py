@@ -555,3 +555,29 @@ def test_mesh_part_and_render_validation() -> None:
     part.vertex_colors = None  # mutated after construction: caught at render time
     with pytest.raises(ValueError, match=r"parts\[0\]: no colour source"):
         render_meshes([part], IDENTITY, K, 4, 4)
+
+
+def test_mixed_colour_sources_and_shading_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
+    import hogsa_loader.render.mesh_raster as mr
+
+    H, W = 10, 20
+    K = torch.tensor([[10.0, 0, 10], [0, 10.0, 5], [0, 0, 1]])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+
+    def quad(u0: float, u1: float) -> torch.Tensor:
+        return torch.tensor(_fronto_quad(u0, u1, -1.0, 11.0, 1.0, K.numpy()), dtype=torch.float32)
+
+    tex_colour, vc_colour = [0.2, 0.7, 0.1], [0.9, 0.1, 0.4]
+    parts = [
+        MeshPart(quad(-1.0, 8.0), faces, 5, uv=torch.rand(4, 2),
+                 texture=torch.tensor(tex_colour).expand(3, 4, 3).clone()),
+        MeshPart(quad(8.0, 21.0), faces, 9, vertex_colors=torch.tensor(vc_colour).expand(4, 3)),
+    ]
+    ref = render_meshes(parts, IDENTITY, K, H, W, light=FLAT)
+    assert (ref.part_id[:, :8] == 5).all() and (ref.part_id[:, 8:] == 9).all()
+    torch.testing.assert_close(ref.rgb[:, :8], torch.tensor(tex_colour).expand(H, 8, 3))
+    torch.testing.assert_close(ref.rgb[:, 8:], torch.tensor(vc_colour).expand(H, 12, 3))
+    monkeypatch.setattr(mr, "_SHADE_CHUNK", 7)
+    out = render_meshes(parts, IDENTITY, K, H, W, light=FLAT)
+    for name in ("rgb", "alpha", "depth", "part_id", "normal"):
+        assert torch.equal(getattr(out, name), getattr(ref, name)), name

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Optional, Sequence, Union
 
 import numpy as np
-import torch
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike

@@ -71,6 +71,7 @@ __all__ = [
 _INT64_MAX = torch.iinfo(torch.int64).max
 _BBOX_EPS = 1e-3  # px; pixel bounding boxes are grown by this much, the edge test decides
 _NORMAL_EPS = 1e-12
+_SHADE_CHUNK = 1 << 20  # covered samples shaded at a time in render_meshes
 
 
 # --------------------------------------------------------------------------------------
@@ -883,31 +884,33 @@ def _albedo(
 
 
 def _shading_normals(
-    verts_cam: Tensor, faces: Tensor, face: Tensor, bary: Tensor, points: Tensor,
-    smooth: bool,
+    unit_fn: Tensor, vert_n: Tensor | None, faces: Tensor, face: Tensor, bary: Tensor,
+    points: Tensor,
 ) -> Tensor:
     """Unit camera-space shading normals facing the camera (two-sided lighting).
 
     The normal is flipped where the triangle's geometric normal faces away from the
-    camera; smooth normals interpolate area-weighted vertex normals (face normal where
-    they cancel out), flat normals are the face normals.
+    camera. Smooth normals interpolate the vertex normals (face normal where they cancel
+    out); without vertex normals the flat face normal is used.
 
     Args:
-        verts_cam: (V, 3), faces: (F, 3), face: (N,), bary: (N, 3), points: (N, 3)
-        camera-space surface points.
+        unit_fn: (F, 3) unit camera-space face normals.
+        vert_n: (V, 3) unit camera-space vertex normals, or None for flat shading.
+        faces: (F, 3) int64.
+        face: (N,) visible face per sample.
+        bary: (N, 3) barycentrics.
+        points: (N, 3) camera-space surface points.
 
     Returns:
         (N, 3).
     """
-    fn = _normalize(face_normals(verts_cam, faces)[face])  # (N, 3)
+    fn = unit_fn[face]
     facing = torch.where((fn * points).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(fn)
-    if smooth:
-        vn = vertex_normals(verts_cam, faces)
-        n = _interpolate(vn, faces[face], bary)
-        norm = n.norm(dim=-1, keepdim=True)
-        n = torch.where(norm > 1e-6, n / norm.clamp_min(1e-6), fn)
-    else:
-        n = fn
+    if vert_n is None:
+        return fn * facing
+    n = _interpolate(vert_n, faces[face], bary)
+    norm = n.norm(dim=-1, keepdim=True)
+    n = torch.where(norm > 1e-6, n / norm.clamp_min(1e-6), fn)
     return n * facing
 
 
@@ -977,6 +980,44 @@ def _downsample(
     return rgb, alpha, -neg[0, 0], pid, nrm
 
 
+def _shade_samples(
+    parts: Sequence[MeshPart], scene: _Scene, verts_cam: Tensor, frags: Fragments,
+    light: Light, smooth_normals: bool, chunk: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Shade every covered sample, ``chunk`` samples at a time (bounded memory).
+
+    Args:
+        verts_cam: (V, 3) camera-space vertices of the concatenated scene.
+        frags: fragments at the sampling resolution (sH, sW).
+
+    Returns:
+        colour (sH, sW, 3) (0 on background), normal (sH, sW, 3), part id (sH, sW) int64
+        and coverage (sH, sW) in {0, 1}.
+    """
+    sh, sw = frags.face_idx.shape
+    dtype, device = verts_cam.dtype, verts_cam.device
+    unit_fn = _normalize(face_normals(verts_cam, scene.faces))
+    vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else None
+    part_ids = torch.tensor([p.part_id for p in parts], dtype=torch.int64, device=device)
+    color = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
+    normal = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
+    pid = torch.zeros((sh * sw,), dtype=torch.int64, device=device)
+    flat_face = frags.face_idx.reshape(-1)
+    flat_bary = frags.bary.reshape(-1, 3)
+    for pix in (flat_face >= 0).nonzero().squeeze(1).split(chunk):
+        face = flat_face[pix]
+        bary = flat_bary[pix]
+        points = _interpolate(verts_cam, scene.faces[face], bary)
+        n = _shading_normals(unit_fn, vert_n, scene.faces, face, bary, points)
+        albedo = _albedo(parts, scene, face, bary)
+        color[pix] = shade_blinn_phong(albedo, n, points, light)
+        normal[pix] = n
+        pid[pix] = part_ids[scene.face_part[face]]
+    coverage = (flat_face >= 0).to(dtype)
+    return (color.view(sh, sw, 3), normal.view(sh, sw, 3), pid.view(sh, sw),
+            coverage.view(sh, sw))
+
+
 def render_meshes(
     parts: Sequence[MeshPart],
     world2cam: Tensor,
@@ -1020,29 +1061,11 @@ def render_meshes(
     frags = rasterize(verts_cam, scene.faces, scale_intrinsics(K.to(device, dtype), s),
                       sh, sw, near=near)
 
-    flat_face = frags.face_idx.reshape(-1)
-    pix = (flat_face >= 0).nonzero().squeeze(1)
-    face = flat_face[pix]
-    bary = frags.bary.reshape(-1, 3)[pix]
-    points = _interpolate(verts_cam, scene.faces[face], bary)
-    normal = _shading_normals(verts_cam, scene.faces, face, bary, points, smooth_normals)
-    albedo = _albedo(parts, scene, face, bary)
-    shaded = shade_blinn_phong(albedo, normal, points, light)
-
-    part_ids = torch.tensor([p.part_id for p in parts], dtype=torch.int64, device=device)
-    color_s = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
-    normal_s = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
-    pid_s = torch.zeros((sh * sw,), dtype=torch.int64, device=device)
-    cov_s = torch.zeros((sh * sw,), dtype=dtype, device=device)
-    color_s[pix] = shaded
-    normal_s[pix] = normal
-    pid_s[pix] = part_ids[scene.face_part[face]]
-    cov_s[pix] = 1.0
-
-    rgb, alpha, depth, part_id, nrm = _downsample(
-        color_s.view(sh, sw, 3), cov_s.view(sh, sw), frags.depth, pid_s.view(sh, sw),
-        normal_s.view(sh, sw, 3), s,
+    color_s, normal_s, pid_s, cov_s = _shade_samples(
+        parts, scene, verts_cam, frags, light, smooth_normals, _SHADE_CHUNK
     )
+    rgb, alpha, depth, part_id, nrm = _downsample(color_s, cov_s, frags.depth, pid_s,
+                                                  normal_s, s)
     rgb = (rgb + (1.0 - alpha)[..., None] * bg).clamp(0.0, 1.0)
     return MeshRender(rgb=rgb, alpha=alpha, depth=depth, part_id=part_id, normal=nrm)
 
