@@ -26,7 +26,8 @@ Conventions
   the camera (OpenGL's front face).
 * Barycentrics are perspective correct: ``bary`` interpolates camera-space attributes, and
   ``depth`` is the camera-space z (metres) of the visible surface, ``+inf`` on background.
-* Z-buffer: the nearest surface wins; exact ties go to the lowest face index.
+* Z-buffer: the nearest surface wins; exact ties go to the lowest face index (depths are
+  compared at float32 precision, also for float64 input).
 * Textures: OBJ convention, ``uv = (0, 0)`` is the bottom-left corner of the texture image,
   sampled bilinearly (``grid_sample``, ``align_corners=False``); coordinates outside
   ``[0, 1]`` are clamped to the border.
@@ -40,11 +41,12 @@ Conventions
 from __future__ import annotations
 
 import math
+import operator
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F_nn
@@ -650,6 +652,11 @@ def _zbuffer(tables: _FaceTables, height: int, width: int, max_pairs: int) -> Te
     return zkey
 
 
+def _cross2(a: Tensor, b: Tensor) -> Tensor:
+    """2D cross product ``a.x b.y - a.y b.x`` of (N, 2) vectors, (N,)."""
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
 def _perspective_barycentrics(
     pix_uv: Tensor, tri_uv: Tensor, tri_z: Tensor,
 ) -> tuple[Tensor, Tensor]:
@@ -664,9 +671,9 @@ def _perspective_barycentrics(
         bary: (N, 3) non-negative, summing to 1.
         depth: (N,) camera-space z.
     """
-    d = tri_uv - pix_uv[:, None, :]  # (N, 3, 2)
-    cross = lambda i, j: d[:, i, 0] * d[:, j, 1] - d[:, i, 1] * d[:, j, 0]  # noqa: E731
-    lam = torch.stack([cross(1, 2), cross(2, 0), cross(0, 1)], dim=-1)
+    d = tri_uv - pix_uv[:, None, :]  # (N, 3, 2) vertices relative to the pixel centre
+    lam = torch.stack([_cross2(d[:, 1], d[:, 2]), _cross2(d[:, 2], d[:, 0]),
+                       _cross2(d[:, 0], d[:, 1])], dim=-1)
     lam = lam / lam.sum(dim=-1, keepdim=True)
     lam = lam.clamp_min(0.0)
     lam = lam / lam.sum(dim=-1, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
@@ -757,7 +764,8 @@ def _validate_part(part: MeshPart, name: str) -> None:
         raise ValueError(f"{name}.verts must be floating point, got {verts.dtype}")
     num_verts = verts.shape[0]
     _check_faces(part.faces, num_verts, f"{name}.faces")
-    if not isinstance(part.part_id, int) or isinstance(part.part_id, bool) or part.part_id < 1:
+    if isinstance(part.part_id, bool) or not hasattr(part.part_id, "__index__") \
+            or operator.index(part.part_id) < 1:
         raise ValueError(f"{name}.part_id must be an int >= 1 (0 is background), "
                          f"got {part.part_id!r}")
     has_vc = part.vertex_colors is not None
@@ -773,6 +781,8 @@ def _validate_part(part: MeshPart, name: str) -> None:
         vc = part.vertex_colors
         if not isinstance(vc, Tensor) or vc.shape != (num_verts, 3):
             raise ValueError(f"{name}.vertex_colors must be ({num_verts}, 3), got {_shape(vc)}")
+        if not vc.is_floating_point():
+            raise ValueError(f"{name}.vertex_colors must be float in [0, 1], got {vc.dtype}")
         return
     if not isinstance(part.uv, Tensor) or part.uv.shape != (num_verts, 2):
         raise ValueError(f"{name}.uv must be ({num_verts}, 2), got {_shape(part.uv)}")
@@ -811,30 +821,27 @@ class _Scene:
         verts: (V, 3) world vertices.
         faces: (F, 3) int64 faces into ``verts``.
         face_part: (F,) int64 index of the part each face belongs to.
-        face_start: (num_parts + 1,) python list of face offsets per part.
-        vert_start: (num_parts + 1,) python list of vertex offsets per part.
+        vert_start: python list of the num_parts + 1 vertex offsets of the parts.
     """
 
     verts: Tensor
     faces: Tensor
     face_part: Tensor
-    face_start: list[int] = field(default_factory=list)
     vert_start: list[int] = field(default_factory=list)
 
 
 def _concat_parts(parts: Sequence[MeshPart], dtype: torch.dtype, device: torch.device) -> _Scene:
     """Concatenate parts into one mesh with offset faces."""
     verts, faces, face_part = [], [], []
-    vert_start, face_start = [0], [0]
+    vert_start = [0]
     for i, part in enumerate(parts):
         verts.append(part.verts.to(device=device, dtype=dtype))
         faces.append(part.faces.to(device=device, dtype=torch.int64) + vert_start[-1])
         face_part.append(torch.full((part.faces.shape[0],), i, dtype=torch.int64, device=device))
         vert_start.append(vert_start[-1] + part.verts.shape[0])
-        face_start.append(face_start[-1] + part.faces.shape[0])
     return _Scene(
         verts=torch.cat(verts), faces=torch.cat(faces), face_part=torch.cat(face_part),
-        face_start=face_start, vert_start=vert_start,
+        vert_start=vert_start,
     )
 
 
@@ -998,7 +1005,8 @@ def _shade_samples(
     dtype, device = verts_cam.dtype, verts_cam.device
     unit_fn = _normalize(face_normals(verts_cam, scene.faces))
     vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else None
-    part_ids = torch.tensor([p.part_id for p in parts], dtype=torch.int64, device=device)
+    part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64,
+                            device=device)
     color = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
     normal = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
     pid = torch.zeros((sh * sw,), dtype=torch.int64, device=device)
@@ -1076,7 +1084,7 @@ def render_meshes(
 
 
 def _as_vec3(x: Sequence[float] | Tensor, name: str, dtype: torch.dtype) -> Tensor:
-    """A (3,) float64 tensor from a sequence or tensor."""
+    """A (3,) CPU tensor of the given dtype from a sequence or tensor."""
     t = torch.as_tensor(x, dtype=dtype).detach().cpu() if isinstance(x, Tensor) \
         else torch.tensor(x, dtype=dtype)
     if t.shape != (3,):
@@ -1142,7 +1150,7 @@ def intrinsics_from_fov(
                         dtype=dtype)
 
 
-def save_png(path: Union[str, "os.PathLike[str]"], rgb_or_rgba: Tensor) -> None:
+def save_png(path: str | os.PathLike[str], rgb_or_rgba: Tensor) -> None:
     """Write an RGB(A) image as an 8-bit PNG (parent folders are created).
 
     Args:
@@ -1154,7 +1162,8 @@ def save_png(path: Union[str, "os.PathLike[str]"], rgb_or_rgba: Tensor) -> None:
     import numpy as np
 
     img = rgb_or_rgba
-    if not isinstance(img, Tensor) or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
+    ok = isinstance(img, Tensor) and (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4)))
+    if not ok:
         raise ValueError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got {_shape(img)}")
     img = img.detach().cpu()
     if img.dtype != torch.uint8:
