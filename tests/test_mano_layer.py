@@ -260,3 +260,13 @@ def test_named_poses_deform_without_tearing(hand_pair, pose):
     right, _ = hand_pair
     art = named_articulation(right, pose)
     assert _edge_stretch(right, art) < 2.6  # fused fingers measured 4.7 here
+
+
+def test_synthetic_hand_is_deterministic(tmp_path, hand_pair):
+    from hogsa_loader.hands.mano_io import write_mano_pickle
+    from hogsa_loader.hands.synthetic import synthetic_hand_pair
+
+    again, _ = synthetic_hand_pair()
+    write_mano_pickle(hand_pair[0], tmp_path / "a.pkl")
+    write_mano_pickle(again, tmp_path / "b.pkl")
+    assert (tmp_path / "a.pkl").read_bytes() == (tmp_path / "b.pkl").read_bytes()
