@@ -1,0 +1,196 @@
+"""Speed / memory benchmark of the Gaussian rasteriser (hogsa_loader.render.gaussians).
+
+Scene (as in the CPU rasteriser calibration): N Gaussians uniformly in a ball of radius
+0.1 m at z = 0.6 m in front of the camera, random unit quaternions, scales log-U[1, 6] mm,
+opacities U[0.3, 1], random RGB, focal length f = 2.1 W, principal point at the image
+centre, black background.
+
+Timings: median of ``--repeats`` runs after ``--warmup`` runs; "fwd" under
+``torch.no_grad()``, "fwd_bwd" = forward + ``(img * Wrand).sum().backward()`` with
+gradients for means, quats, scales, opacities and colours.
+
+Memory: every (backend, N, resolution) row runs in its own child process. On CPU,
+``peak_mb`` is that process's peak resident set size (``resource.getrusage(RUSAGE_SELF)
+.ru_maxrss``, so it includes the Python / torch baseline, reported as ``base_mb``,
+measured after imports and scene creation). On CUDA it is
+``torch.cuda.max_memory_allocated()`` over the timed runs.
+
+Usage::
+
+    python benchmarks/render_speed.py --json OUT.json [--backend torch|gsplat|all] [--quick]
+
+For the CPU numbers of the calibration, preload tcmalloc:
+``LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from typing import Any, Callable
+
+import torch
+
+CONFIGS = [(50_000, 224), (50_000, 512), (150_000, 224), (150_000, 512)]
+QUICK_CONFIGS = [(50_000, 224)]
+
+
+def make_scene(n: int, width: int, device: str, seed: int = 0) -> dict[str, Any]:
+    """The calibration ball scene, batched as B = C = 1."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g)
+    d = d / d.norm(dim=-1, keepdim=True) * torch.rand(n, 1, generator=g) ** (1.0 / 3.0) * 0.1
+    means = d + torch.tensor([0.0, 0.0, 0.6])
+    quats = torch.randn(n, 4, generator=g)
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    scales = torch.exp(torch.empty(n, 3).uniform_(math.log(1e-3), math.log(6e-3), generator=g))
+    opac = torch.empty(n).uniform_(0.3, 1.0, generator=g)
+    cols = torch.rand(n, 3, generator=g)
+    f = 2.1 * width
+    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, width / 2], [0.0, 0.0, 1.0]])
+    wrand = torch.rand(1, 1, width, width, 3, generator=g)
+    t = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=cols)
+    scene = {k: v[None].to(device) for k, v in t.items()}
+    scene["viewmats"] = torch.eye(4)[None, None].to(device)
+    scene["Ks"] = K[None, None].to(device)
+    scene["wrand"] = wrand.to(device)
+    scene["width"] = width
+    return scene
+
+
+def _render_fn(backend: str) -> Callable[[dict[str, Any]], torch.Tensor]:
+    if backend == "torch":
+        from hogsa_loader.render.gaussians import render_gaussians
+
+        def fn(s: dict[str, Any]) -> torch.Tensor:
+            out = render_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+                                   s["viewmats"], s["Ks"], s["width"], s["width"], render_depth=False)  # fmt: skip
+            return out.rgb
+
+        return fn
+    if backend == "gsplat":
+        from gsplat import rasterization
+
+        def fn(s: dict[str, Any]) -> torch.Tensor:
+            img, _, _ = rasterization(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+                                      s["viewmats"], s["Ks"], s["width"], s["width"], packed=False)  # fmt: skip
+            return img
+
+        return fn
+    raise ValueError(backend)
+
+
+def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
+    device = "cuda" if backend == "gsplat" else "cpu"
+    torch.set_num_threads(int(os.environ.get("BENCH_THREADS", os.cpu_count() or 1)))
+    fn = _render_fn(backend)
+    s = make_scene(n, width, device)
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    params = ["means", "quats", "scales", "opacities", "colors"]
+
+    def fwd() -> None:
+        with torch.no_grad():
+            fn(s)
+        sync()
+
+    def fwd_bwd() -> None:
+        for k in params:
+            s[k] = s[k].detach().requires_grad_(True)
+        (fn(s) * s["wrand"]).sum().backward()
+        sync()
+
+    def timed(f: Callable[[], None], reps: int) -> float:
+        for _ in range(warmup):
+            f()
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return 1000.0 * statistics.median(ts)
+
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    fwd_ms = timed(fwd, rep_fwd)
+    fwd_bwd_ms = timed(fwd_bwd, rep_bwd)
+    if device == "cuda":
+        peak_mb = torch.cuda.max_memory_allocated() / 2**20
+        mem_kind = "torch.cuda.max_memory_allocated"
+    else:
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        mem_kind = "ru_maxrss (process peak RSS)"
+    with torch.no_grad():
+        n_isects = None
+        if backend == "torch":
+            from hogsa_loader.render.gaussians import render_gaussians
+
+            n_isects = render_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+                                        s["viewmats"], s["Ks"], width, width).meta["n_isects"]  # fmt: skip
+    return {
+        "backend": backend,
+        "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu x{torch.get_num_threads()} threads",
+        "N": n,
+        "width": width,
+        "height": width,
+        "fwd_ms": round(fwd_ms, 1),
+        "fwd_bwd_ms": round(fwd_bwd_ms, 1),
+        "peak_mb": round(peak_mb, 1),
+        "base_mb": round(base_mb, 1) if device == "cpu" else None,
+        "memory": mem_kind,
+        "n_isects": n_isects,
+        "malloc": "tcmalloc" if "tcmalloc" in os.environ.get("LD_PRELOAD", "") else "default",
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", required=False, help="write the rows to this file")
+    ap.add_argument("--backend", default="torch", choices=["torch", "gsplat", "all"])
+    ap.add_argument("--quick", action="store_true", help="50k @ 224 only, fewer repeats")
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--repeats-fwd", type=int, default=7)
+    ap.add_argument("--repeats-bwd", type=int, default=5)
+    ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width in a child
+    a = ap.parse_args()
+
+    if a.row:
+        backend, n, w = a.row.split(",")
+        print(json.dumps(run_row(backend, int(n), int(w), a.warmup, a.repeats_fwd, a.repeats_bwd)))
+        return
+
+    backends = ["torch", "gsplat"] if a.backend == "all" else [a.backend]
+    if "gsplat" in backends and not torch.cuda.is_available():
+        print("gsplat backend skipped: CUDA is not available (gsplat's rasteriser is CUDA-only)")
+        backends.remove("gsplat")
+    configs = QUICK_CONFIGS if a.quick else CONFIGS
+    reps = (1, 3, 2) if a.quick else (a.warmup, a.repeats_fwd, a.repeats_bwd)
+    rows = []
+    for backend in backends:
+        for n, w in configs:
+            cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w}",
+                   "--warmup", str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]  # fmt: skip
+            res = subprocess.run(cmd, capture_output=True, text=True)
+            if res.returncode != 0:
+                print(f"{backend} N={n} {w}x{w}: failed\n{res.stderr[-2000:]}")
+                continue
+            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
+            r = rows[-1]
+            print(f"{r['backend']:7s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                  f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
+                  f"(base {r['base_mb']}) isects {r['n_isects']} [{r['malloc']}]", flush=True)  # fmt: skip
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    main()
