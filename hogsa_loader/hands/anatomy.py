@@ -22,6 +22,7 @@ __all__ = [
     "named_articulation",
     "NAMED_POSES",
     "derive_contact_prior",
+    "unit_rows",
     "vertex_normals",
 ]
 
@@ -53,7 +54,8 @@ class JointAxes:
         self.flex, self.abduct, self.twist, self.palm_normal = flex, abduct, twist, palm_normal
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def unit_rows(v: np.ndarray) -> np.ndarray:
+    """Normalise vectors along the last axis."""
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
@@ -70,8 +72,8 @@ def derive_joint_axes(model: ManoModelData) -> JointAxes:
     """
     J = rest_joints(model)
     sign = 1.0 if model.side == "right" else -1.0
-    n_palm = _unit(sign * np.cross(J[1] - J[0], J[7] - J[0]))
-    across = _unit(J[7] - J[1])  # index -> pinky
+    n_palm = unit_rows(sign * np.cross(J[1] - J[0], J[7] - J[0]))
+    across = unit_rows(J[7] - J[1])  # index -> pinky
     flex = np.zeros((15, 3))
     abduct = np.zeros((15, 3))
     twist = np.zeros((15, 3))
@@ -83,17 +85,17 @@ def derive_joint_axes(model: ManoModelData) -> JointAxes:
                 d = J[j] - J[joints[a - 1]]
             else:
                 d = J[nxt] - J[j]
-            d = _unit(d)
+            d = unit_rows(d)
             if name == "thumb":
                 # the thumb curls across the palm toward the little finger
-                n = _unit(0.55 * n_palm + 0.85 * across)
+                n = unit_rows(0.55 * n_palm + 0.85 * across)
             else:
                 n = n_palm
-            f = _unit(np.cross(d, n))
+            f = unit_rows(np.cross(d, n))
             # orient flex so that +angle moves the bone toward n
             if np.dot(np.cross(f, d), n) < 0:
                 f = -f
-            ab = _unit(np.cross(f, d))
+            ab = unit_rows(np.cross(f, d))
             # +abduction moves toward the thumb side (away from the pinky)
             if np.dot(np.cross(ab, d), across) > 0:
                 ab = -ab
@@ -192,10 +194,10 @@ def derive_contact_prior(model: ManoModelData, pad_cos: float = 0.35) -> dict[st
     n = vertex_normals(model.v_template, model.faces)
     dom = model.weights.argmax(1)
     out: dict[str, np.ndarray] = {}
-    across = _unit(J[7] - J[1])
+    across = unit_rows(J[7] - J[1])
     for name, (j1, j2, j3) in FINGER_JOINTS.items():
         if name == "thumb":
-            facing = _unit(0.6 * axes.palm_normal + 0.8 * across)
+            facing = unit_rows(0.6 * axes.palm_normal + 0.8 * across)
         else:
             facing = axes.palm_normal
         sel = np.isin(dom, [j2, j3]) & (n @ facing > pad_cos)

@@ -35,6 +35,7 @@ from hogsa_loader.hands.anatomy import (
     articulation_from_angles,
     derive_contact_prior,
     derive_joint_axes,
+    unit_rows,
     vertex_normals,
 )
 from hogsa_loader.hands.mano_io import ManoModelData, validate_model
@@ -98,17 +99,13 @@ class _Skeleton:
     radii: dict  # finger -> (4,) radius at each polyline node
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def _build_skeleton(spec: HandSpec) -> _Skeleton:
     joints = np.zeros((16, 3))
     joints[0] = spec.wrist
     chains, radii, tips = {}, {}, {}
     for k, name in enumerate(_FINGER_ORDER):
         j1, j2, j3 = FINGER_JOINTS[name]
-        d = _unit(np.asarray(spec.direction[k], float))
+        d = unit_rows(np.asarray(spec.direction[k], float))
         p = [np.asarray(spec.mcp[k], float)]
         for L in spec.lengths[k]:
             p.append(p[-1] + L * d)
@@ -118,7 +115,7 @@ def _build_skeleton(spec: HandSpec) -> _Skeleton:
         tips[name] = p[3]
     p = [np.asarray(spec.thumb_cmc, float)]
     for L, d in zip(spec.thumb_lengths, spec.thumb_dirs):
-        p.append(p[-1] + L * _unit(np.asarray(d, float)))
+        p.append(p[-1] + L * unit_rows(np.asarray(d, float)))
     joints[[13, 14, 15]] = p[:3]
     chains["thumb"] = np.stack(p)
     radii["thumb"] = np.asarray(spec.thumb_radii)
@@ -248,8 +245,8 @@ def _mesh_surface(sk: _Skeleton, voxel: float, wrist_cut: float) -> tuple[np.nda
     # outward orientation: normals point away from the local skeleton
     c = v[f].mean(1)
     fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    sdf_out = _field(c + 1e-3 * _unit(fn), sk)[0]
-    sdf_in = _field(c - 1e-3 * _unit(fn), sk)[0]
+    sdf_out = _field(c + 1e-3 * unit_rows(fn), sk)[0]
+    sdf_in = _field(c - 1e-3 * unit_rows(fn), sk)[0]
     if np.mean(sdf_out > sdf_in) < 0.5:
         f = f[:, [0, 2, 1]]
     return v, f
@@ -347,7 +344,7 @@ def _shape_dirs(v: np.ndarray, W: np.ndarray, owner: np.ndarray, arc: np.ndarray
         t = (s - cum[k]) / max(cum[k + 1] - cum[k], 1e-9)
         axis_pt[i] = ch[k] + t * seg[k]
         base[i] = ch[0]
-        direc[i] = _unit(seg[k])
+        direc[i] = unit_rows(seg[k])
         fing_sign[i] = sign_map[name]
     s = np.where(owner > 0, arc, 0.0)[:, None]
     center = np.array([0.046, -0.003, -0.004])
@@ -455,7 +452,7 @@ def _tips(v: np.ndarray, owner: np.ndarray, sk: _Skeleton) -> np.ndarray:
     for name in ("thumb", "index", "middle", "ring", "pinky"):
         k = names.index(name)
         ch = sk.chains[name]
-        d = _unit(ch[3] - ch[2])
+        d = unit_rows(ch[3] - ch[2])
         cand = np.flatnonzero(owner == k)
         out.append(int(cand[np.argmax(v[cand] @ d)]))
     return np.asarray(out, dtype=np.int64)
