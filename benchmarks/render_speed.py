@@ -1,4 +1,6 @@
-"""Speed / memory benchmark of the Gaussian rasteriser (hogsa_loader.render.gaussians).
+"""Speed / memory benchmark of the Gaussian rasteriser, through the entry point
+``hogsa_loader.render.render`` (backend "torch" = hogsa_loader.render.gaussians on the CPU,
+backend "gsplat" = gsplat's CUDA rasterization, unpacked).
 
 Scene (as in the CPU rasteriser calibration): N Gaussians uniformly in a ball of radius
 0.1 m at z = 0.6 m in front of the camera, random unit quaternions, scales log-U[1, 6] mm,
@@ -66,25 +68,19 @@ def make_scene(n: int, width: int, device: str, seed: int = 0) -> dict[str, Any]
 
 
 def _render_fn(backend: str) -> Callable[[dict[str, Any]], torch.Tensor]:
-    if backend == "torch":
-        from hogsa_loader.render.gaussians import render_gaussians
+    """Both backends go through the public entry point ``hogsa_loader.render.render``
+    (render_mode "RGB"; gsplat unpacked as in the original gsplat rows, the torch backend
+    ignores ``packed``)."""
+    if backend not in ("torch", "gsplat"):
+        raise ValueError(backend)
+    from hogsa_loader.render import render
 
-        def fn(s: dict[str, Any]) -> torch.Tensor:
-            out = render_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
-                                   s["viewmats"], s["Ks"], s["width"], s["width"], render_depth=False)  # fmt: skip
-            return out.rgb
+    def fn(s: dict[str, Any]) -> torch.Tensor:
+        out = render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmats"], s["Ks"],
+                     s["width"], s["width"], backend=backend, render_mode="RGB", packed=False)  # fmt: skip
+        return out.rgb
 
-        return fn
-    if backend == "gsplat":
-        from gsplat import rasterization
-
-        def fn(s: dict[str, Any]) -> torch.Tensor:
-            img, _, _ = rasterization(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
-                                      s["viewmats"], s["Ks"], s["width"], s["width"], packed=False)  # fmt: skip
-            return img
-
-        return fn
-    raise ValueError(backend)
+    return fn
 
 
 def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
@@ -130,10 +126,10 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
     with torch.no_grad():
         n_isects = None
         if backend == "torch":
-            from hogsa_loader.render.gaussians import render_gaussians
+            from hogsa_loader.render import render
 
-            n_isects = render_gaussians(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
-                                        s["viewmats"], s["Ks"], width, width).meta["n_isects"]  # fmt: skip
+            n_isects = render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
+                              s["viewmats"], s["Ks"], width, width, backend="torch").meta["n_isects"]  # fmt: skip
     return {
         "backend": backend,
         "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu x{torch.get_num_threads()} threads",

@@ -93,6 +93,20 @@ def kinematic_chain(rot_mats: Tensor, joints: Tensor, parents: Tensor) -> tuple[
     return posed_joints, G
 
 
+def vertex_transforms(weights: Tensor, transforms: Tensor) -> tuple[Tensor, Tensor]:
+    """Blend per-joint rigid transforms into one affine transform per vertex.
+
+    Args:
+        weights: (V, J) skinning weights.
+        transforms: (B, J, 4, 4) from :func:`kinematic_chain`.
+
+    Returns:
+        rot: (B, V, 3, 3) blended linear parts; trans: (B, V, 3) blended translations.
+    """
+    T = torch.einsum("vj,bjrc->bvrc", weights, transforms[..., :3, :])
+    return T[..., :3], T[..., 3]
+
+
 def skin_vertices(vertices: Tensor, weights: Tensor, transforms: Tensor) -> Tensor:
     """Blend per-joint rigid transforms with skinning weights and apply them.
 
@@ -104,8 +118,8 @@ def skin_vertices(vertices: Tensor, weights: Tensor, transforms: Tensor) -> Tens
     Returns:
         (B, V, 3) posed vertices.
     """
-    T = torch.einsum("vj,bjrc->bvrc", weights, transforms[..., :3, :])
-    return torch.einsum("bvrc,bvc->bvr", T[..., :3], vertices) + T[..., 3]
+    rot, trans = vertex_transforms(weights, transforms)
+    return torch.einsum("bvrc,bvc->bvr", rot, vertices) + trans
 
 
 def lbs(

@@ -126,6 +126,35 @@ class MANOLayer(nn.Module):
             hand_pose = hand_pose @ self.hand_components
         return hand_pose + self.hand_mean
 
+    def full_pose_and_betas(
+        self,
+        global_orient: Optional[Tensor] = None,
+        hand_pose: Optional[Tensor] = None,
+        betas: Optional[Tensor] = None,
+        transl: Optional[Tensor] = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Fill in defaults and expand the hand pose (mean pose, PCA).
+
+        Args:
+            global_orient, hand_pose, betas, transl: as :meth:`forward` (``transl`` only
+                sets the batch size when it is the only argument given).
+
+        Returns:
+            full_pose: (B, 3 + 45) axis-angle, root first; betas: (B, num_betas).
+        """
+        given = [t for t in (global_orient, hand_pose, betas, transl) if t is not None]
+        B = given[0].shape[0] if given else 1
+        kw = dict(dtype=self.v_template.dtype, device=self.v_template.device)
+        if global_orient is None:
+            global_orient = torch.zeros(B, 3, **kw)
+        if hand_pose is None:
+            hand_pose = torch.zeros(B, self.num_pca_comps, **kw)
+        if betas is None:
+            betas = torch.zeros(B, self.num_betas, **kw)
+        if hand_pose.shape[-1] != self.num_pca_comps:
+            raise ValueError(f"hand_pose must have {self.num_pca_comps} values, got {tuple(hand_pose.shape)}")
+        return torch.cat([global_orient, self.articulation(hand_pose)], dim=-1), betas
+
     def forward(
         self,
         global_orient: Optional[Tensor] = None,
@@ -144,18 +173,7 @@ class MANOLayer(nn.Module):
         Returns:
             :class:`ManoOutput`.
         """
-        given = [t for t in (global_orient, hand_pose, betas, transl) if t is not None]
-        B = given[0].shape[0] if given else 1
-        kw = dict(dtype=self.v_template.dtype, device=self.v_template.device)
-        if global_orient is None:
-            global_orient = torch.zeros(B, 3, **kw)
-        if hand_pose is None:
-            hand_pose = torch.zeros(B, self.num_pca_comps, **kw)
-        if betas is None:
-            betas = torch.zeros(B, self.num_betas, **kw)
-        if hand_pose.shape[-1] != self.num_pca_comps:
-            raise ValueError(f"hand_pose must have {self.num_pca_comps} values, got {tuple(hand_pose.shape)}")
-        full_pose = torch.cat([global_orient, self.articulation(hand_pose)], dim=-1)
+        full_pose, betas = self.full_pose_and_betas(global_orient, hand_pose, betas, transl)
         verts, joints, rot_mats = lbs(
             betas,
             full_pose,

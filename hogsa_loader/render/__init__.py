@@ -1,1 +1,10 @@
-"""Classical rendering utilities (mesh rasterisation, previews)."""
+"""Classical rendering utilities (mesh rasterisation, previews) and Gaussian splatting.
+
+The Gaussian-splatting entry point is :func:`render` (gsplat-like, with a pure-PyTorch
+backend and a gsplat CUDA backend); it imports gsplat lazily, only for CUDA tensors.
+"""
+
+from hogsa_loader.render.api import BackendUnavailableError, antialias_compensation, render
+from hogsa_loader.render.gaussians import RenderOutput
+
+__all__ = ["render", "RenderOutput", "BackendUnavailableError", "antialias_compensation"]

@@ -79,6 +79,8 @@ import torch.nn.functional as F
 import torch.utils.checkpoint
 from torch import Tensor
 
+from hogsa_loader.geometry.quaternion import quat_to_matrix
+
 __all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # cuda/include/Common.h: ALPHA_THRESHOLD
@@ -123,17 +125,6 @@ class RenderOutput:
 # --------------------------------------------------------------------------------------
 
 
-def _quat_to_rotmat(quats: Tensor) -> Tensor:
-    """(..., 4) wxyz quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
-    w, x, y, z = F.normalize(quats, p=2, dim=-1).unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return torch.stack(rows, -1).unflatten(-1, (3, 3))
-
-
 def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     """World covariance ``Sigma = (R S)(R S)^T``.
 
@@ -144,7 +135,7 @@ def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) covariance.
     """
-    m = _quat_to_rotmat(quats) * scales[..., None, :]
+    m = quat_to_matrix(quats) * scales[..., None, :]
     return m @ m.transpose(-1, -2)
 
 
@@ -632,7 +623,9 @@ def render_gaussians(
     trans = torch.ones(n_img * n_tiles, p, dtype=dtype, device=dev)
     busy = torch.nonzero(tile_counts).squeeze(1)
     if busy.numel() > 0:
-        log_o = torch.log(opacities)[:, None, :].expand(B, C, N).reshape(-1)
+        # clamp: rows with opacity < 1/255 are culled and never read; without it a zero
+        # opacity (the padding convention) gives log(0) and a NaN opacity gradient
+        log_o = torch.log(opacities.clamp(min=ALPHA_THRESHOLD))[:, None, :].expand(B, C, N).reshape(-1)
         table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
         gids = torch.cat([flat_ids, flat_ids.new_full((1,), n_img * N)])
         tile_start = torch.cumsum(tile_counts, 0) - tile_counts

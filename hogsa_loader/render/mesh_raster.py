@@ -52,6 +52,8 @@ import torch
 import torch.nn.functional as F_nn
 from torch import Tensor
 
+from hogsa_loader.geometry.texture import sample_texture
+
 __all__ = [
     "Fragments",
     "MeshPart",
@@ -845,23 +847,6 @@ def _concat_parts(parts: Sequence[MeshPart], dtype: torch.dtype, device: torch.d
     )
 
 
-def _sample_texture(texture: Tensor, uv: Tensor) -> Tensor:
-    """Bilinear texture lookup, OBJ convention (v = 0 at the image bottom), border clamp.
-
-    Args:
-        texture: (Ht, Wt, 3) float.
-        uv: (N, 2) texture coordinates.
-
-    Returns:
-        (N, 3).
-    """
-    grid = torch.stack([uv[:, 0] * 2.0 - 1.0, (1.0 - uv[:, 1]) * 2.0 - 1.0], dim=-1)
-    img = texture.permute(2, 0, 1)[None].to(uv)  # (1, 3, Ht, Wt)
-    out = F_nn.grid_sample(img, grid[None, None], mode="bilinear", padding_mode="border",
-                           align_corners=False)  # (1, 3, 1, N)
-    return out[0, :, 0].T
-
-
 def _albedo(
     parts: Sequence[MeshPart], scene: _Scene, face: Tensor, bary: Tensor,
 ) -> Tensor:
@@ -886,7 +871,7 @@ def _albedo(
             albedo[sel] = _interpolate(vc, tri, bary[sel])
         else:
             uv = _interpolate(part.uv.to(bary), tri, bary[sel])
-            albedo[sel] = _sample_texture(part.texture, uv)
+            albedo[sel] = sample_texture(part.texture, uv)
     return albedo
 
 

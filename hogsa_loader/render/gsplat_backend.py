@@ -1,0 +1,199 @@
+"""The ``"gsplat"`` backend of :func:`hogsa_loader.render.render`: gsplat 1.5.3's CUDA
+``rasterization()`` behind the entry point's conventions.
+
+gsplat is imported lazily, and only for CUDA tensors: on a CPU-only machine this module
+never touches gsplat's CUDA extension (importing ``gsplat.cuda._backend`` starts a JIT
+build of the extension when it finds a CUDA toolkit).
+
+Facts about gsplat 1.5.3 this module relies on (read in ``gsplat/rendering.py`` and
+``gsplat/cuda/_wrapper.py`` of the installed 1.5.3 sources):
+
+* ``rasterization()`` accepts leading batch dimensions: ``means [..., N, 3]``,
+  ``viewmats [..., C, 4, 4]`` and renders all ``prod(...) * C`` images in one call, in
+  packed or unpacked mode, returning ``render_colors [..., C, H, W, X]`` and
+  ``render_alphas [..., C, H, W, 1]`` (float32) and a ``meta`` dict. So B samples go
+  in as one leading dimension; no loop.
+* ``render_mode="RGB+ED"`` / ``"RGB+D"`` append the (expected / accumulated) camera z as
+  the *last* channel of ``render_colors``; ED is ``sum(w z) / max(alpha, 1e-10)``.
+* With ``packed=True`` *and* ``backgrounds``, ``rasterize_to_pixels`` asserts
+  ``backgrounds.shape == image_dims + (channels,)`` where ``image_dims`` is ``()`` for
+  packed inputs, so any ``[..., C, D]`` background fails. This backend therefore never
+  passes ``backgrounds`` to gsplat and composites it itself as
+  ``rgb + (1 - alpha) * background``, which is the kernel's ``T_final * background``
+  (``alpha = 1 - T_final``), differentiable through ``render_alphas``.
+* The kernels are float32 only (``data_ptr<float>``), and ``Ks`` gets no gradient.
+* With ``sh_degree`` set, colours go through gsplat's 3-channel SH kernel. When part
+  channels are requested the SH colours are evaluated here first, with the shared
+  :func:`hogsa_loader.render.gaussians.sh_colors` (same convention:
+  ``max(SH(mean - camera centre) + 0.5, 0)``), and the one-hot part channels are
+  rendered as extra plain colour features next to them.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hogsa_loader.errors import HogsaError
+from hogsa_loader.render.gaussians import RenderOutput, sh_colors
+
+__all__ = ["BackendUnavailableError", "gsplat_unavailable_reason", "render_gsplat"]
+
+
+class BackendUnavailableError(HogsaError, RuntimeError):
+    """The requested renderer backend cannot run here (no CUDA, gsplat missing or its
+    CUDA extension not usable, unsupported dtype or option)."""
+
+
+@functools.lru_cache(maxsize=None)
+def _probe_extension() -> str | None:
+    """None when gsplat and its CUDA extension load, else why not (cached: a failed
+    import of ``gsplat.cuda._backend`` would otherwise retry the JIT build every call)."""
+    try:
+        import gsplat  # noqa: F401
+    except Exception as e:  # ImportError, or anything gsplat's own imports raise
+        return f"gsplat is not importable ({type(e).__name__}: {e}); install it with `pip install gsplat==1.5.3`"
+    try:
+        from gsplat.cuda._backend import _C
+    except Exception as e:  # the JIT build / load of the extension failed
+        msg = str(e).strip().splitlines()[-1][:300] if str(e).strip() else ""
+        return f"gsplat's CUDA extension failed to load ({type(e).__name__}: {msg})"
+    if _C is None:
+        return (
+            "gsplat's CUDA extension is not available (gsplat found no CUDA toolkit / nvcc "
+            "to JIT-build it, and no prebuilt wheel is installed)"
+        )
+    return None
+
+
+def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = None) -> str | None:
+    """Why the gsplat backend cannot render tensors on ``device`` of ``dtype`` (None = it can).
+
+    Cheap for non-CUDA devices (gsplat is not imported); for CUDA devices the first call
+    may JIT-compile gsplat's extension (minutes, once per machine).
+    """
+    if device.type != "cuda":
+        return f"the tensors are on '{device}', and gsplat's rasteriser runs on CUDA tensors only"
+    if not torch.cuda.is_available():
+        return "CUDA is not available in this PyTorch build / machine"
+    if dtype is not None and dtype != torch.float32:
+        return f"gsplat's CUDA kernels are float32 only, got {dtype}"
+    return _probe_extension()
+
+
+def _load_rasterization() -> Callable[..., Any]:
+    from gsplat import rasterization
+
+    return rasterization
+
+
+def _gsplat_version() -> str:
+    try:
+        import gsplat
+
+        return str(getattr(gsplat, "__version__", "unknown"))
+    except Exception:  # pragma: no cover - only reached after a successful probe
+        return "unknown"
+
+
+def _sh_to_camera_rgb(colors: Tensor, sh_degree: int, means: Tensor, viewmats: Tensor) -> Tensor:
+    """SH coefficients (B, N, K, 3) or (B, C, N, K, 3) -> per-camera RGB (B, C, N, 3),
+    ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat's ``rasterization`` convention)."""
+    B, C = viewmats.shape[:2]
+    N = means.shape[1]
+    campos = torch.linalg.inv(viewmats)[..., :3, 3]  # (B, C, 3)
+    dirs = means[:, None, :, :] - campos[:, :, None, :]  # (B, C, N, 3)
+    if colors.dim() == 4:
+        colors = colors[:, None]
+    coeffs = colors.expand(B, C, N, *colors.shape[-2:])
+    return torch.clamp_min(sh_colors(sh_degree, dirs, coeffs) + 0.5, 0.0)
+
+
+def render_gsplat(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None,
+    near_plane: float,
+    far_plane: float,
+    backgrounds: Tensor | None,
+    render_mode: str,
+    part_ids: Tensor | None,
+    num_parts: int,
+    packed: bool,
+    antialiased: bool,
+    eps2d: float,
+    tile_size: int = 16,
+    valid: Tensor | None = None,
+) -> RenderOutput:
+    """Render already-validated, batched inputs with gsplat (see :func:`render` for the
+    arguments; shapes here are always batched: means (B, N, 3), viewmats (B, C, 4, 4)).
+
+    ``valid`` (B, N) False is applied as opacity 0, which gsplat culls (< 1/255), the same
+    result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
+    is gsplat's ``meta`` dict plus ``gsplat_version``.
+    """
+    reason = gsplat_unavailable_reason(means.device, means.dtype)
+    if reason is not None:
+        raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}")
+    rasterization = _load_rasterization()
+
+    B, C = viewmats.shape[:2]
+    N = means.shape[1]
+    if valid is not None:
+        opacities = opacities * valid.to(opacities.dtype)
+
+    feats = colors
+    n_col = 3 if sh_degree is not None else colors.shape[-1]
+    gs_sh_degree = sh_degree
+    if num_parts > 0:
+        assert part_ids is not None
+        if sh_degree is not None:
+            feats = _sh_to_camera_rgb(colors, sh_degree, means, viewmats)  # (B, C, N, 3)
+            gs_sh_degree = None
+        onehot = F.one_hot(part_ids.long().clamp(min=0), num_parts).to(means.dtype)
+        onehot = onehot * (part_ids >= 0)[..., None].to(means.dtype)  # (B, N, P)
+        if feats.dim() == 4:  # per camera (B, C, N, D)
+            onehot = onehot[:, None].expand(B, C, N, num_parts)
+        feats = torch.cat([feats, onehot], -1)
+
+    render_colors, render_alphas, meta = rasterization(
+        means.contiguous(),
+        quats.contiguous(),
+        scales.contiguous(),
+        opacities.contiguous(),
+        feats.contiguous(),
+        viewmats.contiguous(),
+        Ks.contiguous(),
+        width,
+        height,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        sh_degree=gs_sh_degree,
+        packed=packed,
+        tile_size=tile_size,
+        backgrounds=None,  # composited below (gsplat 1.5.3 packed + backgrounds asserts)
+        render_mode=render_mode,
+        rasterize_mode="antialiased" if antialiased else "classic",
+    )
+    # render_colors (B, C, H, W, n_col [+ P] [+ 1 depth]), render_alphas (B, C, H, W, 1)
+    rgb = render_colors[..., :n_col]
+    if backgrounds is not None:
+        rgb = rgb + (1.0 - render_alphas) * backgrounds[:, :, None, None, :]
+    part_alpha = render_colors[..., n_col : n_col + num_parts] if num_parts > 0 else None
+    depth = render_colors[..., -1:] if render_mode != "RGB" else None
+    meta = dict(meta)
+    meta["gsplat_version"] = _gsplat_version()
+    return RenderOutput(rgb=rgb, alpha=render_alphas, depth=depth, part_alpha=part_alpha, meta=meta)
