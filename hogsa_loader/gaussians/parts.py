@@ -44,7 +44,7 @@ from hogsa_loader.gaussians.mesh_bound import VARIANTS as MESH_VARIANTS
 from hogsa_loader.gaussians.mesh_bound import DEFAULT_OPACITY, MeshGaussians
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.geometry.texture import sample_texture
-from hogsa_loader.hands.lbs import blend_shapes, kinematic_chain, pose_features, regress_joints, vertex_transforms
+from hogsa_loader.hands.lbs import skin_template
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.hands.manohd import subdivide_mesh, subdivide_model
@@ -139,15 +139,11 @@ def mano_skinning(
         :class:`HandSkinning`.
     """
     full_pose, betas = layer.full_pose_and_betas(global_orient, hand_pose, betas, transl)
-    B = full_pose.shape[0]
-    J = layer.parents.shape[0]
-    v_shaped = v_template[None] + blend_shapes(betas, layer.shapedirs[..., : betas.shape[-1]])
-    rest_joints = regress_joints(layer.J_regressor, v_shaped)
-    rot_mats = axis_angle_to_matrix(full_pose.reshape(B, J, 3))
-    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), layer.posedirs)
-    joints, transforms = kinematic_chain(rot_mats, rest_joints, layer.parents)
-    rot, trans = vertex_transforms(layer.lbs_weights, transforms)
-    verts = torch.einsum("bvrc,bvc->bvr", rot, v_posed) + trans
+    out = skin_template(
+        betas, full_pose, v_template, layer.shapedirs[..., : betas.shape[-1]], layer.posedirs,
+        layer.J_regressor, layer.parents, layer.lbs_weights,
+    )
+    verts, joints, rot, trans, v_posed = out.vertices, out.joints, out.vertex_rot, out.vertex_trans, out.v_posed
     if transl is not None:
         verts = verts + transl[:, None]
         joints = joints + transl[:, None]

@@ -6,6 +6,8 @@ All functions are differentiable and device/dtype agnostic.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -16,7 +18,10 @@ __all__ = [
     "regress_joints",
     "pose_features",
     "kinematic_chain",
+    "vertex_transforms",
     "skin_vertices",
+    "Skinning",
+    "skin_template",
     "lbs",
 ]
 
@@ -122,6 +127,54 @@ def skin_vertices(vertices: Tensor, weights: Tensor, transforms: Tensor) -> Tens
     return torch.einsum("bvrc,bvc->bvr", rot, vertices) + trans
 
 
+class Skinning(NamedTuple):
+    """Everything :func:`skin_template` computes.
+
+    Attributes:
+        vertices: (B, V, 3) posed vertices.
+        joints: (B, J, 3) posed joints.
+        rot_mats: (B, J, 3, 3) local joint rotations.
+        v_posed: (B, V, 3) rest-pose vertices after shape and pose blend shapes.
+        vertex_rot: (B, V, 3, 3) blended linear part of each vertex's transform.
+        vertex_trans: (B, V, 3) blended translation of each vertex's transform.
+    """
+
+    vertices: Tensor
+    joints: Tensor
+    rot_mats: Tensor
+    v_posed: Tensor
+    vertex_rot: Tensor
+    vertex_trans: Tensor
+
+
+def skin_template(
+    betas: Tensor,
+    pose: Tensor,
+    v_template: Tensor,
+    shapedirs: Tensor,
+    posedirs: Tensor,
+    J_regressor: Tensor,
+    parents: Tensor,
+    weights: Tensor,
+    pose_is_rotmat: bool = False,
+) -> Skinning:
+    """:func:`lbs` that also returns the intermediate per-vertex quantities.
+
+    Arguments as :func:`lbs`; returns :class:`Skinning` (vertex transforms are what
+    free-point Gaussians are skinned with).
+    """
+    B = betas.shape[0]
+    J = parents.shape[0]
+    v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
+    rest_joints = regress_joints(J_regressor, v_shaped)
+    rot_mats = pose if pose_is_rotmat else axis_angle_to_matrix(pose.reshape(B, J, 3))
+    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), posedirs)
+    joints, transforms = kinematic_chain(rot_mats, rest_joints, parents)
+    rot, trans = vertex_transforms(weights, transforms)
+    vertices = torch.einsum("bvrc,bvc->bvr", rot, v_posed) + trans
+    return Skinning(vertices, joints, rot_mats, v_posed, rot, trans)
+
+
 def lbs(
     betas: Tensor,
     pose: Tensor,
@@ -151,12 +204,6 @@ def lbs(
         joints: (B, J, 3) posed joints.
         rot_mats: (B, J, 3, 3) local joint rotations.
     """
-    B = betas.shape[0]
-    J = parents.shape[0]
-    v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
-    rest_joints = regress_joints(J_regressor, v_shaped)
-    rot_mats = pose if pose_is_rotmat else axis_angle_to_matrix(pose.reshape(B, J, 3))
-    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), posedirs)
-    joints, transforms = kinematic_chain(rot_mats, rest_joints, parents)
-    vertices = skin_vertices(v_posed, weights, transforms)
-    return vertices, joints, rot_mats
+    out = skin_template(betas, pose, v_template, shapedirs, posedirs, J_regressor, parents, weights,
+                        pose_is_rotmat)
+    return out.vertices, out.joints, out.rot_mats
