@@ -31,3 +31,20 @@ class AssetError(HogsaError, ValueError):
 
 class UnsafePickleError(AssetError):
     """A pickle asked for a global (class or function) outside the allow-list."""
+
+
+def read_json(path: PathLike) -> "object":
+    """Parse a JSON file; :class:`AssetError` naming it when missing, unreadable or malformed."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise AssetError(path, "file is missing")
+    try:
+        with open(path, "r", encoding="utf-8") as fh:
+            return json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from None
+    except (OSError, UnicodeDecodeError, RecursionError) as exc:
+        raise AssetError(path, f"cannot read file ({type(exc).__name__}: {exc})") from None

@@ -61,3 +61,18 @@ def chumpy_shim(monkeypatch):
     monkeypatch.setitem(sys.modules, "chumpy", pkg)
     monkeypatch.setitem(sys.modules, "chumpy.ch", ch)
     yield
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory) -> Path:
+    """A generated ``tiny`` world (``hogsa world --out DIR --preset tiny --seed 0``), run once.
+
+    Returns the folder that plays ARCTIC's ``./data``: ``arctic_data/data/{raw_seqs, meta,
+    cropped_images, masks, splits_json, splits}``, ``body_models/mano``, ``world_preview.png``.
+    Treat it as read-only (it is shared by every test of the session).
+    """
+    from hogsa_loader.cli.main import main
+
+    out = tmp_path_factory.mktemp("tiny_world")
+    assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
+    return out

@@ -5,6 +5,9 @@ Subcommands:
     hogsa assets --out DIR         synthetic MANO-format hands, procedural ARCTIC-format objects,
                                    and PNG previews of both
     hogsa convert-mano SRC DST     one-shot MANO .pkl -> chumpy-free, pickle-free .npz
+    hogsa world --out DIR --preset tiny|small [--seed N]
+                                   a synthetic ARCTIC-format world (raw_seqs, misc, cropped
+                                   images, masks, splits) rendered with the mesh rasteriser
 
 Environment: on Linux, preloading tcmalloc speeds up large CPU tensor work (see README).
 """
@@ -71,6 +74,26 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_world(args: argparse.Namespace) -> int:
+    from hogsa_loader.world import generate_world, get_preset
+
+    try:
+        preset = get_preset(args.preset)
+    except KeyError as exc:
+        print(f"hogsa: error: {exc.args[0]}", file=sys.stderr)
+        return 2
+    say = (lambda s: None) if args.quiet else print
+    record = generate_world(args.out, preset, seed=args.seed, progress=not args.quiet,
+                            process_splits=not args.no_splits, log=say)
+    out = os.path.abspath(args.out)
+    n_seq = len(record["sequences"])
+    say(f"world:   {out}/arctic_data/data ({len(record['subjects'])} subjects, {n_seq} sequences, "
+        f"{record['num_frames']} frames, 9 views)")
+    say(f"preview: {out}/world_preview.png")
+    say("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in record["timings"].items()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
@@ -89,6 +112,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("dst")
     c.add_argument("--side", choices=("right", "left"), default=None)
     c.set_defaults(func=_cmd_convert)
+
+    w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
+    w.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
+    w.add_argument("--preset", default="tiny", help="tiny (< 1 min, tests) or small (ARCTIC image sizes)")
+    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")
+    w.add_argument("--quiet", action="store_true", help="no progress bar or messages")
+    w.set_defaults(func=_cmd_world)
     return p
 
 

@@ -30,6 +30,7 @@ __all__ = [
     "ego_bbox",
     "full_to_cropped",
     "project",
+    "render_intrinsics",
     "transform",
     "validity_flags",
 ]
@@ -165,8 +166,8 @@ def cropped_bbox(bbox: np.ndarray, size: int = CROPPED_SIZE) -> np.ndarray:
 def cropped_intrinsics(K: np.ndarray, bbox: np.ndarray, size: int = CROPPED_SIZE) -> np.ndarray:
     """Intrinsics of the cropped image, so it can be rendered directly.
 
-    With pixel centres at integer + 0.5 on both images, the crop is the affine map of
-    :func:`full_to_cropped`, so ``K' = A K`` with A = scale then shift.
+    The crop is the affine map of :func:`full_to_cropped`, so ``K' = A K`` with A =
+    scale then shift (label coordinates; give a renderer :func:`render_intrinsics` of it).
 
     Args:
         K: (..., 3, 3) full-image intrinsics.
@@ -187,6 +188,27 @@ def cropped_intrinsics(K: np.ndarray, bbox: np.ndarray, size: int = CROPPED_SIZE
     A[..., 1, 2] = -origin[..., 1] * k
     A[..., 2, 2] = 1.0
     return A @ K
+
+
+def render_intrinsics(K: np.ndarray) -> np.ndarray:
+    """Intrinsics to give a renderer so its pixels line up with ARCTIC/OpenCV labels.
+
+    ARCTIC's labels use OpenCV's convention: pixel ``(i, j)`` is centred on coordinate
+    ``(i, j)`` (cv2 crops and warps work in it too). Our renderers (mesh rasteriser,
+    Gaussian rasterisers, like gsplat) sample pixel ``(i, j)`` at ``(i + 0.5, j + 0.5)``.
+    Shifting the principal point by +0.5 px makes pixel ``(i, j)`` show the ray of label
+    coordinate ``(i, j)``.
+
+    Args:
+        K: (..., 3, 3) label (OpenCV-convention) intrinsics.
+
+    Returns:
+        (..., 3, 3) intrinsics for rendering.
+    """
+    out = np.array(K, dtype=np.float64, copy=True)
+    out[..., 0, 2] += 0.5 * out[..., 2, 2]
+    out[..., 1, 2] += 0.5 * out[..., 2, 2]
+    return out
 
 
 def _in_region(points2d: np.ndarray, region: np.ndarray) -> np.ndarray:

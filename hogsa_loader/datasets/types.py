@@ -33,6 +33,8 @@ class HandTrack:
         trans: (F, 3) MANO ``transl`` (m).
         betas: (10,) shape, one vector per sequence.
         valid: (F,) bool, False where the annotation is missing.
+        fitting_err: (F,) per-frame MANO fitting error when the dataset has it (ARCTIC
+            ``fitting_err``), else None.
     """
 
     rot: np.ndarray
@@ -40,6 +42,7 @@ class HandTrack:
     trans: np.ndarray
     betas: np.ndarray
     valid: np.ndarray
+    fitting_err: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -96,10 +99,13 @@ class SequenceData:
         cameras: view index -> camera track.
         frame_ids: (F,) image file numbers of the GT frames (ARCTIC: GT index +
             ``ioi_offset``).
-        image_paths: view -> list of F image paths (None where a frame has no image).
+        image_paths: view -> list of F image paths (None where a frame has no image);
+            for ARCTIC these are the ``cropped_images`` (what the baselines train on).
         mask_paths: view -> list of F foreground-mask paths, when the dataset has them
             (the generated world does).
         root: dataset root the sequence was read from.
+        full_image_paths: view -> list of F full-resolution image paths when the dataset
+            also has them separately (ARCTIC ``images/``), None where absent.
     """
 
     dataset: str
@@ -113,6 +119,7 @@ class SequenceData:
     image_paths: dict[int, list[Optional[Path]]] = field(default_factory=dict)
     mask_paths: dict[int, list[Optional[Path]]] = field(default_factory=dict)
     root: Optional[Path] = None
+    full_image_paths: dict[int, list[Optional[Path]]] = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:

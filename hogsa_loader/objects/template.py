@@ -36,7 +36,7 @@ from typing import Any, Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 
 __all__ = [
     "OBJECT_NAMES",
@@ -266,17 +266,6 @@ def max_pairwise_distance(points: np.ndarray) -> float:
 # --------------------------------------------------------------------------------------
 
 
-def _read_json(path: Path) -> Any:
-    """Parse a JSON file, raising :class:`AssetError` when missing or malformed."""
-    if not path.is_file():
-        raise AssetError(path, "file is missing")
-    try:
-        with open(path, "r", encoding="utf-8") as fh:
-            return json.load(fh)
-    except json.JSONDecodeError as exc:
-        raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise AssetError(path, f"cannot read file ({exc})") from exc
 
 
 def _points(value: Any, path: Path, key: str, count: Optional[int]) -> np.ndarray:
@@ -325,7 +314,7 @@ def _read_obj(path: Path) -> Any:
 
 def _read_parts(path: Path, num_verts: int) -> np.ndarray:
     """Read and check ``parts.json`` against the vertex count of ``mesh.obj``."""
-    raw = _read_json(path)
+    raw = read_json(path)
     if not isinstance(raw, list):
         raise AssetError(path, f"expected a JSON list of part labels, got {type(raw).__name__}")
     try:
@@ -348,7 +337,7 @@ def _read_parts(path: Path, num_verts: int) -> np.ndarray:
 
 def _read_sub(path: Path) -> np.ndarray:
     """Read ``{"keypoints": 300x3}`` (mm)."""
-    raw = _read_json(path)
+    raw = read_json(path)
     if not isinstance(raw, Mapping) or "keypoints" not in raw:
         raise AssetError(path, 'expected a JSON object with key "keypoints"')
     return _points(raw["keypoints"], path, "keypoints", NUM_SUB)
@@ -399,7 +388,7 @@ def read_object_meta(path: PathLike) -> dict[str, dict[str, float]]:
         ``{name: {"diameter": float}}``.
     """
     path = Path(path)
-    raw = _read_json(path)
+    raw = read_json(path)
     if not isinstance(raw, Mapping):
         raise AssetError(path, "expected a JSON object {name: {\"diameter\": ...}}")
     out: dict[str, dict[str, float]] = {}
@@ -449,7 +438,7 @@ def load_object_template(
     parts = _read_parts(folder / PARTS_FILE, verts_mm.shape[0])
 
     params_path = folder / PARAMS_FILE
-    params = _read_json(params_path)
+    params = read_json(params_path)
     if not isinstance(params, Mapping):
         raise AssetError(params_path, "expected a JSON object")
     expected = {

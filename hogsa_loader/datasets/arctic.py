@@ -1,0 +1,1017 @@
+"""Reader of a real ARCTIC data root (``arctic_format.md`` §1, §3, §5).
+
+``ArcticRoot(data_root)`` takes ARCTIC's ``./data`` folder, i.e. the folder holding
+
+```
+data_root/
+  arctic_data/data/
+    meta/misc.json, meta/object_meta.json, meta/object_vtemplates/<obj>/...
+    meta/hogsa_world.json                      (optional, written by our world generator)
+    raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy
+    splits_json/protocol_<p>.json, splits/<p>_<split>.npy
+    cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg   (optional)
+    images/<sid>/<seq>/<view>/<frame:05d>.jpg           (optional)
+    masks/<sid>/<seq>/<view>/<frame:05d>.png            (optional, generated worlds)
+  body_models/mano/MANO_{RIGHT,LEFT}.pkl
+```
+
+and exposes every sequence as a dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`
+(metres, axis-angle, ``p_cam = R p_world + T``).
+
+Every missing or malformed file raises :class:`~hogsa_loader.errors.AssetError` naming the
+file and the problem (``misc.json: subject s02 has 7 world2cam matrices, expected 8``).
+
+Pickled ``.npy`` files
+----------------------
+ARCTIC stores ``raw_seqs/*.npy`` and ``splits/*.npy`` as ``np.save``-d Python objects, which
+ARCTIC reads with ``np.load(allow_pickle=True)``, i.e. by running :mod:`pickle` on the file —
+a crafted file could execute arbitrary code. This reader never does that: :func:`read_npy`
+parses the ``.npy`` header itself, reads numeric arrays without pickle, and unpickles
+object payloads with :class:`NpyUnpickler`, which resolves only the numpy globals needed to
+rebuild arrays, dtypes and scalars (plus the built-in containers pickle encodes without
+globals: dict, list, tuple, str, numbers). Any other global (``os.system``, ``builtins.exec``,
+a class) raises :class:`~hogsa_loader.errors.UnsafePickleError` before anything runs. This
+applies to raw sequences and to the project's own ``splits/*.npy`` alike (the brief allowed
+``allow_pickle=True`` for the latter; the restricted path is used instead because it costs
+nothing and keeps a tampered file harmless). After loading, the values that are used are
+checked to be numeric arrays of the expected shapes and finite.
+"""
+
+from __future__ import annotations
+
+import ast
+import io
+import json
+import math
+import os
+import pickle
+import re
+from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from hogsa_loader.datasets.conventions import (
+    ALLO_VIEWS,
+    CROPPED_SIZE,
+    EGO_IMAGE_SCALE,
+    EGO_IMAGE_SIZE,
+    EGO_VIEW,
+)
+from hogsa_loader.datasets.types import CameraTrack, HandTrack, ObjectTrack, SequenceData
+from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError, read_json
+
+__all__ = [
+    "ARCTIC_SUBDIR",
+    "MANO_SUBDIR",
+    "PROTOCOL_VIEWS",
+    "SPLIT_NAMES",
+    "WORLD_META_FILE",
+    "ArcticRoot",
+    "NpyUnpickler",
+    "RawSequence",
+    "SubjectMisc",
+    "WorldMeta",
+    "canonical_split",
+    "protocol_views",
+    "read_npy",
+]
+
+#: Where ARCTIC's data lives below ``data_root`` (``./data``).
+ARCTIC_SUBDIR = Path("arctic_data") / "data"
+#: Where the MANO model files live below ``data_root`` (common/body_models.py).
+MANO_SUBDIR = Path("body_models") / "mano"
+#: Optional project file written by the world generator, below ``arctic_data/data``.
+WORLD_META_FILE = Path("meta") / "hogsa_world.json"
+#: Views used by each protocol (src/arctic/split.py ``get_selected_views``, spec §1.3).
+PROTOCOL_VIEWS: dict[str, tuple[int, ...]] = {
+    "p1": tuple(ALLO_VIEWS),
+    "p1a": tuple(ALLO_VIEWS),
+    "p2": (EGO_VIEW,),
+    "p2a": (EGO_VIEW,),
+}
+#: Split names after the ``mini``/``tiny``/``small`` prefixes are stripped.
+SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
+#: Number of allocentric cameras in ``misc.json`` (views 1..8).
+NUM_ALLO = len(ALLO_VIEWS)
+#: Tolerance of the rotation-matrix checks (orthonormality, determinant).
+ROTATION_TOL = 1e-3
+#: Largest ``.npy`` header accepted (numpy's own default limit).
+MAX_NPY_HEADER = 10000
+GENDERS = ("male", "female", "neutral")
+_SEQ_ID = re.compile(r"^[A-Za-z0-9_.\-]+/[A-Za-z0-9_.\-]+$")
+
+
+# ----------------------------------------------------------------------------------------
+# Restricted .npy reading
+# ----------------------------------------------------------------------------------------
+def _npy_allowed_globals() -> dict[tuple[str, str], Any]:
+    """The only globals an ARCTIC ``.npy`` pickle may reference (numpy array rebuilding)."""
+    probe = np.zeros(1)
+    reconstruct = probe.__reduce_ex__(4)[0]  # numpy._core.multiarray._reconstruct
+    frombuffer = probe.__reduce_ex__(5)[0]  # numpy._core.numeric._frombuffer (protocol 5)
+    scalar = np.float64(0).__reduce__()[0]  # numpy._core.multiarray.scalar
+    allowed: dict[tuple[str, str], Any] = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        # protocol <= 2 pickles written by Python 3 encode bytes as _codecs.encode(str, "latin1")
+        ("_codecs", "encode"): __import__("codecs").encode,
+    }
+    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed[(mod, "_reconstruct")] = reconstruct
+        allowed[(mod, "scalar")] = scalar
+    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
+        allowed[(mod, "_frombuffer")] = frombuffer
+    return allowed
+
+
+_NPY_ALLOWED = _npy_allowed_globals()
+
+
+class NpyUnpickler(pickle.Unpickler):
+    """Unpickler for the object payload of ``np.save``-d dicts/arrays.
+
+    Resolves only numpy's array/dtype/scalar reconstructors; dicts, lists, tuples, strings
+    and numbers need no global. Anything else raises :class:`UnsafePickleError` naming the
+    file and the refused global — nothing from the file is executed.
+    """
+
+    def __init__(self, file: Any, path: PathLike = "<npy>") -> None:
+        super().__init__(file, encoding="latin1", fix_imports=True)
+        self._path = os.fspath(path)
+
+    def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
+        if (module, name) in NAME_MAPPING:
+            module, name = NAME_MAPPING[(module, name)]
+        elif module in IMPORT_MAPPING:
+            module = IMPORT_MAPPING[module]
+        try:
+            return _NPY_ALLOWED[(module, name)]
+        except KeyError:
+            raise UnsafePickleError(
+                self._path,
+                f"refusing to load global '{module}.{name}': only numpy arrays, numbers, "
+                "strings, lists and dicts may appear in an ARCTIC .npy file (nothing was executed)",
+            ) from None
+
+    def persistent_load(self, pid: Any) -> Any:
+        raise UnsafePickleError(self._path, "persistent ids are not allowed in an ARCTIC .npy file")
+
+
+class _CappedReader:
+    """File wrapper that never asks the OS for more bytes than the file has left.
+
+    A corrupted length field in a pickle then reads a short block (pickle reports the
+    truncation) instead of allocating the corrupted size.
+    """
+
+    def __init__(self, fh: io.BufferedReader, end: int) -> None:
+        self._fh = fh
+        self._end = end
+
+    def _left(self) -> int:
+        return max(self._end - self._fh.tell(), 0)
+
+    def read(self, n: int = -1) -> bytes:
+        left = self._left()
+        return self._fh.read(left if n is None or n < 0 or n > left else n)
+
+    def readline(self, size: int = -1) -> bytes:
+        left = self._left()
+        return self._fh.readline(left if size is None or size < 0 or size > left else size)
+
+    def readinto(self, buf: Any) -> int:
+        view = memoryview(buf).cast("B")
+        n = min(len(view), self._left())
+        return self._fh.readinto(view[:n]) or 0
+
+
+def _read_npy_header(fh: io.BufferedReader, path: Path) -> tuple[np.dtype, bool, tuple[int, ...]]:
+    """Parse the ``.npy`` magic and header dict (versions 1, 2 and 3) without numpy's loader."""
+    magic = fh.read(8)
+    if len(magic) < 8 or magic[:6] != b"\x93NUMPY":
+        raise AssetError(path, "not a .npy file (bad magic bytes, or the file is empty/truncated)")
+    major = magic[6]
+    if major == 1:
+        raw_len = fh.read(2)
+        hlen = int.from_bytes(raw_len, "little") if len(raw_len) == 2 else -1
+    elif major in (2, 3):
+        raw_len = fh.read(4)
+        hlen = int.from_bytes(raw_len, "little") if len(raw_len) == 4 else -1
+    else:
+        raise AssetError(path, f"unsupported .npy format version {major}.{magic[7]}")
+    if hlen < 0 or hlen > MAX_NPY_HEADER:
+        raise AssetError(path, f".npy header length {hlen} is invalid (file truncated or corrupt)")
+    header = fh.read(hlen)
+    if len(header) != hlen:
+        raise AssetError(path, ".npy header is truncated")
+    try:
+        text = header.decode("utf8" if major == 3 else "latin1")
+        d = ast.literal_eval(text)
+    except (ValueError, SyntaxError, UnicodeDecodeError, MemoryError, RecursionError) as exc:
+        raise AssetError(path, f".npy header cannot be parsed ({type(exc).__name__})") from None
+    if not isinstance(d, dict) or set(d) != {"descr", "fortran_order", "shape"}:
+        raise AssetError(path, ".npy header must be a dict with keys descr, fortran_order, shape")
+    shape = d["shape"]
+    if not isinstance(shape, tuple) or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
+    ):
+        raise AssetError(path, f".npy header has an invalid shape {shape!r}")
+    if not isinstance(d["fortran_order"], bool):
+        raise AssetError(path, ".npy header has a non-boolean fortran_order")
+    try:
+        dtype = np.lib.format.descr_to_dtype(d["descr"])
+    except Exception as exc:  # numpy raises TypeError/ValueError/KeyError on bad descr
+        raise AssetError(path, f".npy header has an invalid dtype {d['descr']!r} ({exc})") from None
+    return dtype, d["fortran_order"], shape
+
+
+def read_npy(path: PathLike) -> Any:
+    """Read an ``np.save``-d file without ever running arbitrary pickle code.
+
+    Numeric (non-object) arrays are read directly from the bytes after the header.
+    Object arrays (``np.save`` of a dict, as ARCTIC's raw sequences) are unpickled with
+    :class:`NpyUnpickler`; a 0-d object array is unwrapped (``.item()``), as ARCTIC does.
+
+    Args:
+        path: the ``.npy`` file.
+
+    Returns:
+        a numpy array, or the Python object (usually a dict) stored in a 0-d object array.
+
+    Raises:
+        AssetError: missing, truncated or corrupt file (message names it).
+        UnsafePickleError: the pickle references a global outside the allow-list.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise AssetError(p, "file is missing")
+    try:
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            dtype, fortran, shape = _read_npy_header(fh, p)
+            if dtype.hasobject:
+                try:
+                    obj = NpyUnpickler(_CappedReader(fh, size), p).load()
+                except UnsafePickleError:
+                    raise
+                except Exception as exc:  # the unpickler runs no user code; any failure = corrupt
+                    raise AssetError(
+                        p, f"pickled payload is corrupt or truncated ({type(exc).__name__}: {exc})"
+                    ) from None
+                if not isinstance(obj, np.ndarray) or obj.dtype != object or obj.shape != shape:
+                    raise AssetError(
+                        p, f"pickled payload is not the object array announced by the header {shape}"
+                    )
+                return obj.item() if obj.shape == () else obj
+            count = math.prod(shape)
+            nbytes = count * dtype.itemsize
+            left = size - fh.tell()
+            if nbytes > left:
+                raise AssetError(
+                    p, f"file is truncated: array {shape} {dtype} needs {nbytes} bytes, {left} present"
+                )
+            data = fh.read(nbytes)
+    except OSError as exc:
+        raise AssetError(p, f"cannot read file ({exc})") from None
+    if dtype.itemsize == 0:
+        raise AssetError(p, f"array dtype {dtype} has zero-sized items")
+    arr = np.frombuffer(data, dtype=dtype, count=count)
+    return arr.reshape(shape, order="F" if fortran else "C").copy()
+
+
+# ----------------------------------------------------------------------------------------
+# Validation helpers
+# ----------------------------------------------------------------------------------------
+def _shape_str(spec: Sequence[Union[int, str]]) -> str:
+    inner = ", ".join(str(s) for s in spec)
+    return f"({inner},)" if len(spec) == 1 else f"({inner})"
+
+
+def _numeric(
+    value: Any,
+    path: Path,
+    key: str,
+    spec: Sequence[Union[int, str]],
+    frames: Optional[int] = None,
+) -> np.ndarray:
+    """Check that ``value`` is a finite real numeric array of shape ``spec``.
+
+    Args:
+        value: the loaded value (array or nested list of numbers).
+        path: file it came from (for the error).
+        key: dotted key inside the file (for the error).
+        spec: expected shape; the string ``"F"`` stands for the frame count.
+        frames: the frame count ``F`` (None: any, but all ``"F"`` entries equal).
+
+    Returns:
+        a float64 copy.
+    """
+    if isinstance(value, (str, bytes, dict)) or value is None:
+        raise AssetError(path, f"{key} is a {type(value).__name__}, expected a numeric array {_shape_str(spec)}")
+    if isinstance(value, np.ndarray):
+        arr = value
+    else:
+        try:
+            arr = np.asarray(value)
+        except Exception:  # ragged nested lists
+            raise AssetError(path, f"{key} is not a numeric array") from None
+    if arr.dtype.kind not in "fiu":
+        raise AssetError(path, f"{key} has dtype {arr.dtype}, expected real numbers (float or int)")
+    want = tuple(frames if s == "F" and frames is not None else s for s in spec)
+    ok = arr.ndim == len(spec) and all(
+        (w == "F" and arr.shape[i] == arr.shape[spec.index("F")]) or w == arr.shape[i]
+        for i, w in enumerate(want)
+    )
+    if not ok:
+        extra = f" with F = {frames}" if frames is not None and "F" in spec else ""
+        raise AssetError(path, f"{key} has shape {arr.shape}, expected {_shape_str(spec)}{extra}")
+    out = arr.astype(np.float64)
+    bad = int(np.size(out) - np.count_nonzero(np.isfinite(out)))
+    if bad:
+        raise AssetError(path, f"{key} contains NaN or inf ({bad} values)")
+    return out
+
+
+def _check_rotations(R: np.ndarray, path: Path, key: str) -> None:
+    """(..., 3, 3) must be proper rotations within :data:`ROTATION_TOL`."""
+    eye = np.eye(3)
+    err = np.abs(np.einsum("...ij,...kj->...ik", R, R) - eye).max(axis=(-1, -2))
+    det = np.linalg.det(R)
+    bad = np.flatnonzero((err > ROTATION_TOL) | (np.abs(det - 1.0) > ROTATION_TOL))
+    if bad.size:
+        raise AssetError(
+            path, f"{key}[{int(bad[0])}] is not a rotation matrix (R R^T != I or det != 1; {bad.size} bad)"
+        )
+
+
+def _check_intrinsics(K: np.ndarray, path: Path, key: str) -> None:
+    """(..., 3, 3) pinhole matrices with positive focal lengths and last row (0, 0, 1)."""
+    last = K[..., 2, :]
+    ok = (
+        np.all(np.abs(last - np.array([0.0, 0.0, 1.0])) < 1e-9, axis=-1)
+        & (K[..., 0, 0] > 0)
+        & (K[..., 1, 1] > 0)
+        & (np.abs(K[..., 1, 0]) < 1e-9)
+    )
+    bad = np.flatnonzero(~np.asarray(ok).reshape(-1))
+    if bad.size:
+        raise AssetError(path, f"{key}[{int(bad[0])}] is not a pinhole intrinsics matrix "
+                               "(need fx, fy > 0 and last row (0, 0, 1))")
+
+
+def _plain_data(value: Any, path: Path, key: str, depth: int = 0) -> None:
+    """Unused keys may hold strings/numbers/arrays/lists/dicts only (no other objects)."""
+    if depth > 16:
+        raise AssetError(path, f"{key} is nested too deeply")
+    if value is None or isinstance(value, (str, bytes, int, float, np.generic)):
+        return
+    if isinstance(value, np.ndarray):
+        if value.dtype.hasobject:
+            for i, item in enumerate(value.reshape(-1)[:10000]):
+                _plain_data(item, path, f"{key}[{i}]", depth + 1)
+        return
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _plain_data(item, path, f"{key}[{i}]", depth + 1)
+        return
+    if isinstance(value, dict):
+        for k, item in value.items():
+            _plain_data(item, path, f"{key}.{k}", depth + 1)
+        return
+    raise AssetError(path, f"{key} holds a {type(value).__name__}, expected plain data")
+
+
+
+
+def _json_int(value: Any) -> Optional[int]:
+    """An int from JSON (ints, or floats with an integral value); None otherwise."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float) and math.isfinite(value) and value == int(value):
+        return int(value)
+    return None
+
+
+def canonical_split(split: str) -> str:
+    """ARCTIC's split-file name: strip the ``mini``/``tiny``/``small`` sub-sampling prefixes.
+
+    ``"minitrain" -> "train"``, ``"tinyval" -> "val"``, ``"smalltest" -> "test"``
+    (``src/datasets/arctic_dataset.py`` ``_load_data``). The sub-sampling itself is the
+    dataset's job.
+    """
+    short = split.replace("mini", "").replace("tiny", "").replace("small", "")
+    if short not in SPLIT_NAMES:
+        raise ValueError(f"unknown split {split!r}: expected [mini|tiny|small]{{train,val,test}}")
+    return short
+
+
+def protocol_views(protocol: str) -> tuple[int, ...]:
+    """Views of a protocol: p1 → allocentric 1..8, p2 → egocentric 0 (spec §1.3)."""
+    try:
+        return PROTOCOL_VIEWS[protocol]
+    except KeyError:
+        raise ValueError(f"unknown protocol {protocol!r}; known: {sorted(PROTOCOL_VIEWS)}") from None
+
+
+# ----------------------------------------------------------------------------------------
+# Data classes
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SubjectMisc:
+    """One subject's entry of ``meta/misc.json`` (spec §1.5), validated.
+
+    Attributes:
+        sid: subject id (``"s01"``).
+        world2cam: (8, 4, 4) float64 world→camera extrinsics of views 1..8 (index = view − 1).
+        intris_mat: (8, 3, 3) float64 full-resolution intrinsics of views 1..8.
+        image_size: (9, 2) int64 image (width, height) per view 0..8.
+        ioi_offset: image file number = GT frame index + ``ioi_offset``.
+        gender: ``"male"``/``"female"``/``"neutral"`` (SMPL-X model choice).
+    """
+
+    sid: str
+    world2cam: np.ndarray
+    intris_mat: np.ndarray
+    image_size: np.ndarray
+    ioi_offset: int
+    gender: str
+
+
+@dataclass(frozen=True)
+class WorldMeta:
+    """``meta/hogsa_world.json`` (written by the project's world generator) or ARCTIC defaults.
+
+    Attributes:
+        schema_version: file schema version (0 when the file is absent).
+        cropped_size: side of the allocentric cropped images (ARCTIC: 1000).
+        ego_image_scale: ego cropped image = full ego image × this (ARCTIC: 0.3).
+        ego_image_size: full-resolution ego image (width, height) (ARCTIC: (2800, 2000)).
+        mask_ids: label name → pixel value of the ``masks/`` images (empty for ARCTIC).
+        present: whether the file exists.
+        extra: any other keys of the file, as stored.
+    """
+
+    schema_version: int = 0
+    cropped_size: int = CROPPED_SIZE
+    ego_image_scale: float = EGO_IMAGE_SCALE
+    ego_image_size: tuple[int, int] = EGO_IMAGE_SIZE
+    mask_ids: Mapping[str, int] = field(default_factory=dict)
+    present: bool = False
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class RawSequence:
+    """The validated contents of one sequence's ``raw_seqs`` files (spec §1.4), float64.
+
+    Attributes:
+        sid, seq: subject id and sequence name.
+        object_name: the part of ``seq`` before the first ``_``.
+        mano: ``{"right"|"left": {"rot" (F,3), "pose" (F,45), "trans" (F,3) m,
+            "shape" (10,), "fitting_err" (F,)}}`` (world frame, pose relative to the mean).
+        shape_layout: per side, how ``shape`` was stored: ``"(10,)"`` (ARCTIC) or
+            ``"(F, 10)"`` (accepted when all rows are equal; ``shape`` is then row 0).
+        object: (F, 7) [θ rad, axis-angle (3), translation (3) **mm**], world frame.
+        R_ego: (F, 3, 3) world→ego rotation; T_ego: (F, 3) world→ego translation (m).
+        K_ego: (3, 3) ego intrinsics (full-res); dist8: (8,) OpenCV rational distortion.
+        egocam_extra: the other keys of ``.egocam.dist.npy`` as stored (markers, R0, T0...).
+        paths: ``{"mano"|"object"|"egocam": file}``.
+    """
+
+    sid: str
+    seq: str
+    object_name: str
+    mano: dict[str, dict[str, np.ndarray]]
+    shape_layout: dict[str, str]
+    object: np.ndarray
+    R_ego: np.ndarray
+    T_ego: np.ndarray
+    K_ego: np.ndarray
+    dist8: np.ndarray
+    egocam_extra: dict[str, Any]
+    paths: dict[str, Path]
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.object.shape[0])
+
+    @property
+    def world2ego(self) -> np.ndarray:
+        """(F, 4, 4) ``[[R, T], [0, 0, 0, 1]]``."""
+        F = self.num_frames
+        out = np.zeros((F, 4, 4))
+        out[:, :3, :3] = self.R_ego
+        out[:, :3, 3] = self.T_ego
+        out[:, 3, 3] = 1.0
+        return out
+
+
+# ----------------------------------------------------------------------------------------
+# The root
+# ----------------------------------------------------------------------------------------
+class ArcticRoot:
+    """A real (or generated, same format) ARCTIC data root.
+
+    Args:
+        data_root: ARCTIC's ``./data`` folder (holding ``arctic_data/data`` and
+            ``body_models``). The ``arctic_data/data`` folder itself is accepted too.
+
+    Raises:
+        AssetError: the folder has no ``arctic_data/data``.
+    """
+
+    def __init__(self, data_root: PathLike) -> None:
+        root = Path(os.path.abspath(Path(data_root).expanduser()))
+        if not (root / ARCTIC_SUBDIR).is_dir() and root.name == "data" and root.parent.name == "arctic_data":
+            root = root.parent.parent
+        if not (root / ARCTIC_SUBDIR).is_dir():
+            raise AssetError(root, f"not an ARCTIC data root: no {ARCTIC_SUBDIR} folder inside")
+        self.data_root: Path = root
+        self.arctic_dir: Path = root / ARCTIC_SUBDIR
+        self.meta_dir: Path = self.arctic_dir / "meta"
+        self.raw_dir: Path = self.arctic_dir / "raw_seqs"
+        self.mano_dir: Path = root / MANO_SUBDIR
+        self._misc: Optional[dict[str, SubjectMisc]] = None
+        self._world_meta: Optional[WorldMeta] = None
+        self._templates: dict[bool, dict] = {}
+        self._object_layer: Any = None
+        self._mano_layers: dict[torch.dtype, dict] = {}
+
+    def __repr__(self) -> str:
+        return f"ArcticRoot({str(self.data_root)!r})"
+
+    # ------------------------------------------------------------------ paths
+    @property
+    def misc_path(self) -> Path:
+        return self.meta_dir / "misc.json"
+
+    def raw_paths(self, sid: str, seq: str) -> dict[str, Path]:
+        """``{"mano"|"object"|"egocam": raw_seqs/<sid>/<seq>.<kind>.npy}``."""
+        base = self.raw_dir / sid
+        return {
+            "mano": base / f"{seq}.mano.npy",
+            "object": base / f"{seq}.object.npy",
+            "egocam": base / f"{seq}.egocam.dist.npy",
+        }
+
+    def image_path(self, sid: str, seq: str, view: int, frame_id: int, cropped: bool = True) -> Path:
+        """``{cropped_images|images}/<sid>/<seq>/<view>/<frame_id:05d>.jpg`` (file number = GT + ioi_offset)."""
+        folder = "cropped_images" if cropped else "images"
+        return self.arctic_dir / folder / sid / seq / str(view) / f"{frame_id:05d}.jpg"
+
+    def mask_path(self, sid: str, seq: str, view: int, frame_id: int) -> Path:
+        """``masks/<sid>/<seq>/<view>/<frame_id:05d>.png``."""
+        return self.arctic_dir / "masks" / sid / seq / str(view) / f"{frame_id:05d}.png"
+
+    # ------------------------------------------------------------------ misc.json
+    def misc(self) -> dict[str, SubjectMisc]:
+        """Validated ``meta/misc.json`` (cached): ``{sid: SubjectMisc}``, sorted by sid.
+
+        Raises:
+            AssetError: missing file or any malformed entry, e.g.
+                ``misc.json: subject s02 has 7 world2cam matrices, expected 8``.
+        """
+        if self._misc is None:
+            self._misc = self._read_misc()
+        return self._misc
+
+    def _read_misc(self) -> dict[str, SubjectMisc]:
+        path = self.misc_path
+        raw = read_json(path)
+        if not isinstance(raw, dict) or not raw:
+            raise AssetError(path, "expected a non-empty JSON object keyed by subject id")
+        out: dict[str, SubjectMisc] = {}
+        for sid in sorted(raw):
+            entry = raw[sid]
+            if not isinstance(entry, dict):
+                raise AssetError(path, f"subject {sid}: expected an object, got {type(entry).__name__}")
+            for key in ("world2cam", "intris_mat", "image_size", "ioi_offset", "gender"):
+                if key not in entry:
+                    raise AssetError(path, f"subject {sid} has no '{key}'")
+
+            def mats(key: str, count: int, rows: int, cols: int, what: str) -> np.ndarray:
+                val = entry[key]
+                if not isinstance(val, list):
+                    raise AssetError(path, f"subject {sid}: '{key}' must be a list of {count} {what}")
+                if len(val) != count:
+                    raise AssetError(path, f"subject {sid} has {len(val)} {key} {what}, expected {count}")
+                return _numeric(val, path, f"subject {sid}: '{key}'", (count, rows, cols) if cols else (count, rows))
+
+            w2c = mats("world2cam", NUM_ALLO, 4, 4, "matrices")
+            if np.abs(w2c[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+                raise AssetError(path, f"subject {sid}: world2cam matrices must end with the row (0, 0, 0, 1)")
+            _check_rotations(w2c[:, :3, :3], path, f"subject {sid}: world2cam")
+            K = mats("intris_mat", NUM_ALLO, 3, 3, "matrices")
+            _check_intrinsics(K, path, f"subject {sid}: intris_mat")
+            sizes = mats("image_size", NUM_ALLO + 1, 2, 0, "entries")
+            if np.any(sizes <= 0) or np.any(sizes != np.round(sizes)):
+                raise AssetError(path, f"subject {sid}: image_size entries must be positive integers [w, h]")
+            ioi = _json_int(entry["ioi_offset"])
+            if ioi is None:
+                raise AssetError(path, f"subject {sid}: ioi_offset must be an integer, got {entry['ioi_offset']!r}")
+            gender = entry["gender"]
+            if not isinstance(gender, str) or gender.lower() not in GENDERS:
+                raise AssetError(path, f"subject {sid}: gender must be one of {GENDERS}, got {gender!r}")
+            out[str(sid)] = SubjectMisc(
+                sid=str(sid),
+                world2cam=w2c,
+                intris_mat=K,
+                image_size=sizes.astype(np.int64),
+                ioi_offset=ioi,
+                gender=gender.lower(),
+            )
+        return out
+
+    def subject_misc(self, sid: str) -> SubjectMisc:
+        """One subject of misc.json; AssetError naming misc.json when it is absent."""
+        misc = self.misc()
+        if sid not in misc:
+            raise AssetError(self.misc_path, f"subject {sid} is missing (has {sorted(misc)})")
+        return misc[sid]
+
+    def subjects(self) -> list[str]:
+        """Subject ids of ``misc.json``, sorted."""
+        return sorted(self.misc())
+
+    # ------------------------------------------------------------------ listings
+    def sequences(self, subject: Optional[str] = None) -> list[str]:
+        """Sorted ``"sid/seq"`` ids of ``raw_seqs`` (one per ``<seq>.mano.npy``).
+
+        Args:
+            subject: restrict to one subject.
+        """
+        if not self.raw_dir.is_dir():
+            raise AssetError(self.raw_dir, "raw_seqs folder is missing")
+        subs = [subject] if subject is not None else sorted(p.name for p in self.raw_dir.iterdir() if p.is_dir())
+        out = []
+        for sid in subs:
+            folder = self.raw_dir / sid
+            if not folder.is_dir():
+                raise AssetError(folder, f"no raw_seqs folder for subject {sid}")
+            for f in folder.iterdir():
+                if f.is_file() and f.name.endswith(".mano.npy"):
+                    out.append(f"{sid}/{f.name[: -len('.mano.npy')]}")
+        return sorted(out)
+
+    # ------------------------------------------------------------------ models
+    def object_templates(self, load_texture: bool = True) -> dict:
+        """``{name: ObjectTemplate}`` of ``meta/object_vtemplates`` (metres, cached)."""
+        from hogsa_loader.objects.template import load_object_templates
+
+        if load_texture not in self._templates:
+            if not load_texture and True in self._templates:
+                return self._templates[True]
+            self._templates[load_texture] = load_object_templates(self.meta_dir, load_texture=load_texture)
+        return self._templates[load_texture]
+
+    def object_layer(self) -> Any:
+        """An :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer` of every template (cached)."""
+        from hogsa_loader.objects.articulated import ArticulatedObjectLayer
+
+        if self._object_layer is None:
+            templates = self.object_templates(load_texture=False)
+            if not templates:
+                raise AssetError(self.meta_dir / "object_vtemplates", "no object template found")
+            self._object_layer = ArticulatedObjectLayer(templates)
+        return self._object_layer
+
+    def mano_layers(self, dtype: torch.dtype = torch.float32) -> dict:
+        """``{"right": MANOLayer, "left": MANOLayer}`` from ``body_models/mano``, ``flat_hand_mean=False`` (ARCTIC)."""
+        from hogsa_loader.hands.mano import MANOLayer
+        from hogsa_loader.hands.mano_io import load_mano
+
+        if dtype not in self._mano_layers:
+            if not self.mano_dir.is_dir():
+                raise AssetError(
+                    self.mano_dir, "MANO model folder is missing (expected MANO_RIGHT.pkl / MANO_LEFT.pkl)"
+                )
+            self._mano_layers[dtype] = {
+                side: MANOLayer(load_mano(self.mano_dir, side=side), flat_hand_mean=False, dtype=dtype).eval()
+                for side in ("right", "left")
+            }
+        return self._mano_layers[dtype]
+
+    # ------------------------------------------------------------------ world meta
+    def world_meta(self) -> WorldMeta:
+        """``meta/hogsa_world.json`` if present, else ARCTIC's defaults (cached).
+
+        Required keys when the file exists: ``schema_version`` (int ≥ 1), ``cropped_size``
+        (int > 0), ``ego_image_scale`` (> 0), ``ego_image_size`` ([w, h] ints > 0),
+        ``mask_ids`` (``{name: int ≥ 0}``). Other keys are kept in ``extra``.
+        """
+        if self._world_meta is None:
+            path = self.arctic_dir / WORLD_META_FILE
+            self._world_meta = self._read_world_meta(path) if path.exists() else WorldMeta()
+        return self._world_meta
+
+    @staticmethod
+    def _read_world_meta(path: Path) -> WorldMeta:
+        raw = read_json(path)
+        if not isinstance(raw, dict):
+            raise AssetError(path, "expected a JSON object")
+        for key in ("schema_version", "cropped_size", "ego_image_scale", "ego_image_size", "mask_ids"):
+            if key not in raw:
+                raise AssetError(path, f"key '{key}' is missing")
+        version = _json_int(raw["schema_version"])
+        if version is None or version < 1:
+            raise AssetError(path, f"schema_version must be an integer >= 1, got {raw['schema_version']!r}")
+        size = _json_int(raw["cropped_size"])
+        if size is None or size <= 0:
+            raise AssetError(path, f"cropped_size must be a positive integer, got {raw['cropped_size']!r}")
+        scale = raw["ego_image_scale"]
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
+            raise AssetError(path, f"ego_image_scale must be a positive number, got {scale!r}")
+        ego = raw["ego_image_size"]
+        wh = [_json_int(v) for v in ego] if isinstance(ego, list) and len(ego) == 2 else [None]
+        if any(v is None or v <= 0 for v in wh):
+            raise AssetError(path, f"ego_image_size must be [width, height] positive integers, got {ego!r}")
+        masks = raw["mask_ids"]
+        if not isinstance(masks, dict) or any(
+            _json_int(v) is None or _json_int(v) < 0 for v in masks.values()  # type: ignore[operator]
+        ):
+            raise AssetError(path, "mask_ids must map label names to integers >= 0")
+        known = {"schema_version", "cropped_size", "ego_image_scale", "ego_image_size", "mask_ids"}
+        return WorldMeta(
+            schema_version=version,
+            cropped_size=size,
+            ego_image_scale=float(scale),
+            ego_image_size=(int(wh[0]), int(wh[1])),  # type: ignore[arg-type]
+            mask_ids={str(k): int(_json_int(v)) for k, v in masks.items()},  # type: ignore[arg-type]
+            present=True,
+            extra={k: v for k, v in raw.items() if k not in known},
+        )
+
+    # ------------------------------------------------------------------ raw sequences
+    def raw_sequence(self, sid: str, seq: str) -> RawSequence:
+        """Read and validate ``raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy``.
+
+        Checks: the three files exist and load (restricted unpickler); the MANO file is a
+        dict with ``right``/``left`` dicts holding ``rot`` (F,3), ``pose`` (F,45), ``trans``
+        (F,3), ``shape`` (10,) or (F,10) with equal rows, ``fitting_err`` (F,); the object
+        file is (F,7); the egocam dict has ``R_k_cam_np`` (F,3,3) rotations, ``T_k_cam_np``
+        (F,3,1) (or (F,3)), ``intrinsics`` (3,3), ``dist8`` (8,); one F everywhere; every
+        used value real and finite.
+        """
+        paths = self.raw_paths(sid, seq)
+        mano = self._read_mano(paths["mano"])
+        F = mano["right"]["rot"].shape[0]
+        shape_layout = {side: mano[side].pop("_layout") for side in ("right", "left")}
+
+        obj_path = paths["object"]
+        obj_raw = read_npy(obj_path)
+        if (
+            isinstance(obj_raw, np.ndarray) and obj_raw.ndim == 2
+            and obj_raw.dtype.kind in "fiu" and obj_raw.shape[0] != F
+        ):
+            raise AssetError(obj_path, f"has {obj_raw.shape[0]} frames, but {paths['mano'].name} has {F}")
+        obj = _numeric(obj_raw, obj_path, "object parameters", ("F", 7), F)
+
+        ego_path = paths["egocam"]
+        ego = read_npy(ego_path)
+        if not isinstance(ego, dict):
+            raise AssetError(ego_path, f"expected a dict (np.save of a dict), found {type(ego).__name__}")
+        for key in ("R_k_cam_np", "T_k_cam_np", "intrinsics", "dist8"):
+            if key not in ego:
+                raise AssetError(ego_path, f"key '{key}' is missing")
+        R_raw = ego["R_k_cam_np"]
+        if isinstance(R_raw, np.ndarray) and R_raw.ndim == 3 and R_raw.shape[0] != F:
+            raise AssetError(ego_path, f"R_k_cam_np has {R_raw.shape[0]} frames, but {paths['mano'].name} has {F}")
+        R = _numeric(R_raw, ego_path, "R_k_cam_np", ("F", 3, 3), F)
+        _check_rotations(R, ego_path, "R_k_cam_np")
+        T_raw = ego["T_k_cam_np"]
+        if isinstance(T_raw, np.ndarray) and T_raw.ndim == 2:
+            T = _numeric(T_raw, ego_path, "T_k_cam_np", ("F", 3), F)
+        else:
+            T = _numeric(T_raw, ego_path, "T_k_cam_np", ("F", 3, 1), F)[..., 0]
+        K = _numeric(ego["intrinsics"], ego_path, "intrinsics", (3, 3))
+        _check_intrinsics(K, ego_path, "intrinsics")
+        dist8 = _numeric(ego["dist8"], ego_path, "dist8", (8,))
+        extra = {k: v for k, v in ego.items() if k not in ("R_k_cam_np", "T_k_cam_np", "intrinsics", "dist8")}
+        _plain_data(extra, ego_path, "egocam")
+        return RawSequence(
+            sid=sid,
+            seq=seq,
+            object_name=seq.split("_")[0],
+            mano=mano,
+            shape_layout=shape_layout,
+            object=obj,
+            R_ego=R,
+            T_ego=T,
+            K_ego=K,
+            dist8=dist8,
+            egocam_extra=extra,
+            paths=paths,
+        )
+
+    @staticmethod
+    def _read_mano(path: Path) -> dict[str, dict[str, Any]]:
+        data = read_npy(path)
+        if not isinstance(data, dict):
+            raise AssetError(
+                path, f"expected a dict with 'right' and 'left' (np.save of a dict), found {type(data).__name__}"
+            )
+        out: dict[str, dict[str, Any]] = {}
+        F: Optional[int] = None
+        for side in ("right", "left"):
+            hand = data.get(side)
+            if not isinstance(hand, dict):
+                raise AssetError(path, f"'{side}' is missing or not a dict")
+            for key in ("rot", "pose", "trans", "shape", "fitting_err"):
+                if key not in hand:
+                    raise AssetError(path, f"{side}.{key} is missing")
+            rot_raw = hand["rot"]
+            if F is None:
+                rot = _numeric(rot_raw, path, f"{side}.rot", ("F", 3))
+                F = rot.shape[0]
+                if F < 1:
+                    raise AssetError(path, f"{side}.rot has no frames")
+            else:
+                rot = _numeric(rot_raw, path, f"{side}.rot", ("F", 3), F)
+            d = {
+                "rot": rot,
+                "pose": _numeric(hand["pose"], path, f"{side}.pose", ("F", 45), F),
+                "trans": _numeric(hand["trans"], path, f"{side}.trans", ("F", 3), F),
+                "fitting_err": _numeric(hand["fitting_err"], path, f"{side}.fitting_err", ("F",), F),
+            }
+            shape_raw = hand["shape"]
+            if isinstance(shape_raw, np.ndarray) and shape_raw.ndim == 2:
+                betas = _numeric(shape_raw, path, f"{side}.shape", ("F", 10), F)
+                if np.abs(betas - betas[:1]).max() > 1e-6:
+                    raise AssetError(
+                        path,
+                        f"{side}.shape is stored per frame (F, 10) and varies across frames; "
+                        "ARCTIC uses one (10,) vector per sequence and hand",
+                    )
+                d["shape"] = betas[0].copy()
+                d["_layout"] = "(F, 10)"
+            else:
+                d["shape"] = _numeric(shape_raw, path, f"{side}.shape", (10,))
+                d["_layout"] = "(10,)"
+            out[side] = d
+        return out
+
+    # ------------------------------------------------------------------ SequenceData
+    def sequence(self, sid: str, seq: str) -> SequenceData:
+        """One sequence as :class:`SequenceData` (metres, world frame).
+
+        Hands: ``rot``/``pose``/``trans`` as stored, ``betas`` (10,), ``fitting_err``.
+        Object: θ, axis-angle, translation mm → m. Cameras: views 1..8 static from misc.json
+        (``world2cam``/``K`` repeated over F), view 0 egocentric per frame from
+        ``.egocam.dist.npy`` with ``dist8`` and K. Image sizes from misc ``image_size``.
+        ``frame_ids`` = GT index + ``ioi_offset``. ``image_paths`` (cropped_images),
+        ``full_image_paths`` (images) and ``mask_paths`` (masks) per view whose folder
+        exists, ``None`` for missing frames.
+        """
+        misc = self.subject_misc(sid)
+        raw = self.raw_sequence(sid, seq)
+        F = raw.num_frames
+        valid = np.ones(F, dtype=bool)
+
+        def hand(side: str) -> HandTrack:
+            h = raw.mano[side]
+            return HandTrack(
+                rot=h["rot"], pose=h["pose"], trans=h["trans"], betas=h["shape"], valid=valid.copy(),
+                fitting_err=h["fitting_err"],
+            )
+
+        obj = ObjectTrack(
+            name=raw.object_name,
+            arti=raw.object[:, 0].copy(),
+            rot=raw.object[:, 1:4].copy(),
+            trans=raw.object[:, 4:7] / 1000.0,
+            valid=valid.copy(),
+        )
+        cams: dict[int, CameraTrack] = {
+            EGO_VIEW: CameraTrack(
+                view=EGO_VIEW,
+                world2cam=raw.world2ego,
+                K=np.repeat(raw.K_ego[None], F, axis=0),
+                width=int(misc.image_size[EGO_VIEW, 0]),
+                height=int(misc.image_size[EGO_VIEW, 1]),
+                dist=raw.dist8.copy(),
+                egocentric=True,
+            )
+        }
+        for view in ALLO_VIEWS:
+            cams[view] = CameraTrack(
+                view=view,
+                world2cam=np.repeat(misc.world2cam[view - 1][None], F, axis=0),
+                K=np.repeat(misc.intris_mat[view - 1][None], F, axis=0),
+                width=int(misc.image_size[view, 0]),
+                height=int(misc.image_size[view, 1]),
+            )
+        frame_ids = np.arange(F, dtype=np.int64) + misc.ioi_offset
+        views = (EGO_VIEW,) + tuple(ALLO_VIEWS)
+        return SequenceData(
+            dataset="arctic",
+            subject=sid,
+            name=seq,
+            right=hand("right"),
+            left=hand("left"),
+            object=obj,
+            cameras=cams,
+            frame_ids=frame_ids,
+            image_paths=self._existing(self.arctic_dir / "cropped_images" / sid / seq, views, frame_ids, ".jpg"),
+            full_image_paths=self._existing(self.arctic_dir / "images" / sid / seq, views, frame_ids, ".jpg"),
+            mask_paths=self._existing(self.arctic_dir / "masks" / sid / seq, views, frame_ids, ".png"),
+            root=self.data_root,
+        )
+
+    @staticmethod
+    def _existing(
+        folder: Path, views: Sequence[int], frame_ids: np.ndarray, ext: str
+    ) -> dict[int, list[Optional[Path]]]:
+        """view → F paths (None where the file is absent), for views whose folder exists."""
+        out: dict[int, list[Optional[Path]]] = {}
+        for view in views:
+            vdir = folder / str(view)
+            if not vdir.is_dir():
+                continue
+            with os.scandir(vdir) as it:
+                names = {e.name for e in it}
+            out[view] = [
+                vdir / f"{int(i):05d}{ext}" if f"{int(i):05d}{ext}" in names else None for i in frame_ids
+            ]
+        return out
+
+    # ------------------------------------------------------------------ protocols and splits
+    def protocol_path(self, protocol: str) -> Path:
+        return self.arctic_dir / "splits_json" / f"protocol_{protocol}.json"
+
+    def protocol(self, protocol: str) -> dict[str, list[str]]:
+        """``splits_json/protocol_<p>.json`` as ``{"train", "val", "test": ["sid/seq", ...]}``.
+
+        As ARCTIC (src/arctic/split.py): val and test must not overlap or repeat; train is
+        recomputed as all − val − test, where "all" is the union of the three lists in file
+        order (sequences present in ``raw_seqs`` but absent from the file are not added).
+        """
+        path = self.protocol_path(protocol)
+        raw = read_json(path)
+        if not isinstance(raw, dict):
+            raise AssetError(path, "expected a JSON object with train/val/test lists")
+        lists: dict[str, list[str]] = {}
+        for key in SPLIT_NAMES:
+            val = raw.get(key)
+            if not isinstance(val, list):
+                raise AssetError(path, f"'{key}' is missing or not a list")
+            for item in val:
+                if not isinstance(item, str) or not _SEQ_ID.match(item):
+                    raise AssetError(path, f"'{key}' holds {item!r}, expected 'sid/seq'")
+            lists[key] = list(val)
+        for key in ("val", "test"):
+            if len(set(lists[key])) != len(lists[key]):
+                raise AssetError(path, f"'{key}' lists a sequence twice")
+        both = set(lists["val"]) & set(lists["test"])
+        if both:
+            raise AssetError(path, f"sequences in both val and test: {sorted(both)}")
+        held = set(lists["val"]) | set(lists["test"])
+        train: list[str] = []
+        for s in lists["train"] + lists["val"] + lists["test"]:
+            if s not in held and s not in train:
+                train.append(s)
+        return {"train": train, "val": lists["val"], "test": lists["test"]}
+
+    def split_path(self, protocol: str, split: str) -> Path:
+        """``splits/<protocol>_<split>.npy`` with the mini/tiny/small prefix stripped."""
+        return self.arctic_dir / "splits" / f"{protocol}_{canonical_split(split)}.npy"
+
+    def load_split(self, name: str, split: Optional[str] = None) -> dict[str, Any]:
+        """Load a processed split file (spec §1.8).
+
+        Args:
+            name: ``"p1_minitrain"``-style name, or the protocol when ``split`` is given.
+            split: e.g. ``"train"``, ``"tinyval"``; prefixes are stripped as ARCTIC does
+                (the sub-sampling is left to the dataset).
+
+        Returns:
+            ``{"data_dict": {"sid/seq": {"cam_coord", "2d", "bbox", "params"}}, "imgnames": [...]}``.
+
+        The file is read with :func:`read_npy` (restricted unpickler, never
+        ``np.load(allow_pickle=True)``).
+        """
+        if split is None:
+            protocol, sep, split = name.partition("_")
+            if not sep:
+                raise ValueError(f"split name {name!r} must look like 'p1_train'")
+        else:
+            protocol = name
+        path = self.split_path(protocol, split)
+        data = read_npy(path)
+        if not isinstance(data, dict) or "data_dict" not in data or "imgnames" not in data:
+            raise AssetError(path, "expected a dict with 'data_dict' and 'imgnames'")
+        dd, names = data["data_dict"], data["imgnames"]
+        if not isinstance(dd, dict) or not all(isinstance(v, dict) for v in dd.values()):
+            raise AssetError(path, "'data_dict' must map 'sid/seq' to dicts")
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise AssetError(path, "'imgnames' must be a list of strings")
+        for key, seq in dd.items():
+            for part in ("cam_coord", "2d", "bbox", "params"):
+                if part not in seq:
+                    raise AssetError(path, f"data_dict[{key!r}] has no '{part}'")
+        return data

@@ -1,0 +1,384 @@
+"""ARCTIC's sequence processing and split building (``arctic_format.md`` §1.7–1.8).
+
+:func:`process_sequence` is ARCTIC's ``process_seq`` (src/arctic/processing.py) on a
+dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`; :func:`build_split`
+is ``build_split`` (src/arctic/split.py); :func:`write_processed_splits` writes
+``splits/<p>_<split>.npy`` for a whole root (the world generator calls it).
+
+Output of :func:`process_sequence` (F frames; views in ``cam_coord``/``2d`` are the 10 of
+ARCTIC: ``[ego undistorted, allo 1..8, ego distorted]``; flags/rotations/bbox use views 0..8):
+
+``world_coord`` (metres, world frame)
+    ``joints.right``/``joints.left`` (F,21,3), ``kp3d`` (F,32,3), ``bbox3d`` (F,16,3),
+    ``rot_r``/``rot_l``/``obj_rot`` (F,3) (+ ``verts.right``/``verts.left`` (F,V,3),
+    ``verts.object`` (F,Vo,3) with ``export_verts``).
+``cam_coord`` (metres, camera frame of each view)
+    ``joints.right``/``joints.left`` (F,10,21,3), ``kp3d`` (F,10,32,3), ``bbox3d``
+    (F,10,16,3), ``rot_r_cam``/``rot_l_cam``/``obj_rot_cam`` (F,9,3) axis-angle of
+    ``R_world2cam · R_global`` (angle in [0, π]), ``is_valid``/``left_valid``/``right_valid``
+    (F,9) int64 in {0,1} (+ ``verts.*`` (F,10,V,3) with ``export_verts``).
+``2d`` (full-resolution pixels)
+    pinhole projection of every ``cam_coord`` point key, (F,10,N,2); view 9 projects the
+    distorted ego points with ``K_ego``.
+``bbox`` (F,9,3)
+    ``(cx, cy, scale)``: allocentric = 1.7 × 2D extent of the projected object vertices,
+    scale ≥ 3 (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`); ego = the
+    whole image (:func:`~hogsa_loader.datasets.conventions.ego_bbox`).
+``params`` (per frame)
+    ``rot_r, pose_r, trans_r, shape_r (F,10), fitting_err_r`` and the same with ``_l``,
+    ``obj_arti`` (F,), ``obj_rot`` (F,3), ``obj_trans`` (F,3) **mm** (as stored in the raw
+    file), ``world2ego`` (F,4,4), ``dist`` (F,8), ``K_ego`` (F,3,3).
+
+Differences from ARCTIC, on purpose:
+* no SMPL-X: the project's worlds have no body, so ``joints.smplx``/``verts.smplx`` and
+  the ``smplx_*`` params are omitted (the training dataset does not read them);
+* floats are stored as float32 (ARCTIC's tensors are float32 too), flags as int64 (ARCTIC's
+  ``long`` flags); ``fitting_err`` is zeros when the sequence has none;
+* computation is batched over chunks of frames (no Python loop over single frames);
+  geometry after the MANO/object layers is done in float64;
+* the ego box and ego validity region use ``ego_image_size`` (ARCTIC hard-codes 2800×2000,
+  the default), so generated worlds can declare theirs in ``meta/hogsa_world.json``.
+
+Decision on the spec's UNCERTAIN image numbering (§1.8): split image names are numbered by
+the image file number = GT index + ``ioi_offset`` (ARCTIC's build_split uses the bare GT
+index while its dataset subtracts ``ioi_offset``; with our numbering the dataset's
+``vidx = file number − ioi_offset`` lands exactly on frames ``margin .. F − margin − 1``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+
+from hogsa_loader.datasets.arctic import ArcticRoot, canonical_split, protocol_views
+from hogsa_loader.datasets.conventions import (
+    ALLO_VIEWS,
+    EGO_IMAGE_SIZE,
+    EGO_VIEW,
+    allocentric_bbox,
+    distort_points,
+    ego_bbox,
+    project,
+    transform,
+    validity_flags,
+)
+from hogsa_loader.datasets.types import SequenceData
+from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+
+__all__ = [
+    "FRAME_MARGIN",
+    "REQUEST_KEYS",
+    "build_split",
+    "image_name",
+    "process_sequence",
+    "write_processed_splits",
+]
+
+#: Frames skipped at each end of a sequence in the split image lists (ARCTIC: 10).
+FRAME_MARGIN = 10
+#: Keys of a processed sequence kept in the split files (``--request_keys``).
+REQUEST_KEYS: tuple[str, ...] = ("cam_coord", "2d", "bbox", "params")
+#: Frames posed per batch (bounds memory: ~10 views × object vertices × float64).
+CHUNK_FRAMES = 128
+
+_POINT_KEYS = ("joints.right", "joints.left", "kp3d", "bbox3d")
+_VERT_KEYS = ("verts.right", "verts.left", "verts.object")
+
+
+def _camera_stack(seq: SequenceData, ego_image_size: tuple[int, int]) -> tuple[np.ndarray, ...]:
+    """(F,9,4,4) world2cam, (F,9,3,3) K, (F,8) dist, (9,2) image sizes of views 0..8."""
+    F = seq.num_frames
+    missing = [v for v in (EGO_VIEW,) + tuple(ALLO_VIEWS) if v not in seq.cameras]
+    if missing:
+        raise ValueError(f"{seq.subject}/{seq.name}: cameras {missing} are missing (ARCTIC needs views 0..8)")
+    cams = [seq.cameras[v] for v in (EGO_VIEW,) + tuple(ALLO_VIEWS)]
+    for c in cams:
+        if c.world2cam.shape != (F, 4, 4) or c.K.shape != (F, 3, 3):
+            raise ValueError(
+                f"{seq.subject}/{seq.name}: camera {c.view} needs world2cam (F,4,4) and K (F,3,3) with F={F}, "
+                f"got {c.world2cam.shape} and {c.K.shape}"
+            )
+    world2cam = np.stack([c.world2cam for c in cams], axis=1).astype(np.float64)
+    K = np.stack([c.K for c in cams], axis=1).astype(np.float64)
+    ego = cams[0]
+    dist = np.zeros(8) if ego.dist is None else np.asarray(ego.dist, dtype=np.float64)
+    dist = np.broadcast_to(dist, (F, 8)).copy()
+    sizes = np.array([tuple(ego_image_size)] + [(c.width, c.height) for c in cams[1:]], dtype=np.float64)
+    return world2cam, K, dist, sizes
+
+
+def _pose_chunk(
+    seq: SequenceData,
+    sl: slice,
+    mano_layers: Mapping[str, Any],
+    object_layer: Any,
+) -> dict[str, np.ndarray]:
+    """World-frame points of frames ``sl``: joints (n,21,3), kp3d, bbox3d, verts (float64)."""
+    out: dict[str, np.ndarray] = {}
+    for side, hand in (("right", seq.right), ("left", seq.left)):
+        layer = mano_layers[side]
+        dt = layer.v_template.dtype
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a), dtype=dt)
+
+        n = hand.rot[sl].shape[0]
+        betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float64).reshape(1, -1), (n, hand.betas.size))
+        res = layer(global_orient=t(hand.rot[sl]), hand_pose=t(hand.pose[sl]), betas=t(betas), transl=t(hand.trans[sl]))
+        out[f"joints.{side}"] = res.joints.double().numpy()
+        out[f"verts.{side}"] = res.vertices.double().numpy()
+    obj = seq.object
+    n = obj.rot[sl].shape[0]
+    if obj.name not in object_layer.name_to_index:
+        where: PathLike = obj.name
+        if seq.root is not None:
+            where = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / obj.name
+        raise AssetError(where, f"no template for object '{obj.name}' (sequence {seq.subject}/{seq.name}; "
+                                f"known: {object_layer.names})")
+    f64 = torch.float64
+    res = object_layer(
+        angles=torch.as_tensor(obj.arti[sl], dtype=f64).reshape(n, 1),
+        global_orient=torch.as_tensor(obj.rot[sl], dtype=f64),
+        transl=torch.as_tensor(obj.trans[sl], dtype=f64),
+        names=[obj.name] * n,
+    )
+    out["kp3d"] = res["kp3d"].numpy()
+    out["bbox3d"] = res["bbox3d"].numpy()
+    out["verts.object"] = res["v"].numpy()
+    return out
+
+
+def _rot_cam(world2cam: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    """Axis-angle of ``R_world2cam · R(rotvec)``: (n,9,4,4), (n,3) → (n,9,3)."""
+    Rg = axis_angle_to_matrix(torch.as_tensor(rotvec, dtype=torch.float64))[:, None]
+    Rc = torch.as_tensor(world2cam[..., :3, :3], dtype=torch.float64)
+    return matrix_to_axis_angle(Rc @ Rg).numpy()
+
+
+def process_sequence(
+    seq: SequenceData,
+    mano_layers: Mapping[str, Any],
+    object_layer: Any,
+    *,
+    export_verts: bool = False,
+    ego_image_size: tuple[int, int] = EGO_IMAGE_SIZE,
+    chunk_frames: int = CHUNK_FRAMES,
+) -> dict[str, dict[str, np.ndarray] | np.ndarray]:
+    """ARCTIC ``process_seq`` of one sequence (spec §1.7).
+
+    Args:
+        seq: the sequence (world frame, metres); cameras 0 (ego, per frame, with ``dist``)
+            and 1..8 are required.
+        mano_layers: ``{"right": MANOLayer, "left": MANOLayer}`` with ``flat_hand_mean=False``.
+        object_layer: an :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`
+            holding ``seq.object.name``.
+        export_verts: also store ``verts.right/left/object`` in every coordinate frame.
+        ego_image_size: (width, height) of the full ego image, used for the ego box and the
+            ego validity region (ARCTIC hard-codes 2800×2000).
+        chunk_frames: frames posed per batch.
+
+    Returns:
+        ``{"world_coord", "cam_coord", "2d": dicts of arrays, "bbox": (F,9,3), "params": dict}``
+        with the keys and shapes listed in the module docstring.
+    """
+    F = seq.num_frames
+    world2cam, K, dist, sizes = _camera_stack(seq, ego_image_size)
+    keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
+    ego_box = ego_bbox(tuple(ego_image_size))
+    acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
+
+    def push(group: str, key: str, value: np.ndarray) -> None:
+        acc[group].setdefault(key, []).append(value)
+
+    with torch.no_grad():
+        for start in range(0, F, max(1, chunk_frames)):
+            sl = slice(start, min(F, start + max(1, chunk_frames)))
+            n = sl.stop - sl.start
+            w2c, Kc, dc = world2cam[sl], K[sl], dist[sl]
+            world = _pose_chunk(seq, sl, mano_layers, object_layer)
+            cam: dict[str, np.ndarray] = {}
+            p2d: dict[str, np.ndarray] = {}
+            for key, pts in world.items():
+                if key not in keep and key != "verts.object":  # object verts: needed for bbox/flags
+                    continue
+                c9 = transform(w2c, pts[:, None])  # (n,9,N,3)
+                cdist = distort_points(c9[:, EGO_VIEW], dc)  # (n,N,3)
+                cam[key] = np.concatenate([c9, cdist[:, None]], axis=1)  # (n,10,N,3)
+                p2d[key] = np.concatenate(
+                    [project(c9, Kc), project(cdist, Kc[:, EGO_VIEW])[:, None]], axis=1
+                )  # (n,10,N,2)
+            # boxes: allocentric from the object vertices, ego = whole image
+            bbox = np.empty((n, 9, 3))
+            bbox[:, EGO_VIEW] = ego_box
+            bbox[:, 1:] = allocentric_bbox(p2d["verts.object"][:, 1:9])
+            # validity on views 0..8, view 0 judged on the *distorted* ego projection (view 9)
+            order = [9] + list(ALLO_VIEWS)
+            is_valid, right_valid, left_valid = validity_flags(
+                p2d["verts.object"][:, order],
+                p2d["joints.right"][:, order],
+                p2d["joints.left"][:, order],
+                bbox,
+                sizes,
+            )
+            for key in keep:
+                push("world_coord", key, world[key].astype(np.float32))
+                push("cam_coord", key, cam[key].astype(np.float32))
+                push("2d", key, p2d[key].astype(np.float32))
+            push("world_coord", "rot_r", seq.right.rot[sl].astype(np.float32))
+            push("world_coord", "rot_l", seq.left.rot[sl].astype(np.float32))
+            push("world_coord", "obj_rot", seq.object.rot[sl].astype(np.float32))
+            push("cam_coord", "rot_r_cam", _rot_cam(w2c, seq.right.rot[sl]).astype(np.float32))
+            push("cam_coord", "rot_l_cam", _rot_cam(w2c, seq.left.rot[sl]).astype(np.float32))
+            push("cam_coord", "obj_rot_cam", _rot_cam(w2c, seq.object.rot[sl]).astype(np.float32))
+            push("cam_coord", "is_valid", is_valid.astype(np.int64))
+            push("cam_coord", "left_valid", left_valid.astype(np.int64))
+            push("cam_coord", "right_valid", right_valid.astype(np.int64))
+            push("bbox", "bbox", bbox.astype(np.float32))
+
+    out: dict[str, Any] = {
+        g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
+    }
+    out["bbox"] = np.concatenate(acc["bbox"]["bbox"], axis=0)
+    out["params"] = _params(seq, world2cam[:, EGO_VIEW], K[:, EGO_VIEW], dist)
+    return out
+
+
+def _params(seq: SequenceData, world2ego: np.ndarray, K_ego: np.ndarray, dist: np.ndarray) -> dict[str, np.ndarray]:
+    """ARCTIC ``params`` (spec §1.7), float32, without the SMPL-X keys."""
+    F = seq.num_frames
+    f32 = np.float32
+    p: dict[str, np.ndarray] = {}
+    for sfx, hand in (("r", seq.right), ("l", seq.left)):
+        p[f"rot_{sfx}"] = hand.rot.astype(f32)
+        p[f"pose_{sfx}"] = hand.pose.astype(f32)
+        p[f"trans_{sfx}"] = hand.trans.astype(f32)
+        p[f"shape_{sfx}"] = np.repeat(np.asarray(hand.betas, dtype=f32).reshape(1, -1), F, axis=0)
+        err = hand.fitting_err if hand.fitting_err is not None else np.zeros(F)
+        p[f"fitting_err_{sfx}"] = np.asarray(err, dtype=f32)
+    p["obj_arti"] = seq.object.arti.astype(f32)
+    p["obj_rot"] = seq.object.rot.astype(f32)
+    p["obj_trans"] = (seq.object.trans * 1000.0).astype(f32)
+    p["world2ego"] = world2ego.astype(f32)
+    p["dist"] = dist.astype(f32)
+    p["K_ego"] = K_ego.astype(f32)
+    return p
+
+
+# ----------------------------------------------------------------------------------------
+# Splits
+# ----------------------------------------------------------------------------------------
+def image_name(sid: str, seq: str, view: int, frame_id: int) -> str:
+    """``./data/arctic_data/data/images/<sid>/<seq>/<view>/<frame_id:05d>.jpg`` (ARCTIC imgname)."""
+    return f"./data/arctic_data/data/images/{sid}/{seq}/{view}/{frame_id:05d}.jpg"
+
+
+def build_split(
+    root: ArcticRoot,
+    protocol: str,
+    split: str,
+    processed: Optional[Mapping[str, Mapping[str, Any]]] = None,
+    frame_margin: int = FRAME_MARGIN,
+) -> dict[str, Any]:
+    """ARCTIC ``build_split`` (spec §1.8).
+
+    Args:
+        root: the data root (protocol files, misc.json for ``ioi_offset``).
+        protocol: ``"p1"`` (views 1..8) or ``"p2"`` (view 0) (also ``p1a``/``p2a``).
+        split: ``train``/``val``/``test`` (mini/tiny/small prefixes are stripped).
+        processed: ``{"sid/seq": process_sequence(...)}``; sequences missing here are read
+            from ``root`` and processed (ego image size from ``root.world_meta()``).
+        frame_margin: frames skipped at each end (ARCTIC: 10).
+
+    Returns:
+        ``{"data_dict": {"sid/seq": {"cam_coord", "2d", "bbox", "params"}}, "imgnames": [...]}``.
+        Image names cover GT frames ``margin .. F − margin − 1`` (frame-major, then views)
+        and are numbered by **image file number = GT index + ioi_offset** — ARCTIC's
+        build_split numbers them by the GT index (spec §1.8, UNCERTAIN), but the dataset
+        subtracts ``ioi_offset`` to find the GT frame, so this is the consistent choice.
+    """
+    split = canonical_split(split)
+    views = protocol_views(protocol)
+    seqs = root.protocol(protocol)[split]
+    data_dict: dict[str, dict[str, Any]] = {}
+    imgnames: list[str] = []
+    for key in seqs:
+        sid, name = key.split("/")
+        data = processed.get(key) if processed is not None else None
+        if data is None:
+            layers = root.mano_layers()
+            data = process_sequence(
+                root.sequence(sid, name), layers, root.object_layer(),
+                ego_image_size=root.world_meta().ego_image_size,
+            )
+        data_dict[key] = {k: data[k] for k in REQUEST_KEYS}
+        F = int(data["params"]["rot_r"].shape[0])
+        offset = root.subject_misc(sid).ioi_offset
+        for frame in range(frame_margin, F - frame_margin):
+            for view in views:
+                imgnames.append(image_name(sid, name, view, frame + offset))
+    if len(set(imgnames)) != len(imgnames):
+        raise AssetError(root.protocol_path(protocol), f"split {split} lists an image twice")
+    return {"data_dict": data_dict, "imgnames": imgnames}
+
+
+def _save_npy_atomic(path: Path, obj: Any) -> None:
+    """``np.save`` of a Python object to ``path`` via a temporary file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.save(fh, np.asarray(obj, dtype=object) if not isinstance(obj, np.ndarray) else obj, allow_pickle=True)
+    os.replace(tmp, path)
+
+
+def write_processed_splits(
+    data_root: PathLike,
+    protocols: Sequence[str] = ("p1", "p2"),
+    splits: Sequence[str] = ("train", "val"),
+    progress: bool = True,
+) -> dict[str, Path]:
+    """Process every sequence the protocols need and write ``splits/<p>_<split>.npy``.
+
+    Each sequence is processed once (shared by all protocols/splits). The ego image size
+    comes from ``meta/hogsa_world.json`` (ARCTIC default 2800×2000). Files are written
+    with ``np.save`` (a pickled dict, as ARCTIC's), deterministically and atomically.
+
+    Args:
+        data_root: ARCTIC ``./data`` folder.
+        protocols: protocol names with a ``splits_json/protocol_<p>.json``.
+        splits: split names.
+        progress: show a tqdm bar over the sequences being processed.
+
+    Returns:
+        ``{"p1_train": path, ...}``.
+    """
+    from tqdm import tqdm
+
+    root = ArcticRoot(data_root)
+    ego_size = root.world_meta().ego_image_size
+    plan = {(p, canonical_split(s)): root.protocol(p)[canonical_split(s)] for p in protocols for s in splits}
+    for p in protocols:
+        protocol_views(p)
+    needed: list[str] = []
+    for seqs in plan.values():
+        needed.extend(s for s in seqs if s not in needed)
+    processed: dict[str, dict[str, Any]] = {}
+    if needed:
+        layers = root.mano_layers()
+        obj_layer = root.object_layer()
+    with tqdm(needed, desc="ARCTIC process_seq", unit="seq", disable=not progress) as bar:
+        for key in bar:
+            bar.set_postfix_str(key)
+            sid, name = key.split("/")
+            processed[key] = process_sequence(root.sequence(sid, name), layers, obj_layer, ego_image_size=ego_size)
+    out: dict[str, Path] = {}
+    for (p, s) in plan:
+        data = build_split(root, p, s, processed)
+        path = root.split_path(p, s)
+        _save_npy_atomic(path, data)
+        out[f"{p}_{s}"] = path
+    return out

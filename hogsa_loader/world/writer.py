@@ -1,0 +1,317 @@
+"""``generate_world``: write a complete ARCTIC-format world (spec §1) with rendered images.
+
+Layout written under ``out`` (which plays ARCTIC's ``./data``)::
+
+    body_models/mano/MANO_{RIGHT,LEFT}.pkl          the synthetic MANO-schema hands
+    arctic_data/data/meta/misc.json                 per-subject cameras, sizes, ioi_offset, gender
+    arctic_data/data/meta/object_meta.json, object_vtemplates/<obj>/...
+    arctic_data/data/meta/hogsa_world.json          generator record (sizes, mask ids, timings)
+    arctic_data/data/raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy
+    arctic_data/data/splits_json/protocol_p{1,2}.json
+    arctic_data/data/cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg
+    arctic_data/data/masks/<sid>/<seq>/<view>/<frame:05d>.png
+    arctic_data/data/splits/<p>_<split>.npy         (ARCTIC processing, from the files above)
+    world_preview.png
+
+Determinism: everything derives from ``seed`` through named random streams, arrays are
+written with ``np.save``, JSON with sorted keys, images with fixed OpenCV settings, so the
+same seed gives byte-identical files (``hogsa_world.json`` differs only in ``timings``).
+The rendering consumes the parameters exactly as stored (float32 raw arrays, JSON
+cameras), so images and annotations agree.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
+from hogsa_loader.errors import PathLike
+from hogsa_loader.world.presets import SequencePlan, WorldPreset
+
+if TYPE_CHECKING:
+    from hogsa_loader.world.subjects import Subject
+
+__all__ = ["SCHEMA_VERSION", "GENERATOR", "generate_world", "WORLD_META", "MASK_DIR"]
+
+SCHEMA_VERSION = 1
+GENERATOR = "hogsa-world/1"
+WORLD_META = "hogsa_world.json"
+MASK_DIR = "masks"
+HAND_MODEL_SEED = 0  # one fixed hand model per world, as ARCTIC has one MANO
+
+
+def _rng(seed: int, *names: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed) & 0xFFFFFFFF] + [zlib.crc32(n.encode()) for n in names])
+
+
+def _write_json(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+
+
+def _save_npy(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        np.save(fh, obj, allow_pickle=True)
+
+
+def _mat_list(a: np.ndarray) -> list:
+    return [[float(x) for x in row] for row in a]
+
+
+def _egocam_dict(R: np.ndarray, T: np.ndarray, K: np.ndarray, dist8: np.ndarray, rng: np.random.Generator) -> dict:
+    """The ``.egocam.dist.npy`` dict (float32), with plausible marker/mount placeholders."""
+    markers = rng.normal(0, 0.04, size=(4, 3)) + np.array([0.0, -0.06, 0.02])
+    return {
+        "R_k_cam_np": R.astype(np.float32),
+        "T_k_cam_np": T.astype(np.float32),
+        "intrinsics": K.astype(np.float32),
+        "dist8": dist8.astype(np.float32),
+        "ego_markers.ref": markers.astype(np.float32),
+        "ego_markers.label": [f"ego_{i}" for i in range(4)],
+        "R0": np.eye(3, dtype=np.float32),
+        "T0": np.zeros((3, 1), np.float32),
+    }
+
+
+@dataclass
+class _Job:
+    """One sequence to render: its subject, plan and stored annotations (as written)."""
+
+    subject: "Subject"
+    plan: SequencePlan
+    mano: dict
+    obj_params: np.ndarray
+    ego: dict
+
+
+def _write_assets(root: Path, preset: WorldPreset, seed: int) -> tuple[dict, dict, list]:
+    """MANO pickles, object templates (+ object_meta.json); returns what was written, re-read.
+
+    Returns:
+        (models side -> ManoModelData, templates name -> ObjectTemplate, stage MeshParts).
+    """
+    from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
+    from hogsa_loader.hands.synthetic import synthetic_hand_pair
+    from hogsa_loader.objects.procedural import write_procedural_objects
+    from hogsa_loader.objects.template import load_object_template, read_object_meta
+    from hogsa_loader.world.stage import build_stage
+
+    mano_dir = root / "body_models" / "mano"
+    meta = root / "arctic_data" / "data" / "meta"
+    right, left = synthetic_hand_pair(seed=HAND_MODEL_SEED)
+    write_mano_pickle(right, mano_dir / "MANO_RIGHT.pkl")
+    write_mano_pickle(left, mano_dir / "MANO_LEFT.pkl")
+    models = {side: load_mano(mano_dir, side=side) for side in ("right", "left")}
+    write_procedural_objects(meta, names=preset.objects, seed=seed)
+    obj_meta = read_object_meta(meta / "object_meta.json")
+    templates = {n: load_object_template(meta / "object_vtemplates" / n, object_meta=obj_meta) for n in preset.objects}
+    return models, templates, build_stage(_rng(seed, "stage"))
+
+
+def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, templates: dict) -> tuple[list, list]:
+    """Subjects, cameras and motion -> raw_seqs, misc.json, splits_json.
+
+    Returns:
+        (subjects, jobs) with the annotations exactly as stored (float32 arrays).
+    """
+    from hogsa_loader.world.cameras import allocentric_rig, ego_calibration, ego_trajectory
+    from hogsa_loader.world.motion import build_motion
+    from hogsa_loader.world.subjects import make_subject
+
+    F = preset.num_frames
+    misc, subjects, jobs = {}, [], []
+    for si, plan in enumerate(preset.subjects):
+        subj = make_subject(plan.sid, plan.split, seed, first=(si == 0))
+        subjects.append(subj)
+        rig = allocentric_rig(_rng(seed, "allocentric-rig"), _rng(seed, plan.sid, "calibration"))
+        ego_K, ego_dist = ego_calibration(_rng(seed, plan.sid, "ego-calibration"))
+        misc[plan.sid] = {
+            "world2cam": [_mat_list(m) for m in rig.world2cam],
+            "intris_mat": [_mat_list(m) for m in rig.K],
+            "image_size": [list(EGO_IMAGE_SIZE)] + [[int(w), int(h)] for (w, h) in rig.sizes],
+            "ioi_offset": int(subj.ioi_offset),
+            "gender": subj.gender,
+        }
+        for seq in plan.sequences:
+            rng = _rng(seed, plan.sid, seq.name)
+            motion = build_motion(F, seq.object, seq.action, templates[seq.object], kits, subj.betas, rng,
+                                  grasp_iters=preset.grasp_iters)
+            R_ego, T_ego = ego_trajectory(F, rng, motion.focus)
+            mano = {side: motion.hands[side] for side in ("right", "left")}
+            obj_params = motion.object_params.astype(np.float32)
+            ego = _egocam_dict(R_ego, T_ego, ego_K, ego_dist, rng)
+            base = data / "raw_seqs" / plan.sid
+            _save_npy(base / f"{seq.name}.mano.npy", mano)
+            _save_npy(base / f"{seq.name}.object.npy", obj_params)
+            _save_npy(base / f"{seq.name}.egocam.dist.npy", ego)
+            jobs.append(_Job(subj, seq, mano, obj_params, ego))
+    _write_json(data / "meta" / "misc.json", misc)
+    splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
+    for s, plan in zip(subjects, preset.subjects):
+        splits[s.split].extend(f"{s.sid}/{q.name}" for q in plan.sequences)
+    for p in ("p1", "p2"):
+        _write_json(data / "splits_json" / f"protocol_{p}.json", splits)
+    return subjects, jobs
+
+
+def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dict, templates: dict, stage: list,
+            progress: bool) -> list[dict]:
+    """Render every frame and view of every job; returns per-sequence records with quality."""
+    from tqdm import tqdm
+
+    from hogsa_loader.world.cameras import AlloRig
+    from hogsa_loader.world.grasp import fit_part_boxes
+    from hogsa_loader.world.quality import sequence_quality
+    from hogsa_loader.world.scene_render import HAND_BASE_SKIN, SubjectRenderer, crop_boxes, pose_sequence
+
+    F, size = preset.num_frames, preset.cropped_size
+    misc = json.loads((data / "meta" / "misc.json").read_text())
+    layers = {side: kits[side].layer for side in ("right", "left")}
+    hand_faces = {side: torch.as_tensor(models[side].faces) for side in ("right", "left")}
+    bar = tqdm(total=len(jobs) * F * 9, desc="hogsa world", unit="img", disable=not progress, smoothing=0.05,
+               mininterval=2.0)
+    records = []
+    for sid in dict.fromkeys(j.subject.sid for j in jobs):
+        mine = [j for j in jobs if j.subject.sid == sid]
+        m = misc[sid]
+        rig = AlloRig(world2cam=np.array(m["world2cam"]), K=np.array(m["intris_mat"]),
+                      sizes=[tuple(x) for x in m["image_size"][1:]])
+        posed = [pose_sequence(layers, j.mano, j.obj_params, templates[j.plan.object]) for j in mine]
+        boxes = [crop_boxes(rig, p.obj_mesh, size) for p in posed]  # (8, F, 3) each
+        # the static background is rendered at the pixel density of this subject's densest crop
+        density = np.max([size / (1.5 * 200 * b[..., 2]) for b in boxes], axis=(0, 2))
+        tone = np.clip(np.asarray(mine[0].subject.skin_rgb) / HAND_BASE_SKIN, 0.2, 1.3)
+        colors = {side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=torch.float32)
+                  for side in ("right", "left")}
+        ego0 = mine[0].ego
+        renderer = SubjectRenderer(rig, ego0["intrinsics"].astype(np.float64), ego0["dist8"].astype(np.float64),
+                                   stage, hand_faces, colors, size, preset.ego_image_scale, preset.supersample)
+        for job, p, bb in zip(mine, posed, boxes):
+            bar.set_postfix_str(f"{sid}/{job.plan.name}")
+            _render_sequence(data, preset, job, p, bb, density, renderer, templates[job.plan.object], bar)
+            quality = sequence_quality(p.joints, {k: v.numpy() for k, v in p.hands.items()},
+                                       job.obj_params.astype(np.float64), fit_part_boxes(templates[job.plan.object]))
+            records.append({"sid": sid, "seq": job.plan.name, "object": job.plan.object, "action": job.plan.action,
+                            "split": job.subject.split, "num_frames": F, "quality": quality})
+    bar.close()
+    return records
+
+
+def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray,
+                     renderer, template, bar) -> None:
+    """Write the cropped images and masks of one sequence (all frames, views 0..8)."""
+    from hogsa_loader.world.scene_render import foreground, object_meshes
+
+    sid, name = job.subject.sid, job.plan.name
+    meshes = object_meshes(template)
+    dirs = {}
+    for v in range(9):
+        dirs[v] = (data / "cropped_images" / sid / name / str(v), data / MASK_DIR / sid / name / str(v))
+        for d in dirs[v]:
+            d.mkdir(parents=True, exist_ok=True)
+    w2e = np.zeros((preset.num_frames, 4, 4))
+    w2e[:, :3, :3] = job.ego["R_k_cam_np"]
+    w2e[:, :3, 3] = job.ego["T_k_cam_np"][..., 0]
+    w2e[:, 3, 3] = 1.0
+    for i in range(preset.num_frames):
+        stem = f"{i + job.subject.ioi_offset:05d}"
+        fg = foreground(posed, i, renderer.hand_faces, renderer.hand_colors, meshes)
+        for v in range(9):
+            if v == 0:
+                rgb, mask = renderer.render_ego(w2e[i], fg)
+            else:
+                rgb, mask = renderer.render_allo(v, boxes[v - 1, i], fg, float(density[v - 1]))
+            cv2.imwrite(str(dirs[v][0] / f"{stem}.jpg"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                        [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality])
+            cv2.imwrite(str(dirs[v][1] / f"{stem}.png"), mask, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+            bar.update()
+
+
+def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
+                   process_splits: bool = True, preview: bool = True,
+                   log: Optional[Callable[[str], None]] = None) -> dict:
+    """Generate a world (see module docstring).
+
+    Args:
+        out: output folder (ARCTIC's ``./data``); created.
+        preset: sizes and content.
+        seed: world seed.
+        progress: tqdm progress bars.
+        process_splits: run ARCTIC's processing into ``splits/`` at the end
+            (:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits`).
+        preview: write ``world_preview.png``.
+        log: optional line printer.
+
+    Returns:
+        the ``hogsa_world.json`` content.
+    """
+    from hogsa_loader.world.grasp import HandKit
+    from hogsa_loader.world.scene_render import MASK_IDS
+
+    say = log or (lambda s: None)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    root = Path(os.path.abspath(out))
+    data = root / "arctic_data" / "data"
+
+    t0 = time.perf_counter()
+    models, templates, stage = _write_assets(root, preset, seed)
+    kits = {side: HandKit(m) for side, m in models.items()}
+    timings["assets_s"] = time.perf_counter() - t0
+    say(f"assets written ({timings['assets_s']:.1f} s)")
+
+    t0 = time.perf_counter()
+    subjects, jobs = _write_annotations(data, preset, seed, kits, templates)
+    timings["motion_s"] = time.perf_counter() - t0
+    say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
+
+    t0 = time.perf_counter()
+    records = _render(data, preset, jobs, models, kits, templates, stage, progress)
+    timings["render_s"] = time.perf_counter() - t0
+
+    record = {
+        "schema_version": SCHEMA_VERSION,
+        "generator": GENERATOR,
+        "preset": preset.name,
+        "seed": int(seed),
+        "num_frames": preset.num_frames,
+        "cropped_size": preset.cropped_size,
+        "ego_image_scale": preset.ego_image_scale,
+        "ego_image_size": list(EGO_IMAGE_SIZE),
+        "ego_cropped_size": list(preset.ego_size),
+        "mask_dir": MASK_DIR,
+        "mask_ids": dict(MASK_IDS),
+        "rendered_frames": "all",
+        "hand_model_seed": HAND_MODEL_SEED,
+        "subjects": [s.to_json() for s in subjects],
+        "sequences": records,
+        "timings": {},
+    }
+    _write_json(data / "meta" / WORLD_META, record)  # read by the processing and the preview
+    if preview:
+        t0 = time.perf_counter()
+        from hogsa_loader.world.preview import write_world_preview
+
+        write_world_preview(root, root / "world_preview.png", frames=preset.preview_frames)
+        timings["preview_s"] = time.perf_counter() - t0
+    if process_splits:
+        t0 = time.perf_counter()
+        from hogsa_loader.datasets.arctic_processing import write_processed_splits
+
+        write_processed_splits(root, protocols=("p1", "p2"), splits=("train", "val"), progress=progress)
+        timings["splits_s"] = time.perf_counter() - t0
+    timings["total_s"] = time.perf_counter() - t_start
+    record["timings"] = {k: round(v, 2) for k, v in timings.items()}
+    _write_json(data / "meta" / WORLD_META, record)
+    return record
