@@ -105,7 +105,7 @@ _SOURCE_KEYS = ("dataset", "subject", "sequence")
 # --------------------------------------------------------------------------------------
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via a temporary file in the same folder + ``os.replace``."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
@@ -181,8 +181,8 @@ def save_part(
         "tensors_sha256": hashlib.sha256(blob).hexdigest(),
     }
     text = json.dumps(manifest, indent=1, sort_keys=False, allow_nan=False) + "\n"
-    _atomic_write(folder / TENSORS_FILE, blob)
-    _atomic_write(folder / MANIFEST_FILE, text.encode("utf-8"))
+    atomic_write(folder / TENSORS_FILE, blob)
+    atomic_write(folder / MANIFEST_FILE, text.encode("utf-8"))
     return folder
 
 

@@ -1,0 +1,415 @@
+"""HOGS training of one (subject, object): right hand, left hand and object Gaussians jointly.
+
+Each step renders a random batch of training (frame, view) crops with the annotated poses
+and minimises :func:`~hogsa_loader.train.losses.hogs_loss` against the image with its
+background masked to black, inside the hand/object mask dilated by ``margin`` px; outside
+that region the rendered alpha is pushed to 0. Adam with per-parameter learning rates
+(GaMeS table; ``lr_scale`` multiplies all but the position rates), SH degree raised every ``sh_warmup`` steps.
+
+Run folder::
+
+    config.json                       the settings (resume refuses different ones)
+    checkpoints/latest.json           {"step", "folder"}, written last (atomic)
+    checkpoints/step_XXXXXXX/         hand_right/, hand_left/, object/ (save_part),
+                                      trainer.safetensors (Adam moments + RNG state),
+                                      trainer.json (step, history)
+    hand_right/, hand_left/, object/  final parts
+    metrics.json, strip.png, curves.png
+
+No pickle anywhere; every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, compose, load_state, num_sh_bases, render_scene, save_part
+from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
+from hogsa_loader.train.losses import box_of, hogs_loss, psnr, ssim_map
+
+__all__ = ["HogsConfig", "HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
+
+PART_NAMES = ("hand_right", "hand_left", "object")
+#: Adam learning rates by parameter name (GaMeS table, algorithms.md §B.1; free/avatar
+#: geometry the 3DGS position/rotation/scale rates). Canonical offsets get a tenth of
+#: GaMeS's optional vertex rate: at 1.6e-4 (and more so with ``lr_scale``) Adam's
+#: sign-like first steps inflated the meshes by ~1 mm per step and alpha spilled outside
+#: the masks.
+BASE_LRS = {
+    "offsets": 1.6e-5,
+    "bary_logits": 1e-3,
+    "log_scale_factor": 5e-3,
+    "sh_dc": 2.5e-3,
+    "sh_rest": 2.5e-3 / 20,
+    "opacity_logits": 5e-2,
+    "means": 1.6e-4,
+    "quats": 1e-3,
+    "log_scales": 5e-3,
+    "local_means": 1.6e-3,
+    "local_quats": 1e-3,
+    "local_log_scales": 5e-3,
+}
+
+#: Positions in metres: ``lr_scale`` leaves their rates alone.
+POSITION_PARAMS = ("offsets", "means", "local_means")
+
+
+@dataclass
+class HogsConfig:
+    data: str
+    subject: str
+    object: str
+    out: str
+    dataset: str = "arctic"
+    sequences: Optional[list[str]] = None
+    iters: int = 2000
+    gaussians: str = "mesh"  # mesh (GaMeS) | free
+    device: str = "cpu"
+    seed: int = 0
+    batch_size: int = 1
+    image_size: Optional[int] = None
+    eval_views: list[int] = field(default_factory=lambda: [8])
+    eval_every_frame: int = 8
+    frame_stride: int = 1
+    max_eval: int = 8
+    eval_every: int = 500
+    ckpt_every: int = 500
+    k: int = 2
+    sh_degree: int = 3
+    sh_warmup: int = 1000
+    hand_subdivide: int = 0
+    object_subdivide: Optional[int] = None  # None: subdivide until >= min_object_faces
+    min_object_faces: int = 8000
+    margin: int = 4  # px of the cropped image
+    lambda_ssim: float = 0.2
+    lambda_r: float = 0.5
+    lambda_alpha: float = 1.0
+    lr_scale: float = 1.0
+    strip_views: int = 4
+
+    # settings that may differ between a run and its resumption
+    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _t(x: np.ndarray, device: torch.device) -> Tensor:
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
+
+
+class HogsTrainer:
+    """Builds the parts and data of one (subject, object) and trains them."""
+
+    def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
+        if cfg.dataset != "arctic":
+            raise ValueError(f"dataset {cfg.dataset!r} is not supported yet (only 'arctic')")
+        if cfg.gaussians not in ("mesh", "free"):
+            raise ValueError(f"--gaussians must be 'mesh' or 'free', got {cfg.gaussians!r}")
+        if cfg.iters < 0 or cfg.batch_size < 1:
+            raise ValueError("iters must be >= 0 and batch_size >= 1")
+        self.cfg = cfg
+        self.progress = progress
+        self.device = torch.device(cfg.device)
+        self.out = Path(cfg.out)
+        self.root = ArcticRoot(cfg.data)
+        t0 = time.perf_counter()
+        self.data: HogsData = load_hogs_data(
+            self.root, cfg.subject, cfg.object, sequences=cfg.sequences, eval_views=cfg.eval_views,
+            eval_every_frame=cfg.eval_every_frame, frame_stride=cfg.frame_stride, image_size=cfg.image_size,
+            max_eval=cfg.max_eval,
+        )  # fmt: skip
+        self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
+        torch.manual_seed(cfg.seed)
+        variant = "games" if cfg.gaussians == "mesh" else "free"
+        layers = self.root.mano_layers()
+        template = self.root.object_templates()[cfg.object]
+        levels = cfg.object_subdivide
+        if levels is None:
+            faces = (template.tex_faces if template.has_texture else template.faces).shape[0]
+            levels = 0
+            while faces * 4**levels < cfg.min_object_faces and levels < 2:
+                levels += 1
+        common = dict(variant=variant, k=cfg.k, sh_degree=cfg.sh_degree)
+        self.parts = torch.nn.ModuleDict({
+            "hand_right": HandGaussians(layers["right"], subdivide_levels=cfg.hand_subdivide, **common),
+            "hand_left": HandGaussians(layers["left"], subdivide_levels=cfg.hand_subdivide, **common),
+            "object": ObjectGaussians(template, subdivide_levels=levels, **common),
+        }).to(self.device)  # fmt: skip
+        groups = []
+        for pname, part in self.parts.items():
+            for name, p in part.splats.named_parameters():
+                lr = BASE_LRS.get(name)
+                if lr is None:
+                    raise KeyError(f"no learning rate for parameter {name!r}")
+                scale = 1.0 if name in POSITION_PARAMS else cfg.lr_scale
+                groups.append({"params": [p], "lr": lr * scale, "name": f"{pname}.{name}"})
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.step = 0
+        self.history: list[dict[str, float]] = []
+        self.evals: list[dict[str, Any]] = []
+        self._train_time = 0.0
+
+    # ------------------------------------------------------------------ rendering
+    def active_sh_degree(self, step: Optional[int] = None) -> int:
+        step = self.step if step is None else step
+        if self.cfg.sh_warmup <= 0:
+            return self.cfg.sh_degree
+        return min(self.cfg.sh_degree, step // self.cfg.sh_warmup)
+
+    def render(self, samples: Sequence[ViewSample], sh_degree: Optional[int] = None) -> tuple[Tensor, Tensor]:
+        """Render samples: rgb (B, H, W, 3) on black, alpha (B, H, W)."""
+        dev = self.device
+        p = {k: v.to(dev) for k, v in self.data.poses(samples).items()}
+        sets = [
+            self.parts["hand_right"](p["right_rot"], p["right_pose"], p["right_betas"], p["right_trans"]),
+            self.parts["hand_left"](p["left_rot"], p["left_pose"], p["left_betas"], p["left_trans"]),
+            self.parts["object"](p["obj_arti"], p["obj_rot"], p["obj_trans"]),
+        ]
+        scene = compose(sets)
+        deg = self.active_sh_degree() if sh_degree is None else sh_degree
+        scene = replace(scene, sh=scene.sh[..., : num_sh_bases(deg), :], sh_degree=deg, normals=None)
+        viewmats = _t(np.stack([s.world2cam for s in samples]), dev)[:, None]
+        Ks = _t(np.stack([s.K for s in samples]), dev)[:, None]
+        S = self.data.image_size
+        out = render_scene(scene, viewmats, Ks, S, S, render_mode="RGB")
+        return out.rgb[:, 0], out.alpha[:, 0, ..., 0]
+
+    def targets(self, samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor, Tensor]:
+        """GT with background masked to black (B, H, W, 3), mask (B, H, W), loss region (dilated)."""
+        img = torch.as_tensor(np.stack([s.image for s in samples]), device=self.device).float() / 255.0
+        mask = torch.as_tensor(np.stack([s.mask for s in samples]), device=self.device) > 0
+        return img * mask[..., None], mask, dilate_mask(mask, self.margin_px)
+
+    @property
+    def margin_px(self) -> int:
+        """``cfg.margin`` (cropped-image pixels) at the training resolution."""
+        crop = self.root.world_meta().cropped_size
+        return int(round(self.cfg.margin * self.data.image_size / crop))
+
+    # ------------------------------------------------------------------ training
+    def l_r(self) -> Tensor:
+        return sum(part.offset_regulariser() for part in self.parts.values()) / len(self.parts)
+
+    def train_step(self) -> dict[str, float]:
+        idx = torch.randint(len(self.data.train), (self.cfg.batch_size,), generator=self.gen).tolist()
+        samples = [self.data.train[i] for i in idx]
+        gt, _, region = self.targets(samples)
+        rgb, alpha = self.render(samples)
+        loss, terms = hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.lambda_ssim,
+                                lambda_r=self.cfg.lambda_r, lambda_alpha=self.cfg.lambda_alpha)  # fmt: skip
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+        terms["loss"] = float(loss.detach())
+        terms["step"] = self.step
+        return terms
+
+    @torch.no_grad()
+    def evaluate(self, samples: Optional[Sequence[ViewSample]] = None) -> dict[str, Any]:
+        """PSNR / SSIM inside each sample's foreground box (bbox of the dilated mask)."""
+        samples = self.data.eval if samples is None else samples
+        rows = []
+        for s in samples:
+            gt, _, region = self.targets([s])
+            rgb, alpha = self.render([s])
+            y0, y1, x0, x1 = box_of(region[0])
+            pr, g = rgb[:, y0:y1, x0:x1].clamp(0, 1), gt[:, y0:y1, x0:x1]
+            win = 11 if min(y1 - y0, x1 - x0) >= 11 else 3
+            rows.append({
+                "sequence": self.data.sequences[s.seq_index].name, "frame": s.frame, "view": s.view,
+                "psnr": psnr(pr, g), "ssim": float(ssim_map(pr, g, win).mean()),
+                "alpha_outside": float(alpha[0][~region[0]].mean()) if bool((~region[0]).any()) else 0.0,
+            })  # fmt: skip
+        per_view = []
+        for v in sorted({r["view"] for r in rows}):
+            rv = [r for r in rows if r["view"] == v]
+            per_view.append({"view": v, "n": len(rv), "psnr": float(np.mean([r["psnr"] for r in rv])),
+                             "ssim": float(np.mean([r["ssim"] for r in rv]))})  # fmt: skip
+        return {
+            "step": self.step,
+            "psnr": float(np.mean([r["psnr"] for r in rows])),
+            "ssim": float(np.mean([r["ssim"] for r in rows])),
+            "alpha_outside": float(np.mean([r["alpha_outside"] for r in rows])),
+            "per_view": per_view,
+            "per_sample": rows,
+        }
+
+    def train(self) -> dict[str, Any]:
+        """Train up to ``cfg.iters`` steps (from the current step), evaluating and checkpointing."""
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        _write_json(self.out / "config.json", cfg.to_json())
+        if self.step == 0 and not self.evals:
+            self.evals.append(_summary(self.evaluate()))
+        bar = tqdm(total=cfg.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
+        while self.step < cfg.iters:
+            t0 = time.perf_counter()
+            terms = self.train_step()
+            self._train_time += time.perf_counter() - t0
+            self.history.append(terms)
+            bar.update(1)
+            bar.set_postfix(loss=f"{terms['loss']:.4f}", l1=f"{terms['l1']:.4f}")
+            if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iters:
+                ev = self.evaluate()
+                self.evals.append(_summary(ev))
+                bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB SSIM {ev['ssim']:.4f}")
+            if cfg.ckpt_every > 0 and self.step % cfg.ckpt_every == 0 and self.step < cfg.iters:
+                self.save_checkpoint()
+        bar.close()
+        final = self.evaluate()
+        if not self.evals or self.evals[-1]["step"] != self.step:
+            self.evals.append(_summary(final))
+        self.save_checkpoint()
+        for name, part in self.parts.items():
+            save_part(part, self.out / name, **self._source(), extra={"step": self.step})
+        metrics = self.write_metrics(final)
+        self.write_pngs()
+        return metrics
+
+    # ------------------------------------------------------------------ checkpoints
+    def _source(self) -> dict[str, str]:
+        return {"dataset": self.cfg.dataset, "subject": self.cfg.subject,
+                "sequence": ",".join(s.name for s in self.data.sequences)}  # fmt: skip
+
+    def save_checkpoint(self) -> Path:
+        """Write ``checkpoints/step_N`` then point ``latest.json`` at it; older ones are removed."""
+        from safetensors.torch import save as st_save
+
+        ck = self.out / "checkpoints"
+        folder = ck / f"step_{self.step:07d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, part in self.parts.items():
+            save_part(part, folder / name, **self._source(), extra={"step": self.step})
+        tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
+        for i, group in enumerate(self.optimizer.param_groups):
+            st = self.optimizer.state.get(group["params"][0], {})
+            for key, val in st.items():
+                tensors[f"adam.{group['name']}.{key}"] = torch.as_tensor(val).detach().cpu().contiguous()
+        atomic_write(folder / "trainer.safetensors", st_save(tensors))
+        state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time}
+        atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
+        atomic_write(ck / "latest.json", (json.dumps({"step": self.step, "folder": folder.name}) + "\n").encode())
+        for old in ck.glob("step_*"):
+            if old.is_dir() and old.name != folder.name:
+                shutil.rmtree(old, ignore_errors=True)
+        return folder
+
+    def resume(self) -> bool:
+        """Load the latest checkpoint of the run folder; False when there is none."""
+        from safetensors.torch import load_file
+
+        latest = self.out / "checkpoints" / "latest.json"
+        if not latest.is_file():
+            return False
+        saved = json.loads((self.out / "config.json").read_text())
+        now = self.cfg.to_json()
+        diff = [k for k in now if k not in HogsConfig.RESUMABLE and saved.get(k) != now[k]]
+        if diff:
+            raise ValueError(f"cannot resume {self.out}: settings {diff} differ from the saved config.json")
+        info = json.loads(latest.read_text())
+        folder = self.out / "checkpoints" / info["folder"]
+        for name, part in self.parts.items():
+            load_state(part, folder / name)
+        tensors = load_file(str(folder / "trainer.safetensors"))
+        self.gen.set_state(tensors["rng.sampler"])
+        torch.set_rng_state(tensors["rng.torch"])
+        for group in self.optimizer.param_groups:
+            p = group["params"][0]
+            prefix = f"adam.{group['name']}."
+            st = {k[len(prefix):]: v.to(p.device) for k, v in tensors.items() if k.startswith(prefix)}
+            if st:
+                st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
+                self.optimizer.state[p] = st
+        state = json.loads((folder / "trainer.json").read_text())
+        self.step = int(state["step"])
+        self.history = state["history"]
+        self.evals = state["evals"]
+        self._train_time = float(state["train_time_s"])
+        return True
+
+    # ------------------------------------------------------------------ reports
+    def write_metrics(self, final: dict[str, Any]) -> dict[str, Any]:
+        n_train = max(1, len(self.history))
+        metrics = {
+            "psnr": final["psnr"],
+            "ssim": final["ssim"],
+            "lpips": None,
+            "lpips_note": "LPIPS not computed (no local weights)",
+            "per_view": final["per_view"],
+            "per_sample": final["per_sample"],
+            "alpha_outside": final["alpha_outside"],
+            "region": "foreground box (bbox of the part mask dilated by margin px); GT background masked to black",
+            "iters": self.step,
+            "initial": self.evals[0] if self.evals else None,
+            "evals": self.evals,
+            "subject": self.cfg.subject,
+            "object": self.cfg.object,
+            "sequences": [s.name for s in self.data.sequences],
+            "train_views": list(self.data.train_views),
+            "eval_views": list(self.data.eval_views),
+            "num_train_images": len(self.data.train),
+            "num_eval_images": len(self.data.eval),
+            "image_size": self.data.image_size,
+            "gaussians": self.cfg.gaussians,
+            "num_gaussians": {k: p.num_gaussians for k, p in self.parts.items()},
+            "binding_mesh": {k: p.binding_mesh for k, p in self.parts.items()},
+            "device": str(self.device),
+            "timings": {**self.timings, "train_s": self._train_time, "s_per_iter": self._train_time / n_train},
+        }
+        _write_json(self.out / "metrics.json", metrics)
+        return metrics
+
+    @torch.no_grad()
+    def write_pngs(self) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        rows = []
+        pick = self.data.eval[:: max(1, len(self.data.eval) // max(1, self.cfg.strip_views))][: self.cfg.strip_views]
+        for s in pick:
+            gt, _, _ = self.targets([s])
+            rgb, _ = self.render([s])
+            pr = rgb[0].clamp(0, 1)
+            err = (pr - gt[0]).abs().mean(-1, keepdim=True).expand(-1, -1, 3).clamp(0, 1)
+            rows.append(torch.cat([gt[0], pr, err], 1))
+        strip = (torch.cat(rows, 0).cpu().numpy() * 255).round().astype(np.uint8)
+        plt.imsave(self.out / "strip.png", strip)
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        steps = [h["step"] for h in self.history]
+        ax[0].plot(steps, [h["loss"] for h in self.history], lw=0.8, label="loss")
+        ax[0].plot(steps, [h["photo"] for h in self.history], lw=0.8, label="photometric")
+        ax[0].set_xlabel("step")
+        ax[0].set_yscale("log")
+        ax[0].legend()
+        ax[1].plot([e["step"] for e in self.evals], [e["psnr"] for e in self.evals], "o-")
+        ax[1].set_xlabel("step")
+        ax[1].set_ylabel("held-out PSNR (dB)")
+        fig.tight_layout()
+        fig.savefig(self.out / "curves.png", dpi=80)
+        plt.close(fig)
+
+
+def _summary(ev: dict[str, Any]) -> dict[str, Any]:
+    return {"step": ev["step"], "psnr": ev["psnr"], "ssim": ev["ssim"], "alpha_outside": ev["alpha_outside"]}
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    atomic_write(path, (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode())
