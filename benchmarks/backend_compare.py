@@ -35,14 +35,12 @@ import argparse
 import json
 import math
 import os
-import resource
-import statistics
 import subprocess
 import sys
-import time
-from typing import Any, Callable
+from typing import Any
 
 import torch
+from _timing import time_render
 
 
 def make_scene(n: int, width: int, device: str) -> dict[str, Any]:
@@ -91,40 +89,7 @@ def run_row(backend: str, device: str, n: int, width: int, warmup: int, rep_fwd:
     if device == "cpu":
         torch.set_num_threads(int(os.environ.get("BENCH_THREADS", os.cpu_count() or 1)))
     s = make_scene(n, width, device)
-    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
-    base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    params = ["means", "quats", "scales", "opacities", "colors"]
-
-    def fwd() -> None:
-        with torch.no_grad():
-            _render(s, backend)
-        sync()
-
-    def fwd_bwd() -> None:
-        for k in params:
-            s[k] = s[k].detach().requires_grad_(True)
-        (_render(s, backend).rgb * s["wrand"]).sum().backward()
-        sync()
-
-    def timed(f: Callable[[], None], reps: int) -> float:
-        for _ in range(warmup):
-            f()
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            f()
-            ts.append(time.perf_counter() - t0)
-        return 1000.0 * statistics.median(ts)
-
-    if device == "cuda":
-        torch.cuda.reset_peak_memory_stats()
-    fwd_ms = timed(fwd, rep_fwd)
-    fwd_bwd_ms = timed(fwd_bwd, rep_bwd)
-    if device == "cuda":
-        peak_mb, mem_kind = torch.cuda.max_memory_allocated() / 2**20, "torch.cuda.max_memory_allocated"
-    else:
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-        mem_kind = "ru_maxrss (process peak RSS)"
+    t = time_render(lambda sc: _render(sc, backend).rgb, s, device, warmup, rep_fwd, rep_bwd)
     with torch.no_grad():
         alpha_mean = float(_render(s, backend).alpha.mean())
     return {
@@ -133,11 +98,11 @@ def run_row(backend: str, device: str, n: int, width: int, warmup: int, rep_fwd:
         "N": n,
         "width": width,
         "height": width,
-        "fwd_ms": round(fwd_ms, 2),
-        "fwd_bwd_ms": round(fwd_bwd_ms, 2),
-        "peak_mb": round(peak_mb, 1),
-        "base_mb": round(base_mb, 1) if device == "cpu" else None,
-        "memory": mem_kind,
+        "fwd_ms": round(t["fwd_ms"], 2),
+        "fwd_bwd_ms": round(t["fwd_bwd_ms"], 2),
+        "peak_mb": round(t["peak_mb"], 1),
+        "base_mb": round(t["base_mb"], 1) if t["base_mb"] is not None else None,
+        "memory": t["memory"],
         "alpha_mean": round(alpha_mean, 4),
     }
 

@@ -32,13 +32,12 @@ import json
 import math
 import os
 import resource
-import statistics
 import subprocess
 import sys
-import time
 from typing import Any, Callable
 
 import torch
+from _timing import time_render
 
 CONFIGS = [(50_000, 224), (50_000, 512), (150_000, 224), (150_000, 512)]
 QUICK_CONFIGS = [(50_000, 224)]
@@ -88,41 +87,7 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
     torch.set_num_threads(int(os.environ.get("BENCH_THREADS", os.cpu_count() or 1)))
     fn = _render_fn(backend)
     s = make_scene(n, width, device)
-    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
-    base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    params = ["means", "quats", "scales", "opacities", "colors"]
-
-    def fwd() -> None:
-        with torch.no_grad():
-            fn(s)
-        sync()
-
-    def fwd_bwd() -> None:
-        for k in params:
-            s[k] = s[k].detach().requires_grad_(True)
-        (fn(s) * s["wrand"]).sum().backward()
-        sync()
-
-    def timed(f: Callable[[], None], reps: int) -> float:
-        for _ in range(warmup):
-            f()
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            f()
-            ts.append(time.perf_counter() - t0)
-        return 1000.0 * statistics.median(ts)
-
-    if device == "cuda":
-        torch.cuda.reset_peak_memory_stats()
-    fwd_ms = timed(fwd, rep_fwd)
-    fwd_bwd_ms = timed(fwd_bwd, rep_bwd)
-    if device == "cuda":
-        peak_mb = torch.cuda.max_memory_allocated() / 2**20
-        mem_kind = "torch.cuda.max_memory_allocated"
-    else:
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-        mem_kind = "ru_maxrss (process peak RSS)"
+    t = time_render(fn, s, device, warmup, rep_fwd, rep_bwd)
     with torch.no_grad():
         n_isects = None
         if backend == "torch":
@@ -136,11 +101,11 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
         "N": n,
         "width": width,
         "height": width,
-        "fwd_ms": round(fwd_ms, 1),
-        "fwd_bwd_ms": round(fwd_bwd_ms, 1),
-        "peak_mb": round(peak_mb, 1),
-        "base_mb": round(base_mb, 1) if device == "cpu" else None,
-        "memory": mem_kind,
+        "fwd_ms": round(t["fwd_ms"], 1),
+        "fwd_bwd_ms": round(t["fwd_bwd_ms"], 1),
+        "peak_mb": round(t["peak_mb"], 1),
+        "base_mb": round(t["base_mb"], 1) if t["base_mb"] is not None else None,
+        "memory": t["memory"],
         "n_isects": n_isects,
         "malloc": "tcmalloc" if "tcmalloc" in os.environ.get("LD_PRELOAD", "") else "default",
     }

@@ -1,0 +1,68 @@
+"""Shared timing helper of the renderer benchmarks (forward, forward+backward, peak memory)."""
+
+from __future__ import annotations
+
+import resource
+import statistics
+import time
+from typing import Any, Callable
+
+import torch
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def time_render(
+    image_fn: Callable[[dict[str, Any]], torch.Tensor],
+    scene: dict[str, Any],
+    device: str,
+    warmup: int,
+    rep_fwd: int,
+    rep_bwd: int,
+) -> dict[str, Any]:
+    """Median forward (no_grad) and forward + ``(img * scene["wrand"]).sum().backward()`` times.
+
+    Args:
+        image_fn: scene dict -> rendered image tensor.
+        scene: tensors keyed by :data:`PARAMS` plus ``wrand`` (random loss weights).
+        device: "cpu" or "cuda".
+
+    Returns:
+        ``fwd_ms``, ``fwd_bwd_ms``, ``peak_mb``, ``base_mb`` (CPU only) and ``memory`` (what
+        the peak measures).
+    """
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+    def fwd() -> None:
+        with torch.no_grad():
+            image_fn(scene)
+        sync()
+
+    def fwd_bwd() -> None:
+        for k in PARAMS:
+            scene[k] = scene[k].detach().requires_grad_(True)
+        (image_fn(scene) * scene["wrand"]).sum().backward()
+        sync()
+
+    def timed(f: Callable[[], None], reps: int) -> float:
+        for _ in range(warmup):
+            f()
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            f()
+            ts.append(time.perf_counter() - t0)
+        return 1000.0 * statistics.median(ts)
+
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    fwd_ms = timed(fwd, rep_fwd)
+    fwd_bwd_ms = timed(fwd_bwd, rep_bwd)
+    if device == "cuda":
+        peak_mb, memory = torch.cuda.max_memory_allocated() / 2**20, "torch.cuda.max_memory_allocated"
+    else:
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        memory = "ru_maxrss (process peak RSS)"
+    return {"fwd_ms": fwd_ms, "fwd_bwd_ms": fwd_bwd_ms, "peak_mb": peak_mb,
+            "base_mb": base_mb if device == "cpu" else None, "memory": memory}
