@@ -6,4 +6,12 @@ Gaussians) -> render -> compose -> sample.
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = ["__version__", "Bundle", "load_bundle", "write_bundle"]
+
+
+def __getattr__(name: str):  # lazy: importing the package stays cheap
+    if name in ("Bundle", "load_bundle", "write_bundle"):
+        from hogsa_loader import bundle
+
+        return getattr(bundle, name)
+    raise AttributeError(f"module 'hogsa_loader' has no attribute {name!r}")

@@ -20,6 +20,19 @@ from typing import Optional, Sequence
 from hogsa_loader.train import HogsConfig, HogsTrainer
 
 
+def _lr_overrides(p: argparse.ArgumentParser, items: Sequence[str]) -> dict[str, float]:
+    out = {}
+    for item in items:
+        name, sep, val = item.partition("=")
+        try:
+            out[name.strip()] = float(val)
+        except ValueError:
+            sep = ""
+        if not sep:
+            p.error(f"--lr expects NAME=VALUE, got {item!r}")
+    return out
+
+
 def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="dataset root (ARCTIC ./data)")
@@ -51,6 +64,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
     p.add_argument("--lambda-r", type=float, default=0.5)
     p.add_argument("--lambda-alpha", type=float, default=1.0)
     p.add_argument("--lr-scale", type=float, default=1.0, help="multiply every learning rate except the position ones (offsets, means)")
+    p.add_argument("--lr", action="append", default=[], metavar="NAME=VALUE",
+                   help="learning rate of one parameter (e.g. opacity_logits=0.01); repeatable")
+    p.add_argument("--shading", default="lambert", choices=["lambert", "none"],
+                   help="lambert (default): learn one directional light in the world frame with the Gaussians; none: unshaded SH colours as in the paper")
+    p.add_argument("--max-minutes", type=float, default=None, help="training-time budget; the run ends early when it is used up")
+    p.add_argument("--opacity-warmup", type=int, default=0, help="keep opacities frozen for the first N steps")
     p.add_argument("--strip-views", type=int, default=4, help="held-out views in strip.png")
     p.add_argument("--quiet", action="store_true")
     a = p.parse_args(argv)
@@ -63,7 +82,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
         eval_every=a.eval_every, ckpt_every=a.ckpt_every, k=a.k, sh_degree=a.sh_degree, sh_warmup=a.sh_warmup,
         hand_subdivide=a.hand_subdivide, object_subdivide=a.object_subdivide, margin=a.margin,
         lambda_ssim=a.lambda_ssim, lambda_r=a.lambda_r, lambda_alpha=a.lambda_alpha, lr_scale=a.lr_scale,
-        strip_views=a.strip_views,
+        strip_views=a.strip_views, lr_overrides=_lr_overrides(p, a.lr), opacity_warmup=a.opacity_warmup,
+        shading=a.shading, max_minutes=a.max_minutes,
     )  # fmt: skip
     cfg.resume = a.resume  # type: ignore[attr-defined]
     cfg.quiet = a.quiet  # type: ignore[attr-defined]

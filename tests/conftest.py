@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import types
@@ -70,9 +71,20 @@ def tiny_world(tmp_path_factory) -> Path:
     Returns the folder that plays ARCTIC's ``./data``: ``arctic_data/data/{raw_seqs, meta,
     cropped_images, masks, splits_json, splits}``, ``body_models/mano``, ``world_preview.png``.
     Treat it as read-only (it is shared by every test of the session).
+
+    For quick local runs, ``HOGSA_TEST_WORLD=DIR`` reuses a world made beforehand with that
+    exact command (CI never sets it).
     """
+    import os
+
     from hogsa_loader.cli.main import main
 
+    given = os.environ.get("HOGSA_TEST_WORLD")
+    if given:
+        meta = Path(given) / "arctic_data" / "data" / "meta" / "hogsa_world.json"
+        info = json.loads(meta.read_text())
+        assert (info["preset"], info["seed"]) == ("tiny", 0), f"HOGSA_TEST_WORLD must be a tiny seed-0 world, got {info}"
+        return Path(given)
     out = tmp_path_factory.mktemp("tiny_world")
     assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
     return out

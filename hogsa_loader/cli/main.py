@@ -8,6 +8,10 @@ Subcommands:
     hogsa world --out DIR --preset tiny|small [--seed N]
                                    a synthetic ARCTIC-format world (raw_seqs, misc, cropped
                                    images, masks, splits) rendered with the mesh rasteriser
+    hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
+                 [--coco-root C] ...
+                                   offline synthetic frames as WebDataset tar shards
+                                   (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
 
 Environment: on Linux, preloading tcmalloc speeds up large CPU tensor work (see README).
 """
@@ -94,6 +98,55 @@ def _cmd_world(args: argparse.Namespace) -> int:
     return 0
 
 
+def _env_int(name: str, default: int) -> int:
+    v = os.environ.get(name)
+    return int(v) if v not in (None, "") else default
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from hogsa_loader.export import dataset_frames_for_shard, num_shards, write_shards
+    from hogsa_loader.loader.dataset import HOGSADataset
+
+    rank = args.rank if args.rank is not None else _env_int("RANK", 0)
+    world = args.world_size if args.world_size is not None else _env_int("WORLD_SIZE", 1)
+    if not 0 <= rank < world:
+        print(f"hogsa: error: rank {rank} outside world size {world}", file=sys.stderr)
+        return 2
+    device = args.device
+    if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
+        device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    ds = HOGSADataset(
+        args.bundle, args.data, coco_root=args.coco_root, coco_ann=args.coco_ann,
+        background_folder=args.background_folder,
+        categories=[c for c in args.categories.split(",") if c] if args.categories else None,
+        poses=args.poses, srm=args.srm, device=device, batch_size=args.batch_size, seed=args.seed,
+        num_samples=args.num, render_size=args.render_size,
+    )  # fmt: skip
+    info = {
+        "bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), "seed": args.seed,
+        "poses": args.poses, "srm": args.srm, "batch_size": args.batch_size, "render_size": ds.render_size,
+        "coco_root": args.coco_root, "coco_ann": args.coco_ann, "background_folder": args.background_folder,
+        "categories": args.categories, "world_size": world, "epoch": 0,
+    }  # fmt: skip
+    say = (lambda m: None) if args.quiet else print
+    say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
+        f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {device})")
+    res = write_shards(
+        dataset_frames_for_shard(ds, args.num, args.shard_size), args.out, args.num, args.shard_size,
+        rank=rank, world_size=world, progress=not args.quiet, image_format=args.image_format,
+        alpha_bits=args.alpha_bits, info=info,
+    )  # fmt: skip
+    st = ds.stats.as_dict()
+    say(f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
+        f"{st['num_dropped']} dropped), skipped {len(res['skipped'])} complete shards, "
+        f"{res['seconds']:.1f} s; index: {res['index']} ({'complete' if res['complete'] else 'incomplete'})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
@@ -120,6 +173,33 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")
     w.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     w.set_defaults(func=_cmd_world)
+
+    e = sub.add_parser("export", help="write synthetic frames as WebDataset tar shards (offline mode)",
+                       description="Render synthetic frames with a bundle and write them as resumable WebDataset "
+                       "tar shards (shard i = samples [i*S, (i+1)*S); complete shards are skipped when re-run). "
+                       "Under torchrun each process writes shards i with i % WORLD_SIZE == RANK.")
+    e.add_argument("--bundle", required=True, help="bundle folder (pretrain/build_bundle.py)")
+    e.add_argument("--data", required=True, help="ARCTIC(-format) data root the bundle was built on")
+    e.add_argument("--out", required=True, help="output folder of the shards")
+    e.add_argument("--num", type=int, required=True, help="number of sample indices (dropped ones leave gaps)")
+    e.add_argument("--shard-size", type=int, default=1000, help="samples per shard (a multiple of --batch-size)")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--device", default="cpu", help="cpu or cuda (cuda:LOCAL_RANK under torchrun)")
+    e.add_argument("--batch-size", type=int, default=8, help="render batch")
+    e.add_argument("--poses", default="perturb", help="pose source: perturb, bank, online")
+    e.add_argument("--srm", action=argparse.BooleanOptionalAction, default=False, help="apply the bundle's SRM")
+    e.add_argument("--render-size", type=int, default=None, help="side of the rendered crop (default 1.5 x 224)")
+    e.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
+    e.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
+    e.add_argument("--background-folder", default=None, help="plain image folder for backgrounds")
+    e.add_argument("--categories", default=None, help="comma-separated COCO categories for backgrounds")
+    e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")
+    e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
+    e.add_argument("--rank", type=int, default=None, help="default: $RANK or 0")
+    e.add_argument("--world-size", type=int, default=None, help="default: $WORLD_SIZE or 1")
+    e.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    e.add_argument("--quiet", action="store_true", help="no progress bar or messages")
+    e.set_defaults(func=_cmd_export)
     return p
 
 

@@ -147,7 +147,8 @@ def save_part(
     Args:
         part: a :class:`HandGaussians` or :class:`ObjectGaussians`.
         folder: output folder; existing checkpoint files in it are replaced atomically.
-        dataset, subject, sequence: provenance recorded under ``source``.
+        dataset, subject, sequence: provenance recorded under ``source`` (object parts
+            also record their template's ``name`` there as ``object``).
         extra: free-form JSON-able metadata (no NaN / infinity).
 
     Returns:
@@ -174,7 +175,8 @@ def save_part(
         "binding_hash": part.binding_hash,
         "binding_mesh": part.binding_mesh,
         "config": part.config(),
-        "source": {"dataset": dataset, "subject": subject, "sequence": sequence},
+        "source": {"dataset": dataset, "subject": subject, "sequence": sequence}
+        | ({"object": part.name} if part.part_type == "object" else {}),
         "extra": dict(extra or {}),
         "tensors": {n: {"shape": list(t.shape), "dtype": _dtype_name(t.dtype)} for n, t in tensors.items()},
         "tensors_file": TENSORS_FILE,

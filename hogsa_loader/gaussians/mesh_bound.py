@@ -106,8 +106,11 @@ def triangles(verts: Tensor, faces: Tensor) -> Tensor:
 
     Returns:
         (B, F, 3, 3) ``tri[b, f, i]`` = corner i of face f.
+
+    ``index_select`` rather than advanced indexing: its backward (``index_add``) sums in a
+    fixed order, so gradients are bit-reproducible on multi-threaded CPUs.
     """
-    return verts[:, faces]
+    return torch.index_select(verts, 1, faces.reshape(-1)).reshape(verts.shape[0], *faces.shape, verts.shape[-1])
 
 
 def face_frames(tri: Tensor) -> tuple[Tensor, Tensor]:
@@ -454,8 +457,8 @@ class MeshGaussians(SplatAppearance):
             part_id: part index given to every Gaussian.
 
         Returns:
-            :class:`GaussianSet` with B samples and N = F k Gaussians (normals = posed
-            face normals).
+            :class:`GaussianSet` with B samples and N = F k Gaussians (normals = smooth
+            shading normals, :meth:`shading_normals`).
         """
         if verts.dim() != 3 or verts.shape[1:] != (self.num_verts, 3):
             raise ValueError(f"verts must be (B, {self.num_verts}, 3), got {tuple(verts.shape)}")
@@ -467,8 +470,27 @@ class MeshGaussians(SplatAppearance):
             means, quats, scales, rot = _avatars(
                 verts, self.faces, self.local_means, self.local_quats, self.local_log_scales
             )
-        normals = rot[..., 2].repeat_interleave(self.k, dim=1)
-        return self._gaussian_set(means, quats, scales, part_id, normals)
+        return self._gaussian_set(means, quats, scales, part_id, self.shading_normals(verts))
+
+    def shading_normals(self, verts: Tensor) -> Tensor:
+        """(B, F k, 3) smooth unit normals at the Gaussians: area-weighted vertex normals of
+        the posed mesh interpolated with the Gaussians' barycentric weights (the initial
+        pattern for GaussianAvatars), oriented like the faces' winding.
+
+        Computed without gradient: shading must not deform the geometry, and the
+        gather/scatter backward of the accumulation is not bit-reproducible on multi-threaded
+        CPUs (exact resume needs that)."""
+        with torch.no_grad():
+            return self._shading_normals(verts)
+
+    def _shading_normals(self, verts: Tensor) -> Tensor:
+        B = verts.shape[0]
+        tri = triangles(verts, self.faces)  # (B, F, 3, 3)
+        fn = torch.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)  # area-weighted
+        vn = torch.zeros_like(verts).index_add_(1, self.faces.reshape(-1), fn.repeat_interleave(3, dim=1))
+        corner = vn[:, self.faces]  # (B, F, 3, 3)
+        n = torch.einsum("fkc,bfcd->bfkd", self.barycentric_weights().to(verts.dtype), corner).reshape(B, -1, 3)
+        return n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
 
     forward = gaussians
 

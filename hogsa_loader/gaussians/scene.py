@@ -118,6 +118,7 @@ def render_scene(
     *,
     num_parts: Optional[int] = None,
     headlight: Optional[float] = None,
+    colors: Optional[Tensor] = None,
     backend: str = "auto",
     render_mode: str = "RGB+ED",
     **render_kwargs: object,
@@ -131,6 +132,8 @@ def render_scene(
         num_parts: part channels; default ``max(part_ids) + 1``.
         headlight: None renders the SH colours as they are; a float ``ambient`` in
             [0, 1] applies :func:`headlight_colors`.
+        colors: (B, C, N, 3) precomputed per-camera colours (e.g. from a
+            :class:`~hogsa_loader.gaussians.shading.DirectionalLight`); overrides the SH.
         backend: renderer backend of :func:`hogsa_loader.render.render` ("auto",
             "torch", "gsplat").
         render_mode: "RGB", "RGB+ED" (default: expected depth) or "RGB+D".
@@ -144,7 +147,11 @@ def render_scene(
     if num_parts is None:
         num_parts = int(scene.part_ids.max()) + 1 if N else 0
     part_ids = scene.part_ids[None].expand(B, N)
-    if headlight is None:
+    if colors is not None:
+        if headlight is not None:
+            raise ValueError("pass either colors or headlight, not both")
+        deg = None
+    elif headlight is None:
         colors, deg = scene.sh, scene.sh_degree
     else:
         colors, deg = headlight_colors(scene, viewmats, float(headlight)), None

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -33,10 +33,13 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, compose, load_state, num_sh_bases, render_scene, save_part
+from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
+from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
+from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.gaussians.checkpoint import atomic_write
 from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
-from hogsa_loader.train.losses import box_of, hogs_loss, psnr, ssim_map
+from hogsa_loader.train.hogs_eval import evaluate_samples
+from hogsa_loader.train.losses import hogs_loss
 
 __all__ = ["HogsConfig", "HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
 
@@ -59,7 +62,14 @@ BASE_LRS = {
     "local_means": 1.6e-3,
     "local_quats": 1e-3,
     "local_log_scales": 5e-3,
+    # the learned light (shading="lambert"); not multiplied by lr_scale
+    "direction": 5e-3,
+    "ambient_raw": 5e-3,
+    "diffuse_raw": 5e-3,
 }
+
+#: Shading models of a HOGS run.
+SHADINGS = ("none", "lambert")
 
 #: Positions in metres: ``lr_scale`` leaves their rates alone.
 POSITION_PARAMS = ("offsets", "means", "local_means")
@@ -96,10 +106,14 @@ class HogsConfig:
     lambda_r: float = 0.5
     lambda_alpha: float = 1.0
     lr_scale: float = 1.0
+    lr_overrides: dict[str, float] = field(default_factory=dict)  # parameter name -> learning rate
+    opacity_warmup: int = 0  # opacities stay frozen for this many steps while colours settle
+    shading: str = "lambert"  # lambert (a learned directional light, gaussians/shading.py) | none
     strip_views: int = 4
+    max_minutes: Optional[float] = None  # stop (and finish the run) after this much training time
 
     # settings that may differ between a run and its resumption
-    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views")
+    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views", "max_minutes")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -117,6 +131,11 @@ class HogsTrainer:
             raise ValueError(f"dataset {cfg.dataset!r} is not supported yet (only 'arctic')")
         if cfg.gaussians not in ("mesh", "free"):
             raise ValueError(f"--gaussians must be 'mesh' or 'free', got {cfg.gaussians!r}")
+        unknown = sorted(set(cfg.lr_overrides) - set(BASE_LRS))
+        if unknown:
+            raise ValueError(f"lr overrides for unknown parameters {unknown}; known: {sorted(BASE_LRS)}")
+        if cfg.shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.shading!r}")
         if cfg.iters < 0 or cfg.batch_size < 1:
             raise ValueError("iters must be >= 0 and batch_size >= 1")
         self.cfg = cfg
@@ -142,11 +161,15 @@ class HogsTrainer:
             while faces * 4**levels < cfg.min_object_faces and levels < 2:
                 levels += 1
         common = dict(variant=variant, k=cfg.k, sh_degree=cfg.sh_degree)
-        self.parts = torch.nn.ModuleDict({
-            "hand_right": HandGaussians(layers["right"], subdivide_levels=cfg.hand_subdivide, **common),
-            "hand_left": HandGaussians(layers["left"], subdivide_levels=cfg.hand_subdivide, **common),
-            "object": ObjectGaussians(template, subdivide_levels=levels, **common),
-        }).to(self.device)  # fmt: skip
+        self.model = HogsModel(
+            HandGaussians(layers["right"], subdivide_levels=cfg.hand_subdivide, **common),
+            HandGaussians(layers["left"], subdivide_levels=cfg.hand_subdivide, **common),
+            ObjectGaussians(template, subdivide_levels=levels, **common),
+            source=self._source(),
+        ).to(self.device)
+        self.parts = self.model.parts
+        if cfg.shading == "lambert":
+            self.model.light = DirectionalLight(direction=self._mean_view_direction()).to(self.device)
         groups = []
         for pname, part in self.parts.items():
             for name, p in part.splats.named_parameters():
@@ -154,7 +177,12 @@ class HogsTrainer:
                 if lr is None:
                     raise KeyError(f"no learning rate for parameter {name!r}")
                 scale = 1.0 if name in POSITION_PARAMS else cfg.lr_scale
-                groups.append({"params": [p], "lr": lr * scale, "name": f"{pname}.{name}"})
+                lr = cfg.lr_overrides.get(name, lr * scale)
+                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"{pname}.{name}"})
+        if self.model.light is not None:
+            for name, p in self.model.light.named_parameters():
+                lr = cfg.lr_overrides.get(name, BASE_LRS[name])
+                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"light.{name}"})
         self.optimizer = torch.optim.Adam(groups, eps=1e-15)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.step = 0
@@ -173,18 +201,11 @@ class HogsTrainer:
         """Render samples: rgb (B, H, W, 3) on black, alpha (B, H, W)."""
         dev = self.device
         p = {k: v.to(dev) for k, v in self.data.poses(samples).items()}
-        sets = [
-            self.parts["hand_right"](p["right_rot"], p["right_pose"], p["right_betas"], p["right_trans"]),
-            self.parts["hand_left"](p["left_rot"], p["left_pose"], p["left_betas"], p["left_trans"]),
-            self.parts["object"](p["obj_arti"], p["obj_rot"], p["obj_trans"]),
-        ]
-        scene = compose(sets)
         deg = self.active_sh_degree() if sh_degree is None else sh_degree
-        scene = replace(scene, sh=scene.sh[..., : num_sh_bases(deg), :], sh_degree=deg, normals=None)
         viewmats = _t(np.stack([s.world2cam for s in samples]), dev)[:, None]
         Ks = _t(np.stack([s.K for s in samples]), dev)[:, None]
         S = self.data.image_size
-        out = render_scene(scene, viewmats, Ks, S, S, render_mode="RGB")
+        out = self.model.render(p, viewmats, Ks, S, S, sh_degree=deg, render_mode="RGB")
         return out.rgb[:, 0], out.alpha[:, 0, ..., 0]
 
     def targets(self, samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor, Tensor]:
@@ -212,6 +233,10 @@ class HogsTrainer:
                                 lambda_r=self.cfg.lambda_r, lambda_alpha=self.cfg.lambda_alpha)  # fmt: skip
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        frozen = self.step < self.cfg.opacity_warmup
+        for group in self.optimizer.param_groups:
+            if group["name"].endswith(".opacity_logits"):
+                group["lr"] = 0.0 if frozen else group["base_lr"]
         self.optimizer.step()
         self.step += 1
         terms["loss"] = float(loss.detach())
@@ -220,33 +245,12 @@ class HogsTrainer:
 
     @torch.no_grad()
     def evaluate(self, samples: Optional[Sequence[ViewSample]] = None) -> dict[str, Any]:
-        """PSNR / SSIM inside each sample's foreground box (bbox of the dilated mask)."""
+        """PSNR / SSIM inside each sample's foreground box (:func:`evaluate_samples`)."""
         samples = self.data.eval if samples is None else samples
-        rows = []
-        for s in samples:
-            gt, _, region = self.targets([s])
-            rgb, alpha = self.render([s])
-            y0, y1, x0, x1 = box_of(region[0])
-            pr, g = rgb[:, y0:y1, x0:x1].clamp(0, 1), gt[:, y0:y1, x0:x1]
-            win = 11 if min(y1 - y0, x1 - x0) >= 11 else 3
-            rows.append({
-                "sequence": self.data.sequences[s.seq_index].name, "frame": s.frame, "view": s.view,
-                "psnr": psnr(pr, g), "ssim": float(ssim_map(pr, g, win).mean()),
-                "alpha_outside": float(alpha[0][~region[0]].mean()) if bool((~region[0]).any()) else 0.0,
-            })  # fmt: skip
-        per_view = []
-        for v in sorted({r["view"] for r in rows}):
-            rv = [r for r in rows if r["view"] == v]
-            per_view.append({"view": v, "n": len(rv), "psnr": float(np.mean([r["psnr"] for r in rv])),
-                             "ssim": float(np.mean([r["ssim"] for r in rv]))})  # fmt: skip
-        return {
-            "step": self.step,
-            "psnr": float(np.mean([r["psnr"] for r in rows])),
-            "ssim": float(np.mean([r["ssim"] for r in rows])),
-            "alpha_outside": float(np.mean([r["alpha_outside"] for r in rows])),
-            "per_view": per_view,
-            "per_sample": rows,
-        }
+        names = [seq.name for seq in self.data.sequences]
+        ev = evaluate_samples(self.render, samples, names, self.margin_px, device=self.device)
+        ev.pop("lpips", None)
+        return {"step": self.step, **ev}
 
     def train(self) -> dict[str, Any]:
         """Train up to ``cfg.iters`` steps (from the current step), evaluating and checkpointing."""
@@ -259,6 +263,9 @@ class HogsTrainer:
             self.evals.append(_summary(self.evaluate()))
         bar = tqdm(total=cfg.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
         while self.step < cfg.iters:
+            if cfg.max_minutes is not None and self._train_time >= 60.0 * cfg.max_minutes:
+                bar.write(f"time budget of {cfg.max_minutes} min reached at step {self.step}")
+                break
             t0 = time.perf_counter()
             terms = self.train_step()
             self._train_time += time.perf_counter() - t0
@@ -276,8 +283,7 @@ class HogsTrainer:
         if not self.evals or self.evals[-1]["step"] != self.step:
             self.evals.append(_summary(final))
         self.save_checkpoint()
-        for name, part in self.parts.items():
-            save_part(part, self.out / name, **self._source(), extra={"step": self.step})
+        self._save_parts(self.out)
         metrics = self.write_metrics(final)
         self.write_pngs()
         return metrics
@@ -287,6 +293,18 @@ class HogsTrainer:
         return {"dataset": self.cfg.dataset, "subject": self.cfg.subject,
                 "sequence": ",".join(s.name for s in self.data.sequences)}  # fmt: skip
 
+    def _save_parts(self, folder: Path) -> None:
+        for name, part in self.parts.items():
+            save_part(part, folder / name, **self._source(), extra={"step": self.step})
+        if self.model.light is not None:
+            save_light(self.model.light, folder / LIGHT_DIR)
+
+    def _mean_view_direction(self) -> list[float]:
+        """Mean viewing direction (world frame) of the training cameras: the light's start."""
+        fwd = np.stack([s.world2cam[2, :3] for s in self.data.train])  # camera z axis in the world
+        d = fwd.mean(0)
+        return (d / max(np.linalg.norm(d), 1e-9)).tolist()
+
     def save_checkpoint(self) -> Path:
         """Write ``checkpoints/step_N`` then point ``latest.json`` at it; older ones are removed."""
         from safetensors.torch import save as st_save
@@ -294,8 +312,7 @@ class HogsTrainer:
         ck = self.out / "checkpoints"
         folder = ck / f"step_{self.step:07d}"
         folder.mkdir(parents=True, exist_ok=True)
-        for name, part in self.parts.items():
-            save_part(part, folder / name, **self._source(), extra={"step": self.step})
+        self._save_parts(folder)
         tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
         for i, group in enumerate(self.optimizer.param_groups):
             st = self.optimizer.state.get(group["params"][0], {})
@@ -326,6 +343,8 @@ class HogsTrainer:
         folder = self.out / "checkpoints" / info["folder"]
         for name, part in self.parts.items():
             load_state(part, folder / name)
+        if self.model.light is not None:
+            load_light(folder / LIGHT_DIR, into=self.model.light)
         tensors = load_file(str(folder / "trainer.safetensors"))
         self.gen.set_state(tensors["rng.sampler"])
         torch.set_rng_state(tensors["rng.torch"])
@@ -367,6 +386,8 @@ class HogsTrainer:
             "num_eval_images": len(self.data.eval),
             "image_size": self.data.image_size,
             "gaussians": self.cfg.gaussians,
+            "shading": self.cfg.shading,
+            "light": self.model.light.describe() if self.model.light is not None else None,
             "num_gaussians": {k: p.num_gaussians for k, p in self.parts.items()},
             "binding_mesh": {k: p.binding_mesh for k, p in self.parts.items()},
             "device": str(self.device),

@@ -1,0 +1,166 @@
+#!/usr/bin/env python
+"""Held-out rendering quality of trained HOGS runs: PSNR / SSIM / LPIPS, side by side.
+
+Evaluates one or more runs of ``pretrain/train_hogs.py`` (e.g. ``--gaussians mesh`` and
+``--gaussians free`` of the same subject + object) on the held-out camera views × held-out
+frames of their own split (read from each run's ``config.json``), inside the foreground
+box as the paper crops (:mod:`hogsa_loader.train.hogs_eval`). With ``--srm RUN`` the first
+run is also scored after SRM refinement (``without_srm`` / ``with_srm``).
+
+Example::
+
+    python benchmarks/render_quality.py --data ./hogsa_world/arctic_data/data \
+        --run runs/s01_box_mesh --run runs/s01_box_free --json quality.json --png quality.png
+
+JSON: ``psnr``, ``ssim``, ``lpips`` (null when unavailable, with ``lpips_note``) and
+``per_view`` of the first run; ``runs`` (every run's metrics, labelled by its Gaussians
+variant); with ``--srm``: ``without_srm`` and ``with_srm``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.gaussians.hogs_model import HogsModel
+from hogsa_loader.train.hogs_data import HogsData, ViewSample, load_hogs_data
+from hogsa_loader.train.hogs_eval import evaluate_samples, load_lpips
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="dataset root the runs were trained on")
+    p.add_argument("--run", action="append", required=True, help="HOGS run folder (repeat to compare)")
+    p.add_argument("--json", required=True, help="output JSON")
+    p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
+    p.add_argument("--srm", default=None, help="SRM run folder: also score the first run after refinement")
+    p.add_argument("--max-eval", type=int, default=64, help="at most this many held-out images (evenly spaced)")
+    p.add_argument("--png-rows", type=int, default=4)
+    p.add_argument("--device", default="cpu")
+    return p.parse_args(argv)
+
+
+def load_split(root: ArcticRoot, cfg: dict[str, Any], max_eval: int) -> HogsData:
+    """The held-out split of a run, rebuilt from its ``config.json`` settings."""
+    if cfg.get("dataset", "arctic") != "arctic":
+        raise SystemExit(f"render_quality: dataset {cfg.get('dataset')!r} runs are not supported by this script yet")
+    return load_hogs_data(
+        root, cfg["subject"], cfg["object"], sequences=cfg.get("sequences"), eval_views=cfg["eval_views"],
+        eval_every_frame=cfg["eval_every_frame"], frame_stride=cfg.get("frame_stride", 1),
+        image_size=cfg.get("image_size"), max_eval=max_eval,
+    )  # fmt: skip
+
+
+def render_fn(model: HogsModel, data: HogsData, device: torch.device):
+    """samples → (rgb, alpha) of the model (all SH bands)."""
+
+    def fn(samples: Sequence[ViewSample]) -> tuple[torch.Tensor, torch.Tensor]:
+        poses = {k: v.to(device) for k, v in data.poses(samples).items()}
+        vm = torch.as_tensor(np.stack([s.world2cam for s in samples]), dtype=torch.float32, device=device)[:, None]
+        K = torch.as_tensor(np.stack([s.K for s in samples]), dtype=torch.float32, device=device)[:, None]
+        S = data.image_size
+        out = model.render(poses, vm, K, S, S, render_mode="RGB")
+        return out.rgb[:, 0], out.alpha[:, 0, ..., 0]
+
+    return fn
+
+
+def margin_px(root: ArcticRoot, cfg: dict[str, Any], size: int) -> int:
+    return int(round(cfg.get("margin", 4) * size / root.world_meta().cropped_size))
+
+
+def summary(ev: dict[str, Any]) -> dict[str, Any]:
+    return {k: ev[k] for k in ("psnr", "ssim", "lpips", "alpha_outside", "num_samples", "per_view")}
+
+
+def write_png(path: Path, columns: list[list[tuple[torch.Tensor, torch.Tensor]]], labels: list[str]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(len(c) for c in columns)
+    rows = []
+    for i in range(n):
+        gt = columns[0][i][0]
+        rows.append(torch.cat([gt] + [c[i][1] for c in columns], 1))
+    img = (torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8)
+    fig = plt.figure(figsize=(img.shape[1] / 100, img.shape[0] / 100 + 0.3), dpi=100)
+    ax = fig.add_axes([0, 0, 1, img.shape[0] / (img.shape[0] + 30)])
+    ax.imshow(img)
+    ax.axis("off")
+    w = img.shape[1] / (len(labels))
+    for j, lab in enumerate(labels):
+        fig.text((j + 0.5) * w / img.shape[1], 1 - 0.15 / (img.shape[0] / 100 + 0.3), lab, ha="center", va="center", fontsize=10)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    a = parse_args(argv)
+    device = torch.device(a.device)
+    root = ArcticRoot(a.data)
+    layers, templates = root.mano_layers(), root.object_templates()
+    lpips_fn, lpips_note = load_lpips(device)
+    keep = a.png_rows if a.png else 0
+    runs, columns, labels = [], [], ["GT"]
+    first: Optional[tuple[HogsModel, HogsData, int]] = None
+    for run in a.run:
+        cfg = json.loads((Path(run) / "config.json").read_text())
+        model = HogsModel.from_run(run, layers, templates, device=device).eval()
+        data = load_split(root, cfg, a.max_eval)
+        m = margin_px(root, cfg, data.image_size)
+        t0 = time.perf_counter()
+        ev = evaluate_samples(render_fn(model, data, device), data.eval, [s.name for s in data.sequences], m,
+                              lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
+        dt = time.perf_counter() - t0
+        label = cfg.get("gaussians", "mesh")
+        runs.append({"label": label, "run": str(run), "subject": cfg["subject"], "object": cfg["object"],
+                     "iters": cfg.get("iters"), "image_size": data.image_size, "num_gaussians": model.num_gaussians,
+                     "eval_views": list(data.eval_views), "s_per_image": dt / max(1, len(data.eval)),
+                     **summary(ev), "per_sample": ev["per_sample"]})  # fmt: skip
+        columns.append(ev.get("images", []))
+        labels.append(label)
+        if first is None:
+            first = (model, data, m)
+        print(f"{label:5s} {run}: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  LPIPS {ev['lpips']}  "
+              f"({ev['num_samples']} held-out images, views {list(data.eval_views)})")  # fmt: skip
+    out: dict[str, Any] = {
+        **{k: runs[0][k] for k in ("psnr", "ssim", "lpips", "per_view")},
+        "lpips_note": lpips_note,
+        "protocol": "held-out camera views x held-out frames of each run's split; foreground box "
+        "(bbox of the part mask dilated by the run's margin), GT background black; SSIM kornia 11x11",
+        "runs": runs,
+    }
+    if a.srm:
+        from hogsa_loader.srm import load_srm
+
+        assert first is not None
+        model, data, m = first
+        srm = load_srm(a.srm, device=device)
+        names = [s.name for s in data.sequences]
+        ev = evaluate_samples(render_fn(model, data, device), data.eval, names, m, refine=srm.refine,
+                              lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
+        out["without_srm"] = summary({**runs[0], "alpha_outside": runs[0]["alpha_outside"]})
+        out["with_srm"] = summary(ev)
+        out["srm"] = str(a.srm)
+        columns.append(ev.get("images", []))
+        labels.append("SRM")
+        print(f"with SRM: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  (without: {runs[0]['psnr']:.2f} / {runs[0]['ssim']:.4f})")
+    Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.json).write_text(json.dumps(out, indent=1, allow_nan=False) + "\n")
+    if a.png:
+        write_png(Path(a.png), columns, labels)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,513 @@
+"""Bundles: everything the synthetic loader needs, in one validated folder.
+
+A bundle is what ``pretrain/build_bundle.py`` writes and what
+:class:`~hogsa_loader.loader.dataset.HOGSADataset` reads::
+
+    BUNDLE/
+      manifest.json
+      hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
+      srm/<name>                optional super-resolution checkpoint (file or folder, copied as is)
+      contactnet/<name>         optional ContactNet checkpoint (file or folder)
+      pose_banks/<name>         optional pose banks (files or folders)
+
+``manifest.json`` (schema version 1):
+
+================  =========================================================================
+key               value
+================  =========================================================================
+format            ``"hogsa-bundle"``
+schema_version    1
+library_version   ``hogsa_loader.__version__`` of the writer
+dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
+                  (``root`` is informational: the loader takes the data root as an argument)
+hand_model        ``{"source": str, "right": {"template_hash", "num_verts"},
+                  "left": {...}}`` — the MANO(-schema) models the hands were trained on
+objects           ``{name: {"template_hash", "num_verts"}}`` — the object templates used
+hogs              list of ``{"subject", "object", "path", "num_gaussians",
+                  "parts": {part: {"template_hash", "tensors_sha256", "manifest_sha256"}}}``
+srm, contactnet   ``null`` or ``{"path", "files": {relative path: sha256}}``
+pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}``
+================  =========================================================================
+
+:func:`load_bundle` checks every entry — files present, hashes equal, part checkpoints
+readable and made for the recorded hand model / object templates, and (given a data root)
+that the data root's hand model and templates are the ones recorded — and raises **one**
+:class:`~hogsa_loader.errors.AssetError` listing every problem it found.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+from hogsa_loader.errors import AssetError, PathLike
+
+__all__ = [
+    "BUNDLE_FORMAT",
+    "BUNDLE_SCHEMA_VERSION",
+    "MANIFEST_NAME",
+    "Bundle",
+    "HogsEntry",
+    "ExtraEntry",
+    "write_bundle",
+    "load_bundle",
+]
+
+BUNDLE_FORMAT = "hogsa-bundle"
+BUNDLE_SCHEMA_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+_PARTS = ("hand_right", "hand_left", "object")
+
+
+# --------------------------------------------------------------------------------------
+# Records
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HogsEntry:
+    """One HOGS run of a bundle.
+
+    Attributes:
+        subject: subject id (``"s01"``).
+        object: object name (``"box"``).
+        path: absolute path of the run folder inside the bundle.
+        num_gaussians: total Gaussians of the three parts.
+        parts: ``{part: {"template_hash", "tensors_sha256", "manifest_sha256"}}``.
+    """
+
+    subject: str
+    object: str
+    path: Path
+    num_gaussians: int
+    parts: Mapping[str, Mapping[str, str]]
+
+    @property
+    def key(self) -> tuple[str, str]:
+        """``(subject, object)``."""
+        return (self.subject, self.object)
+
+
+@dataclass(frozen=True)
+class ExtraEntry:
+    """An optional checkpoint / pose bank: its absolute path and file hashes."""
+
+    name: str
+    path: Path
+    files: Mapping[str, str]
+
+
+@dataclass
+class Bundle:
+    """A validated bundle (see module docstring); build it with :func:`load_bundle`.
+
+    Attributes:
+        path: bundle folder.
+        manifest: the parsed ``manifest.json``.
+        hogs: ``{(subject, object): HogsEntry}``.
+        srm, contactnet: optional checkpoint folders.
+        pose_banks: ``{name: ExtraEntry}``.
+    """
+
+    path: Path
+    manifest: dict[str, Any]
+    hogs: dict[tuple[str, str], HogsEntry]
+    srm: Optional[ExtraEntry] = None
+    contactnet: Optional[ExtraEntry] = None
+    pose_banks: dict[str, ExtraEntry] = field(default_factory=dict)
+
+    @property
+    def dataset(self) -> str:
+        return str(self.manifest["dataset"]["name"])
+
+    @property
+    def keys(self) -> list[tuple[str, str]]:
+        """Sorted ``(subject, object)`` pairs that have a HOGS run."""
+        return sorted(self.hogs)
+
+    def load_hogs(
+        self,
+        key: tuple[str, str],
+        mano_layers: Mapping[str, Any],
+        object_templates: Mapping[str, Any],
+        device: Any = None,
+    ) -> Any:
+        """Load the :class:`~hogsa_loader.gaussians.hogs_model.HogsModel` of ``key``.
+
+        Args:
+            key: ``(subject, object)``.
+            mano_layers: ``{"right", "left"}`` MANO layers of the data root.
+            object_templates: ``{name: ObjectTemplate}`` of the data root.
+            device: where to put the parameters.
+        """
+        from hogsa_loader.gaussians.hogs_model import HogsModel
+
+        if key not in self.hogs:
+            raise KeyError(f"bundle {self.path} has no HOGS run for {key}; it has {self.keys}")
+        return HogsModel.from_run(self.hogs[key].path, mano_layers, object_templates, device=device).eval()
+
+    def check_data_root(self, data_root: PathLike) -> None:
+        """Raise one :class:`AssetError` if ``data_root``'s hand model or object templates
+        differ from the ones the bundle was built with."""
+        problems = _check_root(self.manifest, data_root)
+        if problems:
+            raise _bundle_error(self.path, problems)
+
+
+# --------------------------------------------------------------------------------------
+# Hashing helpers
+# --------------------------------------------------------------------------------------
+
+
+def _sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _hash_tree(path: Path) -> dict[str, str]:
+    """``{relative posix path: sha256}`` of a file or of every file under a folder."""
+    if path.is_file():
+        return {path.name: _sha256_file(path)}
+    out = {}
+    for p in sorted(path.rglob("*")):
+        if p.is_file():
+            out[p.relative_to(path).as_posix()] = _sha256_file(p)
+    return out
+
+
+def _hand_hashes(mano_layers: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    from hogsa_loader.gaussians.parts import template_hash
+
+    out = {}
+    for side in ("right", "left"):
+        data = mano_layers[side].data
+        out[side] = {"template_hash": template_hash(data.v_template, data.faces), "num_verts": int(len(data.v_template))}
+    return out
+
+
+def _object_hashes(templates: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    from hogsa_loader.gaussians.parts import template_hash
+
+    return {
+        name: {"template_hash": template_hash(t.verts, t.faces), "num_verts": int(len(t.verts))}
+        for name, t in sorted(templates.items())
+    }
+
+
+def _bundle_error(path: Path, problems: Sequence[str]) -> AssetError:
+    lines = "\n".join(f"  - {p}" for p in problems)
+    n = len(problems)
+    return AssetError(path, f"invalid bundle ({n} problem{'s' if n != 1 else ''}):\n{lines}")
+
+
+def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
+    """Problems of ``data_root`` against the manifest's hand model and object hashes."""
+    from hogsa_loader.datasets.arctic import ArcticRoot
+
+    problems: list[str] = []
+    try:
+        root = ArcticRoot(data_root)
+        hands = _hand_hashes(root.mano_layers())
+        objects = _object_hashes(root.object_templates(load_texture=False))
+    except AssetError as exc:
+        return [f"data root {data_root}: {exc}"]
+    for side in ("right", "left"):
+        want = manifest.get("hand_model", {}).get(side, {}).get("template_hash")
+        if want != hands[side]["template_hash"]:
+            problems.append(
+                f"hand model ({side}) of the data root {root.mano_dir} hashes to {hands[side]['template_hash'][:16]}..., "
+                f"the bundle was built with {str(want)[:16]}..."
+            )
+    for name, rec in manifest.get("objects", {}).items():
+        if name not in objects:
+            problems.append(f"object template {name!r} used by the bundle is missing from the data root {root.meta_dir}")
+        elif objects[name]["template_hash"] != rec.get("template_hash"):
+            problems.append(
+                f"object template {name!r} of the data root hashes to {objects[name]['template_hash'][:16]}..., "
+                f"the bundle was built with {str(rec.get('template_hash'))[:16]}..."
+            )
+    return problems
+
+
+# --------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------
+
+
+def _copy(src: Path, dst: Path) -> None:
+    if dst.exists():
+        shutil.rmtree(dst) if dst.is_dir() else dst.unlink()
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if src.is_dir():
+        shutil.copytree(src, dst)
+    else:
+        shutil.copy2(src, dst)
+
+
+def _extra(src: Optional[PathLike], out: Path, rel: str, what: str) -> Optional[dict[str, Any]]:
+    if src is None:
+        return None
+    src = Path(src)
+    if not src.exists():
+        raise AssetError(src, f"{what} is missing")
+    rel = f"{rel}/{src.name}"
+    dst = out / rel
+    _copy(src, dst)
+    return {"path": rel, "files": _hash_tree(dst)}
+
+
+def write_bundle(
+    out: PathLike,
+    data_root: PathLike,
+    hogs_runs: Sequence[PathLike],
+    *,
+    srm: Optional[PathLike] = None,
+    contactnet: Optional[PathLike] = None,
+    pose_banks: Sequence[PathLike] = (),
+    dataset: str = "arctic",
+) -> Path:
+    """Write a bundle folder (see module docstring) and return its path.
+
+    Every HOGS run is validated against the data root's hand model and object templates
+    before anything is copied (its ``(subject, object)`` comes from the object part's
+    manifest ``source``); the runs and optional checkpoints are **copied** into the bundle
+    so it is self-contained. An existing manifest in ``out`` is replaced.
+
+    Args:
+        out: bundle folder (created).
+        data_root: the ARCTIC(-format) data root the runs were trained on.
+        hogs_runs: run folders of ``pretrain/train_hogs.py`` (each with ``hand_right/``,
+            ``hand_left/``, ``object/``).
+        srm: optional SRM checkpoint (file or folder).
+        contactnet: optional ContactNet checkpoint (file or folder).
+        pose_banks: optional pose banks (files or folders); named by their file stem.
+        dataset: dataset name recorded in the manifest.
+
+    Raises:
+        AssetError: a run is not finished, does not match the data root, or two runs have
+            the same (subject, object); all problems are listed in one error.
+    """
+    import hogsa_loader
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
+    from hogsa_loader.gaussians.hogs_model import HogsModel
+
+    out = Path(out)
+    root = ArcticRoot(data_root)
+    layers = root.mano_layers()
+    templates = root.object_templates()
+    hands = _hand_hashes(layers)
+    objects_all = _object_hashes(templates)
+
+    problems: list[str] = []
+    runs: list[tuple[str, str, Path, int]] = []
+    for run in hogs_runs:
+        run = Path(run)
+        try:
+            model = HogsModel.from_run(run, layers, templates)
+        except AssetError as exc:
+            problems.append(f"HOGS run {run}: {exc}")
+            continue
+        src = read_manifest(run / "object").get("source", {})
+        subject, obj = src.get("subject"), model.object_name
+        if not subject:
+            problems.append(f"HOGS run {run}: its object manifest records no subject")
+            continue
+        runs.append((str(subject), str(obj), run, int(model.num_gaussians)))
+    seen: dict[tuple[str, str], Path] = {}
+    for sid, obj, run, _ in runs:
+        if (sid, obj) in seen:
+            problems.append(f"two HOGS runs for ({sid}, {obj}): {seen[(sid, obj)]} and {run}")
+        seen[(sid, obj)] = run
+    if not runs and not problems:
+        problems.append("no HOGS run given")
+    if problems:
+        raise _bundle_error(out, problems)
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MANIFEST_NAME).unlink(missing_ok=True)
+    hogs = []
+    for sid, obj, run, n in sorted(runs):
+        rel = f"hogs/{sid}_{obj}"
+        parts = {}
+        for part in _PARTS:
+            _copy(run / part, out / rel / part)
+            man = json.loads((out / rel / part / MANIFEST_FILE).read_text(encoding="utf-8"))
+            parts[part] = {
+                "template_hash": man["template_hash"],
+                "tensors_sha256": _sha256_file(out / rel / part / TENSORS_FILE),
+                "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
+            }
+        hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts})
+    used = sorted({obj for _, obj, _, _ in runs})
+    banks = []
+    for bank in pose_banks:
+        name = Path(bank).name.split(".")[0]
+        rec = _extra(bank, out, "pose_banks", "pose bank")
+        banks.append({"name": name, **rec})  # type: ignore[dict-item]
+    manifest = {
+        "format": BUNDLE_FORMAT,
+        "schema_version": BUNDLE_SCHEMA_VERSION,
+        "library_version": hogsa_loader.__version__,
+        "dataset": {
+            "name": dataset,
+            "root": str(root.data_root),
+            "subjects": sorted({sid for sid, _, _, _ in runs}),
+            "cropped_size": int(root.world_meta().cropped_size),
+        },
+        "hand_model": {"source": str(root.mano_dir), **hands},
+        "objects": {name: objects_all[name] for name in used},
+        "hogs": hogs,
+        "srm": _extra(srm, out, "srm", "SRM checkpoint"),
+        "contactnet": _extra(contactnet, out, "contactnet", "ContactNet checkpoint"),
+        "pose_banks": banks,
+    }
+    tmp = out / f".{MANIFEST_NAME}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, out / MANIFEST_NAME)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+
+
+def _check_files(base: Path, what: str, rec: Any, problems: list[str]) -> Optional[ExtraEntry]:
+    if not isinstance(rec, dict) or not isinstance(rec.get("path"), str) or not isinstance(rec.get("files"), dict):
+        problems.append(f"{what}: entry must be an object with 'path' and 'files'")
+        return None
+    path = base / rec["path"]
+    if not path.exists():
+        problems.append(f"{what}: {path} is missing")
+        return None
+    folder = path if path.is_dir() else path.parent
+    for rel, sha in rec["files"].items():
+        f = folder / rel
+        if not f.is_file():
+            problems.append(f"{what}: file {f} is missing")
+        elif _sha256_file(f) != sha:
+            problems.append(f"{what}: file {f} does not match its sha256 in the manifest")
+    return ExtraEntry(name=str(rec.get("name", what)), path=path, files=dict(rec["files"]))
+
+
+def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_hashes: bool = True) -> Bundle:
+    """Read and validate a bundle.
+
+    Checks: ``manifest.json`` present, valid JSON, format and schema version; every HOGS
+    run listed with its three part folders, each part's checkpoint manifest readable,
+    its template hash equal to the bundle's hand model / object template, its tensors and
+    manifest files equal to the recorded sha256 (``verify_hashes``); optional SRM,
+    ContactNet and pose-bank files present with matching sha256; with ``data_root``, the
+    data root's hand model and object templates equal the recorded ones.
+
+    Args:
+        path: bundle folder.
+        data_root: optional ARCTIC(-format) data root to check against.
+        verify_hashes: hash every file (set False to skip the sha256 of large files).
+
+    Returns:
+        the :class:`Bundle`.
+
+    Raises:
+        AssetError: naming the bundle and listing **every** problem found.
+    """
+    from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
+
+    path = Path(path)
+    mpath = path / MANIFEST_NAME
+    if not path.is_dir():
+        raise _bundle_error(path, ["bundle folder is missing"])
+    if not mpath.is_file():
+        raise _bundle_error(path, [f"{MANIFEST_NAME} is missing"])
+    try:
+        manifest = json.loads(mpath.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError, OSError) as exc:
+        raise _bundle_error(path, [f"{MANIFEST_NAME} cannot be read ({exc})"]) from None
+    if not isinstance(manifest, dict):
+        raise _bundle_error(path, [f"{MANIFEST_NAME} must hold a JSON object"])
+    problems: list[str] = []
+    if manifest.get("format") != BUNDLE_FORMAT:
+        problems.append(f"format is {manifest.get('format')!r}, expected {BUNDLE_FORMAT!r}")
+    if manifest.get("schema_version") != BUNDLE_SCHEMA_VERSION:
+        problems.append(f"schema_version is {manifest.get('schema_version')!r}, this reader supports {BUNDLE_SCHEMA_VERSION}")
+    for key, typ in (("dataset", dict), ("hand_model", dict), ("objects", dict), ("hogs", list), ("pose_banks", list)):
+        if not isinstance(manifest.get(key), typ):
+            problems.append(f"key {key!r} is missing or not a JSON {typ.__name__}")
+    if problems:
+        raise _bundle_error(path, problems)
+
+    hand_hash = {s: manifest["hand_model"].get(s, {}).get("template_hash") for s in ("right", "left")}
+    hogs: dict[tuple[str, str], HogsEntry] = {}
+    if not manifest["hogs"]:
+        problems.append("the bundle lists no HOGS run")
+    for i, rec in enumerate(manifest["hogs"]):
+        if not isinstance(rec, dict) or not all(isinstance(rec.get(k), str) for k in ("subject", "object", "path")):
+            problems.append(f"hogs[{i}]: entry needs string 'subject', 'object' and 'path'")
+            continue
+        key = (rec["subject"], rec["object"])
+        what = f"HOGS run {key[0]}/{key[1]}"
+        if key in hogs:
+            problems.append(f"{what}: listed twice")
+        run = path / rec["path"]
+        parts = rec.get("parts") if isinstance(rec.get("parts"), dict) else {}
+        ok = True
+        for part in _PARTS:
+            folder = run / part
+            if not (folder / MANIFEST_FILE).is_file():
+                problems.append(f"{what}: part checkpoint {folder} is missing")
+                ok = False
+                continue
+            try:
+                man = read_manifest(folder)
+            except AssetError as exc:
+                problems.append(f"{what}: {exc}")
+                ok = False
+                continue
+            want = hand_hash["right" if part == "hand_right" else "left"] if part != "object" else (
+                manifest["objects"].get(key[1], {}).get("template_hash"))
+            if part == "object" and key[1] not in manifest["objects"]:
+                problems.append(f"{what}: object {key[1]!r} is not listed under 'objects'")
+            elif man["template_hash"] != want:
+                problems.append(
+                    f"{what}: part {part} was trained on template {man['template_hash'][:16]}..., "
+                    f"the bundle records {str(want)[:16]}..."
+                )
+            rec_part = parts.get(part, {})
+            if not isinstance(rec_part, dict) or not rec_part:
+                problems.append(f"{what}: no hashes recorded for part {part}")
+            elif verify_hashes:
+                for fname, hkey in ((TENSORS_FILE, "tensors_sha256"), (MANIFEST_FILE, "manifest_sha256")):
+                    f = folder / fname
+                    if not f.is_file():
+                        problems.append(f"{what}: {f} is missing")
+                    elif _sha256_file(f) != rec_part.get(hkey):
+                        problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
+        if ok:
+            hogs[key] = HogsEntry(
+                subject=key[0], object=key[1], path=run, num_gaussians=int(rec.get("num_gaussians", 0)),
+                parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
+            )
+    srm = contactnet = None
+    if manifest.get("srm") is not None:
+        srm = _check_files(path, "SRM checkpoint", manifest["srm"], problems)
+    if manifest.get("contactnet") is not None:
+        contactnet = _check_files(path, "ContactNet checkpoint", manifest["contactnet"], problems)
+    banks: dict[str, ExtraEntry] = {}
+    for i, rec in enumerate(manifest["pose_banks"]):
+        e = _check_files(path, f"pose bank {i}", rec, problems)
+        if e is not None:
+            banks[e.name] = e
+    if data_root is not None:
+        problems.extend(_check_root(manifest, data_root))
+    if problems:
+        raise _bundle_error(path, problems)
+    return Bundle(path=path, manifest=manifest, hogs=hogs, srm=srm, contactnet=contactnet, pose_banks=banks)

@@ -1,0 +1,265 @@
+"""Reading exported shards back: :class:`SynthShardDataset` (torch ``IterableDataset``).
+
+Reads the tar shards of :mod:`hogsa_loader.export.writer` with the standard library's
+``tarfile`` (streaming; no extra dependency). Names follow the ``webdataset`` package's
+conventions (key = member name up to the first dot of its base name, a sample's members
+consecutive), so the same shards also open with ``webdataset.WebDataset(urls)``, and
+shard lists may be given as WebDataset brace patterns (``"synth-{000000..000009}.tar"``).
+
+Each item is either the stored :class:`~hogsa_loader.loader.frame.SynthFrame`, or, with
+``arctic_samples=True``, ArcticNet-SF's ``(inputs, targets, meta_info)`` built by
+:func:`~hogsa_loader.datasets.sample.make_arctic_sample` with ARCTIC's augmentation drawn
+from ``numpy.random.default_rng([seed, epoch, index, 3])`` — ``index`` is the global
+sample index stored with the frame, ``seed``/``epoch`` default to the frame's own
+(``meta["seed"]``, ``meta["epoch"]``) — which is the augmentation stream of
+:class:`~hogsa_loader.loader.dataset.HOGSADataset`
+(:func:`~hogsa_loader.loader.synth.sample_rng`, stream 3). So by default a sample read
+back equals the one the live loader made with the same seed; it does not depend on the
+worker count; and batches collate exactly like real ARCTIC ones.
+
+Work is split over ``world_size × num_workers`` readers (rank from the arguments or
+``torch.distributed``; worker from ``get_worker_info``): whole shards round-robin when
+there are at least as many shards as readers, otherwise samples round-robin.
+"""
+
+from __future__ import annotations
+
+import glob
+import itertools
+import json
+import os
+import re
+import tarfile
+from pathlib import Path
+from typing import Any, Iterator, Optional, Sequence, Union
+
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from hogsa_loader.datasets.augment import ArcticConfig, sample_aug_params
+from hogsa_loader.datasets.sample import make_arctic_sample
+from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.export.codec import decode_frame, split_member_name
+from hogsa_loader.loader.frame import SynthFrame
+
+__all__ = ["AUG_STREAM", "SynthShardDataset", "expand_shards", "iter_tar_samples", "frame_to_arctic_sample"]
+
+_BRACE = re.compile(r"\{([^{}]*)\}")
+
+
+def _expand_braces(pattern: str) -> list[str]:
+    m = _BRACE.search(pattern)
+    if m is None:
+        return [pattern]
+    body = m.group(1)
+    rng = re.fullmatch(r"(\d+)\.\.(\d+)", body)
+    if rng:
+        a, b = rng.group(1), rng.group(2)
+        width = len(a) if a.startswith("0") or len(a) == len(b) else 0
+        items = [str(i).zfill(width) for i in range(int(a), int(b) + 1)]
+    else:
+        items = body.split(",")
+    out: list[str] = []
+    for it in items:
+        out.extend(_expand_braces(pattern[: m.start()] + it + pattern[m.end():]))
+    return out
+
+
+def expand_shards(paths: Union[PathLike, Sequence[PathLike]]) -> list[Path]:
+    """Shard files of a folder (its ``*.tar``, sorted), a glob, a brace pattern or a list.
+
+    Raises:
+        AssetError: a named file or folder is missing, or nothing matched.
+    """
+    items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    out: list[Path] = []
+    for item in items:
+        s = os.fspath(item)
+        for pat in _expand_braces(s):
+            p = Path(pat)
+            if p.is_dir():
+                found = sorted(p.glob("*.tar"))
+                if not found:
+                    raise AssetError(p, "no .tar shards in folder")
+                out.extend(found)
+            elif any(c in pat for c in "*?["):
+                found = sorted(Path(x) for x in glob.glob(pat))
+                if not found:
+                    raise AssetError(pat, "no shard matches the pattern")
+                out.extend(found)
+            elif p.is_file():
+                out.append(p)
+            else:
+                raise AssetError(p, "shard file is missing")
+    return out
+
+
+def iter_tar_samples(path: PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """``(key, {extension: bytes})`` for each sample of a tar shard, in file order.
+
+    Members of one sample must be consecutive (WebDataset rule); directories and files
+    whose base name starts with ``.`` are ignored.
+
+    Raises:
+        AssetError: unreadable or truncated shard (names the file).
+    """
+    path = Path(path)
+    key: Optional[str] = None
+    files: dict[str, bytes] = {}
+    try:
+        with tarfile.open(path, "r|*") as tar:
+            for m in tar:
+                if not m.isfile():
+                    continue
+                base = m.name.rsplit("/", 1)[-1]
+                if base.startswith("."):
+                    continue
+                k, ext = split_member_name(m.name)
+                fh = tar.extractfile(m)
+                data = fh.read() if fh is not None else b""
+                if key is not None and k != key:
+                    yield key, files
+                    files = {}
+                key = k
+                files[ext] = data
+    except (tarfile.TarError, OSError, EOFError) as exc:
+        raise AssetError(path, f"unreadable tar shard ({type(exc).__name__}: {exc})") from None
+    if key is not None:
+        yield key, files
+
+
+#: The augmentation stream of a sample (``hogsa_loader.loader.synth.sample_rng`` stream 3).
+AUG_STREAM = 3
+
+
+def frame_to_arctic_sample(
+    frame: SynthFrame,
+    index: int,
+    seed: int = 0,
+    epoch: int = 0,
+    augment: bool = True,
+    cfg: ArcticConfig = ArcticConfig(),
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """ArcticNet-SF sample of a stored frame, augmentation from ``default_rng([seed, epoch, index, 3])``.
+
+    ``frame.meta["egocentric"]`` (default False) and ``frame.meta["dist"]`` select the
+    egocentric rules of :func:`~hogsa_loader.datasets.sample.make_arctic_sample`.
+    """
+    ego = bool(frame.meta.get("egocentric", False))
+    rng = np.random.default_rng([int(seed), int(epoch), int(index), AUG_STREAM])
+    aug = sample_aug_params(rng, bool(augment), ego, cfg)
+    dist = frame.meta.get("dist")
+    return make_arctic_sample(
+        image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
+        right=frame.right, left=frame.left, obj=frame.obj, egocentric=ego,
+        dist=None if dist is None else np.asarray(dist, dtype=np.float64), aug=aug,
+        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg,
+    )
+
+
+class SynthShardDataset(IterableDataset):
+    """Iterate exported synthetic frames (or ArcticNet-SF samples made from them).
+
+    Args:
+        paths: shard folder, glob, brace pattern, file, or a list of them.
+        arctic_samples: yield ``(inputs, targets, meta_info)`` instead of frames.
+        augment: ARCTIC training augmentation (``arctic_samples`` only).
+        seed: seed of the augmentation draws; None = each frame's ``meta["seed"]`` (0
+            when absent), reproducing the live loader's samples.
+        epoch: epoch of the augmentation draws (:meth:`set_epoch`); None = each frame's
+            ``meta["epoch"]`` (0 when absent). Set a new epoch per training epoch to get
+            new augmentations of the same frames.
+        shuffle_shards: visit shards in a permutation drawn from ``(seed, epoch)``.
+        cfg: ArcticNet-SF settings for the samples.
+        rank, world_size: distributed reader; default ``torch.distributed`` when
+            initialised, else 0 / 1.
+
+    Attributes:
+        shards: the shard files.
+
+    Example:
+        >>> ds = SynthShardDataset("export/", arctic_samples=True, seed=1)
+        >>> loader = DataLoader(ds, batch_size=64, num_workers=4)  # default collate
+    """
+
+    def __init__(
+        self,
+        paths: Union[PathLike, Sequence[PathLike]],
+        arctic_samples: bool = False,
+        augment: bool = True,
+        seed: Optional[int] = None,
+        epoch: Optional[int] = None,
+        shuffle_shards: bool = False,
+        cfg: Optional[ArcticConfig] = None,
+        rank: Optional[int] = None,
+        world_size: Optional[int] = None,
+    ) -> None:
+        super().__init__()
+        self.shards = expand_shards(paths)
+        self.arctic_samples = bool(arctic_samples)
+        self.augment = bool(augment)
+        self.seed = None if seed is None else int(seed)
+        self.epoch = None if epoch is None else int(epoch)
+        self.shuffle_shards = bool(shuffle_shards)
+        self.cfg = cfg if cfg is not None else ArcticConfig()
+        self.rank = rank
+        self.world_size = world_size
+
+    def set_epoch(self, epoch: int) -> None:
+        """Epoch of the augmentation draws and of the shard permutation."""
+        self.epoch = int(epoch)
+
+    def _reader(self) -> tuple[int, int]:
+        rank, ws = self.rank, self.world_size
+        if rank is None or ws is None:
+            if torch.distributed.is_available() and torch.distributed.is_initialized():
+                rank, ws = torch.distributed.get_rank(), torch.distributed.get_world_size()
+            else:
+                rank, ws = 0, 1
+        info = get_worker_info()
+        wid, nw = (info.id, info.num_workers) if info is not None else (0, 1)
+        return int(rank) * nw + wid, int(ws) * nw
+
+    def _order(self) -> list[Path]:
+        shards = list(self.shards)
+        if self.shuffle_shards:
+            perm = np.random.default_rng([self.seed or 0, self.epoch or 0, 0x5A4D]).permutation(len(shards))
+            shards = [shards[i] for i in perm]
+        return shards
+
+    def iter_raw(self) -> Iterator[tuple[Path, str, dict[str, bytes]]]:
+        """``(shard, key, members)`` of this reader's samples (undecoded)."""
+        me, total = self._reader()
+        shards = self._order()
+        if len(shards) >= total:
+            for sh in shards[me::total]:
+                for key, files in iter_tar_samples(sh):
+                    yield sh, key, files
+        else:
+            counter = itertools.count()
+            for sh in shards:
+                for key, files in iter_tar_samples(sh):
+                    if next(counter) % total == me:
+                        yield sh, key, files
+
+    def __iter__(self) -> Iterator[Any]:
+        for sh, key, files in self.iter_raw():
+            where = f"{sh}:{key}"
+            try:
+                frame = decode_frame(files, where)
+            except ValueError as exc:
+                raise AssetError(sh, str(exc)) from None
+            if not self.arctic_samples:
+                yield frame
+                continue
+            info = json.loads(files["json"].decode("utf-8"))
+            index = info.get("index")
+            if index is None:
+                try:
+                    index = int(key.rsplit("/", 1)[-1])
+                except ValueError:
+                    raise AssetError(sh, f"{key}: no global index to seed the augmentation") from None
+            seed = self.seed if self.seed is not None else int(frame.meta.get("seed", 0))
+            epoch = self.epoch if self.epoch is not None else int(frame.meta.get("epoch", 0))
+            yield frame_to_arctic_sample(frame, int(index), seed, epoch, self.augment, self.cfg)

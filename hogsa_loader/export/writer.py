@@ -1,0 +1,312 @@
+"""Resumable, multi-process export of synthetic frames into WebDataset tar shards.
+
+Layout of ``out_dir`` for ``num`` samples in shards of ``S``:
+
+* ``synth-000000.tar`` … — shard ``i`` holds global samples ``[i·S, min((i+1)·S, num))``
+  under the keys ``"%010d" % index`` (members: see :mod:`hogsa_loader.export.codec`);
+* ``synth-000000.index.json`` … — per shard: keys, first/last index, count, bytes,
+  seconds, writer rank;
+* ``index.json`` — the whole export: parameters, caller's ``info`` and every complete
+  shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
+  (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.
+
+Shards go to ranks round-robin (``shard % world_size == rank``). Each shard is written
+under a hidden temporary name and renamed when complete (after its index file), so an
+interrupted export is resumed by running it again: complete shards are skipped,
+partial ones are rewritten.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import os
+import tarfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Optional
+
+from hogsa_loader.errors import PathLike
+from hogsa_loader.export.codec import encode_frame, json_default
+from hogsa_loader.loader.frame import SynthFrame
+
+__all__ = [
+    "write_shards",
+    "dataset_frames_for_shard",
+    "shard_name",
+    "shard_range",
+    "shards_of_rank",
+    "num_shards",
+    "rebuild_index",
+    "sample_key",
+    "INDEX_NAME",
+]
+
+INDEX_NAME = "index.json"
+SHARD_PREFIX = "synth"
+
+
+def sample_key(index: int) -> str:
+    """Key of global sample ``index`` (``"%010d"``)."""
+    return f"{int(index):010d}"
+
+
+def shard_name(shard: int, prefix: str = SHARD_PREFIX) -> str:
+    """``synth-000123.tar``."""
+    return f"{prefix}-{int(shard):06d}.tar"
+
+
+def num_shards(num: int, shard_size: int) -> int:
+    """``ceil(num / shard_size)``."""
+    return int(math.ceil(int(num) / int(shard_size)))
+
+
+def shard_range(shard: int, num: int, shard_size: int) -> range:
+    """Global sample indices of ``shard``."""
+    lo = int(shard) * int(shard_size)
+    return range(lo, min(lo + int(shard_size), int(num)))
+
+
+def shards_of_rank(n_shards: int, rank: int, world_size: int) -> list[int]:
+    """Round-robin assignment: the shards ``rank`` writes."""
+    if not 0 <= rank < world_size:
+        raise ValueError(f"rank {rank} outside [0, {world_size})")
+    return list(range(int(rank), int(n_shards), int(world_size)))
+
+
+def _index_path(out_dir: Path, shard: int, prefix: str) -> Path:
+    return out_dir / f"{prefix}-{int(shard):06d}.index.json"
+
+
+def _atomic_write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(obj, fh, indent=1, default=json_default)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _shard_complete(out_dir: Path, shard: int, prefix: str) -> bool:
+    tar, idx = out_dir / shard_name(shard, prefix), _index_path(out_dir, shard, prefix)
+    if not (tar.is_file() and idx.is_file()):
+        return False
+    try:
+        with open(idx, "r", encoding="utf-8") as fh:
+            rec = json.load(fh)
+        return int(rec.get("bytes", -1)) == tar.stat().st_size
+    except (OSError, ValueError):
+        return False
+
+
+def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    ti = tarfile.TarInfo(name)
+    ti.size = len(data)
+    ti.mtime = 0  # byte-identical shards for identical frames
+    ti.mode = 0o644
+    ti.uname = ti.gname = "hogsa"
+    tar.addfile(ti, io.BytesIO(data))
+
+
+@contextlib.contextmanager
+def _locked(out_dir: Path) -> Iterator[None]:
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - non-POSIX
+        yield
+        return
+    with open(out_dir / ".index.lock", "a") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
+def rebuild_index(
+    out_dir: PathLike,
+    num: int,
+    shard_size: int,
+    info: Optional[dict[str, Any]] = None,
+    prefix: str = SHARD_PREFIX,
+) -> dict[str, Any]:
+    """Write ``index.json`` from the complete shards found in ``out_dir`` and return it."""
+    out = Path(out_dir)
+    n = num_shards(num, shard_size)
+    with _locked(out):
+        shards = []
+        for s in range(n):
+            if _shard_complete(out, s, prefix):
+                with open(_index_path(out, s, prefix), "r", encoding="utf-8") as fh:
+                    rec = json.load(fh)
+                shards.append({k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")})
+        if info is None and (out / INDEX_NAME).is_file():
+            try:
+                with open(out / INDEX_NAME, "r", encoding="utf-8") as fh:
+                    info = json.load(fh).get("info")
+            except (OSError, ValueError, AttributeError):
+                info = None
+        index = {
+            "format": "webdataset",
+            "sample_format": "hogsa SynthFrame v1 (.jpg|.png, .alpha.png, .parts.png, .labels.npz, .json)",
+            "num": int(num),
+            "shard_size": int(shard_size),
+            "num_shards": n,
+            "complete": len(shards) == n,
+            "num_samples_written": int(sum(s["count"] for s in shards)),
+            "shards": shards,
+            "info": info or {},
+        }
+        _atomic_write_json(out / INDEX_NAME, index)
+    return index
+
+
+def _frame_index(frame: SynthFrame, rng: range, position: int, last: int, shard: int) -> int:
+    """Global index of the ``position``-th frame of a shard (``meta["index"]`` or the position)."""
+    meta_index = frame.meta.get("index") if isinstance(frame.meta, dict) else None
+    idx = rng.start + position if meta_index is None else int(meta_index)
+    if not rng.start <= idx < rng.stop:
+        raise ValueError(f"shard {shard}: frame index {idx} outside the shard's samples "
+                         f"[{rng.start}, {rng.stop})")
+    if idx <= last:
+        raise ValueError(f"shard {shard}: frame indices must increase (got {idx} after {last})")
+    return idx
+
+
+def dataset_frames_for_shard(dataset: Any, num: int, shard_size: int) -> Callable[[int], Iterator[SynthFrame]]:
+    """``frames_for_shard`` over a :class:`~hogsa_loader.loader.dataset.HOGSADataset`.
+
+    Shard ``i`` gets the kept frames of global indices ``[i·S, min((i+1)·S, num))``: the
+    render batches ``g`` covering that range (``dataset.frames(g)``, batches of
+    ``dataset.batch_size`` consecutive indices), filtered to the range. Dropped samples
+    leave gaps (the shard index records ``count`` < ``expected``); choose ``S`` a multiple
+    of the batch size so no batch is rendered for two shards.
+    """
+    S, B = int(shard_size), int(dataset.batch_size)
+
+    def frames_for_shard(shard: int) -> Iterator[SynthFrame]:
+        lo, hi = shard * S, min((shard + 1) * S, int(num))
+        for g in range(lo // B, (hi - 1) // B + 1):
+            for f in dataset.frames(g):
+                if f is not None and lo <= int(f.meta["index"]) < hi:
+                    yield f
+
+    return frames_for_shard
+
+
+def write_shards(
+    frames_for_shard: Callable[[int], Iterable[SynthFrame]],
+    out_dir: PathLike,
+    num: int,
+    shard_size: int,
+    rank: int = 0,
+    world_size: int = 1,
+    progress: bool = True,
+    image_format: str = "jpg",
+    jpeg_quality: int = 95,
+    alpha_bits: int = 8,
+    parts: bool = True,
+    info: Optional[dict[str, Any]] = None,
+    prefix: str = SHARD_PREFIX,
+) -> dict[str, Any]:
+    """Write this rank's shards of a ``num``-sample export (resumable).
+
+    Args:
+        frames_for_shard: ``shard → iterable of SynthFrame``, the frames of global
+            samples ``shard_range(shard, num, shard_size)`` in increasing order. A frame's
+            global index (its key) is ``frame.meta["index"]`` when present — gaps allowed,
+            e.g. dropped samples; the count is recorded in the index — else its position
+            in the shard. An index outside the shard's range is an error.
+        out_dir: output folder (created).
+        num: total number of samples of the export.
+        shard_size: samples per shard ``S``.
+        rank, world_size: this process and the number of processes (shards
+            ``rank, rank + world_size, ...`` are written here).
+        progress: tqdm bar (rank 0 only).
+        image_format, jpeg_quality, alpha_bits, parts: see
+            :func:`~hogsa_loader.export.codec.encode_frame`.
+        info: JSON-able description of the export (bundle, seed, ...) for ``index.json``.
+        prefix: shard file prefix.
+
+    Returns:
+        ``{"written": [...], "skipped": [...], "samples": n, "seconds": t, "index": path}``.
+    """
+    if num <= 0 or shard_size <= 0:
+        raise ValueError(f"num and shard_size must be positive, got {num}, {shard_size}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n = num_shards(num, shard_size)
+    mine = shards_of_rank(n, rank, world_size)
+    todo = [s for s in mine if not _shard_complete(out, s, prefix)]
+    skipped = [s for s in mine if s not in todo]
+    total = sum(len(shard_range(s, num, shard_size)) for s in todo)
+    bar = None
+    if progress and rank == 0:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, desc=f"hogsa export (rank {rank}/{world_size})", unit="img",
+                   dynamic_ncols=True)
+    t_all = time.perf_counter()
+    written_samples = 0
+    bar_postfix = {"dropped": 0}
+    try:
+        for s in todo:
+            name = shard_name(s, prefix)
+            for stale in out.glob(f".{name}.tmp.*"):
+                stale.unlink()
+            rng = shard_range(s, num, shard_size)
+            tmp = out / f".{name}.tmp.{os.getpid()}"
+            t0 = time.perf_counter()
+            keys: list[str] = []
+            with tarfile.open(tmp, "w", format=tarfile.GNU_FORMAT) as tar:
+                last = last_seen = rng.start - 1
+                for j, frame in enumerate(frames_for_shard(s)):
+                    idx = _frame_index(frame, rng, j, last, s)
+                    last = idx
+                    key = sample_key(idx)
+                    for member, data in encode_frame(frame, key, index=idx, shard=s, image_format=image_format,
+                                                     jpeg_quality=jpeg_quality, alpha_bits=alpha_bits,
+                                                     parts=parts).items():
+                        _add_member(tar, member, data)
+                    keys.append(key)
+                    if bar is not None:  # progress in indices (dropped ones count as done)
+                        bar.update(idx - max(last_seen, rng.start - 1))
+                        last_seen = idx
+            if bar is not None:
+                bar.update(rng.stop - 1 - max(last_seen, rng.start - 1))
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            rec = {
+                "shard": s,
+                "file": name,
+                "count": len(keys),
+                "expected": len(rng),
+                "first": rng.start,
+                "last": rng.stop - 1,
+                "keys": keys,
+                "bytes": tmp.stat().st_size,
+                "seconds": round(time.perf_counter() - t0, 3),
+                "rank": rank,
+                "world_size": world_size,
+            }
+            _atomic_write_json(_index_path(out, s, prefix), rec)
+            os.replace(tmp, out / name)
+            written_samples += len(keys)
+            if bar is not None:
+                bar_postfix["dropped"] += len(rng) - len(keys)
+                bar.set_postfix(bar_postfix)
+    finally:
+        if bar is not None:
+            bar.close()
+        # also after an interruption: index.json always describes what is on disk
+        index = rebuild_index(out, num, shard_size, info=info, prefix=prefix)
+    return {
+        "written": todo,
+        "skipped": skipped,
+        "samples": written_samples,
+        "seconds": time.perf_counter() - t_all,
+        "index": str(out / INDEX_NAME),
+        "complete": index["complete"],
+    }

@@ -1,0 +1,1 @@
+"""Drop-in integrations of the synthetic loader into existing training code."""

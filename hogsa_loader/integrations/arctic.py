@@ -1,0 +1,82 @@
+"""Drop-in for ARCTIC's training loop: wrap its train DataLoader with synthetic samples.
+
+Example (ArcticNet-SF training, real-format data)::
+
+    from torch.utils.data import DataLoader
+    from hogsa_loader.datasets import ArcticDataset
+    from hogsa_loader.integrations.arctic import wrap_train_loader
+
+    real = DataLoader(ArcticDataset("./data", split="p1_train"), batch_size=64, shuffle=True, num_workers=8)
+    train_loader = wrap_train_loader(real, "bundle/", ratio=0.5, data_root="./data", device="cuda")
+    for inputs, targets, meta_info in train_loader:   # 32 real + 32 synthetic, collated alike
+        ...
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional, Union
+
+from torch.utils.data import DataLoader
+
+from hogsa_loader.bundle import Bundle
+from hogsa_loader.errors import PathLike
+from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.loader.mixing import MixedLoader
+
+__all__ = ["wrap_train_loader"]
+
+
+def _root_of(dataset: Any) -> Optional[PathLike]:
+    root = getattr(dataset, "root", None)
+    return getattr(root, "data_root", None)
+
+
+def wrap_train_loader(
+    train_loader: DataLoader,
+    bundle: Union[PathLike, Bundle],
+    ratio: float = 0.5,
+    *,
+    data_root: Optional[PathLike] = None,
+    num_workers: int = 0,
+    device: str = "cpu",
+    seed: int = 0,
+    drop_last: bool = True,
+    **dataset_kwargs: Any,
+) -> MixedLoader:
+    """Mix synthetic HOGSA samples into an ARCTIC train loader.
+
+    Args:
+        train_loader: the real DataLoader (ArcticNet-SF ``(inputs, targets, meta_info)``
+            batches); its batch size B is kept.
+        bundle: bundle folder or :class:`~hogsa_loader.bundle.Bundle`.
+        ratio: synthetic share; each batch has exactly ``round(ratio·B)`` (half up)
+            synthetic samples.
+        data_root: ARCTIC data root (default: ``train_loader.dataset.root.data_root`` of a
+            :class:`~hogsa_loader.datasets.ArcticDataset`).
+        num_workers: DataLoader workers of the synthetic stream (CPU rendering only;
+            keep 0 with ``device="cuda"`` — workers must not touch CUDA).
+        device: rendering device.
+        seed: synthetic stream seed.
+        drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
+        **dataset_kwargs: more :class:`~hogsa_loader.loader.dataset.HOGSADataset`
+            arguments (``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...);
+            ``protocol`` and ``config`` default to the real dataset's.
+
+    Returns:
+        a :class:`~hogsa_loader.loader.mixing.MixedLoader`.
+    """
+    real_ds = getattr(train_loader, "dataset", None)
+    root = data_root if data_root is not None else _root_of(real_ds)
+    if root is None:
+        raise ValueError("data_root is needed (the train loader's dataset does not say where its data is)")
+    if hasattr(real_ds, "setup"):
+        dataset_kwargs.setdefault("protocol", real_ds.setup)  # type: ignore[union-attr]
+    if hasattr(real_ds, "cfg"):
+        dataset_kwargs.setdefault("config", real_ds.cfg)  # type: ignore[union-attr]
+    syn = HOGSADataset(bundle, root, device=device, seed=seed, **dataset_kwargs)
+    source: Any = syn
+    if num_workers > 0:
+        if device.startswith("cuda"):
+            raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
+        source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
+    return MixedLoader(train_loader, source, ratio, drop_last=drop_last)

@@ -1,0 +1,179 @@
+"""``MixedLoader``: real ARCTIC batches with an exact share of synthetic samples.
+
+Every yielded batch of size B holds exactly ``n_syn = floor(ratio·B + 0.5)`` synthetic
+samples (round half up) after ``B − n_syn`` real ones, collated exactly like the real
+batches: the synthetic samples go through the real loader's ``collate_fn`` and are
+concatenated with the real part along the batch dimension (tensors with ``torch.cat``,
+lists of strings by concatenation, dicts / tuples recursively).
+
+No real sample is wasted: the real samples a mixed batch does not use are kept for the
+next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
+covers the real epoch (the last real samples that cannot fill a batch are dropped when
+``drop_last`` is True, else they form a smaller last batch with its own rounded share).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable, Iterator, Optional
+
+import torch
+from torch.utils.data import default_collate
+
+__all__ = ["MixedLoader", "num_synthetic", "batch_size_of"]
+
+
+def num_synthetic(ratio: float, batch_size: int) -> int:
+    """Synthetic samples in a batch of ``batch_size``: ``floor(ratio·B + 0.5)``."""
+    return int(ratio * batch_size + 0.5)
+
+
+_CONTAINERS = (torch.Tensor, dict, tuple, list)
+
+
+def batch_size_of(batch: Any) -> int:
+    """Number of samples of a collated batch (first tensor / list found)."""
+    if isinstance(batch, torch.Tensor):
+        return int(batch.shape[0])
+    if isinstance(batch, (list, tuple)) and batch and not isinstance(batch[0], _CONTAINERS):
+        return len(batch)
+    if isinstance(batch, dict):
+        for v in batch.values():
+            return batch_size_of(v)
+    if isinstance(batch, (list, tuple)):
+        for v in batch:
+            return batch_size_of(v)
+    raise TypeError(f"cannot find the batch size of a {type(batch).__name__}")
+
+
+def _slice(batch: Any, a: int, b: int) -> Any:
+    """Samples ``a:b`` of a collated batch."""
+    if isinstance(batch, torch.Tensor):
+        return batch[a:b]
+    if isinstance(batch, dict):
+        return {k: _slice(v, a, b) for k, v in batch.items()}
+    if isinstance(batch, tuple):
+        return tuple(_slice(v, a, b) for v in batch)
+    if isinstance(batch, list):
+        if batch and isinstance(batch[0], _CONTAINERS):  # structure (default_collate turns tuples into lists)
+            return [_slice(v, a, b) for v in batch]
+        return batch[a:b]
+    raise TypeError(f"cannot slice a collated {type(batch).__name__}")
+
+
+def _cat(parts: list[Any]) -> Any:
+    """Concatenate collated batches along the batch dimension."""
+    first = parts[0]
+    if isinstance(first, torch.Tensor):
+        return torch.cat(parts, 0)
+    if isinstance(first, dict):
+        keys = list(first)
+        for p in parts[1:]:
+            if list(p) != keys:
+                raise ValueError(f"cannot mix batches with different keys: {sorted(set(keys) ^ set(p))}")
+        return {k: _cat([p[k] for p in parts]) for k in keys}
+    if isinstance(first, tuple):
+        return tuple(_cat([p[i] for p in parts]) for i in range(len(first)))
+    if isinstance(first, list):
+        if first and isinstance(first[0], _CONTAINERS):
+            return [_cat([p[i] for p in parts]) for i in range(len(first))]
+        return [x for p in parts for x in p]
+    raise TypeError(f"cannot concatenate collated {type(first).__name__}")
+
+
+class MixedLoader:
+    """Real batches with exactly ``round(ratio·B)`` synthetic samples each.
+
+    Args:
+        real_loader: the real DataLoader (collated ``(inputs, targets, meta_info)`` batches);
+            its ``batch_size`` is B (else the first batch's size).
+        synthetic: an iterable of **single** synthetic samples — a
+            :class:`~hogsa_loader.loader.dataset.HOGSADataset` (iterated in this process)
+            or ``DataLoader(hogsa_dataset, batch_size=None, num_workers=k)``. It is
+            iterated again when exhausted.
+        ratio: synthetic share in [0, 1].
+        collate_fn: collate of the synthetic samples; default the real loader's own
+            ``collate_fn`` (or torch's ``default_collate``).
+        drop_last: drop the real samples that cannot fill a last batch.
+    """
+
+    def __init__(
+        self,
+        real_loader: Iterable[Any],
+        synthetic: Iterable[Any],
+        ratio: float,
+        collate_fn: Optional[Callable[[list[Any]], Any]] = None,
+        drop_last: bool = True,
+    ) -> None:
+        if not 0.0 <= float(ratio) <= 1.0:
+            raise ValueError(f"ratio must be in [0, 1], got {ratio}")
+        self.real_loader = real_loader
+        self.synthetic = synthetic
+        self.ratio = float(ratio)
+        self.collate_fn = collate_fn or getattr(real_loader, "collate_fn", None) or default_collate
+        self.drop_last = bool(drop_last)
+        self._syn_iter: Optional[Iterator[Any]] = None
+
+    @property
+    def batch_size(self) -> Optional[int]:
+        return getattr(self.real_loader, "batch_size", None)
+
+    def __len__(self) -> int:
+        B = self.batch_size
+        n_real = len(self.real_loader.dataset) if hasattr(self.real_loader, "dataset") else None  # type: ignore[attr-defined]
+        if B is None or n_real is None:
+            raise TypeError("length unknown: the real loader has no batch_size / dataset")
+        per = B - num_synthetic(self.ratio, B)
+        if per == 0:
+            return len(self.real_loader)  # type: ignore[arg-type]
+        return n_real // per if self.drop_last else -(-n_real // per)
+
+    def _next_synthetic(self, n: int) -> list[Any]:
+        out: list[Any] = []
+        fresh = False  # the iterator was (re)started during this call and gave nothing yet
+        while len(out) < n:
+            if self._syn_iter is None:
+                self._syn_iter = iter(self.synthetic)
+                fresh = True
+            try:
+                out.append(next(self._syn_iter))
+                fresh = False
+            except StopIteration:
+                self._syn_iter = None
+                if fresh:
+                    raise RuntimeError("the synthetic source yields no samples") from None
+        return out
+
+    def _mixed(self, real: Optional[Any], n_syn: int) -> Any:
+        parts = [] if real is None else [real]
+        if n_syn:
+            parts.append(self.collate_fn(self._next_synthetic(n_syn)))
+        return _cat(parts) if len(parts) > 1 else parts[0]
+
+    def __iter__(self) -> Iterator[Any]:
+        B = self.batch_size
+        buf: list[Any] = []  # collated real chunks not used yet
+        have = 0
+        for batch in self.real_loader:
+            n = batch_size_of(batch)
+            if B is None:
+                B = n
+            n_syn = num_synthetic(self.ratio, B)
+            n_real = B - n_syn
+            if n_real == 0:  # all synthetic: one batch per real batch
+                yield self._mixed(None, n_syn)
+                continue
+            buf.append(batch)
+            have += n
+            while have >= n_real:
+                real = _cat(buf) if len(buf) > 1 else buf[0]
+                take, rest = _slice(real, 0, n_real), _slice(real, n_real, have)
+                have -= n_real
+                buf = [rest] if have else []
+                yield self._mixed(take, n_syn)
+        if have and not self.drop_last:
+            real = _cat(buf) if len(buf) > 1 else buf[0]
+            # a smaller last batch: the smallest share s with round(ratio·(have+s)) == s
+            for s in range(0, 4 * have + 2):
+                if num_synthetic(self.ratio, have + s) == s:
+                    yield self._mixed(real, s)
+                    break

@@ -1,0 +1,484 @@
+"""The synthetic pipeline: poses → crop → one batched render → refine → composite → samples.
+
+:class:`SynthPipeline` makes B :class:`~hogsa_loader.loader.frame.SynthFrame` s of one
+(subject, object) HOGS model at a time:
+
+1. **pose** — the pose source gives B poses (world frame); the MANO layers and the
+   object layer give the labels' 3D points (joints, object keypoints/box corners/vertices)
+   exactly as ARCTIC's processing does; the camera sampler gives B cameras around the
+   interaction centre; the ARCTIC crop box is computed from the projected object vertices
+   (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`) and the validity flags
+   from the full-image projections (:func:`~hogsa_loader.datasets.conventions.validity_flags`).
+2. **pom** — the pose source's optional ``optimize`` step.
+3. **render** — ONE :meth:`HogsModel.render` call for the batch, directly into the crop:
+   an ``S × S`` image laid out like ARCTIC's cropped images (the box enlarged 1.5×), with
+   ``render_intrinsics(cropped_intrinsics(K, box, S))`` so that pixel i shows label
+   coordinate i.
+4. **srm** — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
+   (B, S, S, 1)).
+5. **composite** — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`).
+6. **targets** — sanity checks (dropped samples are counted by reason in
+   :class:`SynthStats`), then :func:`frame_to_sample` = ARCTIC's augmentation and target
+   construction through :func:`~hogsa_loader.datasets.sample.make_arctic_sample`, the very
+   function real samples go through.
+
+Every random draw of sample ``i`` comes from generators seeded by ``(seed, epoch, i)``
+(:func:`sample_rng`), so a sample can be regenerated from its seed and index alone.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.augment import ArcticConfig, AugParams
+from hogsa_loader.datasets.conventions import (
+    allocentric_bbox,
+    cropped_bbox,
+    cropped_intrinsics,
+    full_to_cropped,
+    project,
+    render_intrinsics,
+    transform,
+    validity_flags,
+)
+from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
+from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from hogsa_loader.loader.cameras import CameraSampler
+from hogsa_loader.loader.frame import SynthFrame
+from hogsa_loader.loader.poses import PoseBatch, PoseSource
+
+__all__ = [
+    "STAGES",
+    "DROP_REASONS",
+    "SampleChecks",
+    "SynthStats",
+    "SynthPipeline",
+    "Refiner",
+    "frame_to_sample",
+    "sample_rng",
+    "synthetic_imgname",
+    "parse_synthetic_imgname",
+    "is_synthetic",
+    "joints_on_alpha",
+]
+
+#: Timed stages, in pipeline order (keys of :attr:`SynthStats.seconds`).
+STAGES: tuple[str, ...] = ("pose", "pom", "render", "srm", "composite", "targets")
+#: Reasons a sample is dropped (keys of :attr:`SynthStats.dropped`).
+DROP_REASONS: tuple[str, ...] = ("nan", "behind_camera", "empty_alpha", "out_of_crop", "label_pixel_mismatch")
+#: Random streams of one sample (the second entry of its seed sequence).
+_STREAM_POSE, _STREAM_CAMERA, _STREAM_BACKGROUND, STREAM_AUG = 0, 1, 2, 3
+#: Prefix of synthetic ``meta_info["imgname"]`` values.
+SYNTH_PREFIX = "./hogsa_synth/"
+
+Refiner = Callable[[Tensor, Tensor], Tensor]
+
+
+def sample_rng(seed: int, epoch: int, index: int, stream: int) -> np.random.Generator:
+    """The numpy generator of one random stream of sample ``index``.
+
+    Args:
+        seed: the loader's seed; epoch: its epoch; index: global sample index;
+        stream: 0 pose, 1 camera, 2 background, 3 augmentation.
+    """
+    return np.random.default_rng([int(seed), int(epoch), int(index), int(stream)])
+
+
+def synthetic_imgname(subject: str, obj: str, seed: int, epoch: int, view: int, index: int) -> str:
+    """``meta_info["imgname"]`` of a synthetic sample.
+
+    ``./hogsa_synth/<sid>/<obj>_synth_s<seed>e<epoch>/<view>/<index:09d>.jpg`` — parsed by
+    :func:`~hogsa_loader.datasets.arctic_dataset.parse_imgname` like a real ARCTIC name
+    (``seq = <obj>_synth_...`` so the object name comes first); ``view`` is the dataset
+    view used or :data:`~hogsa_loader.loader.cameras.NOVEL_VIEW`.
+    """
+    return f"{SYNTH_PREFIX}{subject}/{obj}_synth_s{int(seed)}e{int(epoch)}/{int(view)}/{int(index):09d}.jpg"
+
+
+def is_synthetic(imgname: str) -> bool:
+    """True for ``imgname`` values made by :func:`synthetic_imgname`."""
+    return str(imgname).startswith(SYNTH_PREFIX)
+
+
+def parse_synthetic_imgname(imgname: str) -> dict[str, Any]:
+    """Inverse of :func:`synthetic_imgname`: ``{"subject", "object", "seed", "epoch", "view", "index"}``."""
+    if not is_synthetic(imgname):
+        raise ValueError(f"not a synthetic image name: {imgname!r}")
+    sid, seq, view, fname = imgname[len(SYNTH_PREFIX):].split("/")
+    obj, _, tag = seq.rpartition("_synth_")
+    seed, _, epoch = tag[1:].partition("e")
+    return {"subject": sid, "object": obj, "seed": int(seed), "epoch": int(epoch), "view": int(view),
+            "index": int(fname.split(".")[0])}
+
+
+@dataclass(frozen=True)
+class SampleChecks:
+    """When a synthetic sample is dropped.
+
+    Attributes:
+        min_alpha_pixels: fewer crop pixels with alpha > 0.5 → ``empty_alpha`` (the object's
+            own part alpha is held to the same minimum).
+        hands: ``"any"`` drops a sample when any hand is invalid (out of the crop per
+            ARCTIC's validity flags), ``"both"`` only when both are, ``"none"`` never;
+            an invalid object (``is_valid`` = 0) is always dropped → ``out_of_crop``.
+        min_on_alpha: a valid hand (or the object) whose in-crop 2D keypoints lie on the
+            rendered alpha less often than this → ``label_pixel_mismatch``.
+        near_m: any joint / object vertex closer than this to the camera plane →
+            ``behind_camera``.
+    """
+
+    min_alpha_pixels: int = 64
+    hands: str = "any"
+    min_on_alpha: float = 0.8
+    near_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.hands not in ("any", "both", "none"):
+            raise ValueError(f"SampleChecks.hands must be 'any', 'both' or 'none', got {self.hands!r}")
+
+
+@dataclass
+class SynthStats:
+    """Counters of one process's synthetic pipeline.
+
+    Attributes:
+        attempted: samples rendered (kept + dropped).
+        kept: samples that passed the checks.
+        dropped: ``{reason: count}`` over :data:`DROP_REASONS`.
+        seconds: ``{stage: seconds}`` over :data:`STAGES` (wall clock, summed).
+        batches: render batches made.
+    """
+
+    attempted: int = 0
+    kept: int = 0
+    dropped: dict[str, int] = field(default_factory=lambda: {r: 0 for r in DROP_REASONS})
+    seconds: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    batches: int = 0
+
+    @property
+    def num_dropped(self) -> int:
+        """Total dropped samples."""
+        return int(sum(self.dropped.values()))
+
+    def reset(self) -> None:
+        """Zero every counter."""
+        self.__init__()  # type: ignore[misc]
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able copy."""
+        return {"attempted": self.attempted, "kept": self.kept, "dropped": dict(self.dropped),
+                "num_dropped": self.num_dropped, "seconds": dict(self.seconds), "batches": self.batches}
+
+    @contextmanager
+    def timed(self, stage: str, device: Optional[torch.device] = None) -> Iterator[None]:
+        """Add the wall time of the block to ``seconds[stage]`` (synchronising CUDA)."""
+        sync = device is not None and device.type == "cuda"
+        if sync:
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            if sync:
+                torch.cuda.synchronize(device)
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def joints_on_alpha(points: np.ndarray, alpha: np.ndarray, threshold: float = 0.5, radius: int = 1) -> np.ndarray:
+    """Which 2D points lie on an alpha mask.
+
+    Args:
+        points: (N, 2) pixel coordinates (pixel i centred on coordinate i).
+        alpha: (H, W) opacity.
+        threshold: alpha above this counts as covered.
+        radius: look at the (2r+1)² pixels around the nearest one (0 = nearest only).
+
+    Returns:
+        (N,) bool; points outside the image are False.
+    """
+    H, W = alpha.shape
+    pts = np.rint(np.asarray(points, dtype=np.float64)).astype(np.int64)
+    out = np.zeros(len(pts), dtype=bool)
+    for i, (x, y) in enumerate(pts):
+        if 0 <= x < W and 0 <= y < H:
+            win = alpha[max(0, y - radius): y + radius + 1, max(0, x - radius): x + radius + 1]
+            out[i] = bool(win.max() > threshold)
+    return out
+
+
+def frame_to_sample(
+    frame: SynthFrame,
+    aug: AugParams,
+    cfg: ArcticConfig = ArcticConfig(),
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """ARCTIC's augmentation and targets of one synthetic frame (real samples' code path).
+
+    Args:
+        frame: the composited crop and its labels.
+        aug: augmentation (e.g. :func:`~hogsa_loader.datasets.augment.sample_aug_params`).
+        cfg: sample settings (those of the real dataset being matched).
+
+    Returns:
+        ``(inputs, targets, meta_info)`` exactly like
+        :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` items.
+    """
+    return make_arctic_sample(
+        image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
+        right=frame.right, left=frame.left, obj=frame.obj, egocentric=False, dist=None, aug=aug,
+        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg,
+    )  # fmt: skip
+
+
+def _finite(*arrays: Any) -> bool:
+    return all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
+
+
+class SynthPipeline:
+    """Synthetic frames of the bundle's HOGS models (see module docstring).
+
+    Args:
+        root: the data root (MANO layers, object templates).
+        models: ``key -> HogsModel`` loader (called once per key, result cached), e.g.
+            ``lambda key: bundle.load_hogs(key, layers, templates, device)``.
+        pose_source: the :class:`~hogsa_loader.loader.poses.PoseSource`.
+        cameras: ``subject -> CameraSampler``.
+        backgrounds: a :class:`~hogsa_loader.compose.BackgroundSource`.
+        render_size: side S of the rendered crop (ARCTIC's cropped-image layout: the box
+            covers the central 2/3).
+        device: where models render.
+        refiner: optional ``(rgb, alpha) -> rgb`` applied after rendering (SRM).
+        checks: :class:`SampleChecks`.
+        stats: counters to update (a new :class:`SynthStats` by default).
+        backend: renderer backend (``"auto"``, ``"torch"``, ``"gsplat"``).
+        seed, epoch: the seed sequence prefix of every sample's generators.
+    """
+
+    def __init__(
+        self,
+        root: ArcticRoot,
+        models: Callable[[tuple[str, str]], Any],
+        pose_source: PoseSource,
+        cameras: Mapping[str, CameraSampler],
+        backgrounds: Any,
+        render_size: int,
+        device: torch.device | str = "cpu",
+        refiner: Optional[Refiner] = None,
+        checks: SampleChecks = SampleChecks(),
+        stats: Optional[SynthStats] = None,
+        backend: str = "auto",
+        seed: int = 0,
+        epoch: int = 0,
+    ) -> None:
+        self.root = root
+        self._model_fn = models
+        self._models: dict[tuple[str, str], Any] = {}
+        self.pose_source = pose_source
+        self.cameras = dict(cameras)
+        self.backgrounds = backgrounds
+        self.render_size = int(render_size)
+        self.device = torch.device(device)
+        self.refiner = refiner
+        self.checks = checks
+        self.stats = stats if stats is not None else SynthStats()
+        self.backend = backend
+        self.seed = int(seed)
+        self.epoch = int(epoch)
+        self.layers = root.mano_layers(torch.float64)
+        self.object_layer = root.object_layer()
+        self.kp_bottom = {n: np.asarray(t.kp_bottom, dtype=np.float32)
+                          for n, t in root.object_templates(load_texture=False).items()}
+
+    def model(self, key: tuple[str, str]) -> Any:
+        """The (cached) HOGS model of ``key``."""
+        if key not in self._models:
+            self._models[key] = self._model_fn(key)
+        return self._models[key]
+
+    # ------------------------------------------------------------------ geometry
+    def _geometry(self, key: tuple[str, str], batch: PoseBatch) -> dict[str, np.ndarray]:
+        """World-frame label points: joints (B,21,3) per hand, kp3d (B,32,3), bbox3d (B,16,3),
+        object vertices (B,V,3), float64."""
+        P = batch.poses
+        out: dict[str, np.ndarray] = {}
+        with torch.no_grad():
+            for side in ("right", "left"):
+                res = self.layers[side](global_orient=P[f"{side}_rot"], hand_pose=P[f"{side}_pose"],
+                                        betas=P[f"{side}_betas"], transl=P[f"{side}_trans"])
+                out[f"joints.{side}"] = res.joints.double().numpy()
+            B = len(batch)
+            res = self.object_layer(angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"],
+                                    transl=P["obj_trans"], names=[key[1]] * B)
+        out["kp3d"] = res["kp3d"].double().numpy()
+        out["bbox3d"] = res["bbox3d"].double().numpy()
+        out["verts"] = res["v"].double().numpy()
+        return out
+
+    def _drop(self, reason: str) -> None:
+        self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
+
+    # ------------------------------------------------------------------ main entry
+    def frames(self, key: tuple[str, str], indices: Sequence[int]) -> list[Optional[SynthFrame]]:
+        """Render the samples ``indices`` of model ``key`` in one batch.
+
+        Args:
+            key: ``(subject, object)`` of a HOGS model.
+            indices: global sample indices (each fixes its own random streams).
+
+        Returns:
+            one entry per index: the :class:`SynthFrame`, or None when the sample was
+            dropped (the reason is counted in :attr:`stats`).
+        """
+        indices = [int(i) for i in indices]
+        B = len(indices)
+        S = self.render_size
+        st = self.stats
+        results: list[Optional[SynthFrame]] = [None] * B
+        if B == 0:
+            return results
+        st.batches += 1
+        st.attempted += B
+        sid, obj = key
+        with st.timed("pose"):
+            batch = self.pose_source.sample(key, [sample_rng(self.seed, self.epoch, i, _STREAM_POSE) for i in indices])
+        optimize = getattr(self.pose_source, "optimize", None)
+        if optimize is not None:
+            with st.timed("pom", self.device):
+                batch = optimize(key, batch)
+        with st.timed("pose"):
+            geo = self._geometry(key, batch)
+            centres = np.stack([geo["verts"].mean(1), geo["joints.right"].mean(1), geo["joints.left"].mean(1)]).mean(0)
+            cams = self.cameras[sid].sample(centres, [sample_rng(self.seed, self.epoch, i, _STREAM_CAMERA) for i in indices])
+            w2c = cams.world2cam
+            cam = {k: transform(w2c, v) for k, v in geo.items()}
+            full2d = {k: project(v, cams.K) for k, v in cam.items()}
+            box_full = allocentric_bbox(full2d["verts"])
+            is_valid, right_valid, left_valid = validity_flags(
+                full2d["verts"], full2d["joints.right"], full2d["joints.left"], box_full, cams.image_size)
+            K_crop = cropped_intrinsics(cams.K, box_full, S)
+            crop2d = {k: full_to_cropped(v, box_full, S) for k, v in full2d.items()}
+            box_img = cropped_bbox(box_full, S)
+            R_w2c = torch.as_tensor(w2c[:, :3, :3])
+            rot_cam = {side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
+                       for side in ("right", "left")}
+            min_z = np.minimum.reduce([cam[k][..., 2].min(1) for k in ("verts", "joints.right", "joints.left")])
+            front = min_z > self.checks.near_m
+        keep = [b for b in range(B) if front[b]]
+        for b in range(B):
+            if not front[b]:
+                self._drop("behind_camera")
+        if not keep:
+            return results
+        model = self.model(key)
+        dev = self.device
+        with st.timed("render", dev):
+            dtype = next(model.parameters()).dtype
+            poses = {k: v[keep].to(device=dev, dtype=dtype) for k, v in batch.poses.items()}
+            viewmats = torch.as_tensor(w2c[keep], dtype=dtype, device=dev)[:, None]
+            Ks = torch.as_tensor(render_intrinsics(K_crop[keep]), dtype=dtype, device=dev)[:, None]
+            with torch.no_grad():
+                out = model.render(poses, viewmats, Ks, S, S, render_mode="RGB", backend=self.backend)
+            rgb = out.rgb[:, 0]  # (b, S, S, 3) premultiplied on black
+            alpha = out.alpha[:, 0]  # (b, S, S, 1)
+            part_alpha = out.part_alpha[:, 0]  # (b, S, S, 3)
+        if self.refiner is not None:
+            with st.timed("srm", dev):
+                with torch.no_grad():
+                    rgb = self.refiner(rgb, alpha)
+        with st.timed("composite", dev):
+            from hogsa_loader.compose import composite
+
+            bgs = []
+            for b in keep:
+                g = torch.Generator().manual_seed(
+                    int(sample_rng(self.seed, self.epoch, indices[b], _STREAM_BACKGROUND).integers(2**62)))
+                bgs.append(self.backgrounds.sample(1, S, S, g))
+            bg = torch.cat(bgs, 0).to(device=dev, dtype=rgb.dtype)
+            img = composite(rgb, alpha, bg, clamp=True)
+            images = (img * 255.0).round_().to(torch.uint8).cpu().numpy()
+            alpha_np = alpha[..., 0].float().cpu().numpy()
+            parts_np = part_alpha.float().cpu().numpy()
+            rgb_finite = torch.isfinite(rgb.reshape(len(keep), -1)).all(1).cpu().numpy()
+        with st.timed("targets"):
+            for j, b in enumerate(keep):
+                results[b] = self._frame(
+                    key, indices[b], b, batch, geo, cam, crop2d, box_img, cams, rot_cam,
+                    (is_valid[b], right_valid[b], left_valid[b]), images[j], alpha_np[j], parts_np[j],
+                    bool(rgb_finite[j]),
+                )
+        st.kept += sum(r is not None for r in results)
+        return results
+
+    def _frame(
+        self, key, index, b, batch, geo, cam, crop2d, box_img, cams, rot_cam, flags, image, alpha, part_alpha,
+        rgb_finite,
+    ) -> Optional[SynthFrame]:
+        sid, obj = key
+        is_valid, right_valid, left_valid = (float(f) for f in flags)
+        P = batch.poses
+
+        def hand(side: str, valid: float) -> HandLabels:
+            return HandLabels(
+                pose48=np.concatenate([rot_cam[side][b], P[f"{side}_pose"][b].numpy()]).astype(np.float32),
+                betas=P[f"{side}_betas"][b].numpy().astype(np.float32),
+                j3d_full=cam[f"joints.{side}"][b].astype(np.float32),
+                j2d=crop2d[f"joints.{side}"][b],
+                valid=valid,
+            )
+
+        right, left = hand("right", right_valid), hand("left", left_valid)
+        objl = ObjectLabels(
+            name=obj, radian=float(P["obj_arti"][b].reshape(-1)[0]),
+            kp3d_full=cam["kp3d"][b].astype(np.float32), bbox3d_full=cam["bbox3d"][b].astype(np.float32),
+            kp2d=crop2d["kp3d"][b], bbox2d=crop2d["bbox3d"][b], valid=is_valid, kp_bottom_cano=self.kp_bottom[obj],
+        )  # fmt: skip
+        if not rgb_finite or not _finite(right.pose48, left.pose48, right.j2d, left.j2d, right.j3d_full,
+                                         left.j3d_full, objl.kp2d, objl.bbox2d, objl.kp3d_full, objl.radian):
+            self._drop("nan")
+            return None
+        c = self.checks
+        if int((alpha > 0.5).sum()) < c.min_alpha_pixels or int((part_alpha[..., 2] > 0.5).sum()) < c.min_alpha_pixels:
+            self._drop("empty_alpha")
+            return None
+        n_bad_hands = int(right_valid == 0) + int(left_valid == 0)
+        if is_valid == 0 or (c.hands == "any" and n_bad_hands) or (c.hands == "both" and n_bad_hands == 2):
+            self._drop("out_of_crop")
+            return None
+        S = self.render_size
+        lo, hi = S / 6.0, S - S / 6.0  # the box inside the crop
+
+        def on_alpha(pts: np.ndarray) -> Optional[float]:
+            inside = (pts[:, 0] >= lo) & (pts[:, 0] <= hi) & (pts[:, 1] >= lo) & (pts[:, 1] <= hi)
+            if not inside.any():
+                return None
+            return float(joints_on_alpha(pts[inside], alpha).mean())
+
+        for h in (right, left):
+            if h.valid:
+                frac = on_alpha(h.j2d)
+                if frac is not None and frac < c.min_on_alpha:
+                    self._drop("label_pixel_mismatch")
+                    return None
+        frac = on_alpha(objl.kp2d)
+        if frac is not None and frac < c.min_on_alpha:
+            self._drop("label_pixel_mismatch")
+            return None
+        view = int(cams.view[b])
+        meta = {
+            "seed": self.seed, "epoch": self.epoch, "index": int(index), "subject": sid, "object": obj,
+            "view": view, "camera": "dataset" if view != 100 else "novel", **batch.provenance[b],
+        }  # fmt: skip
+        return SynthFrame(
+            image=image, alpha=alpha.astype(np.float32), part_alpha=part_alpha.astype(np.float32),
+            bbox=np.asarray(box_img[b], dtype=np.float64), K_full=np.asarray(cams.K[b], dtype=np.float64),
+            image_size=(int(cams.image_size[b, 0]), int(cams.image_size[b, 1])), right=right, left=left, obj=objl,
+            imgname=synthetic_imgname(sid, obj, self.seed, self.epoch, view, index), meta=meta,
+        )  # fmt: skip
+

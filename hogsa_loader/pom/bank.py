@@ -1,0 +1,195 @@
+"""Pose bank: optimised bimanual grasps on disk (safetensors + JSON manifest).
+
+A bank is a folder::
+
+    BANK/
+      poses.safetensors   tensors, first dimension N (one row per entry)
+      manifest.json       schema, schema_version, count, tensor shapes, sources, provenance
+
+Tensors (float32; the same convention as :class:`~hogsa_loader.datasets.types.SequenceData`:
+ARCTIC world frame, axis-angle, metres, finger pose relative to the MANO mean,
+``flat_hand_mean=False``):
+
+========================  ========  ==============================================
+key                       shape     meaning
+========================  ========  ==============================================
+``right_rot``/``left_rot``    (N, 3)    global orientation
+``right_pose``/``left_pose``  (N, 45)   articulation (relative to the mean)
+``right_trans``/...           (N, 3)    MANO ``transl`` (m)
+``right_betas``/...           (N, 10)   shape
+``obj_arti``                  (N,)      articulation θ (rad)
+``obj_rot``                   (N, 3)    object axis-angle
+``obj_trans``                 (N, 3)    object translation (m)
+``penetration_depth``         (N,)      metres (ray parity)
+``intersection``              (N,)      m³ (5 mm voxels)
+``contact_ratio``             (N,)      fraction of hand vertices within 5 mm
+``accept``                    (N,)      1.0 / 0.0 GraspTTA acceptance
+========================  ========  ==============================================
+
+The manifest's ``entries`` list gives, per row, ``{"subject", "sequence", "frame",
+"object"}`` — the source frame (``frame`` = index into the sequence's GT frames).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.pom.hands import SIDES
+from hogsa_loader.pom.state import GraspState, HandParams
+
+__all__ = ["BANK_SCHEMA", "BANK_VERSION", "PoseBank", "save_pose_bank", "load_pose_bank"]
+
+BANK_SCHEMA = "hogsa.pose_bank"
+BANK_VERSION = 1
+TENSOR_FILE = "poses.safetensors"
+MANIFEST_FILE = "manifest.json"
+METRIC_KEYS = ("penetration_depth", "intersection", "contact_ratio", "accept")
+_HAND_WIDTH = {"rot": 3, "pose": 45, "trans": 3, "betas": 10}
+
+
+def _expected_shapes(n: int) -> dict[str, tuple[int, ...]]:
+    shapes: dict[str, tuple[int, ...]] = {}
+    for s in SIDES:
+        for k, w in _HAND_WIDTH.items():
+            shapes[f"{s}_{k}"] = (n, w)
+    shapes.update({"obj_arti": (n,), "obj_rot": (n, 3), "obj_trans": (n, 3)})
+    shapes.update({k: (n,) for k in METRIC_KEYS})
+    return shapes
+
+
+@dataclass
+class PoseBank:
+    """A loaded pose bank.
+
+    Attributes:
+        state: the N grasps as a :class:`GraspState` (float32, CPU).
+        sources: N ``(subject, sequence, frame)``.
+        metrics: key -> (N,) tensor (see module docstring).
+        info: the manifest's provenance fields (``config``, ``contactnet``...).
+    """
+
+    state: GraspState
+    sources: list[tuple[str, str, int]]
+    metrics: dict[str, Tensor]
+    info: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return self.state.batch
+
+    def tensors(self) -> dict[str, Tensor]:
+        """The flat tensor dict written to ``poses.safetensors``."""
+        out: dict[str, Tensor] = {}
+        for s in SIDES:
+            for k in _HAND_WIDTH:
+                out[f"{s}_{k}"] = getattr(self.state.hands[s], k)
+        out["obj_arti"] = self.state.obj_arti
+        out["obj_rot"] = self.state.obj_rot
+        out["obj_trans"] = self.state.obj_trans
+        for k in METRIC_KEYS:
+            out[k] = self.metrics[k]
+        return {k: v.detach().to("cpu", torch.float32).clone().contiguous() for k, v in out.items()}  # no shared storage (safetensors refuses it)
+
+
+def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[str, str, int]],
+                   metrics: Mapping[str, Any], info: Optional[dict] = None) -> Path:
+    """Write a bank folder (see module docstring).
+
+    Args:
+        path: output folder (created).
+        state: N grasps; sources: N ``(subject, sequence, frame)``.
+        metrics: per-entry arrays with the keys of :data:`METRIC_KEYS`.
+        info: provenance stored in the manifest (JSON-serialisable).
+
+    Returns:
+        the manifest path.
+    """
+    from safetensors.torch import save_file
+
+    n = state.batch
+    if len(sources) != n:
+        raise ValueError(f"{len(sources)} sources for {n} grasps")
+    m = {k: torch.as_tensor(np.asarray(metrics[k], dtype=np.float32)).reshape(-1) for k in METRIC_KEYS}
+    bank = PoseBank(state, list(sources), m, dict(info or {}))
+    tensors = bank.tensors()
+    out = Path(path)
+    out.mkdir(parents=True, exist_ok=True)
+    save_file(tensors, str(out / TENSOR_FILE))
+    manifest = {
+        "schema": BANK_SCHEMA,
+        "schema_version": BANK_VERSION,
+        "count": n,
+        "tensor_file": TENSOR_FILE,
+        "tensors": {k: list(v.shape) for k, v in tensors.items()},
+        "convention": "ARCTIC world frame as SequenceData: axis-angle, metres, hand pose relative to "
+                      "the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
+        "entries": [{"subject": a, "sequence": b, "frame": int(c), "object": state.obj_names[i]}
+                    for i, (a, b, c) in enumerate(sources)],
+        "info": bank.info,
+    }
+    mpath = out / MANIFEST_FILE
+    mpath.write_text(json.dumps(manifest, indent=1))
+    return mpath
+
+
+def load_pose_bank(path: PathLike) -> PoseBank:
+    """Read and validate a bank folder (or its ``manifest.json``).
+
+    Raises:
+        AssetError: missing or malformed manifest / tensor file, unknown schema or version,
+            missing keys, wrong shapes, non-finite values, entries that do not match.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    p = Path(path)
+    folder = p.parent if p.is_file() else p
+    mpath = folder / MANIFEST_FILE
+    man = read_json(mpath)
+    if not isinstance(man, dict):
+        raise AssetError(mpath, "expected a JSON object")
+    if man.get("schema") != BANK_SCHEMA:
+        raise AssetError(mpath, f"not a pose bank (schema must be {BANK_SCHEMA!r}, got {man.get('schema')!r})")
+    if man.get("schema_version") != BANK_VERSION:
+        raise AssetError(mpath, f"unsupported schema_version {man.get('schema_version')!r} (this reader knows {BANK_VERSION})")
+    n = man.get("count")
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise AssetError(mpath, f"'count' must be a non-negative integer, got {n!r}")
+    entries = man.get("entries")
+    if not isinstance(entries, list) or len(entries) != n:
+        raise AssetError(mpath, f"'entries' must be a list of {n} sources")
+    sources, names = [], []
+    for i, e in enumerate(entries):
+        if not (isinstance(e, dict) and isinstance(e.get("subject"), str) and isinstance(e.get("sequence"), str)
+                and isinstance(e.get("frame"), int) and isinstance(e.get("object"), str)):
+            raise AssetError(mpath, f"entries[{i}] must have string subject/sequence/object and an int frame")
+        sources.append((e["subject"], e["sequence"], e["frame"]))
+        names.append(e["object"])
+    tpath = folder / str(man.get("tensor_file", TENSOR_FILE))
+    if not tpath.is_file():
+        raise AssetError(tpath, "tensor file is missing")
+    try:
+        t = load_file(str(tpath))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise AssetError(tpath, f"cannot read safetensors ({exc})") from None
+    for key, shape in _expected_shapes(n).items():
+        if key not in t:
+            raise AssetError(tpath, f"tensor '{key}' is missing")
+        if tuple(t[key].shape) != shape:
+            raise AssetError(tpath, f"tensor '{key}' has shape {tuple(t[key].shape)}, expected {shape}")
+        if not t[key].is_floating_point():
+            raise AssetError(tpath, f"tensor '{key}' has dtype {t[key].dtype}, expected floating point")
+        if not bool(torch.isfinite(t[key]).all()):
+            raise AssetError(tpath, f"tensor '{key}' contains NaN or inf")
+    f = {k: v.float() for k, v in t.items()}
+    hands = {s: HandParams(*(f[f"{s}_{k}"] for k in _HAND_WIDTH)) for s in SIDES}
+    state = GraspState(hands, names, f["obj_arti"], f["obj_rot"], f["obj_trans"])
+    info = man.get("info") if isinstance(man.get("info"), dict) else {}
+    return PoseBank(state, sources, {k: f[k] for k in METRIC_KEYS}, info)

@@ -1,0 +1,148 @@
+"""The paper's perturbation of an annotated bimanual frame (HOGSA §3.3, supp. §1.2).
+
+For every sample, in this order:
+
+1. each hand's global orientation is rotated by ``R = R_z(γ) R_y(β) R_x(α)`` with each of
+   α, β, γ of magnitude uniform in [0°, 20°] (random sign), applied on the left of the
+   original orientation (world axes), i.e. about the hand's root joint;
+2. each hand root (wrist joint) is moved 5 % of its distance away from the object centre
+   (the centroid of the object's surface samples, original object pose);
+3. each hand and the object get a translation jitter: uniform direction, length uniform in
+   [0, 6 cm];
+4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects).
+
+All draws come from one seeded :class:`torch.Generator`; :class:`PerturbRecord` returns
+them so tests can check the ranges.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from hogsa_loader.pom.hands import SIDES, HandInfo
+from hogsa_loader.pom.objects import ObjectSet, to_world
+from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
+
+__all__ = ["PerturbConfig", "PerturbRecord", "perturb", "euler_xyz_matrix", "random_directions"]
+
+
+@dataclass(frozen=True)
+class PerturbConfig:
+    """Ranges of :func:`perturb` (the paper's values by default).
+
+    Attributes:
+        max_rot_deg: largest rotation about each of x, y, z (degrees).
+        root_away: fraction of the root-object distance the root is moved away.
+        max_jitter: largest jitter length (m) of each hand and of the object.
+        arti_range: (lo, hi) articulation angle (rad); None keeps the original θ.
+        scale: multiplies rotation and jitter ranges (1 = paper; < 1 for milder training
+            perturbations).
+    """
+
+    max_rot_deg: float = 20.0
+    root_away: float = 0.05
+    max_jitter: float = 0.06
+    arti_range: Optional[tuple[float, float]] = (0.01 * math.pi, 0.2 * math.pi)
+    scale: float = 1.0
+
+
+@dataclass
+class PerturbRecord:
+    """What :func:`perturb` drew.
+
+    Attributes:
+        angles: side -> (B, 3) signed angles about x, y, z (rad).
+        root_shift: side -> (B, 3) the 5 % root move (m).
+        jitter: ``right``/``left``/``object`` -> (B, 3) translation jitter (m).
+        wrist_before: side -> (B, 3) original wrist joint (m).
+        center: (B, 3) object centre used for the root move (m).
+        arti: (B,) new θ.
+    """
+
+    angles: dict[str, Tensor]
+    root_shift: dict[str, Tensor]
+    jitter: dict[str, Tensor]
+    wrist_before: dict[str, Tensor]
+    center: Tensor
+    arti: Tensor
+
+
+def euler_xyz_matrix(angles: Tensor) -> Tensor:
+    """(B, 3) angles (x, y, z) -> (B, 3, 3) ``R_z R_y R_x``."""
+    eye = torch.eye(3, dtype=angles.dtype, device=angles.device)
+    mats = [axis_angle_to_matrix(angles[:, i: i + 1] * eye[i]) for i in range(3)]
+    return mats[2] @ mats[1] @ mats[0]
+
+
+def random_directions(n: int, generator: torch.Generator, dtype: torch.dtype = torch.float32) -> Tensor:
+    """(n, 3) unit vectors uniform on the sphere."""
+    v = torch.randn(n, 3, generator=generator, dtype=torch.float64)
+    v = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return v.to(dtype)
+
+
+def _uniform(n: int, lo: float, hi: float, generator: torch.Generator, dtype: torch.dtype) -> Tensor:
+    return (lo + (hi - lo) * torch.rand(n, generator=generator, dtype=torch.float64)).to(dtype)
+
+
+def object_centers(state: GraspState, objects: ObjectSet) -> Tensor:
+    """(B, 3) world centroid of each object's surface samples (its current pose)."""
+    dtype = state.obj_trans.dtype
+    pts, _ = objects.points(state.obj_names, state.obj_arti)
+    c = pts.mean(1, keepdim=True).to(dtype)
+    return to_world(c, state.obj_rot, state.obj_trans)[:, 0]
+
+
+def perturb(
+    state: GraspState,
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    generator: torch.Generator,
+    config: PerturbConfig = PerturbConfig(),
+) -> tuple[GraspState, PerturbRecord]:
+    """Perturb B grasps as in the paper (see module docstring).
+
+    Args:
+        state: original grasps (world frame).
+        infos: hand models (for the wrist joint of each hand).
+        objects: object geometry (for the object centre).
+        generator: seeded CPU generator (all draws).
+        config: ranges.
+
+    Returns:
+        the perturbed state (new tensors) and the :class:`PerturbRecord`.
+    """
+    B = state.batch
+    dtype = state.obj_trans.dtype
+    device = state.obj_trans.device
+    max_rot = math.radians(config.max_rot_deg) * config.scale
+    max_jit = config.max_jitter * config.scale
+    with torch.no_grad():
+        center = object_centers(state, objects)
+        hands, rec_angles, rec_shift, rec_jit, rec_wrist = {}, {}, {}, {}, {}
+        for side in SIDES:
+            p = state.hands[side]
+            mag = _uniform(B * 3, 0.0, max_rot, generator, dtype).reshape(B, 3)
+            sign = torch.where(torch.rand(B, 3, generator=generator) < 0.5, -1.0, 1.0).to(dtype)
+            angles = (mag * sign).to(device)
+            R = euler_xyz_matrix(angles)
+            rot = matrix_to_axis_angle(R @ axis_angle_to_matrix(p.rot))
+            wrist = hand_forward(infos[side], p).joints[:, 0]
+            shift = config.root_away * (wrist - center)
+            jit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(device)
+            hands[side] = HandParams(rot, p.pose.clone(), p.trans + shift + jit, p.betas.clone())
+            rec_angles[side], rec_shift[side], rec_jit[side], rec_wrist[side] = angles, shift, jit, wrist
+        ojit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(device)
+        rec_jit["object"] = ojit
+        if config.arti_range is not None:
+            arti = _uniform(B, config.arti_range[0], config.arti_range[1], generator, dtype).to(device)
+        else:
+            arti = state.obj_arti.clone()
+    new = GraspState(hands, list(state.obj_names), arti, state.obj_rot.clone(), state.obj_trans + ojit)
+    return new, PerturbRecord(rec_angles, rec_shift, rec_jit, rec_wrist, center, arti)

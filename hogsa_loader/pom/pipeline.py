@@ -1,0 +1,101 @@
+"""POM end to end: pick annotated contact frames, perturb them, optimise them in batches.
+
+Used by ``pretrain/build_pose_bank.py`` and ``benchmarks/pom_quality.py``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hogsa_loader.pom.contactnet import ContactNet
+from hogsa_loader.pom.hands import SIDES, HandInfo
+from hogsa_loader.pom.objects import ObjectSet
+from hogsa_loader.pom.optimize import POMConfig, optimise_grasps
+from hogsa_loader.pom.perturb import PerturbConfig, perturb
+from hogsa_loader.pom.state import GraspState, contact_flags, load_frames
+
+__all__ = ["ContactFrames", "contact_frames", "Augmented", "augment"]
+
+
+@dataclass
+class ContactFrames:
+    """Annotated frames where at least one hand touches the object.
+
+    Attributes:
+        state: B grasps; sources: B ``(subject, sequence, frame)``;
+        active: side -> (B,) bool, hand touches (within 5 mm, SDF grid).
+    """
+
+    state: GraspState
+    sources: list[tuple[str, str, int]]
+    active: dict[str, Tensor]
+
+    def select(self, idx: Tensor) -> "ContactFrames":
+        return ContactFrames(self.state.select(idx), [self.sources[int(i)] for i in idx],
+                             {s: a[idx] for s, a in self.active.items()})
+
+
+def contact_frames(root, seq_ids: Sequence[str], infos: Mapping[str, HandInfo], objects: ObjectSet,
+                   per_sequence: Optional[int] = None, threshold: float = 0.005) -> ContactFrames:
+    """Contact frames of ``seq_ids``; with ``per_sequence`` at most that many per sequence,
+    evenly spaced over the sequence's contact frames."""
+    state, src = load_frames(root, seq_ids)
+    act = contact_flags(state, infos, objects, threshold)
+    ok = (act["right"] | act["left"]).numpy()
+    keep = []
+    seqs = np.array([f"{a}/{b}" for a, b, _ in src])
+    for sid in dict.fromkeys(seqs):
+        idx = np.flatnonzero((seqs == sid) & ok)
+        if per_sequence is not None and len(idx) > per_sequence:
+            idx = idx[np.linspace(0, len(idx) - 1, per_sequence).round().astype(int)]
+        keep.extend(idx.tolist())
+    k = torch.as_tensor(keep, dtype=torch.long)
+    return ContactFrames(state, src, act).select(k)
+
+
+@dataclass
+class Augmented:
+    """Output of :func:`augment` (all B samples, in the input order).
+
+    Attributes:
+        start: perturbed grasps; result: optimised grasps; keep: (B,) bool;
+        dropped: reason -> count; seconds: optimisation wall time (perturbation excluded).
+    """
+
+    start: GraspState
+    result: GraspState
+    keep: Tensor
+    dropped: dict[str, int]
+    seconds: float
+
+
+def augment(frames: ContactFrames, infos: Mapping[str, HandInfo], objects: ObjectSet,
+            contactnet: Optional[ContactNet], config: POMConfig = POMConfig(), seed: int = 0,
+            batch: int = 16, perturb_config: PerturbConfig = PerturbConfig(),
+            device: str | torch.device = "cpu") -> Augmented:
+    """Perturb (seeded) and optimise every frame, ``batch`` samples per optimiser call."""
+    gen = torch.Generator().manual_seed(seed)
+    start, _ = perturb(frames.state, infos, objects, gen, perturb_config)
+    outs, keeps, secs = [], [], 0.0
+    dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0}
+    B = start.batch
+    for s0 in range(0, B, batch):
+        idx = torch.arange(s0, min(B, s0 + batch))
+        st = start.select(idx).map(lambda t: t.to(device))
+        ref = frames.state.select(idx).map(lambda t: t.to(device))
+        act = {s: frames.active[s][idx].to(device) for s in SIDES}
+        t0 = time.perf_counter()
+        res = optimise_grasps(st, infos, objects, contactnet, config, reference=ref, active=act,
+                              generator=torch.Generator().manual_seed(seed + s0))
+        secs += time.perf_counter() - t0
+        outs.append(res.state.map(lambda t: t.cpu()))
+        keeps.append(res.keep.cpu())
+        for k, v in res.dropped.items():
+            dropped[k] += v
+    return Augmented(start, GraspState.cat(outs), torch.cat(keeps), dropped, secs)

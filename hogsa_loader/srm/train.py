@@ -1,0 +1,595 @@
+"""SRM training: one StyleUNet for every finished HOGS run of a runs folder.
+
+Data. Every finished HOGS run under ``--hogs`` (a folder with ``hand_right/``,
+``hand_left/``, ``object/`` manifests and ``config.json``) contributes its training
+(frame, view) samples, selected exactly as its HOGS training did (same ``eval_views``,
+``eval_every_frame``, ``frame_stride``, ``sequences`` from its ``config.json``), so held-out
+views and frames are never seen. Inputs are the frozen HOGS renders (run's final SH
+degree, premultiplied on black + alpha) at ``image_size / scale``; targets are the
+ground-truth crops at ``image_size`` with the background masked to black (as HOGS
+training does). Renders are computed once and cached under ``RUN/cache/`` (uint8 for the
+training set, float32 for the held-out set), keyed by the HOGS checkpoints' hashes.
+
+Step. Random ``crop``-sized windows (full images when ``crop`` = 0) of a random batch:
+D step (logistic loss; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
+G step ``λ_L1·L1 + λ_P·perceptual + λ_GAN·softplus(−D(G))`` (all in [−1, 1]), then EMA.
+Adam(lr·r, betas (0, 0.99^r)) with r = 4/5 (G) and 16/17 (D) as in StyleUNet.
+
+Run folder::
+
+    config.json, metrics.json, samples.png (coarse | refined | GT), curves.png
+    manifest.json + srm.safetensors      the final EMA generator (load_srm(RUN))
+    checkpoints/latest.json              {"step", "folder"} (written last)
+    checkpoints/step_N/{g, g_ema}/       save_srm folders
+    checkpoints/step_N/trainer.safetensors   D weights, Adam states, RNG states
+    checkpoints/step_N/trainer.json      step, history, evals, Adam param groups
+    cache/                               coarse renders
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.errors import AssetError
+from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.gaussians.hogs_model import PART_NAMES, HogsModel
+from hogsa_loader.srm.discriminator import ConditionalDiscriminator
+from hogsa_loader.srm.io import load_srm, save_srm
+from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
+from hogsa_loader.srm.model import SRM
+from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
+from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
+from hogsa_loader.train.losses import box_of, psnr, ssim_map
+
+__all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet"]
+
+
+@dataclass
+class SRMTrainConfig:
+    data: str
+    hogs: str
+    out: str
+    iters: int = 4000
+    batch_size: int = 4
+    image_size: Optional[int] = None  # output / GT resolution (default: the runs' image size)
+    crop: int = 128  # training window at the output resolution (0: full images)
+    scale: int = 1
+    channels: list[int] = field(default_factory=lambda: [32, 64, 128, 128, 128])
+    style_dim: int = 64
+    wavelet: bool = True
+    lr: float = 0.002
+    lambda_l1: float = 5.0
+    lambda_perc: Optional[float] = None  # None: 0.03 with VGG, 1.0 with the substitute
+    lambda_gan: float = 1.0
+    r1_gamma: float = 10.0
+    r1_every: int = 16
+    ema_decay: float = 0.999
+    vgg_weights: Optional[str] = None
+    device: str = "cpu"
+    seed: int = 0
+    eval_every: int = 500
+    ckpt_every: int = 500
+    strip_views: int = 4
+    runs: Optional[list[str]] = None  # run folder names to use (default: all finished)
+
+    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def find_runs(runs_dir: str | Path, names: Optional[Sequence[str]] = None) -> list[Path]:
+    """Finished HOGS runs: ``runs_dir`` itself if it is one, else its sub-folders that are
+    (sorted by name). Unfinished ones (missing part manifests) are skipped."""
+    runs_dir = Path(runs_dir)
+    if not runs_dir.is_dir():
+        raise AssetError(runs_dir, "HOGS runs folder is missing")
+    cands = [runs_dir] if HogsModel.is_run(runs_dir) else sorted(p for p in runs_dir.iterdir() if p.is_dir())
+    runs = [p for p in cands if HogsModel.is_run(p) and (p / "config.json").is_file()]
+    if names:
+        runs = [p for p in runs if p.name in set(names)]
+    if not runs:
+        raise AssetError(runs_dir, f"no finished HOGS run (folders with {', '.join(PART_NAMES)} manifests and config.json)")
+    return runs
+
+
+def _run_hash(run: Path) -> str:
+    h = hashlib.sha256()
+    for name in PART_NAMES:
+        m = json.loads((run / name / "manifest.json").read_text())
+        h.update(m["tensors_sha256"].encode())
+    return h.hexdigest()[:16]
+
+
+@dataclass
+class PairSet:
+    """Coarse renders and targets of one HOGS run.
+
+    Attributes:
+        name: run folder name; data: its :class:`HogsData` (GT at ``image_size``).
+        train_rgb: (N, h, w, 3) uint8 premultiplied renders at ``image_size/scale``;
+        train_alpha: (N, h, w) uint8; eval_rgb / eval_alpha: float32 of the held-out samples.
+        margin_px: HOGS loss-region dilation at ``image_size``.
+    """
+
+    name: str
+    data: HogsData
+    train_rgb: Tensor
+    train_alpha: Tensor
+    eval_rgb: Tensor
+    eval_alpha: Tensor
+    margin_px: int
+
+
+def _render_all(model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int, batch: int = 4) -> tuple[Tensor, Tensor]:
+    """Render samples at ``size`` (K scaled from the data's resolution): rgb (N,h,w,3), alpha (N,h,w)."""
+    s = size / data.image_size
+    scale = torch.tensor([[s, 0, 0], [0, s, 0], [0, 0, 1.0]], dtype=torch.float64)
+    rgbs, alphas = [], []
+    with torch.no_grad():
+        for i in range(0, len(samples), batch):
+            chunk = samples[i : i + batch]
+            poses = data.poses(chunk)
+            viewmats = torch.as_tensor(np.stack([c.world2cam for c in chunk]), dtype=torch.float32)[:, None]
+            Ks = (scale @ torch.as_tensor(np.stack([c.K for c in chunk]))).float()[:, None]
+            out = model.render(poses, viewmats, Ks, size, size, sh_degree=sh_degree, render_mode="RGB")
+            rgbs.append(out.rgb[:, 0].clamp(0, 1))
+            alphas.append(out.alpha[:, 0, ..., 0].clamp(0, 1))
+    return torch.cat(rgbs), torch.cat(alphas)
+
+
+def load_pairs(cfg: SRMTrainConfig, run: Path, cache_dir: Path, log=print) -> PairSet:
+    """Load one run's split, render (or read cached) coarse images."""
+    from safetensors.torch import load_file, save_file
+
+    rc = json.loads((run / "config.json").read_text())
+    root = ArcticRoot(cfg.data)
+    size = int(cfg.image_size or rc.get("image_size") or root.world_meta().cropped_size)
+    if size % cfg.scale:
+        raise ValueError(f"image size {size} is not divisible by scale {cfg.scale}")
+    data = load_hogs_data(
+        root, rc["subject"], rc["object"], sequences=rc.get("sequences"), eval_views=rc.get("eval_views", [8]),
+        eval_every_frame=int(rc.get("eval_every_frame", 8)), frame_stride=int(rc.get("frame_stride", 1)),
+        image_size=size, max_eval=int(rc.get("max_eval", 8)),
+    )  # fmt: skip
+    sh_warm = int(rc.get("sh_warmup", 0))
+    sh_deg = int(rc.get("sh_degree", 3))
+    sh = sh_deg if sh_warm <= 0 else min(sh_deg, int(rc.get("iters", 0)) // sh_warm)
+    lo = size // cfg.scale
+    key = hashlib.sha256(
+        json.dumps([_run_hash(run), size, lo, sh, [(s.seq_index, s.frame, s.view) for s in data.train + data.eval]]).encode()
+    ).hexdigest()[:16]
+    path = cache_dir / f"coarse_{run.name}_{key}.safetensors"
+    if path.is_file():
+        t = load_file(str(path))
+        log(f"[srm] {run.name}: cached renders {path.name} ({len(data.train)} train, {len(data.eval)} held-out)")
+    else:
+        model = HogsModel.from_run(run, root.mano_layers(), root.object_templates())
+        t0 = time.perf_counter()
+        tr_rgb, tr_a = _render_all(model, data, data.train, lo, sh)
+        ev_rgb, ev_a = _render_all(model, data, data.eval, lo, sh)
+        t = {
+            "train_rgb": (tr_rgb * 255).round().to(torch.uint8).contiguous(),
+            "train_alpha": (tr_a * 255).round().to(torch.uint8).contiguous(),
+            "eval_rgb": ev_rgb.contiguous(),
+            "eval_alpha": ev_a.contiguous(),
+        }
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        save_file(t, str(tmp))
+        tmp.replace(path)
+        log(f"[srm] {run.name}: rendered {len(data.train)} train + {len(data.eval)} held-out views at {lo}² "
+            f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}")  # fmt: skip
+    crop = root.world_meta().cropped_size
+    margin = int(round(int(rc.get("margin", 4)) * size / crop))
+    return PairSet(run.name, data, t["train_rgb"], t["train_alpha"], t["eval_rgb"], t["eval_alpha"], margin)
+
+
+def _gt(samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor]:
+    """GT (B, H, W, 3) in [0, 1] with the background black, mask (B, H, W) bool."""
+    img = torch.as_tensor(np.stack([s.image for s in samples])).float() / 255.0
+    mask = torch.as_tensor(np.stack([s.mask for s in samples])) > 0
+    return img * mask[..., None], mask
+
+
+def _adam_state(opt: torch.optim.Optimizer, prefix: str) -> tuple[dict[str, Tensor], list[dict[str, Any]]]:
+    sd = opt.state_dict()
+    tensors = {f"{prefix}.{i}.{k}": torch.as_tensor(v).detach().cpu().contiguous() for i, st in sd["state"].items() for k, v in st.items()}
+    groups = [{k: v for k, v in g.items()} for g in sd["param_groups"]]
+    return tensors, groups
+
+
+def _load_adam(opt: torch.optim.Optimizer, prefix: str, tensors: dict[str, Tensor], groups: list[dict[str, Any]]) -> None:
+    state: dict[int, dict[str, Tensor]] = {}
+    for k, v in tensors.items():
+        if k.startswith(prefix + "."):
+            i, name = k[len(prefix) + 1 :].split(".", 1)
+            state.setdefault(int(i), {})[name] = v
+    for g in groups:
+        if isinstance(g.get("betas"), list):
+            g["betas"] = tuple(g["betas"])
+    opt.load_state_dict({"state": state, "param_groups": groups})
+
+
+class SRMTrainer:
+    """Builds the data (all runs) and networks; :meth:`train` runs the loop."""
+
+    def __init__(self, cfg: SRMTrainConfig, *, progress: bool = True, log=None) -> None:
+        if cfg.scale not in (1, 2):
+            raise ValueError("--scale must be 1 or 2")
+        if cfg.iters < 0 or cfg.batch_size < 1:
+            raise ValueError("iters must be >= 0 and batch_size >= 1")
+        self.cfg = cfg
+        self.progress = progress
+        self.log = log or (lambda msg: print(msg, file=sys.stderr))
+        self.device = torch.device(cfg.device)
+        self.out = Path(cfg.out)
+        t0 = time.perf_counter()
+        self.runs = find_runs(cfg.hogs, cfg.runs)
+        self.sets = [load_pairs(cfg, r, self.out / "cache", self.log) for r in self.runs]
+        self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
+        self.size = self.sets[0].data.image_size
+        if any(s.data.image_size != self.size for s in self.sets):
+            raise ValueError("runs have different image sizes; pass --image-size")
+        torch.manual_seed(cfg.seed)
+        ucfg = StyleUNetConfig(channels=list(cfg.channels), style_dim=cfg.style_dim, scale=cfg.scale, wavelet=cfg.wavelet)
+        self.g = SRM(ucfg).to(self.device)
+        self.g_ema = copy.deepcopy(self.g).eval()
+        for p in self.g_ema.parameters():
+            p.requires_grad_(False)
+        crop = cfg.crop or self.size
+        if crop > self.size or crop % (self.g.net.multiple * cfg.scale):
+            raise ValueError(f"--crop {crop} must be <= image size {self.size} and a multiple of {self.g.net.multiple * cfg.scale}")
+        self.crop = crop
+        self.perc = perceptual_loss(cfg.vgg_weights).to(self.device)
+        self.lambda_perc = cfg.lambda_perc if cfg.lambda_perc is not None else PERCEPTUAL_DEFAULT_WEIGHT[self.perc.kind]
+        self.use_gan = cfg.lambda_gan > 0
+        rg, rd = 4 / 5, cfg.r1_every / (cfg.r1_every + 1)
+        self.opt_g = torch.optim.Adam(self.g.parameters(), lr=cfg.lr * rg, betas=(0.0, 0.99**rg))
+        self.d: Optional[ConditionalDiscriminator] = None
+        self.opt_d: Optional[torch.optim.Adam] = None
+        if self.use_gan:
+            self.d = ConditionalDiscriminator(crop, cond_channels=4).to(self.device)
+            self.opt_d = torch.optim.Adam(self.d.parameters(), lr=cfg.lr * rd, betas=(0.0, 0.99**rd))
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.step = 0
+        self.history: list[dict[str, float]] = []
+        self.evals: list[dict[str, Any]] = []
+        self._train_time = 0.0
+        # flat index over (set, sample)
+        self.index = [(si, i) for si, s in enumerate(self.sets) for i in range(len(s.data.train))]
+        self.gflops = count_gflops(self.g.net, 256)
+
+    # ------------------------------------------------------------------ batches
+    def batch(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Random training batch: coarse rgb (B,3,h,w), alpha (B,1,h,w), GT (B,3,H,W), crops."""
+        cfg, s = self.cfg, self.cfg.scale
+        idx = torch.randint(len(self.index), (cfg.batch_size,), generator=self.gen).tolist()
+        c_lo = self.crop // s
+        lo = self.size // s
+        offs = torch.randint(lo - c_lo + 1, (cfg.batch_size, 2), generator=self.gen).tolist()
+        rgbs, alphas, gts = [], [], []
+        for (si, i), (y, x) in zip((self.index[j] for j in idx), offs):
+            ps = self.sets[si]
+            rgbs.append(ps.train_rgb[i, y : y + c_lo, x : x + c_lo])
+            alphas.append(ps.train_alpha[i, y : y + c_lo, x : x + c_lo])
+            smp = ps.data.train[i]
+            img = torch.as_tensor(smp.image[y * s : (y + c_lo) * s, x * s : (x + c_lo) * s]).float() / 255.0
+            m = torch.as_tensor(smp.mask[y * s : (y + c_lo) * s, x * s : (x + c_lo) * s]) > 0
+            gts.append(img * m[..., None])
+        dev = self.device
+        rgb = (torch.stack(rgbs).float() / 255.0).permute(0, 3, 1, 2).to(dev)
+        alpha = (torch.stack(alphas).float() / 255.0)[:, None].to(dev)
+        gt = torch.stack(gts).permute(0, 3, 1, 2).to(dev)
+        return rgb, alpha, gt
+
+    def condition(self, rgb: Tensor, alpha: Tensor) -> Tensor:
+        """D's condition (B, 4, H, W) in [−1, 1]: coarse premultiplied rgb + alpha at output size."""
+        c = torch.cat([rgb, alpha], 1)
+        if self.cfg.scale != 1:
+            c = F.interpolate(c, scale_factor=float(self.cfg.scale), mode="bilinear", align_corners=False)
+        return c * 2.0 - 1.0
+
+    # ------------------------------------------------------------------ training
+    def train_step(self) -> dict[str, float]:
+        cfg = self.cfg
+        rgb, alpha, gt = self.batch()
+        real = gt * 2.0 - 1.0
+        cond = self.condition(rgb, alpha)
+        terms: dict[str, float] = {}
+        z = torch.randn(cfg.batch_size, cfg.style_dim, device=self.device)
+        if self.use_gan:
+            assert self.d is not None and self.opt_d is not None
+            self.d.requires_grad_(True)
+            with torch.no_grad():
+                fake = self.g(rgb, alpha, z) * 2.0 - 1.0
+            d_loss = d_logistic(self.d(real, cond), self.d(fake, cond))
+            self.opt_d.zero_grad(set_to_none=True)
+            d_loss.backward()
+            self.opt_d.step()
+            terms["d"] = float(d_loss.detach())
+            if cfg.r1_every > 0 and self.step % cfg.r1_every == 0:
+                r1, real_logits = r1_penalty(lambda x: self.d(x, cond), real)  # type: ignore[misc]
+                self.opt_d.zero_grad(set_to_none=True)
+                (cfg.r1_gamma / 2 * r1 * cfg.r1_every + 0 * real_logits[0]).backward()
+                self.opt_d.step()
+                terms["r1"] = float(r1.detach())
+            self.d.requires_grad_(False)
+        z = torch.randn(cfg.batch_size, cfg.style_dim, device=self.device)
+        fake = self.g(rgb, alpha, z) * 2.0 - 1.0
+        l1 = l1_loss(fake, real)
+        perc = self.perc(fake, real)
+        loss = cfg.lambda_l1 * l1 + self.lambda_perc * perc
+        terms.update(l1=float(l1.detach()), perc=float(perc.detach()))
+        if self.use_gan:
+            gan = g_nonsaturating(self.d(fake, cond))  # type: ignore[misc]
+            loss = loss + cfg.lambda_gan * gan
+            terms["gan"] = float(gan.detach())
+        self.opt_g.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt_g.step()
+        self._update_ema()
+        self.step += 1
+        terms["loss"] = float(loss.detach())
+        terms["step"] = self.step
+        return terms
+
+    @torch.no_grad()
+    def _update_ema(self) -> None:
+        # ramp: short runs would otherwise evaluate a mostly-untrained EMA
+        decay = min(self.cfg.ema_decay, (1 + self.step) / (10 + self.step))
+        for pe, p in zip(self.g_ema.parameters(), self.g.parameters()):
+            pe.lerp_(p, 1.0 - decay)
+        for be, b in zip(self.g_ema.buffers(), self.g.buffers()):
+            be.copy_(b)
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def evaluate(self, model: Optional[SRM] = None) -> dict[str, Any]:
+        """Held-out PSNR/SSIM without vs with SRM, inside each sample's foreground box
+        (bbox of the mask dilated by the HOGS margin), GT background black — the HOGS
+        trainer's metric."""
+        model = self.g_ema if model is None else model
+        rows = []
+        for ps in self.sets:
+            for k, smp in enumerate(ps.data.eval):
+                gt, mask = _gt([smp])
+                region = dilate_mask(mask, ps.margin_px)[0]
+                rgb = ps.eval_rgb[k : k + 1].to(self.device)
+                a = ps.eval_alpha[k : k + 1].to(self.device)
+                ref = model.refine(rgb, a).cpu()
+                coarse = rgb.cpu()
+                if self.cfg.scale != 1:
+                    coarse = F.interpolate(coarse.permute(0, 3, 1, 2), scale_factor=float(self.cfg.scale), mode="bilinear",
+                                           align_corners=False).permute(0, 2, 3, 1).clamp(0, 1)  # fmt: skip
+                y0, y1, x0, x1 = box_of(region)
+                g = gt[:, y0:y1, x0:x1]
+                win = 11 if min(y1 - y0, x1 - x0) >= 11 else 3
+                row: dict[str, Any] = {"run": ps.name, "sequence": ps.data.sequences[smp.seq_index].name,
+                                       "frame": smp.frame, "view": smp.view}  # fmt: skip
+                for tag, img in (("without_srm", coarse), ("with_srm", ref)):
+                    p = img[:, y0:y1, x0:x1].clamp(0, 1)
+                    row[tag] = {"psnr": psnr(p, g), "ssim": float(ssim_map(p, g, win).mean())}
+                rows.append(row)
+        per_view = []
+        for key in sorted({(r["run"], r["view"]) for r in rows}):
+            rv = [r for r in rows if (r["run"], r["view"]) == key]
+            entry: dict[str, Any] = {"run": key[0], "view": key[1], "n": len(rv)}
+            for tag in ("without_srm", "with_srm"):
+                entry[tag] = {m: float(np.mean([r[tag][m] for r in rv])) for m in ("psnr", "ssim")}
+            entry["delta_psnr"] = entry["with_srm"]["psnr"] - entry["without_srm"]["psnr"]
+            entry["delta_ssim"] = entry["with_srm"]["ssim"] - entry["without_srm"]["ssim"]
+            per_view.append(entry)
+        out: dict[str, Any] = {"step": self.step}
+        for tag in ("without_srm", "with_srm"):
+            out[tag] = {"psnr": float(np.mean([r[tag]["psnr"] for r in rows])),
+                        "ssim": float(np.mean([r[tag]["ssim"] for r in rows])), "lpips": None}  # fmt: skip
+        out["delta_psnr"] = out["with_srm"]["psnr"] - out["without_srm"]["psnr"]
+        out["delta_ssim"] = out["with_srm"]["ssim"] - out["without_srm"]["ssim"]
+        out["per_view"] = per_view
+        out["per_sample"] = rows
+        return out
+
+    def train(self) -> dict[str, Any]:
+        """Train to ``cfg.iters`` steps (from the current step), evaluating and checkpointing."""
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        _write_json(self.out / "config.json", cfg.to_json())
+        if self.step == 0 and not self.evals:
+            self.evals.append(_summary(self.evaluate()))
+        bar = tqdm(total=cfg.iters, initial=self.step, disable=not self.progress, desc="srm", dynamic_ncols=True)
+        while self.step < cfg.iters:
+            t0 = time.perf_counter()
+            terms = self.train_step()
+            self._train_time += time.perf_counter() - t0
+            self.history.append(terms)
+            bar.update(1)
+            bar.set_postfix(l1=f"{terms['l1']:.4f}", perc=f"{terms['perc']:.4f}", gan=f"{terms.get('gan', 0):.3f}")
+            if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iters:
+                ev = self.evaluate()
+                self.evals.append(_summary(ev))
+                bar.write(f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} dB, "
+                          f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}")  # fmt: skip
+            if cfg.ckpt_every > 0 and self.step % cfg.ckpt_every == 0 and self.step < cfg.iters:
+                self.save_checkpoint()
+        bar.close()
+        final = self.evaluate()
+        if not self.evals or self.evals[-1]["step"] != self.step:
+            self.evals.append(_summary(final))
+        self.save_checkpoint()
+        metrics = self.write_metrics(final)
+        save_srm(self.g_ema, self.out, extra=self._provenance(final))
+        self.write_pngs()
+        return metrics
+
+    # ------------------------------------------------------------------ checkpoints
+    def _provenance(self, final: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+        d: dict[str, Any] = {"step": self.step, "runs": [s.name for s in self.sets], "image_size": self.size,
+                             "perceptual": self.perc.kind, "gflops_256": self.gflops}  # fmt: skip
+        if final is not None:
+            d["held_out"] = {k: final[k] for k in ("without_srm", "with_srm")}
+        return d
+
+    def save_checkpoint(self) -> Path:
+        """``checkpoints/step_N/`` then ``latest.json`` (atomic); older step folders are removed."""
+        from safetensors.torch import save as st_save
+
+        ck = self.out / "checkpoints"
+        folder = ck / f"step_{self.step:07d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        save_srm(self.g, folder / "g", extra={"step": self.step})
+        save_srm(self.g_ema, folder / "g_ema", extra={"step": self.step})
+        tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
+        if self.device.type == "cuda":
+            tensors["rng.cuda"] = torch.cuda.get_rng_state(self.device)
+        t, groups_g = _adam_state(self.opt_g, "adam_g")
+        tensors.update(t)
+        groups_d: list[dict[str, Any]] = []
+        if self.d is not None and self.opt_d is not None:
+            t, groups_d = _adam_state(self.opt_d, "adam_d")
+            tensors.update(t)
+            tensors.update({f"d.{k}": v.detach().cpu().contiguous() for k, v in self.d.state_dict().items()})
+        atomic_write(folder / "trainer.safetensors", st_save(tensors))
+        state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time,
+                 "adam_g_groups": groups_g, "adam_d_groups": groups_d}  # fmt: skip
+        atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
+        atomic_write(ck / "latest.json", (json.dumps({"step": self.step, "folder": folder.name}) + "\n").encode())
+        for old in ck.glob("step_*"):
+            if old.is_dir() and old.name != folder.name:
+                shutil.rmtree(old, ignore_errors=True)
+        return folder
+
+    def resume(self) -> bool:
+        """Load the latest checkpoint of the run folder (exact continuation); False if none."""
+        from safetensors.torch import load_file
+
+        latest = self.out / "checkpoints" / "latest.json"
+        if not latest.is_file():
+            return False
+        saved = json.loads((self.out / "config.json").read_text())
+        now = self.cfg.to_json()
+        diff = [k for k in now if k not in SRMTrainConfig.RESUMABLE and saved.get(k) != now[k]]
+        if diff:
+            raise ValueError(f"cannot resume {self.out}: settings {diff} differ from the saved config.json")
+        info = json.loads(latest.read_text())
+        folder = self.out / "checkpoints" / info["folder"]
+        self.g.net.load_state_dict(load_srm(folder / "g").net.state_dict())
+        self.g_ema.net.load_state_dict(load_srm(folder / "g_ema").net.state_dict())
+        tensors = load_file(str(folder / "trainer.safetensors"))
+        state = json.loads((folder / "trainer.json").read_text())
+        _load_adam(self.opt_g, "adam_g", {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
+                   state["adam_g_groups"])  # fmt: skip
+        if self.d is not None and self.opt_d is not None:
+            self.d.load_state_dict({k[2:]: v for k, v in tensors.items() if k.startswith("d.")})
+            _load_adam(self.opt_d, "adam_d", {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
+                       state["adam_d_groups"])  # fmt: skip
+        self.gen.set_state(tensors["rng.sampler"])
+        torch.set_rng_state(tensors["rng.torch"])
+        if "rng.cuda" in tensors and self.device.type == "cuda":
+            torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+        self.step = int(state["step"])
+        self.history = state["history"]
+        self.evals = state["evals"]
+        self._train_time = float(state["train_time_s"])
+        return True
+
+    # ------------------------------------------------------------------ reports
+    def write_metrics(self, final: dict[str, Any]) -> dict[str, Any]:
+        n = max(1, len(self.history))
+        metrics = {
+            "without_srm": final["without_srm"],
+            "with_srm": final["with_srm"],
+            "delta_psnr": final["delta_psnr"],
+            "delta_ssim": final["delta_ssim"],
+            "lpips_note": "LPIPS not computed (no local weights)",
+            "per_view": final["per_view"],
+            "per_sample": final["per_sample"],
+            "region": "foreground box (bbox of the part mask dilated by the HOGS margin); GT background black",
+            "iters": self.step,
+            "evals": self.evals,
+            "runs": [{"name": s.name, "subject": s.data.subject, "object": s.data.object_name,
+                      "num_train_images": len(s.data.train), "num_eval_images": len(s.data.eval),
+                      "train_views": list(s.data.train_views), "eval_views": list(s.data.eval_views)} for s in self.sets],  # fmt: skip
+            "image_size": self.size,
+            "crop": self.crop,
+            "scale": self.cfg.scale,
+            "perceptual": {"kind": self.perc.kind, "weight": self.lambda_perc},
+            "losses": {"l1": self.cfg.lambda_l1, "gan": self.cfg.lambda_gan, "r1_gamma": self.cfg.r1_gamma, "r1_every": self.cfg.r1_every},
+            "gflops_256": self.gflops,
+            "num_params": sum(p.numel() for p in self.g.parameters()),
+            "device": str(self.device),
+            "torch_threads": torch.get_num_threads(),
+            "timings": {**self.timings, "train_s": self._train_time, "s_per_iter": self._train_time / n},
+        }
+        _write_json(self.out / "metrics.json", metrics)
+        return metrics
+
+    @torch.no_grad()
+    def write_pngs(self) -> None:
+        """``samples.png`` (held-out: coarse | refined | GT, foreground box enlarged) and ``curves.png``."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        rows = []
+        items = [(ps, k) for ps in self.sets for k in range(len(ps.data.eval))]
+        pick = items[:: max(1, len(items) // max(1, self.cfg.strip_views))][: self.cfg.strip_views]
+        S = self.size
+        for ps, k in pick:
+            gt, _ = _gt([ps.data.eval[k]])
+            rgb = ps.eval_rgb[k : k + 1].to(self.device)
+            ref = self.g_ema.refine(rgb, ps.eval_alpha[k : k + 1].to(self.device)).cpu()
+            coarse = rgb.cpu()
+            if self.cfg.scale != 1:
+                coarse = F.interpolate(coarse.permute(0, 3, 1, 2), size=(S, S), mode="nearest").permute(0, 2, 3, 1)
+            rows.append(torch.cat([coarse[0], ref[0], gt[0]], 1).clamp(0, 1))
+        strip = (torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8)
+        plt.imsave(self.out / "samples.png", strip)
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+        steps = [h["step"] for h in self.history]
+        for key in ("l1", "perc", "gan", "d"):
+            vals = [(h["step"], h[key]) for h in self.history if key in h]
+            if vals:
+                xs, ys = zip(*vals)
+                k = max(1, len(ys) // 100)
+                ys_s = np.convolve(ys, np.ones(k) / k, mode="valid")
+                ax[0].plot(xs[k - 1 :], ys_s, lw=0.8, label=key)
+        ax[0].set_xlabel("step")
+        ax[0].set_yscale("log")
+        ax[0].legend()
+        ax[1].plot([e["step"] for e in self.evals], [e["with_srm"] for e in self.evals], "o-", label="with SRM")
+        ax[1].plot([e["step"] for e in self.evals], [e["without_srm"] for e in self.evals], "--", label="HOGS only")
+        ax[1].set_xlabel("step")
+        ax[1].set_ylabel("held-out PSNR (dB)")
+        ax[1].legend()
+        fig.tight_layout()
+        fig.savefig(self.out / "curves.png", dpi=80)
+        plt.close(fig)
+        del steps
+
+
+def _summary(ev: dict[str, Any]) -> dict[str, Any]:
+    return {"step": ev["step"], "without_srm": ev["without_srm"]["psnr"], "with_srm": ev["with_srm"]["psnr"],
+            "ssim_without_srm": ev["without_srm"]["ssim"], "ssim_with_srm": ev["with_srm"]["ssim"]}  # fmt: skip
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    atomic_write(path, (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode())

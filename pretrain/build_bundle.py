@@ -1,0 +1,69 @@
+#!/usr/bin/env python
+"""Assemble a hogsa-loader bundle from trained HOGS runs (and optional SRM / ContactNet / pose banks).
+
+Example::
+
+    python pretrain/build_bundle.py --data ./hogsa_world --hogs runs/ --out bundle/ \
+        [--srm runs/srm] [--contactnet runs/contactnet] [--pose-bank banks/s01_box.npz]
+
+``--hogs`` is either one run folder (``hand_right/``, ``hand_left/``, ``object/``) or a
+folder whose sub-folders (searched two levels deep) are runs; each run's (subject, object)
+is read from its object checkpoint. The result is validated with
+:func:`hogsa_loader.bundle.load_bundle` before the command returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from hogsa_loader.bundle import load_bundle, write_bundle
+from hogsa_loader.errors import AssetError
+from hogsa_loader.gaussians.hogs_model import HogsModel
+
+
+def find_runs(folder: Path, depth: int = 2) -> list[Path]:
+    """Finished HOGS run folders at or below ``folder`` (at most ``depth`` levels down)."""
+    if HogsModel.is_run(folder):
+        return [folder]
+    if depth <= 0 or not folder.is_dir():
+        return []
+    out: list[Path] = []
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
+        out.extend(find_runs(sub, depth - 1))
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="ARCTIC(-format) data root the runs were trained on")
+    p.add_argument("--hogs", required=True, help="a HOGS run folder, or a folder of run folders")
+    p.add_argument("--out", required=True, help="bundle folder to write")
+    p.add_argument("--srm", default=None, help="SRM checkpoint (file or folder)")
+    p.add_argument("--contactnet", default=None, help="ContactNet checkpoint (file or folder)")
+    p.add_argument("--pose-bank", action="append", default=[], help="pose bank (file or folder); repeatable")
+    p.add_argument("--dataset", default="arctic")
+    args = p.parse_args(argv)
+    runs = find_runs(Path(args.hogs))
+    if not runs:
+        print(f"error: no finished HOGS run under {args.hogs}", file=sys.stderr)
+        return 2
+    try:
+        out = write_bundle(
+            args.out, args.data, runs, srm=args.srm, contactnet=args.contactnet,
+            pose_banks=args.pose_bank, dataset=args.dataset,
+        )  # fmt: skip
+        bundle = load_bundle(out, data_root=args.data)
+    except AssetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"bundle {out}: {len(bundle.hogs)} HOGS run(s) {bundle.keys}"
+          f"{', SRM' if bundle.srm else ''}{', ContactNet' if bundle.contactnet else ''}"
+          f"{f', {len(bundle.pose_banks)} pose bank(s)' if bundle.pose_banks else ''}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

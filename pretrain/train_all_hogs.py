@@ -1,0 +1,171 @@
+#!/usr/bin/env python
+"""Train a HOGS model for every (subject, object) of a split, skipping finished ones.
+
+Each pair is trained by ``pretrain/train_hogs.py`` into ``RUNS_DIR/<subject>_<object>``; a
+pair whose folder already holds a finished run (three part checkpoints and
+``metrics.json``) is skipped, one with only intermediate checkpoints is resumed. Pairs can
+be spread over processes as a job array:
+
+* ``--array-index I --array-size N`` (or SLURM's ``SLURM_ARRAY_TASK_ID`` /
+  ``SLURM_ARRAY_TASK_COUNT``, or torchrun's ``RANK`` / ``WORLD_SIZE``): this process takes
+  pairs ``I, I+N, I+2N, ...`` of the sorted list;
+* ``--gpus 0,1,2,3``: launch one child process per listed GPU, each seeing only its GPU
+  (``CUDA_VISIBLE_DEVICES``) and taking its share of the pairs.
+
+Examples::
+
+    python pretrain/train_all_hogs.py --data ./hogsa_world/arctic_data/data --out runs --split train -- --iters 2000
+    python pretrain/train_all_hogs.py --data ARCTIC/data --out runs --gpus 0,1,2,3 --sequences-like grab_01,use_01 -- --device cuda
+
+Arguments after ``--`` go to ``train_hogs.py`` unchanged (``--data``, ``--subject``,
+``--object``, ``--out``, ``--sequences`` and ``--resume`` are set here). At the end
+``RUNS_DIR/summary.json`` lists every finished run's held-out PSNR/SSIM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.gaussians.hogs_model import HogsModel
+
+HERE = Path(__file__).resolve().parent
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace, list[str]]:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    rest: list[str] = []
+    if "--" in argv:
+        i = argv.index("--")
+        argv, rest = argv[:i], argv[i + 1 :]
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="ARCTIC(-format) data root")
+    p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per subject_object)")
+    p.add_argument("--protocol", default="p1")
+    p.add_argument("--split", default="all", choices=["all", "train", "val", "test"],
+                   help="only subjects/sequences of this split of the protocol (default: every sequence)")  # fmt: skip
+    p.add_argument("--subjects", default=None, help="comma-separated subject filter")
+    p.add_argument("--objects", default=None, help="comma-separated object filter")
+    p.add_argument("--sequences-like", default=None,
+                   help="comma-separated sequence suffixes to train on, e.g. grab_01,use_01 (the paper's choice)")  # fmt: skip
+    p.add_argument("--array-index", type=int, default=None)
+    p.add_argument("--array-size", type=int, default=None)
+    p.add_argument("--gpus", default=None, help="comma-separated GPU ids: one child process per GPU")
+    p.add_argument("--dry-run", action="store_true", help="list this process's pairs and exit")
+    return p.parse_args(argv), rest
+
+
+def list_pairs(root: ArcticRoot, a: argparse.Namespace) -> list[tuple[str, str, list[str]]]:
+    """Sorted ``(subject, object, sequences)`` of the selection."""
+    if a.split == "all":
+        seqs = root.sequences()
+    else:
+        seqs = root.protocol(a.protocol)[a.split]
+    subjects = set(a.subjects.split(",")) if a.subjects else None
+    objects = set(a.objects.split(",")) if a.objects else None
+    suffixes = [s for s in a.sequences_like.split(",") if s] if a.sequences_like else None
+    pairs: dict[tuple[str, str], list[str]] = {}
+    for sid_seq in seqs:
+        sid, seq = sid_seq.split("/", 1)
+        obj, _, suffix = seq.partition("_")
+        if (subjects and sid not in subjects) or (objects and obj not in objects):
+            continue
+        if suffixes and suffix not in suffixes:
+            continue
+        pairs.setdefault((sid, obj), []).append(seq)
+    return [(sid, obj, sorted(s)) for (sid, obj), s in sorted(pairs.items())]
+
+
+def array_slot(a: argparse.Namespace) -> tuple[int, int]:
+    """(index, size) of this process in the job array."""
+    env = os.environ
+    if a.array_index is not None or a.array_size is not None:
+        idx, size = a.array_index or 0, a.array_size or 1
+    elif "SLURM_ARRAY_TASK_ID" in env and "SLURM_ARRAY_TASK_COUNT" in env:
+        idx, size = int(env["SLURM_ARRAY_TASK_ID"]), int(env["SLURM_ARRAY_TASK_COUNT"])
+        idx -= int(env.get("SLURM_ARRAY_TASK_MIN", 0))
+    elif "WORLD_SIZE" in env:
+        idx, size = int(env.get("RANK", 0)), int(env["WORLD_SIZE"])
+    else:
+        idx, size = 0, 1
+    if not 0 <= idx < size:
+        raise SystemExit(f"train_all_hogs: array index {idx} is outside 0..{size - 1}")
+    return idx, size
+
+
+def is_finished(run: Path) -> bool:
+    return HogsModel.is_run(run) and (run / "metrics.json").is_file()
+
+
+def write_summary(out: Path) -> dict[str, Any]:
+    rows = []
+    for run in sorted(p for p in out.iterdir() if p.is_dir()):
+        if is_finished(run):
+            m = json.loads((run / "metrics.json").read_text())
+            rows.append({"run": run.name, "subject": m.get("subject"), "object": m.get("object"),
+                         "sequences": m.get("sequences"), "iters": m.get("iters"), "psnr": m.get("psnr"),
+                         "ssim": m.get("ssim"), "train_s": m.get("timings", {}).get("train_s")})  # fmt: skip
+    summary = {"runs": rows, "num_finished": len(rows)}
+    atomic_write(out / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
+    return summary
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    a, rest = parse_args(argv)
+    out = Path(a.out)
+    if a.gpus:
+        gpus = [g for g in a.gpus.split(",") if g]
+        base = ["--data", a.data, "--out", a.out, "--protocol", a.protocol, "--split", a.split]
+        for flag, val in (("--subjects", a.subjects), ("--objects", a.objects), ("--sequences-like", a.sequences_like)):
+            if val:
+                base += [flag, val]
+        procs = []
+        for k, gpu in enumerate(gpus):
+            cmd = [sys.executable, str(HERE / "train_all_hogs.py"), *base, "--array-index", str(k),
+                   "--array-size", str(len(gpus)), *(["--dry-run"] if a.dry_run else []), "--", *rest]  # fmt: skip
+            procs.append(subprocess.Popen(cmd, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu}))
+        codes = [p.wait() for p in procs]
+        out.mkdir(parents=True, exist_ok=True)
+        write_summary(out)
+        return max(codes)
+    root = ArcticRoot(a.data)
+    pairs = list_pairs(root, a)
+    if not pairs:
+        print("train_all_hogs: no (subject, object) pair matches the selection", file=sys.stderr)
+        return 2
+    idx, size = array_slot(a)
+    mine = pairs[idx::size]
+    print(f"train_all_hogs: {len(pairs)} pairs, process {idx}/{size} takes {len(mine)}")
+    if str(HERE) not in sys.path:
+        sys.path.insert(0, str(HERE))
+    from train_hogs import main as train_one  # same folder
+
+    failed = []
+    for sid, obj, seqs in mine:
+        run = out / f"{sid}_{obj}"
+        if is_finished(run):
+            print(f"  {run.name}: finished, skipped")
+            continue
+        resume = (run / "checkpoints" / "latest.json").is_file()
+        print(f"  {run.name}: {'resuming' if resume else 'training'} on {seqs}")
+        if a.dry_run:
+            continue
+        args = ["--data", a.data, "--subject", sid, "--object", obj, "--out", str(run), "--sequences", ",".join(seqs)]
+        code = train_one(args + (["--resume"] if resume else []) + rest)
+        if code:
+            failed.append(run.name)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = write_summary(out)
+    print(f"train_all_hogs: {summary['num_finished']} finished runs in {out}" + (f"; failed: {failed}" if failed else ""))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+#!/usr/bin/env python
+"""Train the SRM (StyleUNet refinement of HOGS renders) on every finished HOGS run of a folder.
+
+Example::
+
+    python pretrain/train_srm.py --data ./hogsa_world --hogs runs/hogs --out runs/srm --iters 4000
+
+Pairs the frozen HOGS renders of each run's *training* views/frames (same split as its HOGS
+training; held-out views and frames are never used) with the masked ground-truth crops and
+trains one StyleUNet for all of them with ``5·L1 + 0.03·VGG19 + GAN`` (without
+``--vgg-weights`` a Laplacian-pyramid L1 substitutes for VGG, weight 1.0, with a warning).
+Writes the final EMA generator (``manifest.json`` + ``srm.safetensors``, read by
+``hogsa_loader.srm.load_srm(RUN)``), ``metrics.json`` (held-out PSNR/SSIM without vs with
+SRM, per view), ``samples.png`` (coarse | refined | GT) and ``curves.png`` into ``--out``;
+``--resume`` continues exactly from the latest checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Optional, Sequence
+
+import torch
+
+from hogsa_loader.errors import AssetError
+from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, argparse.Namespace]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="dataset root (ARCTIC ./data) the HOGS runs were trained on")
+    p.add_argument("--hogs", required=True, help="folder of finished HOGS runs (or one run folder)")
+    p.add_argument("--out", required=True, help="SRM run folder")
+    p.add_argument("--runs", default=None, help="comma-separated run folder names to use (default: all finished)")
+    p.add_argument("--iters", type=int, default=4000)
+    p.add_argument("--batch-size", type=int, default=4)
+    p.add_argument("--image-size", type=int, default=None, help="output / GT resolution (default: the runs' image size)")
+    p.add_argument("--crop", type=int, default=128, help="training window at the output resolution (0: full images)")
+    p.add_argument("--scale", type=int, default=1, choices=[1, 2], help="output resolution factor (renders at image-size/scale)")
+    p.add_argument("--channels", default="32,64,128,128,128", help="StyleUNet widths per level, top (H/2) first")
+    p.add_argument("--plain-skips", action="store_true", help="plain RGB skips instead of Haar-wavelet skips")
+    p.add_argument("--lr", type=float, default=0.002)
+    p.add_argument("--lambda-l1", type=float, default=5.0)
+    p.add_argument("--lambda-perc", type=float, default=None, help="default 0.03 with VGG, 1.0 with the substitute")
+    p.add_argument("--lambda-gan", type=float, default=1.0, help="0 disables the discriminator")
+    p.add_argument("--r1-gamma", type=float, default=10.0)
+    p.add_argument("--r1-every", type=int, default=16)
+    p.add_argument("--ema-decay", type=float, default=0.999)
+    p.add_argument("--vgg-weights", default=None, help="local torchvision vgg19 state dict (.pth or .safetensors)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-every", type=int, default=500)
+    p.add_argument("--ckpt-every", type=int, default=500)
+    p.add_argument("--strip-views", type=int, default=4)
+    p.add_argument("--resume", action="store_true", help="continue from the run folder's latest checkpoint")
+    p.add_argument("--quiet", action="store_true")
+    a = p.parse_args(argv)
+    cfg = SRMTrainConfig(
+        data=a.data, hogs=a.hogs, out=a.out, iters=a.iters, batch_size=a.batch_size, image_size=a.image_size,
+        crop=a.crop, scale=a.scale, channels=[int(c) for c in a.channels.split(",") if c], wavelet=not a.plain_skips,
+        lr=a.lr, lambda_l1=a.lambda_l1, lambda_perc=a.lambda_perc, lambda_gan=a.lambda_gan, r1_gamma=a.r1_gamma,
+        r1_every=a.r1_every, ema_decay=a.ema_decay, vgg_weights=a.vgg_weights, device=a.device, seed=a.seed,
+        eval_every=a.eval_every, ckpt_every=a.ckpt_every, strip_views=a.strip_views,
+        runs=[r for r in a.runs.split(",") if r] if a.runs else None,
+    )  # fmt: skip
+    return cfg, a
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    cfg, a = parse_args(argv)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    try:
+        trainer = SRMTrainer(cfg, progress=not a.quiet)
+        if a.resume:
+            if trainer.resume():
+                print(f"train_srm: resumed {cfg.out} at step {trainer.step}", file=sys.stderr)
+            else:
+                print(f"train_srm: nothing to resume in {cfg.out}; starting fresh", file=sys.stderr)
+        elif (trainer.out / "checkpoints" / "latest.json").is_file():
+            print(f"train_srm: error: {cfg.out} already has checkpoints; pass --resume or use a new --out", file=sys.stderr)
+            return 2
+    except (ValueError, AssetError) as exc:
+        print(f"train_srm: error: {exc}", file=sys.stderr)
+        return 2
+    m = trainer.train()
+    print(json.dumps({k: m[k] for k in ("without_srm", "with_srm", "delta_psnr", "delta_ssim")}, indent=1))
+    for row in m["per_view"]:
+        print(f"{row['run']:>24s} view {row['view']}: n={row['n']} PSNR {row['without_srm']['psnr']:.2f} -> "
+              f"{row['with_srm']['psnr']:.2f} dB, SSIM {row['without_srm']['ssim']:.4f} -> {row['with_srm']['ssim']:.4f}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,314 @@
+"""WebDataset export of SynthFrames: round trip, resume, rank split, ARCTIC samples."""
+
+from __future__ import annotations
+
+import io
+import json
+import tarfile
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from hogsa_loader.datasets.augment import sample_aug_params
+from hogsa_loader.datasets.sample import (
+    SAMPLE_META_KEYS,
+    SAMPLE_TARGET_KEYS,
+    HandLabels,
+    ObjectLabels,
+    make_arctic_sample,
+)
+from hogsa_loader.errors import AssetError
+from hogsa_loader.export import (
+    SynthShardDataset,
+    decode_frame,
+    encode_frame,
+    expand_shards,
+    iter_tar_samples,
+    shard_name,
+    write_shards,
+)
+from hogsa_loader.loader.frame import SynthFrame
+
+S = 48
+NUM, SHARD = 7, 4  # two shards: 4 + 3 samples
+
+
+def _hand(rng: np.random.Generator, s: float) -> HandLabels:
+    return HandLabels(
+        pose48=rng.normal(size=48).astype(np.float32),
+        betas=rng.normal(size=10).astype(np.float32),
+        j3d_full=rng.normal(size=(21, 3)) * 0.05 + [0, 0, 0.6],
+        j2d=rng.uniform(5, S - 5, size=(21, 2)),
+        valid=s,
+    )
+
+
+def make_frame(i: int) -> SynthFrame:
+    rng = np.random.default_rng(100 + i)
+    yy, xx = np.mgrid[0:S, 0:S]
+    img = np.stack([xx * 4, yy * 4, (xx + yy) * 2 + 10 * i], -1).clip(0, 255).astype(np.uint8)
+    alpha = np.zeros((S, S), np.float32)
+    alpha[10:30, 12:40] = 1.0
+    alpha[9, 12:40] = 0.5
+    parts = np.zeros((S, S, 3), np.float32)
+    parts[10:30, 12:25, 0] = 1.0
+    parts[10:30, 25:40, 2] = 0.75
+    kp3d = rng.normal(size=(32, 3)) * 0.05 + [0, 0, 0.7]
+    return SynthFrame(
+        image=img, alpha=alpha, part_alpha=parts,
+        bbox=np.array([S / 2, S / 2, S / 200.0]),
+        K_full=np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]]) + i,
+        image_size=(640, 480),
+        right=_hand(rng, 1.0), left=_hand(rng, float(i % 2)),
+        obj=ObjectLabels(
+            name="box", radian=float(rng.uniform(0, 1)), kp3d_full=kp3d,
+            bbox3d_full=rng.normal(size=(16, 3)) * 0.05 + [0, 0, 0.7],
+            kp2d=rng.uniform(0, S, size=(32, 2)), bbox2d=rng.uniform(0, S, size=(16, 2)),
+            valid=1.0, kp_bottom_cano=(rng.normal(size=(16, 3)) * 50).astype(np.float32),
+        ),
+        imgname=f"./synthetic/s01/box/{i:06d}.jpg",
+        meta={"seed": 3, "index": i, "subject": "s01", "pose_source": "bank", "cam": np.int64(i)},
+    )
+
+
+def frames_for(calls: list):
+    def fn(shard: int):
+        calls.append(shard)
+        for i in range(shard * SHARD, min((shard + 1) * SHARD, NUM)):
+            yield make_frame(i)
+    return fn
+
+
+def assert_same_frame(a: SynthFrame, b: SynthFrame) -> None:
+    assert a.image.shape == b.image.shape and a.image.dtype == b.image.dtype == np.uint8
+    assert np.abs(a.image.astype(int) - b.image.astype(int)).mean() < 2.0
+    assert np.abs(a.image.astype(int) - b.image.astype(int)).max() <= 16
+    assert np.abs(a.alpha - b.alpha).max() <= 0.5 / 255 + 1e-7 and b.alpha.dtype == np.float32
+    assert np.abs(a.part_alpha - b.part_alpha).max() <= 0.5 / 255 + 1e-7
+    for x, y in ((a.bbox, b.bbox), (a.K_full, b.K_full)):
+        assert x.dtype == y.dtype and np.array_equal(x, y)
+    assert a.image_size == b.image_size
+    for ha, hb in ((a.right, b.right), (a.left, b.left)):
+        for f in ("pose48", "betas", "j3d_full", "j2d"):
+            x, y = getattr(ha, f), getattr(hb, f)
+            assert x.dtype == y.dtype and np.array_equal(x, y), f
+        assert ha.valid == hb.valid
+    for f in ("kp3d_full", "bbox3d_full", "kp2d", "bbox2d", "kp_bottom_cano"):
+        x, y = getattr(a.obj, f), getattr(b.obj, f)
+        assert x.dtype == y.dtype and np.array_equal(x, y), f
+    assert (a.obj.name, a.obj.radian, a.obj.valid) == (b.obj.name, b.obj.radian, b.obj.valid)
+    assert a.imgname == b.imgname
+    assert json.loads(json.dumps(a.meta, default=int)) == b.meta
+
+
+@pytest.fixture(scope="module")
+def export_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("export")
+    calls: list = []
+    res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 3})
+    assert calls == [0, 1] and res["complete"] and res["samples"] == NUM
+    return out
+
+
+def test_layout_and_members(export_dir):
+    assert sorted(p.name for p in export_dir.glob("*.tar")) == [shard_name(0), shard_name(1)]
+    index = json.loads((export_dir / "index.json").read_text())
+    assert index["complete"] and index["num_samples_written"] == NUM and index["info"] == {"seed": 3}
+    assert [s["count"] for s in index["shards"]] == [4, 3]
+    per = json.loads((export_dir / "synth-000001.index.json").read_text())
+    assert per["first"] == 4 and per["last"] == 6 and per["keys"][0] == "0000000004"
+    with tarfile.open(export_dir / shard_name(0)) as tar:
+        names = tar.getnames()
+        assert names[:5] == ["0000000000.jpg", "0000000000.alpha.png", "0000000000.parts.png",
+                             "0000000000.labels.npz", "0000000000.json"]
+        z = np.load(io.BytesIO(tar.extractfile("0000000000.labels.npz").read()), allow_pickle=False)
+        assert z["right.j2d"].shape == (21, 2) and "obj.kp3d_full" in z.files
+        info = json.loads(tar.extractfile("0000000000.json").read())
+    assert info["imgname"] == make_frame(0).imgname and info["object"] == "box"
+    assert info["index"] == 0 and info["image_size"] == [640, 480] and len(info["K_full"]) == 3
+    assert [k for k, _ in iter_tar_samples(export_dir / shard_name(1))] == ["0000000004", "0000000005",
+                                                                           "0000000006"]
+
+
+def test_round_trip_exact(export_dir):
+    frames = list(SynthShardDataset(export_dir))
+    assert len(frames) == NUM
+    for i, f in enumerate(frames):
+        assert_same_frame(make_frame(i), f)
+    # brace pattern and explicit list read the same
+    pat = str(export_dir / "synth-{000000..000001}.tar")
+    assert len(expand_shards(pat)) == 2
+    assert [f.imgname for f in SynthShardDataset(pat)] == [f.imgname for f in frames]
+    # 16-bit alpha and lossless image
+    m = encode_frame(make_frame(2), "k", image_format="png", alpha_bits=16)
+    back = decode_frame({n.split(".", 1)[1]: b for n, b in m.items()})
+    assert np.array_equal(back.image, make_frame(2).image)
+    assert np.abs(back.alpha - make_frame(2).alpha).max() <= 0.5 / 65535 + 1e-7
+
+
+def test_resume_after_interruption(tmp_path, export_dir):
+    out = tmp_path / "e"
+    calls: list = []
+    write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
+    first = (out / shard_name(0)).read_bytes()
+    assert first == (export_dir / shard_name(0)).read_bytes()  # byte-identical exports
+    # "kill": shard 1 lost, and a crash in the middle of rewriting it leaves a temp file
+    (out / shard_name(1)).unlink()
+
+    def crashing(shard):
+        yield make_frame(4)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_shards(crashing, out, NUM, SHARD, progress=False)
+    assert not (out / shard_name(1)).exists() and list(out.glob(".synth-000001.tar.tmp.*"))
+    assert not json.loads((out / "index.json").read_text())["complete"]
+    calls.clear()
+    res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
+    assert calls == [1] and res["skipped"] == [0] and res["complete"]
+    assert not list(out.glob(".synth-*.tmp.*"))
+    assert (out / shard_name(0)).read_bytes() == first
+    for i, f in enumerate(SynthShardDataset(out)):
+        assert_same_frame(make_frame(i), f)
+    # a truncated shard (size disagrees with its index) is rewritten
+    data = (out / shard_name(1)).read_bytes()
+    (out / shard_name(1)).write_bytes(data[: len(data) // 2])
+    calls.clear()
+    write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
+    assert calls == [1]
+
+
+def test_ranks_round_robin(tmp_path):
+    out = tmp_path / "r"
+    c0: list = []
+    c1: list = []
+    r0 = write_shards(frames_for(c0), out, NUM, SHARD, rank=0, world_size=2, progress=False)
+    assert c0 == [0] and not r0["complete"]
+    r1 = write_shards(frames_for(c1), out, NUM, SHARD, rank=1, world_size=2, progress=False)
+    assert c1 == [1] and r1["complete"]
+
+
+def test_arctic_samples_and_workers(export_dir):
+    ds = SynthShardDataset(export_dir, arctic_samples=True, seed=5)
+    samples = list(ds)
+    assert len(samples) == NUM
+    for i, (inputs, targets, meta) in enumerate(samples):
+        assert tuple(targets) == SAMPLE_TARGET_KEYS and tuple(meta) == SAMPLE_META_KEYS
+        assert inputs["img"].shape == (3, 224, 224) and inputs["img"].dtype == torch.float32
+        f = make_frame(i)
+        aug = sample_aug_params(np.random.default_rng([5, 0, i, 3]), True, False)
+        ref_in, ref_t, ref_m = make_arctic_sample(f.image, f.bbox, f.K_full, f.image_size, f.right, f.left,
+                                                  f.obj, False, None, aug, f.imgname)
+        for k in SAMPLE_TARGET_KEYS:
+            a, b = targets[k], ref_t[k]
+            if isinstance(a, torch.Tensor):
+                assert a.dtype == b.dtype and torch.equal(a, b), k
+            elif isinstance(a, np.ndarray):
+                assert a.dtype == b.dtype and np.array_equal(a, b), k
+            else:
+                assert type(a) is type(b) and a == b, k
+        assert meta["imgname"] == ref_m["imgname"] and meta["rot_angle"] == ref_m["rot_angle"]
+        assert (inputs["img"] - ref_in["img"]).abs().mean() < 0.05  # JPEG only
+    # two DataLoader workers, default collate: same samples, each exactly once
+    loader = DataLoader(SynthShardDataset(export_dir, arctic_samples=True, seed=5), batch_size=None,
+                        num_workers=2)
+    got = {m["imgname"]: t["mano.j2d.norm.r"] for _, t, m in loader}
+    assert len(got) == NUM
+    for _, t, m in samples:
+        assert torch.equal(got[m["imgname"]], t["mano.j2d.norm.r"])
+    # default seed/epoch: the frame's own (meta["seed"] = 3), the live loader's stream
+    _, t3, _ = next(iter(SynthShardDataset(export_dir, arctic_samples=True)))
+    f0 = make_frame(0)
+    aug = sample_aug_params(np.random.default_rng([3, 0, 0, 3]), True, False)
+    ref = make_arctic_sample(f0.image, f0.bbox, f0.K_full, f0.image_size, f0.right, f0.left, f0.obj, False, None,
+                             aug, f0.imgname)[1]
+    assert torch.equal(t3["mano.j2d.norm.r"], ref["mano.j2d.norm.r"]) and t3["object.rot"].equal(ref["object.rot"])
+    batch = next(iter(DataLoader(SynthShardDataset(export_dir, arctic_samples=True), batch_size=3)))
+    assert batch[0]["img"].shape == (3, 3, 224, 224) and batch[1]["joints_valid_r"].dtype == torch.float64
+
+
+def test_reader_sharding_and_errors(export_dir, tmp_path):
+    a = [f.imgname for f in SynthShardDataset(export_dir, rank=0, world_size=2)]
+    b = [f.imgname for f in SynthShardDataset(export_dir, rank=1, world_size=2)]
+    assert len(a) == 4 and len(b) == 3 and not set(a) & set(b)
+    c = [f.imgname for r in range(3) for f in SynthShardDataset(export_dir, rank=r, world_size=3)]
+    assert sorted(c) == sorted(a + b)
+    with pytest.raises(AssetError, match="missing"):
+        SynthShardDataset(tmp_path / "nope.tar")
+    with pytest.raises(AssetError, match="no .tar shards"):
+        SynthShardDataset(tmp_path)
+    bad = tmp_path / "bad.tar"
+    bad.write_bytes(b"garbage" * 100)
+    with pytest.raises(AssetError, match="bad.tar"):
+        list(SynthShardDataset(bad))
+
+
+def test_gaps_from_dropped_samples_and_dataset_adapter(tmp_path):
+    from hogsa_loader.export import dataset_frames_for_shard
+
+    class FakeHogsa:  # HOGSADataset's frames(g) / batch_size interface
+        batch_size = 3
+
+        def __init__(self):
+            self.calls = []
+
+        def frames(self, g):
+            self.calls.append(g)
+            out = []
+            for i in range(g * 3, g * 3 + 3):
+                out.append(None if i % 5 == 2 else make_frame(i))  # 2, 7 dropped
+            return out
+
+    ds = FakeHogsa()
+    out = tmp_path / "gaps"
+    res = write_shards(dataset_frames_for_shard(ds, NUM, SHARD), out, NUM, SHARD, progress=False)
+    assert res["samples"] == NUM - 1 and res["complete"]
+    per = json.loads((out / "synth-000000.index.json").read_text())
+    assert per["keys"] == ["0000000000", "0000000001", "0000000003"] and per["expected"] == 4
+    back = list(SynthShardDataset(out))
+    assert [f.meta["index"] for f in back] == [0, 1, 3, 4, 5, 6]
+    for f in back:
+        assert_same_frame(make_frame(f.meta["index"]), f)
+
+    def wrong(shard):
+        yield make_frame(5)  # belongs to shard 1
+
+    with pytest.raises(ValueError, match="outside"):
+        write_shards(wrong, tmp_path / "w", NUM, SHARD, progress=False)
+
+
+def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
+    """``hogsa export`` wiring (rank/world from the environment, resume) on a stand-in dataset."""
+    import sys
+    import types
+
+    from hogsa_loader.cli.main import main
+
+    made = []
+
+    class StandIn:
+        def __init__(self, bundle, data, **kw):
+            self.batch_size = kw["batch_size"]
+            self.render_size = 48
+            self.kw = kw
+            self.stats = types.SimpleNamespace(as_dict=lambda: {"num_dropped": 0})
+            made.append(self)
+
+        def frames(self, g):
+            return [make_frame(i) for i in range(g * self.batch_size, (g + 1) * self.batch_size)]
+
+    monkeypatch.setitem(sys.modules, "hogsa_loader.loader.dataset", types.SimpleNamespace(HOGSADataset=StandIn))
+    out = tmp_path / "cli"
+    args = ["export", "--bundle", "B", "--data", "D", "--out", str(out), "--num", "7", "--shard-size", "2",
+            "--batch-size", "2", "--seed", "4", "--quiet"]
+    for rank in (1, 0):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        assert main(args) == 0
+    assert made[0].kw["seed"] == 4 and made[0].kw["num_samples"] == 7
+    index = json.loads((out / "index.json").read_text())
+    assert index["complete"] and index["num_samples_written"] == 7 and index["info"]["seed"] == 4
+    assert json.loads((out / "synth-000001.index.json").read_text())["rank"] == 1
+    assert len(list(SynthShardDataset(out))) == 7

@@ -1,0 +1,257 @@
+"""The synthetic loader: bundle validation, HOGSADataset samples, mixing, determinism."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader, default_collate
+
+from hogsa_loader.bundle import load_bundle, write_bundle
+from hogsa_loader.compose import ProceduralBackgrounds
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.datasets.augment import ArcticConfig, patch_warp_matrix, unnormalize_kp2d
+from hogsa_loader.errors import AssetError
+from hogsa_loader.gaussians.checkpoint import save_part
+from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+from hogsa_loader.loader import (
+    CameraConfig,
+    HOGSADataset,
+    MixedLoader,
+    SampleChecks,
+    is_synthetic,
+    num_synthetic,
+    parse_synthetic_imgname,
+)
+from hogsa_loader.loader.synth import joints_on_alpha
+
+#: Small patches keep rendering cheap; real and synthetic samples use the same config.
+CFG = ArcticConfig(img_res=64)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """One intra-op thread: rendering many small images does not gain from more, and a
+    shared 2-core machine slows down badly when threads spin against each other."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def bundle_dir(tiny_world, tmp_path_factory) -> Path:
+    """An untrained bundle (colours from the hand albedo / object texture) for s01 + box."""
+    root = ArcticRoot(tiny_world)
+    layers, templates = root.mano_layers(), root.object_templates()
+    out = tmp_path_factory.mktemp("bundle")
+    run = out / "runs" / "s01_box"
+    kw = dict(k=1, sh_degree=0)
+    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
+    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
+    save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
+    (out / "srm.bin").write_bytes(b"srm weights")
+    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm.bin")
+
+
+def _dataset(bundle_dir, world, **kw) -> HOGSADataset:
+    kw.setdefault("batch_size", 4)
+    kw.setdefault("num_samples", 4)
+    kw.setdefault("backgrounds", ProceduralBackgrounds())
+    return HOGSADataset(bundle_dir, world, config=CFG, **kw)
+
+
+@pytest.fixture(scope="module")
+def frames(bundle_dir, tiny_world):
+    """(dataset, kept frames of two render batches)."""
+    ds = _dataset(bundle_dir, tiny_world, num_samples=16, batch_size=8, seed=3)
+    out = [f for g in range(2) for f in ds.frames(g) if f is not None]
+    return ds, out
+
+
+def _describe(x):
+    if isinstance(x, torch.Tensor):
+        return ("tensor", tuple(x.shape), x.dtype)
+    if isinstance(x, np.ndarray):
+        return ("ndarray", x.shape, x.dtype)
+    return (type(x).__name__,)
+
+
+def test_synthetic_sample_matches_real(frames, tiny_world):
+    ds, fr = frames
+    syn = ds.to_sample(fr[0])
+    real = ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0)[0]
+    for s, r in zip(syn, real):
+        assert list(s) == list(r)  # same keys, same order
+        for k in r:
+            assert _describe(s[k]) == _describe(r[k]), k
+    assert is_synthetic(syn[2]["imgname"]) and not is_synthetic(real[2]["imgname"])
+    info = parse_synthetic_imgname(syn[2]["imgname"])
+    assert info["seed"] == 3 and info["index"] == fr[0].meta["index"] and info["object"] == "box"
+    # collated together exactly like real samples
+    batch = default_collate([real, syn])
+    assert batch[2]["imgname"][1] == syn[2]["imgname"]
+    assert torch.isfinite(syn[0]["img"]).all()
+
+
+def test_keypoints_lie_on_rendered_alpha(frames):
+    ds, fr = frames
+    assert len(fr) >= 8
+    crop_hits, patch_hits = [], []
+    for f in fr:
+        _, targets, _ = ds.to_sample(f)
+        for h, side in ((f.right, "r"), (f.left, "l")):
+            if not h.valid:
+                continue
+            S = f.alpha.shape[0]
+            inside = (h.j2d >= 0).all(1) & (h.j2d <= S - 1).all(1)
+            crop_hits.extend(joints_on_alpha(h.j2d[inside], f.alpha, radius=0))
+            # the same check after ARCTIC's augmentation, in the 64-px patch
+            aug = ds.aug_params(f.meta["index"])
+            crop_dim = int(aug.sc * f.bbox[2] * 200)
+            M = patch_warp_matrix(f.bbox[:2], crop_dim, aug.rot, CFG.img_res)
+            a = cv2.warpAffine(f.alpha, M, (CFG.img_res, CFG.img_res), flags=cv2.INTER_LINEAR)
+            px = unnormalize_kp2d(targets[f"mano.j2d.norm.{side}"].numpy(), CFG.img_res)
+            ok = (px >= 0).all(1) & (px <= CFG.img_res - 1).all(1)
+            # labels are truncated the HMR way (up to 1 px right/below): look 1 px around
+            patch_hits.extend(joints_on_alpha(px[ok], a, radius=1))
+    crop_rate, patch_rate = float(np.mean(crop_hits)), float(np.mean(patch_hits))
+    print(f"joints on alpha: crop {crop_rate:.4f} ({len(crop_hits)} joints), patch {patch_rate:.4f} ({len(patch_hits)})")
+    assert len(crop_hits) >= 200
+    assert crop_rate >= 0.99
+    assert patch_rate >= 0.99
+
+
+def test_mixed_loader_exact_ratio(bundle_dir, tiny_world):
+    real_ds = ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0)
+    real = DataLoader(real_ds, batch_size=5, shuffle=False)
+    syn = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=4, seed=1)
+    mixed = MixedLoader(real, syn, ratio=0.5)
+    assert num_synthetic(0.5, 5) == 3
+    ref = next(iter(real))
+    batches = list(itertools.islice(iter(mixed), 3))
+    for b in batches:
+        names = b[2]["imgname"]
+        assert len(names) == 5
+        assert sum(is_synthetic(n) for n in names) == 3
+        assert [is_synthetic(n) for n in names] == [False, False, True, True, True]
+        for part_b, part_r in zip(b, ref):
+            assert list(part_b) == list(part_r)
+            for k in part_r:
+                assert _describe(part_b[k])[0] == _describe(part_r[k])[0], k
+                if isinstance(part_r[k], torch.Tensor):
+                    assert part_b[k].shape == part_r[k].shape and part_b[k].dtype == part_r[k].dtype, k
+    # real samples are consumed in order, none skipped
+    reals = [n for b in batches for n in b[2]["imgname"] if not is_synthetic(n)]
+    assert reals == [real_ds[i][2]["imgname"] for i in range(6)]
+
+
+def test_same_seed_same_samples_with_two_workers(bundle_dir, tiny_world):
+    def run():
+        ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=7)
+        dl = DataLoader(ds, batch_size=None, num_workers=2)
+        return [(s[2]["imgname"], s[0]["img"]) for s in dl]
+
+    a, b = run(), run()
+    assert len(a) >= 4
+    assert [n for n, _ in a] == [n for n, _ in b]
+    assert all(torch.equal(x, y) for (_, x), (_, y) in zip(a, b))
+    # every index appears once; a sample regenerates alone from (seed, index)
+    idx = [parse_synthetic_imgname(n)["index"] for n, _ in a]
+    assert len(set(idx)) == len(idx)
+    one = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=7).sample(idx[-1])
+    assert one is not None and torch.allclose(one[0]["img"], a[-1][1], atol=1e-4)
+
+
+def test_cuda_device_refused_in_workers(bundle_dir, tiny_world):
+    ds = _dataset(bundle_dir, tiny_world, device="cuda")
+    with pytest.raises(RuntimeError, match="must not touch CUDA"):
+        next(iter(DataLoader(ds, batch_size=None, num_workers=1)))
+
+
+def test_bad_bundle_lists_every_problem(bundle_dir, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(bundle_dir, bad)
+    (bad / "hogs" / "s01_box" / "hand_left" / "gaussians.safetensors").unlink()
+    (bad / "srm" / "srm.bin").write_bytes(b"other weights")
+    man = json.loads((bad / "manifest.json").read_text())
+    man["objects"]["box"]["template_hash"] = "0" * 64
+    (bad / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(AssetError) as err:
+        load_bundle(bad)
+    msg = str(err.value)
+    assert "3 problems" in msg
+    assert "hand_left" in msg and "gaussians.safetensors" in msg
+    assert "srm.bin" in msg and "sha256" in msg
+    assert "part object was trained on template" in msg
+    with pytest.raises(AssetError, match="manifest.json is missing"):
+        load_bundle(tmp_path)
+    assert load_bundle(bundle_dir).keys == [("s01", "box")]
+
+
+def test_dropped_samples_are_counted(bundle_dir, tiny_world):
+    # cameras inside the scene: every sample is behind the camera, dropped before rendering
+    ds = _dataset(bundle_dir, tiny_world, cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0,
+                                                                target_jitter_m=0.0))
+    assert list(ds) == []
+    assert ds.stats.dropped["behind_camera"] == 4 and ds.stats.kept == 0 and ds.stats.attempted == 4
+    # an impossible alpha minimum: rendered, then dropped as empty
+    ds = _dataset(bundle_dir, tiny_world, num_samples=2, batch_size=2, checks=SampleChecks(min_alpha_pixels=10**9))
+    assert list(ds) == []
+    assert ds.stats.dropped["empty_alpha"] == 2 and ds.stats.num_dropped == 2
+    assert set(ds.stats.seconds) == {"pose", "pom", "render", "srm", "composite", "targets"}
+    assert ds.stats.seconds["render"] > 0
+
+
+def test_wrap_train_loader_drop_in(bundle_dir, tiny_world):
+    from hogsa_loader.integrations.arctic import wrap_train_loader
+
+    real = DataLoader(ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0), batch_size=4)
+    loader = wrap_train_loader(real, bundle_dir, ratio=0.25, batch_size=2, backgrounds=ProceduralBackgrounds())
+    inputs, targets, meta = next(iter(loader))
+    assert inputs["img"].shape == (4, 3, CFG.img_res, CFG.img_res)
+    assert [is_synthetic(n) for n in meta["imgname"]] == [False, False, False, True]
+    assert len(loader) == len(real.dataset) // 3
+
+
+def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):
+    """poses="bank" serves accepted POM-bank rows of the right (subject, object), unchanged."""
+    from hogsa_loader.bundle import load_bundle
+    from hogsa_loader.loader.bank_poses import BankPoses
+    from hogsa_loader.loader.poses import PoseContext
+    from hogsa_loader.pom.bank import save_pose_bank
+    from hogsa_loader.pom.state import load_frames
+
+    root = ArcticRoot(tiny_world)
+    seq = [s for s in root.sequences("s01") if s.split("/")[1].startswith("box")][0]
+    state, src = load_frames(root, [seq], stride=16)
+    n = state.batch
+    assert n >= 2
+    accept = np.zeros(n, np.float32)
+    accept[1] = 1.0  # only row 1 passed acceptance
+    zeros = np.zeros(n, np.float32)
+    metrics = {"penetration_depth": zeros, "intersection": zeros, "contact_ratio": zeros, "accept": accept}
+    save_pose_bank(tmp_path / "bank", state, src, metrics)
+    ctx = PoseContext(root=root, keys=[("s01", "box")], bundle=load_bundle(bundle_dir))
+    with pytest.raises(AssetError, match="needs a pose bank"):
+        BankPoses(ctx)
+    src_bank = BankPoses(ctx, banks=[tmp_path / "bank"])
+    assert len(src_bank) == 1 and src_bank.keys == [("s01", "box")]
+    batch = src_bank.sample(("s01", "box"), [np.random.default_rng(i) for i in range(3)])
+    assert len(batch) == 3 and all(p["row"] == 1 and p["pose_source"] == "bank" for p in batch.provenance)
+    torch.testing.assert_close(batch.poses["right_pose"][0], state.hands["right"].pose[1].double())
+    torch.testing.assert_close(batch.poses["obj_trans"][2], state.obj_trans[1].double())
+    assert batch.poses["obj_arti"].shape == (3, 1)
+    with pytest.raises(AssetError, match="no accepted grasp"):
+        BankPoses(PoseContext(root=root, keys=[("s05", "box")]), banks=[tmp_path / "bank"])
+    # end to end: the dataset renders bank poses
+    ds = _dataset(bundle_dir, tiny_world, poses="bank", pose_options={"banks": [tmp_path / "bank"]})
+    fr = [f for f in ds.frames(0) if f is not None]
+    assert fr and all(f.meta["pose_source"] == "bank" and f.meta["row"] == 1 for f in fr)

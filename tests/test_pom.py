@@ -1,0 +1,399 @@
+"""POM: perturbation ranges, losses, optimisation, metrics, ContactNet, pose bank."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from hogsa_loader.errors import AssetError
+from hogsa_loader.hands.mano import MANOLayer
+from hogsa_loader.objects.template import ObjectTemplate
+from hogsa_loader.pom import (
+    ContactNet,
+    GraspState,
+    HandParams,
+    ObjectSet,
+    POMConfig,
+    PerturbConfig,
+    contact_map,
+    grasp_metrics,
+    hand_infos,
+    load_contactnet,
+    load_pose_bank,
+    optimise_grasps,
+    perturb,
+    save_contactnet,
+    save_pose_bank,
+)
+from hogsa_loader.pom.geometry import ray_parity_inside
+from hogsa_loader.pom.hands import SIDES
+from hogsa_loader.pom.losses import hand_contact, hand_in_object, object_in_hand
+from hogsa_loader.pom.state import canonical_hands, hand_forward
+
+# --------------------------------------------------------------------------------------
+# Constructed scene: two boxes (bottom base, small top tab) and the synthetic hands
+# --------------------------------------------------------------------------------------
+_CUBE_FACES = np.array([
+    [0, 2, 1], [0, 3, 2],  # z-
+    [4, 5, 6], [4, 6, 7],  # z+
+    [0, 1, 5], [0, 5, 4],  # y-
+    [3, 7, 6], [3, 6, 2],  # y+
+    [0, 4, 7], [0, 7, 3],  # x-
+    [1, 2, 6], [1, 6, 5],  # x+
+])
+
+
+def _box(lo, hi):
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
+                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], dtype=np.float32)
+    return v, _CUBE_FACES.copy()
+
+
+def _two_box_template() -> ObjectTemplate:
+    vb, fb = _box((-0.12, -0.07, -0.06), (0.0, -0.001, 0.06))
+    vt, ft = _box((-0.12, 0.001, -0.06), (-0.09, 0.02, 0.06))
+    verts = np.concatenate([vt, vb])
+    faces = np.concatenate([ft, fb + len(vt)])
+    parts = np.array([0] * len(vt) + [1] * len(vb))
+    z3 = lambda n: np.zeros((n, 3), np.float32)  # noqa: E731
+    return ObjectTemplate(name="twobox", verts=verts, faces=faces, parts=parts, kp_top=z3(16), kp_bottom=z3(16),
+                          bbox_top=z3(8), bbox_bottom=z3(8), mocap_top=z3(0), mocap_bottom=z3(0),
+                          sub_top=z3(300), sub_bottom=z3(300), diameter=0.2)
+
+
+@pytest.fixture(scope="module")
+def scene(hand_pair):
+    right, left = hand_pair
+    layers = {"right": MANOLayer(right, flat_hand_mean=False), "left": MANOLayer(left, flat_hand_mean=False)}
+    infos = hand_infos(layers)
+    objects = ObjectSet({"twobox": _two_box_template()}, n_points=1024, sdf_voxel=0.003)
+    objects.geometry("twobox")
+    return infos, objects
+
+
+def _state(infos, centers: dict, B: int = 1, arti: float = 0.0) -> GraspState:
+    """Hands at rest pose whose vertex centroid sits at ``centers[side]`` (object at identity)."""
+    hands = {}
+    for s in SIDES:
+        z = lambda n: torch.zeros(B, n)  # noqa: E731
+        p = HandParams(z(3), z(45), z(3), z(10))
+        c = hand_forward(infos[s], p).vertices.mean(1)
+        p.trans = torch.as_tensor(centers[s], dtype=torch.float32).expand(B, 3) - c
+        hands[s] = p
+    return GraspState(hands, ["twobox"] * B, torch.full((B,), arti), torch.zeros(B, 3), torch.zeros(B, 3))
+
+
+FAR = {"right": (0.4, 0.3, 0.0), "left": (-0.5, 0.3, 0.0)}
+INSIDE = {"right": (-0.06, -0.035, 0.0), "left": (-0.5, 0.3, 0.0)}
+
+
+# --------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------
+def test_contact_map_values():
+    d = torch.tensor([0.0, 0.01, 0.02, 0.03])
+    np.testing.assert_allclose(contact_map(d).numpy(), [1.0, 0.2384, 0.0360, 0.0049], atol=2e-4)
+
+
+def test_sdf_sign_matches_ray_parity(scene):
+    _, objects = scene
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(1, 2000, 3, generator=g) * torch.tensor([0.2, 0.14, 0.16]) - torch.tensor([0.16, 0.09, 0.08])
+    sdf = objects.sdf(pts, ["twobox"], torch.zeros(1))[0]
+    geo = objects.geometry("twobox")
+    inside = ray_parity_inside(pts[0].double(), geo.tris[0]) | ray_parity_inside(pts[0].double(), geo.tris[1])
+    clear = sdf.abs() > 0.004  # away from the surface the grid sign is exact
+    assert bool(((sdf < 0) == inside)[clear].all())
+    assert 0.2 < float(inside.float().mean()) < 0.8
+
+
+def test_capped_hand_is_closed(scene):
+    import trimesh
+
+    infos, _ = scene
+    for s in SIDES:
+        v = infos[s].capped.verts(infos[s].layer().vertices[0])
+        mesh = trimesh.Trimesh(v.detach().numpy(), infos[s].capped.faces.numpy(), process=False)
+        assert mesh.is_watertight and mesh.volume > 0
+        assert 0 < len(infos[s].prior_ids) < infos[s].num_verts
+
+
+# --------------------------------------------------------------------------------------
+# Perturbation (property tests)
+# --------------------------------------------------------------------------------------
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31 - 1))
+def test_perturbation_ranges(scene, seed):
+    infos, objects = scene
+    B = 4
+    state = _state(infos, {"right": (-0.05, 0.05, 0.1), "left": (-0.08, -0.02, -0.12)}, B=B)
+    state.obj_rot = torch.randn(B, 3, generator=torch.Generator().manual_seed(seed)) * 0.5
+    new, rec = perturb(state, infos, objects, torch.Generator().manual_seed(seed))
+    lo, hi = 0.01 * math.pi, 0.2 * math.pi
+    assert bool(((new.obj_arti >= lo - 1e-6) & (new.obj_arti <= hi + 1e-6)).all())
+    assert float(rec.jitter["object"].norm(dim=-1).max()) <= 0.06 + 1e-6
+    assert torch.allclose(new.obj_trans - state.obj_trans, rec.jitter["object"], atol=1e-6)
+    assert torch.equal(new.obj_rot, state.obj_rot)
+    for s in SIDES:
+        assert float(rec.angles[s].abs().max()) <= math.radians(20) + 1e-6
+        assert float(rec.jitter[s].norm(dim=-1).max()) <= 0.06 + 1e-6
+        w0 = rec.wrist_before[s]
+        torch.testing.assert_close(rec.root_shift[s], 0.05 * (w0 - rec.center), atol=1e-6, rtol=0)
+        # root moved away from the object by exactly 5 % of its distance
+        d0 = (w0 - rec.center).norm(dim=-1)
+        torch.testing.assert_close((w0 + rec.root_shift[s] - rec.center).norm(dim=-1), 1.05 * d0, atol=1e-6, rtol=0)
+        # the rotation turns the hand about its wrist; the wrist only gets shift + jitter
+        w1 = hand_forward(infos[s], new.hands[s]).joints[:, 0]
+        torch.testing.assert_close(w1, w0 + rec.root_shift[s] + rec.jitter[s], atol=2e-5, rtol=0)
+        # the orientation change is the drawn rotation (angle <= sqrt(3) * 20 deg)
+        from hogsa_loader.geometry.rotations import axis_angle_to_matrix
+        from hogsa_loader.pom.perturb import euler_xyz_matrix
+
+        R = axis_angle_to_matrix(new.hands[s].rot) @ axis_angle_to_matrix(state.hands[s].rot).transpose(-1, -2)
+        torch.testing.assert_close(R, euler_xyz_matrix(rec.angles[s]), atol=1e-5, rtol=0)
+        assert torch.equal(new.hands[s].pose, state.hands[s].pose)
+    again, _ = perturb(state, infos, objects, torch.Generator().manual_seed(seed))
+    assert torch.equal(again.hands["right"].trans, new.hands["right"].trans)
+
+
+def test_perturbation_scale_zero_keeps_rotation(scene):
+    infos, objects = scene
+    state = _state(infos, FAR, B=3)
+    new, rec = perturb(state, infos, objects, torch.Generator().manual_seed(1), PerturbConfig(scale=0.0, arti_range=None))
+    assert float(rec.angles["right"].abs().max()) == 0.0
+    assert torch.equal(new.obj_arti, state.obj_arti)
+
+
+# --------------------------------------------------------------------------------------
+# Losses and metrics on constructed cases
+# --------------------------------------------------------------------------------------
+def _losses(scene, centers):
+    infos, objects = scene
+    state = _state(infos, centers)
+    hands = canonical_hands(state, infos)
+    obj, _ = objects.points(state.obj_names, state.obj_arti)
+    out = {}
+    for s in SIDES:
+        v = hands[s].vertices
+        c, dist, idx = hand_contact(obj, v)
+        l_in, sdf = hand_in_object(v, objects, state.obj_names, state.obj_arti)
+        l_oh = object_in_hand(obj, v, infos[s].layer.faces, idx, dist)
+        out[s] = (float(l_in), float(l_oh), float(c.max()), float(sdf.min()))
+    return out, state
+
+
+def test_losses_zero_when_far(scene):
+    out, _ = _losses(scene, FAR)
+    for s in SIDES:
+        l_in, l_oh, cmax, sdf_min = out[s]
+        assert l_in == 0.0 and l_oh == 0.0
+        assert cmax < 1e-6 and sdf_min > 0.1
+
+
+def test_losses_positive_when_inside(scene):
+    out, _ = _losses(scene, INSIDE)
+    l_in, _, cmax, sdf_min = out["right"]
+    assert l_in > 0.0 and sdf_min < -0.005 and cmax > 0.9
+    assert out["left"][0] == 0.0
+
+
+def test_metrics_far_and_inside(scene):
+    infos, objects = scene
+    far = grasp_metrics(_state(infos, FAR), infos, objects)
+    assert far["penetration_depth"][0] == 0.0 and far["intersection"][0] == 0.0
+    assert far["contact_ratio"][0] == 0.0 and not far["accept"][0]
+    inside = grasp_metrics(_state(infos, INSIDE), infos, objects)
+    assert inside["penetration_depth"][0] > 0.005
+    assert inside["intersection"][0] > 4e-6 and not inside["accept"][0]
+    assert inside["contact_right"][0] and not inside["contact_left"][0]
+
+
+def test_optimisation_reduces_penetration(scene):
+    infos, objects = scene
+    start = _state(infos, {"right": (-0.06, -0.075, 0.0), "left": (-0.5, 0.3, 0.0)}, B=2)
+    start.hands["right"].trans[1, 0] += 0.01  # two different samples, one batch
+
+    def depth(state):
+        hands = canonical_hands(state, infos)
+        return torch.relu(-objects.sdf(hands["right"].vertices, state.obj_names, state.obj_arti)).amax(1)
+
+    d0 = depth(start)
+    assert bool((d0 > 0.005).all())
+    # the paper's Adam loop alone (no rigid projection), translation lr raised for a short run
+    cfg = POMConfig(iters=25, snap=False, final_push=False, lr_trans=1.5e-3, lr_rot=3e-3, n_obj_points=384)
+    res = optimise_grasps(start, infos, objects, None, cfg)
+    assert res.history[-1] < res.history[0]
+    assert bool((depth(res.state) < 0.5 * d0).all())
+    # the default pipeline (projection + 200 iterations shortened to 5 + final push)
+    full = optimise_grasps(start, infos, objects, None, POMConfig(iters=5, n_obj_points=384))
+    assert bool(full.keep.all()) and sum(full.dropped.values()) == 0
+    m = grasp_metrics(full.state, infos, objects)
+    assert float(m["penetration_depth"].max()) < 0.002 and bool(m["accept"].all())
+
+
+def test_nonfinite_samples_are_dropped(scene):
+    infos, objects = scene
+    start = _state(infos, FAR, B=3)
+    start.hands["left"].pose[1, 0] = float("nan")
+    res = optimise_grasps(start, infos, objects, None, POMConfig(iters=3, snap=False, n_obj_points=256))
+    assert res.keep.tolist() == [True, False, True]
+    assert res.dropped["nonfinite"] == 1
+    assert torch.isfinite(res.state.hands["right"].trans[[0, 2]]).all()
+
+
+# --------------------------------------------------------------------------------------
+# ContactNet
+# --------------------------------------------------------------------------------------
+def test_contactnet_any_topology_and_roundtrip(tmp_path):
+    torch.manual_seed(0)
+    net = ContactNet().eval()
+    for n_obj, n_hand in ((100, 778), (333, 2565), (50, 12)):
+        out = net(torch.rand(2, n_obj, 3) * 0.1, torch.rand(2, n_hand, 3) * 0.1, torch.rand(n_hand) > 0.7,
+                  torch.tensor([1.0, -1.0]))
+        assert out.shape == (2, n_obj) and bool(((out > 0) & (out < 1)).all())
+    save_contactnet(net, tmp_path / "run")
+    back = load_contactnet(tmp_path / "run")
+    x = (torch.rand(1, 64, 3), torch.rand(1, 200, 3), torch.zeros(200, dtype=torch.bool), torch.ones(1))
+    torch.testing.assert_close(back(*x), net(*x))
+    man = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    man["schema_version"] = 99
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(AssetError, match="schema_version"):
+        load_contactnet(tmp_path / "run")
+
+
+def _touching_grasps(infos, objects, n: int, seed: int) -> GraspState:
+    """n grasps with both hands touching the two-box object from random directions."""
+    from hogsa_loader.geometry.rotations import matrix_to_axis_angle
+    from hogsa_loader.pom.optimize import snap_hands
+    from hogsa_loader.pom.perturb import random_directions
+
+    g = torch.Generator().manual_seed(seed)
+    state = _state(infos, FAR, B=n)
+    for s in SIDES:
+        q = torch.linalg.qr(torch.randn(n, 3, 3, generator=g)).Q
+        q = q * torch.sign(torch.linalg.det(q))[:, None, None]
+        state.hands[s].rot = matrix_to_axis_angle(q)
+        c = hand_forward(infos[s], state.hands[s]).vertices.mean(1)
+        target = torch.tensor([-0.06, -0.035, 0.0]) + 0.15 * random_directions(n, g)
+        state.hands[s].trans = state.hands[s].trans + target - c
+    active = {s: torch.ones(n, dtype=torch.bool) for s in SIDES}
+    return snap_hands(state, infos, objects, active, steps=4, margin=0.001)
+
+
+def test_tiny_contactnet_training_lowers_val_loss(scene):
+    from hogsa_loader.pom.train import ContactData, TrainConfig, train_contactnet
+
+    infos, objects = scene
+    both = _touching_grasps(infos, objects, 11, seed=1)
+    train = ContactData(both.select(torch.arange(8)), [("t", "train", i) for i in range(8)])
+    val = ContactData(both.select(torch.arange(8, 11)), [("v", "val", i) for i in range(3)])
+    d = objects.sdf(canonical_hands(val.state, infos)["right"].vertices, val.state.obj_names, val.state.obj_arti)
+    assert float(d.min(1).values.abs().max()) < 0.003  # the constructed hands touch the object
+    torch.manual_seed(0)
+    model, hist = train_contactnet(train, val, infos, objects,
+                                   TrainConfig(iters=15, batch=3, points=192, lr=3e-3, val_every=15))
+    first, last = hist["val"][0][1], hist["val"][-1][1]
+    assert last["loss"] < 0.7 * first["loss"]
+    assert last["mae"] < first["mae"]
+
+
+@pytest.mark.slow
+def test_tiny_world_frames_to_bank(tiny_world, tmp_path):
+    """Real (generated) ARCTIC frames: contact frames -> perturb -> optimise -> bank round trip."""
+    from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.metrics import grasp_metrics as metrics
+    from hogsa_loader.pom.pipeline import augment, contact_frames
+
+    root = ArcticRoot(tiny_world)
+    infos = hand_infos(root.mano_layers())
+    seq = root.sequences()[0]
+    sid, name = seq.split("/")
+    objects = ObjectSet(root.object_templates(load_texture=False), n_points=512, sdf_voxel=0.004)
+    frames = contact_frames(root, [seq], infos, objects, per_sequence=2)
+    assert frames.state.batch == 2 and all(a == sid and b == name for a, b, _ in frames.sources)
+    sd = root.sequence(sid, name)
+    f = frames.sources[0][2]
+    np.testing.assert_allclose(frames.state.hands["left"].pose[0].numpy(), sd.left.pose[f], atol=1e-6)
+    aug = augment(frames, infos, objects, None, POMConfig(iters=3, n_obj_points=256), seed=0, batch=2)
+    m = metrics(aug.result, infos, objects, frames.active)
+    save_pose_bank(tmp_path / "bank", aug.result, frames.sources, m)
+    bank = load_pose_bank(tmp_path / "bank")
+    assert bank.sources == frames.sources
+    torch.testing.assert_close(bank.state.hands["right"].trans, aug.result.hands["right"].trans)
+
+
+# --------------------------------------------------------------------------------------
+# Pose bank
+# --------------------------------------------------------------------------------------
+def _bank(scene, tmp_path):
+    infos, objects = scene
+    state = _state(infos, FAR, B=3)
+    state.obj_arti = torch.tensor([0.1, 0.2, 0.3])
+    metrics = {"penetration_depth": [0.0, 0.001, 0.0], "intersection": [0.0, 1e-6, 0.0],
+               "contact_ratio": [0.1, 0.2, 0.0], "accept": [1.0, 1.0, 0.0]}
+    src = [("s01", "box_grab_01", 3), ("s01", "box_grab_01", 9), ("s02", "box_use_01", 0)]
+    save_pose_bank(tmp_path / "bank", state, src, metrics, {"note": "test"})
+    return state, src
+
+
+def test_pose_bank_roundtrip(scene, tmp_path):
+    state, src = _bank(scene, tmp_path)
+    bank = load_pose_bank(tmp_path / "bank")
+    assert len(bank) == 3 and bank.sources == src and bank.info["note"] == "test"
+    assert bank.state.obj_names == ["twobox"] * 3
+    for s in SIDES:
+        for k in ("rot", "pose", "trans", "betas"):
+            torch.testing.assert_close(getattr(bank.state.hands[s], k), getattr(state.hands[s], k))
+    torch.testing.assert_close(bank.state.obj_arti, state.obj_arti)
+    torch.testing.assert_close(bank.metrics["contact_ratio"], torch.tensor([0.1, 0.2, 0.0]))
+    assert load_pose_bank(tmp_path / "bank" / "manifest.json").state.batch == 3
+
+
+def test_pose_bank_bad_files(scene, tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    _bank(scene, tmp_path)
+    d = tmp_path / "bank"
+    man_path, t_path = d / "manifest.json", d / "poses.safetensors"
+    man = json.loads(man_path.read_text())
+    tensors = load_file(str(t_path))
+
+    def expect(match):
+        with pytest.raises(AssetError, match=match):
+            load_pose_bank(d)
+
+    man_path.write_text(json.dumps({**man, "schema_version": 2}))
+    expect("schema_version")
+    man_path.write_text(json.dumps({**man, "schema": "other"}))
+    expect("not a pose bank")
+    man_path.write_text(json.dumps({**man, "entries": man["entries"][:2]}))
+    expect("entries")
+    man_path.write_text("{not json")
+    expect("malformed JSON")
+    man_path.write_text(json.dumps(man))
+    bad = dict(tensors)
+    bad["right_pose"] = bad["right_pose"][:, :10].contiguous()
+    save_file(bad, str(t_path))
+    expect("right_pose.*shape")
+    bad = dict(tensors)
+    bad["obj_trans"] = bad["obj_trans"].clone()
+    bad["obj_trans"][0, 0] = float("nan")
+    save_file(bad, str(t_path))
+    expect("NaN")
+    bad = {k: v for k, v in tensors.items() if k != "left_betas"}
+    save_file(bad, str(t_path))
+    expect("left_betas.*missing")
+    t_path.write_bytes(b"garbage" * 3)
+    expect("cannot read safetensors")
+    t_path.unlink()
+    expect("missing")
+    man_path.unlink()
+    expect("missing")

@@ -1,0 +1,247 @@
+"""SRM (StyleUNet refinement): shapes/dtypes, alpha-exact output, losses (VGG substitute
+warning, R1), checkpoint round trip and validation, a few training steps reduce L1, and
+the trainer end to end (exact resume) on HOGS renders of the tiny world."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hogsa_loader.errors import AssetError
+from hogsa_loader.srm import SRM, StyleUNet, StyleUNetConfig, count_gflops, load_srm, save_srm
+from hogsa_loader.srm.discriminator import ConditionalDiscriminator
+from hogsa_loader.srm.losses import (
+    LaplacianPyramidL1,
+    SubstituteWarning,
+    VGGPerceptualLoss,
+    d_logistic,
+    g_nonsaturating,
+    load_vgg19_features,
+    perceptual_loss,
+    r1_penalty,
+    vgg19_features,
+)
+from hogsa_loader.srm.stylegan import HaarTransform, InverseHaarTransform, ModulatedConv2d
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = [16, 32, 32]  # 3 levels: inputs multiple of 8
+
+
+def _srm(scale: int = 1, **kw) -> SRM:
+    torch.manual_seed(0)
+    return SRM(StyleUNetConfig(channels=SMALL, style_dim=16, mlp_num=2, scale=scale, extra_channels=8, **kw))
+
+
+def _inputs(b: int, h: int, w: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    alpha = (torch.rand(b, h, w, generator=g) * 1.4 - 0.2).clamp(0, 1)
+    alpha[:, : h // 4] = 0.0  # an empty band
+    rgb = torch.rand(b, h, w, 3, generator=g) * alpha[..., None]
+    return rgb, alpha
+
+
+def test_haar_roundtrip_and_modconv_equivalence():
+    x = torch.randn(2, 3, 16, 12)
+    y = HaarTransform()(x)
+    assert y.shape == (2, 12, 8, 6)
+    assert torch.allclose(InverseHaarTransform()(y), x, atol=1e-5)
+    assert torch.allclose(y.square().sum(), x.square().sum(), rtol=1e-5)  # orthonormal
+    # fused (activation-scaling) form == per-sample modulated, demodulated weights
+    conv = ModulatedConv2d(5, 7, 3, 8)
+    xs, st = torch.randn(3, 5, 10, 10), torch.randn(3, 8)
+    out = conv(xs, st)
+    s = conv.modulation(st)
+    ref = []
+    for b in range(3):
+        w = conv.weight * conv.scale * s[b][None, :, None, None]
+        w = w / torch.sqrt(w.square().sum((1, 2, 3), keepdim=True) + 1e-8)
+        ref.append(torch.nn.functional.conv2d(xs[b : b + 1], w, padding=1))
+    assert torch.allclose(out, torch.cat(ref), atol=1e-5)
+    up = ModulatedConv2d(5, 4, 3, 8, upsample=True)(xs, st)
+    assert up.shape == (3, 4, 20, 20)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+@pytest.mark.parametrize("hw", [(32, 32), (40, 24), (64, 96)])
+def test_refine_shapes_dtype_and_alpha(scale, hw):
+    srm = _srm(scale)
+    rgb, alpha = _inputs(2, *hw)
+    out = srm.refine(rgb, alpha)
+    assert out.shape == (2, hw[0] * scale, hw[1] * scale, 3) and out.dtype == torch.float32
+    assert torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
+    out2, a_out = srm.refine(rgb, alpha[..., None], return_alpha=True)  # (B,H,W,1) alpha accepted
+    assert torch.equal(out, out2)
+    assert (out <= a_out[..., None] + 1e-6).all()
+    if scale == 1:
+        assert torch.equal(a_out, alpha)
+        assert (out[alpha == 0] == 0).all()  # background untouched: compositing stays exact
+    else:
+        assert (out[a_out == 0] == 0).all()
+    assert srm.refine(rgb.double(), alpha.double()).dtype == torch.float64
+    # deterministic inference (no noise, stored style code)
+    assert torch.equal(out, srm.refine(rgb, alpha))
+
+
+def test_training_forward_grad_and_wavelet_options():
+    for wavelet in (True, False):
+        srm = _srm(1, wavelet=wavelet)
+        rgb, alpha = _inputs(2, 16, 16)
+        x = rgb.permute(0, 3, 1, 2).requires_grad_(True)
+        y = srm(x, alpha[:, None], z=torch.randn(2, 16))
+        assert y.shape == (2, 3, 16, 16)
+        y.mean().backward()
+        assert all(p.grad is not None for n, p in srm.named_parameters() if "noise" not in n)
+
+
+def test_default_size_gflops():
+    g = count_gflops(StyleUNet(), 256)
+    assert 2.0 < g < 8.0, g  # "a few GFLOPs" at 256² (5.2 for the default widths)
+
+
+def test_losses_substitute_warning_and_r1():
+    with pytest.warns(SubstituteWarning):
+        perc = perceptual_loss(None)
+    assert isinstance(perc, LaplacianPyramidL1) and perc.kind == "laplacian"
+    x, y = torch.rand(2, 3, 32, 32) * 2 - 1, torch.rand(2, 3, 32, 32) * 2 - 1
+    assert float(perc(x, x)) == 0.0 and float(perc(x, y)) > 0
+    d = ConditionalDiscriminator(32, cond_channels=4, channels=[8, 16, 16])
+    cond = torch.rand(2, 4, 32, 32)
+    r1, logits = r1_penalty(lambda im: d(im, cond), x)
+    assert logits.shape == (2,) and torch.isfinite(r1) and float(r1) > 0
+    r1.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in d.parameters())
+    assert float(d_logistic(logits.detach(), logits.detach())) > 0 and float(g_nonsaturating(logits.detach())) > 0
+
+
+def test_vgg_weights_file(tmp_path):
+    from safetensors.torch import save_file
+
+    feats = vgg19_features()
+    sd = {f"features.{k}": v for k, v in feats.state_dict().items()} | {"classifier.0.weight": torch.zeros(2, 2)}
+    save_file(sd, str(tmp_path / "vgg19.safetensors"))
+    torch.save(sd, tmp_path / "vgg19.pth")
+    for name in ("vgg19.safetensors", "vgg19.pth"):
+        loss = perceptual_loss(tmp_path / name)
+        assert isinstance(loss, VGGPerceptualLoss) and loss.kind == "vgg"
+        x = torch.rand(1, 3, 32, 32, requires_grad=True)
+        v = loss(x, torch.rand(1, 3, 32, 32))
+        v.backward()
+        assert float(v) > 0 and x.grad is not None
+    bad = dict(sd)
+    bad.pop("features.0.weight")
+    save_file(bad, str(tmp_path / "bad.safetensors"))
+    with pytest.raises(AssetError, match="bad.safetensors"):
+        load_vgg19_features(tmp_path / "bad.safetensors")
+    with pytest.raises(AssetError, match="missing"):
+        load_vgg19_features(tmp_path / "none.pth")
+
+
+def test_checkpoint_roundtrip_and_validation(tmp_path):
+    srm = _srm(2)
+    with torch.no_grad():
+        for p in srm.parameters():
+            p.add_(torch.randn_like(p) * 0.01)
+    save_srm(srm, tmp_path / "ck", extra={"note": "test"})
+    back = load_srm(tmp_path / "ck", device="cpu")
+    a, b = srm.net.state_dict(), back.net.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    rgb, alpha = _inputs(1, 24, 16)
+    assert torch.equal(srm.refine(rgb, alpha), back.refine(rgb, alpha))
+    man = json.loads((tmp_path / "ck" / "manifest.json").read_text())
+    assert man["format"] == "hogsa-srm" and man["schema_version"] == 1 and man["io"]["scale"] == 2
+    # validation: bad schema, torn tensors, missing file
+    (tmp_path / "v2").mkdir()
+    (tmp_path / "v2" / "manifest.json").write_text(json.dumps(man | {"schema_version": 2}))
+    with pytest.raises(AssetError, match="manifest.json.*schema_version"):
+        load_srm(tmp_path / "v2")
+    blob = bytearray((tmp_path / "ck" / "srm.safetensors").read_bytes())
+    blob[-1] ^= 1
+    (tmp_path / "ck" / "srm.safetensors").write_bytes(bytes(blob))
+    with pytest.raises(AssetError, match="srm.safetensors.*sha256"):
+        load_srm(tmp_path / "ck")
+    (tmp_path / "ck" / "srm.safetensors").unlink()
+    with pytest.raises(AssetError, match="srm.safetensors"):
+        load_srm(tmp_path / "ck")
+    with pytest.raises(AssetError, match="missing"):
+        load_srm(tmp_path / "nowhere")
+
+
+def test_few_steps_reduce_l1():
+    """Plain L1 training on a fixed blurred/darkened batch: the refined L1 drops."""
+    torch.manual_seed(0)
+    srm = _srm(1)
+    g = torch.Generator().manual_seed(1)
+    gt = torch.rand(4, 3, 32, 32, generator=g)
+    gt = torch.nn.functional.avg_pool2d(gt, 3, 1, 1)
+    alpha = torch.ones(4, 1, 32, 32)
+    coarse = torch.nn.functional.avg_pool2d(gt, 5, 1, 2) * 0.8
+    opt = torch.optim.Adam(srm.parameters(), lr=2e-3, betas=(0.0, 0.99))
+    with torch.no_grad():
+        l0 = float((srm(coarse, alpha, noise_mode="none") - gt).abs().mean())
+    for _ in range(25):
+        loss = (srm(coarse, alpha, z=torch.randn(4, 16)) - gt).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        l1 = float((srm(coarse, alpha, noise_mode="none") - gt).abs().mean())
+    assert l1 < 0.8 * l0, (l0, l1)
+
+
+# ----------------------------------------------------------------------------- trainer
+def _cli():
+    spec = importlib.util.spec_from_file_location("train_srm", ROOT / "pretrain" / "train_srm.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def hogs_runs(tiny_world, tmp_path_factory):
+    """A briefly trained HOGS run on the tiny world (64², few frames) inside a runs folder."""
+    from hogsa_loader.train import HogsConfig, HogsTrainer
+
+    runs = tmp_path_factory.mktemp("hogs_runs")
+    cfg = HogsConfig(data=str(tiny_world), subject="s01", object="box", out=str(runs / "s01_box"), iters=3, image_size=64,
+                     frame_stride=8, eval_every_frame=2, max_eval=2, eval_every=0, ckpt_every=0, lr_scale=10.0,
+                     k=1, sh_degree=0, sh_warmup=0, strip_views=1)  # fmt: skip
+    HogsTrainer(cfg, progress=False).train()
+    (runs / "unfinished").mkdir()  # skipped: no part manifests
+    return runs
+
+
+def _args(world, runs, out, iters):
+    return ["--data", str(world), "--hogs", str(runs), "--out", str(out), "--iters", str(iters), "--batch-size", "2",
+            "--crop", "32", "--channels", "8,16,16", "--eval-every", "0", "--ckpt-every", "2", "--strip-views", "1",
+            "--quiet"]  # fmt: skip
+
+
+def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
+    cli = _cli()
+    with pytest.warns(SubstituteWarning):
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "a", 4)) == 0
+    out = tmp_path / "a"
+    m = json.loads((out / "metrics.json").read_text())
+    for tag in ("without_srm", "with_srm"):
+        assert set(m[tag]) >= {"psnr", "ssim", "lpips"} and np.isfinite(m[tag]["psnr"])
+    assert m["perceptual"]["kind"] == "laplacian" and m["runs"][0]["name"] == "s01_box" and len(m["runs"]) == 1
+    assert m["per_view"] and all(r["view"] == 8 for r in m["per_view"])
+    assert (out / "samples.png").is_file() and (out / "curves.png").is_file()
+    assert list((out / "cache").glob("coarse_s01_box_*.safetensors"))
+    srm = load_srm(out)  # the run folder is a checkpoint folder
+    assert srm.refine(torch.zeros(1, 32, 32, 3), torch.zeros(1, 32, 32)).abs().max() == 0
+    assert any("r1" in h for h in json.loads(next((out / "checkpoints").glob("step_*/trainer.json")).read_text())["history"])
+    # interrupted at step 2 (checkpoint), resumed to 4: identical to the straight run
+    with pytest.warns(SubstituteWarning):
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 2)) == 0
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4) + ["--resume"]) == 0
+    a, b = load_srm(out).net.state_dict(), load_srm(tmp_path / "b").net.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    # refusing to overwrite a run without --resume
+    with pytest.warns(SubstituteWarning):
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4)) == 2
