@@ -92,7 +92,7 @@ def test_training_improves_and_writes_outputs(tiny_world, tmp_path):
 def test_alpha_outside_mask_goes_down(tiny_world, tmp_path):
     tr = HogsTrainer(_cfg(tiny_world, tmp_path / "run", iters=12, lr_scale=5.0), progress=False)
     with torch.no_grad():  # swollen object Gaussians spill over the background
-        tr.parts["object"].splats.log_scale_factor += 1.0
+        tr.parts["object"].splats.log_scale_factor += 1.5
     fixed = tr.data.train[:: max(1, len(tr.data.train) // 4)][:4]
 
     def outside() -> float:
@@ -180,3 +180,27 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     assert b["iters"] == 14 and a["psnr"] == b["psnr"] and a["ssim"] == b["ssim"]
     assert a["per_sample"] == b["per_sample"]
 
+
+
+def test_foreground_removed_before_resizing(tmp_path):
+    """The background is cut at native resolution, so resized edge pixels hold the
+    premultiplied foreground (what a render on black gives), never background colour."""
+    import cv2
+
+    from hogsa_loader.train.hogs_data import _read_foreground
+
+    img = np.zeros((8, 8, 3), np.uint8)
+    img[:] = (200, 200, 200)  # bright table
+    img[:, :3] = (0, 0, 250)  # BGR red foreground in columns 0..2
+    parts = np.zeros((8, 8), np.uint8)
+    parts[:, :3] = 1
+    cv2.imwrite(str(tmp_path / "i.png"), img)
+    cv2.imwrite(str(tmp_path / "m.png"), parts)
+    fg, mask = _read_foreground(tmp_path / "i.png", tmp_path / "m.png", 4)
+    # column 1 of the 4-px image covers native columns 2 (fg) and 3 (table): half red, no grey
+    np.testing.assert_array_equal(fg[:, 1], np.tile([125, 0, 0], (4, 1)))
+    np.testing.assert_array_equal(fg[:, 0], np.tile([250, 0, 0], (4, 1)))
+    assert (fg[:, 2:] == 0).all()
+    assert (mask[:, :2] == 1).all() and (mask[:, 2:] == 0).all()  # partial pixels keep a part id
+    fg_same, mask_same = _read_foreground(tmp_path / "i.png", tmp_path / "m.png", 8)
+    assert (fg_same[:, 3:] == 0).all() and (mask_same == parts).all()

@@ -149,15 +149,33 @@ def _crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> di
     return out
 
 
-def _read(path, size: int, flags: int, interp: int) -> np.ndarray:
-    img = cv2.imread(str(path), flags)
+def _read_foreground(image_path, mask_path, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Foreground image and part mask at ``size``.
+
+    The background is removed at the native resolution (image × (mask > 0)) *before*
+    resizing, so the area-averaged result is the premultiplied foreground over black —
+    what a render on black must match. Resizing first would mix the table into every
+    silhouette pixel. The part mask is resized by nearest neighbour, then every pixel with
+    partial foreground coverage gets a neighbouring part id (3×3 dilation), so no
+    foreground colour ends up outside the mask.
+    """
+    img = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
     if img is None:
-        raise FileNotFoundError(f"cannot read image {path}")
-    if img.shape[0] != size or img.shape[1] != size:
-        img = cv2.resize(img, (size, size), interpolation=interp)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    return img
+        raise FileNotFoundError(f"cannot read image {image_path}")
+    parts = cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED)
+    if parts is None:
+        raise FileNotFoundError(f"cannot read mask {mask_path}")
+    if parts.shape[:2] != img.shape[:2]:
+        parts = cv2.resize(parts, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
+    fg = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) * (parts > 0)[..., None].astype(np.uint8)
+    if fg.shape[0] == size and fg.shape[1] == size:
+        return fg, parts
+    fg = cv2.resize(fg, (size, size), interpolation=cv2.INTER_AREA)
+    cover = cv2.resize((parts > 0).astype(np.float32), (size, size), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(parts, (size, size), interpolation=cv2.INTER_NEAREST)
+    grown = cv2.dilate(small, np.ones((3, 3), np.uint8))
+    small = np.where((small == 0) & (cover > 0), grown, small)
+    return fg, small
 
 
 def load_hogs_data(
@@ -214,9 +232,8 @@ def load_hogs_data(
                 ip, mp = seq.image_paths[v][f], seq.mask_paths[v][f]
                 if ip is None or mp is None:
                     continue
-                s = ViewSample(si, f, v, _read(ip, size, cv2.IMREAD_COLOR, cv2.INTER_AREA),
-                               _read(mp, size, cv2.IMREAD_UNCHANGED, cv2.INTER_NEAREST),
-                               cam.world2cam[f].astype(np.float64), Ks[f])  # fmt: skip
+                image, mask = _read_foreground(ip, mp, size)
+                s = ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks[f])
                 (held if is_eval else train).append(s)
     if not train:
         raise ValueError(f"no training images for {subject}/{object_name}")
