@@ -32,7 +32,6 @@ import copy
 import hashlib
 import json
 import math
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -47,6 +46,7 @@ from torch import Tensor
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.train.run_folder import commit_checkpoint, latest_checkpoint
 from hogsa_loader.gaussians.hogs_model import PART_NAMES, HogsModel
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
@@ -470,26 +470,16 @@ class SRMTrainer:
         state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time,
                  "adam_g_groups": groups_g, "adam_d_groups": groups_d}  # fmt: skip
         atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
-        atomic_write(ck / "latest.json", (json.dumps({"step": self.step, "folder": folder.name}) + "\n").encode())
-        for old in ck.glob("step_*"):
-            if old.is_dir() and old.name != folder.name:
-                shutil.rmtree(old, ignore_errors=True)
+        commit_checkpoint(folder, self.step)
         return folder
 
     def resume(self) -> bool:
         """Load the latest checkpoint of the run folder (exact continuation); False if none."""
         from safetensors.torch import load_file
 
-        latest = self.out / "checkpoints" / "latest.json"
-        if not latest.is_file():
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE)
+        if folder is None:
             return False
-        saved = json.loads((self.out / "config.json").read_text())
-        now = self.cfg.to_json()
-        diff = [k for k in now if k not in SRMTrainConfig.RESUMABLE and saved.get(k) != now[k]]
-        if diff:
-            raise ValueError(f"cannot resume {self.out}: settings {diff} differ from the saved config.json")
-        info = json.loads(latest.read_text())
-        folder = self.out / "checkpoints" / info["folder"]
         self.g.net.load_state_dict(load_srm(folder / "g").net.state_dict())
         self.g_ema.net.load_state_dict(load_srm(folder / "g_ema").net.state_dict())
         tensors = load_file(str(folder / "trainer.safetensors"))

@@ -22,7 +22,6 @@ No pickle anywhere; every file is written atomically.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, s
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.train.run_folder import commit_checkpoint, latest_checkpoint
 from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.losses import hogs_loss
@@ -321,26 +321,16 @@ class HogsTrainer:
         atomic_write(folder / "trainer.safetensors", st_save(tensors))
         state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time}
         atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
-        atomic_write(ck / "latest.json", (json.dumps({"step": self.step, "folder": folder.name}) + "\n").encode())
-        for old in ck.glob("step_*"):
-            if old.is_dir() and old.name != folder.name:
-                shutil.rmtree(old, ignore_errors=True)
+        commit_checkpoint(folder, self.step)
         return folder
 
     def resume(self) -> bool:
         """Load the latest checkpoint of the run folder; False when there is none."""
         from safetensors.torch import load_file
 
-        latest = self.out / "checkpoints" / "latest.json"
-        if not latest.is_file():
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE)
+        if folder is None:
             return False
-        saved = json.loads((self.out / "config.json").read_text())
-        now = self.cfg.to_json()
-        diff = [k for k in now if k not in HogsConfig.RESUMABLE and saved.get(k) != now[k]]
-        if diff:
-            raise ValueError(f"cannot resume {self.out}: settings {diff} differ from the saved config.json")
-        info = json.loads(latest.read_text())
-        folder = self.out / "checkpoints" / info["folder"]
         for name, part in self.parts.items():
             load_state(part, folder / name)
         if self.model.light is not None:
