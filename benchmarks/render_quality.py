@@ -11,6 +11,11 @@ Example::
 
     python benchmarks/render_quality.py --data ./hogsa_world/arctic_data/data \
         --run runs/s01_box_mesh --run runs/s01_box_free --json quality.json --png quality.png
+    python benchmarks/render_quality.py --dataset h2o --data H2O_ROOT --mano-dir MANO_DIR \
+        --object-mesh-dir H2O_ROOT/object --run runs/h2o_s1_book --json quality.json
+
+``--data``, ``--mano-dir`` and ``--object-mesh-dir`` default to the paths in each run's
+``config.json``; the dataset (ARCTIC or H2O) is the run's (``--dataset`` checks it).
 
 JSON: ``psnr``, ``ssim``, ``lpips`` (null when unavailable, with ``lpips_note``) and
 ``per_view`` of the first run; ``runs`` (every run's metrics, labelled by its Gaussians
@@ -29,15 +34,18 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
-from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.gaussians.hogs_model import HogsModel
-from hogsa_loader.train.hogs_data import HogsData, ViewSample, load_hogs_data
+from hogsa_loader.train.hogs_data import HogsData, ViewSample
 from hogsa_loader.train.hogs_eval import evaluate_samples, load_lpips
+from hogsa_loader.train.hogs_source import HogsSource, load_run_data
 
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="dataset root the runs were trained on")
+    p.add_argument("--data", default=None, help="dataset root the runs were trained on (default: the runs' config.json)")
+    p.add_argument("--dataset", default=None, choices=["arctic", "h2o"], help="check that the runs are of this dataset")
+    p.add_argument("--mano-dir", default=None, help="H2O: MANO folder (default: the run's)")
+    p.add_argument("--object-mesh-dir", default=None, help="H2O: object mesh folder (default: the run's)")
     p.add_argument("--run", action="append", required=True, help="HOGS run folder (repeat to compare)")
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
@@ -48,15 +56,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def load_split(root: ArcticRoot, cfg: dict[str, Any], max_eval: int) -> HogsData:
-    """The held-out split of a run, rebuilt from its ``config.json`` settings."""
-    if cfg.get("dataset", "arctic") != "arctic":
-        raise SystemExit(f"render_quality: dataset {cfg.get('dataset')!r} runs are not supported by this script yet")
-    return load_hogs_data(
-        root, cfg["subject"], cfg["object"], sequences=cfg.get("sequences"), eval_views=cfg["eval_views"],
-        eval_every_frame=cfg["eval_every_frame"], frame_stride=cfg.get("frame_stride", 1),
-        image_size=cfg.get("image_size"), max_eval=max_eval,
-    )  # fmt: skip
+def load_split(a: argparse.Namespace, run: str, cfg: dict[str, Any]) -> tuple[HogsSource, HogsData]:
+    """The run's dataset and held-out split, rebuilt from its ``config.json`` settings."""
+    dataset = cfg.get("dataset", "arctic")
+    if a.dataset is not None and a.dataset != dataset:
+        raise SystemExit(f"render_quality: run {run} was trained on {dataset!r}, not {a.dataset!r}")
+    return load_run_data(cfg, data=a.data, mano_dir=a.mano_dir, object_mesh_dir=a.object_mesh_dir, max_eval=a.max_eval)
 
 
 def render_fn(model: HogsModel, data: HogsData, device: torch.device):
@@ -73,8 +78,8 @@ def render_fn(model: HogsModel, data: HogsData, device: torch.device):
     return fn
 
 
-def margin_px(root: ArcticRoot, cfg: dict[str, Any], size: int) -> int:
-    return int(round(cfg.get("margin", 4) * size / root.world_meta().cropped_size))
+def margin_px(cfg: dict[str, Any], data: HogsData) -> int:
+    return int(round(cfg.get("margin", 4) * data.image_size / data.crop_size))
 
 
 def summary(ev: dict[str, Any]) -> dict[str, Any]:
@@ -107,23 +112,21 @@ def write_png(path: Path, columns: list[list[tuple[torch.Tensor, torch.Tensor]]]
 def main(argv: Optional[Sequence[str]] = None) -> int:
     a = parse_args(argv)
     device = torch.device(a.device)
-    root = ArcticRoot(a.data)
-    layers, templates = root.mano_layers(), root.object_templates()
     lpips_fn, lpips_note = load_lpips(device)
     keep = a.png_rows if a.png else 0
     runs, columns, labels = [], [], ["GT"]
     first: Optional[tuple[HogsModel, HogsData, int]] = None
     for run in a.run:
         cfg = json.loads((Path(run) / "config.json").read_text())
-        model = HogsModel.from_run(run, layers, templates, device=device).eval()
-        data = load_split(root, cfg, a.max_eval)
-        m = margin_px(root, cfg, data.image_size)
+        source, data = load_split(a, run, cfg)
+        model = HogsModel.from_run(run, source.mano_layers, source.object_templates, device=device).eval()
+        m = margin_px(cfg, data)
         t0 = time.perf_counter()
         ev = evaluate_samples(render_fn(model, data, device), data.eval, [s.name for s in data.sequences], m,
                               lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
         dt = time.perf_counter() - t0
         label = cfg.get("gaussians", "mesh")
-        runs.append({"label": label, "run": str(run), "subject": cfg["subject"], "object": cfg["object"],
+        runs.append({"label": label, "run": str(run), "dataset": source.dataset, "subject": cfg["subject"], "object": cfg["object"],
                      "iters": cfg.get("iters"), "image_size": data.image_size, "num_gaussians": model.num_gaussians,
                      "eval_views": list(data.eval_views), "s_per_image": dt / max(1, len(data.eval)),
                      **summary(ev), "per_sample": ev["per_sample"]})  # fmt: skip

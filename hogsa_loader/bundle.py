@@ -6,9 +6,12 @@ A bundle is what ``pretrain/build_bundle.py`` writes and what
     BUNDLE/
       manifest.json
       hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
-      srm/<name>                optional super-resolution checkpoint (file or folder, copied as is)
+      srm/<name>                optional super-resolution checkpoint (file or folder)
       contactnet/<name>         optional ContactNet checkpoint (file or folder)
       pose_banks/<name>         optional pose banks (files or folders)
+
+Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
+run's ``checkpoints/`` history and caches stay behind.
 
 ``manifest.json`` (schema version 1):
 
@@ -243,11 +246,17 @@ def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
 
 
 def _copy(src: Path, dst: Path) -> None:
+    """Copy a file, or the *top-level files* of a folder: a checkpoint folder keeps its
+    manifest and tensors there, while a run folder's sub-folders (``checkpoints/`` history,
+    render caches) are not part of the checkpoint and stay behind."""
     if dst.exists():
         shutil.rmtree(dst) if dst.is_dir() else dst.unlink()
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.is_dir():
-        shutil.copytree(src, dst)
+        dst.mkdir()
+        for f in sorted(src.iterdir()):
+            if f.is_file():
+                shutil.copy2(f, dst / f.name)
     else:
         shutil.copy2(src, dst)
 

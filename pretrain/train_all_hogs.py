@@ -46,7 +46,10 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
         i = argv.index("--")
         argv, rest = argv[:i], argv[i + 1 :]
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="ARCTIC(-format) data root")
+    p.add_argument("--data", required=True, help="ARCTIC(-format) data root, or an H2O root with --dataset h2o")
+    p.add_argument("--dataset", default="arctic", choices=["arctic", "h2o"],
+                   help="h2o: pairs are (subject, object class) of every sequence; pass --mano-dir and "
+                        "--object-mesh-dir to train_hogs.py after --")  # fmt: skip
     p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per subject_object)")
     p.add_argument("--protocol", default="p1")
     p.add_argument("--split", default="all", choices=["all", "train", "val", "test"],
@@ -81,6 +84,28 @@ def list_pairs(root: ArcticRoot, a: argparse.Namespace) -> list[tuple[str, str, 
             continue
         pairs.setdefault((sid, obj), []).append(seq)
     return [(sid, obj, sorted(s)) for (sid, obj), s in sorted(pairs.items())]
+
+
+def list_h2o_pairs(root: Any, a: argparse.Namespace) -> list[tuple[str, str, list[str]]]:
+    """Sorted ``(subject, object, ["scene/seq", ...])`` of an H2O root: the object classes each
+    sequence's ``obj_pose_rt`` labels show (H2O splits by subject: select with ``--subjects``)."""
+    from hogsa_loader.datasets.h2o import H2O_EGO_CAMERA, H2O_OBJECT_NAMES
+
+    if a.split != "all":
+        raise SystemExit("train_all_hogs: H2O splits by subject; use --subjects instead of --split")
+    subjects = set(a.subjects.split(",")) if a.subjects else None
+    objects = set(a.objects.split(",")) if a.objects else None
+    pairs: dict[tuple[str, str], list[str]] = {}
+    for sid in root.subjects():
+        if subjects and sid not in subjects:
+            continue
+        for _, scene, seq in root.sequences(sid):
+            cls, _ = root.read_obj_poses(sid, scene, seq, H2O_EGO_CAMERA, root.frames(sid, scene, seq, H2O_EGO_CAMERA))
+            for c in sorted(set(cls.tolist()) - {0}):
+                obj = H2O_OBJECT_NAMES[c]
+                if not objects or obj in objects:
+                    pairs.setdefault((sid, obj), []).append(f"{scene}/{seq}")
+    return [(sid, obj, sorted(v)) for (sid, obj), v in sorted(pairs.items())]
 
 
 def array_slot(a: argparse.Namespace) -> tuple[int, int]:
@@ -122,7 +147,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     out = Path(a.out)
     if a.gpus:
         gpus = [g for g in a.gpus.split(",") if g]
-        base = ["--data", a.data, "--out", a.out, "--protocol", a.protocol, "--split", a.split]
+        base = ["--data", a.data, "--out", a.out, "--protocol", a.protocol, "--split", a.split, "--dataset", a.dataset]
         for flag, val in (("--subjects", a.subjects), ("--objects", a.objects), ("--sequences-like", a.sequences_like)):
             if val:
                 base += [flag, val]
@@ -135,8 +160,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         write_summary(out)
         return max(codes)
-    root = ArcticRoot(a.data)
-    pairs = list_pairs(root, a)
+    if a.dataset == "h2o":
+        from hogsa_loader.datasets.h2o import H2ORoot
+
+        pairs = list_h2o_pairs(H2ORoot(a.data), a)
+    else:
+        pairs = list_pairs(ArcticRoot(a.data), a)
     if not pairs:
         print("train_all_hogs: no (subject, object) pair matches the selection", file=sys.stderr)
         return 2
@@ -157,7 +186,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"  {run.name}: {'resuming' if resume else 'training'} on {seqs}")
         if a.dry_run:
             continue
-        args = ["--data", a.data, "--subject", sid, "--object", obj, "--out", str(run), "--sequences", ",".join(seqs)]
+        args = ["--data", a.data, "--dataset", a.dataset, "--subject", sid, "--object", obj, "--out", str(run),
+                "--sequences", ",".join(seqs)]  # fmt: skip
         code = train_one(args + (["--resume"] if resume else []) + rest)
         if code:
             failed.append(run.name)

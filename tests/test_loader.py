@@ -255,3 +255,101 @@ def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):
     ds = _dataset(bundle_dir, tiny_world, poses="bank", pose_options={"banks": [tmp_path / "bank"]})
     fr = [f for f in ds.frames(0) if f is not None]
     assert fr and all(f.meta["pose_source"] == "bank" and f.meta["row"] == 1 for f in fr)
+
+
+def test_online_pose_source(bundle_dir, tiny_world, tmp_path):
+    """poses="online": seeded perturbation + batched POM per render batch, reproducible,
+    POM-dropped samples counted, and the optimisation moves the hands off the source frame."""
+    from hogsa_loader.bundle import load_bundle
+    from hogsa_loader.loader.online_poses import OnlinePoses
+    from hogsa_loader.loader.poses import PoseContext
+    from hogsa_loader.pom.contactnet import ContactNet, ContactNetConfig, save_contactnet
+
+    root = ArcticRoot(tiny_world)
+    ctx = PoseContext(root=root, keys=[("s01", "box")], bundle=load_bundle(bundle_dir))
+    with pytest.raises(AssetError, match="needs a ContactNet"):
+        OnlinePoses(ctx)
+    torch.manual_seed(0)
+    save_contactnet(ContactNet(ContactNetConfig()), tmp_path / "cn", {})
+    src = OnlinePoses(ctx, contactnet=tmp_path / "cn", iters=5)
+    rngs = lambda: [np.random.default_rng([9, i]) for i in range(3)]  # noqa: E731
+    raw = src.sample(("s01", "box"), rngs())
+    assert all(p["pose_source"] == "online" and "pom_seed" in p for p in raw.provenance)
+    fr = src.frames[("s01", "box")]
+    r0 = raw.provenance[0]["row"]
+    torch.testing.assert_close(raw.poses["right_trans"][0], fr.state.hands["right"].trans[r0].double())
+    a = src.optimize(("s01", "box"), raw)
+    b = src.optimize(("s01", "box"), src.sample(("s01", "box"), rngs()))
+    for k in a.poses:
+        torch.testing.assert_close(a.poses[k], b.poses[k])  # same seeds -> same grasps
+    moved = (a.poses["right_trans"] - raw.poses["right_trans"]).norm(dim=1)
+    assert (moved > 1e-4).all()  # perturbed + optimised, not the source frame
+    # the object stays where the (seeded) perturbation put it: POM optimises the hands only
+    from hogsa_loader.pom.perturb import perturb
+
+    start = perturb(fr.state.select([r0]), src.infos, src.objects,
+                    torch.Generator().manual_seed(raw.provenance[0]["pom_seed"]), src.perturb_config)[0]
+    torch.testing.assert_close(a.poses["obj_trans"][:1], start.obj_trans.double())
+    torch.testing.assert_close(a.poses["obj_rot"][:1], start.obj_rot.double())
+    # end to end through the dataset: the POM stage is timed, every attempt kept or counted
+    ds = _dataset(bundle_dir, tiny_world, poses="online", pose_options={"contactnet": tmp_path / "cn", "iters": 3})
+    frames = ds.frames(0)
+    st = ds.stats
+    assert st.seconds.get("pom", 0.0) > 0
+    assert sum(f is not None for f in frames) + sum(st.dropped.values()) == st.attempted == 4
+    assert all(f.meta["pose_source"] == "online" for f in frames if f is not None)
+
+
+def test_interfield_targets_on_synthetic_and_real_samples_match(bundle_dir, tiny_world):
+    """interfield=True adds the same keys, shapes and dtypes to synthetic and real samples,
+    and the synthetic field is that of the rendered (posed) meshes."""
+    from hogsa_loader.datasets.interfield import INTERFIELD_KEYS
+
+    ds = _dataset(bundle_dir, tiny_world, interfield=True, seed=5)
+    fr = [f for f in ds.frames(0) if f is not None]
+    assert fr
+    syn = ds.to_sample(fr[0])
+    real = ArcticDataset(tiny_world, split="p1_train", config=CFG, interfield=True)[0]
+    for s, r in zip(syn, real):
+        assert list(s) == list(r)  # same keys, same order
+        for k in r:
+            assert _describe(s[k]) == _describe(r[k]), k
+    assert set(INTERFIELD_KEYS) <= set(syn[1])
+    # the grasp source frames touch the object: some hand vertex within a centimetre
+    assert min(float(syn[1]["dist.ro"].min()), float(syn[1]["dist.lo"].min())) < 0.01
+
+
+def test_egocentric_protocol_p2(bundle_dir, tiny_world):
+    """protocol="p2": the subject's head camera, the whole frame; samples match real p2
+    samples key for key (egocentric patch K, dist kept), pinhole labels lie on the alpha,
+    and the lens distortion moves pixels but never labels (ARCTIC's view-0 convention)."""
+    kw = dict(protocol="p2", seed=2, num_samples=8)
+    pin = _dataset(bundle_dir, tiny_world, ego_distortion=False, **kw)
+    dis = _dataset(bundle_dir, tiny_world, ego_distortion=True, **kw)
+    fp = [f for f in pin.frames(0) if f is not None]
+    fd = [f for f in dis.frames(0) if f is not None]
+    assert len(fp) >= 3 and [f.imgname for f in fp] == [f.imgname for f in fd]
+    real = ArcticDataset(tiny_world, split="p2_train", config=CFG, seed=0)[0]
+    syn = pin.to_sample(fp[0])
+    for s, r in zip(syn, real):
+        assert list(s) == list(r)
+        for k in r:
+            assert _describe(s[k]) == _describe(r[k]), k
+    torch.testing.assert_close(syn[2]["intrinsics"], real[2]["intrinsics"])  # same ego camera, same patch K
+    assert np.isfinite(np.asarray(syn[2]["dist"])).all()
+    # the box centre is the frame centre, in pixels of each one's image (sizes differ)
+    W = fp[0].image.shape[1]
+    cs, cr = np.asarray(syn[2]["center"], np.float64), np.asarray(real[2]["center"], np.float64)
+    assert cs[0] == pytest.approx(W / 2) and cs[1] / cs[0] == pytest.approx(cr[1] / cr[0], rel=1e-3)
+    hits = []
+    for a, b in zip(fp, fd):
+        assert a.egocentric and a.meta["camera"] == "egocentric" and a.meta["view"] == 0
+        W = a.image.shape[1]
+        assert W == pin.render_size and a.bbox[2] * 200 == pytest.approx(W)  # whole frame, side = width
+        np.testing.assert_array_equal(a.right.j2d, b.right.j2d)  # labels: undistorted either way
+        assert np.abs(a.alpha - b.alpha).max() > 0.1  # pixels: distorted in one of them
+        for h in (a.right, a.left):
+            ok = (h.j2d >= 0).all(1) & (h.j2d[:, 0] <= W - 1) & (h.j2d[:, 1] <= a.image.shape[0] - 1)
+            hits.extend(joints_on_alpha(h.j2d[ok], a.alpha, radius=0))
+    assert len(hits) >= 60 and float(np.mean(hits)) >= 0.99
+    assert pin.aug_params(3).sc == 1.0  # ARCTIC forces sc = 1 for egocentric samples

@@ -204,3 +204,28 @@ def test_foreground_removed_before_resizing(tmp_path):
     assert (mask[:, :2] == 1).all() and (mask[:, 2:] == 0).all()  # partial pixels keep a part id
     fg_same, mask_same = _read_foreground(tmp_path / "i.png", tmp_path / "m.png", 8)
     assert (fg_same[:, 3:] == 0).all() and (mask_same == parts).all()
+
+
+def test_alpha_inside_term_makes_translucent_silhouettes_cost():
+    """On a black background a half-transparent render with doubled colour matches the GT
+    photometrically; only the alpha-inside term tells it from an opaque one."""
+    H = W = 16
+    mask = torch.zeros(1, H, W, dtype=torch.bool)
+    mask[:, 4:12, 4:12] = True
+    gt = torch.zeros(1, H, W, 3)
+    gt[mask] = 0.4
+    region = dilate_mask(mask, 2)
+    inside = ~dilate_mask(~mask, 1)
+    l_r = torch.zeros(())
+    opaque_a = mask.float()
+    half_a = mask.float() * 0.5
+    # premultiplied renders: both equal the GT colour-wise
+    for kw in ({}, {"inside": inside, "lambda_alpha_in": 0.0}):
+        lo, _ = hogs_loss(gt, gt, opaque_a, region, l_r, **kw)
+        lh, _ = hogs_loss(gt, gt, half_a, region, l_r, **kw)
+        assert float(lo) == pytest.approx(float(lh), abs=1e-7)  # indistinguishable without the term
+    lo, to = hogs_loss(gt, gt, opaque_a, region, l_r, inside=inside, lambda_alpha_in=1.0)
+    lh, th = hogs_loss(gt, gt, half_a, region, l_r, inside=inside, lambda_alpha_in=1.0)
+    assert to["alpha_in"] == pytest.approx(0.0) and th["alpha_in"] == pytest.approx(0.5)
+    assert float(lh) - float(lo) == pytest.approx(0.5, abs=1e-6)
+    assert int(inside.sum()) == 36  # the 8x8 mask eroded by one pixel

@@ -19,6 +19,7 @@ Environment: on Linux, preloading tcmalloc speeds up large CPU tensor work (see 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -147,6 +148,31 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from hogsa_loader.demo import DemoConfig, run_demo
+
+    cfg = DemoConfig(seed=args.seed, data=args.data, samples=args.samples, num_workers=args.workers, backgrounds=args.backgrounds,
+                     coco_root=args.coco_root, coco_ann=args.coco_ann, progress=not args.quiet)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    run_demo(args.out, cfg, log=None if args.quiet else print)
+    return 0
+
+
+def _cmd_h2o_export(args: argparse.Namespace) -> int:
+    from hogsa_loader.world.h2o_export import export_h2o_world
+
+    w, h = (int(v) for v in args.image_size.split("x"))
+    rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
+                           object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
+                           frame_stride=args.frame_stride)
+    if not args.quiet:
+        print(json.dumps(rec, indent=1, default=str)[:2000])
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
@@ -200,6 +226,37 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     e.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     e.set_defaults(func=_cmd_export)
+
+    d = sub.add_parser("demo", help="the main job: world, brief HOGS/ContactNet/POM/SRM training, bundle, stream",
+                       description="Build (or reuse, cached per stage) the small world and a small bundle, stream "
+                       "synthetic samples through a DataLoader, write samples.png (synthetic next to real, 2D labels "
+                       "drawn), batch.npz and demo.json, and print the throughput.")
+    d.add_argument("--out", default="./hogsa_demo", help="demo folder (reused as a cache on later runs)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--data", default=None, help="use this ARCTIC(-format) data root instead of building the small world")
+    d.add_argument("--samples", type=int, default=64, help="synthetic samples to stream")
+    d.add_argument("--workers", type=int, default=2, help="DataLoader workers rendering on the CPU")
+    d.add_argument("--threads", type=int, default=0, help="torch CPU threads of the main process (0 = default)")
+    d.add_argument("--backgrounds", default=None, help="image folder for backgrounds (default: photographs "
+                   "shipped with scikit-image)")
+    d.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
+    d.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
+    d.add_argument("--quiet", action="store_true", help="no progress bars or messages")
+    d.set_defaults(func=_cmd_demo)
+
+    h = sub.add_parser("h2o-export", help="write one grab sequence of a generated world in the H2O layout",
+                       description="Convert a world sequence into an H2O tree (cam0-3 static, cam4 egocentric, MANO and "
+                       "obj_pose_rt labels, rgb frames, the object mesh under its H2O name) to try H2O code paths.")
+    h.add_argument("--world", required=True, help="the world's data root (ARCTIC ./data)")
+    h.add_argument("--out", required=True, help="H2O root to write")
+    h.add_argument("--subject", default="s05")
+    h.add_argument("--sequence", default="box_grab_01", help="a grab sequence (constant articulation)")
+    h.add_argument("--object-class", default="book", help="H2O class the object plays")
+    h.add_argument("--mesh-name", default=None, help="mesh folder/file name variant (default: the class's last known)")
+    h.add_argument("--image-size", default="320x180", help="WxH of the rendered frames")
+    h.add_argument("--frame-stride", type=int, default=4)
+    h.add_argument("--quiet", action="store_true")
+    h.set_defaults(func=_cmd_h2o_export)
     return p
 
 

@@ -38,7 +38,7 @@ import logging
 import random
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping, Optional, Union
 
 import cv2
 import numpy as np
@@ -47,6 +47,7 @@ from torch.utils.data import Dataset
 from hogsa_loader.datasets.arctic import ArcticRoot, canonical_split
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams, patch_intrinsics, sample_aug_params
 from hogsa_loader.datasets.conventions import EGO_VIEW, cropped_bbox, full_to_cropped
+from hogsa_loader.datasets.interfield import interfield_targets
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.errors import AssetError, PathLike
 
@@ -144,6 +145,10 @@ class ArcticDataset(Dataset):
         config: sample settings; ``use_gt_k`` and ``ego_image_scale`` are overridden by
             the argument and by the dataset's ``world_meta()`` respectively.
         epoch: initial epoch (see :meth:`set_epoch`).
+        interfield: add InterField-SF's interaction-field targets (``dist.*``, ``idx.*``,
+            ``object.v_len``) computed from the frame's annotated meshes
+            (:mod:`~hogsa_loader.datasets.interfield`): False (default), True (no clamp) or
+            the clamp in metres (0.1 for InterField-SF).
 
     Attributes:
         root: the :class:`~hogsa_loader.datasets.arctic.ArcticRoot` read from.
@@ -166,6 +171,7 @@ class ArcticDataset(Dataset):
         cache_ego_k: bool = True,
         config: Optional[ArcticConfig] = None,
         epoch: int = 0,
+        interfield: Union[bool, float] = False,
     ) -> None:
         if "_" not in split:
             raise ValueError(f"split must look like 'p1_train', got {split!r}")
@@ -194,6 +200,7 @@ class ArcticDataset(Dataset):
         self.missing_images = 0
         self.missing_image_paths: list[str] = []
         self.ego_patch_k: Optional[np.ndarray] = None
+        self._interfield = interfield_targets(self.root, interfield)
         if cache_ego_k:
             for name in self.imgnames:
                 if parse_imgname(name)[2] == EGO_VIEW:
@@ -318,7 +325,7 @@ class ArcticDataset(Dataset):
         path = self.image_path(imgname)
         image = self._read_image(path) if load_rgb else None
         aug = self.aug_params(index)
-        return make_arctic_sample(
+        sample = make_arctic_sample(
             image=image,
             bbox=self.image_bbox(bbox_full, view),
             K_full=self._full_k(sid, view, vidx, seq_data),
@@ -334,3 +341,18 @@ class ArcticDataset(Dataset):
             cfg=self.cfg,
             ego_patch_k=self.ego_patch_k,
         )
+        if self._interfield is not None:
+            sample[1].update(self._interfield(self._world_poses(params, vidx), [obj_name])[0])
+        return sample
+
+    @staticmethod
+    def _world_poses(params: Mapping[str, Any], vidx: int) -> dict[str, np.ndarray]:
+        """World-frame MANO and object parameters of GT frame ``vidx`` (object translation in m)."""
+        out = {}
+        for side, s in (("right", "r"), ("left", "l")):
+            for key, src in (("rot", "rot"), ("pose", "pose"), ("trans", "trans"), ("betas", "shape")):
+                out[f"{side}_{key}"] = np.asarray(params[f"{src}_{s}"][vidx : vidx + 1], dtype=np.float64)
+        out["obj_arti"] = np.asarray(params["obj_arti"][vidx : vidx + 1], dtype=np.float64).reshape(1, 1)
+        out["obj_rot"] = np.asarray(params["obj_rot"][vidx : vidx + 1], dtype=np.float64)
+        out["obj_trans"] = np.asarray(params["obj_trans"][vidx : vidx + 1], dtype=np.float64) / 1000.0
+        return out

@@ -15,6 +15,7 @@ import numpy as np
 
 __all__ = [
     "ALLO_VIEWS",
+    "HAND_BONES",
     "BBOX_PIXELS_PER_SCALE",
     "CROP_ENLARGE",
     "CROPPED_SIZE",
@@ -34,6 +35,13 @@ __all__ = [
     "transform",
     "validity_flags",
 ]
+
+#: (parent, child) pairs of the 21 ARCTIC/MANO joints (ARCTIC's joint order: wrist, then
+#: index, middle, pinky, ring, thumb chains of three, then the five tips 16..20).
+HAND_BONES: tuple[tuple[int, int], ...] = (
+    (0, 1), (1, 2), (2, 3), (3, 17), (0, 4), (4, 5), (5, 6), (6, 18), (0, 7), (7, 8), (8, 9), (9, 20),
+    (0, 10), (10, 11), (11, 12), (12, 19), (0, 13), (13, 14), (14, 15), (15, 16),
+)
 
 #: View 0 is the egocentric camera, 1..8 the allocentric ones (§1.3).
 EGO_VIEW: int = 0

@@ -229,8 +229,10 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
         valid=float(lab["obj.valid"]), kp_bottom_cano=lab["obj.kp_bottom_cano"],
     )
     size = lab["image_size"]
+    meta = dict(info.get("meta") or {})
     return SynthFrame(
         image=image, alpha=alpha, part_alpha=part_alpha, bbox=lab["bbox"], K_full=lab["K_full"],
         image_size=(int(size[0]), int(size[1])), right=hand("right"), left=hand("left"), obj=obj,
-        imgname=str(info["imgname"]), meta=dict(info.get("meta") or {}),
+        imgname=str(info["imgname"]), meta=meta, egocentric=bool(meta.get("egocentric", False)),
+        dist=None if meta.get("dist") is None else np.asarray(meta["dist"], dtype=np.float64),
     )

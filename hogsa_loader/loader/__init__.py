@@ -4,6 +4,8 @@
 * :mod:`~hogsa_loader.loader.cameras` — novel / dataset cameras (:class:`CameraSampler`);
 * :mod:`~hogsa_loader.loader.poses` — pluggable pose sources (``"perturb"``, registry);
 * :mod:`~hogsa_loader.loader.bank_poses` — ``"bank"``: POM-optimised grasps of pose banks;
+* :mod:`~hogsa_loader.loader.online_poses` — ``"online"``: POM run per render batch;
+* :mod:`~hogsa_loader.loader.viz` — samples with their 2D labels drawn (grids);
 * :mod:`~hogsa_loader.loader.synth` — the batched pipeline (:class:`SynthPipeline`);
 * :mod:`~hogsa_loader.loader.dataset` — :class:`HOGSADataset` (torch IterableDataset);
 * :mod:`~hogsa_loader.loader.mixing` — :class:`MixedLoader` (exact synthetic share per batch).
@@ -14,6 +16,7 @@ from hogsa_loader.loader.cameras import CameraConfig, CameraSampler
 from hogsa_loader.loader.dataset import HOGSADataset, shard_info
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.mixing import MixedLoader, num_synthetic
+from hogsa_loader.loader.online_poses import OnlinePoses
 from hogsa_loader.loader.poses import PoseBatch, PoseContext, PoseSource, register_pose_source
 from hogsa_loader.loader.synth import (
     SampleChecks,
@@ -30,6 +33,7 @@ __all__ = [
     "CameraSampler",
     "HOGSADataset",
     "MixedLoader",
+    "OnlinePoses",
     "PoseBatch",
     "PoseContext",
     "PoseSource",

@@ -48,10 +48,12 @@ from torch.utils.data import IterableDataset, get_worker_info
 from hogsa_loader.bundle import Bundle, load_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot, protocol_views
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams, sample_aug_params
+from hogsa_loader.datasets.interfield import interfield_targets
 from hogsa_loader.errors import PathLike
 from hogsa_loader.loader.cameras import CameraConfig, CameraSampler
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.poses import PoseContext, make_pose_source
+from hogsa_loader.loader.views import EgoCameras
 from hogsa_loader.loader.synth import (
     STREAM_AUG,
     Refiner,
@@ -97,7 +99,8 @@ class HOGSADataset(IterableDataset):
         categories: COCO category names to draw backgrounds from.
         backgrounds: an explicit background source (overrides the four arguments above);
             without any, procedural backgrounds are used (with a warning).
-        poses: pose source name (``"perturb"``; ``"bank"``/``"online"`` once registered,
+        poses: pose source name (``"perturb"``, ``"bank"`` (pose banks of the bundle),
+            ``"online"`` (POM per render batch with the bundle's ContactNet),
             see :mod:`~hogsa_loader.loader.poses`) or a pose-source object.
         pose_options: keyword arguments of the pose-source factory.
         srm: refine renders with the bundle's SRM (:func:`hogsa_loader.srm.load_srm`,
@@ -107,7 +110,12 @@ class HOGSADataset(IterableDataset):
         device: where rendering runs (``"cpu"`` or ``"cuda[:i]"``); see module docstring.
         batch_size: render batch (samples per render call, one model per batch).
         seed: base seed of every random draw.
-        protocol: ``"p1"`` (allocentric; ``"p2"`` egocentric is not supported yet).
+        protocol: ``"p1"`` (allocentric: novel + dataset cameras, ARCTIC crops) or ``"p2"``
+            (egocentric: the subject's head camera of the pose's source frame, the whole
+            frame, ARCTIC's egocentric sample rules; see :mod:`~hogsa_loader.loader.views`).
+        ego_distortion: ``p2``: pass the pixels through the egocentric lens distortion as in
+            ARCTIC's images (labels stay undistorted, as ARCTIC's view-0 targets); False
+            renders pinhole images whose pixels match the labels exactly.
         split: split whose sequences the pose source may use.
         subjects, objects: restrict the (subject, object) models used.
         cameras: :class:`~hogsa_loader.loader.cameras.CameraConfig`.
@@ -122,6 +130,10 @@ class HOGSADataset(IterableDataset):
         checks: :class:`~hogsa_loader.loader.synth.SampleChecks` (when samples are dropped).
         backend: renderer backend (``"auto"``, ``"torch"``, ``"gsplat"``).
         epoch: initial epoch (:meth:`set_epoch`).
+        interfield: add InterField-SF's interaction-field targets (``dist.*``, ``idx.*``,
+            ``object.v_len``; :mod:`~hogsa_loader.datasets.interfield`): False (default),
+            True (no clamp, as ArcticNet-SF) or the clamp in metres (InterField-SF: 0.1).
+            Give the real :class:`ArcticDataset` the same value so the key sets match.
 
     Attributes:
         bundle: the :class:`Bundle`; keys: the (subject, object) models used;
@@ -157,10 +169,12 @@ class HOGSADataset(IterableDataset):
         checks: Optional[SampleChecks] = None,
         backend: str = "auto",
         epoch: int = 0,
+        interfield: Union[bool, float] = False,
+        ego_distortion: bool = True,
     ) -> None:
         super().__init__()
-        if protocol != "p1":
-            raise NotImplementedError(f"protocol {protocol!r}: only the allocentric protocol 'p1' is supported so far")
+        if protocol not in ("p1", "p2"):
+            raise ValueError(f"protocol must be 'p1' (allocentric) or 'p2' (egocentric), got {protocol!r}")
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         self.data_root = data_root
@@ -191,6 +205,8 @@ class HOGSADataset(IterableDataset):
         self.num_samples = None if num_samples is None else int(num_samples)
         self.checks = checks if checks is not None else SampleChecks()
         self.backend = backend
+        self.interfield = interfield
+        self.ego_distortion = bool(ego_distortion)
         keys = [k for k in self.bundle.keys
                 if (subjects is None or k[0] in subjects) and (objects is None or k[1] in objects)]
         if not keys:
@@ -241,8 +257,11 @@ class HOGSADataset(IterableDataset):
             bgs = self.backgrounds if self.backgrounds is not None else make_backgrounds(**self.background_args)
             layers = self.root.mano_layers()
             templates = self.root.object_templates()
-            cams = {}
+            cams: dict[str, Any] = {}
             for sid in sorted({k[0] for k in self.keys}):
+                if self.protocol == "p2":
+                    cams[sid] = EgoCameras(self._sequences_of(sid))
+                    continue
                 misc = self.root.subject_misc(sid)
                 views = [v for v in self.views if v >= 1]
                 ref = np.mean([s.object.trans.mean(0) for s in self._sequences_of(sid)], axis=0)
@@ -254,6 +273,8 @@ class HOGSADataset(IterableDataset):
                 self.root, lambda key: self.bundle.load_hogs(key, layers, templates, dev), self._pose_source, cams, bgs,
                 self.render_size, device=dev, refiner=self._refiner(dev), checks=self.checks, stats=self.stats,
                 backend=self.backend, seed=self.seed, epoch=self.epoch,
+                interfield=interfield_targets(self.root, self.interfield), protocol=self.protocol,
+                ego_distortion=self.ego_distortion,
             )  # fmt: skip
         self._pipe.epoch = self.epoch
         self._pipe.stats = self.stats
@@ -314,7 +335,8 @@ class HOGSADataset(IterableDataset):
 
     def aug_params(self, index: int) -> AugParams:
         """The ARCTIC augmentation of sample ``index`` (identity with ``augment=False``)."""
-        return sample_aug_params(sample_rng(self.seed, self.epoch, int(index), STREAM_AUG), self.augment, False, self.cfg)
+        ego = self.protocol == "p2"  # egocentric: ARCTIC forces sc = 1
+        return sample_aug_params(sample_rng(self.seed, self.epoch, int(index), STREAM_AUG), self.augment, ego, self.cfg)
 
     def to_sample(self, frame: SynthFrame) -> Sample:
         """ARCTIC augmentation + targets of a frame (its index fixes the augmentation)."""

@@ -10,7 +10,7 @@ ARCTIC cropped image is described, so the same sample builder
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -36,6 +36,10 @@ class SynthFrame:
         imgname: ``meta_info["imgname"]`` (unique, names the synthetic source).
         meta: JSON-able provenance (seed, sample index, subject, object, pose source,
             camera source) — enough to reproduce the frame.
+        egocentric: an egocentric (``p2``) frame: ``image`` is the whole frame scaled, its
+            labels undistorted (ARCTIC's view-0 convention); dist: (8,) its lens distortion.
+        extra_targets: targets added after ARCTIC's (e.g. the interaction field of
+            :mod:`~hogsa_loader.datasets.interfield`); not stored by the offline export.
     """
 
     image: np.ndarray
@@ -49,3 +53,6 @@ class SynthFrame:
     obj: ObjectLabels
     imgname: str
     meta: dict[str, Any] = field(default_factory=dict)
+    extra_targets: dict[str, Any] = field(default_factory=dict)
+    egocentric: bool = False
+    dist: Optional[np.ndarray] = None

@@ -221,6 +221,5 @@ def make_pose_source(spec: Any, context: PoseContext, options: Optional[Mapping[
             raise TypeError(f"poses must be a registered name or a PoseSource, got {type(spec).__name__}")
         return spec
     if spec not in POSE_SOURCES:
-        hint = " (the POM pose bank / online sources register themselves when wired in)" if spec in ("bank", "online") else ""
-        raise ValueError(f"unknown pose source {spec!r}; registered: {sorted(POSE_SOURCES)}{hint}")
+        raise ValueError(f"unknown pose source {spec!r}; registered: {sorted(POSE_SOURCES)}")
     return POSE_SOURCES[spec](context, **dict(options or {}))

@@ -9,7 +9,8 @@
    interaction centre; the ARCTIC crop box is computed from the projected object vertices
    (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`) and the validity flags
    from the full-image projections (:func:`~hogsa_loader.datasets.conventions.validity_flags`).
-2. **pom** — the pose source's optional ``optimize`` step.
+2. **pom** — the pose source's optional ``optimize`` step (samples it marks
+   ``provenance["dropped"] = reason`` are dropped and counted under that reason).
 3. **render** — ONE :meth:`HogsModel.render` call for the batch, directly into the crop:
    an ``S × S`` image laid out like ARCTIC's cropped images (the box enlarged 1.5×), with
    ``render_intrinsics(cropped_intrinsics(K, box, S))`` so that pixel i shows label
@@ -39,21 +40,12 @@ from torch import Tensor
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams
-from hogsa_loader.datasets.conventions import (
-    allocentric_bbox,
-    cropped_bbox,
-    cropped_intrinsics,
-    full_to_cropped,
-    project,
-    render_intrinsics,
-    transform,
-    validity_flags,
-)
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from hogsa_loader.loader.cameras import CameraSampler
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.poses import PoseBatch, PoseSource
+from hogsa_loader.loader.views import ViewGeometry, allocentric_views, apply_warp, egocentric_views
 
 __all__ = [
     "STAGES",
@@ -73,7 +65,7 @@ __all__ = [
 #: Timed stages, in pipeline order (keys of :attr:`SynthStats.seconds`).
 STAGES: tuple[str, ...] = ("pose", "pom", "render", "srm", "composite", "targets")
 #: Reasons a sample is dropped (keys of :attr:`SynthStats.dropped`).
-DROP_REASONS: tuple[str, ...] = ("nan", "behind_camera", "empty_alpha", "out_of_crop", "label_pixel_mismatch")
+DROP_REASONS: tuple[str, ...] = ("nan", "behind_camera", "empty_alpha", "out_of_crop", "label_pixel_mismatch", "pom")
 #: Random streams of one sample (the second entry of its seed sequence).
 _STREAM_POSE, _STREAM_CAMERA, _STREAM_BACKGROUND, STREAM_AUG = 0, 1, 2, 3
 #: Prefix of synthetic ``meta_info["imgname"]`` values.
@@ -230,11 +222,13 @@ def frame_to_sample(
         ``(inputs, targets, meta_info)`` exactly like
         :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` items.
     """
-    return make_arctic_sample(
+    inputs, targets, meta = make_arctic_sample(
         image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
-        right=frame.right, left=frame.left, obj=frame.obj, egocentric=False, dist=None, aug=aug,
+        right=frame.right, left=frame.left, obj=frame.obj, egocentric=frame.egocentric, dist=frame.dist, aug=aug,
         imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg,
     )  # fmt: skip
+    targets.update(frame.extra_targets)
+    return inputs, targets, meta
 
 
 def _finite(*arrays: Any) -> bool:
@@ -249,7 +243,7 @@ class SynthPipeline:
         models: ``key -> HogsModel`` loader (called once per key, result cached), e.g.
             ``lambda key: bundle.load_hogs(key, layers, templates, device)``.
         pose_source: the :class:`~hogsa_loader.loader.poses.PoseSource`.
-        cameras: ``subject -> CameraSampler``.
+        cameras: ``subject -> CameraSampler`` (``p1``) or ``EgoCameras`` (``p2``).
         backgrounds: a :class:`~hogsa_loader.compose.BackgroundSource`.
         render_size: side S of the rendered crop (ARCTIC's cropped-image layout: the box
             covers the central 2/3).
@@ -259,6 +253,12 @@ class SynthPipeline:
         stats: counters to update (a new :class:`SynthStats` by default).
         backend: renderer backend (``"auto"``, ``"torch"``, ``"gsplat"``).
         seed, epoch: the seed sequence prefix of every sample's generators.
+        interfield: optional :class:`~hogsa_loader.datasets.interfield.InterFieldTargets`;
+            its targets are attached to every kept frame (``SynthFrame.extra_targets``).
+        protocol: ``"p1"`` (allocentric; ``cameras`` maps subject → CameraSampler) or
+            ``"p2"`` (egocentric; subject → :class:`~hogsa_loader.loader.views.EgoCameras`),
+            see :mod:`~hogsa_loader.loader.views`.
+        ego_distortion: ``p2`` only: apply the egocentric lens distortion to the pixels.
     """
 
     def __init__(
@@ -276,8 +276,16 @@ class SynthPipeline:
         backend: str = "auto",
         seed: int = 0,
         epoch: int = 0,
+        interfield: Optional[Any] = None,
+        protocol: str = "p1",
+        ego_distortion: bool = True,
     ) -> None:
+        if protocol not in ("p1", "p2"):
+            raise ValueError(f"protocol must be 'p1' or 'p2', got {protocol!r}")
         self.root = root
+        self.interfield = interfield
+        self.protocol = protocol
+        self.ego_distortion = bool(ego_distortion)
         self._model_fn = models
         self._models: dict[tuple[str, str], Any] = {}
         self.pose_source = pose_source
@@ -354,40 +362,42 @@ class SynthPipeline:
                 batch = optimize(key, batch)
         with st.timed("pose"):
             geo = self._geometry(key, batch)
-            centres = np.stack([geo["verts"].mean(1), geo["joints.right"].mean(1), geo["joints.left"].mean(1)]).mean(0)
-            cams = self.cameras[sid].sample(centres, [sample_rng(self.seed, self.epoch, i, _STREAM_CAMERA) for i in indices])
-            w2c = cams.world2cam
-            cam = {k: transform(w2c, v) for k, v in geo.items()}
-            full2d = {k: project(v, cams.K) for k, v in cam.items()}
-            box_full = allocentric_bbox(full2d["verts"])
-            is_valid, right_valid, left_valid = validity_flags(
-                full2d["verts"], full2d["joints.right"], full2d["joints.left"], box_full, cams.image_size)
-            K_crop = cropped_intrinsics(cams.K, box_full, S)
-            crop2d = {k: full_to_cropped(v, box_full, S) for k, v in full2d.items()}
-            box_img = cropped_bbox(box_full, S)
-            R_w2c = torch.as_tensor(w2c[:, :3, :3])
+            cam_rngs = [sample_rng(self.seed, self.epoch, i, _STREAM_CAMERA) for i in indices]
+            if self.protocol == "p2":
+                prov = batch.provenance or [{}] * B
+                vg = egocentric_views(self.cameras[sid], geo, prov, cam_rngs, S, self.ego_distortion)
+            else:
+                vg = allocentric_views(self.cameras[sid], geo, cam_rngs, S)
+            R_w2c = torch.as_tensor(vg.world2cam[:, :3, :3])
             rot_cam = {side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
                        for side in ("right", "left")}
-            min_z = np.minimum.reduce([cam[k][..., 2].min(1) for k in ("verts", "joints.right", "joints.left")])
+            min_z = np.minimum.reduce([vg.cam[k][..., 2].min(1) for k in ("verts", "joints.right", "joints.left")])
             front = min_z > self.checks.near_m
-        keep = [b for b in range(B) if front[b]]
+        pose_drop = [p.get("dropped") for p in batch.provenance] if batch.provenance else [None] * B
+        keep = [b for b in range(B) if front[b] and not pose_drop[b]]
         for b in range(B):
-            if not front[b]:
+            if pose_drop[b]:
+                self._drop(str(pose_drop[b]))
+            elif not front[b]:
                 self._drop("behind_camera")
         if not keep:
             return results
         model = self.model(key)
         dev = self.device
+        (Hr, Wr), (Ho, Wo) = vg.render_hw, vg.out_hw
         with st.timed("render", dev):
             dtype = next(model.parameters()).dtype
             poses = {k: v[keep].to(device=dev, dtype=dtype) for k, v in batch.poses.items()}
-            viewmats = torch.as_tensor(w2c[keep], dtype=dtype, device=dev)[:, None]
-            Ks = torch.as_tensor(render_intrinsics(K_crop[keep]), dtype=dtype, device=dev)[:, None]
+            viewmats = torch.as_tensor(vg.world2cam[keep], dtype=dtype, device=dev)[:, None]
+            Ks = torch.as_tensor(vg.K_render[keep], dtype=dtype, device=dev)[:, None]
             with torch.no_grad():
-                out = model.render(poses, viewmats, Ks, S, S, render_mode="RGB", backend=self.backend)
-            rgb = out.rgb[:, 0]  # (b, S, S, 3) premultiplied on black
-            alpha = out.alpha[:, 0]  # (b, S, S, 1)
-            part_alpha = out.part_alpha[:, 0]  # (b, S, S, 3)
+                out = model.render(poses, viewmats, Ks, Wr, Hr, render_mode="RGB", backend=self.backend)
+            rgb = out.rgb[:, 0]  # (b, Hr, Wr, 3) premultiplied on black
+            alpha = out.alpha[:, 0]  # (b, Hr, Wr, 1)
+            part_alpha = out.part_alpha[:, 0]  # (b, Hr, Wr, 3)
+            if vg.warp is not None:  # lens distortion: resample the undistorted render
+                warped = apply_warp(torch.cat([rgb, alpha, part_alpha], -1), vg.warp[keep])
+                rgb, alpha, part_alpha = warped[..., :3], warped[..., 3:4], warped[..., 4:]
         if self.refiner is not None:
             with st.timed("srm", dev):
                 with torch.no_grad():
@@ -399,7 +409,7 @@ class SynthPipeline:
             for b in keep:
                 g = torch.Generator().manual_seed(
                     int(sample_rng(self.seed, self.epoch, indices[b], _STREAM_BACKGROUND).integers(2**62)))
-                bgs.append(self.backgrounds.sample(1, S, S, g))
+                bgs.append(self.backgrounds.sample(1, Ho, Wo, g))
             bg = torch.cat(bgs, 0).to(device=dev, dtype=rgb.dtype)
             img = composite(rgb, alpha, bg, clamp=True)
             images = (img * 255.0).round_().to(torch.uint8).cpu().numpy()
@@ -408,28 +418,30 @@ class SynthPipeline:
             rgb_finite = torch.isfinite(rgb.reshape(len(keep), -1)).all(1).cpu().numpy()
         with st.timed("targets"):
             for j, b in enumerate(keep):
-                results[b] = self._frame(
-                    key, indices[b], b, batch, geo, cam, crop2d, box_img, cams, rot_cam,
-                    (is_valid[b], right_valid[b], left_valid[b]), images[j], alpha_np[j], parts_np[j],
-                    bool(rgb_finite[j]),
-                )
+                results[b] = self._frame(key, indices[b], b, batch, vg, rot_cam, images[j], alpha_np[j], parts_np[j],
+                                         bool(rgb_finite[j]))
+            kept = [b for b in keep if results[b] is not None]
+            if self.interfield is not None and kept:
+                sel = torch.as_tensor(kept, dtype=torch.long)
+                fields = self.interfield({k: v[sel] for k, v in batch.poses.items()}, [obj] * len(kept))
+                for b, f in zip(kept, fields):
+                    results[b].extra_targets = f  # type: ignore[union-attr]
         st.kept += sum(r is not None for r in results)
         return results
 
-    def _frame(
-        self, key, index, b, batch, geo, cam, crop2d, box_img, cams, rot_cam, flags, image, alpha, part_alpha,
-        rgb_finite,
-    ) -> Optional[SynthFrame]:
+    def _frame(self, key, index, b, batch, vg: ViewGeometry, rot_cam, image, alpha, part_alpha,
+               rgb_finite) -> Optional[SynthFrame]:
         sid, obj = key
-        is_valid, right_valid, left_valid = (float(f) for f in flags)
+        is_valid, right_valid, left_valid = (float(f[b]) for f in vg.flags)
         P = batch.poses
+        cam, lab = vg.cam, vg.label2d
 
         def hand(side: str, valid: float) -> HandLabels:
             return HandLabels(
                 pose48=np.concatenate([rot_cam[side][b], P[f"{side}_pose"][b].numpy()]).astype(np.float32),
                 betas=P[f"{side}_betas"][b].numpy().astype(np.float32),
                 j3d_full=cam[f"joints.{side}"][b].astype(np.float32),
-                j2d=crop2d[f"joints.{side}"][b],
+                j2d=lab[f"joints.{side}"][b],
                 valid=valid,
             )
 
@@ -437,7 +449,7 @@ class SynthPipeline:
         objl = ObjectLabels(
             name=obj, radian=float(P["obj_arti"][b].reshape(-1)[0]),
             kp3d_full=cam["kp3d"][b].astype(np.float32), bbox3d_full=cam["bbox3d"][b].astype(np.float32),
-            kp2d=crop2d["kp3d"][b], bbox2d=crop2d["bbox3d"][b], valid=is_valid, kp_bottom_cano=self.kp_bottom[obj],
+            kp2d=lab["kp3d"][b], bbox2d=lab["bbox3d"][b], valid=is_valid, kp_bottom_cano=self.kp_bottom[obj],
         )  # fmt: skip
         if not rgb_finite or not _finite(right.pose48, left.pose48, right.j2d, left.j2d, right.j3d_full,
                                          left.j3d_full, objl.kp2d, objl.bbox2d, objl.kp3d_full, objl.radian):
@@ -451,34 +463,38 @@ class SynthPipeline:
         if is_valid == 0 or (c.hands == "any" and n_bad_hands) or (c.hands == "both" and n_bad_hands == 2):
             self._drop("out_of_crop")
             return None
-        S = self.render_size
-        lo, hi = S / 6.0, S - S / 6.0  # the box inside the crop
+        x0, y0, x1, y1 = vg.check_box
 
         def on_alpha(pts: np.ndarray) -> Optional[float]:
-            inside = (pts[:, 0] >= lo) & (pts[:, 0] <= hi) & (pts[:, 1] >= lo) & (pts[:, 1] <= hi)
+            inside = (pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)
             if not inside.any():
                 return None
             return float(joints_on_alpha(pts[inside], alpha).mean())
 
-        for h in (right, left):
+        for side, h in (("right", right), ("left", left)):
             if h.valid:
-                frac = on_alpha(h.j2d)
+                frac = on_alpha(vg.pix2d[f"joints.{side}"][b])
                 if frac is not None and frac < c.min_on_alpha:
                     self._drop("label_pixel_mismatch")
                     return None
-        frac = on_alpha(objl.kp2d)
+        frac = on_alpha(vg.pix2d["kp3d"][b])
         if frac is not None and frac < c.min_on_alpha:
             self._drop("label_pixel_mismatch")
             return None
-        view = int(cams.view[b])
+        view = int(vg.view[b])
         meta = {
             "seed": self.seed, "epoch": self.epoch, "index": int(index), "subject": sid, "object": obj,
-            "view": view, "camera": "dataset" if view != 100 else "novel", **batch.provenance[b],
+            "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
+            **batch.provenance[b],
         }  # fmt: skip
+        if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_sample)
+            meta["egocentric"] = True
+            meta["dist"] = [float(x) for x in vg.dist[b]]  # type: ignore[index]
         return SynthFrame(
             image=image, alpha=alpha.astype(np.float32), part_alpha=part_alpha.astype(np.float32),
-            bbox=np.asarray(box_img[b], dtype=np.float64), K_full=np.asarray(cams.K[b], dtype=np.float64),
-            image_size=(int(cams.image_size[b, 0]), int(cams.image_size[b, 1])), right=right, left=left, obj=objl,
+            bbox=np.asarray(vg.box_img[b], dtype=np.float64), K_full=np.asarray(vg.K_full[b], dtype=np.float64),
+            image_size=(int(vg.image_size[b, 0]), int(vg.image_size[b, 1])), right=right, left=left, obj=objl,
             imgname=synthetic_imgname(sid, obj, self.seed, self.epoch, view, index), meta=meta,
+            egocentric=vg.egocentric, dist=None if vg.dist is None else np.asarray(vg.dist[b], dtype=np.float64),
         )  # fmt: skip
 

@@ -9,14 +9,25 @@ processing does (object-template vertices posed by the object layer, projected, 
 ``render_intrinsics(cropped_intrinsics(K, bbox, cropped_size))`` scaled to the training
 resolution, so rendered pixels line up with the labels.
 
+Masks (``masks``): ``"files"`` reads the generated world's ``masks/`` images; ``"render"``
+rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.train.hogs_masks`),
+for real ARCTIC, which ships none; ``"auto"`` (default) uses the files of a sequence when
+every used image has one, else renders. With mask files the background is removed at the
+native resolution before resizing (:func:`_read_foreground`). With rendered masks the
+image is kept as it is, real background included (the mask is an estimate from the
+annotations, not a segmentation of the picture): the trainer and the evaluation multiply
+the image by the mask at the training resolution, so no pixel outside the mask is ever a
+colour target (see :meth:`~hogsa_loader.train.hogs_trainer.HogsTrainer.targets`).
+
 Split: ``eval_views`` (camera views never used in training) and every ``eval_every_frame``-th
-frame are held out; evaluation uses held-out views × held-out frames.
+frame are held out; evaluation uses held-out views × held-out frames. H2O has its own
+loader with the same split rules (:mod:`hogsa_loader.train.hogs_data_h2o`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -33,8 +44,13 @@ from hogsa_loader.datasets.conventions import (
     transform,
 )
 from hogsa_loader.datasets.types import SequenceData
+from hogsa_loader.train.hogs_masks import pose_meshes, render_part_mask
 
-__all__ = ["ViewSample", "HogsData", "select_sequences", "load_hogs_data", "dilate_mask"]
+__all__ = ["MASK_MODES", "ViewSample", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
+           "split_role", "check_views", "split_samples", "mask_supersample"]
+
+#: Where the part masks come from (``load_hogs_data(masks=...)``).
+MASK_MODES = ("auto", "files", "render")
 
 
 @dataclass
@@ -68,6 +84,8 @@ class HogsData:
     train_views: tuple[int, ...]
     eval_views: tuple[int, ...]
     image_size: int
+    crop_size: int = 0  # resolution the ``margin`` setting is given at (ARCTIC: the cropped size)
+    mask_source: str = "files"  # "files", "render" or "files+render" (per sequence)
 
     def poses(self, samples: Sequence[ViewSample], dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         """Batched annotated poses of the samples' frames (keys ``{side}_rot/pose/betas/trans``,
@@ -99,24 +117,42 @@ def select_sequences(root: ArcticRoot, subject: str, object_name: str, sequences
         ValueError: unknown subject / object, unknown or mismatching sequence names, or no
             sequence left.
     """
-    subjects = root.subjects()
-    if subject not in subjects:
-        raise ValueError(f"unknown subject {subject!r}; the data root has {subjects}")
+    check_subject(subject, root.subjects())
     objects = sorted(root.object_templates(load_texture=False))
     if object_name not in objects:
         raise ValueError(f"unknown object {object_name!r}; the data root has templates for {objects}")
     have = [s.split("/", 1)[1] for s in root.sequences(subject)]
-    mine = [s for s in have if s.split("_", 1)[0] == object_name]
+    return pick_sequences(subject, object_name, {s: [s.split("_", 1)[0]] for s in have}, sequences)
+
+
+def check_subject(subject: str, subjects: Sequence[str]) -> None:
+    """Raise ValueError naming the root's subjects when ``subject`` is not one of them."""
+    if subject not in subjects:
+        raise ValueError(f"unknown subject {subject!r}; the data root has {list(subjects)}")
+
+
+def pick_sequences(
+    subject: str, object_name: str, shows: Mapping[str, Sequence[str]], sequences: Optional[Sequence[str]]
+) -> list[str]:
+    """Names of the sequences showing ``object_name``, optionally restricted to ``sequences``.
+
+    Args:
+        shows: every sequence name of the subject -> the objects it shows.
+
+    Raises:
+        ValueError: unknown or mismatching names in ``sequences``, or no sequence left.
+    """
+    mine = [s for s in shows if object_name in shows[s]]
     if sequences:
-        bad = [s for s in sequences if s not in have]
+        bad = [s for s in sequences if s not in shows]
         if bad:
-            raise ValueError(f"sequences {bad} do not exist for subject {subject} (has {have})")
+            raise ValueError(f"sequences {bad} do not exist for subject {subject} (has {list(shows)})")
         wrong = [s for s in sequences if s not in mine]
         if wrong:
             raise ValueError(f"sequences {wrong} do not show object {object_name!r}")
         mine = [s for s in mine if s in sequences]
     if not mine:
-        raise ValueError(f"subject {subject} has no sequence with object {object_name!r} (has {have})")
+        raise ValueError(f"subject {subject} has no sequence with object {object_name!r} (objects per sequence: {dict(shows)})")
     return mine
 
 
@@ -178,68 +214,146 @@ def _read_foreground(image_path, mask_path, size: int) -> tuple[np.ndarray, np.n
     return fg, small
 
 
+def _read_image(image_path, size: int) -> np.ndarray:
+    """(size, size, 3) uint8 RGB image, background kept (area-resized)."""
+    img = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FileNotFoundError(f"cannot read image {image_path}")
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.shape[:2] != (size, size):
+        img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+    return img
+
+
+def mask_supersample(native: float, size: int) -> int:
+    """Samples per pixel side for a mask rendered at ``size`` of an image ``native`` px wide."""
+    return int(min(4, max(1, np.ceil(native / size - 1e-6))))
+
+
+def split_role(i: int, view: int, train_views: Sequence[int], eval_views: Sequence[int], eval_every_frame: int) -> Optional[str]:
+    """``"train"``, ``"eval"`` or None for the ``i``-th used frame seen from ``view``.
+
+    Frames at positions ``i % eval_every_frame == eval_every_frame // 2`` are held out
+    (``eval_every_frame`` 0: none); held-out frames of the eval views are evaluated, the
+    other frames of the training views are trained on.
+    """
+    is_eval_frame = eval_every_frame > 0 and i % eval_every_frame == eval_every_frame // 2
+    if view in eval_views and is_eval_frame:
+        return "eval"
+    if view in train_views and not is_eval_frame:
+        return "train"
+    return None
+
+
+def check_views(views: Sequence[int], eval_views: Sequence[int]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """``(train_views, eval_views)``: ``views`` minus the held-out ones, and the held-out ones.
+
+    Raises:
+        ValueError: a held-out view that is not among ``views``, or no training view left.
+    """
+    eval_views = tuple(int(v) for v in eval_views)
+    bad = [v for v in eval_views if v not in views]
+    if bad:
+        raise ValueError(f"eval views must be among the camera views {tuple(views)}, got {bad}")
+    train_views = tuple(v for v in views if v not in eval_views)
+    if not train_views:
+        raise ValueError("every view is held out; nothing left to train on")
+    return train_views, eval_views
+
+
+def split_samples(
+    train: list[ViewSample], held: list[ViewSample], max_eval: int, what: str
+) -> tuple[list[ViewSample], list[ViewSample]]:
+    """``(train, held)`` with at most ``max_eval`` held-out samples, evenly spaced.
+
+    Raises:
+        ValueError: no training or no held-out sample (``what`` names the subject/object).
+    """
+    if not train:
+        raise ValueError(f"no usable training images for {what}")
+    if not held:
+        raise ValueError(f"no usable held-out images for {what} (none in the eval views' held-out frames)")
+    if len(held) > max_eval:
+        idx = np.linspace(0, len(held) - 1, max_eval).round().astype(int)
+        held = [held[i] for i in idx]
+    return train, held
+
+
 def load_hogs_data(
     root: ArcticRoot,
     subject: str,
     object_name: str,
     *,
     sequences: Optional[Sequence[str]] = None,
+    views: Sequence[int] = ALLO_VIEWS,
     eval_views: Sequence[int] = (8,),
     eval_every_frame: int = 8,
     frame_stride: int = 1,
     image_size: Optional[int] = None,
     max_eval: int = 8,
+    masks: str = "auto",
 ) -> HogsData:
     """Load every training and held-out (frame, view) of ``subject`` + ``object_name``.
 
     Args:
         root: the ARCTIC(-format) root.
         sequences: sequence names to use (default every sequence of the subject with the object).
-        eval_views: allocentric views held out from training.
+        views: allocentric views used (default 1..8).
+        eval_views: views held out from training (among ``views``).
         eval_every_frame: of the used frames (after ``frame_stride``), those at positions
             ``i % eval_every_frame == eval_every_frame // 2`` are held out (0: none).
         frame_stride: use every n-th frame only.
         image_size: training resolution (default the cropped size).
         max_eval: at most this many held-out samples (evenly spaced).
+        masks: ``"auto"``, ``"files"`` or ``"render"`` (module docstring).
     """
+    if masks not in MASK_MODES:
+        raise ValueError(f"masks must be one of {MASK_MODES}, got {masks!r}")
     names = select_sequences(root, subject, object_name, sequences)
-    eval_views = tuple(int(v) for v in eval_views)
-    bad = [v for v in eval_views if v not in ALLO_VIEWS]
+    views = tuple(int(v) for v in views)
+    bad = [v for v in views if v not in ALLO_VIEWS]
     if bad:
-        raise ValueError(f"eval views must be allocentric views {ALLO_VIEWS}, got {bad}")
-    train_views = tuple(v for v in ALLO_VIEWS if v not in eval_views)
-    if not train_views:
-        raise ValueError("every view is held out; nothing left to train on")
+        raise ValueError(f"views must be allocentric views {ALLO_VIEWS}, got {bad}")
+    try:
+        train_views, eval_views = check_views(views, eval_views)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (ARCTIC: allocentric views only)") from None
     crop = root.world_meta().cropped_size
     size = int(image_size or crop)
     scale = np.diag([size / crop, size / crop, 1.0])
-    seqs, train, held = [], [], []
+    seqs, train, held, sources = [], [], [], set()
     for si, name in enumerate(names):
         seq = root.sequence(subject, name)
         seqs.append(seq)
-        boxes = _crop_boxes(root, seq, ALLO_VIEWS)
-        for v in ALLO_VIEWS:
-            if v not in seq.image_paths or v not in seq.mask_paths:
-                raise ValueError(f"{subject}/{name}: view {v} has no cropped images or masks")
+        frames = list(range(0, seq.num_frames, max(1, frame_stride)))
+        jobs = [(v, f, role) for v in views for i, f in enumerate(frames)
+                if (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None]  # fmt: skip
+        missing = sorted({v for v, _, _ in jobs if v not in seq.image_paths})
+        if missing:
+            raise ValueError(f"{subject}/{name}: views {missing} have no cropped images")
+        jobs = [(v, f, role) for v, f, role in jobs if seq.image_paths[v][f] is not None]
+        have_masks = all(v in seq.mask_paths and seq.mask_paths[v][f] is not None for v, f, _ in jobs)
+        if masks == "files" and not have_masks:
+            raise ValueError(f"{subject}/{name}: some used images have no mask file (masks='files'; "
+                             "use masks='render' or 'auto' to render them from the annotations)")  # fmt: skip
+        render = masks == "render" or not have_masks
+        sources.add("render" if render else "files")
+        posed = None
+        if render:
+            template = root.object_templates()[seq.object.name]
+            posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), root.mano_layers(), template)
+        boxes = _crop_boxes(root, seq, views)
+        for v, f, role in jobs:
             cam = seq.cameras[v]
-            Ks = scale @ render_intrinsics(cropped_intrinsics(cam.K, boxes[v], crop))
-            for i, f in enumerate(range(0, seq.num_frames, max(1, frame_stride))):
-                is_eval_frame = eval_every_frame > 0 and i % eval_every_frame == eval_every_frame // 2
-                is_eval = v in eval_views and is_eval_frame
-                is_train = v in train_views and not is_eval_frame
-                if not (is_eval or is_train):
-                    continue
-                ip, mp = seq.image_paths[v][f], seq.mask_paths[v][f]
-                if ip is None or mp is None:
-                    continue
-                image, mask = _read_foreground(ip, mp, size)
-                s = ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks[f])
-                (held if is_eval else train).append(s)
-    if not train:
-        raise ValueError(f"no training images for {subject}/{object_name}")
-    if not held:
-        raise ValueError(f"no held-out images for {subject}/{object_name} (eval views {eval_views})")
-    if len(held) > max_eval:
-        idx = np.linspace(0, len(held) - 1, max_eval).round().astype(int)
-        held = [held[i] for i in idx]
-    return HogsData(subject, object_name, seqs, train, held, train_views, eval_views, size)
+            Ks = scale @ render_intrinsics(cropped_intrinsics(cam.K[f], boxes[v][f], crop))
+            ip = seq.image_paths[v][f]
+            if posed is None:
+                image, mask = _read_foreground(ip, seq.mask_paths[v][f], size)
+            else:
+                image = _read_image(ip, size)
+                mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f],
+                                        full_size=(cam.width, cam.height), supersample=mask_supersample(crop, size))  # fmt: skip
+            s = ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)
+            (held if role == "eval" else train).append(s)
+    return HogsData(subject, object_name, seqs, *split_samples(train, held, max_eval, f"{subject}/{object_name}"),
+                    train_views, eval_views, size, crop_size=crop, mask_source="+".join(sorted(sources)))  # fmt: skip

@@ -3,8 +3,11 @@
 Each step renders a random batch of training (frame, view) crops with the annotated poses
 and minimises :func:`~hogsa_loader.train.losses.hogs_loss` against the image with its
 background masked to black, inside the hand/object mask dilated by ``margin`` px; outside
-that region the rendered alpha is pushed to 0. Adam with per-parameter learning rates
-(GaMeS table; ``lr_scale`` multiplies all but the position rates), SH degree raised every ``sh_warmup`` steps.
+that region the rendered alpha is pushed to 0. The data comes from an ARCTIC(-format) or
+an H2O root (:mod:`hogsa_loader.train.hogs_source`), the masks from the dataset's files
+or rendered from the annotated meshes (``masks``, :mod:`hogsa_loader.train.hogs_data`).
+Adam with per-parameter learning rates (GaMeS table; ``lr_scale`` multiplies all but the
+position rates), SH degree raised every ``sh_warmup`` steps.
 
 Run folder::
 
@@ -23,7 +26,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -31,14 +34,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.gaussians.checkpoint import atomic_write
 from hogsa_loader.train.run_folder import commit_checkpoint, latest_checkpoint
-from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
+from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
+from hogsa_loader.train.hogs_source import open_hogs_source
 from hogsa_loader.train.losses import hogs_loss
 
 __all__ = ["HogsConfig", "HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
@@ -81,15 +84,19 @@ class HogsConfig:
     subject: str
     object: str
     out: str
-    dataset: str = "arctic"
-    sequences: Optional[list[str]] = None
+    dataset: str = "arctic"  # arctic | h2o
+    sequences: Optional[list[str]] = None  # ARCTIC names, H2O "scene/seq"
+    mano_dir: Optional[str] = None  # H2O: folder with MANO_RIGHT/LEFT.pkl
+    object_mesh_dir: Optional[str] = None  # H2O: folder of the object meshes
+    masks: str = "auto"  # auto (files if present, else rendered) | files | render
     iters: int = 2000
     gaussians: str = "mesh"  # mesh (GaMeS) | free
     device: str = "cpu"
     seed: int = 0
     batch_size: int = 1
     image_size: Optional[int] = None
-    eval_views: list[int] = field(default_factory=lambda: [8])
+    views: Optional[list[int]] = None  # camera views used; None: ARCTIC 1..8, H2O 0..3 (set when training starts)
+    eval_views: Optional[list[int]] = None  # held out; None: ARCTIC [8], H2O [3] (set when training starts)
     eval_every_frame: int = 8
     frame_stride: int = 1
     max_eval: int = 8
@@ -101,10 +108,11 @@ class HogsConfig:
     hand_subdivide: int = 0
     object_subdivide: Optional[int] = None  # None: subdivide until >= min_object_faces
     min_object_faces: int = 8000
-    margin: int = 4  # px of the cropped image
+    margin: int = 4  # px of the cropped image (ARCTIC cropped size; H2O: of a 256-px crop)
     lambda_ssim: float = 0.2
     lambda_r: float = 0.5
     lambda_alpha: float = 1.0
+    lambda_alpha_in: float = 1.0  # (1 - alpha) inside the mask eroded by 1 px: opaque silhouettes (losses.py)
     lr_scale: float = 1.0
     lr_overrides: dict[str, float] = field(default_factory=dict)  # parameter name -> learning rate
     opacity_warmup: int = 0  # opacities stay frozen for this many steps while colours settle
@@ -127,8 +135,6 @@ class HogsTrainer:
     """Builds the parts and data of one (subject, object) and trains them."""
 
     def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
-        if cfg.dataset != "arctic":
-            raise ValueError(f"dataset {cfg.dataset!r} is not supported yet (only 'arctic')")
         if cfg.gaussians not in ("mesh", "free"):
             raise ValueError(f"--gaussians must be 'mesh' or 'free', got {cfg.gaussians!r}")
         unknown = sorted(set(cfg.lr_overrides) - set(BASE_LRS))
@@ -138,22 +144,28 @@ class HogsTrainer:
             raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.shading!r}")
         if cfg.iters < 0 or cfg.batch_size < 1:
             raise ValueError("iters must be >= 0 and batch_size >= 1")
+        if cfg.masks not in MASK_MODES:
+            raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.masks!r}")
+        t0 = time.perf_counter()
+        self.source = open_hogs_source(cfg.dataset, cfg.data, cfg.object, mano_dir=cfg.mano_dir,
+                                       object_mesh_dir=cfg.object_mesh_dir)  # fmt: skip
+        # the dataset's default views are written into config.json (what render_quality rebuilds)
+        cfg = replace(cfg, views=list(cfg.views or self.source.views), eval_views=list(cfg.eval_views or self.source.eval_views))
         self.cfg = cfg
         self.progress = progress
         self.device = torch.device(cfg.device)
         self.out = Path(cfg.out)
-        self.root = ArcticRoot(cfg.data)
-        t0 = time.perf_counter()
-        self.data: HogsData = load_hogs_data(
-            self.root, cfg.subject, cfg.object, sequences=cfg.sequences, eval_views=cfg.eval_views,
+        self.root = self.source.root
+        self.data: HogsData = self.source.load(
+            cfg.subject, cfg.object, sequences=cfg.sequences, views=cfg.views, eval_views=cfg.eval_views,
             eval_every_frame=cfg.eval_every_frame, frame_stride=cfg.frame_stride, image_size=cfg.image_size,
-            max_eval=cfg.max_eval,
+            max_eval=cfg.max_eval, masks=cfg.masks,
         )  # fmt: skip
         self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
         torch.manual_seed(cfg.seed)
         variant = "games" if cfg.gaussians == "mesh" else "free"
-        layers = self.root.mano_layers()
-        template = self.root.object_templates()[cfg.object]
+        layers = self.source.mano_layers
+        template = self.source.object_templates[cfg.object]
         levels = cfg.object_subdivide
         if levels is None:
             faces = (template.tex_faces if template.has_texture else template.faces).shape[0]
@@ -209,16 +221,31 @@ class HogsTrainer:
         return out.rgb[:, 0], out.alpha[:, 0, ..., 0]
 
     def targets(self, samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor, Tensor]:
-        """GT with background masked to black (B, H, W, 3), mask (B, H, W), loss region (dilated)."""
+        """GT with background masked to black (B, H, W, 3), mask (B, H, W), loss region (dilated).
+
+        The same for mask files and rendered masks: every pixel outside the part mask is
+        black in the GT, so the photometric loss (on the dilated region) asks for an empty
+        render there and never takes the picture's real background (kept in the images
+        of rendered-mask samples) as a colour target; beyond the region the alpha loss
+        applies. With rendered masks, edge pixels partly covered by the mask keep their
+        area-averaged share of background colour (no native-resolution cut, the mask being
+        an estimate from the annotations).
+        """
         img = torch.as_tensor(np.stack([s.image for s in samples]), device=self.device).float() / 255.0
         mask = torch.as_tensor(np.stack([s.mask for s in samples]), device=self.device) > 0
         return img * mask[..., None], mask, dilate_mask(mask, self.margin_px)
 
+    @torch.no_grad()
+    def photometric_loss(self, samples: Sequence[ViewSample]) -> float:
+        """The photometric term of the loss on ``samples`` (no gradient; e.g. a fixed probe set)."""
+        gt, _, region = self.targets(samples)
+        rgb, alpha = self.render(samples)
+        return hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.lambda_ssim)[1]["photo"]
+
     @property
     def margin_px(self) -> int:
         """``cfg.margin`` (cropped-image pixels) at the training resolution."""
-        crop = self.root.world_meta().cropped_size
-        return int(round(self.cfg.margin * self.data.image_size / crop))
+        return int(round(self.cfg.margin * self.data.image_size / self.data.crop_size))
 
     # ------------------------------------------------------------------ training
     def l_r(self) -> Tensor:
@@ -227,10 +254,12 @@ class HogsTrainer:
     def train_step(self) -> dict[str, float]:
         idx = torch.randint(len(self.data.train), (self.cfg.batch_size,), generator=self.gen).tolist()
         samples = [self.data.train[i] for i in idx]
-        gt, _, region = self.targets(samples)
+        gt, mask, region = self.targets(samples)
         rgb, alpha = self.render(samples)
+        inside = ~dilate_mask(~mask, 1)  # eroded by 1 px: partly covered edge pixels are left free
         loss, terms = hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.lambda_ssim,
-                                lambda_r=self.cfg.lambda_r, lambda_alpha=self.cfg.lambda_alpha)  # fmt: skip
+                                lambda_r=self.cfg.lambda_r, lambda_alpha=self.cfg.lambda_alpha, inside=inside,
+                                lambda_alpha_in=self.cfg.lambda_alpha_in)  # fmt: skip
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         frozen = self.step < self.cfg.opacity_warmup
@@ -295,7 +324,10 @@ class HogsTrainer:
 
     def _save_parts(self, folder: Path) -> None:
         for name, part in self.parts.items():
-            save_part(part, folder / name, **self._source(), extra={"step": self.step})
+            extra: dict[str, Any] = {"step": self.step}
+            if name == "object" and self.source.object_provenance:
+                extra["object_mesh"] = self.source.object_provenance
+            save_part(part, folder / name, **self._source(), extra=extra)
         if self.model.light is not None:
             save_light(self.model.light, folder / LIGHT_DIR)
 
@@ -364,6 +396,8 @@ class HogsTrainer:
             "per_sample": final["per_sample"],
             "alpha_outside": final["alpha_outside"],
             "region": "foreground box (bbox of the part mask dilated by margin px); GT background masked to black",
+            "dataset": self.cfg.dataset,
+            "masks": self.data.mask_source,
             "iters": self.step,
             "initial": self.evals[0] if self.evals else None,
             "evals": self.evals,

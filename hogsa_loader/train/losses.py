@@ -2,7 +2,12 @@
 
 Images are (B, H, W, 3) in [0, 1]; ``region`` is a (B, H, W) bool map of the pixels the
 photometric loss sees (the dilated hand/object mask), ``outside`` the pixels whose
-rendered alpha must be 0.
+rendered alpha must be 0, ``inside`` (the eroded mask) those whose alpha must be 1.
+
+Why alpha inside: the ground truth is the foreground on black, so a render with alpha 0.5
+and twice the colour matches it as well as an opaque one; on black nobody can tell, but
+composited onto a background by the loader such Gaussians show the background through
+the hands. The inside term makes the silhouette opaque.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ import kornia
 import torch
 from torch import Tensor
 
-__all__ = ["masked_l1", "ssim_map", "masked_ssim", "alpha_outside", "hogs_loss", "psnr", "box_of"]
+__all__ = ["masked_l1", "ssim_map", "masked_ssim", "alpha_outside", "alpha_inside", "hogs_loss", "psnr", "box_of"]
 
 
 def _mean(x: Tensor, w: Tensor) -> Tensor:
@@ -39,6 +44,11 @@ def alpha_outside(alpha: Tensor, outside: Tensor) -> Tensor:
     return _mean(alpha, outside.to(alpha.dtype))
 
 
+def alpha_inside(alpha: Tensor, inside: Tensor) -> Tensor:
+    """Mean ``1 − alpha`` (B, H, W) over the pixels that must be opaque."""
+    return _mean(1.0 - alpha, inside.to(alpha.dtype))
+
+
 def hogs_loss(
     pred: Tensor,
     gt: Tensor,
@@ -49,18 +59,26 @@ def hogs_loss(
     lambda_ssim: float = 0.2,
     lambda_r: float = 0.5,
     lambda_alpha: float = 1.0,
+    inside: Tensor | None = None,
+    lambda_alpha_in: float = 0.0,
 ) -> tuple[Tensor, dict[str, float]]:
-    """``(1 − λ_SSIM)·L1 + λ_SSIM·(1 − SSIM)`` on the region + ``λ_R·L_R`` + ``λ_A·alpha`` outside.
+    """``(1 − λ_SSIM)·L1 + λ_SSIM·(1 − SSIM)`` on the region + ``λ_R·L_R`` + ``λ_A·alpha`` outside
+    (+ ``λ_Ain·(1 − alpha)`` inside, when ``inside`` is given).
 
     Returns:
-        the loss and its terms as floats (``l1``, ``ssim``, ``photo``, ``l_r``, ``alpha_out``).
+        the loss and its terms as floats (``l1``, ``ssim``, ``photo``, ``l_r``, ``alpha_out``,
+        ``alpha_in``).
     """
     l1 = masked_l1(pred, gt, region)
     ss = masked_ssim(pred, gt, region)
     photo = (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ss)
     a_out = alpha_outside(alpha, ~region)
     loss = photo + lambda_r * l_r + lambda_alpha * a_out
-    terms = {k: float(v.detach()) for k, v in (("l1", l1), ("ssim", ss), ("photo", photo), ("l_r", l_r), ("alpha_out", a_out))}
+    a_in = alpha_inside(alpha, inside) if inside is not None else alpha.new_zeros(())
+    if inside is not None and lambda_alpha_in:
+        loss = loss + lambda_alpha_in * a_in
+    terms = {k: float(v.detach()) for k, v in (("l1", l1), ("ssim", ss), ("photo", photo), ("l_r", l_r),
+                                                ("alpha_out", a_out), ("alpha_in", a_in))}
     return loss, terms
 
 

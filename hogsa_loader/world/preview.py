@@ -17,15 +17,12 @@ import numpy as np
 import torch
 
 from hogsa_loader.datasets.conventions import (
-    allocentric_bbox, distort_points, full_to_cropped, project, transform,
+    HAND_BONES, allocentric_bbox, distort_points, full_to_cropped, project, transform,
 )
 from hogsa_loader.errors import PathLike
 
 __all__ = ["HAND_BONES", "project_annotations", "write_world_preview"]
 
-#: (parent, child) pairs of the 21 ARCTIC/MANO joints (§5 order).
-HAND_BONES = [(0, 1), (1, 2), (2, 3), (3, 17), (0, 4), (4, 5), (5, 6), (6, 18), (0, 7), (7, 8), (8, 9), (9, 20),
-              (0, 10), (10, 11), (11, 12), (12, 19), (0, 13), (13, 14), (14, 15), (15, 16)]
 _COLORS = {"right": (230, 60, 40), "left": (40, 110, 240), "kp_top": (250, 220, 0), "kp_bottom": (0, 230, 200)}
 
 
