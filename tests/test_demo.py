@@ -22,12 +22,14 @@ CFG = dict(
 @pytest.fixture(scope="module")
 def demo(tiny_world, tmp_path_factory):
     before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("demo")
-    cfg = DemoConfig(data=str(tiny_world), **CFG)
-    first = run_demo(out, cfg, log=None)
-    second = run_demo(out, cfg, log=None)
-    torch.set_num_threads(before)
+    torch.set_num_threads(1)  # restored below: later tests compare against 2-thread subprocesses
+    try:
+        out = tmp_path_factory.mktemp("demo")
+        cfg = DemoConfig(data=str(tiny_world), **CFG)
+        first = run_demo(out, cfg, log=None)
+        second = run_demo(out, cfg, log=None)
+    finally:
+        torch.set_num_threads(before)
     return out, first, second
 
 

@@ -43,7 +43,6 @@ def test_real_dataset_interfield_uses_the_frames_meshes(tiny_world):
     """The field is computed from the item's own GT frame: the hand joints of the same
     parameters, moved into the view's camera, are the sample's ``mano.j3d.full.r``; a
     grasping frame has a hand within a few millimetres of the object."""
-    torch.set_num_threads(1)
     ds = ArcticDataset(tiny_world, split="p1_train", augment=False, interfield=True)
     plain = ArcticDataset(tiny_world, split="p1_train", augment=False)
     root = ArcticRoot(tiny_world)

@@ -11,9 +11,11 @@ ContactNet), on the loader's device. The loader times this as the ``pom`` stage.
 Samples POM drops (non-finite, still penetrating, implausible articulation) are marked in
 their provenance (``"dropped": "pom"``) and the loader drops and counts them.
 
-Determinism: a sample's frame, perturbation and ContactNet point subset come from its
-seed; the optimisation runs batched (Adam is element-wise and the losses are per-sample
-sums, so a sample's result does not depend on its batch mates beyond float rounding).
+Determinism: a sample's frame and perturbation come from its own seed; the object point
+subset the losses use is drawn from the batch's first sample, and the optimisation runs
+batched. The stream is therefore reproducible for the same seed and batch size (the same
+render batches), while :meth:`HOGSADataset.sample` regenerating one sample alone may give a
+slightly different grasp (another point subset).
 Cost: ``iters`` (200, the paper's) Adam steps per render batch — meant for CUDA; on a CPU
 prefer ``poses="bank"`` (the same optimisation, done offline).
 """
