@@ -163,7 +163,9 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
             "--ckpt-every", "2", "--lr-scale", "10", "--k", "1", "--sh-degree", "1", "--sh-warmup", "0",
             "--iters", "14", "--quiet"]  # fmt: skip
     cut = tmp_path / "cut"
-    proc = subprocess.Popen([sys.executable, str(ROOT / "pretrain" / "train_hogs.py"), *args, "--out", str(cut)])
+    # the same intra-op thread count as this process: CPU float sums are reproducible per thread count
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "pretrain" / "train_hogs.py"), *args, "--out", str(cut)], env=env)
     latest = cut / "checkpoints" / "latest.json"
     deadline = time.monotonic() + 120
     while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
