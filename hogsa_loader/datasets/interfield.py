@@ -93,6 +93,10 @@ class InterFieldTargets:
         self.max_dist = float(max_dist)
         self.v_max = int(object_layer.v_len.max()) if v_max is None else int(v_max)
 
+    def from_vertices(self, v_r: Any, v_l: Any, v_o: Any) -> dict[str, Any]:
+        """Targets of one frame from already posed meshes (``v_o`` without padding)."""
+        return interaction_field(v_r, v_l, v_o, self.v_max, self.max_dist)
+
     def __call__(self, poses: Mapping[str, Tensor], names: list[str]) -> list[dict[str, Any]]:
         """Targets of B frames.
 
@@ -114,8 +118,7 @@ class InterFieldTargets:
             obj = self.object_layer(angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"],
                                     transl=P["obj_trans"], names=list(names))
         n_o = obj["v_len"].tolist()
-        return [interaction_field(verts["right"][b], verts["left"][b], obj["v"][b, : n_o[b]], self.v_max,
-                                  self.max_dist) for b in range(B)]
+        return [self.from_vertices(verts["right"][b], verts["left"][b], obj["v"][b, : n_o[b]]) for b in range(B)]
 
 
 def interfield_targets(root: Any, option: Union[bool, float, None]) -> Optional[InterFieldTargets]:

@@ -311,23 +311,26 @@ class SynthPipeline:
         return self._models[key]
 
     # ------------------------------------------------------------------ geometry
-    def _geometry(self, key: tuple[str, str], batch: PoseBatch) -> dict[str, np.ndarray]:
+    def _geometry(self, key: tuple[str, str], batch: PoseBatch) -> tuple[dict[str, np.ndarray], dict[str, Tensor]]:
         """World-frame label points: joints (B,21,3) per hand, kp3d (B,32,3), bbox3d (B,16,3),
-        object vertices (B,V,3), float64."""
+        object vertices (B,V,3), float64; and the hand vertices ``{side: (B, Vh, 3)}`` (kept
+        apart: only the interaction field needs them, nothing is projected)."""
         P = batch.poses
         out: dict[str, np.ndarray] = {}
+        hand_verts: dict[str, Tensor] = {}
         with torch.no_grad():
             for side in ("right", "left"):
                 res = self.layers[side](global_orient=P[f"{side}_rot"], hand_pose=P[f"{side}_pose"],
                                         betas=P[f"{side}_betas"], transl=P[f"{side}_trans"])
                 out[f"joints.{side}"] = res.joints.double().numpy()
+                hand_verts[side] = res.vertices
             B = len(batch)
             res = self.object_layer(angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"],
                                     transl=P["obj_trans"], names=[key[1]] * B)
         out["kp3d"] = res["kp3d"].double().numpy()
         out["bbox3d"] = res["bbox3d"].double().numpy()
         out["verts"] = res["v"].double().numpy()
-        return out
+        return out, hand_verts
 
     def _drop(self, reason: str) -> None:
         self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
@@ -361,7 +364,7 @@ class SynthPipeline:
             with st.timed("pom", self.device):
                 batch = optimize(key, batch)
         with st.timed("pose"):
-            geo = self._geometry(key, batch)
+            geo, hand_verts = self._geometry(key, batch)
             cam_rngs = [sample_rng(self.seed, self.epoch, i, _STREAM_CAMERA) for i in indices]
             if self.protocol == "p2":
                 prov = batch.provenance or [{}] * B
@@ -422,10 +425,10 @@ class SynthPipeline:
                                          bool(rgb_finite[j]))
             kept = [b for b in keep if results[b] is not None]
             if self.interfield is not None and kept:
-                sel = torch.as_tensor(kept, dtype=torch.long)
-                fields = self.interfield({k: v[sel] for k, v in batch.poses.items()}, [obj] * len(kept))
-                for b, f in zip(kept, fields):
-                    results[b].extra_targets = f  # type: ignore[union-attr]
+                n_o = int(self.object_layer.v_len[self.object_layer.indices([obj])][0])
+                for b in kept:  # the meshes posed above: no second MANO / object pass
+                    results[b].extra_targets = self.interfield.from_vertices(  # type: ignore[union-attr]
+                        hand_verts["right"][b], hand_verts["left"][b], geo["verts"][b, :n_o])
         st.kept += sum(r is not None for r in results)
         return results
 
