@@ -238,6 +238,86 @@ def test_optimisation_reduces_penetration(scene):
     assert float(m["penetration_depth"].max()) < 0.002 and bool(m["accept"].all())
 
 
+def _touching(infos, objects, side: str, center, direction, gap: float = 0.002) -> GraspState:
+    """A hand at ``center`` moved along ``direction`` until its closest vertex is ``gap`` from the object."""
+    state = _state(infos, {**FAR, side: center})
+    d = torch.as_tensor(direction, dtype=torch.float32)
+    v = canonical_hands(state, infos)[side].vertices
+    lo, hi = 0.0, 0.3  # bisection on the travel distance
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        m = float(objects.sdf(v + mid * d, state.obj_names, state.obj_arti).min())
+        lo, hi = (mid, hi) if m > gap else (lo, mid)
+    state.hands[side].trans = state.hands[side].trans + lo * d
+    return state
+
+
+def test_rigid_move_hand_matches_vertex_motion(scene):
+    from hogsa_loader.geometry.rotations import axis_angle_to_matrix
+    from hogsa_loader.pom.regrasp import rigid_move_hand
+
+    infos, _ = scene
+    g = torch.Generator().manual_seed(3)
+    p = HandParams(torch.randn(4, 3, generator=g) * 0.7, torch.randn(4, 45, generator=g) * 0.2,
+                   torch.randn(4, 3, generator=g) * 0.1, torch.randn(4, 10, generator=g))
+    M = axis_angle_to_matrix(torch.randn(4, 3, generator=g))
+    c = torch.randn(4, 3, generator=g) * 0.1
+    for s in SIDES:
+        v0 = hand_forward(infos[s], p).vertices
+        v1 = hand_forward(infos[s], rigid_move_hand(infos[s], p, M, c)).vertices
+        torch.testing.assert_close(v1, v0 @ M.transpose(-1, -2) + c[:, None], atol=2e-5, rtol=0)
+
+
+def test_regrasp_restores_source_contacts(scene):
+    from hogsa_loader.geometry.rotations import axis_angle_to_matrix
+    from hogsa_loader.pom.regrasp import regrasp, rigid_move_hand, source_contacts
+
+    infos, objects = scene
+    src = _touching(infos, objects, "right", (-0.06, -0.16, 0.0), (0.0, 1.0, 0.0))
+    con = source_contacts(src, infos, objects)
+    C = con.mask["right"][0]
+    assert int(C.sum()) >= 5 and not bool(con.active("left")[0])
+    # move the hand off and into the object: 15 degrees about its wrist, 2 cm sideways, 2 cm in
+    M = axis_angle_to_matrix(torch.tensor([[0.0, 0.0, math.radians(15)]]))
+    w = hand_forward(infos["right"], src.hands["right"]).joints[:, 0]
+    moved = rigid_move_hand(infos["right"], src.hands["right"], M, w - w @ M[0].T + torch.tensor([[0.02, 0.02, 0.0]]))
+    start = GraspState({**src.hands, "right": moved}, src.obj_names, src.obj_arti, src.obj_rot, src.obj_trans)
+
+    def sdf(state):
+        return objects.sdf(canonical_hands(state, infos)["right"].vertices, state.obj_names, state.obj_arti)[0]
+
+    d_src, d0 = sdf(src), sdf(start)
+    assert float((d0[C] - d_src[C]).abs().mean()) > 0.005 and float(d0.min()) < -0.005
+    out = regrasp(start, con, infos, objects)
+    d1 = sdf(out)
+    assert float((d1[C] - d_src[C].clamp_min(0.001)).abs().mean()) < 0.002  # contacts back at their distances
+    assert float(d1.min()) > -0.001  # no penetration
+    assert torch.equal(out.hands["left"].trans, start.hands["left"].trans)  # no contacts: untouched
+    # a stiff rotation prior keeps the perturbed orientation (translation only)
+    stiff = regrasp(start, con, infos, objects, rot_weight=1e6)
+    torch.testing.assert_close(axis_angle_to_matrix(stiff.hands["right"].rot), axis_angle_to_matrix(moved.rot), atol=1e-4, rtol=0)
+
+
+def test_hand_on_top_part_follows_articulation(scene):
+    from hogsa_loader.objects.template import TOP
+    from hogsa_loader.pom.regrasp import carry_with_part, source_contacts
+
+    infos, objects = scene
+    src = _touching(infos, objects, "right", (-0.105, 0.12, 0.0), (0.0, -1.0, 0.0))  # on the top tab
+    con = source_contacts(src, infos, objects)
+    assert bool(con.on_top["right"][0]) and int(con.mask["right"][0].sum()) >= 3
+    new = GraspState(src.hands, src.obj_names, torch.tensor([0.4]), src.obj_rot, src.obj_trans)
+    out = carry_with_part(new, src.obj_arti, con, infos)
+
+    def top_sdf(state):
+        v = canonical_hands(state, infos)["right"].vertices
+        return objects.part_sdf(v, state.obj_names, state.obj_arti)[TOP][0]
+
+    torch.testing.assert_close(top_sdf(out), top_sdf(src), atol=1e-5, rtol=0)
+    assert float((top_sdf(new) - top_sdf(src)).abs().max()) > 0.01  # not carried: contact lost
+    assert torch.equal(out.hands["left"].trans, src.hands["left"].trans)
+
+
 def test_nonfinite_samples_are_dropped(scene):
     infos, objects = scene
     start = _state(infos, FAR, B=3)

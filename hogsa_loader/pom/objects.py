@@ -177,8 +177,8 @@ class ObjectSet:
         P = torch.where(T[..., None], P @ R.transpose(-1, -2), P)
         return P, T
 
-    def sdf(self, points_c: Tensor, names: Sequence[str], arti: Tensor) -> Tensor:
-        """Signed distance to the object (union of parts) of canonical points.
+    def part_sdf(self, points_c: Tensor, names: Sequence[str], arti: Tensor) -> dict[int, Tensor]:
+        """Signed distance to each part of canonical points.
 
         Loops over the distinct objects of the batch (not over samples).
 
@@ -186,20 +186,26 @@ class ObjectSet:
             points_c: (B, P, 3) canonical points; names: B names; arti: (B,) θ.
 
         Returns:
-            (B, P) signed distances (m, negative inside), differentiable in the points.
+            ``{TOP: (B, P), BOTTOM: (B, P)}`` signed distances (m, negative inside),
+            differentiable in the points.
         """
         frames = part_frames(points_c, arti)
-        out = torch.empty(points_c.shape[:2], dtype=points_c.dtype, device=points_c.device)
         names = list(names)
-        for name in sorted(set(names)):
-            sel = torch.tensor([n == name for n in names], device=points_c.device)
-            g = self.geometry(name)
-            d = None
-            for part in (TOP, BOTTOM):
+        out = {}
+        for part in (TOP, BOTTOM):
+            d = torch.empty(points_c.shape[:2], dtype=points_c.dtype, device=points_c.device)
+            for name in sorted(set(names)):
+                sel = torch.tensor([n == name for n in names], device=points_c.device)
+                g = self.geometry(name)
                 grid = g.sdf[part]
                 if grid.values.device != points_c.device:
                     grid = g.sdf[part] = grid.to(points_c.device)
-                dp = grid.query(frames[part][sel])
-                d = dp if d is None else torch.minimum(d, dp)
-            out = out.index_put((sel.nonzero().squeeze(-1),), d)
+                d = d.index_put((sel.nonzero().squeeze(-1),), grid.query(frames[part][sel]))
+            out[part] = d
         return out
+
+    def sdf(self, points_c: Tensor, names: Sequence[str], arti: Tensor) -> Tensor:
+        """Signed distance to the object (union of parts) of canonical points: (B, P) (m,
+        negative inside), differentiable in the points; see :meth:`part_sdf`."""
+        parts = self.part_sdf(points_c, names, arti)
+        return torch.minimum(parts[TOP], parts[BOTTOM])

@@ -2,12 +2,16 @@
 
 For B perturbed samples at once (no Python loop over samples; CPU or CUDA):
 
-1. optional rigid contact projection (``snap``, our addition, default on): a few closed-form
-   translation steps per hand along the object's SDF gradient that push a penetrating hand
-   out of the object and bring a hand that touched the object in the source frame back to
-   touching distance. The paper's learning rates (translation 3e-5 over 200 Adam steps)
-   cannot move a hand more than ~6 mm, so without it a 6 cm jitter into the object stays
-   there; ``snap=False`` gives the paper-pure optimisation;
+1. re-grasp initialisation (``snap``, our addition, default on): hands holding the
+   object's top part follow the new articulation angle, hands deep inside are moved out
+   (line search + linearised SDF push), then each hand's rigid motion is fitted so the
+   vertices that touched the object in the source frame touch it again, without
+   penetration, keeping the perturbed rotation unless the contacts need otherwise
+   (:mod:`hogsa_loader.pom.regrasp`). The paper's learning rates (translation 3e-5 over
+   200 Adam steps) cannot move a hand more than ~6 mm, so without it a 6 cm jitter leaves
+   hands floating next to (or inside) the object. Measured on the small world (contact
+   ratio = hand vertices within 5 mm): annotated grasps ~0.07, after a nearest-point snap
+   0.044, after the re-grasp 0.079. ``snap=False`` gives the paper-pure optimisation;
 2. 200 Adam iterations on both hands' global rotation, translation, articulation and shape
    (learning rates: pose/rotation 5e-4, translation 3e-5, shape 5e-4) of
    ``Σ_{l,r} 1·L_C + 1·L_H + 17·L_P + w_prior·prior`` (:mod:`hogsa_loader.pom.losses`);
@@ -38,6 +42,7 @@ from hogsa_loader.pom.losses import (
     pose_prior,
 )
 from hogsa_loader.pom.objects import ObjectSet, to_canonical
+from hogsa_loader.pom.regrasp import carry_with_part, regrasp, source_contacts
 from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
 
 __all__ = ["POMConfig", "POMResult", "optimise_grasps", "snap_hands"]
@@ -57,8 +62,12 @@ class POMConfig:
             every iteration; hands move < 0.1 mm per step).
         final_push: after Adam, the penetration part of the rigid projection once more
             (removes residual penetration; no pull toward the object).
-        snap: rigid contact projection before Adam (see module docstring).
-        snap_steps: its iterations; contact_margin: touching distance it aims for (m).
+        snap: re-grasp initialisation before Adam (see module docstring).
+        snap_steps: iterations of the penetration push; contact_margin: clearance the
+            projections aim for (m); contact_distance: source vertices closer than this to
+            the object form a hand's contact set (m).
+        regrasp_steps / regrasp_rot_weight: iterations and rotation prior of
+            :func:`~hogsa_loader.pom.regrasp.regrasp`.
         max_depth: drop samples still penetrating deeper than this (m, SDF grid).
         max_pose_change: drop samples whose articulation changed more than this (rad, max
             over the 45 values); max_betas: drop samples with a |beta| above this.
@@ -80,6 +89,9 @@ class POMConfig:
     final_push: bool = True
     snap_steps: int = 10
     contact_margin: float = 0.001
+    contact_distance: float = 0.005
+    regrasp_steps: int = 20
+    regrasp_rot_weight: float = 2e-4
     max_depth: float = 0.01
     max_pose_change: float = 1.0
     max_betas: float = 5.0
@@ -257,7 +269,14 @@ def optimise_grasps(
         active = {s: torch.ones(B, dtype=torch.bool, device=device) for s in SIDES}
     state = start.map(lambda t: t.detach().clone())
     if config.snap:
-        state = snap_hands(state, infos, objects, active, config.snap_steps, config.contact_margin)
+        contacts = source_contacts(ref, infos, objects, config.contact_distance)
+        for s in SIDES:
+            contacts.mask[s] &= active[s].to(contacts.mask[s].device)[:, None]
+            contacts.on_top[s] &= active[s].to(contacts.on_top[s].device)
+        state = carry_with_part(state, ref.obj_arti, contacts, infos)
+        state = snap_hands(state, infos, objects, None, config.snap_steps, config.contact_margin)
+        state = regrasp(state, contacts, infos, objects, config.regrasp_steps, config.contact_margin,
+                        rot_weight=config.regrasp_rot_weight)
     obj_pts, _ = objects.points(state.obj_names, state.obj_arti, count=min(config.n_obj_points, objects.n_points),
                                 generator=generator)
     obj_pts = obj_pts.to(device, start.obj_trans.dtype)
