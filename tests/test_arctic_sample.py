@@ -39,6 +39,7 @@ from hogsa_loader.datasets.augment import (
     hmr_transform_matrix,
     patch_intrinsics,
     patch_warp_matrix,
+    process_image,
     rot_aa,
     rotation_z,
     sample_aug_params,
@@ -433,6 +434,29 @@ def test_image_normalisation_and_colour_noise() -> None:
     scene.bbox = np.array([0.0, 0.0, 1.0])
     patch = build(scene, AugParams.identity())[0]["img"]
     assert torch.allclose(patch[:, 0, 0], torch.tensor(-MEAN / STD, dtype=torch.float32), atol=1e-6)
+
+
+def test_blur_footprint_follows_source_scale() -> None:
+    """A 3× smaller source with ``source_scale = 1/3`` gives the patch the full-size source
+    gives with ARCTIC's own blur; ARCTIC's 5-px kernel on the small source blurs it more."""
+    rng = np.random.default_rng(0)
+    big = cv2.resize(rng.uniform(0, 255, (100, 100, 3)).astype(np.float32), (900, 900), interpolation=cv2.INTER_CUBIC)
+    big = cv2.GaussianBlur(big, (0, 0), 2.0)  # texture with detail at the patch's scale
+    small = cv2.resize(big, (300, 300), interpolation=cv2.INTER_AREA)
+    aug = AugParams(rot=20.0, sc=1.0, pn=np.ones(3))
+    ref = process_image(big, (450.0, 450.0), 600 / 200, aug, CFG)  # 600-px box -> 224
+    same = process_image(small, (150.0, 150.0), 200 / 200, aug, CFG, source_scale=1 / 3)
+    arctic = process_image(small, (150.0, 150.0), 200 / 200, aug, CFG)
+    assert torch.equal(process_image(big, (450.0, 450.0), 3.0, aug, CFG, source_scale=1.0), ref)
+
+    def err(x):
+        return float((x - ref)[:, 20:-20, 20:-20].pow(2).mean())
+
+    # measured: 0.045 (scaled blur), 0.166 (ARCTIC's kernel on the small source), 0.051 (no blur)
+    unblurred = process_image(small, (150.0, 150.0), 1.0, aug, CFG, source_scale=1e-3)
+    assert err(same) < 0.35 * err(arctic) and err(same) < err(unblurred), (err(same), err(arctic), err(unblurred))
+    with pytest.raises(ValueError, match="source_scale"):
+        process_image(small, (150.0, 150.0), 1.0, aug, CFG, source_scale=0.0)
 
 
 def test_missing_image_is_zero_patch() -> None:

@@ -55,6 +55,18 @@ __all__ = [
 #: Gaussian anti-aliasing kernel applied to the source before the warp (step 8).
 BLUR_KERNEL: int = 5
 BLUR_SIGMA: float = 8.0
+
+
+def _kernel_std(ksize: int, sigma: float) -> float:
+    """Per-axis standard deviation (px) of OpenCV's normalised ``ksize``-tap Gaussian kernel."""
+    x = np.arange(ksize, dtype=np.float64) - (ksize - 1) / 2
+    w = np.exp(-(x**2) / (2 * sigma**2))
+    return float(np.sqrt((w * x**2).sum() / w.sum()))
+
+
+#: Footprint of ARCTIC's blur (5×5, σ = 8: almost a box filter) as a Gaussian std in
+#: source pixels (≈ 1.41 px); :func:`process_image` scales it for smaller sources.
+BLUR_PIXEL_STD: float = _kernel_std(BLUR_KERNEL, BLUR_SIGMA)
 #: Probability that the sampled rotation is replaced by 0 (step 7).
 ROT_ZERO_PROB: float = 0.6
 
@@ -294,6 +306,7 @@ def process_image(
     scale: float,
     aug: AugParams,
     cfg: ArcticConfig = ArcticConfig(),
+    source_scale: float = 1.0,
 ) -> torch.Tensor:
     """Step 8: source image → normalised ``(3, img_res, img_res)`` float32 patch.
 
@@ -309,10 +322,19 @@ def process_image(
         scale: box side / 200 in ``image`` pixels, before augmentation.
         aug: augmentation.
         cfg: ``img_res`` and normalisation.
+        source_scale: pixels of ``image`` per pixel of the source ARCTIC reads for such a
+            view (its 1000-px cropped image, or the 0.3-scaled egocentric frame). 1 (real
+            data) is ARCTIC's blur exactly. A smaller synthetic source (e.g. a 336-px
+            render of the same crop: 0.336) gets a Gaussian of std
+            ``BLUR_PIXEL_STD · source_scale`` instead, so the blur in the output patch is
+            the same as in real samples; ARCTIC's 5-px kernel on it would blur the
+            synthetic patch about 3× more than the real ones.
 
     Returns:
         (3, img_res, img_res) float32 tensor.
     """
+    if not source_scale > 0:
+        raise ValueError(f"source_scale must be > 0, got {source_scale}")
     res = cfg.img_res
     if image is None:
         # ARCTIC blurs and warps a (2800, 2000, 3) zero image: the patch is all zeros.
@@ -324,7 +346,12 @@ def process_image(
         img = img.astype(np.float32)
         crop_dim = int(aug.sc * scale * 200)
         M = patch_warp_matrix(center, crop_dim, aug.rot, res)
-        blur = cv2.GaussianBlur(img, (BLUR_KERNEL, BLUR_KERNEL), BLUR_SIGMA)
+        if source_scale == 1.0:
+            blur = cv2.GaussianBlur(img, (BLUR_KERNEL, BLUR_KERNEL), BLUR_SIGMA)
+        else:
+            sigma = BLUR_PIXEL_STD * source_scale
+            k = 2 * int(np.ceil(3.0 * sigma)) + 1
+            blur = cv2.GaussianBlur(img, (k, k), sigma)
         patch = cv2.warpAffine(blur, M, (res, res), flags=cv2.INTER_CUBIC).astype(np.float32)
     for ch in range(3):
         patch[:, :, ch] = np.minimum(255.0, np.maximum(0.0, patch[:, :, ch] * aug.pn[ch]))

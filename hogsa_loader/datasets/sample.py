@@ -174,6 +174,7 @@ def make_arctic_sample(
     query_name: Optional[str] = None,
     cfg: ArcticConfig = ArcticConfig(),
     ego_patch_k: Optional[np.ndarray] = None,
+    source_scale: float = 1.0,
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     """Build ARCTIC's ``(inputs, targets, meta_info)`` for one posed frame (§3.3 steps 6–13).
 
@@ -195,6 +196,9 @@ def make_arctic_sample(
         cfg: settings (``img_res``, focal, normalisation, window size, ``use_gt_k``).
         ego_patch_k: (3, 3) cached egocentric patch K (ARCTIC's ``egocam_k``); used
             instead of the computed one for egocentric samples when given.
+        source_scale: ``image`` pixels per pixel of ARCTIC's source for this view (1 for
+            real data); scales the blur footprint (see
+            :func:`~hogsa_loader.datasets.augment.process_image`).
 
     Returns:
         ``(inputs, targets, meta_info)`` dicts, types per the module docstring.
@@ -221,7 +225,7 @@ def make_arctic_sample(
     kp2d_t, kp2d_b = proc(kp2d[:16]), proc(kp2d[16:])
     bbox2d_t, bbox2d_b = proc(bb2d[:8]), proc(bb2d[8:])
 
-    img = process_image(image, center, scale, aug, cfg)
+    img = process_image(image, center, scale, aug, cfg, source_scale=source_scale)
 
     inputs: dict[str, Any] = {"img": img}
     targets: dict[str, Any] = {}

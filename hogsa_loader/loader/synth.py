@@ -40,6 +40,7 @@ from torch import Tensor
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams
+from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, CROPPED_SIZE, EGO_IMAGE_SCALE
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from hogsa_loader.loader.cameras import CameraSampler
@@ -55,6 +56,7 @@ __all__ = [
     "SynthPipeline",
     "Refiner",
     "frame_to_sample",
+    "source_scale",
     "sample_rng",
     "synthetic_imgname",
     "parse_synthetic_imgname",
@@ -206,6 +208,19 @@ def joints_on_alpha(points: np.ndarray, alpha: np.ndarray, threshold: float = 0.
     return out
 
 
+def source_scale(frame: SynthFrame) -> float:
+    """Pixels of ``frame.image`` per pixel of the image ARCTIC would read for this view.
+
+    Allocentric: ARCTIC's cropped image shows the box enlarged 1.5× at 1000 px, so the box
+    spans ``1000 / 1.5`` px there and ``200 · scale`` px here. Egocentric: ARCTIC reads the
+    whole frame at 0.3 of its size; the synthetic frame is the whole frame at
+    ``width / W``.
+    """
+    if frame.egocentric:
+        return float(frame.image.shape[1]) / float(frame.image_size[0]) / EGO_IMAGE_SCALE
+    return float(frame.bbox[2]) * BBOX_PIXELS_PER_SCALE * CROP_ENLARGE / CROPPED_SIZE
+
+
 def frame_to_sample(
     frame: SynthFrame,
     aug: AugParams,
@@ -220,12 +235,14 @@ def frame_to_sample(
 
     Returns:
         ``(inputs, targets, meta_info)`` exactly like
-        :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` items.
+        :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` items. The one
+        difference from a real sample's path: ARCTIC's source blur is scaled to the
+        synthetic image's pixel size (:func:`source_scale`), so both blur the patch alike.
     """
     inputs, targets, meta = make_arctic_sample(
         image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
         right=frame.right, left=frame.left, obj=frame.obj, egocentric=frame.egocentric, dist=frame.dist, aug=aug,
-        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg,
+        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg, source_scale=source_scale(frame),
     )  # fmt: skip
     targets.update(frame.extra_targets)
     return inputs, targets, meta
