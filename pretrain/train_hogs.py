@@ -50,6 +50,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
     p.add_argument("--dataset", default="arctic", choices=["arctic", "h2o"])
     p.add_argument("--mano-dir", default=None, help="H2O: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl")
     p.add_argument("--object-mesh-dir", default=None, help="H2O: folder of the object meshes (<name>/<name>.obj|.ply)")
+    p.add_argument("--window", default="crop", choices=["crop", "fg"],
+                   help="train on the whole cropped image (crop) or on a window around the posed hands and "
+                        "object of each frame (fg: more pixels on them at the same resolution; ARCTIC only)")
     p.add_argument("--masks", default="auto", choices=["auto", "files", "render"],
                    help="part masks: the dataset's files, or rendered from the annotated meshes (auto: files if present)")
     p.add_argument("--subject", required=True)
@@ -94,7 +97,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
     a = p.parse_args(argv)
     cfg = HogsConfig(
         data=a.data, subject=a.subject, object=a.object, out=a.out, dataset=a.dataset, mano_dir=a.mano_dir,
-        object_mesh_dir=a.object_mesh_dir, masks=a.masks, views=_ints(a.views),
+        object_mesh_dir=a.object_mesh_dir, masks=a.masks, window=a.window, views=_ints(a.views),
         sequences=[s for s in a.sequences.split(",") if s] if a.sequences else None,
         iters=a.iters, gaussians=a.gaussians, device=a.device, seed=a.seed, batch_size=a.batch_size,
         image_size=a.image_size, eval_views=_ints(a.eval_views),

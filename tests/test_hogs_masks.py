@@ -103,6 +103,41 @@ def test_training_resolution_masks_match_resized_files(tiny_world):
     assert any((s.image[s.mask == 0] > 0).any() for s in b.train[:8])
 
 
+def test_foreground_window_matches_files(tiny_world):
+    """``window="fg"``: the file masks cut to each window line up with masks rendered through
+    the window's intrinsics, the window holds all of the hands and object, and it zooms in."""
+    root = ArcticRoot(tiny_world)
+    kw = dict(frame_stride=8, image_size=64)
+    crop = load_hogs_data(root, "s05", "box", masks="files", **kw)
+    a = load_hogs_data(root, "s05", "box", masks="files", window="fg", **kw)
+    b = load_hogs_data(root, "s05", "box", masks="render", window="fg", **kw)
+    assert [(s.frame, s.view) for s in a.train] == [(s.frame, s.view) for s in crop.train]
+    A = np.stack([s.mask for s in a.train + a.eval])
+    B = np.stack([s.mask for s in b.train + b.eval])
+    assert min(_iou(x > 0, y > 0) for x, y in zip(A, B)) >= 0.95
+    assert float((A == B).mean()) >= 0.98
+    # a window one pixel off (at 64 px) is measurably worse: the bar tests the intrinsics
+    seq = a.sequences[a.train[0].seq_index]
+    s0 = a.train[0]
+    posed = pose_meshes(seq, [s0.frame], root.mano_layers(), root.object_templates()[seq.object.name])
+    K = s0.K.copy()
+    K[0, 2] += 1.0
+    cam = seq.cameras[s0.view]
+    off = render_part_mask(posed, s0.frame, s0.world2cam, K, 64, K_full=cam.K[s0.frame], full_size=(cam.width, cam.height))
+    assert _iou(off > 0, s0.mask > 0) < _iou(B[0] > 0, A[0] > 0) - 0.02
+    # the window cuts no foreground the cropped image holds; the foreground covers more pixels
+    C = np.stack([s.mask for s in crop.train + crop.eval])
+
+    def touches(m):
+        return bool(m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+
+    assert all(touches(c) for a_, c in zip(A, C) if touches(a_))
+    assert sum(touches(a_) for a_ in A) < len(A) // 2
+    assert float((A > 0).mean()) > 1.2 * float((C > 0).mean())  # tiny world (256-px crops, 64-px windows ≥ 192)
+    with pytest.raises(ValueError, match="window"):
+        load_hogs_data(root, "s05", "box", window="tight", **kw)
+
+
 def _maskless_root(world: Path, tmp: Path) -> Path:
     """The tiny world without ``masks/`` (like real ARCTIC), through symlinks."""
     data = tmp / "arctic_data" / "data"

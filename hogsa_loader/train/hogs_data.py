@@ -19,6 +19,13 @@ annotations, not a segmentation of the picture): the trainer and the evaluation 
 the image by the mask at the training resolution, so no pixel outside the mask is ever a
 colour target (see :meth:`~hogsa_loader.train.hogs_trainer.HogsTrainer.targets`).
 
+Window (``window``): ``"crop"`` (default) trains on the whole cropped image (1.5× the
+ARCTIC box); ``"fg"`` on a square window around the posed hands and object of each frame
+(their projected vertices' extent plus ``window_margin`` each side, rounded up to a whole
+multiple of the training resolution, kept inside the cropped image), so the same training resolution spends its pixels on the hands and the
+object — about 3× the linear resolution on the small world. The intrinsics of each sample
+follow its window exactly (translation then scale of the render intrinsics).
+
 Split: ``eval_views`` (camera views never used in training) and every ``eval_every_frame``-th
 frame are held out; evaluation uses held-out views × held-out frames. H2O has its own
 loader with the same split rules (:mod:`hogsa_loader.train.hogs_data_h2o`).
@@ -46,11 +53,13 @@ from hogsa_loader.datasets.conventions import (
 from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.train.hogs_masks import pose_meshes, render_part_mask
 
-__all__ = ["MASK_MODES", "ViewSample", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
+__all__ = ["MASK_MODES", "WINDOWS", "ViewSample", "foreground_window", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
            "split_role", "check_views", "split_samples", "mask_supersample"]
 
 #: Where the part masks come from (``load_hogs_data(masks=...)``).
 MASK_MODES = ("auto", "files", "render")
+#: Which part of each cropped image is trained on (``load_hogs_data(window=...)``).
+WINDOWS = ("crop", "fg")
 
 
 @dataclass
@@ -185,7 +194,16 @@ def _crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> di
     return out
 
 
-def _read_foreground(image_path, mask_path, size: int) -> tuple[np.ndarray, np.ndarray]:
+def _cut(img: np.ndarray, window: Optional[tuple[int, int, int]]) -> np.ndarray:
+    """``img[y0:y0+side, x0:x0+side]`` for ``window = (x0, y0, side)`` (None: whole image)."""
+    if window is None:
+        return img
+    x0, y0, side = window
+    return img[y0 : y0 + side, x0 : x0 + side]
+
+
+def _read_foreground(image_path, mask_path, size: int, window: Optional[tuple[int, int, int]] = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Foreground image and part mask at ``size``.
 
     The background is removed at the native resolution (image × (mask > 0)) *before*
@@ -203,6 +221,7 @@ def _read_foreground(image_path, mask_path, size: int) -> tuple[np.ndarray, np.n
         raise FileNotFoundError(f"cannot read mask {mask_path}")
     if parts.shape[:2] != img.shape[:2]:
         parts = cv2.resize(parts, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
+    img, parts = _cut(img, window), _cut(parts, window)
     fg = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) * (parts > 0)[..., None].astype(np.uint8)
     if fg.shape[0] == size and fg.shape[1] == size:
         return fg, parts
@@ -214,15 +233,44 @@ def _read_foreground(image_path, mask_path, size: int) -> tuple[np.ndarray, np.n
     return fg, small
 
 
-def _read_image(image_path, size: int) -> np.ndarray:
-    """(size, size, 3) uint8 RGB image, background kept (area-resized)."""
+def _read_image(image_path, size: int, window: Optional[tuple[int, int, int]] = None) -> np.ndarray:
+    """(size, size, 3) uint8 RGB image (of the window), background kept (area-resized)."""
     img = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
     if img is None:
         raise FileNotFoundError(f"cannot read image {image_path}")
-    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    img = cv2.cvtColor(_cut(img, window), cv2.COLOR_BGR2RGB)
     if img.shape[:2] != (size, size):
         img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
     return img
+
+
+def foreground_window(posed, frame: int, world2cam: np.ndarray, K_crop: np.ndarray, crop: int, size: int,
+                      margin: float = 0.15) -> tuple[int, int, int]:
+    """Square window ``(x0, y0, side)`` (cropped-image pixels) around the posed meshes.
+
+    Args:
+        posed: :class:`~hogsa_loader.train.hogs_masks.PosedMeshes` holding ``frame``.
+        world2cam: (4, 4); K_crop: (3, 3) render intrinsics of the whole cropped image.
+        crop: cropped-image side; size: training resolution.
+        margin: added on each side, as a fraction of the meshes' larger extent.
+
+    The side is rounded up to a whole multiple of ``size`` (at most ``crop``), so resizing
+    the window to ``size`` is an exact k×k box filter and masks rendered at ``size`` match
+    the resized mask files pixel for pixel.
+    """
+    i = posed.index(frame)
+    pts = np.concatenate([m[1][i].numpy().astype(np.float64) for m in posed.meshes])
+    cam = transform(world2cam, pts)
+    cam = cam[cam[:, 2] > 1e-6]
+    if len(cam) == 0:
+        return 0, 0, crop
+    uv = project(cam, K_crop)
+    lo, hi = np.clip(uv.min(0), 0, crop), np.clip(uv.max(0), 0, crop)
+    side = float(max(hi - lo)) * (1 + 2 * margin)
+    side = int(min(crop, size * max(1, int(np.ceil(side / size - 1e-9)))))  # a whole multiple of size
+    c = (lo + hi) / 2
+    x0, y0 = (int(np.clip(round(float(c[k]) - side / 2), 0, crop - side)) for k in range(2))
+    return x0, y0, side
 
 
 def mask_supersample(native: float, size: int) -> int:
@@ -292,6 +340,8 @@ def load_hogs_data(
     image_size: Optional[int] = None,
     max_eval: int = 8,
     masks: str = "auto",
+    window: str = "crop",
+    window_margin: float = 0.15,
 ) -> HogsData:
     """Load every training and held-out (frame, view) of ``subject`` + ``object_name``.
 
@@ -306,9 +356,12 @@ def load_hogs_data(
         image_size: training resolution (default the cropped size).
         max_eval: at most this many held-out samples (evenly spaced).
         masks: ``"auto"``, ``"files"`` or ``"render"`` (module docstring).
+        window: ``"crop"`` or ``"fg"`` (module docstring); window_margin: its margin.
     """
     if masks not in MASK_MODES:
         raise ValueError(f"masks must be one of {MASK_MODES}, got {masks!r}")
+    if window not in WINDOWS:
+        raise ValueError(f"window must be one of {WINDOWS}, got {window!r}")
     names = select_sequences(root, subject, object_name, sequences)
     views = tuple(int(v) for v in views)
     bad = [v for v in views if v not in ALLO_VIEWS]
@@ -339,20 +392,27 @@ def load_hogs_data(
         render = masks == "render" or not have_masks
         sources.add("render" if render else "files")
         posed = None
-        if render:
+        if render or window == "fg":
             template = root.object_templates()[seq.object.name]
             posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), root.mano_layers(), template)
         boxes = _crop_boxes(root, seq, views)
         for v, f, role in jobs:
             cam = seq.cameras[v]
-            Ks = scale @ render_intrinsics(cropped_intrinsics(cam.K[f], boxes[v][f], crop))
+            K_crop = render_intrinsics(cropped_intrinsics(cam.K[f], boxes[v][f], crop))
+            win = None
+            Ks = scale @ K_crop
+            if window == "fg":
+                win = foreground_window(posed, f, cam.world2cam[f], K_crop, crop, size, window_margin)
+                x0, y0, side = win
+                Ks = np.diag([size / side, size / side, 1.0]) @ np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ K_crop
             ip = seq.image_paths[v][f]
-            if posed is None:
-                image, mask = _read_foreground(ip, seq.mask_paths[v][f], size)
+            if not render:
+                image, mask = _read_foreground(ip, seq.mask_paths[v][f], size, win)
             else:
-                image = _read_image(ip, size)
+                image = _read_image(ip, size, win)
+                native = crop if win is None else win[2]
                 mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f],
-                                        full_size=(cam.width, cam.height), supersample=mask_supersample(crop, size))  # fmt: skip
+                                        full_size=(cam.width, cam.height), supersample=mask_supersample(native, size))  # fmt: skip
             s = ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)
             (held if role == "eval" else train).append(s)
     return HogsData(subject, object_name, seqs, *split_samples(train, held, max_eval, f"{subject}/{object_name}"),

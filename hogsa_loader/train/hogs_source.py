@@ -67,6 +67,7 @@ class HogsSource:
         views: Optional[Sequence[int]] = None,
         eval_views: Optional[Sequence[int]] = None,
         masks: str = "auto",
+        window: str = "crop",
         **split: Any,
     ) -> HogsData:
         """The training / held-out split.
@@ -74,12 +75,15 @@ class HogsSource:
         Args:
             views, eval_views: camera views used / held out (None: the dataset's defaults).
             masks: ``"auto"``, ``"files"`` or ``"render"`` (H2O: never files).
+            window: ``"crop"`` or ``"fg"`` (ARCTIC only, see :mod:`~hogsa_loader.train.hogs_data`).
             **split: ``sequences``, ``eval_every_frame``, ``frame_stride``, ``image_size``,
                 ``max_eval`` as :func:`~hogsa_loader.train.hogs_data.load_hogs_data`.
         """
         split.update(views=tuple(views or self.views), eval_views=tuple(eval_views or self.eval_views))
         if self.dataset == "arctic":
-            return load_hogs_data(self.root, subject, object_name, masks=masks, **split)
+            return load_hogs_data(self.root, subject, object_name, masks=masks, window=window, **split)
+        if window != "crop":
+            raise ValueError(f"window={window!r} is implemented for ARCTIC only (H2O trains on whole crops)")
         if masks == "files":
             raise ValueError("H2O ships no masks: use masks='render' (or 'auto')")
         if object_name not in self.object_templates:
@@ -166,5 +170,6 @@ def load_run_data(
         eval_views=cfg.get("eval_views"), eval_every_frame=cfg.get("eval_every_frame", 8),
         frame_stride=cfg.get("frame_stride", 1), image_size=cfg.get("image_size"),
         max_eval=cfg.get("max_eval", 8) if max_eval is None else max_eval, masks=cfg.get("masks", "auto"),
+        window=cfg.get("window", "crop"),
     )  # fmt: skip
     return source, split

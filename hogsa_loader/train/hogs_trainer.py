@@ -38,7 +38,7 @@ from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, s
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.gaussians.checkpoint import atomic_write
-from hogsa_loader.train.run_folder import commit_checkpoint, latest_checkpoint
+from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, latest_checkpoint
 from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
@@ -89,6 +89,7 @@ class HogsConfig:
     mano_dir: Optional[str] = None  # H2O: folder with MANO_RIGHT/LEFT.pkl
     object_mesh_dir: Optional[str] = None  # H2O: folder of the object meshes
     masks: str = "auto"  # auto (files if present, else rendered) | files | render
+    window: str = "crop"  # crop (whole cropped image) | fg (window around hands + object)
     iters: int = 2000
     gaussians: str = "mesh"  # mesh (GaMeS) | free
     device: str = "cpu"
@@ -159,7 +160,7 @@ class HogsTrainer:
         self.data: HogsData = self.source.load(
             cfg.subject, cfg.object, sequences=cfg.sequences, views=cfg.views, eval_views=cfg.eval_views,
             eval_every_frame=cfg.eval_every_frame, frame_stride=cfg.frame_stride, image_size=cfg.image_size,
-            max_eval=cfg.max_eval, masks=cfg.masks,
+            max_eval=cfg.max_eval, masks=cfg.masks, window=cfg.window,
         )  # fmt: skip
         self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
         torch.manual_seed(cfg.seed)
@@ -360,7 +361,7 @@ class HogsTrainer:
         """Load the latest checkpoint of the run folder; False when there is none."""
         from safetensors.torch import load_file
 
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE)
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE, config_defaults(HogsConfig))
         if folder is None:
             return False
         for name, part in self.parts.items():

@@ -14,7 +14,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 from hogsa_loader.gaussians.checkpoint import atomic_write
 
-__all__ = ["commit_checkpoint", "latest_checkpoint"]
+__all__ = ["commit_checkpoint", "latest_checkpoint", "config_defaults"]
 
 
 def commit_checkpoint(folder: Path, step: int) -> None:
@@ -27,8 +27,12 @@ def commit_checkpoint(folder: Path, step: int) -> None:
             shutil.rmtree(old, ignore_errors=True)
 
 
-def latest_checkpoint(out: Path, config: Mapping[str, Any], resumable: Sequence[str]) -> Optional[Path]:
+def latest_checkpoint(out: Path, config: Mapping[str, Any], resumable: Sequence[str],
+                      defaults: Optional[Mapping[str, Any]] = None) -> Optional[Path]:
     """The latest complete checkpoint folder of run ``out``, or None when there is none.
+
+    A setting missing from the saved ``config.json`` (added to the library after the run
+    started) matches when ``config`` has its value from ``defaults``.
 
     Raises:
         ValueError: a setting outside ``resumable`` differs from the run's saved ``config.json``.
@@ -37,7 +41,27 @@ def latest_checkpoint(out: Path, config: Mapping[str, Any], resumable: Sequence[
     if not latest.is_file():
         return None
     saved = json.loads((out / "config.json").read_text())
-    diff = [k for k in config if k not in resumable and saved.get(k) != config[k]]
+    defaults = defaults or {}
+
+    def same(k: str) -> bool:
+        if k in saved:
+            return saved[k] == config[k]
+        return k in defaults and defaults[k] == config[k]
+
+    diff = [k for k in config if k not in resumable and not same(k)]
     if diff:
         raise ValueError(f"cannot resume {out}: settings {diff} differ from the saved config.json")
     return out / "checkpoints" / json.loads(latest.read_text())["folder"]
+
+
+def config_defaults(cls: type) -> dict[str, Any]:
+    """``{field: default}`` of a config dataclass (fields with a default or default factory)."""
+    import dataclasses
+
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            out[f.name] = f.default_factory()  # type: ignore[misc]
+    return out
