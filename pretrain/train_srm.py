@@ -34,6 +34,13 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
     p.add_argument("--hogs", required=True, help="folder of finished HOGS runs (or one run folder)")
     p.add_argument("--out", required=True, help="SRM run folder")
     p.add_argument("--runs", default=None, help="comma-separated run folder names to use (default: all finished)")
+    p.add_argument("--pairs", default=None, choices=["own", "cross", "both"],
+                   help="training inputs: each run's renders of its own training views (own), renders by "
+                        "view-fold runs that did not see the view (cross), or both (default: both with "
+                        "--cross-hogs, else own)")
+    p.add_argument("--cross-hogs", default=None,
+                   help="folder of view-fold HOGS runs: same subject/object, trained on subsets of the "
+                        "training views (e.g. --views 1,3,5,7,8 and 2,4,6,8 with --eval-views 8)")
     p.add_argument("--iters", type=int, default=4000)
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--image-size", type=int, default=None, help="output / GT resolution (default: the runs' image size)")
@@ -65,6 +72,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
         r1_every=a.r1_every, ema_decay=a.ema_decay, vgg_weights=a.vgg_weights, device=a.device, seed=a.seed,
         eval_every=a.eval_every, ckpt_every=a.ckpt_every, strip_views=a.strip_views,
         runs=[r for r in a.runs.split(",") if r] if a.runs else None,
+        pairs=a.pairs or ("both" if a.cross_hogs else "own"), cross_hogs=a.cross_hogs,
     )  # fmt: skip
     return cfg, a
 

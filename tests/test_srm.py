@@ -245,3 +245,42 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
     # refusing to overwrite a run without --resume
     with pytest.warns(SubstituteWarning):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4)) == 2
+
+
+def test_cross_view_pairs(tiny_world, hogs_runs, tmp_path):
+    """View folds render the training samples whose view they never saw; leaks are refused."""
+    from hogsa_loader.errors import AssetError
+    from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
+    from hogsa_loader.train import HogsConfig, HogsTrainer
+
+    folds = tmp_path / "folds"
+    common = dict(data=str(tiny_world), subject="s01", object="box", iters=1, image_size=64, frame_stride=8,
+                  eval_every_frame=2, max_eval=2, eval_every=0, ckpt_every=0, k=1, sh_degree=0, sh_warmup=0,
+                  strip_views=1, eval_views=[8])  # fmt: skip
+    for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
+        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), **common), progress=False).train()
+    run = hogs_runs / "s01_box"
+    found = fold_runs(run, find_runs(folds))
+    assert sorted(f.name for f in found) == ["even", "odd"]
+    own = load_pairs(tiny_world, run, tmp_path / "cache", mode="own")
+    both = load_pairs(tiny_world, run, tmp_path / "cache", mode="both", folds=found)
+    cross = load_pairs(tiny_world, run, tmp_path / "cache", mode="cross", folds=found)
+    n = len(own.data.train)
+    assert own.train_rows.tolist() == list(range(n))
+    # every training sample once from the run, once from the fold that did not see its view
+    assert sorted(both.train_rows.tolist()) == sorted(list(range(n)) * 2)
+    assert sorted(cross.train_rows.tolist()) == list(range(n)) and cross.sources == {"odd": both.sources["odd"],
+                                                                                       "even": both.sources["even"]}
+    start = 0
+    for name, count in cross.sources.items():  # rows in source order
+        views = {own.data.train[int(i)].view for i in cross.train_rows[start : start + count]}
+        assert views and views.isdisjoint({"odd": {1, 3, 5, 7}, "even": {2, 4, 6}}[name])
+        start += count
+    assert not torch.equal(cross.train_rgb, own.train_rgb[cross.train_rows])  # other models, other pixels
+    assert torch.equal(both.eval_rgb, own.eval_rgb)  # evaluation always uses the run's own renders
+    with pytest.raises(AssetError, match="view-fold runs"):
+        load_pairs(tiny_world, run, tmp_path / "cache", mode="cross", folds=[])
+    HogsTrainer(HogsConfig(out=str(folds / "leak"), views=[1, 2, 3, 8], **{**common, "eval_views": [3]}),
+                progress=False).train()
+    with pytest.raises(AssetError, match="held-out view"):
+        fold_runs(run, find_runs(folds))

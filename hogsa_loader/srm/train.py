@@ -1,14 +1,14 @@
 """SRM training: one StyleUNet for every finished HOGS run of a runs folder.
 
-Data. Every finished HOGS run under ``--hogs`` (a folder with ``hand_right/``,
-``hand_left/``, ``object/`` manifests and ``config.json``) contributes its training
-(frame, view) samples, selected exactly as its HOGS training did (same ``eval_views``,
-``eval_every_frame``, ``frame_stride``, ``sequences`` from its ``config.json``), so held-out
-views and frames are never seen. Inputs are the frozen HOGS renders (run's final SH
-degree, premultiplied on black + alpha) at ``image_size / scale``; targets are the
-ground-truth crops at ``image_size`` with the background masked to black (as HOGS
-training does). Renders are computed once and cached under ``RUN/cache/`` (uint8 for the
-training set, float32 for the held-out set), keyed by the HOGS checkpoints' hashes.
+Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``--hogs`` (a folder
+with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
+its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
+views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
+alpha) at ``image_size / scale`` — by the run itself (``pairs="own"``), by view-fold runs
+under ``--cross-hogs`` that did not see the sample's view (``"cross"``), or both; targets
+are the ground-truth crops at ``image_size`` with the background masked to black (as HOGS
+training does). Renders are cached under ``RUN/cache/``. Evaluation always uses the run's
+own renders of its held-out views.
 
 Step. Random ``crop``-sized windows (full images when ``crop`` = 0) of a random batch:
 D step (logistic loss; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
@@ -29,9 +29,7 @@ Run folder::
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
-import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -43,17 +41,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.checkpoint import atomic_write
-from hogsa_loader.train.run_folder import commit_checkpoint, latest_checkpoint
-from hogsa_loader.gaussians.hogs_model import PART_NAMES, HogsModel
+from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, latest_checkpoint
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
 from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
 from hogsa_loader.srm.model import SRM
+from hogsa_loader.srm.pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
-from hogsa_loader.train.hogs_data import HogsData, ViewSample, dilate_mask, load_hogs_data
+from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
 from hogsa_loader.train.losses import box_of, psnr, ssim_map
 
 __all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet"]
@@ -86,118 +82,13 @@ class SRMTrainConfig:
     ckpt_every: int = 500
     strip_views: int = 4
     runs: Optional[list[str]] = None  # run folder names to use (default: all finished)
+    pairs: str = "own"  # where training inputs come from: own | cross | both (srm.pairs)
+    cross_hogs: Optional[str] = None  # folder of view-fold HOGS runs (pairs cross/both)
 
     RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def find_runs(runs_dir: str | Path, names: Optional[Sequence[str]] = None) -> list[Path]:
-    """Finished HOGS runs: ``runs_dir`` itself if it is one, else its sub-folders that are
-    (sorted by name). Unfinished ones (missing part manifests) are skipped."""
-    runs_dir = Path(runs_dir)
-    if not runs_dir.is_dir():
-        raise AssetError(runs_dir, "HOGS runs folder is missing")
-    cands = [runs_dir] if HogsModel.is_run(runs_dir) else sorted(p for p in runs_dir.iterdir() if p.is_dir())
-    runs = [p for p in cands if HogsModel.is_run(p) and (p / "config.json").is_file()]
-    if names:
-        runs = [p for p in runs if p.name in set(names)]
-    if not runs:
-        raise AssetError(runs_dir, f"no finished HOGS run (folders with {', '.join(PART_NAMES)} manifests and config.json)")
-    return runs
-
-
-def _run_hash(run: Path) -> str:
-    h = hashlib.sha256()
-    for name in PART_NAMES:
-        m = json.loads((run / name / "manifest.json").read_text())
-        h.update(m["tensors_sha256"].encode())
-    return h.hexdigest()[:16]
-
-
-@dataclass
-class PairSet:
-    """Coarse renders and targets of one HOGS run.
-
-    Attributes:
-        name: run folder name; data: its :class:`HogsData` (GT at ``image_size``).
-        train_rgb: (N, h, w, 3) uint8 premultiplied renders at ``image_size/scale``;
-        train_alpha: (N, h, w) uint8; eval_rgb / eval_alpha: float32 of the held-out samples.
-        margin_px: HOGS loss-region dilation at ``image_size``.
-    """
-
-    name: str
-    data: HogsData
-    train_rgb: Tensor
-    train_alpha: Tensor
-    eval_rgb: Tensor
-    eval_alpha: Tensor
-    margin_px: int
-
-
-def _render_all(model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int, batch: int = 4) -> tuple[Tensor, Tensor]:
-    """Render samples at ``size`` (K scaled from the data's resolution): rgb (N,h,w,3), alpha (N,h,w)."""
-    s = size / data.image_size
-    scale = torch.tensor([[s, 0, 0], [0, s, 0], [0, 0, 1.0]], dtype=torch.float64)
-    rgbs, alphas = [], []
-    with torch.no_grad():
-        for i in range(0, len(samples), batch):
-            chunk = samples[i : i + batch]
-            poses = data.poses(chunk)
-            viewmats = torch.as_tensor(np.stack([c.world2cam for c in chunk]), dtype=torch.float32)[:, None]
-            Ks = (scale @ torch.as_tensor(np.stack([c.K for c in chunk]))).float()[:, None]
-            out = model.render(poses, viewmats, Ks, size, size, sh_degree=sh_degree, render_mode="RGB")
-            rgbs.append(out.rgb[:, 0].clamp(0, 1))
-            alphas.append(out.alpha[:, 0, ..., 0].clamp(0, 1))
-    return torch.cat(rgbs), torch.cat(alphas)
-
-
-def load_pairs(cfg: SRMTrainConfig, run: Path, cache_dir: Path, log=print) -> PairSet:
-    """Load one run's split, render (or read cached) coarse images."""
-    from safetensors.torch import load_file, save_file
-
-    rc = json.loads((run / "config.json").read_text())
-    root = ArcticRoot(cfg.data)
-    size = int(cfg.image_size or rc.get("image_size") or root.world_meta().cropped_size)
-    if size % cfg.scale:
-        raise ValueError(f"image size {size} is not divisible by scale {cfg.scale}")
-    data = load_hogs_data(
-        root, rc["subject"], rc["object"], sequences=rc.get("sequences"), eval_views=rc.get("eval_views", [8]),
-        eval_every_frame=int(rc.get("eval_every_frame", 8)), frame_stride=int(rc.get("frame_stride", 1)),
-        image_size=size, max_eval=int(rc.get("max_eval", 8)),
-    )  # fmt: skip
-    sh_warm = int(rc.get("sh_warmup", 0))
-    sh_deg = int(rc.get("sh_degree", 3))
-    sh = sh_deg if sh_warm <= 0 else min(sh_deg, int(rc.get("iters", 0)) // sh_warm)
-    lo = size // cfg.scale
-    key = hashlib.sha256(
-        json.dumps([_run_hash(run), size, lo, sh, [(s.seq_index, s.frame, s.view) for s in data.train + data.eval]]).encode()
-    ).hexdigest()[:16]
-    path = cache_dir / f"coarse_{run.name}_{key}.safetensors"
-    if path.is_file():
-        t = load_file(str(path))
-        log(f"[srm] {run.name}: cached renders {path.name} ({len(data.train)} train, {len(data.eval)} held-out)")
-    else:
-        model = HogsModel.from_run(run, root.mano_layers(), root.object_templates())
-        t0 = time.perf_counter()
-        tr_rgb, tr_a = _render_all(model, data, data.train, lo, sh)
-        ev_rgb, ev_a = _render_all(model, data, data.eval, lo, sh)
-        t = {
-            "train_rgb": (tr_rgb * 255).round().to(torch.uint8).contiguous(),
-            "train_alpha": (tr_a * 255).round().to(torch.uint8).contiguous(),
-            "eval_rgb": ev_rgb.contiguous(),
-            "eval_alpha": ev_a.contiguous(),
-        }
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        save_file(t, str(tmp))
-        tmp.replace(path)
-        log(f"[srm] {run.name}: rendered {len(data.train)} train + {len(data.eval)} held-out views at {lo}² "
-            f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}")  # fmt: skip
-    crop = root.world_meta().cropped_size
-    margin = int(round(int(rc.get("margin", 4)) * size / crop))
-    return PairSet(run.name, data, t["train_rgb"], t["train_alpha"], t["eval_rgb"], t["eval_alpha"], margin)
 
 
 def _gt(samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor]:
@@ -240,8 +131,12 @@ class SRMTrainer:
         self.device = torch.device(cfg.device)
         self.out = Path(cfg.out)
         t0 = time.perf_counter()
+        if cfg.pairs not in PAIR_MODES:
+            raise ValueError(f"pairs must be one of {PAIR_MODES}, got {cfg.pairs!r}")
         self.runs = find_runs(cfg.hogs, cfg.runs)
-        self.sets = [load_pairs(cfg, r, self.out / "cache", self.log) for r in self.runs]
+        cands = find_runs(cfg.cross_hogs) if cfg.cross_hogs else []
+        self.sets = [load_pairs(cfg.data, r, self.out / "cache", cfg.image_size, cfg.scale, cfg.pairs,
+                                fold_runs(r, cands), self.log) for r in self.runs]  # fmt: skip
         self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
         self.size = self.sets[0].data.image_size
         if any(s.data.image_size != self.size for s in self.sets):
@@ -272,7 +167,7 @@ class SRMTrainer:
         self.evals: list[dict[str, Any]] = []
         self._train_time = 0.0
         # flat index over (set, sample)
-        self.index = [(si, i) for si, s in enumerate(self.sets) for i in range(len(s.data.train))]
+        self.index = [(si, i) for si, s in enumerate(self.sets) for i in range(len(s.train_rows))]
         self.gflops = count_gflops(self.g.net, 256)
 
     # ------------------------------------------------------------------ batches
@@ -288,7 +183,7 @@ class SRMTrainer:
             ps = self.sets[si]
             rgbs.append(ps.train_rgb[i, y : y + c_lo, x : x + c_lo])
             alphas.append(ps.train_alpha[i, y : y + c_lo, x : x + c_lo])
-            smp = ps.data.train[i]
+            smp = ps.data.train[int(ps.train_rows[i])]
             img = torch.as_tensor(smp.image[y * s : (y + c_lo) * s, x * s : (x + c_lo) * s]).float() / 255.0
             m = torch.as_tensor(smp.mask[y * s : (y + c_lo) * s, x * s : (x + c_lo) * s]) > 0
             gts.append(img * m[..., None])
@@ -477,7 +372,7 @@ class SRMTrainer:
         """Load the latest checkpoint of the run folder (exact continuation); False if none."""
         from safetensors.torch import load_file
 
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE)
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE, config_defaults(SRMTrainConfig))
         if folder is None:
             return False
         self.g.net.load_state_dict(load_srm(folder / "g").net.state_dict())
@@ -516,7 +411,8 @@ class SRMTrainer:
             "evals": self.evals,
             "runs": [{"name": s.name, "subject": s.data.subject, "object": s.data.object_name,
                       "num_train_images": len(s.data.train), "num_eval_images": len(s.data.eval),
-                      "train_views": list(s.data.train_views), "eval_views": list(s.data.eval_views)} for s in self.sets],  # fmt: skip
+                      "train_views": list(s.data.train_views), "eval_views": list(s.data.eval_views),
+                      "pair_sources": s.sources} for s in self.sets],  # fmt: skip
             "image_size": self.size,
             "crop": self.crop,
             "scale": self.cfg.scale,
@@ -533,7 +429,8 @@ class SRMTrainer:
 
     @torch.no_grad()
     def write_pngs(self) -> None:
-        """``samples.png`` (held-out: coarse | refined | GT, foreground box enlarged) and ``curves.png``."""
+        """``samples.png`` (held-out: coarse | refined | GT, each cropped to the sample's square
+        foreground box and enlarged to the image size, nearest neighbour) and ``curves.png``."""
         import matplotlib
 
         matplotlib.use("Agg")
@@ -544,13 +441,19 @@ class SRMTrainer:
         pick = items[:: max(1, len(items) // max(1, self.cfg.strip_views))][: self.cfg.strip_views]
         S = self.size
         for ps, k in pick:
-            gt, _ = _gt([ps.data.eval[k]])
+            gt, mask = _gt([ps.data.eval[k]])
             rgb = ps.eval_rgb[k : k + 1].to(self.device)
             ref = self.g_ema.refine(rgb, ps.eval_alpha[k : k + 1].to(self.device)).cpu()
             coarse = rgb.cpu()
             if self.cfg.scale != 1:
                 coarse = F.interpolate(coarse.permute(0, 3, 1, 2), size=(S, S), mode="nearest").permute(0, 2, 3, 1)
-            rows.append(torch.cat([coarse[0], ref[0], gt[0]], 1).clamp(0, 1))
+            y0, y1, x0, x1 = box_of(dilate_mask(mask, ps.margin_px)[0])
+            side = max(y1 - y0, x1 - x0)  # square box around the foreground, enlarged to S (nearest)
+            cy, cx = (y0 + y1) // 2, (x0 + x1) // 2
+            y0, x0 = min(max(0, cy - side // 2), S - side), min(max(0, cx - side // 2), S - side)
+            cells = [F.interpolate(im[:, y0 : y0 + side, x0 : x0 + side].permute(0, 3, 1, 2), size=(S, S), mode="nearest")
+                     .permute(0, 2, 3, 1)[0] for im in (coarse, ref, gt)]  # fmt: skip
+            rows.append(torch.cat(cells, 1).clamp(0, 1))
         strip = (torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8)
         plt.imsave(self.out / "samples.png", strip)
         fig, ax = plt.subplots(1, 2, figsize=(11, 4))
