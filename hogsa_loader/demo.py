@@ -61,7 +61,8 @@ class DemoConfig:
             hogs_frame_stride: brief HOGS training (1 Gaussian per face of the unsubdivided
             meshes: half the cost per step of the library default, so twice the steps).
         hogs_window: ``"fg"`` trains on a window around the hands and object of each frame
-            (about 3× the pixels on them at the same cost; ``"crop"``: whole cropped images).
+            (on average 1.35× the linear resolution on them at the same cost; ``"crop"``:
+            whole cropped images).
         contactnet_iters: ContactNet steps; bank_per_sequence: POM frames per sequence.
         srm_iters, srm_crop: brief SRM training (crop = training window side).
         samples: synthetic samples streamed; batch_size; num_workers: DataLoader workers
