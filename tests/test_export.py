@@ -70,6 +70,8 @@ def make_frame(i: int) -> SynthFrame:
         ),
         imgname=f"./synthetic/s01/box/{i:06d}.jpg",
         meta={"seed": 3, "index": i, "subject": "s01", "pose_source": "bank", "cam": np.int64(i)},
+        extra_targets={} if i % 2 else {"dist.ro": rng.uniform(0, 0.1, 5).astype(np.float32),
+                                        "idx.ro": np.arange(5, dtype=np.int64) + i, "object.v_len": 40 + i},
     )
 
 
@@ -101,6 +103,10 @@ def assert_same_frame(a: SynthFrame, b: SynthFrame) -> None:
     assert (a.obj.name, a.obj.radian, a.obj.valid) == (b.obj.name, b.obj.radian, b.obj.valid)
     assert a.imgname == b.imgname
     assert json.loads(json.dumps(a.meta, default=int)) == b.meta
+    assert a.extra_targets.keys() == b.extra_targets.keys()  # e.g. the interaction field
+    for k, x in a.extra_targets.items():
+        y = b.extra_targets[k]
+        assert type(x) is type(y) and np.array_equal(x, y) and getattr(x, "dtype", None) == getattr(y, "dtype", None), k
 
 
 @pytest.fixture(scope="module")
@@ -307,8 +313,10 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
         monkeypatch.setenv("RANK", str(rank))
         monkeypatch.setenv("WORLD_SIZE", "2")
         assert main(args) == 0
-    assert made[0].kw["seed"] == 4 and made[0].kw["num_samples"] == 7
+    assert made[0].kw["seed"] == 4 and made[0].kw["num_samples"] == 7 and made[0].kw["interfield"] is False
     index = json.loads((out / "index.json").read_text())
     assert index["complete"] and index["num_samples_written"] == 7 and index["info"]["seed"] == 4
     assert json.loads((out / "synth-000001.index.json").read_text())["rank"] == 1
     assert len(list(SynthShardDataset(out))) == 7
+    assert main(args[:-1] + ["--out", str(tmp_path / "if"), "--interfield", "--quiet"]) == 0
+    assert made[-1].kw["interfield"] is True

@@ -125,13 +125,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
         background_folder=args.background_folder,
         categories=[c for c in args.categories.split(",") if c] if args.categories else None,
         poses=args.poses, srm=args.srm, device=device, batch_size=args.batch_size, seed=args.seed,
-        num_samples=args.num, render_size=args.render_size,
+        num_samples=args.num, render_size=args.render_size, interfield=args.interfield,
     )  # fmt: skip
     info = {
         "bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), "seed": args.seed,
         "poses": args.poses, "srm": args.srm, "batch_size": args.batch_size, "render_size": ds.render_size,
         "coco_root": args.coco_root, "coco_ann": args.coco_ann, "background_folder": args.background_folder,
-        "categories": args.categories, "world_size": world, "epoch": 0,
+        "categories": args.categories, "world_size": world, "epoch": 0, "interfield": args.interfield,
     }  # fmt: skip
     say = (lambda m: None) if args.quiet else print
     say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
@@ -219,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
     e.add_argument("--background-folder", default=None, help="plain image folder for backgrounds")
     e.add_argument("--categories", default=None, help="comma-separated COCO categories for backgrounds")
+    e.add_argument("--interfield", action="store_true",
+                   help="also store the InterField-SF targets (dist.*/idx.*/object.v_len) of every frame")
     e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")
     e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
     e.add_argument("--rank", type=int, default=None, help="default: $RANK or 0")

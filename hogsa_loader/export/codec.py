@@ -72,8 +72,13 @@ def split_member_name(name: str) -> tuple[str, str]:
     return name[:dot], name[dot + 1:]
 
 
+#: Prefix of the stored ``SynthFrame.extra_targets`` in ``labels.npz``.
+EXTRA_PREFIX = "extra."
+
+
 def frame_labels(frame: SynthFrame) -> dict[str, np.ndarray]:
-    """Every label array of a frame, flat (``right.j2d``, ``obj.kp3d_full``, ``bbox``, ...)."""
+    """Every label array of a frame, flat (``right.j2d``, ``obj.kp3d_full``, ``bbox``, ...),
+    plus its extra targets under ``extra.<key>``."""
     out: dict[str, np.ndarray] = {}
     for side, hand in (("right", frame.right), ("left", frame.left)):
         for f in _HAND_FIELDS:
@@ -83,6 +88,8 @@ def frame_labels(frame: SynthFrame) -> dict[str, np.ndarray]:
     out["bbox"] = np.asarray(frame.bbox)
     out["K_full"] = np.asarray(frame.K_full)
     out["image_size"] = np.asarray(frame.image_size, dtype=np.int64)
+    for k, v in frame.extra_targets.items():  # e.g. the interaction field (``extra.dist.ro``, ...)
+        out[f"{EXTRA_PREFIX}{k}"] = np.asarray(v)
     for k, v in out.items():
         if v.dtype == object:
             raise TypeError(f"label {k} is an object array; export needs numeric arrays")
@@ -230,9 +237,12 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
     )
     size = lab["image_size"]
     meta = dict(info.get("meta") or {})
+    n = len(EXTRA_PREFIX)
+    extra = {k[n:]: (v.item() if v.ndim == 0 else v) for k, v in lab.items() if k.startswith(EXTRA_PREFIX)}
     return SynthFrame(
         image=image, alpha=alpha, part_alpha=part_alpha, bbox=lab["bbox"], K_full=lab["K_full"],
         image_size=(int(size[0]), int(size[1])), right=hand("right"), left=hand("left"), obj=obj,
         imgname=str(info["imgname"]), meta=meta, egocentric=bool(meta.get("egocentric", False)),
         dist=None if meta.get("dist") is None else np.asarray(meta["dist"], dtype=np.float64),
+        extra_targets=extra,
     )

@@ -39,7 +39,8 @@ class SynthFrame:
         egocentric: an egocentric (``p2``) frame: ``image`` is the whole frame scaled, its
             labels undistorted (ARCTIC's view-0 convention); dist: (8,) its lens distortion.
         extra_targets: targets added after ARCTIC's (e.g. the interaction field of
-            :mod:`~hogsa_loader.datasets.interfield`); not stored by the offline export.
+            :mod:`~hogsa_loader.datasets.interfield`); the offline export stores them
+            (``labels.npz`` members ``extra.<key>``).
     """
 
     image: np.ndarray
