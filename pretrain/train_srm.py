@@ -12,7 +12,10 @@ trains one StyleUNet for all of them with ``5·L1 + 0.03·VGG19 + GAN`` (without
 Writes the final EMA generator (``manifest.json`` + ``srm.safetensors``, read by
 ``hogsa_loader.srm.load_srm(RUN)``), ``metrics.json`` (held-out PSNR/SSIM without vs with
 SRM, per view), ``samples.png`` (coarse | refined | GT) and ``curves.png`` into ``--out``;
-``--resume`` continues exactly from the latest checkpoint.
+``--resume`` continues exactly from the latest checkpoint. ``--cross-hogs FOLDS`` adds
+inputs rendered by view-fold runs that never saw the sample's view; ``--val-views V`` keeps
+those training views out and saves the checkpoint that scores best on them (early stopping
+without looking at the held-out views).
 """
 
 from __future__ import annotations
@@ -41,6 +44,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
     p.add_argument("--cross-hogs", default=None,
                    help="folder of view-fold HOGS runs: same subject/object, trained on subsets of the "
                         "training views (e.g. --views 1,3,5,7,8 and 2,4,6,8 with --eval-views 8)")
+    p.add_argument("--val-views", default=None,
+                   help="comma-separated training views kept out of SRM training to pick the best checkpoint "
+                        "(their fold renders when --cross-hogs is given); the saved model is the best one")
+    p.add_argument("--max-val", type=int, default=32, help="validation samples per run (evenly spaced)")
+    p.add_argument("--augment", default="none", choices=["none", "flip", "d4"],
+                   help="random flips (and 90° turns with d4) of each training window, input and target alike")
     p.add_argument("--iters", type=int, default=4000)
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--image-size", type=int, default=None, help="output / GT resolution (default: the runs' image size)")
@@ -73,6 +82,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
         eval_every=a.eval_every, ckpt_every=a.ckpt_every, strip_views=a.strip_views,
         runs=[r for r in a.runs.split(",") if r] if a.runs else None,
         pairs=a.pairs or ("both" if a.cross_hogs else "own"), cross_hogs=a.cross_hogs,
+        val_views=[int(v) for v in a.val_views.split(",") if v] if a.val_views else None, max_val=a.max_val,
+        augment=a.augment,
     )  # fmt: skip
     return cfg, a
 
@@ -95,6 +106,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"train_srm: error: {exc}", file=sys.stderr)
         return 2
     m = trainer.train()
+    if m["selection"]:
+        b = m["selection"]["best"]
+        print(f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "
+              f"{b['psnr_without_srm']:.2f} -> {b['psnr']:.2f} dB on {b['n']} pairs)", file=sys.stderr)
     print(json.dumps({k: m[k] for k in ("without_srm", "with_srm", "delta_psnr", "delta_ssim")}, indent=1))
     for row in m["per_view"]:
         print(f"{row['run']:>24s} view {row['view']}: n={row['n']} PSNR {row['without_srm']['psnr']:.2f} -> "

@@ -253,12 +253,7 @@ def test_cross_view_pairs(tiny_world, hogs_runs, tmp_path):
     from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
     from hogsa_loader.train import HogsConfig, HogsTrainer
 
-    folds = tmp_path / "folds"
-    common = dict(data=str(tiny_world), subject="s01", object="box", iters=1, image_size=64, frame_stride=8,
-                  eval_every_frame=2, max_eval=2, eval_every=0, ckpt_every=0, k=1, sh_degree=0, sh_warmup=0,
-                  strip_views=1, eval_views=[8])  # fmt: skip
-    for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
-        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), **common), progress=False).train()
+    folds = _folds(tiny_world, tmp_path / "folds")
     run = hogs_runs / "s01_box"
     found = fold_runs(run, find_runs(folds))
     assert sorted(f.name for f in found) == ["even", "odd"]
@@ -280,7 +275,120 @@ def test_cross_view_pairs(tiny_world, hogs_runs, tmp_path):
     assert torch.equal(both.eval_rgb, own.eval_rgb)  # evaluation always uses the run's own renders
     with pytest.raises(AssetError, match="view-fold runs"):
         load_pairs(tiny_world, run, tmp_path / "cache", mode="cross", folds=[])
-    HogsTrainer(HogsConfig(out=str(folds / "leak"), views=[1, 2, 3, 8], **{**common, "eval_views": [3]}),
-                progress=False).train()
+    HogsTrainer(HogsConfig(out=str(folds / "leak"), views=[1, 2, 3, 8], **{**_FOLD_COMMON, "data": str(tiny_world),
+                                                                        "eval_views": [3]}), progress=False).train()
     with pytest.raises(AssetError, match="held-out view"):
         fold_runs(run, find_runs(folds))
+
+
+_FOLD_COMMON = dict(subject="s01", object="box", iters=1, image_size=64, frame_stride=8, eval_every_frame=2,
+                    max_eval=2, eval_every=0, ckpt_every=0, k=1, sh_degree=0, sh_warmup=0, strip_views=1,
+                    eval_views=[8])  # fmt: skip
+
+
+def _folds(tiny_world, folds):
+    """Two view folds of the tiny-world run: 'odd' saw views 1,3,5,7 and 'even' 2,4,6."""
+    from hogsa_loader.train import HogsConfig, HogsTrainer
+
+    for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
+        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world), **_FOLD_COMMON),
+                    progress=False).train()
+    return folds
+
+
+def test_validation_views_split(tiny_world, hogs_runs, tmp_path):
+    """Validation views leave training entirely; their inputs come from the fold that never saw them."""
+    from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
+
+    run = hogs_runs / "s01_box"
+    found = fold_runs(run, find_runs(_folds(tiny_world, tmp_path / "folds")))
+    cache = tmp_path / "cache"
+    own = load_pairs(tiny_world, run, cache, mode="own")
+    cross = load_pairs(tiny_world, run, cache, mode="cross", folds=found)
+    both = load_pairs(tiny_world, run, cache, mode="both", folds=found, val_views=[2, 5])
+    views = lambda rows: {own.data.train[int(i)].view for i in rows}  # noqa: E731
+    assert views(both.val_rows) == {2, 5} and not views(both.train_rows) & {2, 5}
+    n_val = sum(own.data.train[i].view in (2, 5) for i in range(len(own.data.train)))
+    assert len(both.val_rows) == n_val  # once each: from the one fold that did not see the view
+    # the validation inputs are exactly the cross (fold) renders of those samples, not the run's own
+    pos = {int(r): i for i, r in enumerate(cross.train_rows)}
+    assert torch.equal(both.val_rgb, cross.train_rgb[[pos[int(r)] for r in both.val_rows]])
+    assert not torch.equal(both.val_rgb, own.train_rgb[both.val_rows])
+    # without folds, own renders validate
+    own_v = load_pairs(tiny_world, run, cache, mode="own", val_views=[3])
+    assert torch.equal(own_v.val_rgb, own.train_rgb[own_v.val_rows]) and views(own_v.val_rows) == {3}
+    assert len(own_v.train_rows) + len(own_v.val_rows) == len(own.data.train)
+    with pytest.raises(ValueError, match="not training views"):
+        load_pairs(tiny_world, run, cache, mode="own", val_views=[8])  # the held-out view stays unseen
+    with pytest.raises(ValueError, match="leave no training view"):
+        load_pairs(tiny_world, run, cache, mode="own", val_views=list(range(1, 8)))
+
+
+def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, tmp_path):
+    """With --val-views the saved model is the EMA generator of the best validation step,
+    chosen without the held-out views, and resuming keeps the choice exactly."""
+    cli = _cli()
+    folds = _folds(tiny_world, tmp_path / "folds")
+    extra = ["--cross-hogs", str(folds), "--val-views", "2,5", "--eval-every", "1", "--lr", "0.02"]
+    with pytest.warns(SubstituteWarning):
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "a", 6) + extra) == 0
+    out = tmp_path / "a"
+    m = json.loads((out / "metrics.json").read_text())
+    vals = {e["step"]: e["val_with_srm"] for e in m["evals"]}
+    assert sorted(vals) == list(range(7))
+    best = max(vals, key=vals.get)
+    assert m["selected_step"] == best and m["selection"]["best"]["psnr"] == pytest.approx(vals[best])
+    assert m["selection"]["val_views"] == [2, 5] and set(m["selection"]["last_step"]) >= {"with_srm", "delta_psnr"}
+    srm = load_srm(out)
+    from hogsa_loader.srm.io import read_srm_manifest
+
+    assert read_srm_manifest(out)["extra"]["step"] == best
+    # the saved weights score exactly the recorded validation PSNR (they are that step's EMA)
+    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+
+    cfg = SRMTrainConfig(**json.loads((out / "config.json").read_text()))
+    tr = SRMTrainer(cfg, progress=False)
+    assert tr.validate(srm)["with_srm"]["psnr"] == pytest.approx(vals[best], abs=1e-9)
+    assert m["with_srm"]["psnr"] == pytest.approx(tr.evaluate(srm)["with_srm"]["psnr"], abs=1e-9)
+    # interrupted at step 2 and resumed: same selection, same weights
+    with pytest.warns(SubstituteWarning):
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 2) + extra) == 0
+        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 6) + extra + ["--resume"]) == 0
+    a, b = srm.net.state_dict(), load_srm(tmp_path / "b").net.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert json.loads((tmp_path / "b" / "metrics.json").read_text())["selected_step"] == best
+    # the rule itself: a later, worse validation score does not replace the kept weights
+    fake_ev = {"step": 0, "without_srm": {"psnr": 1.0, "ssim": 0.5}, "with_srm": {"psnr": 1.0, "ssim": 0.5}}
+    tr.best, tr.best_state = None, None
+    for step, score in ((1, 20.0), (2, 25.0), (3, 23.0)):
+        tr.step = step
+        with torch.no_grad():
+            for t in tr.g_ema.net.parameters():
+                t.fill_(float(step))
+        tr.validate = lambda s=score: {"n": 1, "without_srm": {"psnr": 0.0, "ssim": 0.0}, "with_srm": {"psnr": s, "ssim": 0.9}}
+        tr._eval_point(fake_ev)
+    assert tr.best["step"] == 2 and tr.best["psnr"] == 25.0
+    assert all(float(t.flatten()[0]) == 2.0 for t in tr.best_model().net.parameters())
+
+
+def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, tmp_path):
+    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer, dihedral
+
+    x = torch.arange(16.0).reshape(1, 4, 4)
+    outs = [dihedral(x, c) for c in range(8)]
+    assert len({tuple(o.flatten().tolist()) for o in outs}) == 8  # the 8 symmetries of the square
+    assert torch.equal(dihedral(x, 1), x.flip(-1)) and torch.equal(dihedral(x, 2), torch.rot90(x, 1, (-2, -1)))
+    base = dict(data=str(tiny_world), hogs=str(hogs_runs), batch_size=6, crop=32, channels=[8, 16, 16], lambda_gan=0.0)
+    plain = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "p"), **base), progress=False, log=lambda m: None)
+    aug = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "a"), augment="d4", **base), progress=False, log=lambda m: None)
+    moved = 0
+    for _ in range(3):  # same windows (same seed); the augmented ones are one symmetry of them, shared by all three
+        p, a = plain.batch(), aug.batch()
+        aug.gen.set_state(plain.gen.get_state())
+        for b in range(6):
+            codes = [c for c in range(8) if all(torch.equal(dihedral(tp[b], c), ta[b]) for tp, ta in zip(p, a))]
+            assert codes, "input, alpha and target were not transformed alike"
+            moved += 0 not in codes
+    assert moved > 0
+    with pytest.raises(ValueError, match="augment"):
+        SRMTrainer(SRMTrainConfig(out=str(tmp_path / "x"), augment="rot45", **base), progress=False)

@@ -561,3 +561,61 @@ def test_cli_rejects_unknown_preset(tmp_path, capsys):
 
     assert main(["world", "--out", str(tmp_path), "--preset", "huge"]) == 2
     assert "unknown world preset" in capsys.readouterr().err
+
+
+def test_annotation_noise_world(tiny_world, tmp_path):
+    """The noisy copy keeps images/cameras/object poses, perturbs only the hands, and its
+    fitting_err is the realised vertex error."""
+    import torch
+
+    from hogsa_loader.cli.main import main
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+    from hogsa_loader.errors import AssetError
+    from hogsa_loader.world.annotation_noise import AnnotationNoise, add_annotation_noise, perturb_hand
+
+    # the noise model: requested std per component (offset + smoothed jitter), zero noise = identity
+    rng = np.random.default_rng(0)
+    F = 4000
+    p = {"rot": np.zeros((F, 3), np.float32), "pose": np.zeros((F, 45), np.float32),
+         "trans": np.zeros((F, 3), np.float32), "shape": np.zeros(10, np.float32)}  # fmt: skip
+    stds = []
+    for seed in range(40):  # the per-sequence offset needs many sequences to show its variance
+        q = perturb_hand(p, AnnotationNoise(trans_mm=2.0, pose_rad=0.04, smooth=5), np.random.default_rng(seed))
+        stds.append((q["trans"].std(0) ** 2 + q["trans"].mean(0) ** 2, q["pose"].std(0) ** 2 + q["pose"].mean(0) ** 2))
+    assert np.sqrt(np.mean([s[0] for s in stds])) == pytest.approx(0.002, rel=0.15)
+    assert np.sqrt(np.mean([s[1] for s in stds])) == pytest.approx(0.04, rel=0.15)
+    q0 = perturb_hand(p, AnnotationNoise(0.0, 0.0, 0.0), rng)
+    assert all(np.array_equal(q0[k], p[k]) for k in p)
+
+    out = tmp_path / "noisy"
+    assert main(["world-noise", "--src", str(tiny_world), "--out", str(out), "--quiet"]) == 0
+    src_d, dst_d = tiny_world / "arctic_data" / "data", out / "arctic_data" / "data"
+    assert (dst_d / "cropped_images").resolve() == (src_d / "cropped_images").resolve()
+    assert not (dst_d / "masks").exists() and not (dst_d / "splits").exists()
+    summary = json.loads((out / "annotation_noise.json").read_text())
+    layers = ArcticRoot(tiny_world).mano_layers(dtype=torch.float64)
+    n_seq = 0
+    for f in sorted((src_d / "raw_seqs").rglob("*.mano.npy")):
+        rel = f.relative_to(src_d)
+        clean, noisy = read_npy(f), read_npy(dst_d / rel)
+        obj = rel.as_posix().replace(".mano.npy", ".object.npy")
+        assert np.array_equal(read_npy(src_d / obj), read_npy(dst_d / obj))  # object poses exact
+        for side in ("right", "left"):
+            c, n = clean[side], noisy[side]
+            assert np.array_equal(c["shape"], n["shape"]) and not np.allclose(c["trans"], n["trans"])
+            vc = layers[side](global_orient=torch.as_tensor(c["rot"], dtype=torch.float64),
+                              hand_pose=torch.as_tensor(c["pose"], dtype=torch.float64),
+                              betas=torch.as_tensor(np.repeat(c["shape"][None], len(c["rot"]), 0), dtype=torch.float64),
+                              transl=torch.as_tensor(c["trans"], dtype=torch.float64)).vertices
+            vn = layers[side](global_orient=torch.as_tensor(n["rot"], dtype=torch.float64),
+                              hand_pose=torch.as_tensor(n["pose"], dtype=torch.float64),
+                              betas=torch.as_tensor(np.repeat(n["shape"][None], len(n["rot"]), 0), dtype=torch.float64),
+                              transl=torch.as_tensor(n["trans"], dtype=torch.float64)).vertices
+            err = (vn - vc).norm(dim=-1).mean(-1).numpy()
+            np.testing.assert_allclose(n["fitting_err"], err, rtol=1e-5, atol=1e-7)
+            assert 1.0 < err.mean() * 1000 < 15.0  # millimetres, as ARCTIC's fitting error
+            n_seq += 1
+    assert n_seq >= 2 and summary["overall_mean_vertex_error_mm"] > 1.0
+    ArcticRoot(out)  # opens as an ARCTIC root
+    with pytest.raises(AssetError, match="already exists"):
+        add_annotation_noise(tiny_world, out)

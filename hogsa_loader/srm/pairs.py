@@ -18,6 +18,11 @@ Where the inputs come from (``mode``):
   genuine novel-view errors — the situation the loader is in when it renders new
   viewpoints. A fold that trained on one of the run's held-out views is refused.
 * ``"both"`` — the two sets together.
+
+Validation (``val_views``): training views whose pairs are kept out of SRM training and used
+only to choose the SRM's training length (best checkpoint) — the run's held-out views must
+stay unseen, so they cannot serve. Validation inputs are the fold renders of those views
+(novel-view errors, like the held-out renders) when folds are used, else the run's own.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -108,6 +113,8 @@ class PairSet:
         eval_rgb / eval_alpha: float32 renders of the held-out samples by the run itself.
         margin_px: HOGS loss-region dilation at ``image_size``.
         sources: where the training renders come from (run names and counts).
+        val_rgb / val_alpha / val_rows: validation renders (uint8) and their ``data.train``
+            samples (empty without ``val_views``).
     """
 
     name: str
@@ -119,6 +126,9 @@ class PairSet:
     eval_alpha: Tensor
     margin_px: int
     sources: dict[str, int]
+    val_rgb: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, 3, dtype=torch.uint8))
+    val_alpha: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, dtype=torch.uint8))
+    val_rows: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
 
 
 def _render_all(model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int,
@@ -180,14 +190,19 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
 
 
 def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Optional[int] = None, scale: int = 1,
-               mode: str = "own", folds: Sequence[Path] = (), log: Callable[[str], None] = print) -> PairSet:
+               mode: str = "own", folds: Sequence[Path] = (), log: Callable[[str], None] = print,
+               val_views: Sequence[int] = ()) -> PairSet:
     """Load one run's split and its coarse renders (see module docstring).
 
     Args:
         data_root: the dataset root the runs were trained on; run: the HOGS run folder;
         cache_dir: render cache; image_size: GT resolution (default: the run's);
         scale: output / input resolution factor; mode: ``"own"``, ``"cross"`` or ``"both"``;
-        folds: view-fold runs of this run (:func:`fold_runs`; needed by ``cross``/``both``).
+        folds: view-fold runs of this run (:func:`fold_runs`; needed by ``cross``/``both``);
+        val_views: training views kept out of training for validation (see module docstring).
+
+    Raises:
+        ValueError: a validation view is not a training view of the run, or they are all.
     """
     if mode not in PAIR_MODES:
         raise ValueError(f"pair mode must be one of {PAIR_MODES}, got {mode!r}")
@@ -198,31 +213,58 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
     size = data.image_size
     if size % scale:
         raise ValueError(f"image size {size} is not divisible by scale {scale}")
+    val = {int(v) for v in val_views}
+    train_views = {smp.view for smp in data.train}
+    if val - train_views:
+        raise ValueError(f"validation view(s) {sorted(val - train_views)} are not training views of {run.name} "
+                         f"(training views {sorted(train_views)})")  # fmt: skip
+    if val and val >= train_views:
+        raise ValueError(f"validation views {sorted(val)} leave no training view of {run.name}")
     lo = size // scale
     own_parts: dict[str, Sequence[ViewSample]] = {"eval": data.eval}
-    if mode != "cross":
+    if mode != "cross" or (val and not folds):
         own_parts["train"] = data.train
     t = _cached_renders(run, source, data, own_parts, lo, cache_dir, log)
-    rgbs, alphas, rows, sources = [], [], [], {}
-    if mode != "cross":
-        rgbs.append(t["train_rgb"])
-        alphas.append(t["train_alpha"])
-        rows.append(torch.arange(len(data.train)))
-        sources[run.name] = len(data.train)
-    if mode != "own":
-        if not folds:
-            raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
-                                  "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
-        for f in folds:
-            seen = _trained_views(json.loads((f / "config.json").read_text()))
-            idx = [i for i, smp in enumerate(data.train) if smp.view not in seen]
-            ft = _cached_renders(f, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
-            rgbs.append(ft["train_rgb"])
-            alphas.append(ft["train_alpha"])
-            rows.append(torch.as_tensor(idx, dtype=torch.long))
-            sources[f.name] = len(idx)
-        if sum(sources.get(f.name, 0) for f in folds) == 0:
-            raise AssetError(run, "the view folds cover no training view of the run (each fold saw every view)")
+    # (rgb uint8, alpha uint8, data.train rows) per source, split into training and validation
+    chunks: list[tuple[str, Tensor, Tensor, Tensor]] = []
+    if mode != "cross" or (val and not folds):
+        chunks.append((run.name, t["train_rgb"], t["train_alpha"], torch.arange(len(data.train))))
+    if mode != "own" and not folds:
+        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
+                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
+    for f in folds if mode != "own" or val else ():
+        seen = _trained_views(json.loads((f / "config.json").read_text()))
+        idx = [i for i, smp in enumerate(data.train) if smp.view not in seen]
+        if mode == "own":  # folds only serve validation here
+            idx = [i for i in idx if data.train[i].view in val]
+        if not idx:
+            continue
+        ft = _cached_renders(f, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
+        chunks.append((f.name, ft["train_rgb"], ft["train_alpha"], torch.as_tensor(idx, dtype=torch.long)))
+    val_from_folds = bool(folds) and bool(val)  # validation inputs: fold renders when there are folds
+    rgbs, alphas, rows, vrgb, valpha, vrows, sources = [], [], [], [], [], [], {}
+    for name, rgb, alpha, idx in chunks:
+        is_fold = name != run.name
+        trains = mode != ("own" if is_fold else "cross")  # this source supplies training pairs
+        is_val = torch.as_tensor([data.train[int(i)].view in val for i in idx], dtype=torch.bool)
+        keep = ~is_val if trains else torch.zeros_like(is_val)
+        use_val = is_val if is_fold == val_from_folds else torch.zeros_like(is_val)
+        if keep.any():
+            rgbs.append(rgb[keep])
+            alphas.append(alpha[keep])
+            rows.append(idx[keep])
+            sources[name] = int(keep.sum())
+        if use_val.any():
+            vrgb.append(rgb[use_val])
+            valpha.append(alpha[use_val])
+            vrows.append(idx[use_val])
+    if val and not vrows:
+        raise AssetError(run, f"no view fold left out validation view(s) {sorted(val)}: every fold saw them")
+    if mode != "own" and sum(sources.get(f.name, 0) for f in folds) == 0:
+        raise AssetError(run, "the view folds cover no training view of the run (each fold saw every view)")
     margin = int(round(int(rc.get("margin", 4)) * size / (data.crop_size or size)))
-    return PairSet(run.name, data, torch.cat(rgbs), torch.cat(alphas), torch.cat(rows), t["eval_rgb"], t["eval_alpha"],
-                   margin, sources)  # fmt: skip
+    ps = PairSet(run.name, data, torch.cat(rgbs), torch.cat(alphas), torch.cat(rows), t["eval_rgb"], t["eval_alpha"],
+                 margin, sources)  # fmt: skip
+    if vrows:
+        ps.val_rgb, ps.val_alpha, ps.val_rows = torch.cat(vrgb), torch.cat(valpha), torch.cat(vrows)
+    return ps
