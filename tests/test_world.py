@@ -594,6 +594,13 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     assert not (dst_d / "masks").exists() and not (dst_d / "splits").exists()
     summary = json.loads((out / "annotation_noise.json").read_text())
     layers = ArcticRoot(tiny_world).mano_layers(dtype=torch.float64)
+
+    def verts(side, p):  # MANO forward of one hand's .mano.npy entry, (F, V, 3)
+        f64 = torch.float64
+        return layers[side](global_orient=torch.as_tensor(p["rot"], dtype=f64), hand_pose=torch.as_tensor(p["pose"], dtype=f64),
+                            betas=torch.as_tensor(np.repeat(p["shape"][None], len(p["rot"]), 0), dtype=f64),
+                            transl=torch.as_tensor(p["trans"], dtype=f64)).vertices
+
     n_seq = 0
     for f in sorted((src_d / "raw_seqs").rglob("*.mano.npy")):
         rel = f.relative_to(src_d)
@@ -603,15 +610,7 @@ def test_annotation_noise_world(tiny_world, tmp_path):
         for side in ("right", "left"):
             c, n = clean[side], noisy[side]
             assert np.array_equal(c["shape"], n["shape"]) and not np.allclose(c["trans"], n["trans"])
-            vc = layers[side](global_orient=torch.as_tensor(c["rot"], dtype=torch.float64),
-                              hand_pose=torch.as_tensor(c["pose"], dtype=torch.float64),
-                              betas=torch.as_tensor(np.repeat(c["shape"][None], len(c["rot"]), 0), dtype=torch.float64),
-                              transl=torch.as_tensor(c["trans"], dtype=torch.float64)).vertices
-            vn = layers[side](global_orient=torch.as_tensor(n["rot"], dtype=torch.float64),
-                              hand_pose=torch.as_tensor(n["pose"], dtype=torch.float64),
-                              betas=torch.as_tensor(np.repeat(n["shape"][None], len(n["rot"]), 0), dtype=torch.float64),
-                              transl=torch.as_tensor(n["trans"], dtype=torch.float64)).vertices
-            err = (vn - vc).norm(dim=-1).mean(-1).numpy()
+            err = (verts(side, n) - verts(side, c)).norm(dim=-1).mean(-1).numpy()
             np.testing.assert_allclose(n["fitting_err"], err, rtol=1e-5, atol=1e-7)
             assert 1.0 < err.mean() * 1000 < 15.0  # millimetres, as ARCTIC's fitting error
             n_seq += 1

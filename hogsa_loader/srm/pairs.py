@@ -220,18 +220,19 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
                          f"(training views {sorted(train_views)})")  # fmt: skip
     if val and val >= train_views:
         raise ValueError(f"validation views {sorted(val)} leave no training view of {run.name}")
+    if mode != "own" and not folds:
+        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
+                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
     lo = size // scale
+    own_train = mode != "cross" or (bool(val) and not folds)  # the run's own training renders are used
     own_parts: dict[str, Sequence[ViewSample]] = {"eval": data.eval}
-    if mode != "cross" or (val and not folds):
+    if own_train:
         own_parts["train"] = data.train
     t = _cached_renders(run, source, data, own_parts, lo, cache_dir, log)
     # (rgb uint8, alpha uint8, data.train rows) per source, split into training and validation
     chunks: list[tuple[str, Tensor, Tensor, Tensor]] = []
-    if mode != "cross" or (val and not folds):
+    if own_train:
         chunks.append((run.name, t["train_rgb"], t["train_alpha"], torch.arange(len(data.train))))
-    if mode != "own" and not folds:
-        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
-                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
     for f in folds if mode != "own" or val else ():
         seen = _trained_views(json.loads((f / "config.json").read_text()))
         idx = [i for i, smp in enumerate(data.train) if smp.view not in seen]
