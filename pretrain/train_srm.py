@@ -48,8 +48,11 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
                    help="comma-separated training views kept out of SRM training to pick the best checkpoint "
                         "(their fold renders when --cross-hogs is given); the saved model is the best one")
     p.add_argument("--max-val", type=int, default=32, help="validation samples per run (evenly spaced)")
-    p.add_argument("--augment", default="none", choices=["none", "flip", "d4"],
-                   help="random flips (and 90° turns with d4) of each training window, input and target alike")
+    p.add_argument("--augment", default="d4", choices=["none", "flip", "d4"],
+                   help="random flips (and 90° turns with d4) of each training window, input and target alike "
+                        "(default d4: +0.36 dB held-out against +0.13 dB without, small world)")
+    p.add_argument("--cache", default=None,
+                   help="folder for the coarse HOGS renders, shareable between SRM runs (default: OUT/cache)")
     p.add_argument("--iters", type=int, default=4000)
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--image-size", type=int, default=None, help="output / GT resolution (default: the runs' image size)")
@@ -83,7 +86,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
         runs=[r for r in a.runs.split(",") if r] if a.runs else None,
         pairs=a.pairs or ("both" if a.cross_hogs else "own"), cross_hogs=a.cross_hogs,
         val_views=[int(v) for v in a.val_views.split(",") if v] if a.val_views else None, max_val=a.max_val,
-        augment=a.augment,
+        augment=a.augment, cache=a.cache,
     )  # fmt: skip
     return cfg, a
 

@@ -13,7 +13,7 @@ from hogsa_loader.demo import DemoConfig, run_demo, unbatch
 from hogsa_loader.loader import is_synthetic
 
 CFG = dict(
-    pairs=(("s01", "box"),), hogs_iters=6, hogs_image_size=64, contactnet_iters=10, bank_per_sequence=2,
+    pairs=(("s01", "box"),), hogs_iters=6, hogs_image_size=64, hogs_frame_stride=4, contactnet_iters=10, bank_per_sequence=2,
     srm_iters=2, srm_crop=32, samples=8, batch_size=4, num_workers=0, render_batch=4, grid_rows=2, grid_cols=4,
     progress=False,
 )
@@ -62,9 +62,12 @@ def test_demo_second_run_reuses_every_stage(demo):
 
 def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     out, _, _ = demo
+    renders = sorted((out / "cache" / "srm").glob("coarse_*.safetensors"))
+    assert renders
     cfg = DemoConfig(data=str(tiny_world), **{**CFG, "srm_iters": 3, "samples": 4})
     rec = run_demo(out, cfg, log=None)
     assert "srm" not in rec["reused_stages"] and "bundle" not in rec["reused_stages"]
+    assert sorted((out / "cache" / "srm").glob("coarse_*.safetensors")) == renders  # same HOGS: no new renders
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 

@@ -215,6 +215,24 @@ def hogs_runs(tiny_world, tmp_path_factory):
     return runs
 
 
+@pytest.fixture(scope="module")
+def folds(tiny_world, tmp_path_factory):
+    """Two view folds of the tiny-world run: 'odd' saw views 1,3,5,7 and 'even' 2,4,6."""
+    from hogsa_loader.train import HogsConfig, HogsTrainer
+
+    folds = tmp_path_factory.mktemp("folds")
+    for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
+        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world), **_FOLD_COMMON),
+                    progress=False).train()
+    return folds
+
+
+@pytest.fixture(scope="module")
+def srm_cache(tmp_path_factory):
+    """One coarse-render cache shared by the SRM runs of this module (``--cache``)."""
+    return tmp_path_factory.mktemp("srm_cache")
+
+
 def _args(world, runs, out, iters):
     return ["--data", str(world), "--hogs", str(runs), "--out", str(out), "--iters", str(iters), "--batch-size", "2",
             "--crop", "32", "--channels", "8,16,16", "--eval-every", "0", "--ckpt-every", "2", "--strip-views", "1",
@@ -247,19 +265,18 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4)) == 2
 
 
-def test_cross_view_pairs(tiny_world, hogs_runs, tmp_path):
+def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     """View folds render the training samples whose view they never saw; leaks are refused."""
     from hogsa_loader.errors import AssetError
     from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
     from hogsa_loader.train import HogsConfig, HogsTrainer
 
-    folds = _folds(tiny_world, tmp_path / "folds")
     run = hogs_runs / "s01_box"
     found = fold_runs(run, find_runs(folds))
     assert sorted(f.name for f in found) == ["even", "odd"]
-    own = load_pairs(tiny_world, run, tmp_path / "cache", mode="own")
-    both = load_pairs(tiny_world, run, tmp_path / "cache", mode="both", folds=found)
-    cross = load_pairs(tiny_world, run, tmp_path / "cache", mode="cross", folds=found)
+    own = load_pairs(tiny_world, run, srm_cache, mode="own")
+    both = load_pairs(tiny_world, run, srm_cache, mode="both", folds=found)
+    cross = load_pairs(tiny_world, run, srm_cache, mode="cross", folds=found)
     n = len(own.data.train)
     assert own.train_rows.tolist() == list(range(n))
     # every training sample once from the run, once from the fold that did not see its view
@@ -274,11 +291,12 @@ def test_cross_view_pairs(tiny_world, hogs_runs, tmp_path):
     assert not torch.equal(cross.train_rgb, own.train_rgb[cross.train_rows])  # other models, other pixels
     assert torch.equal(both.eval_rgb, own.eval_rgb)  # evaluation always uses the run's own renders
     with pytest.raises(AssetError, match="view-fold runs"):
-        load_pairs(tiny_world, run, tmp_path / "cache", mode="cross", folds=[])
-    HogsTrainer(HogsConfig(out=str(folds / "leak"), views=[1, 2, 3, 8], **{**_FOLD_COMMON, "data": str(tiny_world),
-                                                                        "eval_views": [3]}), progress=False).train()
+        load_pairs(tiny_world, run, srm_cache, mode="cross", folds=[])
+    leak = tmp_path / "leak"
+    HogsTrainer(HogsConfig(out=str(leak), views=[1, 2, 3, 8], **{**_FOLD_COMMON, "data": str(tiny_world),
+                                                                "eval_views": [3]}), progress=False).train()
     with pytest.raises(AssetError, match="held-out view"):
-        fold_runs(run, find_runs(folds))
+        fold_runs(run, find_runs(folds) + find_runs(leak))
 
 
 _FOLD_COMMON = dict(subject="s01", object="box", iters=1, image_size=64, frame_stride=8, eval_every_frame=2,
@@ -286,23 +304,40 @@ _FOLD_COMMON = dict(subject="s01", object="box", iters=1, image_size=64, frame_s
                     eval_views=[8])  # fmt: skip
 
 
-def _folds(tiny_world, folds):
-    """Two view folds of the tiny-world run: 'odd' saw views 1,3,5,7 and 'even' 2,4,6."""
-    from hogsa_loader.train import HogsConfig, HogsTrainer
+def test_render_cache_key_follows_labels_cameras_and_body_model(tiny_world, hogs_runs):
+    """A shared render cache never serves renders of other labels (a world-noise copy),
+    other cameras or another MANO file: each of them changes the key."""
+    import dataclasses
 
-    for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
-        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world), **_FOLD_COMMON),
-                    progress=False).train()
-    return folds
+    from hogsa_loader.srm.pairs import _inputs_hash
+    from hogsa_loader.train.hogs_source import load_run_data
+
+    source, data = load_run_data(json.loads((hogs_runs / "s01_box" / "config.json").read_text()), data=tiny_world)
+    parts = {"train": list(data.train[:3]), "eval": list(data.eval)}
+    key = lambda: _inputs_hash(source, "box", data, parts)  # noqa: E731
+    ref = key()
+    assert key() == ref
+    first = parts["train"][0]
+    trans = data.sequences[first.seq_index].right.trans
+    trans[first.frame, 0] += 1e-3  # 1 mm on one hand of one frame
+    moved = key()
+    trans[first.frame, 0] -= 1e-3
+    parts["train"][0] = dataclasses.replace(first, K=first.K * 1.001)
+    zoomed = key()
+    parts["train"][0] = first
+    assert key() == ref
+    source.mano_layers["left"].v_template.add_(1e-4)
+    other_mano = key()
+    assert len({ref, moved, zoomed, other_mano}) == 4
 
 
-def test_validation_views_split(tiny_world, hogs_runs, tmp_path):
+def test_validation_views_split(tiny_world, hogs_runs, folds, srm_cache):
     """Validation views leave training entirely; their inputs come from the fold that never saw them."""
     from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
 
     run = hogs_runs / "s01_box"
-    found = fold_runs(run, find_runs(_folds(tiny_world, tmp_path / "folds")))
-    cache = tmp_path / "cache"
+    found = fold_runs(run, find_runs(folds))
+    cache = srm_cache
     own = load_pairs(tiny_world, run, cache, mode="own")
     cross = load_pairs(tiny_world, run, cache, mode="cross", folds=found)
     both = load_pairs(tiny_world, run, cache, mode="both", folds=found, val_views=[2, 5])
@@ -324,12 +359,12 @@ def test_validation_views_split(tiny_world, hogs_runs, tmp_path):
         load_pairs(tiny_world, run, cache, mode="own", val_views=list(range(1, 8)))
 
 
-def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, tmp_path):
+def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     """With --val-views the saved model is the EMA generator of the best validation step,
     chosen without the held-out views, and resuming keeps the choice exactly."""
     cli = _cli()
-    folds = _folds(tiny_world, tmp_path / "folds")
-    extra = ["--cross-hogs", str(folds), "--val-views", "2,5", "--eval-every", "1", "--lr", "0.02"]
+    extra = ["--cross-hogs", str(folds), "--val-views", "2,5", "--eval-every", "1", "--lr", "0.02",
+             "--cache", str(srm_cache)]
     with pytest.warns(SubstituteWarning):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "a", 6) + extra) == 0
     out = tmp_path / "a"
@@ -339,6 +374,7 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, tmp_path
     best = max(vals, key=vals.get)
     assert m["selected_step"] == best and m["selection"]["best"]["psnr"] == pytest.approx(vals[best])
     assert m["selection"]["val_views"] == [2, 5] and set(m["selection"]["last_step"]) >= {"with_srm", "delta_psnr"}
+    assert not (out / "cache").exists() and len(list(srm_cache.glob("coarse_*.safetensors"))) >= 3  # shared cache
     srm = load_srm(out)
     from hogsa_loader.srm.io import read_srm_manifest
 
@@ -371,15 +407,16 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, tmp_path
     assert all(float(t.flatten()[0]) == 2.0 for t in tr.best_model().net.parameters())
 
 
-def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, tmp_path):
+def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, srm_cache, tmp_path):
     from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer, dihedral
 
     x = torch.arange(16.0).reshape(1, 4, 4)
     outs = [dihedral(x, c) for c in range(8)]
     assert len({tuple(o.flatten().tolist()) for o in outs}) == 8  # the 8 symmetries of the square
     assert torch.equal(dihedral(x, 1), x.flip(-1)) and torch.equal(dihedral(x, 2), torch.rot90(x, 1, (-2, -1)))
-    base = dict(data=str(tiny_world), hogs=str(hogs_runs), batch_size=6, crop=32, channels=[8, 16, 16], lambda_gan=0.0)
-    plain = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "p"), **base), progress=False, log=lambda m: None)
+    base = dict(data=str(tiny_world), hogs=str(hogs_runs), batch_size=6, crop=32, channels=[8, 16, 16], lambda_gan=0.0,
+                cache=str(srm_cache))
+    plain = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "p"), augment="none", **base), progress=False, log=lambda m: None)
     aug = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "a"), augment="d4", **base), progress=False, log=lambda m: None)
     moved = 0
     for _ in range(3):  # same windows (same seed); the augmented ones are one symmetry of them, shared by all three

@@ -110,7 +110,10 @@ def fit_contactnet(
     bar.close()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    final = evaluate_contactnet(model, val, infos, objects) if val is not None and val.size else {}
+    final: dict = {}
+    if val is not None and val.size:  # the loop always scores its last step: reuse that, it is the same weights
+        last_scored = hist["val"] and hist["val"][-1][0] == iters
+        final = hist["val"][-1][1] if last_scored else evaluate_contactnet(model, val, infos, objects)
     first = hist["val"][0][1] if hist["val"] else {}
     metrics = {
         "val_subjects": val_subj,

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +69,32 @@ def _run_hash(run: Path) -> str:
     for name in PART_NAMES:
         m = json.loads((run / name / "manifest.json").read_text())
         h.update(m["tensors_sha256"].encode())
+    return h.hexdigest()[:16]
+
+
+def _inputs_hash(source: HogsSource, object_name: str, data: HogsData, parts: dict[str, Sequence[ViewSample]]) -> str:
+    """Hash of everything a render depends on besides the weights: the MANO layers, the
+    object template, each sample's annotated poses and camera, so a shared cache never
+    serves renders of other labels (e.g. the same run on a ``world-noise`` copy), other
+    cameras or another body model."""
+    h = hashlib.sha256()
+    for side in sorted(source.mano_layers):
+        for k, v in sorted(source.mano_layers[side].named_buffers()):  # (the MANO buffers are non-persistent)
+            h.update(f"{side}.{k}".encode() + v.detach().cpu().contiguous().numpy().tobytes())
+    tpl = source.object_templates.get(object_name)
+    if tpl is not None:
+        for arr in (tpl.verts, tpl.faces, tpl.parts):
+            h.update(np.ascontiguousarray(np.asarray(arr)).tobytes())
+    for name in sorted(parts):
+        samples = parts[name]
+        h.update(name.encode())
+        if not samples:
+            continue
+        for k, v in sorted(data.poses(samples, dtype=torch.float64).items()):
+            h.update(k.encode() + v.numpy().tobytes())
+        for s in samples:
+            h.update(np.ascontiguousarray(s.world2cam, dtype=np.float64).tobytes())
+            h.update(np.ascontiguousarray(s.K, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
 
 
@@ -166,7 +193,8 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     rc = json.loads((run / "config.json").read_text())
     sh = _final_sh(rc)
     key = hashlib.sha256(json.dumps(
-        [_run_hash(run), data.image_size, lo, sh, {k: [(s.seq_index, s.frame, s.view) for s in v] for k, v in parts.items()}]
+        [_run_hash(run), _inputs_hash(source, str(rc.get("object", "")), data, parts), data.image_size, lo, sh,
+         {k: [(s.seq_index, s.frame, s.view) for s in v] for k, v in parts.items()}]
     ).encode()).hexdigest()[:16]  # fmt: skip
     path = cache_dir / f"coarse_{run.name}_{key}.safetensors"
     if path.is_file():
@@ -181,7 +209,7 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
             rgb, a = (rgb * 255).round().to(torch.uint8), (a * 255).round().to(torch.uint8)
         t[f"{name}_rgb"], t[f"{name}_alpha"] = rgb.contiguous(), a.contiguous()
     cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # runs sharing a cache never write the same file
     save_file(t, str(tmp))
     tmp.replace(path)
     log(f"[srm] {run.name}: rendered {', '.join(f'{len(v)} {k}' for k, v in parts.items())} views at {lo}² "
