@@ -8,7 +8,9 @@ second run only streams)::
     hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
     contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
     bank        OUT/runs/pose_bank         POM pose bank of the training subjects
-    srm         OUT/runs/srm               SRM on the HOGS renders, brief
+    srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
+                OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
+                                           or labels are removed after each SRM build)
     bundle      OUT/bundle                 the bundle the loader reads
     stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
                                            through a DataLoader; samples.png, batch.npz,
@@ -67,7 +69,8 @@ class DemoConfig:
         srm_iters, srm_crop, srm_augment: brief SRM training (crop = training window side;
             augment: ``none``/``flip``/``d4``). Its coarse renders are cached in
             ``OUT/cache/srm`` (keyed by the HOGS weights and labels), so a rebuild of the SRM
-            stage alone does not render again.
+            stage alone does not render again; entries the build did not use (older HOGS
+            weights) are deleted after it.
         samples: synthetic samples streamed; batch_size; num_workers: DataLoader workers
             (CPU rendering in the workers, one torch thread each); render_batch: samples
             per render call.
@@ -262,7 +265,12 @@ def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) 
         channels=[16, 32, 64, 64, 64], lambda_gan=0.0, seed=cfg.seed, eval_every=cfg.srm_iters,
         ckpt_every=cfg.srm_iters, strip_views=2, augment=cfg.srm_augment, cache=str(cache),
     )  # fmt: skip
-    m = SRMTrainer(sc, progress=cfg.progress, log=lambda s: None).train()
+    trainer = SRMTrainer(sc, progress=cfg.progress, log=lambda s: None)
+    m = trainer.train()
+    used = {f.resolve() for ps in trainer.sets for f in ps.cache_files}
+    for stale in cache.glob("coarse_*.safetensors"):  # renders of HOGS weights or labels no longer in use
+        if stale.resolve() not in used:
+            stale.unlink()
     return {"delta_psnr": m["delta_psnr"], "delta_ssim": m["delta_ssim"]}
 
 

@@ -24,6 +24,7 @@ from hogsa_loader.compose import (
     make_backgrounds,
 )
 from hogsa_loader.compose import backgrounds as bg_mod
+from hogsa_loader.compose import coco as coco_mod
 from hogsa_loader.errors import AssetError
 
 # image id -> (colour RGB, categories present)
@@ -286,12 +287,12 @@ def test_coco_selection_cache_and_pickle(coco_root, tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     a = CocoBackgrounds(coco_root, categories=["cup"], index_cache=cache)
     assert len(list(cache.glob("coco_selection_*.json"))) == 1
-    bg_mod._COCO_MEMO.clear()
+    coco_mod._COCO_MEMO.clear()
 
     def boom(path):
         raise AssertionError("annotation file parsed again")
 
-    monkeypatch.setattr(bg_mod, "_load_coco", boom)
+    monkeypatch.setattr(coco_mod, "_load_coco", boom)
     b = CocoBackgrounds(coco_root, categories=["cup"], index_cache=cache)  # from the disk cache
     assert b.image_ids == a.image_ids == [3] and b.sizes == a.sizes
     c = pickle.loads(pickle.dumps(a))  # what a DataLoader worker gets (empty image cache)

@@ -64,10 +64,13 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     out, _, _ = demo
     renders = sorted((out / "cache" / "srm").glob("coarse_*.safetensors"))
     assert renders
+    stale = out / "cache" / "srm" / "coarse_s01_box_0123456789abcdef.safetensors"  # e.g. of older HOGS weights
+    stale.write_bytes(renders[0].read_bytes())
     cfg = DemoConfig(data=str(tiny_world), **{**CFG, "srm_iters": 3, "samples": 4})
     rec = run_demo(out, cfg, log=None)
     assert "srm" not in rec["reused_stages"] and "bundle" not in rec["reused_stages"]
-    assert sorted((out / "cache" / "srm").glob("coarse_*.safetensors")) == renders  # same HOGS: no new renders
+    # same HOGS: no new renders, and the entry the rebuild did not use is gone
+    assert sorted((out / "cache" / "srm").glob("coarse_*.safetensors")) == renders
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 

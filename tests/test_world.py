@@ -591,8 +591,9 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     assert main(["world-noise", "--src", str(tiny_world), "--out", str(out), "--quiet"]) == 0
     src_d, dst_d = tiny_world / "arctic_data" / "data", out / "arctic_data" / "data"
     assert (dst_d / "cropped_images").resolve() == (src_d / "cropped_images").resolve()
-    assert not (dst_d / "masks").exists() and not (dst_d / "splits").exists()
+    assert not (dst_d / "masks").exists()
     summary = json.loads((out / "annotation_noise.json").read_text())
+    assert summary["splits"].startswith("rebuilt from the noisy labels")
     layers = ArcticRoot(tiny_world).mano_layers(dtype=torch.float64)
 
     def verts(side, p):  # MANO forward of one hand's .mano.npy entry, (F, V, 3)
@@ -614,6 +615,26 @@ def test_annotation_noise_world(tiny_world, tmp_path):
             np.testing.assert_allclose(n["fitting_err"], err, rtol=1e-5, atol=1e-7)
             assert 1.0 < err.mean() * 1000 < 15.0  # millimetres, as ARCTIC's fitting error
             n_seq += 1
+    # the processed splits are rebuilt from the noisy labels (the source's hold the exact ones)
+    assert not (dst_d / "splits").is_symlink() and (dst_d / "splits_json").resolve() == (src_d / "splits_json").resolve()
+    src_root, dst_root = ArcticRoot(tiny_world), ArcticRoot(out)
+    for name in ("p1_train", "p2_val"):
+        got, ref = dst_root.load_split(name), src_root.load_split(name)
+        assert got["imgnames"] == ref["imgnames"] and got["data_dict"].keys() == ref["data_dict"].keys()
+        for key, seq in got["data_dict"].items():
+            sid, sname = key.split("/")
+            mano = read_npy(dst_d / "raw_seqs" / sid / f"{sname}.mano.npy")
+            for side, s in (("right", "r"), ("left", "l")):
+                np.testing.assert_array_equal(seq["params"][f"pose_{s}"], mano[side]["pose"])
+                np.testing.assert_array_equal(seq["params"][f"trans_{s}"], mano[side]["trans"])
+                np.testing.assert_array_equal(seq["params"][f"fitting_err_{s}"], mano[side]["fitting_err"])
+                assert not np.allclose(ref["data_dict"][key]["params"][f"trans_{s}"], seq["params"][f"trans_{s}"])
+            np.testing.assert_array_equal(seq["params"]["obj_trans"], ref["data_dict"][key]["params"]["obj_trans"])
+            assert not np.allclose(seq["cam_coord"]["joints.right"], ref["data_dict"][key]["cam_coord"]["joints.right"])
+    skipped = tmp_path / "noisy_no_splits"
+    assert main(["world-noise", "--src", str(tiny_world), "--out", str(skipped), "--quiet", "--no-splits"]) == 0
+    assert not (skipped / "arctic_data" / "data" / "splits").exists()
+    assert json.loads((skipped / "annotation_noise.json").read_text())["splits"] == "not written"
     assert n_seq >= 2 and summary["overall_mean_vertex_error_mm"] > 1.0
     ArcticRoot(out)  # opens as an ARCTIC root
     with pytest.raises(AssetError, match="already exists"):

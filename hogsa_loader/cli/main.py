@@ -106,13 +106,15 @@ def _cmd_world_noise(args: argparse.Namespace) -> int:
     try:
         noise = AnnotationNoise(trans_mm=args.trans_mm, rot_deg=args.rot_deg, pose_rad=args.pose_rad,
                                 smooth=args.smooth, seed=args.seed)  # fmt: skip
-        summary = add_annotation_noise(args.src, args.out, noise)
+        summary = add_annotation_noise(args.src, args.out, noise, process_splits=not args.no_splits,
+                                       progress=not args.quiet)  # fmt: skip
     except (AssetError, ValueError) as exc:
         print(f"hogsa: error: {exc}", file=sys.stderr)
         return 2
     if not args.quiet:
         print(f"world:   {os.path.abspath(args.out)}/arctic_data/data (hand annotations perturbed; "
               f"mean vertex error {summary['overall_mean_vertex_error_mm']:.2f} mm)")
+        print(f"splits:  {summary['splits']}")
         print(f"summary: {os.path.abspath(args.out)}/annotation_noise.json")
     return 0
 
@@ -221,7 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("world-noise", help="copy a world with ARCTIC-like fitting error in its hand annotations",
                        description="Write a copy of a world (images, cameras and object poses linked) whose hands' "
                        ".mano.npy carry noise (per-sequence offset + smoothed per-frame jitter); fitting_err holds "
-                       "the realised mean vertex error. Masks and processed splits are not copied.")
+                       "the realised mean vertex error. Masks are not copied; the processed splits are rebuilt from the "
+                       "noisy labels.")
     n.add_argument("--src", required=True, help="the world / ARCTIC ./data root")
     n.add_argument("--out", required=True, help="output root (must not exist)")
     n.add_argument("--trans-mm", type=float, default=2.0, help="wrist translation std per axis (mm)")
@@ -229,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--pose-rad", type=float, default=0.04, help="finger pose std per component (rad)")
     n.add_argument("--smooth", type=int, default=5, help="frames of the moving average of the per-frame part")
     n.add_argument("--seed", type=int, default=0)
+    n.add_argument("--no-splits", action="store_true", help="do not rebuild splits/ from the noisy labels")
     n.add_argument("--quiet", action="store_true")
     n.set_defaults(func=_cmd_world_noise)
 

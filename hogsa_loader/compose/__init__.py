@@ -1,9 +1,11 @@
 """Backgrounds and alpha compositing of synthetic hand-object renders.
 
 * :mod:`~hogsa_loader.compose.backgrounds` — :func:`make_backgrounds` and the sources
-  (:class:`CocoBackgrounds` via pycocotools, :class:`FolderBackgrounds`,
-  :class:`ProceduralBackgrounds` fallback), all ``sample(n, H, W, generator)`` →
-  ``(n, H, W, 3)`` float32 in [0, 1], deterministic given the generator.
+  (:class:`CocoBackgrounds` via pycocotools in :mod:`~hogsa_loader.compose.coco`,
+  :class:`FolderBackgrounds` and the base class in :mod:`~hogsa_loader.compose.sources`,
+  the :class:`ProceduralBackgrounds` fallback in :mod:`~hogsa_loader.compose.procedural`),
+  all ``sample(n, H, W, generator)`` → ``(n, H, W, 3)`` float32 in [0, 1], deterministic
+  given the generator.
 * :mod:`~hogsa_loader.compose.alpha` — :func:`composite` (premultiplied "over"),
   :class:`AlphaComposite`, optional :func:`harmonize` / :class:`Harmonize`.
 

@@ -142,6 +142,7 @@ class PairSet:
         sources: where the training renders come from (run names and counts).
         val_rgb / val_alpha / val_rows: validation renders (uint8) and their ``data.train``
             samples (empty without ``val_views``).
+        cache_files: the render-cache files these renders were read from or written to.
     """
 
     name: str
@@ -156,6 +157,7 @@ class PairSet:
     val_rgb: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, 3, dtype=torch.uint8))
     val_alpha: Tensor = field(default_factory=lambda: torch.zeros(0, 0, 0, dtype=torch.uint8))
     val_rows: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+    cache_files: list[Path] = field(default_factory=list)
 
 
 def _render_all(model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int,
@@ -185,9 +187,10 @@ def _final_sh(rc: dict) -> int:
 
 
 def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[str, Sequence[ViewSample]], lo: int,
-                    cache_dir: Path, log: Callable[[str], None]) -> dict[str, Tensor]:
+                    cache_dir: Path, log: Callable[[str], None]) -> tuple[dict[str, Tensor], Path]:
     """``{name}_rgb`` / ``{name}_alpha`` renders of ``run`` for each sample list of ``parts``
-    (``train`` lists as uint8, others float32), read from or written to the cache."""
+    (``train`` lists as uint8, others float32), read from or written to the cache, and the
+    cache file."""
     from safetensors.torch import load_file, save_file
 
     rc = json.loads((run / "config.json").read_text())
@@ -199,7 +202,7 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     path = cache_dir / f"coarse_{run.name}_{key}.safetensors"
     if path.is_file():
         log(f"[srm] {run.name}: cached renders {path.name} ({', '.join(f'{len(v)} {k}' for k, v in parts.items())})")
-        return load_file(str(path))
+        return load_file(str(path)), path
     model = HogsModel.from_run(run, source.mano_layers, source.object_templates)
     t0 = time.perf_counter()
     t: dict[str, Tensor] = {}
@@ -214,7 +217,7 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     tmp.replace(path)
     log(f"[srm] {run.name}: rendered {', '.join(f'{len(v)} {k}' for k, v in parts.items())} views at {lo}² "
         f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}")  # fmt: skip
-    return t
+    return t, path
 
 
 def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Optional[int] = None, scale: int = 1,
@@ -256,7 +259,8 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
     own_parts: dict[str, Sequence[ViewSample]] = {"eval": data.eval}
     if own_train:
         own_parts["train"] = data.train
-    t = _cached_renders(run, source, data, own_parts, lo, cache_dir, log)
+    t, own_file = _cached_renders(run, source, data, own_parts, lo, cache_dir, log)
+    files = [own_file]
     # (rgb uint8, alpha uint8, data.train rows) per source, split into training and validation
     chunks: list[tuple[str, Tensor, Tensor, Tensor]] = []
     if own_train:
@@ -268,7 +272,8 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
             idx = [i for i in idx if data.train[i].view in val]
         if not idx:
             continue
-        ft = _cached_renders(f, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
+        ft, fold_file = _cached_renders(f, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
+        files.append(fold_file)
         chunks.append((f.name, ft["train_rgb"], ft["train_alpha"], torch.as_tensor(idx, dtype=torch.long)))
     val_from_folds = bool(folds) and bool(val)  # validation inputs: fold renders when there are folds
     rgbs, alphas, rows, vrgb, valpha, vrows, sources = [], [], [], [], [], [], {}
@@ -293,7 +298,7 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
         raise AssetError(run, "the view folds cover no training view of the run (each fold saw every view)")
     margin = int(round(int(rc.get("margin", 4)) * size / (data.crop_size or size)))
     ps = PairSet(run.name, data, torch.cat(rgbs), torch.cat(alphas), torch.cat(rows), t["eval_rgb"], t["eval_alpha"],
-                 margin, sources)  # fmt: skip
+                 margin, sources, cache_files=files)  # fmt: skip
     if vrows:
         ps.val_rgb, ps.val_alpha, ps.val_rows = torch.cat(vrgb), torch.cat(valpha), torch.cat(vrows)
     return ps

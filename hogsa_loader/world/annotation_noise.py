@@ -16,9 +16,12 @@ SRM is meant to remove. :func:`add_annotation_noise` writes a world that reprodu
 * object poses stay exact: ARCTIC's crop boxes are computed from them, and the cropped
   images (the source's) were cut with the exact ones.
 
-The processed ``splits/`` are not copied (they would hold the exact labels): rerun
-:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits` on the copy if the
-loader's real-data path needs them. HOGS training reads ``raw_seqs`` and needs nothing else.
+The processed ``splits/`` are not copied (they hold the exact labels): they are rebuilt
+from the noisy labels by
+:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits` for the protocols of
+the source's ``splits_json/`` (linked: sequence lists only), so the loader's real-data path
+reads the same noisy labels as HOGS training (``process_splits=False`` skips this; HOGS
+training reads ``raw_seqs`` and needs nothing else).
 """
 
 from __future__ import annotations
@@ -102,13 +105,17 @@ def _link(src: Path, dst: Path) -> None:
     os.symlink(src.resolve(), dst, target_is_directory=src.is_dir())
 
 
-def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = AnnotationNoise()) -> dict[str, Any]:
+def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = AnnotationNoise(), *,
+                         process_splits: bool = True, progress: bool = False) -> dict[str, Any]:
     """Write the noisy-annotation copy of the world at ``src`` to ``dst`` (see module docstring).
 
     Args:
         src: a world / ARCTIC ``./data`` root (with ``arctic_data/data`` and ``body_models``).
         dst: output root (must not exist).
         noise: the noise model.
+        process_splits: rebuild ``splits/`` from the noisy labels for every protocol of the
+            source's ``splits_json/`` (none there: nothing to rebuild).
+        progress: progress bar of that processing.
 
     Returns:
         the summary also written to ``dst/annotation_noise.json``: the noise settings and the
@@ -133,7 +140,7 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
             if item.name != "arctic_data":
                 _link(item, dst / item.name)
         for item in sorted(data.iterdir()):
-            if item.name not in ("raw_seqs", "splits", "splits_json", "masks"):
+            if item.name not in ("raw_seqs", "splits", "masks"):
                 _link(item, dst / _DATA / item.name)
         errors: dict[str, dict[str, float]] = {}
         for subj in sorted(p for p in (data / "raw_seqs").iterdir() if p.is_dir()):
@@ -152,13 +159,20 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
                     seq_err[side] = float(err.mean() * 1000.0)
                 _save_npy(out, noisy)
                 errors[f"{subj.name}/{f.name.removesuffix('.mano.npy')}"] = seq_err
+        protocols = sorted(p.stem.removeprefix("protocol_") for p in (data / "splits_json").glob("protocol_*.json"))
+        if process_splits and protocols:
+            from hogsa_loader.datasets.arctic_processing import write_processed_splits
+
+            write_processed_splits(dst, protocols=protocols, splits=("train", "val"), progress=progress)
     except BaseException:
         shutil.rmtree(dst, ignore_errors=True)
         raise
     all_err = [e for s in errors.values() for e in s.values()]
     summary = {"source": str(src.resolve()), "noise": asdict(noise), "mean_vertex_error_mm": errors,
                "overall_mean_vertex_error_mm": float(np.mean(all_err)) if all_err else 0.0,
+               "splits": (f"rebuilt from the noisy labels ({', '.join(protocols)})" if process_splits and protocols
+                          else "not written"),
                "note": "images, cameras and object poses are the source's; hands' .mano.npy are perturbed; "
-                       "masks/ and splits/ not copied"}  # fmt: skip
+                       "masks/ not copied"}  # fmt: skip
     (dst / "annotation_noise.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary
