@@ -25,11 +25,13 @@ from hogsa_loader.export import (
     decode_frame,
     encode_frame,
     expand_shards,
+    frame_to_arctic_sample,
     iter_tar_samples,
     shard_name,
     write_shards,
 )
 from hogsa_loader.loader.frame import SynthFrame
+from hogsa_loader.loader.synth import frame_to_sample, source_scale
 
 S = 48
 NUM, SHARD = 7, 4  # two shards: 4 + 3 samples
@@ -201,13 +203,13 @@ def test_arctic_samples_and_workers(export_dir):
     samples = list(ds)
     assert len(samples) == NUM
     for i, (inputs, targets, meta) in enumerate(samples):
-        assert tuple(targets) == SAMPLE_TARGET_KEYS and tuple(meta) == SAMPLE_META_KEYS
-        assert inputs["img"].shape == (3, 224, 224) and inputs["img"].dtype == torch.float32
         f = make_frame(i)
+        # the frame's extra targets (interaction field) follow ARCTIC's, as in the live loader
+        assert tuple(targets) == SAMPLE_TARGET_KEYS + tuple(f.extra_targets) and tuple(meta) == SAMPLE_META_KEYS
+        assert inputs["img"].shape == (3, 224, 224) and inputs["img"].dtype == torch.float32
         aug = sample_aug_params(np.random.default_rng([5, 0, i, 3]), True, False)
-        ref_in, ref_t, ref_m = make_arctic_sample(f.image, f.bbox, f.K_full, f.image_size, f.right, f.left,
-                                                  f.obj, False, None, aug, f.imgname)
-        for k in SAMPLE_TARGET_KEYS:
+        ref_in, ref_t, ref_m = frame_to_sample(f, aug)  # the live loader's path (blur scaled to the frame)
+        for k in tuple(ref_t):
             a, b = targets[k], ref_t[k]
             if isinstance(a, torch.Tensor):
                 assert a.dtype == b.dtype and torch.equal(a, b), k
@@ -217,6 +219,17 @@ def test_arctic_samples_and_workers(export_dir):
                 assert type(a) is type(b) and a == b, k
         assert meta["imgname"] == ref_m["imgname"] and meta["rot_angle"] == ref_m["rot_angle"]
         assert (inputs["img"] - ref_in["img"]).abs().mean() < 0.05  # JPEG only
+    # the crop's box spans far fewer pixels than in ARCTIC's 1000-px crops: ARCTIC's source
+    # blur is scaled down, exactly as live (a textured image, where blur shows)
+    f = make_frame(1)
+    f.image = np.random.default_rng(0).integers(0, 256, f.image.shape, dtype=np.uint8)
+    assert source_scale(f) < 0.1
+    aug = sample_aug_params(np.random.default_rng([5, 0, 1, 3]), True, False)
+    got, live = frame_to_arctic_sample(f, 1, seed=5), frame_to_sample(f, aug)
+    assert torch.equal(got[0]["img"], live[0]["img"]) and torch.equal(got[1]["mano.j2d.norm.r"], live[1]["mano.j2d.norm.r"])
+    plain = make_arctic_sample(f.image, f.bbox, f.K_full, f.image_size, f.right, f.left, f.obj, False, None, aug,
+                               f.imgname)[0]  # ARCTIC's full-size blur on the small crop
+    assert not torch.allclose(plain["img"], live[0]["img"], atol=0.05)
     # two DataLoader workers, default collate: same samples, each exactly once
     loader = DataLoader(SynthShardDataset(export_dir, arctic_samples=True, seed=5), batch_size=None,
                         num_workers=2)
@@ -231,7 +244,9 @@ def test_arctic_samples_and_workers(export_dir):
     ref = make_arctic_sample(f0.image, f0.bbox, f0.K_full, f0.image_size, f0.right, f0.left, f0.obj, False, None,
                              aug, f0.imgname)[1]
     assert torch.equal(t3["mano.j2d.norm.r"], ref["mano.j2d.norm.r"]) and t3["object.rot"].equal(ref["object.rot"])
-    batch = next(iter(DataLoader(SynthShardDataset(export_dir, arctic_samples=True), batch_size=3)))
+    # default collate (the test frames alternate with and without interaction-field targets)
+    plain = [smp for smp in SynthShardDataset(export_dir, arctic_samples=True) if "dist.ro" not in smp[1]]
+    batch = next(iter(DataLoader(plain, batch_size=3)))
     assert batch[0]["img"].shape == (3, 3, 224, 224) and batch[1]["joints_valid_r"].dtype == torch.float64
 
 

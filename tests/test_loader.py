@@ -153,6 +153,45 @@ def test_mixed_loader_exact_ratio(bundle_dir, tiny_world):
     assert reals == [real_ds[i][2]["imgname"] for i in range(6)]
 
 
+class _Indexed(torch.utils.data.Dataset):
+    """Real stand-in: sample i is {"x": i}."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int) -> dict:
+        return {"x": torch.tensor(i)}
+
+
+@pytest.mark.parametrize("n, B, ratio, real_kw, drop_last", [
+    (100, 10, 0.5, {"sampler": "distributed"}, True),  # one of two ranks: half the samples
+    (105, 10, 0.5, {"drop_last": True}, True),  # the real loader drops its last 5
+    (41, 40, 0.95, {}, False),  # a high ratio: the last real sample still gets its (smaller) batch
+    (23, 8, 0.25, {}, False),
+])  # fmt: skip
+def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_last):
+    from torch.utils.data.distributed import DistributedSampler
+
+    ds = _Indexed(n)
+    if real_kw.get("sampler") == "distributed":
+        real_kw = {"sampler": DistributedSampler(ds, num_replicas=2, rank=0, shuffle=False)}
+    real = DataLoader(ds, batch_size=B, **real_kw)
+    mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, drop_last=drop_last)
+    batches = list(mixed)
+    assert len(mixed) == len(batches)
+    seen = [int(v) for b in batches for v in b["x"] if v >= 0]
+    expected = [int(v) for b in real for v in b["x"]]
+    assert seen == (expected if not drop_last else expected[: len(seen)])  # in order, none skipped or repeated
+    if not drop_last:
+        assert seen == expected  # every real sample of the pass is used
+    for b in batches:
+        k = len(b["x"])
+        assert k <= B and int((b["x"] < 0).sum()) == num_synthetic(ratio, k)
+
+
 def test_same_seed_same_samples_with_two_workers(bundle_dir, tiny_world):
     def run():
         ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=7)
@@ -168,6 +207,48 @@ def test_same_seed_same_samples_with_two_workers(bundle_dir, tiny_world):
     assert len(set(idx)) == len(idx)
     one = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=7).sample(idx[-1])
     assert one is not None and torch.allclose(one[0]["img"], a[-1][1], atol=1e-4)
+
+
+def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(bundle_dir, tiny_world):
+    ds = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=2, seed=5)
+    dl = DataLoader(ds, batch_size=None, num_workers=1, persistent_workers=True)
+    per_epoch = {}
+    for epoch in (0, 1, 0):
+        ds.set_epoch(epoch)
+        per_epoch.setdefault(epoch, []).append([(s[2]["imgname"], s[0]["img"]) for s in dl])
+    (e0, e0_again), (e1,) = per_epoch[0], per_epoch[1]
+    assert e0 and e1 and all(parse_synthetic_imgname(n)["epoch"] == 0 for n, _ in e0)
+    assert all(parse_synthetic_imgname(n)["epoch"] == 1 for n, _ in e1)  # the worker saw set_epoch(1)
+    assert [n for n, _ in e0] == [n for n, _ in e0_again] and all(torch.equal(x, y) for (_, x), (_, y) in zip(e0, e0_again))
+    name, img = e1[-1]
+    again = ds.sample(parse_synthetic_imgname(name)["index"], epoch=1)
+    assert again is not None and again[2]["imgname"] == name and torch.allclose(again[0]["img"], img, atol=1e-4)
+    # a set_epoch during an iteration leaves the rest of that iteration at its epoch
+    ds = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=4, seed=5)
+    it = iter(ds)
+    first = next(it)
+    ds.set_epoch(1)
+    rest = list(it)
+    assert rest and all(parse_synthetic_imgname(s[2]["imgname"])["epoch"] == 0 for s in [first, *rest])
+    ref = [ds.to_sample(f) for f in ds.frames(0, epoch=0) if f is not None]  # the same render batch, epoch 0
+    assert [s[2]["imgname"] for s in ref] == [s[2]["imgname"] for s in [first, *rest]]
+    assert all(torch.equal(a[0]["img"], b[0]["img"]) for a, b in zip(ref, [first, *rest]))  # augmentation of epoch 0 too
+
+
+def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_path):
+    """A bad COCO folder fails when the dataset is made (not later, inside workers), and
+    workers receive the built source."""
+    import pickle
+
+    from hogsa_loader.compose import FolderBackgrounds
+
+    with pytest.raises(AssetError, match="nope"):
+        HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=tmp_path / "nope")
+    (tmp_path / "bg").mkdir()
+    cv2.imwrite(str(tmp_path / "bg" / "a.png"), np.full((40, 50, 3), 90, np.uint8))
+    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", num_samples=2)
+    assert isinstance(ds.backgrounds, FolderBackgrounds) and ds.backgrounds.paths == [tmp_path / "bg" / "a.png"]
+    assert pickle.loads(pickle.dumps(ds)).backgrounds.paths == ds.backgrounds.paths
 
 
 def test_cuda_device_refused_in_workers(bundle_dir, tiny_world):
@@ -208,6 +289,39 @@ def test_dropped_samples_are_counted(bundle_dir, tiny_world):
     assert ds.stats.dropped["empty_alpha"] == 2 and ds.stats.num_dropped == 2
     assert set(ds.stats.seconds) == {"pose", "pom", "render", "srm", "composite", "targets"}
     assert ds.stats.seconds["render"] > 0
+    assert ds.total_stats().as_dict() == ds.stats.as_dict() and ds.worker_stats().attempted == 0
+    # a NaN pose is dropped as "nan" (not as a pose behind the camera)
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+
+    class NaNPoses:
+        keys = inner.keys
+
+        def sample(self, key, rngs):
+            batch = inner.sample(key, rngs)
+            batch.poses["right_trans"][0] = float("nan")
+            return batch
+
+    ds = _dataset(bundle_dir, tiny_world, poses=NaNPoses())
+    kept = list(ds)
+    assert ds.stats.dropped["nan"] == 1 and ds.stats.dropped["behind_camera"] == 0 and len(kept) == ds.stats.kept == 3
+
+
+def test_dropped_samples_are_counted_across_workers(bundle_dir, tiny_world):
+    """Workers add their counters to the dataset's shared table; the main process sums them."""
+    ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2,
+                  cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0, target_jitter_m=0.0))
+    for epoch in range(2):  # fresh workers each epoch: their counts add up
+        ds.set_epoch(epoch)
+        assert list(DataLoader(ds, batch_size=None, num_workers=2)) == []
+    assert ds.stats.attempted == 0  # nothing rendered in this process
+    w = ds.worker_stats()
+    assert w.attempted == 16 and w.dropped["behind_camera"] == 16 and w.kept == 0 and w.batches == ds.total_stats().batches
+    ok = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=2, seed=2)
+    got = list(DataLoader(ok, batch_size=None, num_workers=2, persistent_workers=True))
+    got += list(DataLoader(ok, batch_size=None, num_workers=1))
+    t = ok.total_stats()
+    assert t.kept == len(got) and t.attempted == 8 and t.kept + t.num_dropped == 8
+    assert t.seconds["render"] > 0 and t.seconds["targets"] > 0
 
 
 def test_wrap_train_loader_drop_in(bundle_dir, tiny_world):
@@ -219,6 +333,12 @@ def test_wrap_train_loader_drop_in(bundle_dir, tiny_world):
     assert inputs["img"].shape == (4, 3, CFG.img_res, CFG.img_res)
     assert [is_synthetic(n) for n in meta["imgname"]] == [False, False, False, True]
     assert len(loader) == len(real.dataset) // 3
+    # the real dataset's interaction-field setting carries over: both halves have its keys
+    real = DataLoader(ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0, interfield=0.1), batch_size=4)
+    loader = wrap_train_loader(real, bundle_dir, ratio=0.25, batch_size=2, backgrounds=ProceduralBackgrounds())
+    _, targets, meta = next(iter(loader))
+    assert "dist.ro" in targets and targets["dist.ro"].shape[0] == 4 and is_synthetic(meta["imgname"][3])
+    assert float(targets["dist.ro"][3].max()) <= float(np.float32(0.1))  # the synthetic row is clamped as the real ones
 
 
 def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):

@@ -157,6 +157,7 @@ class ArcticDataset(Dataset):
         missing_image_paths: their paths.
         cropped_size: side of the allocentric cropped images (``world_meta()``).
         ego_patch_k: the cached egocentric patch K, or None.
+        interfield: the ``interfield`` setting (False, True or the clamp).
     """
 
     def __init__(
@@ -200,6 +201,7 @@ class ArcticDataset(Dataset):
         self.missing_images = 0
         self.missing_image_paths: list[str] = []
         self.ego_patch_k: Optional[np.ndarray] = None
+        self.interfield = interfield
         self._interfield = interfield_targets(self.root, interfield)
         if cache_ego_k:
             for name in self.imgnames:

@@ -38,10 +38,10 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from hogsa_loader.datasets.augment import ArcticConfig, sample_aug_params
-from hogsa_loader.datasets.sample import make_arctic_sample
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.export.codec import decode_frame, split_member_name
 from hogsa_loader.loader.frame import SynthFrame
+from hogsa_loader.loader.synth import STREAM_AUG, frame_to_sample
 
 __all__ = ["AUG_STREAM", "SynthShardDataset", "expand_shards", "iter_tar_samples", "frame_to_arctic_sample"]
 
@@ -130,7 +130,7 @@ def iter_tar_samples(path: PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
 
 
 #: The augmentation stream of a sample (``hogsa_loader.loader.synth.sample_rng`` stream 3).
-AUG_STREAM = 3
+AUG_STREAM = STREAM_AUG
 
 
 def frame_to_arctic_sample(
@@ -143,19 +143,15 @@ def frame_to_arctic_sample(
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     """ArcticNet-SF sample of a stored frame, augmentation from ``default_rng([seed, epoch, index, 3])``.
 
-    ``frame.meta["egocentric"]`` (default False) and ``frame.meta["dist"]`` select the
-    egocentric rules of :func:`~hogsa_loader.datasets.sample.make_arctic_sample`.
+    The live loader's own path (:func:`~hogsa_loader.loader.synth.frame_to_sample`): the
+    source blur scaled to the frame's pixel size and the frame's extra targets (e.g. the
+    interaction field) appended, so a sample read back equals the live one up to JPEG.
+    ``frame.egocentric`` and ``frame.dist`` (restored from ``meta``) select the egocentric
+    rules of :func:`~hogsa_loader.datasets.sample.make_arctic_sample`.
     """
-    ego = bool(frame.meta.get("egocentric", False))
     rng = np.random.default_rng([int(seed), int(epoch), int(index), AUG_STREAM])
-    aug = sample_aug_params(rng, bool(augment), ego, cfg)
-    dist = frame.meta.get("dist")
-    return make_arctic_sample(
-        image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
-        right=frame.right, left=frame.left, obj=frame.obj, egocentric=ego,
-        dist=None if dist is None else np.asarray(dist, dtype=np.float64), aug=aug,
-        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg,
-    )
+    aug = sample_aug_params(rng, bool(augment), bool(frame.egocentric), cfg)
+    return frame_to_sample(frame, aug, cfg)
 
 
 class SynthShardDataset(IterableDataset):

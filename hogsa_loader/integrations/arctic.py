@@ -60,7 +60,8 @@ def wrap_train_loader(
         drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
         **dataset_kwargs: more :class:`~hogsa_loader.loader.dataset.HOGSADataset`
             arguments (``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...);
-            ``protocol`` and ``config`` default to the real dataset's.
+            ``protocol``, ``config`` and ``interfield`` default to the real dataset's (so
+            both halves of a batch have the same keys).
 
     Returns:
         a :class:`~hogsa_loader.loader.mixing.MixedLoader`.
@@ -73,6 +74,8 @@ def wrap_train_loader(
         dataset_kwargs.setdefault("protocol", real_ds.setup)  # type: ignore[union-attr]
     if hasattr(real_ds, "cfg"):
         dataset_kwargs.setdefault("config", real_ds.cfg)  # type: ignore[union-attr]
+    if hasattr(real_ds, "interfield"):
+        dataset_kwargs.setdefault("interfield", real_ds.interfield)  # type: ignore[union-attr]
     syn = HOGSADataset(bundle, root, device=device, seed=seed, **dataset_kwargs)
     source: Any = syn
     if num_workers > 0:

@@ -18,6 +18,14 @@ Determinism and sharding
     so the same seed gives the same samples for the same world size and worker count
     (and the same *set* of samples for any of them). Dropped samples leave a gap.
 
+    The epoch (:meth:`HOGSADataset.set_epoch`) lives in shared memory, so DataLoader
+    workers see it even when they persist across epochs (``persistent_workers=True``);
+    an iterator reads it once when it starts and keeps it to its end (a ``set_epoch``
+    during an iteration applies to the next one). With torch.distributed, shards of one
+    rank can hold up to one render batch more than another's (plus their own dropped
+    samples): for a fixed number of steps per epoch, iterate an endless dataset (e.g.
+    through :class:`~hogsa_loader.loader.mixing.MixedLoader`) rather than a finite one.
+
 Recommended DataLoader settings
     * CPU rendering: ``DataLoader(ds, batch_size=B, num_workers=k, persistent_workers=True)``
       with ``device="cpu"``; each worker renders its own batches (set
@@ -32,12 +40,16 @@ Statistics
     :attr:`HOGSADataset.stats` (:class:`~hogsa_loader.loader.synth.SynthStats`) counts
     attempted / kept / dropped samples (by reason) and accumulates per-stage seconds
     (``pose``, ``pom``, ``render``, ``srm``, ``composite``, ``targets``) *in the process
-    that iterates* (DataLoader workers keep their own copies).
+    that iterates*. DataLoader workers add theirs to a shared-memory table as they go (one
+    row per worker id), so :meth:`HOGSADataset.total_stats` in the main process gives this
+    process's counts plus every worker's (per torch.distributed rank: each rank has its own
+    dataset).
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
 from typing import Any, Iterator, Optional, Sequence, Union
 
@@ -64,7 +76,10 @@ from hogsa_loader.loader.synth import (
     sample_rng,
 )
 
-__all__ = ["HOGSADataset", "shard_info"]
+__all__ = ["HOGSADataset", "shard_info", "MAX_WORKER_ROWS"]
+
+#: Rows of the shared worker-statistics table (worker ids beyond share rows modulo this).
+MAX_WORKER_ROWS = 64
 
 Sample = tuple[dict[str, Any], dict[str, Any], dict[str, Any]]
 
@@ -98,7 +113,10 @@ class HOGSADataset(IterableDataset):
         background_folder: a plain image folder instead of COCO.
         categories: COCO category names to draw backgrounds from.
         backgrounds: an explicit background source (overrides the four arguments above);
-            without any, procedural backgrounds are used (with a warning).
+            without any, procedural backgrounds are used (with a warning). The source is
+            built here, in the constructing process (a missing or malformed COCO folder
+            fails now, and DataLoader workers receive the parsed image list instead of
+            each parsing the annotation file).
         poses: pose source name (``"perturb"``, ``"bank"`` (pose banks of the bundle),
             ``"online"`` (POM per render batch with the bundle's ContactNet),
             see :mod:`~hogsa_loader.loader.poses`) or a pose-source object.
@@ -137,7 +155,8 @@ class HOGSADataset(IterableDataset):
 
     Attributes:
         bundle: the :class:`Bundle`; keys: the (subject, object) models used;
-        stats: :class:`~hogsa_loader.loader.synth.SynthStats` of this process.
+        stats: :class:`~hogsa_loader.loader.synth.SynthStats` of this process (workers':
+            :meth:`worker_stats`, both: :meth:`total_stats`).
     """
 
     def __init__(
@@ -188,6 +207,10 @@ class HOGSADataset(IterableDataset):
         self.render_size = int(render_size) if render_size else int(round(1.5 * self.cfg.img_res))
         self.background_args = dict(coco_root=coco_root, coco_ann=coco_ann, folder=background_folder,
                                     categories=categories)
+        if backgrounds is None:
+            from hogsa_loader.compose import make_backgrounds
+
+            backgrounds = make_backgrounds(**self.background_args)
         self.backgrounds = backgrounds
         self.poses_spec = poses
         self.pose_options = dict(pose_options or {})
@@ -196,6 +219,7 @@ class HOGSADataset(IterableDataset):
         self.device = str(device)
         self.batch_size = int(batch_size)
         self.seed = int(seed)
+        self._epoch = torch.zeros((), dtype=torch.int64).share_memory_()  # seen by (persistent) workers
         self.epoch = int(epoch)
         self.protocol = protocol
         self.split = split
@@ -213,6 +237,9 @@ class HOGSADataset(IterableDataset):
             raise ValueError(f"no HOGS model left for subjects={subjects} objects={objects}; bundle has {self.bundle.keys}")
         self._requested_keys = keys
         self.stats = SynthStats()
+        # DataLoader workers' statistics: row = worker id (a worker adds what it counted since it last did)
+        self._worker_stats = torch.zeros(MAX_WORKER_ROWS, len(SynthStats().to_vector()), dtype=torch.float64).share_memory_()
+        self._published: Optional[tuple[int, np.ndarray]] = None  # (pid, stats vector already added)
         self._pipe: Optional[SynthPipeline] = None
         if self.srm and self.refiner is None and self.bundle.srm is None:
             raise ValueError(f"srm=True but bundle {self.bundle.path} has no SRM checkpoint")
@@ -252,9 +279,7 @@ class HOGSADataset(IterableDataset):
     def _pipeline(self) -> SynthPipeline:
         dev = self._check_device()
         if self._pipe is None:
-            from hogsa_loader.compose import make_backgrounds
-
-            bgs = self.backgrounds if self.backgrounds is not None else make_backgrounds(**self.background_args)
+            bgs = self.backgrounds
             layers = self.root.mano_layers()
             templates = self.root.object_templates()
             cams: dict[str, Any] = {}
@@ -276,7 +301,6 @@ class HOGSADataset(IterableDataset):
                 interfield=interfield_targets(self.root, self.interfield), protocol=self.protocol,
                 ego_distortion=self.ego_distortion,
             )  # fmt: skip
-        self._pipe.epoch = self.epoch
         self._pipe.stats = self.stats
         return self._pipe
 
@@ -305,13 +329,26 @@ class HOGSADataset(IterableDataset):
         return [self.root.sequence(sid, n.split("/", 1)[1]) for n in self.root.sequences(sid)]
 
     # ------------------------------------------------------------------ indices
+    @property
+    def epoch(self) -> int:
+        """The current epoch (shared with DataLoader workers)."""
+        return int(self._epoch)
+
+    @epoch.setter
+    def epoch(self, value: int) -> None:
+        self._epoch.fill_(int(value))
+
     def set_epoch(self, epoch: int) -> None:
-        """Select the epoch (a new stream of samples for the same seed)."""
+        """Select the epoch (a new stream of samples for the same seed). Workers, persistent
+        ones included, use it from their next iteration on."""
         self.epoch = int(epoch)
 
-    def batch_key(self, batch_index: int) -> tuple[str, str]:
-        """The (subject, object) model of render batch ``batch_index``."""
-        rng = np.random.default_rng([self.seed, self.epoch, int(batch_index), 7])
+    def _epoch_or(self, epoch: Optional[int]) -> int:
+        return self.epoch if epoch is None else int(epoch)
+
+    def batch_key(self, batch_index: int, epoch: Optional[int] = None) -> tuple[str, str]:
+        """The (subject, object) model of render batch ``batch_index`` (at ``epoch``, default the current one)."""
+        rng = np.random.default_rng([self.seed, self._epoch_or(epoch), int(batch_index), 7])
         return self.keys[int(rng.integers(len(self.keys)))]
 
     def batch_indices(self, batch_index: int) -> list[int]:
@@ -328,39 +365,75 @@ class HOGSADataset(IterableDataset):
         return None if self.num_samples is None else math.ceil(self.num_samples / self.batch_size)
 
     # ------------------------------------------------------------------ production
-    def frames(self, batch_index: int) -> list[Optional[SynthFrame]]:
-        """The :class:`SynthFrame` s of render batch ``batch_index`` (None = dropped)."""
+    def frames(self, batch_index: int, epoch: Optional[int] = None) -> list[Optional[SynthFrame]]:
+        """The :class:`SynthFrame` s of render batch ``batch_index`` (None = dropped) at
+        ``epoch`` (default the current one)."""
+        ep = self._epoch_or(epoch)
         idx = self.batch_indices(batch_index)
-        return self._pipeline().frames(self.batch_key(batch_index), idx)
+        pipe = self._pipeline()
+        pipe.epoch = ep
+        self._publish_stats()
+        out = pipe.frames(self.batch_key(batch_index, ep), idx)
+        self._publish_stats()
+        return out
 
-    def aug_params(self, index: int) -> AugParams:
-        """The ARCTIC augmentation of sample ``index`` (identity with ``augment=False``)."""
+    # ------------------------------------------------------------------ statistics
+    def _publish_stats(self) -> None:
+        """In a DataLoader worker: add what this process counted since it last did to its
+        row of the shared table (the first call only records the starting point: a worker
+        starts with a copy of the parent's counters)."""
+        info = get_worker_info()
+        if info is None:
+            return
+        now, pid = self.stats.to_vector(), os.getpid()
+        if self._published is not None and self._published[0] == pid:
+            self._worker_stats[info.id % MAX_WORKER_ROWS] += torch.from_numpy(now - self._published[1])
+        self._published = (pid, now)
+
+    def worker_stats(self) -> SynthStats:
+        """Counts and seconds of this dataset's DataLoader workers so far, summed (shared memory)."""
+        return SynthStats.from_vector(self._worker_stats.sum(0).numpy())
+
+    def total_stats(self) -> SynthStats:
+        """:attr:`stats` of this process plus :meth:`worker_stats`."""
+        return SynthStats.from_vector(self.stats.to_vector() + self._worker_stats.sum(0).numpy())
+
+    def aug_params(self, index: int, epoch: Optional[int] = None) -> AugParams:
+        """The ARCTIC augmentation of sample ``index`` at ``epoch`` (default the current one;
+        identity with ``augment=False``)."""
         ego = self.protocol == "p2"  # egocentric: ARCTIC forces sc = 1
-        return sample_aug_params(sample_rng(self.seed, self.epoch, int(index), STREAM_AUG), self.augment, ego, self.cfg)
+        rng = sample_rng(self.seed, self._epoch_or(epoch), int(index), STREAM_AUG)
+        return sample_aug_params(rng, self.augment, ego, self.cfg)
 
     def to_sample(self, frame: SynthFrame) -> Sample:
-        """ARCTIC augmentation + targets of a frame (its index fixes the augmentation)."""
+        """ARCTIC augmentation + targets of a frame (its index and epoch fix the augmentation)."""
         with self.stats.timed("targets"):
-            return frame_to_sample(frame, self.aug_params(int(frame.meta["index"])), self.cfg)
+            out = frame_to_sample(frame, self.aug_params(int(frame.meta["index"]), int(frame.meta["epoch"])), self.cfg)
+        self._publish_stats()
+        return out
 
     def samples(self, batch_index: int) -> list[Sample]:
         """The kept samples of render batch ``batch_index``, in index order."""
         return [self.to_sample(f) for f in self.frames(batch_index) if f is not None]
 
-    def sample(self, index: int) -> Optional[Sample]:
+    def sample(self, index: int, epoch: Optional[int] = None) -> Optional[Sample]:
         """Regenerate sample ``index`` alone (same seed, epoch and batch size give the same
-        sample as the stream did); None if it is dropped."""
+        sample as the stream did); None if it is dropped. ``epoch``: default the current one."""
+        ep = self._epoch_or(epoch)
         g = int(index) // self.batch_size
         pipe = self._pipeline()
-        frame = pipe.frames(self.batch_key(g), [int(index)])[0]
+        pipe.epoch = ep
+        frame = pipe.frames(self.batch_key(g, ep), [int(index)])[0]
         return None if frame is None else self.to_sample(frame)
 
     def iter_frames(self) -> Iterator[SynthFrame]:
-        """The kept frames of this process's shard, in order (what the offline exporter stores)."""
+        """The kept frames of this process's shard, in order (what the offline exporter
+        stores), all of the epoch current when the iteration starts."""
         shard, num = shard_info()
+        ep = self.epoch
         g = shard
         while self.num_batches is None or g < self.num_batches:
-            for f in self.frames(g):
+            for f in self.frames(g, ep):
                 if f is not None:
                     yield f
             g += num

@@ -117,11 +117,23 @@ class MixedLoader:
     def batch_size(self) -> Optional[int]:
         return getattr(self.real_loader, "batch_size", None)
 
+    def _real_samples(self) -> int:
+        """Real samples one pass of the real loader yields: its sampler's length (per rank
+        with a ``DistributedSampler``), less the last incomplete batch with ``drop_last``."""
+        bs = getattr(self.real_loader, "batch_sampler", None)
+        sampler = getattr(bs, "sampler", None)
+        if bs is not None and sampler is not None and hasattr(sampler, "__len__"):
+            n = len(sampler)
+            size = getattr(bs, "batch_size", None)
+            return (n // size) * size if getattr(bs, "drop_last", False) and size else n
+        raise TypeError("length unknown: the real loader has no batch sampler with a sized sampler "
+                        f"({type(self.real_loader).__name__})")
+
     def __len__(self) -> int:
         B = self.batch_size
-        n_real = len(self.real_loader.dataset) if hasattr(self.real_loader, "dataset") else None  # type: ignore[attr-defined]
-        if B is None or n_real is None:
-            raise TypeError("length unknown: the real loader has no batch_size / dataset")
+        if B is None:
+            raise TypeError("length unknown: the real loader has no batch_size")
+        n_real = self._real_samples()
         per = B - num_synthetic(self.ratio, B)
         if per == 0:
             return len(self.real_loader)  # type: ignore[arg-type]
@@ -172,8 +184,10 @@ class MixedLoader:
                 yield self._mixed(take, n_syn)
         if have and not self.drop_last:
             real = _cat(buf) if len(buf) > 1 else buf[0]
-            # a smaller last batch: the smallest share s with round(ratio·(have+s)) == s
-            for s in range(0, 4 * have + 2):
-                if num_synthetic(self.ratio, have + s) == s:
-                    yield self._mixed(real, s)
-                    break
+            # a smaller last batch: the smallest share s with round(ratio·(have+s)) == s. It
+            # exists: s ↦ round(ratio·(have+s)) − s starts ≥ 0 and falls by 0 or 1 per step
+            # (ratio < 1 here, since n_real > 0), so it reaches 0; have + s ≤ B.
+            s = 0
+            while num_synthetic(self.ratio, have + s) != s:
+                s += 1
+            yield self._mixed(real, s)

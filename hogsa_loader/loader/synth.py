@@ -166,6 +166,24 @@ class SynthStats:
         """Zero every counter."""
         self.__init__()  # type: ignore[misc]
 
+    def to_vector(self) -> np.ndarray:
+        """(3 + len(DROP_REASONS) + len(STAGES),) float64: ``attempted``, ``kept``,
+        ``batches``, the drops by reason (:data:`DROP_REASONS` order; other reasons count
+        under the last one) and the seconds by stage (:data:`STAGES` order)."""
+        drops = [float(self.dropped.get(r, 0)) for r in DROP_REASONS]
+        drops[-1] += float(sum(v for k, v in self.dropped.items() if k not in DROP_REASONS))
+        return np.array([self.attempted, self.kept, self.batches, *drops,
+                         *(self.seconds.get(st, 0.0) for st in STAGES)], dtype=np.float64)  # fmt: skip
+
+    @classmethod
+    def from_vector(cls, v: Any) -> "SynthStats":
+        """Inverse of :meth:`to_vector`."""
+        v = np.asarray(v, dtype=np.float64)
+        nd = len(DROP_REASONS)
+        return cls(attempted=int(round(v[0])), kept=int(round(v[1])), batches=int(round(v[2])),
+                   dropped={r: int(round(x)) for r, x in zip(DROP_REASONS, v[3 : 3 + nd])},
+                   seconds={st: float(x) for st, x in zip(STAGES, v[3 + nd :])})  # fmt: skip
+
     def as_dict(self) -> dict[str, Any]:
         """JSON-able copy."""
         return {"attempted": self.attempted, "kept": self.kept, "dropped": dict(self.dropped),
@@ -392,12 +410,15 @@ class SynthPipeline:
             rot_cam = {side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
                        for side in ("right", "left")}
             min_z = np.minimum.reduce([vg.cam[k][..., 2].min(1) for k in ("verts", "joints.right", "joints.left")])
-            front = min_z > self.checks.near_m
+            finite = np.isfinite(min_z)  # (a NaN pose would otherwise fail the depth test as "behind")
+            front = finite & (min_z > self.checks.near_m)
         pose_drop = [p.get("dropped") for p in batch.provenance] if batch.provenance else [None] * B
         keep = [b for b in range(B) if front[b] and not pose_drop[b]]
         for b in range(B):
             if pose_drop[b]:
                 self._drop(str(pose_drop[b]))
+            elif not finite[b]:
+                self._drop("nan")
             elif not front[b]:
                 self._drop("behind_camera")
         if not keep:
@@ -507,7 +528,7 @@ class SynthPipeline:
             "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
             **batch.provenance[b],
         }  # fmt: skip
-        if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_sample)
+        if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
             meta["dist"] = [float(x) for x in vg.dist[b]]  # type: ignore[index]
         return SynthFrame(
