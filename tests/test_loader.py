@@ -30,7 +30,7 @@ from hogsa_loader.loader import (
     num_synthetic,
     parse_synthetic_imgname,
 )
-from hogsa_loader.loader.synth import joints_on_alpha
+from hogsa_loader.loader.synth import joints_on_alpha, source_scale
 
 #: Small patches keep rendering cheap; real and synthetic samples use the same config.
 CFG = ArcticConfig(img_res=64)
@@ -99,6 +99,10 @@ def test_synthetic_sample_matches_real(frames, tiny_world):
     batch = default_collate([real, syn])
     assert batch[2]["imgname"][1] == syn[2]["imgname"]
     assert torch.isfinite(syn[0]["img"]).all()
+    # the source blur is scaled against this world's cropped images (256 px here, ARCTIC's 1000)
+    wm = ArcticRoot(tiny_world).world_meta()
+    assert wm.cropped_size != 1000 and fr[0].meta["cropped_size"] == wm.cropped_size
+    assert source_scale(fr[0]) == pytest.approx(fr[0].bbox[2] * 200 * 1.5 / wm.cropped_size)
 
 
 def test_keypoints_lie_on_rendered_alpha(frames):

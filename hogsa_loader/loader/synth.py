@@ -227,16 +227,20 @@ def joints_on_alpha(points: np.ndarray, alpha: np.ndarray, threshold: float = 0.
 
 
 def source_scale(frame: SynthFrame) -> float:
-    """Pixels of ``frame.image`` per pixel of the image ARCTIC would read for this view.
+    """Pixels of ``frame.image`` per pixel of the image the real dataset reads for this view.
 
-    Allocentric: ARCTIC's cropped image shows the box enlarged 1.5× at 1000 px, so the box
-    spans ``1000 / 1.5`` px there and ``200 · scale`` px here. Egocentric: ARCTIC reads the
-    whole frame at 0.3 of its size; the synthetic frame is the whole frame at
-    ``width / W``.
+    Allocentric: a cropped image shows the box enlarged 1.5× at ``cropped_size`` px
+    (ARCTIC: 1000), so the box spans ``cropped_size / 1.5`` px there and ``200 · scale`` px
+    here. Egocentric: the whole frame is read at ``ego_image_scale`` of its size (ARCTIC:
+    0.3); the synthetic frame is the whole frame at ``width / W``. Both sizes are the
+    world's (``frame.meta["cropped_size"]`` / ``["ego_image_scale"]``, recorded by the
+    pipeline from ``world_meta()``; ARCTIC's values when absent).
     """
     if frame.egocentric:
-        return float(frame.image.shape[1]) / float(frame.image_size[0]) / EGO_IMAGE_SCALE
-    return float(frame.bbox[2]) * BBOX_PIXELS_PER_SCALE * CROP_ENLARGE / CROPPED_SIZE
+        ego_scale = float(frame.meta.get("ego_image_scale", EGO_IMAGE_SCALE))
+        return float(frame.image.shape[1]) / float(frame.image_size[0]) / ego_scale
+    cropped = float(frame.meta.get("cropped_size", CROPPED_SIZE))
+    return float(frame.bbox[2]) * BBOX_PIXELS_PER_SCALE * CROP_ENLARGE / cropped
 
 
 def frame_to_sample(
@@ -338,6 +342,8 @@ class SynthPipeline:
         self.object_layer = root.object_layer()
         self.kp_bottom = {n: np.asarray(t.kp_bottom, dtype=np.float32)
                           for n, t in root.object_templates(load_texture=False).items()}
+        wm = root.world_meta()  # the real images' sizes, for the source blur (source_scale)
+        self.source_sizes = {"cropped_size": int(wm.cropped_size), "ego_image_scale": float(wm.ego_image_scale)}
 
     def model(self, key: tuple[str, str]) -> Any:
         """The (cached) HOGS model of ``key``."""
@@ -526,7 +532,7 @@ class SynthPipeline:
         meta = {
             "seed": self.seed, "epoch": self.epoch, "index": int(index), "subject": sid, "object": obj,
             "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
-            **batch.provenance[b],
+            **self.source_sizes, **batch.provenance[b],
         }  # fmt: skip
         if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
