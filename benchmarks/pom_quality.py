@@ -101,14 +101,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for name in sorted(set(frames.state.obj_names)):
         objects.geometry(name)
     prep = time.perf_counter() - t0
-    if args.device != "cpu":
-        for h in infos.values():
-            h.layer.to(args.device)
     cfg = POMConfig(iters=args.iters, snap=not args.no_snap, final_push=not args.no_final_push)
+    # the hands' MANO layers stay on the CPU (perturbation, metrics); the optimisation uses device copies
     aug = augment(frames, infos, objects, net, cfg, seed=args.seed, batch=args.batch, device=args.device)
-    if args.device != "cpu":
-        for h in infos.values():
-            h.layer.to("cpu")
     N = frames.state.batch
     act = frames.active
     res = {}

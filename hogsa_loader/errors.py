@@ -33,18 +33,27 @@ class UnsafePickleError(AssetError):
     """A pickle asked for a global (class or function) outside the allow-list."""
 
 
-def read_json(path: PathLike) -> "object":
-    """Parse a JSON file; :class:`AssetError` naming it when missing, unreadable or malformed."""
+def read_json(path: PathLike, allow_nan: bool = True) -> "object":
+    """Parse a JSON file; :class:`AssetError` naming it when missing, unreadable or malformed.
+
+    ``allow_nan=False`` also refuses ``NaN`` / ``Infinity`` (not JSON values; Python's
+    reader accepts them): for this library's own manifests, whose writer never emits them.
+    """
     import json
     from pathlib import Path
+
+    def reject(name: str) -> "object":
+        raise ValueError(f"malformed JSON: {name} is not a JSON value")
 
     path = Path(path)
     if not path.is_file():
         raise AssetError(path, "file is missing")
     try:
         with open(path, "r", encoding="utf-8") as fh:
-            return json.load(fh)
+            return json.load(fh) if allow_nan else json.load(fh, parse_constant=reject)
     except json.JSONDecodeError as exc:
         raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from None
     except (OSError, UnicodeDecodeError, RecursionError) as exc:
         raise AssetError(path, f"cannot read file ({type(exc).__name__}: {exc})") from None
+    except ValueError as exc:  # NaN / Infinity refused
+        raise AssetError(path, str(exc)) from None

@@ -428,6 +428,32 @@ def test_object_subdivided_texture_binding_keeps_geometry(box_template):
     assert rgb.std(0).min() > 0.05
 
 
+@pytest.mark.parametrize("levels", [0, 1])
+def test_object_uv_seam_copies_share_their_offset(box_template, levels):
+    """The textured binding mesh repeats vertices along UV seams; their offsets are tied
+    (one mean offset per position), so optimised offsets never open the seams."""
+    obj = ObjectGaussians(box_template, subdivide_levels=levels, k=1, sh_degree=0, dtype=D64)
+    m = obj.splats
+    tpl = m.template
+    assert m.weld_group is not None and int(m.weld_count.max()) > 1  # the box has seam copies
+    with torch.no_grad():
+        m.offsets.copy_(1e-3 * torch.randn(tpl.shape, generator=torch.Generator().manual_seed(0), dtype=D64))
+    cv = m.canonical_vertices()
+    groups, inv = torch.unique(tpl, dim=0, return_inverse=True)
+    _, inv_cv = torch.unique(cv, dim=0, return_inverse=True)
+    # copies of a position stay together, distinct positions stay distinct: the same partition
+    pairs = torch.unique(torch.stack([inv, inv_cv], 1), dim=0)
+    assert pairs.shape[0] == groups.shape[0] == int(inv_cv.max()) + 1
+    members = (m.weld_group == int(torch.nonzero(m.weld_count > 1)[0])).nonzero().squeeze(-1)
+    assert torch.allclose(cv[members[0]] - tpl[members[0]], m.offsets[members].mean(0))  # the mean of their offsets
+    cv.sum().backward()
+    assert torch.allclose(m.offsets.grad, torch.ones_like(m.offsets))  # every copy still gets its gradient
+    # a mesh without repeated positions is untouched
+    v, f = _bumpy_sphere()
+    sphere = MeshGaussians(v, f, k=1, sh_degree=0, dtype=D64)
+    assert sphere.weld_group is None
+
+
 # --------------------------------------------------------------------------------------
 # free Gaussians
 # --------------------------------------------------------------------------------------
@@ -725,6 +751,16 @@ def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
     d = fresh("badjson")
     (d / MANIFEST_FILE).write_text("{not json")
     expect(d, MANIFEST_FILE, "malformed JSON")
+    d = fresh("nanjson")  # Python's json reads NaN; strict JSON (and our writer) has none
+    m = json.loads((d / MANIFEST_FILE).read_text())
+    m["extra"] = {"loss": float("nan")}
+    (d / MANIFEST_FILE).write_text(json.dumps(m))
+    expect(d, MANIFEST_FILE, "NaN is not a JSON value")
+    d = fresh("tensor_entry")
+    m = json.loads((d / MANIFEST_FILE).read_text())
+    m["tensors"]["opacity_logits"] = [4, 3]
+    (d / MANIFEST_FILE).write_text(json.dumps(m))
+    expect(d, MANIFEST_FILE, "tensors['opacity_logits'] must be an object")
     d = fresh("badst")
     blob = b"garbage" * 10
     (d / TENSORS_FILE).write_bytes(blob)

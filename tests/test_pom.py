@@ -318,6 +318,28 @@ def test_hand_on_top_part_follows_articulation(scene):
     assert torch.equal(out.hands["left"].trans, src.hands["left"].trans)
 
 
+def test_hand_layers_follow_the_parameters_device(scene):
+    """The optimisation may run on another device than the caller's MANO layers (CUDA POM
+    with CPU layers): hand_forward uses a cached copy there and leaves the caller's layer."""
+    infos, _ = scene
+    info = infos["right"]
+    assert info.layer_on("cpu") is info.layer
+    meta = info.layer_on(torch.device("meta"))
+    assert meta is not info.layer and meta.v_template.device.type == "meta"
+    assert info.layer.v_template.device.type == "cpu" and info.layer_on("meta") is meta  # cached, original untouched
+    z = lambda n: torch.zeros(2, n)  # noqa: E731
+    out = hand_forward(info, HandParams(z(3), z(45), z(3), z(10)))
+    assert out.vertices.device.type == "cpu" and out.vertices.shape == (2, info.num_verts, 3)
+
+
+def test_pose_bank_variant_seeds_are_distinct():
+    from hogsa_loader.pom.jobs import variant_seed
+
+    seeds = {variant_seed(0, n, v) for n in range(200) for v in range(4)}
+    assert len(seeds) == 800 and all(0 <= x < 2**31 for x in seeds)  # (the old seed + 1000·v + frames collided)
+    assert variant_seed(0, 3, 1) == variant_seed(0, 3, 1) != variant_seed(1, 3, 1)
+
+
 def test_nonfinite_samples_are_dropped(scene):
     infos, objects = scene
     start = _state(infos, FAR, B=3)

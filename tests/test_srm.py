@@ -159,6 +159,10 @@ def test_checkpoint_roundtrip_and_validation(tmp_path):
     (tmp_path / "v2" / "manifest.json").write_text(json.dumps(man | {"schema_version": 2}))
     with pytest.raises(AssetError, match="manifest.json.*schema_version"):
         load_srm(tmp_path / "v2")
+    (tmp_path / "nan").mkdir()  # NaN is not JSON (Python's reader would accept it)
+    (tmp_path / "nan" / "manifest.json").write_text(json.dumps(man | {"extra": {"psnr": float("nan")}}))
+    with pytest.raises(AssetError, match="manifest.json.*NaN is not a JSON value"):
+        load_srm(tmp_path / "nan")
     blob = bytearray((tmp_path / "ck" / "srm.safetensors").read_bytes())
     blob[-1] ^= 1
     (tmp_path / "ck" / "srm.safetensors").write_bytes(bytes(blob))

@@ -206,9 +206,11 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
     if not path.is_file():
         raise AssetError(path, "file is missing")
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
+        raw = json.loads(path.read_text(encoding="utf-8"), parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from exc
+    except ValueError as exc:  # NaN / Infinity, which strict JSON (and our writer) never holds
+        raise AssetError(path, str(exc)) from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise AssetError(path, f"cannot read file ({exc})") from exc
     if not isinstance(raw, dict):
@@ -237,7 +239,15 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
             raise AssetError(path, f"source.{key} must be a string or null")
     if raw["tensors_file"] != TENSORS_FILE:
         raise AssetError(path, f"tensors_file is {raw['tensors_file']!r}, expected {TENSORS_FILE!r}")
+    for name, entry in raw["tensors"].items():
+        if not (isinstance(entry, dict) and isinstance(entry.get("shape"), list) and isinstance(entry.get("dtype"), str)):
+            raise AssetError(path, f"tensors[{name!r}] must be an object with a 'shape' list and a 'dtype' string, "
+                                   f"got {entry!r}")  # fmt: skip
     return raw
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"malformed JSON: {name} is not a JSON value")
 
 
 def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> None:

@@ -315,7 +315,9 @@ class MeshGaussians(SplatAppearance):
 
     Learnable parameters (names are the checkpoint tensor names):
 
-    * ``offsets`` (V, 3): canonical vertex offsets, zero at init;
+    * ``offsets`` (V, 3): canonical vertex offsets, zero at init. Vertices at the same
+      template position (the copies a textured mesh has along its UV seams) share one
+      offset, the mean of theirs, so the surface cannot tear open along a seam;
     * GaMeS: ``bary_logits`` (F, k, 3) (weights = softmax), ``log_scale_factor`` (F, k);
     * GaussianAvatars: ``local_means`` (F, k, 3), ``local_quats`` (F, k, 4),
       ``local_log_scales`` (F, k, 3);
@@ -350,6 +352,8 @@ class MeshGaussians(SplatAppearance):
     template: Tensor
     faces: Tensor
     init_bary: Tensor
+    weld_group: Optional[Tensor]
+    weld_count: Optional[Tensor]
 
     def __init__(
         self,
@@ -388,6 +392,11 @@ class MeshGaussians(SplatAppearance):
         self.register_buffer("init_bary", bary0, persistent=False)
 
         self.offsets = nn.Parameter(torch.zeros_like(verts_t))
+        # vertices at one position (UV-seam copies) move together: (V,) group ids, (G,) sizes
+        _, group, count = torch.unique(verts_t, dim=0, return_inverse=True, return_counts=True)
+        welded = bool(count.numel() < verts_t.shape[0])
+        self.register_buffer("weld_group", group if welded else None, persistent=False)
+        self.register_buffer("weld_count", count.to(dtype) if welded else None, persistent=False)
         if variant == "games":
             self.bary_logits = nn.Parameter(torch.log(bary0))
             self.log_scale_factor = nn.Parameter(torch.full((F_, self.k), math.log(rho0), dtype=dtype))
@@ -420,9 +429,18 @@ class MeshGaussians(SplatAppearance):
         return int(self.faces.shape[0])
 
     # -------------------------------------------------------------------- parameters
+    def welded_offsets(self) -> Tensor:
+        """(V, 3) the offsets with every group of coincident template vertices at its mean."""
+        if self.weld_group is None:
+            return self.offsets
+        sums = self.offsets.new_zeros(self.weld_count.shape[0], 3).index_add(0, self.weld_group, self.offsets)
+        # index_select, not [...]: its backward is index_add, reproducible on CPU whatever the
+        # thread count (the backward of advanced indexing accumulates in a thread-dependent order)
+        return torch.index_select(sums / self.weld_count[:, None], 0, self.weld_group)
+
     def canonical_vertices(self) -> Tensor:
-        """(V, 3) optimised canonical vertices ``template + offsets``."""
-        return self.template + self.offsets
+        """(V, 3) optimised canonical vertices ``template + offsets`` (:meth:`welded_offsets`)."""
+        return self.template + self.welded_offsets()
 
     def offset_regulariser(self) -> Tensor:
         """L_R: mean distance of the optimised canonical vertices to the template (scalar)."""

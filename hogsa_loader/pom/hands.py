@@ -9,6 +9,7 @@ rest normals).
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Mapping
 
@@ -46,6 +47,9 @@ class HandInfo:
         capped: :class:`CappedMesh` (wrist closed) for inside tests.
         prior_ids: (P,) long prior contact vertex ids.
         prior_mask: (V,) bool.
+
+    :meth:`layer_on` gives the layer on another device (a copy, made once per device), so
+    the optimisation can run on CUDA while ``layer`` stays where the caller keeps it.
     """
 
     side: str
@@ -53,6 +57,7 @@ class HandInfo:
     capped: CappedMesh = field(init=False)
     prior_ids: Tensor = field(init=False)
     prior_mask: Tensor = field(init=False)
+    _copies: dict[str, MANOLayer] = field(init=False, default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         V = self.layer.num_verts
@@ -62,6 +67,16 @@ class HandInfo:
         mask = torch.zeros(V, dtype=torch.bool, device=self.layer.v_template.device)
         mask[self.prior_ids] = True
         self.prior_mask = mask
+
+    def layer_on(self, device: torch.device | str) -> MANOLayer:
+        """The MANO layer on ``device``: :attr:`layer` itself when it is there, else a cached copy."""
+        device = torch.device(device)
+        if self.layer.v_template.device == device:
+            return self.layer
+        key = str(device)
+        if key not in self._copies:
+            self._copies[key] = copy.deepcopy(self.layer).to(device)
+        return self._copies[key]
 
     @property
     def num_verts(self) -> int:

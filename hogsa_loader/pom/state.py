@@ -129,8 +129,9 @@ def load_frames(root, seq_ids: Sequence[str], stride: int = 1, dtype: torch.dtyp
 
 
 def hand_forward(info: HandInfo, params: HandParams) -> ManoOutput:
-    """MANO forward of one side: (B, V, 3) world vertices and (B, 21, 3) joints."""
-    return info.layer(params.rot, params.pose, params.betas, params.trans)
+    """MANO forward of one side: (B, V, 3) world vertices and (B, 21, 3) joints, on the
+    parameters' device (:meth:`HandInfo.layer_on`)."""
+    return info.layer_on(params.rot.device)(params.rot, params.pose, params.betas, params.trans)
 
 
 def canonical_hands(state: GraspState, infos: Mapping[str, HandInfo]) -> dict[str, ManoOutput]:

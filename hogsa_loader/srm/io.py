@@ -99,7 +99,7 @@ def read_srm_manifest(folder: PathLike) -> dict[str, Any]:
         AssetError: naming ``manifest.json`` and the problem.
     """
     path = Path(folder) / SRM_MANIFEST
-    m = read_json(path)
+    m = read_json(path, allow_nan=False)
     if not isinstance(m, dict):
         raise AssetError(path, "manifest must be a JSON object")
     if m.get("format") != SRM_FORMAT:
