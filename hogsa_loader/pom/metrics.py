@@ -10,9 +10,11 @@ Per sample (both hands together):
   hands (m³);
 * ``contact_ratio``: fraction of hand vertices inside or within 5 mm of the surface;
 * ``contact``: per hand, at least one such vertex;
-* ``accept``: GraspTTA's acceptance: intersection < 4 cm³ and contact (every hand listed
-  as ``active`` — the hands touching the object in the source frame — must touch; at least
-  one hand must touch).
+* ``accept``: GraspTTA's acceptance without its physics test: intersection < 4 cm³ and
+  contact (every hand listed as ``active`` — the hands touching the object in the source
+  frame — must touch; at least one hand must touch). GraspTTA also requires a simulated
+  object displacement < 3 cm (§A.6); no simulator runs here, so that criterion is not
+  applied.
 
 :func:`diversity` is the mean pairwise distance between samples of the both-hand joints
 (42 joints, object canonical frame, mean per-joint Euclidean distance).
