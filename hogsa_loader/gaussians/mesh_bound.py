@@ -23,7 +23,8 @@ GaMeS variant (``variant="games"``, algorithms.md §B.1)
   uniformly distributed on it), so a Gaussian has the spread of its face along both
   in-plane axes and is flat (``eps``) along the normal.
 
-  Difference from the GaMeS code (deliberate, documented in the reference): GaMeS takes
+  Difference from GaMeS (deliberate; the reference, algorithms.md §B.1, gives GaMeS's
+  formula and marks the paper-vs-code question UNCERTAIN, not this choice): GaMeS takes
   the in-plane axes from the centroid-to-``p1`` direction and uses half distances
   ``(|p1 - c| / 2, <p2 - c, r3> / 2)``; here the axes are the first edge and ``n x e`` and
   the in-plane scales are the triangle's standard deviations along them. Both are exact
