@@ -267,6 +267,27 @@ def test_gradients_flow_through_entry_point(cfg):
     assert torch.equal(s["opacities"].grad[0, -10:], torch.zeros(10))
 
 
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_padding_at_the_camera_centre_gives_zero_gradients(antialiased):
+    """Padding written as ``means * valid`` sits at z = 0 when the camera is at the world
+    origin: culled, and its gradients must be 0 (as gsplat's), not inf * 0 = NaN."""
+    s = ball_scene(N=40)
+    cam_pos = torch.linalg.inv(s["viewmats"][0, 0])[:3, 3]
+    valid = torch.ones(40, 1)
+    valid[-4:] = 0.0
+    base = s["means"].detach().clone().requires_grad_(True)
+    s["means"] = cam_pos + (base - cam_pos) * valid  # padding rows at the camera centre (z = 0)
+    for k in ("quats", "scales"):
+        s[k] = s[k].detach().requires_grad_(True)
+    s["opacities"] = s["opacities"] * valid[:, 0]
+    out = _call(s, render_mode="RGB+ED", antialiased=antialiased)
+    (out.rgb.sum() + out.depth.sum()).backward()
+    for t in (base, s["quats"], s["scales"]):
+        assert torch.isfinite(t.grad).all()
+    assert torch.equal(base.grad[..., -4:, :], torch.zeros_like(base.grad[..., -4:, :]))
+    assert base.grad.abs().sum() > 0
+
+
 def test_zero_opacity_padding_gives_finite_gradients_in_render_gaussians():
     """Regression test for the log(opacity) NaN-gradient fix in render_gaussians."""
     s = ball_scene(N=60)

@@ -174,7 +174,13 @@ def project_gaussians(
     trans = viewmats[..., :3, 3]  # (B, C, 3)
     means_c = torch.einsum("bcij,bnj->bcni", rot, means) + trans[:, :, None, :]
     cov_c = torch.einsum("bcij,bnjk,bclk->bcnil", rot, covars, rot)  # R Sigma R^T
-    x, y, z = means_c.unbind(-1)  # (B, C, N)
+    x, y, z_cam = means_c.unbind(-1)  # (B, C, N)
+    # culled depths (e.g. z = 0: padding at the camera centre) are replaced by 1 before any
+    # division, so their never-used projections stay finite and their gradients are exactly 0
+    # (as gsplat's backward, which skips radius-0 Gaussians), not inf * 0 = NaN
+    with torch.no_grad():
+        z_in = (z_cam >= near) & (z_cam <= far)
+    z = torch.where(z_in, z_cam, torch.ones_like(z_cam))
 
     fx, fy = Ks[..., 0, 0, None], Ks[..., 1, 1, None]  # (B, C, 1)
     cx, cy = Ks[..., 0, 2, None], Ks[..., 1, 2, None]
@@ -203,7 +209,7 @@ def project_gaussians(
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
 
     with torch.no_grad():
-        ok = (z >= near) & (z <= far) & (det > 0)
+        ok = z_in & (det > 0)
         if opacities is None:
             extent = torch.full_like(z, RADIUS_EXTENT)
         else:
@@ -217,7 +223,7 @@ def project_gaussians(
         mx, my = means2d.detach().unbind(-1)
         ok &= (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
         radii = torch.stack([rx, ry], -1).where(ok[..., None], 0.0).to(torch.int32)
-    return radii, means2d, z, conics
+    return radii, means2d, z_cam, conics
 
 
 # --------------------------------------------------------------------------------------
