@@ -462,10 +462,17 @@ def test_root_joint_and_model_checks(models, layers):
     np.testing.assert_allclose(mano_root_joint(layers[("right", False)], betas), j0, atol=1e-12)
 
 
-def test_mano_layers_checked(tree, models, mano_dir):
+def test_mano_layers_checked(tree, models, mano_dir, layers):
     r = H2ORoot(tree)
     with pytest.raises(ValueError, match="right hand"):
         r.sequence(SUBJ, SCENE, SEQ, mano_layers={"left": models["right"], "right": models["right"]})
+    # the tracks are converted for flat_hand_mean=False layers: a flat (or PCA) layer is refused, not misposed
+    with pytest.raises(ValueError, match="flat_hand_mean=True"):
+        r.sequence(SUBJ, SCENE, SEQ, mano_layers={s: layers[(s, True)] for s in ("left", "right")})
+    pca = {s: MANOLayer(models[s], use_pca=True, dtype=F64) for s in ("left", "right")}
+    with pytest.raises(ValueError, match="use_pca=True"):
+        r.sequence(SUBJ, SCENE, SEQ, mano_layers=pca)
+    r.sequence(SUBJ, SCENE, SEQ, mano_layers={s: layers[(s, False)] for s in ("left", "right")})
     with pytest.raises(ValueError, match="missing"):
         r.sequence(SUBJ, SCENE, SEQ, mano_layers={"right": models["right"]})
     # a MANO folder works like the in-memory models

@@ -113,6 +113,37 @@ def test_unpickler_allows_only_listed_globals():
         RestrictedUnpickler(buf).load()
 
 
+def test_crafted_pickles_cannot_patch_scipy_or_escape_the_error_handling(tmp_path, mano_dir):
+    import scipy.sparse as sp
+
+    from hogsa_loader.hands.mano_io import _chumpy_stub, model_from_dict
+
+    original = sp.csc_matrix.toarray
+    # BUILD on the allow-listed class object: setattr(csc_matrix, "toarray", codecs.encode)
+    patch = b"\x80\x02cscipy.sparse\ncsc_matrix\nN}Vtoarray\nc_codecs\nencode\ns\x86b0}."
+    bad = tmp_path / "MANO_RIGHT.pkl"
+    bad.write_bytes(patch)
+    with pytest.raises(AssetError, match="missing MANO keys"):
+        load_mano(bad)
+    assert sp.csc_matrix.toarray is original and sp.csc_matrix([[1.0]]).toarray()[0, 0] == 1.0
+    # an allow-listed callable raising an unusual error: still an AssetError naming the file
+    bad.write_bytes(b"\x80\x02c_codecs\nencode\nVabc\nVno-such-codec\n\x86R.")
+    with pytest.raises(AssetError, match="not a readable MANO pickle") as info:
+        load_mano(bad)
+    assert str(bad) in str(info.value)
+    with open(mano_dir / "MANO_RIGHT.pkl", "rb") as fh:
+        good = RestrictedUnpickler(fh).load()
+    # a chumpy object holding itself, and a sparse matrix of absurd size
+    stub = _chumpy_stub("chumpy.ch", "Ch")
+    loop = stub.__new__(stub)
+    loop.__setstate__({"x": loop})
+    with pytest.raises(AssetError, match="nested too deeply"):
+        model_from_dict({**good, "v_template": loop}, source="loop.pkl")
+    with pytest.raises(AssetError, match="far larger than any MANO array"):
+        model_from_dict({**good, "J_regressor": sp.csc_matrix((10**6, 10**6))}, source="huge.pkl")
+    assert model_from_dict(good, source="MANO_RIGHT.pkl").v_template.shape[1] == 3  # the real file still loads
+
+
 def test_npz_conversion_round_trip_and_no_pickle(mano_dir, tmp_path, hand_pair):
     out = tmp_path / "MANO_RIGHT.npz"
     convert_mano_to_npz(mano_dir / "MANO_RIGHT.pkl", out)

@@ -143,6 +143,11 @@ def _hand_model(model: ModelLike, side: str) -> _HandModel:
         data = model.data
         if model.num_betas < 10:
             raise ValueError(f"{side} MANO layer uses {model.num_betas} betas; H2O labels hold 10")
+        if model.flat_hand_mean or model.use_pca:
+            # the labels are converted to ARCTIC's convention (articulation minus hands_mean, 45
+            # axis-angle values), which only a flat_hand_mean=False, non-PCA layer poses right
+            raise ValueError(f"{side} MANO layer has flat_hand_mean={model.flat_hand_mean}, use_pca={model.use_pca}; "
+                             "H2O poses are converted for MANOLayer(..., flat_hand_mean=False, use_pca=False)")
         v_template = model.v_template.detach().double().cpu().numpy()
         shapedirs = model.shapedirs.detach().double().cpu().numpy()[:, :, :10]
         j_reg0 = model.J_regressor.detach().double().cpu().numpy()[0]

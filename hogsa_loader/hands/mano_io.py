@@ -86,19 +86,19 @@ class ChumpyStub:
     def __setstate__(self, state: Any) -> None:
         self.__dict__["_state"] = state
 
-    def to_array(self, where: str = "<pickle>") -> np.ndarray:
+    def to_array(self, where: str = "<pickle>", depth: int = 0) -> np.ndarray:
         state = self.__dict__.get("_state")
         if not isinstance(state, dict):
             raise AssetError(where, f"chumpy object {self.chumpy_name} has no readable state")
         if "x" in state:
-            return _as_array(state["x"], where)
+            return _as_array(state["x"], where, depth)
         if "a" in state and "idxs" in state:  # chumpy.reordering.Select
-            base = _as_array(state["a"], where).ravel()
+            base = _as_array(state["a"], where, depth).ravel()
             out = base[np.asarray(state["idxs"]).ravel()]
             shape = state.get("preferred_shape")
             return out.reshape(shape) if shape is not None else out
         if "r" in state:
-            return _as_array(state["r"], where)
+            return _as_array(state["r"], where, depth)
         raise AssetError(
             where,
             f"chumpy object {self.chumpy_name} with state keys {sorted(state)} cannot be "
@@ -135,8 +135,11 @@ def _allowed_globals() -> dict[tuple[str, str], Any]:
     for mod in ("numpy.core.numeric", "numpy._core.numeric"):
         allowed[(mod, "_frombuffer")] = _frombuffer
     for fmt, cls in (("csc", sp.csc_matrix), ("csr", sp.csr_matrix), ("coo", sp.coo_matrix)):
+        # a fresh subclass per unpickler: pickle's BUILD can set attributes on a class it was
+        # handed, and must never reach scipy's own classes (or a later load's)
+        private = type(f"Pickled_{fmt}_matrix", (cls,), {})
         for mod in (f"scipy.sparse.{fmt}", f"scipy.sparse._{fmt}", "scipy.sparse"):
-            allowed[(mod, f"{fmt}_matrix")] = cls
+            allowed[(mod, f"{fmt}_matrix")] = private
     return allowed
 
 
@@ -178,17 +181,35 @@ class RestrictedUnpickler(pickle.Unpickler):
         raise UnsafePickleError(self._path, "persistent ids are not allowed in a MANO model file")
 
 
-def _as_array(value: Any, where: str) -> np.ndarray:
+#: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,
+#: has 778·3·135 ≈ 0.3 M; a crafted sparse shape must not allocate terabytes).
+MAX_DENSE_ELEMENTS = 50_000_000
+
+
+def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
     """Turn an unpickled value (array, chumpy stub, sparse matrix, list) into a dense array."""
+    if depth > 8:
+        raise AssetError(where, "chumpy objects nested too deeply (a cycle?)")
     if isinstance(value, ChumpyStub):
-        return value.to_array(where)
+        return value.to_array(where, depth + 1)
     if sp.issparse(value):
+        d = value.__dict__
+        shape = d.get("_shape", d.get("shape"))
         try:
-            return np.asarray(value.toarray())
+            n = int(np.prod([int(x) for x in shape]))
+        except (TypeError, ValueError):
+            raise AssetError(where, f"sparse matrix with an unreadable shape {shape!r:.60}") from None
+        if n > MAX_DENSE_ELEMENTS:
+            raise AssetError(where, f"sparse matrix of shape {tuple(shape)} is far larger than any MANO array")
+        # scipy's own method, looked up on scipy's class (not on the pickled object's class)
+        real = next(c for c in (sp.csc_matrix, sp.csr_matrix, sp.coo_matrix) if isinstance(value, c))
+        try:
+            return np.asarray(real.toarray(value))
         except Exception:  # old scipy pickles: rebuild from the raw fields
-            d = value.__dict__
-            shape = d.get("_shape", d.get("shape"))
-            return sp.csc_matrix((d["data"], d["indices"], d["indptr"]), shape=shape).toarray()
+            if real is sp.coo_matrix:
+                coords = d["coords"] if "coords" in d else (d["row"], d["col"])
+                return sp.coo_matrix((d["data"], tuple(coords)), shape=shape).toarray()
+            return real((d["data"], d["indices"], d["indptr"]), shape=shape).toarray()
     if isinstance(value, (str, bytes)):
         raise AssetError(where, f"expected an array, found a string {value!r:.40}")
     return np.asarray(value)
@@ -325,7 +346,8 @@ def _read_pickle(path: str) -> dict:
             data = RestrictedUnpickler(fh, path).load()
     except UnsafePickleError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError) as exc:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            LookupError, RecursionError, MemoryError) as exc:
         raise AssetError(path, f"not a readable MANO pickle ({type(exc).__name__}: {exc})") from None
     if not isinstance(data, dict):
         raise AssetError(path, f"expected a dict of arrays at the top level, found {type(data).__name__}")
@@ -364,6 +386,17 @@ def model_from_dict(
         tip_vertex_ids: override of the fingertip vertices (thumb..pinky).
     """
     where = source or "<MANO dict>"
+    try:
+        return _model_from_dict(data, where, source, side, tip_vertex_ids)
+    except AssetError:
+        raise
+    except (ValueError, TypeError, AttributeError, IndexError, KeyError, LookupError, RecursionError,
+            MemoryError) as exc:  # whatever a malformed (or crafted) file makes numpy/scipy raise
+        raise AssetError(where, f"not a readable MANO model ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+def _model_from_dict(data: Mapping[str, Any], where: str, source: str, side: Optional[str],
+                     tip_vertex_ids: Optional[tuple[int, ...]]) -> ManoModelData:
     missing = [k for k in _REQUIRED_KEYS if k not in data]
     if missing:
         raise AssetError(where, f"missing MANO keys {missing}")

@@ -51,10 +51,11 @@ class _World:
         return self._templates[name]
 
     def raw(self, sid: str, seq: str) -> tuple[dict, np.ndarray, dict]:
+        from hogsa_loader.datasets.arctic import read_npy  # restricted unpickler: never runs file code
+
         base = self.data / "raw_seqs" / sid
-        return (np.load(base / f"{seq}.mano.npy", allow_pickle=True).item(),
-                np.load(base / f"{seq}.object.npy", allow_pickle=True),
-                np.load(base / f"{seq}.egocam.dist.npy", allow_pickle=True).item())
+        return (read_npy(base / f"{seq}.mano.npy"), np.asarray(read_npy(base / f"{seq}.object.npy")),
+                read_npy(base / f"{seq}.egocam.dist.npy"))
 
 
 def project_annotations(world: "_World", sid: str, seq: str, frames: list[int], view: int) -> dict:
