@@ -460,6 +460,7 @@ def test_root_joint_and_model_checks(models, layers):
     _, joints = pose_verts(layers[("right", True)], np.zeros((3, 3)), np.zeros((3, 45)), betas, np.zeros((3, 3)))
     np.testing.assert_allclose(j0, joints[:, 0], atol=1e-12)
     np.testing.assert_allclose(mano_root_joint(layers[("right", False)], betas), j0, atol=1e-12)
+    np.testing.assert_allclose(mano_root_joint(layers[("right", True)], betas), j0, atol=1e-12)  # J0 is pose-free
 
 
 def test_mano_layers_checked(tree, models, mano_dir, layers):

@@ -186,6 +186,12 @@ def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_l
     mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, drop_last=drop_last)
     batches = list(mixed)
     assert len(mixed) == len(batches)
+    if "sampler" not in real_kw:  # a sized iterable real dataset (its sampler has no length): same count
+        it_ds = type("SizedIterable", (torch.utils.data.IterableDataset,), {
+            "__iter__": lambda self: (ds[i] for i in range(n)), "__len__": lambda self: n})()
+        it_real = DataLoader(it_ds, batch_size=B, drop_last=bool(real_kw.get("drop_last")))
+        it_mixed = MixedLoader(it_real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, drop_last=drop_last)
+        assert len(it_mixed) == len(list(it_mixed)) == len(batches)
     seen = [int(v) for b in batches for v in b["x"] if v >= 0]
     expected = [int(v) for b in real for v in b["x"]]
     assert seen == (expected if not drop_last else expected[: len(seen)])  # in order, none skipped or repeated
@@ -227,6 +233,14 @@ def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(b
     name, img = e1[-1]
     again = ds.sample(parse_synthetic_imgname(name)["index"], epoch=1)
     assert again is not None and again[2]["imgname"] == name and torch.allclose(again[0]["img"], img, atol=1e-4)
+    # a deep copy has its own shared epoch (its workers see its set_epoch, not the original's)
+    import copy
+
+    twin = copy.deepcopy(ds)
+    twin.set_epoch(3)
+    assert ds.epoch == 0 and twin._epoch.is_shared()
+    names = [s[2]["imgname"] for s in DataLoader(twin, batch_size=None, num_workers=1)]
+    assert names and all(parse_synthetic_imgname(n)["epoch"] == 3 for n in names)
     # a set_epoch during an iteration leaves the rest of that iteration at its epoch
     ds = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=4, seed=5)
     it = iter(ds)

@@ -52,7 +52,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Sequence, TypeVar, Union
+from typing import Any, Callable, Mapping, Optional, Sequence, TypeVar, Union
 
 import numpy as np
 import torch
@@ -143,11 +143,6 @@ def _hand_model(model: ModelLike, side: str) -> _HandModel:
         data = model.data
         if model.num_betas < 10:
             raise ValueError(f"{side} MANO layer uses {model.num_betas} betas; H2O labels hold 10")
-        if model.flat_hand_mean or model.use_pca:
-            # the labels are converted to ARCTIC's convention (articulation minus hands_mean, 45
-            # axis-angle values), which only a flat_hand_mean=False, non-PCA layer poses right
-            raise ValueError(f"{side} MANO layer has flat_hand_mean={model.flat_hand_mean}, use_pca={model.use_pca}; "
-                             "H2O poses are converted for MANOLayer(..., flat_hand_mean=False, use_pca=False)")
         v_template = model.v_template.detach().double().cpu().numpy()
         shapedirs = model.shapedirs.detach().double().cpu().numpy()[:, :, :10]
         j_reg0 = model.J_regressor.detach().double().cpu().numpy()[0]
@@ -166,6 +161,16 @@ def _hand_model(model: ModelLike, side: str) -> _HandModel:
         j0_template=j_reg0 @ v_template,
         j0_dirs=np.einsum("v,vcs->cs", j_reg0, shapedirs),
     )
+
+
+def _check_track_layers(mano_layers: Mapping[str, Any]) -> None:
+    """The tracks are converted to ARCTIC's convention (articulation minus ``hands_mean``, 45
+    axis-angle values): layers given with them must pose that way, or every finger is off by
+    ``hands_mean`` without any error."""
+    for side, layer in mano_layers.items():
+        if isinstance(layer, MANOLayer) and (layer.flat_hand_mean or layer.use_pca):
+            raise ValueError(f"{side} MANO layer has flat_hand_mean={layer.flat_hand_mean}, use_pca={layer.use_pca}; "
+                             "H2O tracks are converted for MANOLayer(..., flat_hand_mean=False, use_pca=False)")
 
 
 def _hand_models(mano_layers: ManoModels) -> dict[str, _HandModel]:
@@ -537,6 +542,8 @@ class H2ORoot:
             AssetError: a folder or file is missing or malformed (message names it), or
                 the sequence shows more than one object class and ``object_class`` is None.
         """
+        if isinstance(mano_layers, Mapping):
+            _check_track_layers(mano_layers)
         models = _hand_models(mano_layers)
         target = _parse_world(world)
         seq = str(seq)

@@ -209,10 +209,10 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
         raw = json.loads(path.read_text(encoding="utf-8"), parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from exc
-    except ValueError as exc:  # NaN / Infinity, which strict JSON (and our writer) never holds
-        raise AssetError(path, str(exc)) from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise AssetError(path, f"cannot read file ({exc})") from exc
+    except ValueError as exc:  # NaN / Infinity, which strict JSON (and our writer) never holds
+        raise AssetError(path, str(exc)) from exc
     if not isinstance(raw, dict):
         raise AssetError(path, f"expected a JSON object, got {type(raw).__name__}")
     if raw.get("format") != FORMAT:

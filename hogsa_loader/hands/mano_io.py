@@ -202,7 +202,9 @@ def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
         if n > MAX_DENSE_ELEMENTS:
             raise AssetError(where, f"sparse matrix of shape {tuple(shape)} is far larger than any MANO array")
         # scipy's own method, looked up on scipy's class (not on the pickled object's class)
-        real = next(c for c in (sp.csc_matrix, sp.csr_matrix, sp.coo_matrix) if isinstance(value, c))
+        real = next((c for c in (sp.csc_matrix, sp.csr_matrix, sp.coo_matrix) if isinstance(value, c)), None)
+        if real is None:  # another sparse type: only from an in-memory dict (a pickle cannot name one)
+            return np.asarray(value.toarray())
         try:
             return np.asarray(real.toarray(value))
         except Exception:  # old scipy pickles: rebuild from the raw fields

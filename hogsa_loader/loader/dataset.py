@@ -266,6 +266,13 @@ class HOGSADataset(IterableDataset):
         state["_pipe"] = None  # rebuilt lazily in each process
         return state
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for name in ("_epoch", "_worker_stats"):  # a deep copy's tensors: shared again, for its own workers
+            t = self.__dict__.get(name)
+            if t is not None and not t.is_shared():
+                t.share_memory_()
+
     def _check_device(self) -> torch.device:
         dev = torch.device(self.device)
         if dev.type == "cuda" and get_worker_info() is not None:

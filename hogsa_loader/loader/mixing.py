@@ -122,12 +122,16 @@ class MixedLoader:
         with a ``DistributedSampler``), less the last incomplete batch with ``drop_last``."""
         bs = getattr(self.real_loader, "batch_sampler", None)
         sampler = getattr(bs, "sampler", None)
+        size = getattr(bs, "batch_size", None) or getattr(self.real_loader, "batch_size", None)
+        drop = bool(getattr(bs, "drop_last", getattr(self.real_loader, "drop_last", False)))
         if bs is not None and sampler is not None and hasattr(sampler, "__len__"):
             n = len(sampler)
-            size = getattr(bs, "batch_size", None)
-            return (n // size) * size if getattr(bs, "drop_last", False) and size else n
-        raise TypeError("length unknown: the real loader has no batch sampler with a sized sampler "
-                        f"({type(self.real_loader).__name__})")
+        elif hasattr(getattr(self.real_loader, "dataset", None), "__len__"):  # e.g. a sized IterableDataset
+            n = len(self.real_loader.dataset)  # type: ignore[attr-defined]
+        else:
+            raise TypeError(f"length unknown: the real loader ({type(self.real_loader).__name__}) has neither a "
+                            "sized sampler nor a sized dataset")
+        return (n // size) * size if drop and size else n
 
     def __len__(self) -> int:
         B = self.batch_size

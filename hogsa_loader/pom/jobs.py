@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+import zlib
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -140,12 +141,14 @@ def fit_contactnet(
     return metrics
 
 
-def variant_seed(seed: int, sequence: int, variant: int) -> int:
+def variant_seed(seed: int, sequence: str, variant: int) -> int:
     """Seed of one (sequence, variant) of a pose bank: 31 bits of ``SeedSequence([seed,
-    sequence, variant])``, so no two (sequence, variant) pairs share their draws (the
-    per-batch seeds inside :func:`~hogsa_loader.pom.pipeline.augment` add at most the
-    sequence's frame count to it)."""
-    return int(np.random.SeedSequence([int(seed), int(sequence), int(variant)]).generate_state(1)[0] >> 1)
+    crc32(sequence), variant])`` for the ``"sid/seq"`` id, so no two (sequence, variant)
+    pairs share their draws and a sequence draws the same whatever other sequences are
+    selected (the per-batch seeds inside :func:`~hogsa_loader.pom.pipeline.augment` add at
+    most the sequence's frame count to it)."""
+    key = zlib.crc32(str(sequence).encode("utf-8"))
+    return int(np.random.SeedSequence([int(seed), key, int(variant)]).generate_state(1)[0] >> 1)
 
 
 def build_pose_bank(
@@ -174,7 +177,7 @@ def build_pose_bank(
         sequences: restrict to these ``"sid/seq"`` ids (default all).
         iters: POM iterations; batch: samples optimised at once.
         seed: base seed; each (sequence, variant) draws from its own seed derived from
-            ``(seed, sequence number, variant)`` (:func:`variant_seed`).
+            ``(seed, sequence id, variant)`` (:func:`variant_seed`).
         keep_rejected: also keep grasps that fail acceptance.
 
     Returns:
@@ -208,12 +211,12 @@ def build_pose_bank(
     metrics: dict[str, list[np.ndarray]] = {k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")}
     dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0, "rejected": 0}
     total, t0 = 0, time.perf_counter()
-    for n_seq, seq in enumerate(tqdm(seqs, disable=not progress, desc="pose bank")):
+    for seq in tqdm(seqs, disable=not progress, desc="pose bank"):
         frames = contact_frames(root, [seq], infos, objects, per_sequence=per_sequence)
         if frames.state.batch == 0:
             continue
         for v in range(variants):
-            aug = augment(frames, infos, objects, net, cfg, seed=variant_seed(seed, n_seq, v), batch=batch, device=device)
+            aug = augment(frames, infos, objects, net, cfg, seed=variant_seed(seed, seq, v), batch=batch, device=device)
             total += frames.state.batch
             for k, c in aug.dropped.items():
                 dropped[k] += c
