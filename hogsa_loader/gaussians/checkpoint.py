@@ -48,7 +48,7 @@ from typing import Any, Mapping, Optional, Union
 import torch
 from torch import Tensor
 
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.gaussians.parts import (
     ALL_VARIANTS,
     PART_TYPES,
@@ -203,16 +203,7 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
     if not folder.is_dir():
         raise AssetError(folder, "checkpoint folder is missing")
     path = folder / MANIFEST_FILE
-    if not path.is_file():
-        raise AssetError(path, "file is missing")
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"), parse_constant=_reject_constant)
-    except json.JSONDecodeError as exc:
-        raise AssetError(path, f"malformed JSON ({exc.msg} at line {exc.lineno})") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise AssetError(path, f"cannot read file ({exc})") from exc
-    except ValueError as exc:  # NaN / Infinity, which strict JSON (and our writer) never holds
-        raise AssetError(path, str(exc)) from exc
+    raw = read_json(path, allow_nan=False)  # (missing, unreadable, malformed, NaN: AssetError naming it)
     if not isinstance(raw, dict):
         raise AssetError(path, f"expected a JSON object, got {type(raw).__name__}")
     if raw.get("format") != FORMAT:
@@ -244,10 +235,6 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
             raise AssetError(path, f"tensors[{name!r}] must be an object with a 'shape' list and a 'dtype' string, "
                                    f"got {entry!r}")  # fmt: skip
     return raw
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"malformed JSON: {name} is not a JSON value")
 
 
 def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> None:

@@ -348,7 +348,7 @@ def _read_pickle(path: str) -> dict:
             data = RestrictedUnpickler(fh, path).load()
     except UnsafePickleError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError,
             LookupError, RecursionError, MemoryError) as exc:
         raise AssetError(path, f"not a readable MANO pickle ({type(exc).__name__}: {exc})") from None
     if not isinstance(data, dict):
@@ -392,8 +392,8 @@ def model_from_dict(
         return _model_from_dict(data, where, source, side, tip_vertex_ids)
     except AssetError:
         raise
-    except (ValueError, TypeError, AttributeError, IndexError, KeyError, LookupError, RecursionError,
-            MemoryError) as exc:  # whatever a malformed (or crafted) file makes numpy/scipy raise
+    # whatever a malformed (or crafted) file makes numpy/scipy raise
+    except (ValueError, TypeError, AttributeError, LookupError, RecursionError, MemoryError) as exc:
         raise AssetError(where, f"not a readable MANO model ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
