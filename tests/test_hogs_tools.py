@@ -176,6 +176,10 @@ def test_directional_light_shading_and_checkpoint(tmp_path):
     back = load_light(tmp_path / "light")
     for (k, a), (_, b) in zip(light.state_dict().items(), back.state_dict().items()):
         assert torch.equal(a, b), k
+    man = (tmp_path / "light" / "manifest.json").read_text()
+    (tmp_path / "light" / "manifest.json").write_text(man.replace('"model"', '"ambient_note": NaN, "model"'))
+    with pytest.raises(AssetError, match="manifest.json.*NaN is not a JSON value"):
+        load_light(tmp_path / "light")
     (tmp_path / "light" / "manifest.json").write_text('{"format": "hogsa-light", "schema_version": 9}')
     with pytest.raises(AssetError, match="schema_version 9"):
         load_light(tmp_path / "light")

@@ -367,10 +367,31 @@ def test_contactnet_any_topology_and_roundtrip(tmp_path):
     x = (torch.rand(1, 64, 3), torch.rand(1, 200, 3), torch.zeros(200, dtype=torch.bool), torch.ones(1))
     torch.testing.assert_close(back(*x), net(*x))
     man = json.loads((tmp_path / "run" / "manifest.json").read_text())
-    man["schema_version"] = 99
-    (tmp_path / "run" / "manifest.json").write_text(json.dumps(man))
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({**man, "schema_version": 99}))
     with pytest.raises(AssetError, match="schema_version"):
         load_contactnet(tmp_path / "run")
+    # strict manifests: NaN is not JSON (the writer refuses it before writing anything)
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({**man, "training": {"loss": float("nan")}}))
+    with pytest.raises(AssetError, match="NaN is not a JSON value"):
+        load_contactnet(tmp_path / "run")
+    with pytest.raises(ValueError, match="NaN"):
+        save_contactnet(net, tmp_path / "run2", {"training": {"loss": float("nan")}})
+    assert not (tmp_path / "run2" / "contactnet.safetensors").exists()
+    # non-finite weights: refused on reading and on writing
+    from safetensors.torch import load_file, save_file
+
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps(man))
+    w = load_file(str(tmp_path / "run" / "contactnet.safetensors"))
+    key = next(iter(w))
+    w[key][..., 0] = float("inf")
+    save_file(w, str(tmp_path / "run" / "contactnet.safetensors"))
+    with pytest.raises(AssetError, match=f"contactnet.safetensors.*{key}"):
+        load_contactnet(tmp_path / "run")
+    with torch.no_grad():
+        next(net.parameters())[...] = float("nan")
+    with pytest.raises(ValueError, match="NaN or infinity"):
+        save_contactnet(net, tmp_path / "run3")
+    assert not (tmp_path / "run3" / "manifest.json").exists()
 
 
 def _touching_grasps(infos, objects, n: int, seed: int) -> GraspState:
@@ -448,6 +469,18 @@ def _bank(scene, tmp_path):
     return state, src
 
 
+def test_pose_bank_writer_refuses_nan(scene, tmp_path):
+    infos, _ = scene
+    state = _state(infos, FAR, B=2)
+    src = [("s01", "box_grab_01", 3), ("s01", "box_grab_01", 9)]
+    ok = {"penetration_depth": [0.0, 0.0], "intersection": [0.0, 0.0], "contact_ratio": [0.1, 0.2], "accept": [1.0, 1.0]}
+    with pytest.raises(ValueError, match="NaN"):  # a bank its reader would refuse is never written
+        save_pose_bank(tmp_path / "a", state, src, {**ok, "contact_ratio": [float("nan"), 0.2]})
+    with pytest.raises(ValueError, match="NaN"):
+        save_pose_bank(tmp_path / "b", state, src, ok, {"loss": float("nan")})
+    assert not (tmp_path / "a" / "manifest.json").exists() and not (tmp_path / "b" / "poses.safetensors").exists()
+
+
 def test_pose_bank_roundtrip(scene, tmp_path):
     state, src = _bank(scene, tmp_path)
     bank = load_pose_bank(tmp_path / "bank")
@@ -482,6 +515,8 @@ def test_pose_bank_bad_files(scene, tmp_path):
     expect("entries")
     man_path.write_text("{not json")
     expect("malformed JSON")
+    man_path.write_text(json.dumps({**man, "info": {"loss": float("nan")}}))
+    expect("NaN is not a JSON value")
     man_path.write_text(json.dumps(man))
     bad = dict(tensors)
     bad["right_pose"] = bad["right_pose"][:, :10].contiguous()

@@ -116,7 +116,7 @@ def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     atomic_write(folder / _TENSORS, st_save(tensors))
     manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
                 "tensors_file": _TENSORS, **light.describe()}  # fmt: skip
-    atomic_write(folder / _MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
+    atomic_write(folder / _MANIFEST, (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode())
     return folder
 
 
@@ -133,7 +133,7 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
     mpath = folder / _MANIFEST
     if not mpath.is_file():
         raise AssetError(mpath, "light manifest is missing")
-    raw = read_json(mpath)
+    raw = read_json(mpath, allow_nan=False)
     if not isinstance(raw, dict) or raw.get("format") != LIGHT_FORMAT:
         raise AssetError(mpath, f"not a {LIGHT_FORMAT!r} manifest")
     if raw.get("schema_version") != LIGHT_SCHEMA_VERSION:

@@ -111,7 +111,9 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     Returns:
         the manifest path.
     """
-    from safetensors.torch import save_file
+    from safetensors.torch import save as st_save
+
+    from hogsa_loader.gaussians.checkpoint import atomic_write
 
     n = state.batch
     if len(sources) != n:
@@ -120,8 +122,9 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     bank = PoseBank(state, list(sources), m, dict(info or {}))
     tensors = bank.tensors()
     out = Path(path)
-    out.mkdir(parents=True, exist_ok=True)
-    save_file(tensors, str(out / TENSOR_FILE))
+    bad = [k for k, v in tensors.items() if not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"pose-bank tensors {bad[:3]} contain NaN or infinity; not saved")
     manifest = {
         "schema": BANK_SCHEMA,
         "schema_version": BANK_VERSION,
@@ -134,8 +137,14 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
                     for i, (a, b, c) in enumerate(sources)],
         "info": bank.info,
     }
+    try:  # strict JSON, checked before anything is written
+        text = json.dumps(manifest, indent=1, allow_nan=False) + "\n"
+    except ValueError as exc:
+        raise ValueError(f"{out / MANIFEST_FILE}: the manifest would hold NaN or infinity ({exc}); not saved") from None
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / TENSOR_FILE, st_save(tensors))
     mpath = out / MANIFEST_FILE
-    mpath.write_text(json.dumps(manifest, indent=1))
+    atomic_write(mpath, text.encode("utf-8"))
     return mpath
 
 
@@ -152,7 +161,7 @@ def load_pose_bank(path: PathLike) -> PoseBank:
     p = Path(path)
     folder = p.parent if p.is_file() else p
     mpath = folder / MANIFEST_FILE
-    man = read_json(mpath)
+    man = read_json(mpath, allow_nan=False)
     if not isinstance(man, dict):
         raise AssetError(mpath, "expected a JSON object")
     if man.get("schema") != BANK_SCHEMA:

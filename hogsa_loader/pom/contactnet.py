@@ -159,12 +159,16 @@ def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] 
     Returns:
         the manifest path.
     """
-    from safetensors.torch import save_file
+    from safetensors.torch import save as st_save
+
+    from hogsa_loader.gaussians.checkpoint import atomic_write
 
     out = Path(run_dir)
     out.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    save_file(tensors, str(out / WEIGHTS_FILE))
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"ContactNet weights {bad[:3]} contain NaN or infinity; not saved")
     cfg = asdict(model.config)
     cfg["head"] = list(cfg["head"])
     manifest = {
@@ -176,8 +180,13 @@ def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] 
         "tensors": {k: list(v.shape) for k, v in tensors.items()},
     }
     manifest.update(extra or {})
+    try:  # strict JSON, checked before anything is written
+        text = json.dumps(manifest, indent=2, allow_nan=False) + "\n"
+    except ValueError as exc:
+        raise ValueError(f"{out / MANIFEST_FILE}: the manifest would hold NaN or infinity ({exc}); not saved") from None
+    atomic_write(out / WEIGHTS_FILE, st_save(tensors))
     path = out / MANIFEST_FILE
-    path.write_text(json.dumps(manifest, indent=2))
+    atomic_write(path, text.encode("utf-8"))
     return path
 
 
@@ -192,7 +201,7 @@ def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> Co
 
     run = Path(run_dir)
     mpath = run / MANIFEST_FILE
-    man = read_json(mpath)
+    man = read_json(mpath, allow_nan=False)
     if not isinstance(man, dict) or man.get("schema") != CONTACTNET_SCHEMA:
         raise AssetError(mpath, f"not a ContactNet manifest (schema must be {CONTACTNET_SCHEMA!r})")
     if man.get("schema_version") != CONTACTNET_VERSION:
@@ -211,6 +220,9 @@ def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> Co
         state = load_file(str(wpath))
     except (SafetensorError, OSError, ValueError) as exc:
         raise AssetError(wpath, f"cannot read safetensors ({exc})") from None
+    bad = [k for k, v in state.items() if not v.is_floating_point() or not bool(torch.isfinite(v).all())]
+    if bad:
+        raise AssetError(wpath, f"tensor {bad[0]!r} is not floating point or contains NaN / infinity")
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
