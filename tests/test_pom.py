@@ -238,6 +238,29 @@ def test_optimisation_reduces_penetration(scene):
     assert float(m["penetration_depth"].max()) < 0.002 and bool(m["accept"].all())
 
 
+def test_free_hand_is_not_pulled_onto_the_object(scene):
+    """A hand that did not touch the object in the source frame keeps its distance: the
+    max-normalised ContactNet map and the hand-centric term apply only to active hands."""
+    infos, objects = scene
+    # left hand free, 8 mm from the object; right hand far away
+    start = _touching(infos, objects, "left", (-0.06, -0.035, 0.12), (0.0, 0.0, -1.0), gap=0.008)
+    torch.manual_seed(0)
+    net = ContactNet().eval()  # any network: its map is normalised by its maximum
+    cfg = POMConfig(iters=40, snap=False, final_push=False, lr_trans=1e-3, lr_rot=2e-3, n_obj_points=384)
+
+    def gap(state):
+        v = canonical_hands(state, infos)["left"].vertices
+        return float(objects.sdf(v, state.obj_names, state.obj_arti).min())
+
+    assert abs(gap(start) - 0.008) < 5e-4
+    free = {"right": torch.tensor([False]), "left": torch.tensor([False])}
+    held = {"right": torch.tensor([False]), "left": torch.tensor([True])}
+    res_free = optimise_grasps(start, infos, objects, net, cfg, active=free)
+    res_held = optimise_grasps(start, infos, objects, net, cfg, active=held)
+    assert abs(gap(res_free.state) - 0.008) < 1e-3  # stays where it was
+    assert gap(res_held.state) < 0.004  # the same hand, marked as touching, is pulled in
+
+
 def _touching(infos, objects, side: str, center, direction, gap: float = 0.002) -> GraspState:
     """A hand at ``center`` moved along ``direction`` until its closest vertex is ``gap`` from the object."""
     state = _state(infos, {**FAR, side: center})

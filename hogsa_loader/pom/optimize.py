@@ -16,7 +16,9 @@ For B perturbed samples at once (no Python loop over samples; CPU or CUDA):
    (learning rates: pose/rotation 5e-4, translation 3e-5, shape 5e-4) of
    ``Σ_{l,r} 1·L_C + 1·L_H + 17·L_P + w_prior·prior`` (:mod:`hogsa_loader.pom.losses`);
    ContactNet's target map is re-predicted from the current hand every
-   ``contact_every`` iterations, divided by its maximum and detached (GraspTTA);
+   ``contact_every`` iterations, divided by its maximum and detached (GraspTTA). A hand
+   that did not touch the object in the source frame (``active`` False) gets no L_C / L_H:
+   the normalised map would otherwise pull a free hand onto the object;
 3. samples whose parameters went non-finite, that still penetrate deeper than
    ``max_depth`` (SDF grid), or whose articulation / shape drifted implausibly far are
    dropped (``keep`` mask) and counted per reason.
@@ -255,7 +257,10 @@ def optimise_grasps(
         config: :class:`POMConfig`.
         reference: source grasps for the pose prior (default: ``start``).
         active: side -> (B,) bool, hands that touched the object in the source frame
-            (default: all True); used by the contact projection.
+            (default: all True). Used by the contact projection, and it gates the contact
+            terms: a hand that did not touch the object keeps only the penetration and
+            pose-prior terms, so it is not pulled onto the object (ContactNet's map is
+            normalised by its maximum, which would ask a free hand for contact too).
         generator: for the object point subset (default: fixed first points).
 
     Returns:
@@ -293,11 +298,13 @@ def optimise_grasps(
     history: list[float] = []
     if contactnet is not None:
         contactnet = contactnet.to(device).eval()
+    act_w = {s: active[s].to(device=device, dtype=obj_pts.dtype) for s in SIDES}  # (B,) contact-term weights
     for it in range(config.iters):
         opt.zero_grad(set_to_none=True)
         total = torch.zeros(B, dtype=obj_pts.dtype, device=device)
         refresh = it % config.nn_every == 0
         for s in SIDES:
+            on = act_w[s]
             p = HandParams(**params[s])
             v = _canon_verts(infos[s], p, state)
             c_hand, dist, idx = hand_contact(obj_pts, v, None if refresh else nn_idx[s])
@@ -307,10 +314,10 @@ def optimise_grasps(
                     with torch.no_grad():
                         pred = contactnet(obj_pts, v.detach(), infos[s].prior_mask.to(device), sign[s])
                         target[s] = pred / pred.max(-1, keepdim=True).values.clamp_min(1e-6)
-                total = total + config.w_contact * contact_consistency(c_hand, target[s])
+                total = total + on * config.w_contact * contact_consistency(c_hand, target[s])
             l_h, prior_idx[s] = hand_centric(obj_pts, v, infos[s].prior_ids.to(device), dist,
                                              idx=None if refresh else prior_idx[s])
-            total = total + config.w_hand * l_h
+            total = total + on * config.w_hand * l_h
             l_pen, _ = penetration(v, obj_pts, faces[s], idx, dist, objects, state.obj_names, state.obj_arti)
             total = total + config.w_pen * l_pen
             r = ref.hands[s]
