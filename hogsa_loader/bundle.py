@@ -6,6 +6,7 @@ A bundle is what ``pretrain/build_bundle.py`` writes and what
     BUNDLE/
       manifest.json
       hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
+      hogs/<subject>_<object>/light/   the run's learned light, when it was trained with one
       srm/<name>                optional super-resolution checkpoint (file or folder)
       contactnet/<name>         optional ContactNet checkpoint (file or folder)
       pose_banks/<name>         optional pose banks (files or folders)
@@ -13,13 +14,13 @@ A bundle is what ``pretrain/build_bundle.py`` writes and what
 Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
 run's ``checkpoints/`` history and caches stay behind.
 
-``manifest.json`` (schema version 1):
+``manifest.json`` (schema version 2):
 
 ================  =========================================================================
 key               value
 ================  =========================================================================
 format            ``"hogsa-bundle"``
-schema_version    1
+schema_version    2 (version 1 bundles did not copy the runs' learned light: rebuild them)
 library_version   ``hogsa_loader.__version__`` of the writer
 dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
                   (``root`` is informational: the loader takes the data root as an argument)
@@ -27,14 +28,16 @@ hand_model        ``{"source": str, "right": {"template_hash", "num_verts"},
                   "left": {...}}`` — the MANO(-schema) models the hands were trained on
 objects           ``{name: {"template_hash", "num_verts"}}`` — the object templates used
 hogs              list of ``{"subject", "object", "path", "num_gaussians",
-                  "parts": {part: {"template_hash", "tensors_sha256", "manifest_sha256"}}}``
+                  "parts": {part: {"template_hash", "tensors_sha256", "manifest_sha256"}},
+                  "light": null | {"tensors_sha256", "manifest_sha256"}}``
 srm, contactnet   ``null`` or ``{"path", "files": {relative path: sha256}}``
-pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}``
+pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}`` (unique names)
 ================  =========================================================================
 
 :func:`load_bundle` checks every entry — files present, hashes equal, part checkpoints
 readable and made for the recorded hand model / object templates, and (given a data root)
-that the data root's hand model and templates are the ones recorded — and raises **one**
+that the data root's hand model and templates are the ones recorded; the SRM, ContactNet and
+pose banks are read as checkpoints — and raises **one**
 :class:`~hogsa_loader.errors.AssetError` listing every problem it found.
 """
 
@@ -62,9 +65,10 @@ __all__ = [
 ]
 
 BUNDLE_FORMAT = "hogsa-bundle"
-BUNDLE_SCHEMA_VERSION = 1
+BUNDLE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.json"
 _PARTS = ("hand_right", "hand_left", "object")
+_LIGHT = "light"  # (hogs_model.LIGHT_DIR)
 
 
 # --------------------------------------------------------------------------------------
@@ -82,6 +86,7 @@ class HogsEntry:
         path: absolute path of the run folder inside the bundle.
         num_gaussians: total Gaussians of the three parts.
         parts: ``{part: {"template_hash", "tensors_sha256", "manifest_sha256"}}``.
+        light: ``{"tensors_sha256", "manifest_sha256"}`` of the run's learned light, or None.
     """
 
     subject: str
@@ -89,6 +94,7 @@ class HogsEntry:
     path: Path
     num_gaussians: int
     parts: Mapping[str, Mapping[str, str]]
+    light: Optional[Mapping[str, str]] = None
 
     @property
     def key(self) -> tuple[str, str]:
@@ -248,7 +254,10 @@ def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
 def _copy(src: Path, dst: Path) -> None:
     """Copy a file, or the *top-level files* of a folder: a checkpoint folder keeps its
     manifest and tensors there, while a run folder's sub-folders (``checkpoints/`` history,
-    render caches) are not part of the checkpoint and stay behind."""
+    render caches) are not part of the checkpoint and stay behind. Copying a path onto
+    itself (rebuilding a bundle from its own contents) leaves it as it is."""
+    if dst.exists() and os.path.samefile(src, dst):
+        return
     if dst.exists():
         shutil.rmtree(dst) if dst.is_dir() else dst.unlink()
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -259,6 +268,58 @@ def _copy(src: Path, dst: Path) -> None:
                 shutil.copy2(f, dst / f.name)
     else:
         shutil.copy2(src, dst)
+
+
+def _light_files() -> dict[str, str]:
+    """``{"tensors": file name, "manifest": file name}`` of a light checkpoint folder."""
+    from hogsa_loader.gaussians.shading import LIGHT_MANIFEST, LIGHT_TENSORS
+
+    return {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
+
+
+def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks: Sequence[Path]) -> list[str]:
+    """Read the SRM, ContactNet and pose banks as checkpoints; their problems, if any."""
+    from hogsa_loader.pom.bank import load_pose_bank
+    from hogsa_loader.pom.contactnet import load_contactnet
+    from hogsa_loader.srm.io import read_srm_manifest
+
+    problems = []
+    for what, path, read in (("SRM checkpoint", srm, read_srm_manifest),
+                             ("ContactNet checkpoint", contactnet, load_contactnet)):  # fmt: skip
+        if path is None:
+            continue
+        if not path.is_dir():
+            problems.append(f"{what} {path} must be a checkpoint folder")
+            continue
+        try:
+            read(path)
+        except AssetError as exc:
+            problems.append(f"{what}: {exc}")
+    for bank in banks:
+        if not bank.is_dir():
+            problems.append(f"pose bank {bank} must be a bank folder")
+            continue
+        try:
+            load_pose_bank(bank)
+        except AssetError as exc:
+            problems.append(f"pose bank: {exc}")
+    return problems
+
+
+def _check_extras(srm: Optional[PathLike], contactnet: Optional[PathLike], pose_banks: Sequence[PathLike]) -> list[str]:
+    """Problems of the optional checkpoints given to :func:`write_bundle` (before copying)."""
+    problems = []
+    for what, p in [("SRM checkpoint", srm), ("ContactNet checkpoint", contactnet)] + [("pose bank", b) for b in pose_banks]:
+        if p is not None and not Path(p).exists():
+            problems.append(f"{what} {p} is missing")
+    if problems:
+        return problems
+    names = [Path(b).name for b in pose_banks]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        problems.append(f"pose banks must have distinct folder names (they are copied to pose_banks/<name>): {dup} repeated")
+    return problems + _checkpoint_problems(Path(srm) if srm else None, Path(contactnet) if contactnet else None,
+                                           [Path(b) for b in pose_banks])  # fmt: skip
 
 
 def _extra(src: Optional[PathLike], out: Path, rel: str, what: str) -> Optional[dict[str, Any]]:
@@ -297,12 +358,14 @@ def write_bundle(
             ``hand_left/``, ``object/``).
         srm: optional SRM checkpoint (file or folder).
         contactnet: optional ContactNet checkpoint (file or folder).
-        pose_banks: optional pose banks (files or folders); named by their file stem.
+        pose_banks: optional pose banks (folders of :func:`~hogsa_loader.pom.bank.save_pose_bank`);
+            named by their folder name, which must be unique.
         dataset: dataset name recorded in the manifest.
 
     Raises:
         AssetError: a run is not finished, does not match the data root, or two runs have
-            the same (subject, object); all problems are listed in one error.
+            the same (subject, object); the SRM, ContactNet or a pose bank is not a readable
+            checkpoint; two pose banks have the same name. All problems are listed in one error.
     """
     import hogsa_loader
     from hogsa_loader.datasets.arctic import ArcticRoot
@@ -338,6 +401,7 @@ def write_bundle(
         seen[(sid, obj)] = run
     if not runs and not problems:
         problems.append("no HOGS run given")
+    problems += _check_extras(srm, contactnet, pose_banks)
     if problems:
         raise _bundle_error(out, problems)
 
@@ -355,11 +419,17 @@ def write_bundle(
                 "tensors_sha256": _sha256_file(out / rel / part / TENSORS_FILE),
                 "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
             }
-        hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts})
+        light = None
+        if (run / _LIGHT).is_dir():  # the learned light the run's colours were fitted under
+            _copy(run / _LIGHT, out / rel / _LIGHT)
+            light = {f"{k}_sha256": _sha256_file(out / rel / _LIGHT / f) for k, f in _light_files().items()}
+        elif (out / rel / _LIGHT).exists():
+            shutil.rmtree(out / rel / _LIGHT)
+        hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts, "light": light})
     used = sorted({obj for _, obj, _, _ in runs})
     banks = []
     for bank in pose_banks:
-        name = Path(bank).name.split(".")[0]
+        name = Path(bank).name
         rec = _extra(bank, out, "pose_banks", "pose bank")
         banks.append({"name": name, **rec})  # type: ignore[dict-item]
     manifest = {
@@ -414,9 +484,10 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     Checks: ``manifest.json`` present, valid JSON, format and schema version; every HOGS
     run listed with its three part folders, each part's checkpoint manifest readable,
     its template hash equal to the bundle's hand model / object template, its tensors and
-    manifest files equal to the recorded sha256 (``verify_hashes``); optional SRM,
-    ContactNet and pose-bank files present with matching sha256; with ``data_root``, the
-    data root's hand model and object templates equal the recorded ones.
+    manifest files (and its light's, when it has one) equal to the recorded sha256
+    (``verify_hashes``); optional SRM, ContactNet and pose-bank files present with matching
+    sha256 and readable as checkpoints; with ``data_root``, the data root's hand model and
+    object templates equal the recorded ones.
 
     Args:
         path: bundle folder.
@@ -446,7 +517,10 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     problems: list[str] = []
     if manifest.get("format") != BUNDLE_FORMAT:
         problems.append(f"format is {manifest.get('format')!r}, expected {BUNDLE_FORMAT!r}")
-    if manifest.get("schema_version") != BUNDLE_SCHEMA_VERSION:
+    if manifest.get("schema_version") == 1:
+        problems.append("schema_version is 1: bundles of that version lack the HOGS runs' learned light (their "
+                        "renders are unshaded); rebuild it with pretrain/build_bundle.py")
+    elif manifest.get("schema_version") != BUNDLE_SCHEMA_VERSION:
         problems.append(f"schema_version is {manifest.get('schema_version')!r}, this reader supports {BUNDLE_SCHEMA_VERSION}")
     for key, typ in (("dataset", dict), ("hand_model", dict), ("objects", dict), ("hogs", list), ("pose_banks", list)):
         if not isinstance(manifest.get(key), typ):
@@ -500,10 +574,25 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
                         problems.append(f"{what}: {f} is missing")
                     elif _sha256_file(f) != rec_part.get(hkey):
                         problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
+        light = rec.get("light")
+        if "light" not in rec or not (light is None or isinstance(light, dict)):
+            problems.append(f"{what}: 'light' must be null or an object of hashes")
+            ok = False
+        elif light is None and (run / _LIGHT).exists():
+            problems.append(f"{what}: {run / _LIGHT} is not listed in the bundle manifest")
+        elif light is not None:
+            for k, fname in _light_files().items():
+                f = run / _LIGHT / fname
+                if not f.is_file():
+                    problems.append(f"{what}: {f} is missing")
+                    ok = False
+                elif verify_hashes and _sha256_file(f) != light.get(f"{k}_sha256"):
+                    problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
         if ok:
             hogs[key] = HogsEntry(
                 subject=key[0], object=key[1], path=run, num_gaussians=int(rec.get("num_gaussians", 0)),
                 parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
+                light=dict(light) if isinstance(light, dict) else None,
             )
     srm = contactnet = None
     if manifest.get("srm") is not None:
@@ -513,8 +602,13 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     banks: dict[str, ExtraEntry] = {}
     for i, rec in enumerate(manifest["pose_banks"]):
         e = _check_files(path, f"pose bank {i}", rec, problems)
-        if e is not None:
+        if e is not None and e.name in banks:
+            problems.append(f"pose bank {i}: the name {e.name!r} is used twice")
+        elif e is not None:
             banks[e.name] = e
+    if not problems:  # files present and unchanged: read them as checkpoints
+        problems += _checkpoint_problems(srm.path if srm else None, contactnet.path if contactnet else None,
+                                         [b.path for b in banks.values()])  # fmt: skip
     if data_root is not None:
         problems.extend(_check_root(manifest, data_root))
     if problems:

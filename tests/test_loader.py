@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import shutil
@@ -57,8 +58,18 @@ def bundle_dir(tiny_world, tmp_path_factory) -> Path:
     save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
     save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
     save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
-    (out / "srm.bin").write_bytes(b"srm weights")
-    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm.bin")
+    _tiny_srm(out / "srm")
+    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm")
+
+
+def _tiny_srm(folder: Path, scale: int = 1) -> Path:
+    from hogsa_loader.srm import SRM, save_srm
+    from hogsa_loader.srm.styleunet import StyleUNetConfig
+
+    torch.manual_seed(0)
+    cfg = StyleUNetConfig(channels=[8, 8, 8], style_dim=8, mlp_num=1, scale=scale, extra_channels=4)
+    save_srm(SRM(cfg), folder)
+    return folder
 
 
 def _dataset(bundle_dir, world, **kw) -> HOGSADataset:
@@ -279,7 +290,7 @@ def test_bad_bundle_lists_every_problem(bundle_dir, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(bundle_dir, bad)
     (bad / "hogs" / "s01_box" / "hand_left" / "gaussians.safetensors").unlink()
-    (bad / "srm" / "srm.bin").write_bytes(b"other weights")
+    (bad / "srm" / "srm" / "srm.safetensors").write_bytes(b"other weights")
     man = json.loads((bad / "manifest.json").read_text())
     man["objects"]["box"]["template_hash"] = "0" * 64
     (bad / "manifest.json").write_text(json.dumps(man))
@@ -288,11 +299,81 @@ def test_bad_bundle_lists_every_problem(bundle_dir, tmp_path):
     msg = str(err.value)
     assert "3 problems" in msg
     assert "hand_left" in msg and "gaussians.safetensors" in msg
-    assert "srm.bin" in msg and "sha256" in msg
+    assert "srm.safetensors" in msg and "sha256" in msg
     assert "part object was trained on template" in msg
     with pytest.raises(AssetError, match="manifest.json is missing"):
         load_bundle(tmp_path)
     assert load_bundle(bundle_dir).keys == [("s01", "box")]
+
+
+def test_bundle_keeps_the_runs_light(bundle_dir, tiny_world, tmp_path):
+    """A run trained with a learned light renders with it from the bundle too."""
+    from hogsa_loader.gaussians.hogs_model import LIGHT_DIR
+    from hogsa_loader.gaussians.shading import DirectionalLight, save_light
+
+    run = tmp_path / "run"
+    shutil.copytree(bundle_dir / "hogs" / "s01_box", run)
+    shutil.rmtree(run / LIGHT_DIR, ignore_errors=True)
+    save_light(DirectionalLight(direction=(0.3, -0.2, 1.0), ambient=0.2, diffuse=0.7), run / LIGHT_DIR)
+    b = load_bundle(write_bundle(tmp_path / "b", tiny_world, [run]))
+    root = ArcticRoot(tiny_world)
+    model = b.load_hogs(("s01", "box"), root.mano_layers(), root.object_templates())
+    assert isinstance(model.light, DirectionalLight)
+    assert torch.equal(model.light.state_dict()["direction"], DirectionalLight(direction=(0.3, -0.2, 1.0)).state_dict()["direction"])
+    assert b.hogs[("s01", "box")].light is not None and b.hogs[("s01", "box")].light.keys() == {"tensors_sha256", "manifest_sha256"}
+    # rebuilding the bundle from its own runs keeps them (and the light)
+    b2 = load_bundle(write_bundle(tmp_path / "b", tiny_world, [tmp_path / "b" / "hogs" / "s01_box"]))
+    assert b2.hogs[("s01", "box")].light == b.hogs[("s01", "box")].light
+    # a changed light is found; a light file the manifest does not list is refused
+    (tmp_path / "b" / "hogs" / "s01_box" / LIGHT_DIR / "light.safetensors").write_bytes(b"x")
+    with pytest.raises(AssetError, match="light.safetensors does not match its sha256"):
+        load_bundle(tmp_path / "b")
+    assert load_bundle(bundle_dir).hogs[("s01", "box")].light is None
+    shutil.copytree(bundle_dir, tmp_path / "c")
+    shutil.copytree(run / LIGHT_DIR, tmp_path / "c" / "hogs" / "s01_box" / LIGHT_DIR)
+    with pytest.raises(AssetError, match="light is not listed"):
+        load_bundle(tmp_path / "c")
+    # version-1 bundles (no light copied) are refused with the reason
+    man = json.loads((bundle_dir / "manifest.json").read_text())
+    shutil.rmtree(tmp_path / "c")
+    shutil.copytree(bundle_dir, tmp_path / "c")
+    (tmp_path / "c" / "manifest.json").write_text(json.dumps({**man, "schema_version": 1}))
+    with pytest.raises(AssetError, match="schema_version is 1.*learned light.*rebuild"):
+        load_bundle(tmp_path / "c")
+
+
+def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
+    """SRM / ContactNet / pose banks are read as checkpoints when written and loaded; bank
+    names are unique; a resolution-changing SRM fails at dataset construction."""
+    run = bundle_dir / "hogs" / "s01_box"
+    (tmp_path / "srm.bin").write_bytes(b"srm weights")
+    (tmp_path / "notsrm").mkdir()
+    for srm, match in ((tmp_path / "srm.bin", "must be a checkpoint folder"), (tmp_path / "notsrm", "manifest.json.*missing"),
+                       (tmp_path / "nope", "nope is missing")):  # fmt: skip
+        with pytest.raises(AssetError, match=match):
+            write_bundle(tmp_path / "b", tiny_world, [run], srm=srm)
+    with pytest.raises(AssetError, match="ContactNet checkpoint.*manifest.json"):
+        write_bundle(tmp_path / "b", tiny_world, [run], contactnet=tmp_path / "notsrm")
+    (tmp_path / "s01" / "bank").mkdir(parents=True)
+    (tmp_path / "s02" / "bank").mkdir(parents=True)
+    with pytest.raises(AssetError, match="distinct folder names"):
+        write_bundle(tmp_path / "b", tiny_world, [run], pose_banks=[tmp_path / "s01" / "bank", tmp_path / "s02" / "bank"])
+    assert not (tmp_path / "b").exists()  # nothing written
+    # an SRM replaced inside a bundle (hashes updated) is still read as a checkpoint
+    shutil.copytree(bundle_dir, tmp_path / "c")
+    srm_dir = tmp_path / "c" / "srm" / "srm"
+    (srm_dir / "manifest.json").write_text("{}")
+    man = json.loads((tmp_path / "c" / "manifest.json").read_text())
+    man["srm"]["files"] = {"manifest.json": hashlib.sha256(b"{}").hexdigest(),
+                           "srm.safetensors": man["srm"]["files"]["srm.safetensors"]}  # fmt: skip
+    (tmp_path / "c" / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(AssetError, match="SRM checkpoint.*not an SRM checkpoint"):
+        load_bundle(tmp_path / "c")
+    # scale-2 SRM: refused when the dataset is made, naming its manifest
+    b2 = write_bundle(tmp_path / "b2", tiny_world, [run], srm=_tiny_srm(tmp_path / "srm2", scale=2))
+    with pytest.raises(AssetError, match=r"srm2/manifest.json.*2x its input size"):
+        _dataset(b2, tiny_world, srm=True)
+    _dataset(bundle_dir, tiny_world, srm=True)  # scale 1: fine
 
 
 def test_dropped_samples_are_counted(bundle_dir, tiny_world):

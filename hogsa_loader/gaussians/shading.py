@@ -31,12 +31,12 @@ from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.gaussians.gaussian_set import GaussianSet
 from hogsa_loader.render.gaussians import sh_colors
 
-__all__ = ["LIGHT_FORMAT", "LIGHT_SCHEMA_VERSION", "DirectionalLight", "save_light", "load_light"]
+__all__ = ["LIGHT_FORMAT", "LIGHT_SCHEMA_VERSION", "LIGHT_TENSORS", "LIGHT_MANIFEST", "DirectionalLight", "save_light", "load_light"]
 
 LIGHT_FORMAT = "hogsa-light"
 LIGHT_SCHEMA_VERSION = 1
-_TENSORS = "light.safetensors"
-_MANIFEST = "manifest.json"
+LIGHT_TENSORS = "light.safetensors"
+LIGHT_MANIFEST = "manifest.json"
 
 
 def _inv_softplus(x: float) -> float:
@@ -113,10 +113,10 @@ def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().float().contiguous() for k, v in light.state_dict().items()}
-    atomic_write(folder / _TENSORS, st_save(tensors))
+    atomic_write(folder / LIGHT_TENSORS, st_save(tensors))
     manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
-                "tensors_file": _TENSORS, **light.describe()}  # fmt: skip
-    atomic_write(folder / _MANIFEST, (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode())
+                "tensors_file": LIGHT_TENSORS, **light.describe()}  # fmt: skip
+    atomic_write(folder / LIGHT_MANIFEST, (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode())
     return folder
 
 
@@ -130,7 +130,7 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
     from safetensors.torch import load_file
 
     folder = Path(folder)
-    mpath = folder / _MANIFEST
+    mpath = folder / LIGHT_MANIFEST
     if not mpath.is_file():
         raise AssetError(mpath, "light manifest is missing")
     raw = read_json(mpath, allow_nan=False)
@@ -138,7 +138,7 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
         raise AssetError(mpath, f"not a {LIGHT_FORMAT!r} manifest")
     if raw.get("schema_version") != LIGHT_SCHEMA_VERSION:
         raise AssetError(mpath, f"schema_version {raw.get('schema_version')!r} is not supported (expected {LIGHT_SCHEMA_VERSION})")
-    tpath = folder / _TENSORS
+    tpath = folder / LIGHT_TENSORS
     try:
         tensors = load_file(str(tpath))
     except (FileNotFoundError, SafetensorError, OSError) as exc:

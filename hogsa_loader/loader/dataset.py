@@ -61,7 +61,7 @@ from hogsa_loader.bundle import Bundle, load_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot, protocol_views
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams, sample_aug_params
 from hogsa_loader.datasets.interfield import interfield_targets
-from hogsa_loader.errors import PathLike
+from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.loader.cameras import CameraConfig, CameraSampler
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.poses import PoseContext, make_pose_source
@@ -243,6 +243,14 @@ class HOGSADataset(IterableDataset):
         self._pipe: Optional[SynthPipeline] = None
         if self.srm and self.refiner is None and self.bundle.srm is None:
             raise ValueError(f"srm=True but bundle {self.bundle.path} has no SRM checkpoint")
+        if self.srm and self.refiner is None:  # a resolution-changing SRM fails here, not in the first batch
+            from hogsa_loader.srm.io import SRM_MANIFEST, read_srm_manifest
+
+            scale = read_srm_manifest(self.bundle.srm.path)["io"].get("scale", 1)
+            if scale != 1:
+                raise AssetError(self.bundle.srm.path / SRM_MANIFEST,
+                                 f"the SRM outputs {scale}x its input size; the loader composites at the render "
+                                 "size and needs a scale-1 SRM")  # fmt: skip
         # pose source built eagerly (cheap) so bad configurations fail at construction
         self.keys = self._pose_keys(keys)
 
