@@ -283,9 +283,10 @@ def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks:
     from hogsa_loader.pom.contactnet import load_contactnet
     from hogsa_loader.srm.io import read_srm_manifest
 
+    checks = [("SRM checkpoint", srm, read_srm_manifest), ("ContactNet checkpoint", contactnet, load_contactnet)]
+    checks += [("pose bank", b, load_pose_bank) for b in banks]
     problems = []
-    for what, path, read in (("SRM checkpoint", srm, read_srm_manifest),
-                             ("ContactNet checkpoint", contactnet, load_contactnet)):  # fmt: skip
+    for what, path, read in checks:
         if path is None:
             continue
         if not path.is_dir():
@@ -295,14 +296,6 @@ def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks:
             read(path)
         except AssetError as exc:
             problems.append(f"{what}: {exc}")
-    for bank in banks:
-        if not bank.is_dir():
-            problems.append(f"pose bank {bank} must be a bank folder")
-            continue
-        try:
-            load_pose_bank(bank)
-        except AssetError as exc:
-            problems.append(f"pose bank: {exc}")
     return problems
 
 
