@@ -21,12 +21,15 @@ from hogsa_loader.datasets.sample import (
 )
 from hogsa_loader.errors import AssetError
 from hogsa_loader.export import (
+    ExportMismatchError,
     SynthShardDataset,
     decode_frame,
     encode_frame,
     expand_shards,
+    export_settings,
     frame_to_arctic_sample,
     iter_tar_samples,
+    rebuild_index,
     shard_name,
     write_shards,
 )
@@ -188,6 +191,46 @@ def test_resume_after_interruption(tmp_path, export_dir):
     assert calls == [1]
 
 
+def test_resume_refuses_another_exports_shards(tmp_path, export_dir):
+    """A folder holding shards of another export (seed, num, shard size, format) is refused,
+    naming the shard and the difference; overwrite=True rewrites what differs and removes
+    shard files past the last one, so the reader sees exactly this export."""
+    out = tmp_path / "m"
+    calls: list = []
+    write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 3, "world_size": 1})
+    # world_size does not change the samples: a resume with another one skips everything
+    calls.clear()
+    res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 3, "world_size": 4})
+    assert calls == [] and res["complete"]
+    with pytest.raises(ExportMismatchError, match=r"synth-000000.tar is stale: written with other info_sha256"):
+        write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 4})
+    with pytest.raises(ExportMismatchError, match=r"image_format"):
+        write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 3}, image_format="png")
+    with pytest.raises(ExportMismatchError, match=r"synth-000001.tar is stale: it holds samples 4..6, this export's are 4..7"):
+        write_shards(frames_for(calls), out, NUM + 1, SHARD, progress=False, info={"seed": 3})
+    with pytest.raises(ExportMismatchError, match=r"synth-000001.tar lies beyond this export's 1 shard"):
+        write_shards(frames_for(calls), out, SHARD, SHARD, progress=False, info={"seed": 3})
+    assert calls == []  # nothing was rendered for a refused export
+    # overwrite: a smaller export removes the shard past its end; the index and the reader agree
+    res = write_shards(frames_for(calls), out, SHARD, SHARD, progress=False, info={"seed": 3}, overwrite=True)
+    assert calls == [] and res["skipped"] == [0] and res["complete"]
+    assert sorted(p.name for p in out.glob("*.tar")) == [shard_name(0)] and not (out / "synth-000001.index.json").exists()
+    assert len(list(SynthShardDataset(out))) == SHARD
+    # overwrite with other settings rewrites every shard; the index records them
+    res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 4}, overwrite=True)
+    assert calls == [0, 1] and res["complete"]
+    index = json.loads((out / "index.json").read_text())
+    assert index["info"] == {"seed": 4} and index["num_samples_written"] == NUM
+    assert index["settings"] == export_settings("jpg", 95, 8, True, {"seed": 4})
+    # an index written by the settings-less format of older versions counts as another export
+    per = json.loads((out / "synth-000000.index.json").read_text())
+    del per["settings"]
+    (out / "synth-000000.index.json").write_text(json.dumps(per))
+    with pytest.raises(ExportMismatchError, match="synth-000000.tar is stale"):
+        write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 4})
+    assert not rebuild_index(out, NUM, SHARD, settings=export_settings("jpg", 95, 8, True, {"seed": 4}))["complete"]
+
+
 def test_ranks_round_robin(tmp_path):
     out = tmp_path / "r"
     c0: list = []
@@ -335,3 +378,14 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     assert len(list(SynthShardDataset(out))) == 7
     assert main(args[:-1] + ["--out", str(tmp_path / "if"), "--interfield", "--quiet"]) == 0
     assert made[-1].kw["interfield"] is True
+    # bad numbers are refused before the dataset is built; another export's folder is refused
+    n_made = len(made)
+    for flag in ("--num", "--shard-size", "--batch-size"):
+        bad = list(args)
+        bad[bad.index(flag) + 1] = "0"
+        assert main(bad) == 2
+    assert len(made) == n_made
+    other = list(args)
+    other[other.index("--seed") + 1] = "5"
+    assert main(other) == 2
+    assert main(other + ["--overwrite"]) == 0 and main(other) == 0

@@ -125,7 +125,7 @@ def _env_int(name: str, default: int) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from hogsa_loader.export import dataset_frames_for_shard, num_shards, write_shards
+    from hogsa_loader.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
     from hogsa_loader.loader.dataset import HOGSADataset
 
     rank = args.rank if args.rank is not None else _env_int("RANK", 0)
@@ -133,6 +133,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if not 0 <= rank < world:
         print(f"hogsa: error: rank {rank} outside world size {world}", file=sys.stderr)
         return 2
+    for name in ("num", "shard_size", "batch_size"):  # before the (slow) dataset is built
+        if getattr(args, name) <= 0:
+            print(f"hogsa: error: --{name.replace('_', '-')} must be positive, got {getattr(args, name)}", file=sys.stderr)
+            return 2
     device = args.device
     if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
         device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
@@ -156,11 +160,15 @@ def _cmd_export(args: argparse.Namespace) -> int:
     say = (lambda m: None) if args.quiet else print
     say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
         f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {device})")
-    res = write_shards(
-        dataset_frames_for_shard(ds, args.num, args.shard_size), args.out, args.num, args.shard_size,
-        rank=rank, world_size=world, progress=not args.quiet, image_format=args.image_format,
-        alpha_bits=args.alpha_bits, info=info,
-    )  # fmt: skip
+    try:
+        res = write_shards(
+            dataset_frames_for_shard(ds, args.num, args.shard_size), args.out, args.num, args.shard_size,
+            rank=rank, world_size=world, progress=not args.quiet, image_format=args.image_format,
+            alpha_bits=args.alpha_bits, info=info, overwrite=args.overwrite,
+        )  # fmt: skip
+    except ExportMismatchError as exc:
+        print(f"hogsa: error: {exc}", file=sys.stderr)
+        return 2
     st = ds.stats.as_dict()
     say(f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
         f"{st['num_dropped']} dropped), skipped {len(res['skipped'])} complete shards, "
@@ -184,7 +192,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
     from hogsa_loader.world.h2o_export import export_h2o_world
 
-    w, h = (int(v) for v in args.image_size.split("x"))
+    try:
+        w, h = (int(v) for v in args.image_size.split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        print(f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
+              file=sys.stderr)
+        return 2
     rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
                            object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
                            frame_stride=args.frame_stride)
@@ -259,6 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also store the InterField-SF targets (dist.*/idx.*/object.v_len) of every frame")
     e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")
     e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
+    e.add_argument("--overwrite", action="store_true",
+                   help="rewrite shards in --out that another export (other settings, --num or --shard-size) wrote")
     e.add_argument("--rank", type=int, default=None, help="default: $RANK or 0")
     e.add_argument("--world-size", type=int, default=None, help="default: $WORLD_SIZE or 1")
     e.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")

@@ -11,7 +11,9 @@ from hogsa_loader.export.codec import FORMAT_VERSION, decode_frame, encode_frame
 from hogsa_loader.export.reader import SynthShardDataset, expand_shards, frame_to_arctic_sample, iter_tar_samples
 from hogsa_loader.export.writer import (
     INDEX_NAME,
+    ExportMismatchError,
     dataset_frames_for_shard,
+    export_settings,
     num_shards,
     rebuild_index,
     sample_key,
@@ -24,11 +26,13 @@ from hogsa_loader.export.writer import (
 __all__ = [
     "FORMAT_VERSION",
     "INDEX_NAME",
+    "ExportMismatchError",
     "SynthShardDataset",
     "dataset_frames_for_shard",
     "decode_frame",
     "encode_frame",
     "expand_shards",
+    "export_settings",
     "frame_labels",
     "frame_to_arctic_sample",
     "iter_tar_samples",

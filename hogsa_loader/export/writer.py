@@ -14,11 +14,19 @@ Shards go to ranks round-robin (``shard % world_size == rank``). Each shard is w
 under a hidden temporary name and renamed when complete (after its index file), so an
 interrupted export is resumed by running it again: complete shards are skipped,
 partial ones are rewritten.
+
+A shard counts as complete only if its index file records this export's sample range
+(first, last) and *settings* (image format, JPEG quality, alpha bits, parts, and a hash of
+``info`` without its ``world_size`` / ``rank`` keys). Running an export into a folder whose
+shards were written with other settings (another seed, ``--num``, ``--shard-size``...)
+raises :class:`ExportMismatchError` naming the shard and the difference, as do shard files
+beyond this export's last shard; ``overwrite=True`` rewrites (or removes) them instead.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import math
@@ -33,6 +41,8 @@ from hogsa_loader.export.codec import encode_frame, json_default
 from hogsa_loader.loader.frame import SynthFrame
 
 __all__ = [
+    "ExportMismatchError",
+    "export_settings",
     "write_shards",
     "dataset_frames_for_shard",
     "shard_name",
@@ -46,6 +56,21 @@ __all__ = [
 
 INDEX_NAME = "index.json"
 SHARD_PREFIX = "synth"
+#: ``info`` keys that do not change the samples (left out of the settings hash).
+_INFO_IGNORED = ("world_size", "rank")
+
+
+class ExportMismatchError(ValueError):
+    """The output folder holds shards of a different export (settings, range or count)."""
+
+
+def export_settings(image_format: str, jpeg_quality: int, alpha_bits: int, parts: bool,
+                    info: Optional[dict[str, Any]]) -> dict[str, Any]:
+    """What a shard's bytes depend on besides its sample range (recorded per shard)."""
+    kept = {k: v for k, v in (info or {}).items() if k not in _INFO_IGNORED}
+    blob = json.dumps(kept, sort_keys=True, default=json_default).encode("utf-8")
+    return {"image_format": image_format, "jpeg_quality": int(jpeg_quality) if image_format == "jpg" else None,
+            "alpha_bits": int(alpha_bits), "parts": bool(parts), "info_sha256": hashlib.sha256(blob).hexdigest()}
 
 
 def sample_key(index: int) -> str:
@@ -89,16 +114,35 @@ def _atomic_write_json(path: Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
-def _shard_complete(out_dir: Path, shard: int, prefix: str) -> bool:
+def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: Optional[dict[str, Any]]) -> str:
+    """``"missing"`` (absent, partial or torn: rewrite it), ``"complete"`` (this export's) or
+    ``"stale: <reason>"`` (a whole shard of another export). ``settings=None`` skips that check."""
     tar, idx = out_dir / shard_name(shard, prefix), _index_path(out_dir, shard, prefix)
     if not (tar.is_file() and idx.is_file()):
-        return False
+        return "missing"
     try:
         with open(idx, "r", encoding="utf-8") as fh:
             rec = json.load(fh)
-        return int(rec.get("bytes", -1)) == tar.stat().st_size
-    except (OSError, ValueError):
-        return False
+        if int(rec.get("bytes", -1)) != tar.stat().st_size:
+            return "missing"
+    except (OSError, ValueError, AttributeError, TypeError):
+        return "missing"
+    if (rec.get("first"), rec.get("last")) != (rng.start, rng.stop - 1):
+        return f"stale: it holds samples {rec.get('first')}..{rec.get('last')}, this export's are {rng.start}..{rng.stop - 1}"
+    if settings is not None and rec.get("settings") != settings:
+        old = rec.get("settings") or {}
+        diff = sorted(k for k in settings if old.get(k) != settings[k]) or ["settings"]
+        return f"stale: written with other {', '.join(diff)} ({', '.join(f'{k}={old.get(k)!r}' for k in diff[:3])})"
+    return "complete"
+
+
+def _extra_shards(out_dir: Path, n: int, prefix: str) -> list[Path]:
+    """Shard files of ``out_dir`` numbered ``n`` or more (left by a larger export)."""
+    out = []
+    for p in out_dir.glob(f"{prefix}-[0-9][0-9][0-9][0-9][0-9][0-9].tar"):
+        if int(p.name[len(prefix) + 1:-4]) >= n:
+            out.append(p)
+    return sorted(out)
 
 
 def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -131,14 +175,19 @@ def rebuild_index(
     shard_size: int,
     info: Optional[dict[str, Any]] = None,
     prefix: str = SHARD_PREFIX,
+    settings: Optional[dict[str, Any]] = None,
 ) -> dict[str, Any]:
-    """Write ``index.json`` from the complete shards found in ``out_dir`` and return it."""
+    """Write ``index.json`` from the complete shards found in ``out_dir`` and return it.
+
+    A shard is listed when it is whole, holds its range of this ``num`` / ``shard_size``
+    and (given ``settings``, see :func:`export_settings`) was written with them.
+    """
     out = Path(out_dir)
     n = num_shards(num, shard_size)
     with _locked(out):
         shards = []
         for s in range(n):
-            if _shard_complete(out, s, prefix):
+            if _shard_state(out, s, prefix, shard_range(s, num, shard_size), settings) == "complete":
                 with open(_index_path(out, s, prefix), "r", encoding="utf-8") as fh:
                     rec = json.load(fh)
                 shards.append({k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")})
@@ -154,6 +203,7 @@ def rebuild_index(
             "num": int(num),
             "shard_size": int(shard_size),
             "num_shards": n,
+            "settings": settings,
             "complete": len(shards) == n,
             "num_samples_written": int(sum(s["count"] for s in shards)),
             "shards": shards,
@@ -210,6 +260,7 @@ def write_shards(
     parts: bool = True,
     info: Optional[dict[str, Any]] = None,
     prefix: str = SHARD_PREFIX,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Write this rank's shards of a ``num``-sample export (resumable).
 
@@ -227,19 +278,37 @@ def write_shards(
         progress: tqdm bar (rank 0 only).
         image_format, jpeg_quality, alpha_bits, parts: see
             :func:`~hogsa_loader.export.codec.encode_frame`.
-        info: JSON-able description of the export (bundle, seed, ...) for ``index.json``.
+        info: JSON-able description of the export (bundle, seed, ...) for ``index.json``;
+            everything in it except ``world_size`` / ``rank`` must be equal for a resume.
         prefix: shard file prefix.
+        overwrite: rewrite shards of another export found in ``out_dir`` (see module
+            docstring) and remove shard files beyond this export's last one.
 
     Returns:
         ``{"written": [...], "skipped": [...], "samples": n, "seconds": t, "index": path}``.
+
+    Raises:
+        ExportMismatchError: ``out_dir`` holds shards of another export and not ``overwrite``.
     """
     if num <= 0 or shard_size <= 0:
         raise ValueError(f"num and shard_size must be positive, got {num}, {shard_size}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     n = num_shards(num, shard_size)
+    settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
     mine = shards_of_rank(n, rank, world_size)
-    todo = [s for s in mine if not _shard_complete(out, s, prefix)]
+    state = {s: _shard_state(out, s, prefix, shard_range(s, num, shard_size), settings) for s in mine}
+    stale = [s for s in mine if state[s].startswith("stale")]
+    extra = _extra_shards(out, n, prefix)
+    if (stale or extra) and not overwrite:
+        what = (f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}" if stale else
+                f"{extra[0]} lies beyond this export's {n} shard(s) (an export with a larger num?)")
+        raise ExportMismatchError(f"{out}: holds shards of another export: {what}; use another folder or "
+                                  "overwrite=True (hogsa export --overwrite)")  # fmt: skip
+    for p in extra:  # (overwrite) a reader globbing *.tar must not find them
+        _index_path(out, int(p.name[len(prefix) + 1:-4]), prefix).unlink(missing_ok=True)
+        p.unlink(missing_ok=True)
+    todo = [s for s in mine if state[s] != "complete"]
     skipped = [s for s in mine if s not in todo]
     total = sum(len(shard_range(s, num, shard_size)) for s in todo)
     bar = None
@@ -290,6 +359,7 @@ def write_shards(
                 "seconds": round(time.perf_counter() - t0, 3),
                 "rank": rank,
                 "world_size": world_size,
+                "settings": settings,
             }
             _atomic_write_json(_index_path(out, s, prefix), rec)
             os.replace(tmp, out / name)
@@ -301,7 +371,7 @@ def write_shards(
         if bar is not None:
             bar.close()
         # also after an interruption: index.json always describes what is on disk
-        index = rebuild_index(out, num, shard_size, info=info, prefix=prefix)
+        index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
     return {
         "written": todo,
         "skipped": skipped,
