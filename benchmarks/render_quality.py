@@ -149,6 +149,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         assert first is not None
         model, data, m = first
         srm = load_srm(a.srm, device=device)
+        if srm.scale != 1:  # its output would be scored against boxes of the input size
+            raise SystemExit(f"render_quality: {a.srm} is a scale-{srm.scale} SRM; only scale-1 SRMs (same-size "
+                             "refinement, what the loader uses) can be scored here")  # fmt: skip
         names = [s.name for s in data.sequences]
         ev = evaluate_samples(render_fn(model, data, device), data.eval, names, m, refine=srm.refine,
                               lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip

@@ -152,6 +152,11 @@ def test_checkpoint_roundtrip_and_validation(tmp_path):
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     rgb, alpha = _inputs(1, 24, 16)
     assert torch.equal(srm.refine(rgb, alpha), back.refine(rgb, alpha))
+    for dt, tol in ((torch.bfloat16, 0.03), (torch.float16, 0.005)):  # half-precision weights run too
+        half = load_srm(tmp_path / "ck", dtype=dt)
+        assert next(half.parameters()).dtype == dt
+        out = half.refine(rgb, alpha)
+        assert out.dtype == rgb.dtype and float((out - srm.refine(rgb, alpha)).abs().max()) < tol
     man = json.loads((tmp_path / "ck" / "manifest.json").read_text())
     assert man["format"] == "hogsa-srm" and man["schema_version"] == 1 and man["io"]["scale"] == 2
     # validation: bad schema, torn tensors, missing file
@@ -333,6 +338,27 @@ def test_render_cache_key_follows_labels_cameras_and_body_model(tiny_world, hogs
     source.mano_layers["left"].v_template.add_(1e-4)
     other_mano = key()
     assert len({ref, moved, zoomed, other_mano}) == 4
+
+
+def test_render_cache_key_follows_weights_settings_and_code(hogs_runs, tmp_path, monkeypatch):
+    """The run part of the key changes with the part settings (e.g. ``weld_seams``, which
+    changes how the same weights render), the learned light and the render-code version."""
+    import shutil
+
+    from hogsa_loader.srm import pairs
+
+    run = tmp_path / "run"
+    shutil.copytree(hogs_runs / "s01_box", run)
+    ref = pairs._run_hash(run)
+    man_path = run / "object" / "manifest.json"
+    man = json.loads(man_path.read_text())
+    man_path.write_text(json.dumps({**man, "config": {**man["config"], "weld_seams": not man["config"].get("weld_seams", False)}}))
+    other_cfg = pairs._run_hash(run)
+    man_path.write_text(json.dumps(man))
+    assert pairs._run_hash(run) == ref
+    monkeypatch.setattr(pairs, "RENDER_CACHE_VERSION", pairs.RENDER_CACHE_VERSION + 1)
+    other_code = pairs._run_hash(run)
+    assert len({ref, other_cfg, other_code}) == 3
 
 
 def test_validation_views_split(tiny_world, hogs_runs, folds, srm_cache):

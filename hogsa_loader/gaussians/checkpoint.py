@@ -259,10 +259,11 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
         if raw[key] != val:
             raise AssetError(path, f"{key} is {raw[key]!r} in the checkpoint but {val!r} in the model")
     cfg = part.config()
-    for key in sorted(set(cfg) | set(raw["config"])):
-        if raw["config"].get(key) != cfg.get(key):
+    saved = {"weld_seams": False, **raw["config"]}  # (older checkpoints: unwelded, see load_part)
+    for key in sorted(set(cfg) | set(saved)):
+        if saved.get(key) != cfg.get(key):
             raise AssetError(
-                path, f"config.{key} is {raw['config'].get(key)!r} in the checkpoint but {cfg.get(key)!r} in the model"
+                path, f"config.{key} is {saved.get(key)!r} in the checkpoint but {cfg.get(key)!r} in the model"
             )
 
 
@@ -364,6 +365,7 @@ def load_part(
     if expected_part_type is not None and ptype != expected_part_type:
         raise AssetError(mpath, f"checkpoint is for part_type {ptype!r}, expected {expected_part_type!r}")
     cfg = dict(raw["config"])
+    cfg.setdefault("weld_seams", False)  # written before seam welding: per-vertex offsets, as trained
     try:
         if ptype == "object":
             if not isinstance(template, ObjectTemplate):

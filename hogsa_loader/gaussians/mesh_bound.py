@@ -347,6 +347,9 @@ class MeshGaussians(SplatAppearance):
             cells the front colour is within 0.015 of the texture and the silhouette lies
             1.25 px outside the projected edge (1.75 instead of 2 gave 0.04 and 1.17 px).
         normal_eps: scale added to every axis (GaMeS's epsilon; the thickness).
+        weld_seams: vertices at one position (UV-seam copies of a textured mesh) share one
+            offset, their mean (:meth:`welded_offsets`), so seams cannot tear. False keeps
+            one free offset per vertex (checkpoints written before welding existed).
         dtype: parameter dtype.
     """
 
@@ -368,6 +371,7 @@ class MeshGaussians(SplatAppearance):
         init_opacity: float = DEFAULT_OPACITY,
         init_scale_factor: Optional[float] = None,
         normal_eps: float = 1e-8,
+        weld_seams: bool = True,
         dtype: torch.dtype = torch.float32,
     ) -> None:
         super().__init__()
@@ -395,7 +399,7 @@ class MeshGaussians(SplatAppearance):
         self.offsets = nn.Parameter(torch.zeros_like(verts_t))
         # vertices at one position (UV-seam copies) move together: (V,) group ids, (G,) sizes
         _, group, count = torch.unique(verts_t, dim=0, return_inverse=True, return_counts=True)
-        welded = bool(count.numel() < verts_t.shape[0])
+        welded = bool(weld_seams) and bool(count.numel() < verts_t.shape[0])
         self.register_buffer("weld_group", group if welded else None, persistent=False)
         self.register_buffer("weld_count", count.to(dtype) if welded else None, persistent=False)
         if variant == "games":

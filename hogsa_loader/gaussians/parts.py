@@ -35,7 +35,6 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from hogsa_loader.gaussians.free import FREE_INITS, FreeGaussians, surface_samples
@@ -214,6 +213,7 @@ class GaussianPart(nn.Module):
         free_init: str,
         init_opacity: float,
         normal_eps: float,
+        weld_seams: bool,
         dtype: torch.dtype,
     ) -> None:
         if variant not in ALL_VARIANTS:
@@ -225,6 +225,7 @@ class GaussianPart(nn.Module):
         self.sh_degree = int(sh_degree)
         self.free_init = free_init
         self.normal_eps = float(normal_eps)
+        self.weld_seams = bool(weld_seams)
         self.binding_hash = template_hash(verts, faces)
         if variant == "free":
             face_idx, bary = surface_samples(faces, verts.shape[0], free_init, self.k)
@@ -236,7 +237,7 @@ class GaussianPart(nn.Module):
         else:
             self.splats = MeshGaussians(
                 verts, faces, k=self.k, sh_degree=sh_degree, variant=variant,
-                init_opacity=init_opacity, normal_eps=normal_eps, dtype=dtype,
+                init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
             )  # fmt: skip
             face_idx, bary = surface_samples(faces, verts.shape[0], "faces", self.k)  # = init_bary, float64
             colors = color_fn(face_idx, bary).clamp(0.0, 1.0)
@@ -263,6 +264,7 @@ class GaussianPart(nn.Module):
             "subdivide_levels": self.subdivide_levels,
             "free_init": self.free_init,
             "normal_eps": self.normal_eps,
+            "weld_seams": self.weld_seams,
         }
         out.update(self._extra_config)
         return out
@@ -303,6 +305,9 @@ class HandGaussians(GaussianPart):
             default the model's ``vertex_colors``, else :data:`DEFAULT_SKIN_RGB`.
         init_opacity: initial opacity.
         normal_eps: thickness of mesh-bound Gaussians.
+        weld_seams: coincident binding vertices share one offset (see
+            :class:`~hogsa_loader.gaussians.mesh_bound.MeshGaussians`); checkpoints written
+            before this setting existed load with False, as they were trained.
         flat_hand_mean, use_pca, num_pca_comps, num_betas, fix_left_shapedirs: the
             :class:`MANOLayer` settings when ``model`` is a :class:`ManoModelData`.
         dtype: parameter dtype (a given :class:`MANOLayer` imposes its own).
@@ -321,6 +326,7 @@ class HandGaussians(GaussianPart):
         albedo: Optional[Union[Sequence[float], np.ndarray, Tensor]] = None,
         init_opacity: float = DEFAULT_OPACITY,
         normal_eps: float = 1e-8,
+        weld_seams: bool = True,
         flat_hand_mean: bool = False,
         use_pca: bool = False,
         num_pca_comps: int = 45,
@@ -370,7 +376,7 @@ class HandGaussians(GaussianPart):
         color_fn = _vertex_color_fn(faces, torch.as_tensor(colors, dtype=torch.float64))
         self._build_splats(
             verts, faces, color_fn, variant=variant, k=k, sh_degree=sh_degree, free_init=free_init,
-            init_opacity=init_opacity, normal_eps=normal_eps, dtype=dtype,
+            init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
         )  # fmt: skip
 
     @staticmethod
@@ -433,7 +439,7 @@ class ObjectGaussians(GaussianPart):
         free_init: ``"vertices"`` or ``"faces"`` (free variant only).
         part_id: scene part index (default 2).
         color: colour used without a texture (default :data:`DEFAULT_OBJECT_RGB`).
-        init_opacity, normal_eps, dtype: as :class:`HandGaussians`.
+        init_opacity, normal_eps, weld_seams, dtype: as :class:`HandGaussians`.
     """
 
     binding_is_top: Tensor
@@ -455,6 +461,7 @@ class ObjectGaussians(GaussianPart):
         color: Sequence[float] = DEFAULT_OBJECT_RGB,
         init_opacity: float = DEFAULT_OPACITY,
         normal_eps: float = 1e-8,
+        weld_seams: bool = True,
         dtype: torch.dtype = torch.float32,
     ) -> None:
         super().__init__()
@@ -507,7 +514,7 @@ class ObjectGaussians(GaussianPart):
             color_fn = _vertex_color_fn(faces_t, const)
         self._build_splats(
             verts_t, faces_t, color_fn, variant=variant, k=k, sh_degree=sh_degree, free_init=free_init,
-            init_opacity=init_opacity, normal_eps=normal_eps, dtype=dtype,
+            init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
         )  # fmt: skip
 
     def posed_vertices(self, angle: Tensor, global_orient: Tensor, transl: Optional[Tensor] = None) -> Tensor:

@@ -120,8 +120,8 @@ class SRM(nn.Module):
         if a.shape != rgb.shape[:3]:
             raise ValueError(f"alpha {tuple(alpha.shape)} does not match rgb {tuple(rgb.shape)}")
         p = next(self.parameters())
-        x = rgb.to(p.device, torch.float32).permute(0, 3, 1, 2)
-        a4 = a.to(p.device, torch.float32)[:, None]
+        x = rgb.to(p.device, p.dtype).permute(0, 3, 1, 2)  # (fp32, or the fp16/bf16 of load_srm(dtype=...))
+        a4 = a.to(p.device, p.dtype)[:, None]
         was_training = self.training
         self.eval()
         try:
@@ -132,7 +132,7 @@ class SRM(nn.Module):
                 y = self.forward(x, a4, noise_mode="none")
         finally:
             self.train(was_training)
-        a_out = self.output_alpha(a4)
+        a_out = self.output_alpha(a4.float())
         y = torch.minimum(y.float().clamp(min=0.0), a_out)  # premultiplied colour never exceeds alpha
         y = torch.where(a_out > 0, y, torch.zeros_like(y))
         out = y.permute(0, 2, 3, 1).to(rgb.dtype).to(rgb.device)

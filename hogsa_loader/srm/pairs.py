@@ -64,11 +64,24 @@ def find_runs(runs_dir: str | Path, names: Optional[Sequence[str]] = None) -> li
     return runs
 
 
+#: Part of every render-cache key: bump it whenever the rasteriser or how a HOGS checkpoint
+#: is posed and rendered changes, so caches made by older code are never served (2: seam
+#: welding and its ``weld_seams`` setting).
+RENDER_CACHE_VERSION = 2
+
+
 def _run_hash(run: Path) -> str:
-    h = hashlib.sha256()
+    """Hash of a run's weights and part settings, the library version and
+    :data:`RENDER_CACHE_VERSION`."""
+    import hogsa_loader
+
+    h = hashlib.sha256(f"{hogsa_loader.__version__}/{RENDER_CACHE_VERSION}".encode())
     for name in PART_NAMES:
         m = json.loads((run / name / "manifest.json").read_text())
-        h.update(m["tensors_sha256"].encode())
+        h.update(m["tensors_sha256"].encode() + json.dumps(m.get("config"), sort_keys=True).encode())
+    light = run / "light" / "light.safetensors"
+    if light.is_file():
+        h.update(hashlib.sha256(light.read_bytes()).digest())
     return h.hexdigest()[:16]
 
 

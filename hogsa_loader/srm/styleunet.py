@@ -21,7 +21,7 @@ Encoder–decoder in the Haar-wavelet domain (the network runs at half the input
   :class:`StyleUNet` takes z (or None: the stored inference code ``z_infer``).
 
 ``StyleUNet.default(...)``: ``channels=(32, 64, 128, 128, 128)``, style 64, wavelet skips.
-At 256² in → 256² out it costs about 3.0 GFLOPs (1.5 GMACs; see :func:`count_gflops`).
+At 256² in → 256² out it costs 5.2 GFLOPs (2.6 GMACs; :func:`count_gflops`).
 Input H and W must be multiples of ``2 ** len(channels)``.
 """
 
@@ -149,7 +149,7 @@ class StyleUNet(nn.Module):
         """Style vectors (B, style_dim) from z (B, style_dim) or the stored inference code."""
         if z is None:
             z = self.z_infer.expand(batch, -1)
-        return self.mapping(z.float())
+        return self.mapping(z.to(self.z_infer.dtype))  # (the parameters' dtype: fp32, or fp16/bf16 weights)
 
     def forward(self, x: Tensor, z: Optional[Tensor] = None, noise_mode: str = "random") -> Tensor:
         """Refine.
