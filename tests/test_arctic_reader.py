@@ -812,6 +812,41 @@ def test_load_split_errors(tmp_path):
         r.load_split("p1")
 
 
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda q: q["params"].__setitem__("K_ego", q["params"]["K_ego"][0]),
+         ".params.K_ego has shape (3, 3), expected (F, 3, 3)"),  # data_doc.md's unbatched layout
+        (lambda q: q["params"].__setitem__("dist", q["params"]["dist"][0]), ".params.dist has shape (8,), expected (F, 8)"),
+        (lambda q: q["2d"].pop("kp3d"), ".2d.kp3d is missing"),
+        (lambda q: q["cam_coord"].pop("is_valid"), ".cam_coord.is_valid is missing"),
+        (lambda q: q.__setitem__("bbox", q["bbox"][..., :2]), ".bbox has shape"),
+        (lambda q: q["params"].__setitem__("obj_arti", q["params"]["obj_arti"][:, None]), ".params.obj_arti has shape"),
+        (lambda q: q["2d"].__setitem__("joints.left", q["2d"]["joints.left"][:-1]), ".2d.joints.left has shape"),
+        (lambda q: q["params"]["K_ego"].__setitem__((0, 0, 0), np.nan), ".params.K_ego contains NaN or inf"),
+        (lambda q: q["params"]["K_ego"].__setitem__((1, 2), (0.0, 1.0, 1.0)), ".params.K_ego[1] is not a pinhole"),
+        (lambda q: q["cam_coord"]["is_valid"].__setitem__((0, 1), 2), ".cam_coord.is_valid holds values other than 0 and 1"),
+        (lambda q: q["params"].__setitem__("pose_r", q["params"]["pose_r"].astype(object)), ".params.pose_r is a ndarray of object"),
+        (lambda q: q["params"].__setitem__("trans_l", q["params"]["trans_l"][:, :2]), ".params.trans_l has shape"),
+    ],
+)
+def test_load_split_checks_every_array(tiny_world, tmp_path, monkeypatch, edit, message):
+    """The arrays inside a split file are checked when it is loaded (not at the first
+    sample, with an IndexError), naming the file, the sequence and the key."""
+    r = ArcticRoot(tiny_world)
+    src = r.split_path("p2", "val")
+    doc = read_npy(src)
+    key = next(iter(doc["data_dict"]))
+    edit(doc["data_dict"][key])
+    path = tmp_path / "p2_val.npy"
+    boxed = np.empty((), dtype=object)
+    boxed[()] = doc
+    np.save(path, boxed, allow_pickle=True)
+    monkeypatch.setattr(r, "split_path", lambda protocol, split: path)
+    e = _raise(lambda: r.load_split("p2", "val"))
+    assert e.path == str(path) and f"data_dict[{key!r}]{message}" in e.problem, e.problem
+
+
 def _edit_mano(key, fn):
     def edit(mano, obj, ego):
         side, k = key.split(".")

@@ -65,6 +65,7 @@ from hogsa_loader.datasets.sample import (
     make_arctic_sample,
     solve_rigid_rotation,
 )
+from hogsa_loader.errors import AssetError
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 CFG = ArcticConfig()
@@ -878,6 +879,30 @@ def test_dataset_missing_images_counted(mini_arctic: Path) -> None:
     assert s[2]["imgname"] == ds.imgnames[0]  # no /cropped_images/ rewrite without speed-up
     ds[1]
     assert ds.missing_images == 2
+
+
+def test_dataset_index_range_and_image_size(mini_arctic: Path, tmp_path: Path) -> None:
+    """Negative indices count from the end (as for a list); out of range is an IndexError;
+    an image whose size is not the one its labels are in is refused, naming the file."""
+    import shutil
+
+    ds = ArcticDataset(mini_arctic, "p1_train", seed=2)
+    assert _same(ds[-1], ds[len(ds) - 1])
+    for bad in (len(ds), -len(ds) - 1):
+        with pytest.raises(IndexError):
+            ds[bad]
+    root = tmp_path / "copy"
+    shutil.copytree(mini_arctic, root, symlinks=True)
+    ds = ArcticDataset(root, "p1_val", augment=False)
+    path = ds.image_path(ds.imgnames[0])
+    img = cv2.imread(str(path))
+    assert img.shape[:2] == (1000, 1000) and ds.expected_image_size("s01", 1) == (1000, 1000)
+    cv2.imwrite(str(path), cv2.resize(img, (500, 500)))  # e.g. a re-cropped image at another size
+    with pytest.raises(AssetError, match=r"00002.jpg.*500x500 px, but its labels are in 1000x1000"):
+        ds[0]
+    ds[1]  # the others are fine
+    ego = ArcticDataset(root, "p2_train", augment=False)
+    assert ego.expected_image_size("s01", 0) == (840, 600)
 
 
 def test_dataset_ego_cache(mini_arctic: Path) -> None:

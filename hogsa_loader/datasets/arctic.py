@@ -1011,7 +1011,55 @@ class ArcticRoot:
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise AssetError(path, "'imgnames' must be a list of strings")
         for key, seq in dd.items():
-            for part in ("cam_coord", "2d", "bbox", "params"):
-                if part not in seq:
-                    raise AssetError(path, f"data_dict[{key!r}] has no '{part}'")
+            _check_split_sequence(path, key, seq)
         return data
+
+
+#: What the dataset reads from a split's sequence (§1.7): part -> {key: shape}, "F" = frames.
+#: Views: 10 in ``cam_coord`` / ``2d`` points, 9 in rotations, flags and boxes.
+_SPLIT_ARRAYS: dict[str, dict[str, tuple[Union[int, str], ...]]] = {
+    "cam_coord": {"joints.right": ("F", 10, 21, 3), "joints.left": ("F", 10, 21, 3), "bbox3d": ("F", 10, 16, 3),
+                  "kp3d": ("F", 10, 32, 3), "rot_r_cam": ("F", 9, 3), "rot_l_cam": ("F", 9, 3),
+                  "is_valid": ("F", 9), "right_valid": ("F", 9), "left_valid": ("F", 9)},
+    "2d": {"joints.right": ("F", 10, 21, 2), "joints.left": ("F", 10, 21, 2), "bbox3d": ("F", 10, 16, 2),
+           "kp3d": ("F", 10, 32, 2)},
+    "bbox": {"": ("F", 9, 3)},
+    "params": {"pose_r": ("F", 45), "pose_l": ("F", 45), "shape_r": ("F", 10), "shape_l": ("F", 10),
+               "obj_arti": ("F",), "dist": ("F", 8), "K_ego": ("F", 3, 3)},
+}  # fmt: skip
+#: Read only by the interaction-field targets; checked when present.
+_SPLIT_OPTIONAL = {"params": {"rot_r": ("F", 3), "rot_l": ("F", 3), "trans_r": ("F", 3), "trans_l": ("F", 3),
+                              "obj_rot": ("F", 3), "obj_trans": ("F", 3)}}  # fmt: skip
+
+
+def _check_split_sequence(path: Path, key: str, seq: Any) -> None:
+    """Shapes, frame counts, finiteness and flag values of one split sequence (no copies).
+
+    Raises:
+        AssetError: naming the split file and e.g. ``data_dict['s05/box_grab_01'].params.K_ego``.
+    """
+    frames: Optional[int] = None
+    for part, arrays in _SPLIT_ARRAYS.items():
+        if part not in seq:
+            raise AssetError(path, f"data_dict[{key!r}] has no '{part}'")
+        for name, spec in {**arrays, **_SPLIT_OPTIONAL.get(part, {})}.items():
+            where = f"data_dict[{key!r}].{part}" + (f".{name}" if name else "")
+            if name and not isinstance(seq[part], dict):
+                raise AssetError(path, f"data_dict[{key!r}].{part} is a {type(seq[part]).__name__}, expected a dict")
+            if name and name not in seq[part]:
+                if name in _SPLIT_OPTIONAL.get(part, {}):
+                    continue
+                raise AssetError(path, f"{where} is missing")
+            arr = seq[part][name] if name else seq[part]
+            if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiub":
+                raise AssetError(path, f"{where} is a {type(arr).__name__}"
+                                       f"{'' if not isinstance(arr, np.ndarray) else ' of ' + str(arr.dtype)}, "
+                                       f"expected a numeric array {_shape_str(spec)}")  # fmt: skip
+            frames = arr.shape[0] if frames is None and arr.ndim else frames
+            if arr.ndim != len(spec) or any(w != "F" and w != n for w, n in zip(spec, arr.shape)) or arr.shape[0] != frames:
+                raise AssetError(path, f"{where} has shape {arr.shape}, expected {_shape_str(spec)} with F = {frames}")
+            if arr.dtype.kind == "f" and not bool(np.isfinite(arr).all()):
+                raise AssetError(path, f"{where} contains NaN or inf")
+            if name.endswith("valid") and not bool(np.isin(arr, (0, 1)).all()):
+                raise AssetError(path, f"{where} holds values other than 0 and 1")
+    _check_intrinsics(np.asarray(seq["params"]["K_ego"], dtype=np.float64), path, f"data_dict[{key!r}].params.K_ego")

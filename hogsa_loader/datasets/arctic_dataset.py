@@ -269,6 +269,22 @@ class ArcticDataset(Dataset):
             return None
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
+    def expected_image_size(self, sid: str, view: int) -> tuple[int, int]:
+        """(width, height) of the file read for ``view`` (§1.9): the cropped side, the ego
+        image × ``ego_image_scale``, or without speed-up the full image."""
+        w, h = (int(v) for v in self.root.subject_misc(sid).image_size[view])
+        if not self.speedup:
+            return w, h
+        if view == EGO_VIEW:
+            return int(round(w * self.cfg.ego_image_scale)), int(round(h * self.cfg.ego_image_scale))
+        return self.cropped_size, self.cropped_size
+
+    def _check_image_size(self, image: np.ndarray, path: Path, sid: str, view: int) -> None:
+        w, h = self.expected_image_size(sid, view)
+        if abs(image.shape[1] - w) > 1 or abs(image.shape[0] - h) > 1:  # (1 px: resize rounding)
+            raise AssetError(path, f"image is {image.shape[1]}x{image.shape[0]} px, but its labels are in "
+                                   f"{w}x{h} px ({'cropped_images' if self.speedup else 'images'}, view {view})")
+
     def to_image_pixels(self, points2d: np.ndarray, bbox_full: np.ndarray, view: int) -> np.ndarray:
         """Full-resolution 2D points → pixels of the image that is read (§1.9)."""
         if not self.speedup:
@@ -290,7 +306,17 @@ class ArcticDataset(Dataset):
         return self.getitem(int(index))
 
     def getitem(self, index: int, load_rgb: bool = True) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-        """Item ``index`` (§3.3). ``load_rgb=False`` skips reading the file (zero image)."""
+        """Item ``index`` (§3.3; negative counts from the end). ``load_rgb=False`` skips
+        reading the file (zero image).
+
+        Raises:
+            IndexError: ``index`` out of range.
+            AssetError: the image file's size is not the one its labels are in.
+        """
+        n = len(self.imgnames)
+        if not -n <= index < n:
+            raise IndexError(f"index {index} out of range for {n} items")
+        index %= n
         imgname = self.imgnames[index]
         sid, seq, view, vidx, seq_data = self._locate(imgname)
         cam, d2, params = seq_data["cam_coord"], seq_data["2d"], seq_data["params"]
@@ -326,6 +352,8 @@ class ArcticDataset(Dataset):
         )
         path = self.image_path(imgname)
         image = self._read_image(path) if load_rgb else None
+        if image is not None:
+            self._check_image_size(image, path, sid, view)
         aug = self.aug_params(index)
         sample = make_arctic_sample(
             image=image,
