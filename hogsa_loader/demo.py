@@ -189,13 +189,13 @@ def _worker_init(_: int) -> None:
 
 def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
     """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle."""
-    from hogsa_loader.bundle import write_bundle
+    from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
     from hogsa_loader.datasets.arctic import ArcticRoot
     from hogsa_loader.world import generate_world, get_preset
 
     if cfg.data is not None:
         data = Path(os.path.abspath(cfg.data))
-        k_world = _key("data", str(data))
+        k_world = _key("data", str(data), cfg.seed)  # (the seed also drives every training stage below)
     else:
         world = out / "world"
         data = world / "arctic_data" / "data"
@@ -237,7 +237,7 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     stages.run("srm", k_srm, [srm], lambda: _train_srm(cfg, data, out / "runs" / "hogs", srm, out / "cache" / "srm"))
 
     bundle = out / "bundle"
-    k_bundle = _key("bundle", k_hogs, k_cn, k_bank, k_srm)
+    k_bundle = _key("bundle", k_hogs, k_cn, k_bank, k_srm, BUNDLE_SCHEMA_VERSION)
     stages.run("bundle", k_bundle, [bundle], lambda: str(write_bundle(
         bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])))
     return data, bundle

@@ -168,7 +168,7 @@ def test_raw_seq_files_follow_arctic(world):
                                ("fitting_err", (F,))):
                 assert p[key].shape == shape and p[key].dtype == np.float32, (side, key, p[key].shape)
                 assert np.isfinite(p[key]).all()
-            assert len(p["fitting_err"]) > 50 and (p["fitting_err"] > 0).all()
+            assert len(p["fitting_err"]) > 50 and (p["fitting_err"] == 0).all()  # exact labels
             betas[(sid, side)] = p["shape"]
         assert np.array_equal(mano["right"]["shape"], mano["left"]["shape"])
         assert obj.shape == (F, 7) and obj.dtype.kind == "f"

@@ -22,7 +22,8 @@ __all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "varian
 
 
 def save_contactnet_curve(path: Path, hist: dict) -> None:
-    """Training BCE (smoothed) and validation BCE / MAE / IoU@0.5 against the iteration, as PNG."""
+    """Training loss (contact-weighted BCE, smoothed) and validation BCE (unweighted) / MAE /
+    IoU@0.5 against the iteration, as PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -33,10 +34,10 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
     if len(tl):
         k = max(1, len(tl) // 50)
         smooth = np.convolve(tl, np.ones(k) / k, mode="valid")
-        ax[0].plot(np.arange(len(smooth)) + k, smooth, label="train BCE (smoothed)")
+        ax[0].plot(np.arange(len(smooth)) + k, smooth, label="train BCE, weighted 1 + w·target (smoothed)")
     if hist["val"]:
         its = [v[0] for v in hist["val"]]
-        ax[0].plot(its, [v[1]["loss"] for v in hist["val"]], "o-", label="val BCE")
+        ax[0].plot(its, [v[1]["loss"] for v in hist["val"]], "o-", label="val BCE (unweighted)")
         ax[1].plot(its, [v[1]["mae"] for v in hist["val"]], "o-", label="val MAE")
         ax[1].plot(its, [v[1]["iou05"] for v in hist["val"]], "s-", label="val IoU@0.5")
     ax[0].set_xlabel("iteration")

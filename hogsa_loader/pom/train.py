@@ -99,8 +99,11 @@ def evaluate_contactnet(model: ContactNet, data: ContactData, infos, objects, se
                         scale: float = 0.5, batch: int = 16, max_frames: int = 48) -> dict[str, float]:
     """Validation MAE, IoU@0.5 and BCE on a fixed perturbation (and MAE/IoU unperturbed).
 
-    Uses at most ``max_frames`` frames, evenly spaced, with all object points.
+    Uses at most ``max_frames`` frames, evenly spaced, with all object points. ``loss`` is the
+    plain BCE (training minimises a contact-weighted one). The model's train/eval mode is
+    restored.
     """
+    was_training = model.training
     model.eval()
     if data.size > max_frames:
         keep = torch.linspace(0, data.size - 1, max_frames).round().long()
@@ -126,7 +129,7 @@ def evaluate_contactnet(model: ContactNet, data: ContactData, infos, objects, se
         res[f"{tag}mae"] = abs_sum / max(n, 1)
         res[f"{tag}iou05"] = inter / union if union > 0 else float("nan")
         res[f"{tag}loss"] = bce / max(n, 1)
-    model.train()
+    model.train(was_training)
     return res
 
 

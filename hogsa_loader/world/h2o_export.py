@@ -131,7 +131,7 @@ def export_h2o_world(
     allo_views: Sequence[int] = (1, 2, 3, 4),
     image_size: tuple[int, int] = (320, 180),
     frame_stride: int = 4,
-    seed: int = 0,
+    seed: Optional[int] = None,
 ) -> dict[str, Any]:
     """Convert one grab sequence of a generated world into an H2O tree (module docstring).
 
@@ -146,7 +146,8 @@ def export_h2o_world(
         allo_views: the 4 allocentric views written as ``cam0``..``cam3``.
         image_size: (width, height) of the rendered frames.
         frame_stride: every n-th frame is exported.
-        seed: the world's seed (gives its stage).
+        seed: the world's seed (gives its stage); default: the one ``hogsa_world.json``
+            records, so the H2O frames show the same table and room as the world's.
 
     Returns:
         the record written to ``<out>/hogsa_h2o_export.json``.
@@ -167,6 +168,8 @@ def export_h2o_world(
     if len(allo_views) != 4:
         raise ValueError(f"H2O has 4 static cameras; give 4 allocentric views, got {list(allo_views)}")
     root = ArcticRoot(arctic_root)
+    if seed is None:
+        seed = int(root.world_meta().extra.get("seed", 0))
     seq: SequenceData = root.sequence(subject, sequence)
     raw = root.raw_sequence(subject, sequence)
     arti = seq.object.arti
@@ -218,7 +221,7 @@ def export_h2o_world(
     write_h2o_sequence(out, h2o_subject, scene, seq_id, idx.tolist(), records)
     record = {
         "source": {"arctic_root": str(root.data_root), "subject": subject, "sequence": sequence,
-                   "object": seq.object.name, "articulation": float(arti[0])},
+                   "object": seq.object.name, "articulation": float(arti[0]), "stage_seed": int(seed)},
         "h2o": {"subject": h2o_subject, "scene": scene, "seq": int(seq_id), "object_class": cls,
                 "class_id": H2O_OBJECT_NAMES.index(cls), "mesh": str(mesh_path.relative_to(out))},
         "cameras": {f"cam{k}": {"world_view": int(v)} for k, (v, _) in cams.items()},

@@ -340,7 +340,8 @@ def build_motion(F: int, obj: str, action: str, template: ObjectTemplate, kits: 
         back = np.stack([-part_pose(i)[0] @ g.normal for i in range(F)])
         w = _depenetrate(kit, betas, R, w, art, att, theta, Rs, ts, boxes, back)
         params = hands_to_params(kit, betas, R, w, art)
-        params["fitting_err"] = rng.uniform(0.002, 0.008, F).astype(np.float32)
+        rng.uniform(0.002, 0.008, F)  # (drawn and dropped: keeps every world's random stream as it was)
+        # fitting_err stays 0: these labels are exact (world-noise copies record their real error)
         hands[side], attached[side], grasps[side] = params, att, g
     obj_params = np.concatenate([theta[:, None], Rotation.from_matrix(Rs).as_rotvec(), ts * 1000.0], axis=1)
     centre_c = (template.verts.min(0) + template.verts.max(0)).astype(np.float64) / 2
