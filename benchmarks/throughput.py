@@ -114,7 +114,8 @@ def timed_iteration(
     it = iter(batches)
     t0 = time.perf_counter()
     for _ in range(warmup):
-        next(it)
+        if next(it, None) is None:  # (fewer batches than the warm-up: nothing left to time)
+            break
     sync()
     warm_s = time.perf_counter() - t0
     if on_warm is not None:

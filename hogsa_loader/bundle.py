@@ -7,9 +7,9 @@ A bundle is what ``pretrain/build_bundle.py`` writes and what
       manifest.json
       hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
       hogs/<subject>_<object>/light/   the run's learned light, when it was trained with one
-      srm/<name>                optional super-resolution checkpoint (file or folder)
-      contactnet/<name>         optional ContactNet checkpoint (file or folder)
-      pose_banks/<name>         optional pose banks (files or folders)
+      srm/<name>/               optional SRM checkpoint folder (save_srm / a train_srm.py run)
+      contactnet/<name>/        optional ContactNet checkpoint folder
+      pose_banks/<name>/        optional pose-bank folders
 
 Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
 run's ``checkpoints/`` history and caches stay behind.
@@ -349,8 +349,8 @@ def write_bundle(
         data_root: the ARCTIC(-format) data root the runs were trained on.
         hogs_runs: run folders of ``pretrain/train_hogs.py`` (each with ``hand_right/``,
             ``hand_left/``, ``object/``).
-        srm: optional SRM checkpoint (file or folder).
-        contactnet: optional ContactNet checkpoint (file or folder).
+        srm: optional SRM checkpoint folder.
+        contactnet: optional ContactNet checkpoint folder.
         pose_banks: optional pose banks (folders of :func:`~hogsa_loader.pom.bank.save_pose_bank`);
             named by their folder name, which must be unique.
         dataset: dataset name recorded in the manifest.

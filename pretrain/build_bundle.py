@@ -4,7 +4,7 @@
 Example::
 
     python pretrain/build_bundle.py --data ./hogsa_world --hogs runs/ --out bundle/ \
-        [--srm runs/srm] [--contactnet runs/contactnet] [--pose-bank banks/s01_box.npz]
+        [--srm runs/srm] [--contactnet runs/contactnet] [--pose-bank runs/pose_bank]
 
 ``--hogs`` is either one run folder (``hand_right/``, ``hand_left/``, ``object/``) or a
 folder whose sub-folders (searched two levels deep) are runs; each run's (subject, object)
@@ -41,9 +41,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root the runs were trained on")
     p.add_argument("--hogs", required=True, help="a HOGS run folder, or a folder of run folders")
     p.add_argument("--out", required=True, help="bundle folder to write")
-    p.add_argument("--srm", default=None, help="SRM checkpoint (file or folder)")
-    p.add_argument("--contactnet", default=None, help="ContactNet checkpoint (file or folder)")
-    p.add_argument("--pose-bank", action="append", default=[], help="pose bank (file or folder); repeatable")
+    p.add_argument("--srm", default=None, help="SRM checkpoint folder (a train_srm.py run)")
+    p.add_argument("--contactnet", default=None, help="ContactNet checkpoint folder")
+    p.add_argument("--pose-bank", action="append", default=[], help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names")
     p.add_argument("--dataset", default="arctic")
     args = p.parse_args(argv)
     runs = find_runs(Path(args.hogs))

@@ -903,6 +903,11 @@ def test_dataset_index_range_and_image_size(mini_arctic: Path, tmp_path: Path) -
     ds[1]  # the others are fine
     ego = ArcticDataset(root, "p2_train", augment=False)
     assert ego.expected_image_size("s01", 0) == (840, 600)
+    ego[0]
+    path = ego.image_path(ego.imgnames[0])
+    cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (2800, 2000)))  # the full-size ego image
+    with pytest.raises(AssetError, match=r"2800x2000 px, but its labels are in 840x600"):
+        ego[0]
 
 
 def test_dataset_ego_cache(mini_arctic: Path) -> None:

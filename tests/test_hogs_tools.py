@@ -180,6 +180,13 @@ def test_directional_light_shading_and_checkpoint(tmp_path):
     (tmp_path / "light" / "manifest.json").write_text(man.replace('"model"', '"ambient_note": NaN, "model"'))
     with pytest.raises(AssetError, match="manifest.json.*NaN is not a JSON value"):
         load_light(tmp_path / "light")
+    good = (tmp_path / "light" / "light.safetensors").read_bytes()
+    bad_light = DirectionalLight(direction=(0.0, 0.0, 2.0), ambient=0.3, diffuse=0.6)
+    with torch.no_grad():
+        next(bad_light.parameters()).fill_(float("nan"))
+    with pytest.raises(ValueError, match="NaN or infinity; not saved"):  # refused before anything is written
+        save_light(bad_light, tmp_path / "light")
+    assert (tmp_path / "light" / "light.safetensors").read_bytes() == good
     (tmp_path / "light" / "manifest.json").write_text('{"format": "hogsa-light", "schema_version": 9}')
     with pytest.raises(AssetError, match="schema_version 9"):
         load_light(tmp_path / "light")

@@ -356,9 +356,17 @@ def test_render_cache_key_follows_weights_settings_and_code(hogs_runs, tmp_path,
     other_cfg = pairs._run_hash(run)
     man_path.write_text(json.dumps(man))
     assert pairs._run_hash(run) == ref
+    from hogsa_loader.gaussians.shading import DirectionalLight, save_light
+
+    save_light(DirectionalLight(direction=(0.0, 0.3, 1.0)), run / "light")
+    with_light = pairs._run_hash(run)
+    save_light(DirectionalLight(direction=(0.3, 0.0, 1.0)), run / "light")
+    other_light = pairs._run_hash(run)
     monkeypatch.setattr(pairs, "RENDER_CACHE_VERSION", pairs.RENDER_CACHE_VERSION + 1)
     other_code = pairs._run_hash(run)
-    assert len({ref, other_cfg, other_code}) == 3
+    monkeypatch.setattr("hogsa_loader.__version__", "0.0.0-other")
+    other_library = pairs._run_hash(run)
+    assert len({ref, other_cfg, with_light, other_light, other_code, other_library}) == 6
 
 
 def test_validation_views_split(tiny_world, hogs_runs, folds, srm_cache):

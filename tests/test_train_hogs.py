@@ -134,6 +134,27 @@ def test_resume_matches_unbroken_run(tiny_world, tmp_path):
         HogsTrainer(_cfg(tiny_world, tmp_path / "cut", iters=8, lr_scale=1.0), progress=False).resume()
 
 
+def test_resume_checkpoint_from_before_seam_welding(tiny_world, tmp_path):
+    """A run checkpointed before ``weld_seams`` existed (no such key in its part configs)
+    resumes unwelded, as it was trained, and keeps saying so in its later checkpoints."""
+    cut = HogsTrainer(_cfg(tiny_world, tmp_path / "old", iters=3, ckpt_every=3), progress=False)
+    cut.train()
+    folder = tmp_path / "old" / "checkpoints"
+    step = json.loads((folder / "latest.json").read_text())["folder"]
+    for name in ("hand_right", "hand_left", "object"):
+        man_path = folder / step / name / "manifest.json"
+        man = json.loads(man_path.read_text())
+        del man["config"]["weld_seams"]
+        man_path.write_text(json.dumps(man))
+    resumed = HogsTrainer(_cfg(tiny_world, tmp_path / "old", iters=5, ckpt_every=5), progress=False)
+    assert resumed.parts["object"].splats.weld_group is not None  # (a new run welds the box's seams)
+    assert resumed.resume() and resumed.step == 3
+    assert resumed.parts["object"].splats.weld_group is None and not resumed.parts["object"].weld_seams
+    resumed.train()
+    man = json.loads((tmp_path / "old" / "object" / "manifest.json").read_text())
+    assert man["config"]["weld_seams"] is False
+
+
 def test_bad_arguments(tiny_world, tmp_path, capsys):
     with pytest.raises(ValueError, match="unknown subject 's99'"):
         HogsTrainer(_cfg(tiny_world, tmp_path / "r", subject="s99"), progress=False)

@@ -269,6 +269,14 @@ class GaussianPart(nn.Module):
         out.update(self._extra_config)
         return out
 
+    def disable_seam_welding(self) -> None:
+        """Give every binding vertex its own offset again (``weld_seams=False``): for
+        continuing a run whose checkpoints predate seam welding, as it was trained."""
+        self.weld_seams = False
+        if isinstance(self.splats, MeshGaussians):
+            self.splats.weld_group = None
+            self.splats.weld_count = None
+
     def canonical_vertices(self) -> Tensor:
         """(V, 3) binding-mesh template (+ offsets for mesh-bound variants)."""
         if isinstance(self.splats, MeshGaussians):

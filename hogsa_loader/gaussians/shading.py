@@ -113,10 +113,13 @@ def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().float().contiguous() for k, v in light.state_dict().items()}
-    atomic_write(folder / LIGHT_TENSORS, st_save(tensors))
+    if not all(bool(torch.isfinite(v).all()) for v in tensors.values()):  # checked before anything is written
+        raise ValueError(f"{folder}: the light's tensors contain NaN or infinity; not saved")
     manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
                 "tensors_file": LIGHT_TENSORS, **light.describe()}  # fmt: skip
-    atomic_write(folder / LIGHT_MANIFEST, (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode())
+    text = json.dumps(manifest, indent=1, allow_nan=False) + "\n"
+    atomic_write(folder / LIGHT_TENSORS, st_save(tensors))
+    atomic_write(folder / LIGHT_MANIFEST, text.encode())
     return folder
 
 

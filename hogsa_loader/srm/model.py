@@ -132,7 +132,7 @@ class SRM(nn.Module):
                 y = self.forward(x, a4, noise_mode="none")
         finally:
             self.train(was_training)
-        a_out = self.output_alpha(a4.float())
+        a_out = self.output_alpha(a.to(p.device, torch.float32)[:, None])  # (bound in fp32 whatever the weights)
         y = torch.minimum(y.float().clamp(min=0.0), a_out)  # premultiplied colour never exceeds alpha
         y = torch.where(a_out > 0, y, torch.zeros_like(y))
         out = y.permute(0, 2, 3, 1).to(rgb.dtype).to(rgb.device)

@@ -20,7 +20,7 @@ Encoder–decoder in the Haar-wavelet domain (the network runs at half the input
 * **Style.** A mapping network turns z ~ N(0, I_style) into the modulation style;
   :class:`StyleUNet` takes z (or None: the stored inference code ``z_infer``).
 
-``StyleUNet.default(...)``: ``channels=(32, 64, 128, 128, 128)``, style 64, wavelet skips.
+Default :class:`StyleUNetConfig`: ``channels=(32, 64, 128, 128, 128)``, style 64, wavelet skips.
 At 256² in → 256² out it costs 5.2 GFLOPs (2.6 GMACs; :func:`count_gflops`).
 Input H and W must be multiples of ``2 ** len(channels)``.
 """

@@ -37,7 +37,7 @@ from torch import Tensor
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.gaussians.checkpoint import atomic_write, read_manifest
 from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, latest_checkpoint
 from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
@@ -365,6 +365,8 @@ class HogsTrainer:
         if folder is None:
             return False
         for name, part in self.parts.items():
+            if not read_manifest(folder / name)["config"].get("weld_seams", False) and part.weld_seams:
+                part.disable_seam_welding()  # checkpointed before seam welding: go on as it was trained
             load_state(part, folder / name)
         if self.model.light is not None:
             load_light(folder / LIGHT_DIR, into=self.model.light)
