@@ -467,3 +467,20 @@ def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs,
     assert moved > 0
     with pytest.raises(ValueError, match="augment"):
         SRMTrainer(SRMTrainConfig(out=str(tmp_path / "x"), augment="rot45", **base), progress=False)
+
+
+def test_discriminator_real_is_reachable_by_the_generator(tiny_world, hogs_runs, srm_cache, tmp_path):
+    """D's real images are the GT clipped to the rendered alpha: no outline the generator
+    (output c · alpha) cannot match, and the GT itself wherever it can."""
+    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+
+    tr = SRMTrainer(SRMTrainConfig(data=str(tiny_world), hogs=str(hogs_runs), out=str(tmp_path / "d"), batch_size=6,
+                                   crop=0, channels=[8, 16, 16], cache=str(srm_cache)), progress=False, log=lambda m: None)
+    rgb, alpha, gt = tr.batch()
+    assert float(gt.amax()) > 0.2
+    for a in (alpha, 0.5 * alpha, torch.zeros_like(alpha)):  # the last two: GT silhouette beyond the render
+        real = tr.discriminator_real(gt, a)
+        assert bool((real <= a).all())  # like every generator output
+        keep = gt <= a
+        assert torch.equal(real[keep], gt[keep]) and torch.equal(real[~keep], a.expand_as(gt)[~keep])
+    assert float(tr.discriminator_real(gt, torch.zeros_like(alpha)).abs().max()) == 0.0

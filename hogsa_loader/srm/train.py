@@ -24,7 +24,8 @@ on every training view for the selected number of steps then gives those views b
 validated runs chose with those budgets).
 
 Step. Random ``crop``-sized windows (full images when ``crop`` = 0) of a random batch:
-D step (logistic loss; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
+D step (logistic loss against real = GT clipped to the rendered alpha, the closest image the
+generator can reach; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
 G step ``λ_L1·L1 + λ_P·perceptual + λ_GAN·softplus(−D(G))`` (all in [−1, 1]), then EMA.
 Adam(lr·r, betas (0, 0.99^r)) with r = 4/5 (G) and 16/17 (D) as in StyleUNet.
 
@@ -233,6 +234,13 @@ class SRMTrainer:
             rgb, alpha, gt = (torch.stack([dihedral(t[b], c) for b, c in enumerate(codes)]) for t in (rgb, alpha, gt))
         return rgb.to(dev), alpha.to(dev), gt.to(dev)
 
+    def discriminator_real(self, gt: Tensor, alpha: Tensor) -> Tensor:
+        """What D sees as real (B, 3, H, W) in [0, 1]: the GT clipped to the rendered alpha,
+        ``min(gt, α)``, the closest image the generator can produce (its output is
+        ``c · α`` with c in [0, 1]). With the raw GT (masked by the *GT* silhouette) D could
+        tell every fake by its outline alone, which the generator can never change."""
+        return torch.minimum(gt, self.g.output_alpha(alpha))
+
     def condition(self, rgb: Tensor, alpha: Tensor) -> Tensor:
         """D's condition (B, 4, H, W) in [−1, 1]: coarse premultiplied rgb + alpha at output size."""
         c = torch.cat([rgb, alpha], 1)
@@ -245,6 +253,7 @@ class SRMTrainer:
         cfg = self.cfg
         rgb, alpha, gt = self.batch()
         real = gt * 2.0 - 1.0
+        real_d = self.discriminator_real(gt, alpha) * 2.0 - 1.0
         cond = self.condition(rgb, alpha)
         terms: dict[str, float] = {}
         z = torch.randn(cfg.batch_size, cfg.style_dim, device=self.device)
@@ -253,13 +262,13 @@ class SRMTrainer:
             self.d.requires_grad_(True)
             with torch.no_grad():
                 fake = self.g(rgb, alpha, z) * 2.0 - 1.0
-            d_loss = d_logistic(self.d(real, cond), self.d(fake, cond))
+            d_loss = d_logistic(self.d(real_d, cond), self.d(fake, cond))
             self.opt_d.zero_grad(set_to_none=True)
             d_loss.backward()
             self.opt_d.step()
             terms["d"] = float(d_loss.detach())
             if cfg.r1_every > 0 and self.step % cfg.r1_every == 0:
-                r1, real_logits = r1_penalty(lambda x: self.d(x, cond), real)  # type: ignore[misc]
+                r1, real_logits = r1_penalty(lambda x: self.d(x, cond), real_d)  # type: ignore[misc]
                 self.opt_d.zero_grad(set_to_none=True)
                 (cfg.r1_gamma / 2 * r1 * cfg.r1_every + 0 * real_logits[0]).backward()
                 self.opt_d.step()
