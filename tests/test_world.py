@@ -639,3 +639,16 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     ArcticRoot(out)  # opens as an ARCTIC root
     with pytest.raises(AssetError, match="already exists"):
         add_annotation_noise(tiny_world, out)
+    # on a real ARCTIC root, the derived folders holding the exact labels are not linked
+    real = tmp_path / "real"
+    (real / "arctic_data" / "data").mkdir(parents=True)
+    for item in tiny_world.iterdir():
+        if item.name != "arctic_data":
+            (real / item.name).symlink_to(item.resolve())
+    for item in src_d.iterdir():
+        (real / "arctic_data" / "data" / item.name).symlink_to(item.resolve())
+    for name in ("processed_seqs", "feat"):
+        (real / "arctic_data" / "data" / name).mkdir()
+    add_annotation_noise(real, tmp_path / "real_noisy", process_splits=False)
+    kept = {p.name for p in (tmp_path / "real_noisy" / "arctic_data" / "data").iterdir()}
+    assert "cropped_images" in kept and not kept & {"processed_seqs", "feat", "masks"}

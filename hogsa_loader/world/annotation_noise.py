@@ -140,7 +140,9 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
             if item.name != "arctic_data":
                 _link(item, dst / item.name)
         for item in sorted(data.iterdir()):
-            if item.name not in ("raw_seqs", "splits", "masks"):
+            # left out: what the noisy labels replace (raw_seqs, splits), the GT silhouettes, and
+            # ARCTIC's derived folders, which would still hold the exact labels
+            if item.name not in ("raw_seqs", "splits", "masks", "processed_seqs", "feat"):
                 _link(item, dst / _DATA / item.name)
         errors: dict[str, dict[str, float]] = {}
         for subj in sorted(p for p in (data / "raw_seqs").iterdir() if p.is_dir()):
