@@ -190,6 +190,7 @@ def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:
     pipe = getattr(ds, "_pipe", None)
     models = getattr(pipe, "_models", {}) if pipe is not None else {}
     out["gaussians_loaded"] = {f"{k[0]}/{k[1]}": int(getattr(m, "num_gaussians", 0)) for k, m in models.items()}
+    out["render_backend"] = getattr(pipe, "last_backend", None)  # what "auto" resolved to (profile pass)
     out["render_size"] = int(ds.render_size)
     out["render_batch"] = int(ds.batch_size)
     bg = getattr(pipe, "backgrounds", None) if pipe is not None else None
@@ -228,7 +229,8 @@ def bench_real(args: argparse.Namespace) -> dict[str, Any]:
     img = ds._read_image(ds.image_path(ds.imgnames[idx[0]])) if n else None
     return {"timed": res, "data_root": str(Path(root).resolve()), "split": args.real_split, "num_images": len(ds),
             "num_workers": args.num_workers, "source_image_shape": None if img is None else list(img.shape),
-            "stages_ms_per_image": stages, "profile_items": n, "missing_images": ds.missing_images}
+            "stages_ms_per_image": stages, "profile_items": n,
+            "missing_images_in_profile": len(set(ds.missing_image_paths))}  # (workers' counts stay in the workers)
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -119,6 +119,7 @@ def test_synthetic_sample_matches_real(frames, tiny_world):
 def test_keypoints_lie_on_rendered_alpha(frames):
     ds, fr = frames
     assert len(fr) >= 8
+    assert ds._pipe.last_backend == "torch"  # what backend="auto" resolved to on the CPU
     crop_hits, patch_hits = [], []
     for f in fr:
         _, targets, _ = ds.to_sample(f)

@@ -336,6 +336,7 @@ class SynthPipeline:
         self.checks = checks
         self.stats = stats if stats is not None else SynthStats()
         self.backend = backend
+        self.last_backend: Optional[str] = None  # the renderer "auto" resolved to, at the last render
         self.seed = int(seed)
         self.epoch = int(epoch)
         self.layers = root.mano_layers(torch.float64)
@@ -439,6 +440,7 @@ class SynthPipeline:
             Ks = torch.as_tensor(vg.K_render[keep], dtype=dtype, device=dev)[:, None]
             with torch.no_grad():
                 out = model.render(poses, viewmats, Ks, Wr, Hr, render_mode="RGB", backend=self.backend)
+            self.last_backend = str(out.meta.get("backend", self.backend))
             rgb = out.rgb[:, 0]  # (b, Hr, Wr, 3) premultiplied on black
             alpha = out.alpha[:, 0]  # (b, Hr, Wr, 1)
             part_alpha = out.part_alpha[:, 0]  # (b, Hr, Wr, 3)
