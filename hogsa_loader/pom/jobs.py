@@ -97,11 +97,11 @@ def fit_contactnet(
         raise ValueError(f"no training subject left: subjects {subjects}, held out {val_subj}")
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
-    t0 = time.perf_counter()
-    train = build_contact_data(root, train_subj, infos, objects)
-    val = build_contact_data(root, val_subj, infos, objects) if val_subj else None
-    prep = time.perf_counter() - t0
     cfg = TrainConfig(iters=iters, batch=batch, points=points, lr=lr, val_every=val_every, seed=seed)
+    t0 = time.perf_counter()
+    train = build_contact_data(root, train_subj, infos, objects, near=cfg.near)
+    val = build_contact_data(root, val_subj, infos, objects, near=cfg.near) if val_subj else None
+    prep = time.perf_counter() - t0
     bar = tqdm(total=iters, disable=not progress, desc="contactnet")
 
     def step(it: int, info: dict) -> None:

@@ -33,7 +33,8 @@ __all__ = ["TrainConfig", "ContactData", "build_contact_data", "train_contactnet
 
 @dataclass
 class TrainConfig:
-    """ContactNet training settings."""
+    """ContactNet training settings (``near``: a frame is used when a hand is this close to
+    the object, :func:`build_contact_data`)."""
 
     iters: int = 1500
     batch: int = 8
