@@ -68,7 +68,6 @@ BUNDLE_FORMAT = "hogsa-bundle"
 BUNDLE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.json"
 _PARTS = ("hand_right", "hand_left", "object")
-_LIGHT = "light"  # (hogs_model.LIGHT_DIR)
 
 
 # --------------------------------------------------------------------------------------
@@ -270,11 +269,12 @@ def _copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def _light_files() -> dict[str, str]:
-    """``{"tensors": file name, "manifest": file name}`` of a light checkpoint folder."""
+def _light_files() -> tuple[str, dict[str, str]]:
+    """A run's light folder name and ``{"tensors": file name, "manifest": file name}`` in it."""
+    from hogsa_loader.gaussians.hogs_model import LIGHT_DIR
     from hogsa_loader.gaussians.shading import LIGHT_MANIFEST, LIGHT_TENSORS
 
-    return {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
+    return LIGHT_DIR, {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
 
 
 def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks: Sequence[Path]) -> list[str]:
@@ -413,11 +413,12 @@ def write_bundle(
                 "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
             }
         light = None
-        if (run / _LIGHT).is_dir():  # the learned light the run's colours were fitted under
-            _copy(run / _LIGHT, out / rel / _LIGHT)
-            light = {f"{k}_sha256": _sha256_file(out / rel / _LIGHT / f) for k, f in _light_files().items()}
-        elif (out / rel / _LIGHT).exists():
-            shutil.rmtree(out / rel / _LIGHT)
+        light_dir, light_files = _light_files()
+        if (run / light_dir).is_dir():  # the learned light the run's colours were fitted under
+            _copy(run / light_dir, out / rel / light_dir)
+            light = {f"{k}_sha256": _sha256_file(out / rel / light_dir / f) for k, f in light_files.items()}
+        elif (out / rel / light_dir).exists():
+            shutil.rmtree(out / rel / light_dir)
         hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts, "light": light})
     used = sorted({obj for _, obj, _, _ in runs})
     banks = []
@@ -522,6 +523,7 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
         raise _bundle_error(path, problems)
 
     hand_hash = {s: manifest["hand_model"].get(s, {}).get("template_hash") for s in ("right", "left")}
+    light_dir, light_files = _light_files()
     hogs: dict[tuple[str, str], HogsEntry] = {}
     if not manifest["hogs"]:
         problems.append("the bundle lists no HOGS run")
@@ -571,11 +573,11 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
         if "light" not in rec or not (light is None or isinstance(light, dict)):
             problems.append(f"{what}: 'light' must be null or an object of hashes")
             ok = False
-        elif light is None and (run / _LIGHT).exists():
-            problems.append(f"{what}: {run / _LIGHT} is not listed in the bundle manifest")
+        elif light is None and (run / light_dir).exists():
+            problems.append(f"{what}: {run / light_dir} is not listed in the bundle manifest")
         elif light is not None:
-            for k, fname in _light_files().items():
-                f = run / _LIGHT / fname
+            for k, fname in light_files.items():
+                f = run / light_dir / fname
                 if not f.is_file():
                     problems.append(f"{what}: {f} is missing")
                     ok = False

@@ -136,13 +136,10 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
     return "complete"
 
 
-def _extra_shards(out_dir: Path, n: int, prefix: str) -> list[Path]:
-    """Shard files of ``out_dir`` numbered ``n`` or more (left by a larger export)."""
-    out = []
-    for p in out_dir.glob(f"{prefix}-[0-9][0-9][0-9][0-9][0-9][0-9].tar"):
-        if int(p.name[len(prefix) + 1:-4]) >= n:
-            out.append(p)
-    return sorted(out)
+def _extra_shards(out_dir: Path, n: int, prefix: str) -> list[int]:
+    """Numbers of the shard files in ``out_dir`` numbered ``n`` or more (left by a larger export)."""
+    found = (int(p.name[len(prefix) + 1 : -4]) for p in out_dir.glob(f"{prefix}-[0-9][0-9][0-9][0-9][0-9][0-9].tar"))
+    return sorted(s for s in found if s >= n)
 
 
 def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -302,12 +299,12 @@ def write_shards(
     extra = _extra_shards(out, n, prefix)
     if (stale or extra) and not overwrite:
         what = (f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}" if stale else
-                f"{extra[0]} lies beyond this export's {n} shard(s) (an export with a larger num?)")
+                f"{out / shard_name(extra[0], prefix)} lies beyond this export's {n} shard(s) (an export with a larger num?)")
         raise ExportMismatchError(f"{out}: holds shards of another export: {what}; use another folder or "
                                   "overwrite=True (hogsa export --overwrite)")  # fmt: skip
-    for p in extra:  # (overwrite) a reader globbing *.tar must not find them
-        _index_path(out, int(p.name[len(prefix) + 1:-4]), prefix).unlink(missing_ok=True)
-        p.unlink(missing_ok=True)
+    for x in extra:  # (overwrite) a reader globbing *.tar must not find them
+        _index_path(out, x, prefix).unlink(missing_ok=True)
+        (out / shard_name(x, prefix)).unlink(missing_ok=True)
     todo = [s for s in mine if state[s] != "complete"]
     skipped = [s for s in mine if s not in todo]
     total = sum(len(shard_range(s, num, shard_size)) for s in todo)

@@ -129,6 +129,35 @@ def atomic_write(path: Path, data: bytes) -> None:
         os.close(fd)
 
 
+def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping[str, Tensor], manifest_file: str,
+                               manifest: Mapping[str, Any], indent: int = 1) -> Path:
+    """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
+    tensors first. Everything is checked before anything is written: floating tensors must be
+    finite and the manifest strict JSON (no NaN / infinity), so a refused save leaves an
+    existing checkpoint as it was.
+
+    Returns:
+        the manifest path.
+
+    Raises:
+        ValueError: non-finite tensors or a manifest value that is not JSON (names the file).
+    """
+    from safetensors.torch import save as st_save
+
+    folder = Path(folder)
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
+    try:
+        text = json.dumps(manifest, indent=indent, allow_nan=False) + "\n"
+    except ValueError as exc:
+        raise ValueError(f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); not saved") from None
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write(folder / tensors_file, st_save(dict(tensors)))
+    atomic_write(folder / manifest_file, text.encode("utf-8"))
+    return folder / manifest_file
+
+
 def _dtype_name(dtype: torch.dtype) -> str:
     return str(dtype).removeprefix("torch.")
 

@@ -19,7 +19,6 @@ Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.j
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -106,20 +105,13 @@ class DirectionalLight(nn.Module):
 
 def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     """Write ``light.safetensors`` + ``manifest.json`` into ``folder`` (atomically)."""
-    from safetensors.torch import save as st_save
-
-    from hogsa_loader.gaussians.checkpoint import atomic_write
+    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().float().contiguous() for k, v in light.state_dict().items()}
-    if not all(bool(torch.isfinite(v).all()) for v in tensors.values()):  # checked before anything is written
-        raise ValueError(f"{folder}: the light's tensors contain NaN or infinity; not saved")
     manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
                 "tensors_file": LIGHT_TENSORS, **light.describe()}  # fmt: skip
-    text = json.dumps(manifest, indent=1, allow_nan=False) + "\n"
-    atomic_write(folder / LIGHT_TENSORS, st_save(tensors))
-    atomic_write(folder / LIGHT_MANIFEST, text.encode())
+    write_tensors_and_manifest(folder, LIGHT_TENSORS, tensors, LIGHT_MANIFEST, manifest)
     return folder
 
 

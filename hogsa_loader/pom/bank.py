@@ -32,7 +32,6 @@ The manifest's ``entries`` list gives, per row, ``{"subject", "sequence", "frame
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
@@ -111,9 +110,7 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     Returns:
         the manifest path.
     """
-    from safetensors.torch import save as st_save
-
-    from hogsa_loader.gaussians.checkpoint import atomic_write
+    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
 
     n = state.batch
     if len(sources) != n:
@@ -121,10 +118,6 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     m = {k: torch.as_tensor(np.asarray(metrics[k], dtype=np.float32)).reshape(-1) for k in METRIC_KEYS}
     bank = PoseBank(state, list(sources), m, dict(info or {}))
     tensors = bank.tensors()
-    out = Path(path)
-    bad = [k for k, v in tensors.items() if not bool(torch.isfinite(v).all())]
-    if bad:
-        raise ValueError(f"pose-bank tensors {bad[:3]} contain NaN or infinity; not saved")
     manifest = {
         "schema": BANK_SCHEMA,
         "schema_version": BANK_VERSION,
@@ -137,15 +130,7 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
                     for i, (a, b, c) in enumerate(sources)],
         "info": bank.info,
     }
-    try:  # strict JSON, checked before anything is written
-        text = json.dumps(manifest, indent=1, allow_nan=False) + "\n"
-    except ValueError as exc:
-        raise ValueError(f"{out / MANIFEST_FILE}: the manifest would hold NaN or infinity ({exc}); not saved") from None
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / TENSOR_FILE, st_save(tensors))
-    mpath = out / MANIFEST_FILE
-    atomic_write(mpath, text.encode("utf-8"))
-    return mpath
+    return write_tensors_and_manifest(Path(path), TENSOR_FILE, tensors, MANIFEST_FILE, manifest)
 
 
 def load_pose_bank(path: PathLike) -> PoseBank:

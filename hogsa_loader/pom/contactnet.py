@@ -19,7 +19,6 @@ Coordinates are expected in the object's canonical frame (metres); they are scal
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
@@ -159,16 +158,9 @@ def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] 
     Returns:
         the manifest path.
     """
-    from safetensors.torch import save as st_save
+    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
 
-    from hogsa_loader.gaussians.checkpoint import atomic_write
-
-    out = Path(run_dir)
-    out.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
-    if bad:
-        raise ValueError(f"ContactNet weights {bad[:3]} contain NaN or infinity; not saved")
     cfg = asdict(model.config)
     cfg["head"] = list(cfg["head"])
     manifest = {
@@ -180,14 +172,7 @@ def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] 
         "tensors": {k: list(v.shape) for k, v in tensors.items()},
     }
     manifest.update(extra or {})
-    try:  # strict JSON, checked before anything is written
-        text = json.dumps(manifest, indent=2, allow_nan=False) + "\n"
-    except ValueError as exc:
-        raise ValueError(f"{out / MANIFEST_FILE}: the manifest would hold NaN or infinity ({exc}); not saved") from None
-    atomic_write(out / WEIGHTS_FILE, st_save(tensors))
-    path = out / MANIFEST_FILE
-    atomic_write(path, text.encode("utf-8"))
-    return path
+    return write_tensors_and_manifest(Path(run_dir), WEIGHTS_FILE, tensors, MANIFEST_FILE, manifest, indent=2)
 
 
 def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> ContactNet:

@@ -79,7 +79,10 @@ def _run_hash(run: Path) -> str:
     for name in PART_NAMES:
         m = json.loads((run / name / "manifest.json").read_text())
         h.update(m["tensors_sha256"].encode() + json.dumps(m.get("config"), sort_keys=True).encode())
-    light = run / "light" / "light.safetensors"
+    from hogsa_loader.gaussians.hogs_model import LIGHT_DIR
+    from hogsa_loader.gaussians.shading import LIGHT_TENSORS
+
+    light = run / LIGHT_DIR / LIGHT_TENSORS
     if light.is_file():
         h.update(hashlib.sha256(light.read_bytes()).digest())
     return h.hexdigest()[:16]
