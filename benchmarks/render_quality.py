@@ -5,7 +5,9 @@ Evaluates one or more runs of ``pretrain/train_hogs.py`` (e.g. ``--gaussians mes
 ``--gaussians free`` of the same subject + object) on the held-out camera views × held-out
 frames of their own split (read from each run's ``config.json``), inside the foreground
 box as the paper crops (:mod:`hogsa_loader.train.hogs_eval`). With ``--srm RUN`` the first
-run is also scored after SRM refinement (``without_srm`` / ``with_srm``).
+run is also scored after SRM refinement (``without_srm`` / ``with_srm``). An SRM whose
+manifest records that it was trained or selected on one of the scored views of that
+subject + object is refused (``--allow-seen-views`` scores it anyway, marked not held-out).
 
 Example::
 
@@ -19,7 +21,8 @@ Example::
 
 JSON: ``psnr``, ``ssim``, ``lpips`` (null when unavailable, with ``lpips_note``) and
 ``per_view`` of the first run; ``runs`` (every run's metrics, labelled by its Gaussians
-variant); with ``--srm``: ``without_srm`` and ``with_srm``.
+variant); with ``--srm``: ``without_srm``, ``with_srm`` and ``srm_views_check`` (held-out,
+not held-out, or unchecked for SRMs that do not record their training views).
 """
 
 from __future__ import annotations
@@ -50,6 +53,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
     p.add_argument("--srm", default=None, help="SRM run folder: also score the first run after refinement")
+    p.add_argument("--allow-seen-views", action="store_true",
+                   help="score an SRM even on views it was trained or selected on (the figure is then not held-out)")
     p.add_argument("--max-eval", type=int, default=64, help="at most this many held-out images (evenly spaced)")
     p.add_argument("--png-rows", type=int, default=4)
     p.add_argument("--device", default="cpu")
@@ -109,6 +114,28 @@ def write_png(path: Path, columns: list[list[tuple[torch.Tensor, torch.Tensor]]]
     plt.close(fig)
 
 
+def check_srm_views(a: argparse.Namespace, data: HogsData) -> str:
+    """Refuse an SRM that was trained or selected on one of the held-out views scored here
+    (unless ``--allow-seen-views``); returns a note for the JSON."""
+    from hogsa_loader.srm import read_srm_manifest, seen_views
+
+    manifest = read_srm_manifest(a.srm)
+    seen = seen_views(manifest, data.subject, data.object_name)
+    if seen is None:
+        note = "unchecked: the SRM manifest does not record its training views"
+        print(f"render_quality: WARNING {a.srm}: {note}; the with-SRM figure is held-out only if it "
+              f"never saw views {list(data.eval_views)} of {data.subject}/{data.object_name}", file=sys.stderr)  # fmt: skip
+        return note
+    both = sorted(seen & {int(v) for v in data.eval_views})
+    if not both:
+        return f"held-out: the SRM saw views {sorted(seen)} of {data.subject}/{data.object_name}, none scored here"
+    msg = f"the SRM {a.srm} was trained or selected on view(s) {both} of {data.subject}/{data.object_name}, which are scored here"
+    if not a.allow_seen_views:
+        raise SystemExit(f"render_quality: {msg}; its figure would not be held-out (pass --allow-seen-views to score anyway)")
+    print(f"render_quality: WARNING {msg}", file=sys.stderr)
+    return f"not held-out: {msg}"
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     a = parse_args(argv)
     device = torch.device(a.device)
@@ -149,6 +176,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         assert first is not None
         model, data, m = first
         srm = load_srm(a.srm, device=device)
+        seen_note = check_srm_views(a, data)
         if srm.scale != 1:  # its output would be scored against boxes of the input size
             raise SystemExit(f"render_quality: {a.srm} is a scale-{srm.scale} SRM; only scale-1 SRMs (same-size "
                              "refinement, what the loader uses) can be scored here")  # fmt: skip
@@ -158,6 +186,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         out["without_srm"] = summary({**runs[0], "alpha_outside": runs[0]["alpha_outside"]})
         out["with_srm"] = summary(ev)
         out["srm"] = str(a.srm)
+        out["srm_views_check"] = seen_note
         columns.append(ev.get("images", []))
         labels.append("SRM")
         print(f"with SRM: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  (without: {runs[0]['psnr']:.2f} / {runs[0]['ssim']:.4f})")

@@ -417,6 +417,7 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
     from hogsa_loader.srm.io import read_srm_manifest
 
     assert read_srm_manifest(out)["extra"]["step"] == best
+    _check_recorded_targets_and_render_quality_refusal(tiny_world, hogs_runs / "s01_box", out, tmp_path)
     # the saved weights score exactly the recorded validation PSNR (they are that step's EMA)
     from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
 
@@ -443,6 +444,45 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
         tr._eval_point(fake_ev)
     assert tr.best["step"] == 2 and tr.best["psnr"] == 25.0
     assert all(float(t.flatten()[0]) == 2.0 for t in tr.best_model().net.parameters())
+
+
+def _check_recorded_targets_and_render_quality_refusal(world, run, srm_dir, tmp_path):
+    """The SRM records which views it trained and selected on; render_quality scores it on
+    the held-out view and refuses it on a view it saw."""
+    import shutil
+    import types
+
+    from hogsa_loader.srm.io import SRM_MANIFEST, read_srm_manifest, seen_views
+
+    man = read_srm_manifest(srm_dir)
+    (t,) = man["extra"]["targets"]
+    assert (t["run"], t["subject"], t["object"]) == ("s01_box", "s01", "box")
+    assert t["val_views"] == [2, 5] and not {2, 5, 8} & set(t["views"]) and t["views"]
+    for ck in (srm_dir / "checkpoints").glob("step_*/g_ema"):  # the step checkpoints record them too
+        assert read_srm_manifest(ck)["extra"]["targets"] == man["extra"]["targets"]
+    assert seen_views(man, "s01", "box") == set(t["views"]) | {2, 5}
+    assert seen_views(man, "s02", "box") == set() and seen_views({"extra": {}}, "s01", "box") is None
+
+    rq = importlib.util.spec_from_file_location("render_quality", ROOT / "benchmarks" / "render_quality.py")
+    mod = importlib.util.module_from_spec(rq)
+    rq.loader.exec_module(mod)
+    js = tmp_path / "q.json"
+    assert mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2"]) == 0
+    assert json.loads(js.read_text())["srm_views_check"].startswith("held-out:")
+    # the same SRM claiming it trained on view 8: refused, or scored and marked with the flag
+    seen = tmp_path / "seen_srm"
+    shutil.copytree(srm_dir, seen, ignore=shutil.ignore_patterns("checkpoints", "cache"))
+    m2 = json.loads((seen / SRM_MANIFEST).read_text())
+    m2["extra"]["targets"][0]["views"].append(8)
+    (seen / SRM_MANIFEST).write_text(json.dumps(m2))
+    data = types.SimpleNamespace(subject="s01", object_name="box", eval_views=[8])
+    with pytest.raises(SystemExit, match=r"view\(s\) \[8\] of s01/box"):
+        mod.check_srm_views(mod.parse_args(["--run", str(run), "--json", str(js), "--srm", str(seen)]), data)
+    args = mod.parse_args(["--run", str(run), "--json", str(js), "--srm", str(seen), "--allow-seen-views"])
+    assert mod.check_srm_views(args, data).startswith("not held-out:")
+    del m2["extra"]["targets"]
+    (seen / SRM_MANIFEST).write_text(json.dumps(m2))
+    assert mod.check_srm_views(args, data).startswith("unchecked")
 
 
 def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, srm_cache, tmp_path):

@@ -15,8 +15,8 @@ Typical use::
     refined = srm.refine(rgb, alpha)    # (B,H,W,3) premultiplied, alpha (B,H,W)
 """
 
-from hogsa_loader.srm.io import load_srm, read_srm_manifest, save_srm
+from hogsa_loader.srm.io import load_srm, read_srm_manifest, save_srm, seen_views
 from hogsa_loader.srm.model import SRM
 from hogsa_loader.srm.styleunet import StyleUNet, StyleUNetConfig, count_gflops
 
-__all__ = ["SRM", "StyleUNet", "StyleUNetConfig", "count_gflops", "load_srm", "save_srm", "read_srm_manifest"]
+__all__ = ["SRM", "StyleUNet", "StyleUNetConfig", "count_gflops", "load_srm", "save_srm", "read_srm_manifest", "seen_views"]

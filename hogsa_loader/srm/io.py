@@ -9,7 +9,9 @@ library_version     writer's ``hogsa_loader.__version__``
 architecture        ``"styleunet"``
 config              :class:`~hogsa_loader.srm.styleunet.StyleUNetConfig` as JSON
 io                  ``{"input": "premultiplied RGB (B,H,W,3) in [0,1] + alpha", "scale": s}``
-extra               free-form JSON (training provenance, metrics)
+extra               free-form JSON (training provenance, metrics); ``train_srm.py`` records
+                    ``targets``: per HOGS run, subject, object and the views the SRM was
+                    trained (``views``) and selected (``val_views``) on (:func:`seen_views`)
 tensors             ``{name: {"shape": [...], "dtype": "float32"}}``
 tensors_file        ``"srm.safetensors"``
 tensors_sha256      sha256 of the tensors file
@@ -35,7 +37,8 @@ from hogsa_loader.gaussians.checkpoint import atomic_write
 from hogsa_loader.srm.model import SRM
 from hogsa_loader.srm.styleunet import StyleUNetConfig
 
-__all__ = ["SRM_FORMAT", "SRM_SCHEMA_VERSION", "SRM_MANIFEST", "SRM_TENSORS", "save_srm", "read_srm_manifest", "load_srm"]
+__all__ = ["SRM_FORMAT", "SRM_SCHEMA_VERSION", "SRM_MANIFEST", "SRM_TENSORS", "save_srm", "read_srm_manifest", "load_srm",
+           "seen_views"]
 
 SRM_FORMAT = "hogsa-srm"
 SRM_SCHEMA_VERSION = 1
@@ -114,6 +117,24 @@ def read_srm_manifest(folder: PathLike) -> dict[str, Any]:
     if m["architecture"] != "styleunet":
         raise AssetError(path, f"unknown architecture {m['architecture']!r}")
     return m
+
+
+def seen_views(manifest: Mapping[str, Any], subject: str, object_name: str) -> Optional[set[int]]:
+    """Camera views of (``subject``, ``object_name``) whose ground truth the SRM saw in
+    training or checkpoint selection, from ``manifest["extra"]["targets"]``.
+
+    Returns:
+        the set of views (empty when the SRM never saw that subject + object), or ``None``
+        when the manifest does not record its targets (SRMs written before they were).
+    """
+    targets = manifest.get("extra", {}).get("targets")
+    if not isinstance(targets, list):
+        return None
+    seen: set[int] = set()
+    for t in targets:
+        if isinstance(t, dict) and (t.get("subject"), t.get("object")) == (subject, object_name):
+            seen.update(int(v) for v in list(t.get("views") or []) + list(t.get("val_views") or []))
+    return seen
 
 
 def load_srm(folder: PathLike, device: Optional[torch.device | str] = None, *, dtype: torch.dtype = torch.float32) -> SRM:

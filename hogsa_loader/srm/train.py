@@ -437,9 +437,22 @@ class SRMTrainer:
         return m
 
     # ------------------------------------------------------------------ checkpoints
+    def targets(self) -> list[dict[str, Any]]:
+        """What the SRM has seen, per run: subject, object, sequences and the views whose
+        ground-truth images were training targets (``"views"``) or validation targets
+        (``"val_views"``). Recorded in every saved SRM so that an evaluation can refuse
+        views the SRM was trained or selected on (``benchmarks/render_quality.py --srm``)."""
+        out = []
+        for ps in self.sets:
+            views = sorted({int(ps.data.train[int(i)].view) for i in ps.train_rows})
+            val = sorted({int(ps.data.train[int(i)].view) for i in ps.val_rows})
+            out.append({"run": ps.name, "subject": ps.data.subject, "object": ps.data.object_name,
+                        "sequences": [s.name for s in ps.data.sequences], "views": views, "val_views": val})  # fmt: skip
+        return out
+
     def _provenance(self, final: Optional[dict[str, Any]] = None, step: Optional[int] = None) -> dict[str, Any]:
         d: dict[str, Any] = {"step": self.step if step is None else step, "runs": [s.name for s in self.sets], "image_size": self.size,
-                             "perceptual": self.perc.kind, "gflops_256": self.gflops}  # fmt: skip
+                             "perceptual": self.perc.kind, "gflops_256": self.gflops, "targets": self.targets()}  # fmt: skip
         if final is not None:
             d["held_out"] = {k: final[k] for k in ("without_srm", "with_srm")}
         if self.best is not None:
@@ -453,10 +466,11 @@ class SRMTrainer:
         ck = self.out / "checkpoints"
         folder = ck / f"step_{self.step:07d}"
         folder.mkdir(parents=True, exist_ok=True)
-        save_srm(self.g, folder / "g", extra={"step": self.step})
-        save_srm(self.g_ema, folder / "g_ema", extra={"step": self.step})
+        targets = self.targets()
+        save_srm(self.g, folder / "g", extra={"step": self.step, "targets": targets})
+        save_srm(self.g_ema, folder / "g_ema", extra={"step": self.step, "targets": targets})
         if self.best is not None:
-            save_srm(self.best_model(), folder / "g_best", extra={"step": int(self.best["step"])})
+            save_srm(self.best_model(), folder / "g_best", extra={"step": int(self.best["step"]), "targets": targets})
         tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
         if self.device.type == "cuda":
             tensors["rng.cuda"] = torch.cuda.get_rng_state(self.device)
