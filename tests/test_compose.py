@@ -165,6 +165,63 @@ def test_coco_missing_and_malformed_files(tmp_path, coco_root):
     assert out.shape == (30, 8, 8, 3)
 
 
+def test_coco_without_sizes_is_deterministic_and_annotation_ids_checked(tmp_path):
+    """An annotation file without image sizes: every draw decodes at full size, so the same
+    generator gives the same image whatever was drawn before (the size is never learnt from
+    a decode). An annotation without 'id' is refused naming the file."""
+    root = tmp_path / "c"
+    (root / "images" / "train2017").mkdir(parents=True)
+    (root / "annotations").mkdir()
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur((rng.random((900, 1200, 3)) * 255).astype(np.uint8), (0, 0), 3)
+    cv2.imwrite(str(root / "images" / "train2017" / "a.jpg"), img)
+    ann = {"images": [{"id": 1, "file_name": "a.jpg"}], "categories": [{"id": 1, "name": "cup"}], "annotations": []}
+    (root / "annotations" / "instances_train2017.json").write_text(json.dumps(ann))
+    src = CocoBackgrounds(root, index_cache=False)
+    for seed in range(6):
+        first = src.sample(1, 224, 224, _gen(seed))
+        assert torch.equal(first, src.sample(1, 224, 224, _gen(seed))), seed
+        assert torch.equal(first, CocoBackgrounds(root, index_cache=False).sample(1, 224, 224, _gen(seed)))
+    assert src.sizes == [None]
+    ann["annotations"] = [{"image_id": 1, "category_id": 1, "bbox": [0, 0, 1, 1]}]
+    (root / "annotations" / "instances_train2017.json").write_text(json.dumps(ann))
+    with pytest.raises(AssetError, match="lacks 'id'") as ei:
+        CocoBackgrounds(root, index_cache=False)
+    assert ei.value.path.endswith("instances_train2017.json")
+    assert CocoBackgrounds(_write_coco(tmp_path / "c2"), categories="cup", index_cache=False).categories == ["cup"]
+
+
+def test_unreadable_backgrounds_skip_to_the_next_and_never_fail_at_random(tmp_path):
+    """With 1 good image among 8, every draw succeeds (the next readable image in list
+    order); draws that land on good images are unchanged; only an all-bad list raises,
+    naming the folder."""
+    d = tmp_path / "bg"
+    d.mkdir()
+    cv2.imwrite(str(d / "a_good.png"), np.full((40, 50, 3), (0, 0, 200), np.uint8))
+    for i in range(7):
+        (d / f"b_junk{i}.jpg").write_bytes(b"not an image")
+    src = FolderBackgrounds(d)
+    with pytest.warns(RuntimeWarning, match="unreadable"):
+        out = torch.cat([src.sample(1, 8, 8, _gen(s)) for s in range(60)])
+    assert torch.allclose(out[..., 0], torch.full_like(out[..., 0], 200 / 255), atol=1 / 255)
+    assert len(src._bad) == 7
+    # a draw that lands on a good image is the same with or without the bad files around
+    clean = tmp_path / "clean"
+    clean.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(clean / f"g{k}.png"), np.full((40, 50, 3), 60 * (k + 1), np.uint8))
+    a = FolderBackgrounds(clean).sample(1, 8, 8, _gen(3))
+    first = int(torch.randint(3, (1,), generator=_gen(3)).item())  # the image this draw lands on
+    (clean / f"g{(first + 1) % 3}.png").write_bytes(b"broken")
+    b = FolderBackgrounds(clean).sample(1, 8, 8, _gen(3))  # (no warning: the bad file is never touched)
+    assert torch.equal(a, b)
+    for i in range(3):
+        (clean / f"g{i}.png").write_bytes(b"broken")
+    with pytest.warns(RuntimeWarning), pytest.raises(AssetError, match="none of the 3 background images") as ei:
+        FolderBackgrounds(clean).sample(1, 8, 8, _gen(0))
+    assert ei.value.path == str(clean)
+
+
 def test_folder_backgrounds(tmp_path):
     d = tmp_path / "bg"
     (d / "sub").mkdir(parents=True)

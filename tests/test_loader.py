@@ -406,6 +406,35 @@ def test_dropped_samples_are_counted(bundle_dir, tiny_world):
     assert ds.stats.dropped["nan"] == 1 and ds.stats.dropped["behind_camera"] == 0 and len(kept) == ds.stats.kept == 3
 
 
+def test_custom_pose_source_without_or_with_clashing_provenance(bundle_dir, tiny_world):
+    """A pose source may give no provenance (PoseBatch's default); keys of its provenance
+    never replace the sample's own identity (index, epoch, seed) in the frame's meta."""
+    from hogsa_loader.loader.poses import PoseBatch
+
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+    ref = [f.meta for f in _dataset(bundle_dir, tiny_world, seed=5).frames(0) if f is not None]
+
+    class Bare:
+        keys = inner.keys
+
+        def sample(self, key, rngs):
+            return PoseBatch(inner.sample(key, rngs).poses)
+
+    class Clashing(Bare):
+        def sample(self, key, rngs):
+            b = inner.sample(key, rngs)
+            return PoseBatch(b.poses, [{**p, "index": 999, "seed": -1, "epoch": 7, "note": "x"} for p in b.provenance])
+
+    bare = _dataset(bundle_dir, tiny_world, seed=5, poses=Bare())
+    frames = bare.frames(0)
+    assert bare.stats.attempted == 4 and bare.stats.kept + bare.stats.num_dropped == 4
+    got = [f.meta for f in frames if f is not None]
+    assert [m["index"] for m in got] == [m["index"] for m in ref] and all("pose_source" not in m for m in got)
+    clash = [f.meta for f in _dataset(bundle_dir, tiny_world, seed=5, poses=Clashing()).frames(0) if f is not None]
+    assert [(m["index"], m["seed"], m["epoch"]) for m in clash] == [(m["index"], 5, 0) for m in ref]
+    assert all(m["note"] == "x" for m in clash)
+
+
 def test_dropped_samples_are_counted_across_workers(bundle_dir, tiny_world):
     """Workers add their counters to the dataset's shared table; the main process sums them."""
     ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2,

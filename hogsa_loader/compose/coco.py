@@ -52,12 +52,15 @@ def _load_coco(ann_file: Path):
         if not isinstance(c, dict) or "id" not in c or "name" not in c:
             raise AssetError(ann_file, f"categories[{i}] lacks 'id' or 'name'")
     for i, a in enumerate(data.get("annotations", [])):
-        if not isinstance(a, dict) or "image_id" not in a or "category_id" not in a:
-            raise AssetError(ann_file, f"annotations[{i}] lacks 'image_id' or 'category_id'")
+        if not isinstance(a, dict) or "id" not in a or "image_id" not in a or "category_id" not in a:
+            raise AssetError(ann_file, f"annotations[{i}] lacks 'id', 'image_id' or 'category_id'")
     coco = COCO()
     coco.dataset = data
-    with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress
-        coco.createIndex()
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress
+            coco.createIndex()
+    except (KeyError, TypeError, ValueError) as e:
+        raise AssetError(ann_file, f"not a valid COCO instances file ({type(e).__name__}: {e})") from e
     return coco
 
 
@@ -212,10 +215,10 @@ class CocoBackgrounds(_ImageListSource):
         if not (idir / first).is_file():
             raise AssetError(idir / first, "COCO image listed in the annotations is missing")
 
-        super().__init__([idir / f for f in files], sizes, crop, cache_bytes, reduced_decode)
+        super().__init__([idir / f for f in files], sizes, crop, cache_bytes, reduced_decode, origin=ann)
         self.ann_file = ann
         self.image_dir = idir
         self.image_ids = img_ids
-        self.categories = None if categories is None else list(categories)
+        self.categories = None if categories is None else ([categories] if isinstance(categories, str) else list(categories))
         self.exclude_person = bool(exclude_person)
 

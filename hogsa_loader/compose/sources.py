@@ -8,8 +8,11 @@ share :class:`_ImageListSource`: a random image, a random crop of random scale
 (:class:`CropSpec`), an optional horizontal flip; decoded images are kept in a per-process
 LRU cache bounded in bytes (:class:`ImageCache`), decoded with OpenCV, COCO images at a
 reduced JPEG scale (``IMREAD_REDUCED_COLOR_{2,4,8}``) when the crop is large enough that
-full resolution is wasted (chosen from the image size and the drawn crop, never from the
-cache, so results are deterministic).
+full resolution is wasted (chosen from the image size known at construction and the drawn
+crop, never from the cache or what was decoded before, so results are deterministic).
+An unreadable image is skipped for the next readable one in list order (with the same crop
+draws), so a bad file changes only the draws that land on it; only a list with no readable
+image at all raises.
 
 Sources are picklable (they hold paths and sizes, not open handles), so they can live in
 DataLoader workers; each worker then has its own cache.
@@ -42,7 +45,6 @@ __all__ = ["BackgroundSource", "CropSpec", "FolderBackgrounds", "IMAGE_EXTENSION
 
 #: File endings :class:`FolderBackgrounds` reads (case-insensitive).
 IMAGE_EXTENSIONS: tuple[str, ...] = (".jpg", ".jpeg", ".png", ".bmp", ".webp")
-_MAX_REDRAWS = 16
 
 # --------------------------------------------------------------------------------------
 # Cache
@@ -308,9 +310,14 @@ class _ImageListSource(BackgroundSource):
         crop: CropSpec = CropSpec(),
         cache_bytes: int = 512 * 2**20,
         reduced_decode: bool = True,
+        origin: Optional[PathLike] = None,
     ) -> None:
         self.paths = [Path(p) for p in paths]
+        #: (w, h) per image as known at construction (None: unknown, decoded at full size);
+        #: never filled in at run time, which would make the decode depend on earlier draws
         self.sizes = list(sizes) if sizes is not None else [None] * len(self.paths)
+        #: what errors name: the folder or annotation file the list came from
+        self.origin = Path(origin) if origin is not None else (self.paths[0].parent if self.paths else Path("<backgrounds>"))
         self.crop = crop
         self.cache = ImageCache(cache_bytes)
         self.reduced_decode = bool(reduced_decode)
@@ -356,31 +363,25 @@ class _ImageListSource(BackgroundSource):
     def _one(self, height: int, width: int, generator: torch.Generator) -> np.ndarray:
         if not self.paths:
             raise AssetError("<backgrounds>", "no background images to draw from")
-        for _ in range(_MAX_REDRAWS):
-            idx = int(torch.randint(len(self.paths), (1,), generator=generator).item())
-            u_frac, u_x, u_y, u_flip = _uniform(generator, 4)
+        n = len(self.paths)
+        first = int(torch.randint(n, (1,), generator=generator).item())
+        u_frac, u_x, u_y, u_flip = _uniform(generator, 4)
+        lo, hi = math.log(self.crop.min_fraction), math.log(self.crop.max_fraction)
+        frac = math.exp(lo + (hi - lo) * u_frac)
+        for k in range(n):  # the drawn image, or the next readable one (same draws either way)
+            idx = (first + k) % n
             if idx in self._bad:
                 continue
             size = self.sizes[idx]
-            aspect = width / height
-            lo, hi = math.log(self.crop.min_fraction), math.log(self.crop.max_fraction)
-            frac = math.exp(lo + (hi - lo) * u_frac)
-            if size is not None:
-                reduce = self._reduction(idx, *_crop_size(size, aspect, frac), width, height)
-            else:
-                reduce = 1
+            reduce = 1 if size is None else self._reduction(idx, *_crop_size(size, width / height, frac), width, height)
             img = self._decode(idx, reduce)
             if img is None:
                 self._bad.add(idx)
-                warnings.warn(f"background image unreadable, skipped: {self.paths[idx]}", RuntimeWarning,
-                              stacklevel=3)
+                warnings.warn(f"background image unreadable (or smaller than 2x2 px), skipped: {self.paths[idx]}",
+                              RuntimeWarning, stacklevel=3)  # fmt: skip
                 continue
-            h, w = img.shape[:2]
-            if size is None:
-                self.sizes[idx] = (w, h)
             return _crop_resize(img, height, width, frac, u_x, u_y, self.crop.hflip and u_flip < 0.5)
-        raise AssetError(self.paths[0].parent, f"{_MAX_REDRAWS} background draws in a row were unreadable "
-                         f"({len(self._bad)} bad images so far)")
+        raise AssetError(self.origin, f"none of the {n} background images is readable (e.g. {self.paths[first]})")
 
 
 
@@ -420,6 +421,6 @@ class FolderBackgrounds(_ImageListSource):
             raise AssetError(folder, f"no background images ({', '.join(IMAGE_EXTENSIONS)}) in folder")
         # sizes unknown: always decode at full scale (a reduction learnt from the cache
         # would make results depend on what was drawn before)
-        super().__init__(paths, None, crop, cache_bytes, reduced_decode=False)
+        super().__init__(paths, None, crop, cache_bytes, reduced_decode=False, origin=folder)
         self.folder = folder
 

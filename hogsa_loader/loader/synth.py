@@ -531,10 +531,11 @@ class SynthPipeline:
             self._drop("label_pixel_mismatch")
             return None
         view = int(vg.view[b])
+        # the pose source's provenance first: the sample's own identity keys always win
         meta = {
+            **(batch.provenance[b] if batch.provenance else {}), **self.source_sizes,
             "seed": self.seed, "epoch": self.epoch, "index": int(index), "subject": sid, "object": obj,
             "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
-            **self.source_sizes, **batch.provenance[b],
         }  # fmt: skip
         if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
