@@ -330,6 +330,20 @@ def test_listing(tree):
         H2ORoot(tree / "nope")
 
 
+def test_listing_ego_and_pose_download_folders(tree, tmp_path):
+    """The ``ego`` and ``pose`` downloads unpack to ``subjectN_ego`` / ``subjectN_pose``."""
+    import shutil
+
+    root = tmp_path / "h2o"
+    shutil.copytree(tree / SUBJ, root / f"{SUBJ}_ego")
+    shutil.copytree(tree / "subject2", root / "subject2_pose")
+    (root / "subjects_notes").mkdir()
+    r = H2ORoot(root)
+    assert r.subjects() == [f"{SUBJ}_ego", "subject2_pose"]
+    assert r.sequences() == [(f"{SUBJ}_ego", SCENE, "0"), ("subject2_pose", "h1", "1")]
+    assert r.frames(f"{SUBJ}_ego", SCENE, SEQ) == FRAMES
+
+
 # --------------------------------------------------------------------------------------
 # Hands
 # --------------------------------------------------------------------------------------

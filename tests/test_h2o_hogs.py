@@ -134,6 +134,29 @@ def test_export_round_trip(h2o_world, tiny_world):
         export_h2o_world(tiny_world, out.parent / "bad", subject="s01", sequence="box_use_01")
 
 
+def test_export_refuses_to_mix_exports_and_cli_errors(tiny_world, tmp_path, capsys):
+    """A second export into the same H2O sequence folder is refused (frames would mix)
+    unless overwrite; the CLI reports bad arguments as errors, not tracebacks."""
+    from hogsa_loader.cli.main import main as cli
+
+    out = tmp_path / "h2o"
+    export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=32)
+    with pytest.raises(AssetError, match="already holds an H2O sequence"):
+        export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16)
+    rec = export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16, overwrite=True)
+    root = H2ORoot(out)
+    assert root.frames("subject1", "h1", 0) == rec["frames"] and len(rec["frames"]) > 2
+    base = ["h2o-export", "--world", str(tiny_world), "--out", str(tmp_path / "x"), "--quiet"]
+    for extra, msg in ((["--object-class", "foo"], "unknown H2O object 'foo'"),
+                       (["--mesh-name", "pringles"], "not a known name of H2O class"),
+                       (["--subject", "s01", "--sequence", "box_use_01"], "articulation varies"),
+                       (["--frame-stride", "0"], "--frame-stride must be >= 1")):  # fmt: skip
+        assert cli(base + extra) == 2
+        assert msg in capsys.readouterr().err
+    assert cli(base[:3] + ["--out", str(out), "--quiet"]) == 1
+    assert "already holds an H2O sequence" in capsys.readouterr().err
+
+
 def test_crop_image_geometry():
     """Crop pixel i shows label coordinate origin + i / k (exact on a linear ramp), also
     when the crop shrinks the image (supersampled + box-filtered); black outside."""

@@ -190,6 +190,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
+    from hogsa_loader.errors import HogsaError
     from hogsa_loader.world.h2o_export import export_h2o_world
 
     try:
@@ -200,9 +201,18 @@ def _cmd_h2o_export(args: argparse.Namespace) -> int:
         print(f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
               file=sys.stderr)
         return 2
-    rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
-                           object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
-                           frame_stride=args.frame_stride)
+    if args.frame_stride < 1:
+        print(f"hogsa: error: --frame-stride must be >= 1, got {args.frame_stride}", file=sys.stderr)
+        return 2
+    try:
+        rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
+                               object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
+                               frame_stride=args.frame_stride, overwrite=args.overwrite)  # fmt: skip
+    except ValueError as exc:  # unknown class / mesh name, a sequence that is not rigid
+        if isinstance(exc, HogsaError):  # problems with files: main() reports them (exit 1)
+            raise
+        print(f"hogsa: error: {exc}", file=sys.stderr)
+        return 2
     if not args.quiet:
         print(json.dumps(rec, indent=1, default=str)[:2000])
     return 0
@@ -310,6 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--mesh-name", default=None, help="mesh folder/file name variant (default: the class's last known)")
     h.add_argument("--image-size", default="320x180", help="WxH of the rendered frames")
     h.add_argument("--frame-stride", type=int, default=4)
+    h.add_argument("--overwrite", action="store_true", help="replace an existing export of the same H2O sequence")
     h.add_argument("--quiet", action="store_true")
     h.set_defaults(func=_cmd_h2o_export)
     return p

@@ -112,7 +112,9 @@ MODALITY_FOLDERS: dict[str, tuple[str, ...]] = {
 _UPPER = {"hand_pose_mano": "hand_pose_MANO", "obj_pose_rt": "obj_pose_RT"}
 _EXT = {"rgb": ".png", "depth": ".png"}
 _FRAME_FILE = re.compile(r"(\d{6,})\.(txt|png)")
-_SUBJECT = re.compile(r"subject(\d+)")
+#: subject folders: ``subjectN`` (download mode ``all``), ``subjectN_ego`` (``ego``: cam4 only)
+#: or ``subjectN_pose`` (``pose``: no RGB-D)
+_SUBJECT = re.compile(r"subject(\d+)(?:_ego|_pose)?")
 _CAM = re.compile(r"cam(\d+)")
 
 #: A MANO model of one side: a layer (its shape blend shapes are used as configured,
@@ -367,7 +369,8 @@ class H2ORoot:
 
     # -- listing ---------------------------------------------------------------------------
     def subjects(self) -> list[str]:
-        """Subject folders (``subjectN``), in numeric order."""
+        """Subject folders (``subjectN``, or ``subjectN_ego`` / ``subjectN_pose`` of the
+        ``ego`` / ``pose`` downloads), in numeric order."""
         return [d for d in _subdirs(self.root) if _SUBJECT.fullmatch(d)]
 
     def sequences(self, subject: Optional[str] = None) -> list[tuple[str, str, str]]:

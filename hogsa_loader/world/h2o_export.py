@@ -34,6 +34,7 @@ Deterministic: the same world and arguments give the same files.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -46,7 +47,7 @@ from hogsa_loader.datasets.conventions import EGO_VIEW, render_intrinsics
 from hogsa_loader.datasets.h2o import H2OCameraRecord, h2o_mano_from_tracks, write_h2o_sequence
 from hogsa_loader.datasets.h2o_io import H2OIntrinsics
 from hogsa_loader.datasets.types import HandTrack, SequenceData
-from hogsa_loader.errors import PathLike
+from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.h2o_meshes import H2O_MESH_NAMES, h2o_class_name
@@ -132,6 +133,7 @@ def export_h2o_world(
     image_size: tuple[int, int] = (320, 180),
     frame_stride: int = 4,
     seed: Optional[int] = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Convert one grab sequence of a generated world into an H2O tree (module docstring).
 
@@ -148,13 +150,16 @@ def export_h2o_world(
         frame_stride: every n-th frame is exported.
         seed: the world's seed (gives its stage); default: the one ``hogsa_world.json``
             records, so the H2O frames show the same table and room as the world's.
+        overwrite: replace an existing ``<out>/<h2o_subject>/<scene>/<seq_id>`` folder
+            (without it, one that holds files is refused: frames of two exports would mix).
 
     Returns:
         the record written to ``<out>/hogsa_h2o_export.json``.
 
     Raises:
         ValueError: a sequence whose articulation changes, an unknown class or mesh name,
-            not 4 allocentric views.
+            not 4 allocentric views, a frame stride < 1.
+        AssetError: the sequence folder already holds files and ``overwrite`` is False.
     """
     from hogsa_loader.hands.mano_io import load_mano
     from hogsa_loader.world.scene_render import foreground, object_meshes, pose_sequence
@@ -167,6 +172,14 @@ def export_h2o_world(
         raise ValueError(f"mesh name {mesh_name!r} is not a known name of H2O class {cls!r} ({H2O_MESH_NAMES[cls]})")
     if len(allo_views) != 4:
         raise ValueError(f"H2O has 4 static cameras; give 4 allocentric views, got {list(allo_views)}")
+    if int(frame_stride) < 1:
+        raise ValueError(f"frame stride must be >= 1, got {frame_stride}")
+    seq_dir = Path(out) / h2o_subject / scene / str(int(seq_id))
+    if seq_dir.is_dir() and any(seq_dir.iterdir()):
+        if not overwrite:
+            raise AssetError(seq_dir, "already holds an H2O sequence; its frames would mix with this export's "
+                                      "(pass overwrite=True, or --overwrite, to replace it)")  # fmt: skip
+        shutil.rmtree(seq_dir)
     root = ArcticRoot(arctic_root)
     if seed is None:
         seed = int(root.world_meta().extra.get("seed", 0))
@@ -181,7 +194,7 @@ def export_h2o_world(
     verts, faces, uv = _baked_mesh(template, float(arti[0]))
     mesh_path = write_obj_mesh(out / "object" / mesh_name, mesh_name, verts, faces, uv, template.texture)
 
-    idx = np.arange(0, seq.num_frames, max(1, int(frame_stride)))
+    idx = np.arange(0, seq.num_frames, int(frame_stride))
     F = len(idx)
     cams = {k: (v, seq.cameras[v]) for k, v in enumerate(allo_views)} | {4: (EGO_VIEW, seq.cameras[EGO_VIEW])}
     w2c = {k: cam.world2cam[idx] for k, (_, cam) in cams.items()}
