@@ -11,8 +11,12 @@ default collate and the same batch size:
    (``pose``, ``pom``, ``render``, ``srm``, ``composite``, ``targets``; CUDA stages are
    synchronised) together with the attempted / kept / dropped counts. With
    ``--num-workers 0`` (the only choice on CUDA: workers never touch CUDA) the stages are
-   those of the timed run; with CPU workers the workers' stats are not visible, so a
-   separate main-process pass of ``--stage-seconds`` gives them.
+   those of the timed run. With CPU workers, ``timed_worker_stats`` / ``timed_worker_stages``
+   are the workers' own counts and seconds over the timed window (from the dataset's
+   shared-memory table, :meth:`~hogsa_loader.loader.dataset.HOGSADataset.total_stats`;
+   seconds summed over workers), and ``stats`` / ``stages`` come from a separate
+   single-process pass of ``--stage-seconds``, which shows the stage costs without
+   contention between workers.
 2. **real** — :class:`hogsa_loader.datasets.arctic_dataset.ArcticDataset` over
    ``--real-data`` (default ``--data``), split ``--real-split``: JPEG decode + blur + crop
    warp + augmentation + targets, the reference a training loop would otherwise run at
@@ -171,8 +175,20 @@ def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:
     sync = (lambda: torch.cuda.synchronize()) if cuda else None
     loader = DataLoader(ds, batch_size=args.batch_size, num_workers=workers,
                         persistent_workers=False, worker_init_fn=_worker_init if workers else None)
-    res = timed_iteration(loader, args.seconds, warmup_batches(args.warmup, workers), on_warm=ds.stats.reset, sync=sync)
+    at_warm: dict[str, Any] = {}
+
+    def on_warm() -> None:
+        ds.stats.reset()
+        at_warm["workers"] = ds.worker_stats().to_vector()
+
+    res = timed_iteration(loader, args.seconds, warmup_batches(args.warmup, workers), on_warm=on_warm, sync=sync)
     out: dict[str, Any] = {"timed": res, "num_workers": workers}
+    if workers and "workers" in at_warm:
+        from hogsa_loader.loader.synth import SynthStats
+
+        timed = SynthStats.from_vector(ds.worker_stats().to_vector() - at_warm["workers"])
+        out["timed_worker_stats"] = timed.as_dict()
+        out["timed_worker_stages"] = stage_report(timed)
     if workers == 0:
         out["stats"] = ds.stats.as_dict()
         out["stages"] = stage_report(ds.stats)
