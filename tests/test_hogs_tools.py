@@ -187,6 +187,12 @@ def test_directional_light_shading_and_checkpoint(tmp_path):
     with pytest.raises(ValueError, match="NaN or infinity; not saved"):  # refused before anything is written
         save_light(bad_light, tmp_path / "light")
     assert (tmp_path / "light" / "light.safetensors").read_bytes() == good
+    # the manifest's checksum ties it to its tensors: another light's tensors are refused
+    save_light(DirectionalLight(direction=(1.0, 0.0, 0.0)), tmp_path / "other")
+    (tmp_path / "light" / "manifest.json").write_text(man)
+    (tmp_path / "light" / "light.safetensors").write_bytes((tmp_path / "other" / "light.safetensors").read_bytes())
+    with pytest.raises(AssetError, match="light.safetensors.*sha256 does not match manifest.json"):
+        load_light(tmp_path / "light")
     (tmp_path / "light" / "manifest.json").write_text('{"format": "hogsa-light", "schema_version": 9}')
     with pytest.raises(AssetError, match="schema_version 9"):
         load_light(tmp_path / "light")

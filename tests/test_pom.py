@@ -408,6 +408,11 @@ def test_contactnet_any_topology_and_roundtrip(tmp_path):
     key = next(iter(w))
     w[key][..., 0] = float("inf")
     save_file(w, str(tmp_path / "run" / "contactnet.safetensors"))
+    # the manifest's checksum catches a replaced weights file first ...
+    with pytest.raises(AssetError, match="contactnet.safetensors.*sha256 does not match manifest.json"):
+        load_contactnet(tmp_path / "run")
+    # ... and a manifest without one (written before checksums) still gets the content checks
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({k: v for k, v in man.items() if k != "tensors_sha256"}))
     with pytest.raises(AssetError, match=f"contactnet.safetensors.*{key}"):
         load_contactnet(tmp_path / "run")
     with torch.no_grad():
@@ -540,10 +545,13 @@ def test_pose_bank_bad_files(scene, tmp_path):
     expect("malformed JSON")
     man_path.write_text(json.dumps({**man, "info": {"loss": float("nan")}}))
     expect("NaN is not a JSON value")
-    man_path.write_text(json.dumps(man))
     bad = dict(tensors)
     bad["right_pose"] = bad["right_pose"][:, :10].contiguous()
     save_file(bad, str(t_path))
+    man_path.write_text(json.dumps(man))
+    expect("poses.safetensors.*sha256 does not match")  # the checksum catches any replaced tensors file
+    # older manifests without a checksum: the content checks below still hold
+    man_path.write_text(json.dumps({k: v for k, v in man.items() if k != "tensors_sha256"}))
     expect("right_pose.*shape")
     bad = dict(tensors)
     bad["obj_trans"] = bad["obj_trans"].clone()
@@ -554,7 +562,7 @@ def test_pose_bank_bad_files(scene, tmp_path):
     save_file(bad, str(t_path))
     expect("left_betas.*missing")
     t_path.write_bytes(b"garbage" * 3)
-    expect("cannot read safetensors")
+    expect("not a valid safetensors file")
     t_path.unlink()
     expect("missing")
     man_path.unlink()

@@ -134,7 +134,8 @@ def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping
     """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
     tensors first. Everything is checked before anything is written: floating tensors must be
     finite and the manifest strict JSON (no NaN / infinity), so a refused save leaves an
-    existing checkpoint as it was.
+    existing checkpoint as it was. The manifest gets ``tensors_sha256`` (sha256 of the
+    tensors file), which :func:`read_checked_tensors` verifies.
 
     Returns:
         the manifest path.
@@ -148,14 +149,42 @@ def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping
     bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
+    blob = st_save(dict(tensors))
     try:
-        text = json.dumps(manifest, indent=indent, allow_nan=False) + "\n"
+        text = json.dumps({**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent,
+                          allow_nan=False) + "\n"  # fmt: skip
     except ValueError as exc:
         raise ValueError(f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); not saved") from None
     folder.mkdir(parents=True, exist_ok=True)
-    atomic_write(folder / tensors_file, st_save(dict(tensors)))
+    atomic_write(folder / tensors_file, blob)
     atomic_write(folder / manifest_file, text.encode("utf-8"))
     return folder / manifest_file
+
+
+def read_checked_tensors(tpath: Path, manifest: Mapping[str, Any], manifest_path: Path) -> dict[str, Tensor]:
+    """Read the safetensors file of a :func:`write_tensors_and_manifest` pair; its sha256 must
+    equal the manifest's ``tensors_sha256`` when the manifest has one (files written before
+    it was recorded have none and are read as they are).
+
+    Raises:
+        AssetError: missing or unreadable file, checksum mismatch, not safetensors (names the file).
+    """
+    from safetensors.torch import load as st_load
+
+    tpath = Path(tpath)
+    if not tpath.is_file():
+        raise AssetError(tpath, f"tensors file is missing (listed in {manifest_path.name})")
+    try:
+        blob = tpath.read_bytes()
+    except OSError as exc:
+        raise AssetError(tpath, f"cannot read file ({exc})") from exc
+    want = manifest.get("tensors_sha256")
+    if want is not None and hashlib.sha256(blob).hexdigest() != want:
+        raise AssetError(tpath, f"sha256 does not match {manifest_path.name} (torn write or files from different checkpoints)")
+    try:
+        return st_load(blob)
+    except Exception as exc:  # safetensors raises its own error types on corrupt headers
+        raise AssetError(tpath, f"not a valid safetensors file ({exc})") from exc
 
 
 def _dtype_name(dtype: torch.dtype) -> str:
@@ -298,22 +327,9 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
 
 def _read_tensors(folder: Path, raw: Mapping[str, Any], part: GaussianPart) -> dict[str, Tensor]:
     """Read, hash-check and validate the tensors file against the manifest and the part."""
-    from safetensors.torch import load as st_load
-
     mpath = folder / MANIFEST_FILE
     tpath = folder / TENSORS_FILE
-    if not tpath.is_file():
-        raise AssetError(tpath, f"file is missing (listed in {MANIFEST_FILE})")
-    try:
-        blob = tpath.read_bytes()
-    except OSError as exc:
-        raise AssetError(tpath, f"cannot read file ({exc})") from exc
-    if hashlib.sha256(blob).hexdigest() != raw["tensors_sha256"]:
-        raise AssetError(tpath, f"sha256 does not match {MANIFEST_FILE} (torn write or files from different checkpoints)")
-    try:
-        tensors = st_load(blob)
-    except Exception as exc:  # safetensors raises its own error types on corrupt headers
-        raise AssetError(tpath, f"not a valid safetensors file ({exc})") from exc
+    tensors = read_checked_tensors(tpath, raw, mpath)  # (read_manifest made tensors_sha256 required)
     listed = raw["tensors"]
     if set(listed) != set(tensors):
         raise AssetError(mpath, f"lists tensors {sorted(listed)} but {TENSORS_FILE} holds {sorted(tensors)}")

@@ -14,7 +14,7 @@ Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling ti
 light can be changed (relighting augmentation).
 
 Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
-(format ``hogsa-light``, schema version 1).
+(format ``hogsa-light``, schema version 1, ``tensors_sha256`` checked on loading when present).
 """
 
 from __future__ import annotations
@@ -121,8 +121,7 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
     Raises:
         AssetError: missing files, wrong format/schema, or bad tensors (names the file).
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
+    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
 
     folder = Path(folder)
     mpath = folder / LIGHT_MANIFEST
@@ -133,11 +132,8 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
         raise AssetError(mpath, f"not a {LIGHT_FORMAT!r} manifest")
     if raw.get("schema_version") != LIGHT_SCHEMA_VERSION:
         raise AssetError(mpath, f"schema_version {raw.get('schema_version')!r} is not supported (expected {LIGHT_SCHEMA_VERSION})")
+    tensors = read_checked_tensors(folder / LIGHT_TENSORS, raw, mpath)
     tpath = folder / LIGHT_TENSORS
-    try:
-        tensors = load_file(str(tpath))
-    except (FileNotFoundError, SafetensorError, OSError) as exc:
-        raise AssetError(tpath, f"cannot read light tensors ({exc})") from exc
     light = into if into is not None else DirectionalLight()
     want = {k: tuple(v.shape) for k, v in light.state_dict().items()}
     have = {k: tuple(v.shape) for k, v in tensors.items()}

@@ -4,7 +4,8 @@ A bank is a folder::
 
     BANK/
       poses.safetensors   tensors, first dimension N (one row per entry)
-      manifest.json       schema, schema_version, count, tensor shapes, sources, provenance
+      manifest.json       schema, schema_version, count, tensor shapes, sources, provenance,
+                          tensors_sha256 (checked on loading when present)
 
 Tensors (float32; the same convention as :class:`~hogsa_loader.datasets.types.SequenceData`:
 ARCTIC world frame, axis-angle, metres, finger pose relative to the MANO mean,
@@ -140,8 +141,7 @@ def load_pose_bank(path: PathLike) -> PoseBank:
         AssetError: missing or malformed manifest / tensor file, unknown schema or version,
             missing keys, wrong shapes, non-finite values, entries that do not match.
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
+    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
 
     p = Path(path)
     folder = p.parent if p.is_file() else p
@@ -167,12 +167,7 @@ def load_pose_bank(path: PathLike) -> PoseBank:
         sources.append((e["subject"], e["sequence"], e["frame"]))
         names.append(e["object"])
     tpath = folder / str(man.get("tensor_file", TENSOR_FILE))
-    if not tpath.is_file():
-        raise AssetError(tpath, "tensor file is missing")
-    try:
-        t = load_file(str(tpath))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-        raise AssetError(tpath, f"cannot read safetensors ({exc})") from None
+    t = read_checked_tensors(tpath, man, mpath)
     for key, shape in _expected_shapes(n).items():
         if key not in t:
             raise AssetError(tpath, f"tensor '{key}' is missing")

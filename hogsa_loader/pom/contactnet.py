@@ -150,7 +150,8 @@ class ContactNet(nn.Module):
 
 
 def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] = None) -> Path:
-    """Write ``contactnet.safetensors`` and ``manifest.json`` into ``run_dir``.
+    """Write ``contactnet.safetensors`` and ``manifest.json`` (with the weights' ``tensors_sha256``,
+    checked by :func:`load_contactnet`) into ``run_dir``.
 
     Args:
         model: the network; run_dir: output folder (created); extra: more manifest keys.
@@ -181,8 +182,7 @@ def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> Co
     Raises:
         AssetError: missing/malformed manifest or weights, wrong schema/version, shapes.
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
+    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
 
     run = Path(run_dir)
     mpath = run / MANIFEST_FILE
@@ -199,12 +199,7 @@ def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> Co
     except (KeyError, TypeError, ValueError) as exc:
         raise AssetError(mpath, f"bad 'config' ({exc})") from None
     wpath = run / str(man.get("weights", WEIGHTS_FILE))
-    if not wpath.is_file():
-        raise AssetError(wpath, "weights file is missing")
-    try:
-        state = load_file(str(wpath))
-    except (SafetensorError, OSError, ValueError) as exc:
-        raise AssetError(wpath, f"cannot read safetensors ({exc})") from None
+    state = read_checked_tensors(wpath, man, mpath)
     bad = [k for k, v in state.items() if not v.is_floating_point() or not bool(torch.isfinite(v).all())]
     if bad:
         raise AssetError(wpath, f"tensor {bad[0]!r} is not floating point or contains NaN / infinity")
