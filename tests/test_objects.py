@@ -448,6 +448,46 @@ def test_textured_mesh_shares_the_surface(templates, name):
     assert cols.astype(float).std(0).min() > 10
 
 
+def _welded_obj(verts: np.ndarray, faces: np.ndarray, uv: np.ndarray, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Write a textured mesh the way scan exports do: positions welded (one ``v`` per
+    point), one ``vt`` per face corner (``f a/b`` with ``a != b`` at seams). Returns the
+    per-corner positions and UVs (F, 3, 3), (F, 3, 2)."""
+    key = np.round(verts, 6)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in uniq]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in uv[faces].reshape(-1, 2)]
+    lines += [" ".join(["f"] + [f"{inv[faces[i, c]] + 1}/{3 * i + c + 1}" for c in range(3)]) for i in range(len(faces))]
+    path.write_text("\n".join(lines) + "\n")
+    return uniq[inv[faces]], uv[faces]
+
+
+@pytest.mark.parametrize("name", ["box"])
+def test_textured_mesh_with_welded_uv_seams(templates, meta_dir, tmp_path, name):
+    """A mesh_tex.obj with UV seams (several vt per position) loads with every face corner's
+    own texture coordinate (the seam vertices are split), for ARCTIC and H2O readers."""
+    from hogsa_loader.objects.h2o_meshes import load_h2o_object
+
+    t = templates[name]
+    folder = tmp_path / name
+    shutil.copytree(meta_dir / "object_vtemplates" / name, folder)
+    corner_xyz, corner_uv = _welded_obj(t.tex_verts * 1000.0, t.tex_faces, t.tex_uv, folder / "mesh_tex.obj")
+    assert len(np.unique(np.round(t.tex_verts * 1000, 6), axis=0)) < len(t.tex_verts)  # there are seams
+    got = load_object_template(folder)
+    np.testing.assert_allclose(got.tex_verts[got.tex_faces] * 1000.0, corner_xyz, atol=1e-5)
+    np.testing.assert_allclose(got.tex_uv[got.tex_faces], corner_uv, atol=1e-5)
+    # H2O meshes (metres) go through the same kind of loader
+    h2o = tmp_path / "h2o" / "book"
+    h2o.mkdir(parents=True)
+    _welded_obj(t.tex_verts, t.tex_faces, t.tex_uv, h2o / "book.obj")
+    (h2o / "book.obj").write_text("mtllib book.mtl\nusemtl m\n" + (h2o / "book.obj").read_text())
+    (h2o / "book.mtl").write_text("newmtl m\nmap_Kd material.jpg\n")
+    shutil.copy(folder / "material.jpg", h2o / "material.jpg")
+    m = load_h2o_object(tmp_path / "h2o", "book")
+    assert m.has_texture
+    np.testing.assert_allclose(m.tex_uv[m.tex_faces], corner_uv, atol=1e-5)
+
+
 def test_determinism_and_seed_variation(meta_dir, tmp_path):
     again = tmp_path / "again"
     other = tmp_path / "other"

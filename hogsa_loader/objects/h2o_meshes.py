@@ -186,7 +186,9 @@ def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: 
     cls = h2o_class_name(name)
     path = find_h2o_mesh(mesh_dir, cls)
     try:
-        mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=True)
+        # (maintain_order=False: an OBJ vertex with several texture coordinates at a UV
+        # seam is split, one per coordinate; the geometry is welded below anyway)
+        mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=False)
     except Exception as exc:  # trimesh raises many kinds of errors on bad files
         raise AssetError(path, f"cannot parse mesh ({exc})") from exc
     verts = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)

@@ -287,15 +287,24 @@ def _points(value: Any, path: Path, key: str, count: Optional[int]) -> np.ndarra
     return arr
 
 
-def _read_obj(path: Path) -> Any:
-    """Load an OBJ with trimesh (``process=False``, vertex order kept)."""
+def _read_obj(path: Path, keep_order: bool = True) -> Any:
+    """Load an OBJ with trimesh (``process=False``).
+
+    Args:
+        keep_order: keep the file's vertex order (``mesh.obj``, whose ``parts.json`` labels
+            follow it). A textured mesh is read with False: a vertex whose faces use
+            several texture coordinates (``f a/b`` with different ``b`` at a UV seam, as
+            scan meshes are written) is then split into one vertex per coordinate, where
+            keeping the order would keep one coordinate per vertex and smear every face
+            along the seam across the texture atlas.
+    """
     import trimesh
 
     if not path.is_file():
         raise AssetError(path, "file is missing")
     try:
         mesh = trimesh.load(
-            str(path), process=False, force="mesh", maintain_order=True, skip_materials=True
+            str(path), process=False, force="mesh", maintain_order=keep_order, skip_materials=True
         )
     except Exception as exc:  # trimesh raises many kinds of errors on bad files
         raise AssetError(path, f"cannot parse mesh ({exc})") from exc
@@ -350,7 +359,7 @@ def _read_texture(folder: Path, verts_mm: np.ndarray, parts: np.ndarray) -> dict
 
     obj_path = folder / TEX_MESH_FILE
     img_path = folder / TEX_IMAGE_FILE
-    mesh = _read_obj(obj_path)
+    mesh = _read_obj(obj_path, keep_order=False)  # (seam vertices split: one UV per vertex)
     uv = getattr(mesh.visual, "uv", None)
     tex_verts = np.asarray(mesh.vertices, dtype=np.float64)
     if uv is None or np.asarray(uv).shape != (tex_verts.shape[0], 2):
