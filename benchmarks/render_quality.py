@@ -53,6 +53,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
     p.add_argument("--srm", default=None, help="SRM run folder: also score the first run after refinement")
+    p.add_argument("--srm-tta", type=int, default=1, choices=[1, 2, 4, 8],
+                   help="SRM test-time augmentation: symmetric copies averaged (SRM.refine(tta=...))")
     p.add_argument("--allow-seen-views", action="store_true",
                    help="score an SRM even on views it was trained or selected on (the figure is then not held-out)")
     p.add_argument("--max-eval", type=int, default=64, help="at most this many held-out images (evenly spaced)")
@@ -181,11 +183,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             raise SystemExit(f"render_quality: {a.srm} is a scale-{srm.scale} SRM; only scale-1 SRMs (same-size "
                              "refinement, what the loader uses) can be scored here")  # fmt: skip
         names = [s.name for s in data.sequences]
-        ev = evaluate_samples(render_fn(model, data, device), data.eval, names, m, refine=srm.refine,
+        ev = evaluate_samples(render_fn(model, data, device), data.eval, names, m,
+                              refine=lambda rgb, alpha: srm.refine(rgb, alpha, tta=a.srm_tta),
                               lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
         out["without_srm"] = summary({**runs[0], "alpha_outside": runs[0]["alpha_outside"]})
         out["with_srm"] = summary(ev)
         out["srm"] = str(a.srm)
+        out["srm_tta"] = a.srm_tta
         out["srm_views_check"] = seen_note
         columns.append(ev.get("images", []))
         labels.append("SRM")

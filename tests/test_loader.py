@@ -375,6 +375,17 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
     with pytest.raises(AssetError, match=r"srm2/manifest.json.*2x its input size"):
         _dataset(b2, tiny_world, srm=True)
     _dataset(bundle_dir, tiny_world, srm=True)  # scale 1: fine
+    # test-time augmentation of the bundle's SRM
+    from hogsa_loader.srm import load_srm
+
+    with pytest.raises(ValueError, match="srm_tta must be one of"):
+        _dataset(bundle_dir, tiny_world, srm=True, srm_tta=3)
+    refine = _dataset(bundle_dir, tiny_world, srm=True, srm_tta=8)._refiner(torch.device("cpu"))
+    srm = load_srm(load_bundle(bundle_dir).srm.path)
+    rgb, alpha = torch.rand(2, 24, 24, 3), torch.rand(2, 24, 24, 1)
+    rgb = rgb * alpha
+    torch.testing.assert_close(refine(rgb, alpha), srm.refine(rgb, alpha, tta=8), atol=1e-6, rtol=0)
+    assert (refine(rgb, alpha) - srm.refine(rgb, alpha)).abs().max() > 1e-4  # (not the plain pass)
 
 
 def test_dropped_samples_are_counted(bundle_dir, tiny_world):
@@ -468,6 +479,25 @@ def test_wrap_train_loader_drop_in(bundle_dir, tiny_world):
     _, targets, meta = next(iter(loader))
     assert "dist.ro" in targets and targets["dist.ro"].shape[0] == 4 and is_synthetic(meta["imgname"][3])
     assert float(targets["dist.ro"][3].max()) <= float(np.float32(0.1))  # the synthetic row is clamped as the real ones
+
+
+def test_wrap_train_loader_reads_the_protocol(bundle_dir, tiny_world):
+    """The synthetic half follows the real loader's protocol: ArcticDataset.setup, ARCTIC's
+    own dataset (args.setup), through a Subset; p1a/p2a are p1/p2."""
+    import types
+
+    from torch.utils.data import Subset
+
+    from hogsa_loader.integrations.arctic import wrap_train_loader
+
+    real = ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0)
+    kw = dict(ratio=0.5, batch_size=2, backgrounds=ProceduralBackgrounds(), data_root=tiny_world)
+    arctic_own = types.SimpleNamespace(args=types.SimpleNamespace(setup="p2a"), __len__=lambda: 4)
+    cases = ((real, "p1"), (Subset(real, [0, 1, 2, 3]), "p1"), (types.SimpleNamespace(setup="p1a"), "p1"),
+             (arctic_own, "p2"), (types.SimpleNamespace(setup="p2"), "p2"))  # fmt: skip
+    for ds, want in cases:
+        loader = wrap_train_loader(types.SimpleNamespace(dataset=ds, batch_size=2), bundle_dir, **kw)
+        assert loader.synthetic.protocol == want, (ds, want)
 
 
 def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):

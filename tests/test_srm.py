@@ -87,6 +87,37 @@ def test_refine_shapes_dtype_and_alpha(scale, hw):
     assert torch.equal(out, srm.refine(rgb, alpha))
 
 
+@pytest.mark.parametrize("scale", [1, 2])
+def test_refine_test_time_augmentation(scale):
+    """tta averages the refinements of symmetric copies mapped back: with all 8 the result
+    is exactly equivariant (refining a turned image = turning the refined one), which one
+    pass is not; shapes, alpha bound and empty background hold as without it."""
+    from hogsa_loader.srm.model import TTA_CODES, dihedral, dihedral_inverse
+
+    x = torch.rand(2, 3, 5, 7)
+    for c in range(8):
+        assert torch.equal(dihedral_inverse(dihedral(x, c), c), x), c
+    assert len({tuple(dihedral(x[..., :5], c).flatten().tolist()) for c in TTA_CODES[8]}) == 8
+    srm = _srm(scale)
+    rgb, alpha = _inputs(2, 40, 24)
+    turn = lambda t: t.movedim(-1, 1).rot90(1, (-2, -1)).movedim(1, -1) if t.ndim == 4 else t.rot90(1, (-2, -1))  # noqa: E731
+    with torch.no_grad():  # a visibly non-equivariant network
+        for prm in srm.parameters():
+            prm.add_(0.05 * torch.randn_like(prm))
+    one = srm.refine(rgb, alpha)
+    assert (srm.refine(turn(rgb), turn(alpha)) - turn(one)).abs().max() > 1e-3
+    for n in (2, 4, 8):
+        out, a_out = srm.refine(rgb, alpha, tta=n, return_alpha=True)
+        assert out.shape == one.shape and (out <= a_out[..., None] + 1e-6).all()
+        assert (out[a_out == 0] == 0).all()
+        if scale == 1:
+            assert torch.equal(a_out, alpha)
+    full = srm.refine(rgb, alpha, tta=8)
+    torch.testing.assert_close(srm.refine(turn(rgb), turn(alpha), tta=8), turn(full), atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="tta must be one of"):
+        srm.refine(rgb, alpha, tta=3)
+
+
 def test_training_forward_grad_and_wavelet_options():
     for wavelet in (True, False):
         srm = _srm(1, wavelet=wavelet)
@@ -486,7 +517,8 @@ def _check_recorded_targets_and_render_quality_refusal(world, run, srm_dir, tmp_
 
 
 def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, srm_cache, tmp_path):
-    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer, dihedral
+    from hogsa_loader.srm.model import dihedral
+    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
 
     x = torch.arange(16.0).reshape(1, 4, 4)
     outs = [dihedral(x, c) for c in range(8)]

@@ -123,6 +123,9 @@ class HOGSADataset(IterableDataset):
         pose_options: keyword arguments of the pose-source factory.
         srm: refine renders with the bundle's SRM (:func:`hogsa_loader.srm.load_srm`,
             loaded lazily in the iterating process; scale-1 models only).
+        srm_tta: test-time augmentation of the SRM (``SRM.refine(tta=...)``: 1, 2, 4 or 8
+            symmetric copies averaged; +0.13 dB held-out at 8 on the small world, 8× the
+            SRM's cost).
         refiner: explicit ``(rgb, alpha) -> rgb`` refiner (premultiplied (B,S,S,3), alpha
             (B,S,S,1)); overrides ``srm``.
         device: where rendering runs (``"cpu"`` or ``"cuda[:i]"``); see module docstring.
@@ -172,6 +175,7 @@ class HOGSADataset(IterableDataset):
         poses: Any = "perturb",
         pose_options: Optional[dict[str, Any]] = None,
         srm: bool = False,
+        srm_tta: int = 1,
         refiner: Optional[Refiner] = None,
         device: str = "cpu",
         batch_size: int = 8,
@@ -215,6 +219,11 @@ class HOGSADataset(IterableDataset):
         self.poses_spec = poses
         self.pose_options = dict(pose_options or {})
         self.srm = bool(srm)
+        from hogsa_loader.srm.model import TTA_CODES
+
+        if srm_tta not in TTA_CODES:
+            raise ValueError(f"srm_tta must be one of {sorted(TTA_CODES)}, got {srm_tta!r}")
+        self.srm_tta = int(srm_tta)
         self.refiner = refiner
         self.device = str(device)
         self.batch_size = int(batch_size)
@@ -328,7 +337,7 @@ class HOGSADataset(IterableDataset):
         model = load_srm(self.bundle.srm.path, device=dev)  # type: ignore[union-attr]
 
         def refine(rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-            out = model.refine(rgb, alpha)
+            out = model.refine(rgb, alpha, tta=self.srm_tta)
             if out.shape != rgb.shape:
                 raise ValueError(f"the bundle's SRM changes the image size {tuple(rgb.shape)} -> {tuple(out.shape)}; "
                                  "the loader composites at the render size (use a scale-1 SRM)")

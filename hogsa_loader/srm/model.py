@@ -28,10 +28,30 @@ from torch import Tensor, nn
 
 from hogsa_loader.srm.styleunet import StyleUNet, StyleUNetConfig
 
-__all__ = ["SRM", "ALPHA_EPS"]
+__all__ = ["SRM", "ALPHA_EPS", "TTA_CODES", "dihedral", "dihedral_inverse"]
 
 #: Alpha below this counts as empty when un-premultiplying.
 ALPHA_EPS = 1.0 / 255.0
+
+#: :func:`dihedral` codes averaged by ``SRM.refine(..., tta=n)``: identity; + left-right
+#: flip; + the 180° turns (shape-preserving); all 8 symmetries of the square.
+TTA_CODES: dict[int, tuple[int, ...]] = {1: (0,), 2: (0, 1), 4: (0, 1, 4, 5), 8: tuple(range(8))}
+
+
+def dihedral(x: Tensor, code: int) -> Tensor:
+    """One of the 8 symmetries of the square applied to the last two axes of ``x`` (..., H, W):
+    ``code`` bit 0 flips left-right, bits 1-2 give the number of 90° turns (odd turns swap
+    H and W)."""
+    if code & 1:
+        x = x.flip(-1)
+    return torch.rot90(x, code >> 1, dims=(-2, -1)) if code >> 1 else x
+
+
+def dihedral_inverse(x: Tensor, code: int) -> Tensor:
+    """Undo :func:`dihedral` ``code``: ``dihedral_inverse(dihedral(x, c), c) == x``."""
+    if code >> 1:
+        x = torch.rot90(x, -(code >> 1), dims=(-2, -1))
+    return x.flip(-1) if code & 1 else x
 
 
 class SRM(nn.Module):
@@ -101,7 +121,8 @@ class SRM(nn.Module):
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
 
     @torch.no_grad()
-    def refine(self, rgb: Tensor, alpha: Tensor, *, autocast: bool = True, return_alpha: bool = False):
+    def refine(self, rgb: Tensor, alpha: Tensor, *, autocast: bool = True, return_alpha: bool = False,
+               tta: int = 1):
         """Refine a batch of renders (the loader's layout).
 
         Args:
@@ -109,6 +130,11 @@ class SRM(nn.Module):
             alpha: (B, H, W) or (B, H, W, 1).
             autocast: fp16/bf16 autocast on CUDA (ignored on CPU).
             return_alpha: also return the output-resolution alpha (B, s·H, s·W) (useful with ``scale = 2``).
+            tta: test-time augmentation: the mean of the refinements of ``tta`` symmetric
+                copies of the input (:data:`TTA_CODES`: 1 none, 2 flip, 4 flips and 180°
+                turns, 8 all symmetries of the square), each mapped back; costs ``tta``×.
+                For an SRM trained with ``--augment d4`` on the small world, held-out view 8:
+                +0.49 dB over HOGS alone with 1, +0.59 with 4, +0.62 with 8.
 
         Returns:
             rgb (B, s·H, s·W, 3) in ``rgb``'s dtype, premultiplied by the rendered alpha
@@ -119,6 +145,14 @@ class SRM(nn.Module):
         a = alpha[..., 0] if alpha.ndim == 4 else alpha
         if a.shape != rgb.shape[:3]:
             raise ValueError(f"alpha {tuple(alpha.shape)} does not match rgb {tuple(rgb.shape)}")
+        if tta not in TTA_CODES:
+            raise ValueError(f"tta must be one of {sorted(TTA_CODES)}, got {tta!r}")
+        if tta > 1:  # (channel-last images: the symmetries act on axes 1, 2)
+            outs = [self.refine(dihedral(rgb.movedim(-1, 1), c).movedim(1, -1), dihedral(a, c), autocast=autocast,
+                                return_alpha=True) for c in TTA_CODES[tta]]  # fmt: skip
+            out = torch.stack([dihedral_inverse(o.movedim(-1, 1), c).movedim(1, -1)
+                               for (o, _), c in zip(outs, TTA_CODES[tta])]).mean(0)  # fmt: skip
+            return (out, outs[0][1]) if return_alpha else out  # (code 0 first: the input's own alpha)
         p = next(self.parameters())
         x = rgb.to(p.device, p.dtype).permute(0, 3, 1, 2)  # (fp32, or the fp16/bf16 of load_srm(dtype=...))
         a4 = a.to(p.device, p.dtype)[:, None]

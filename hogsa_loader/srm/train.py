@@ -61,7 +61,7 @@ from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, la
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
 from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
-from hogsa_loader.srm.model import SRM
+from hogsa_loader.srm.model import SRM, dihedral
 from hogsa_loader.srm.pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
 from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
@@ -70,15 +70,6 @@ from hogsa_loader.train.losses import box_of, psnr, ssim_map
 __all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet", "AUGMENTS", "dihedral"]
 
 AUGMENTS = ("none", "flip", "d4")
-
-
-def dihedral(x: Tensor, code: int) -> Tensor:
-    """One of the 8 symmetries of the square applied to the last two axes of ``x`` (..., H, W):
-    ``code`` bit 0 flips left-right, bits 1-2 give the number of 90° turns (H = W needed
-    for odd turns)."""
-    if code & 1:
-        x = x.flip(-1)
-    return torch.rot90(x, code >> 1, dims=(-2, -1)) if code >> 1 else x
 
 
 @dataclass
