@@ -577,6 +577,32 @@ def test_headlight_shading_uses_normal_and_view_direction():
     assert torch.allclose(out[0, 0], base * torch.tensor([[1.0], [0.3], [0.3 + 0.7 * 0.8]]), atol=1e-6)
 
 
+def test_hogs_model_headlight_without_learned_light():
+    """HogsModel.render(headlight=...) shades with the camera light whether or not the model
+    has a learned light (the normals are kept for it), and darkens the grazing surfaces."""
+    from hogsa_loader.gaussians.hogs_model import HogsModel
+    from hogsa_loader.hands import synthetic_hand_pair
+    from hogsa_loader.objects import make_object
+
+    r, l = synthetic_hand_pair()
+    m = HogsModel(HandGaussians(r, sh_degree=0), HandGaussians(l, sh_degree=0),
+                  ObjectGaussians(make_object("phone"), sh_degree=0))  # fmt: skip
+    assert m.light is None
+    poses = {k: torch.zeros(1, n) for k, n in (("right_rot", 3), ("right_pose", 45), ("right_betas", 10),
+             ("right_trans", 3), ("left_rot", 3), ("left_pose", 45), ("left_betas", 10), ("left_trans", 3),
+             ("obj_arti", 1), ("obj_rot", 3), ("obj_trans", 3))}  # fmt: skip
+    poses["left_trans"][0, 0] = 0.3  # (the hands apart, the object in front)
+    vm = torch.eye(4)[None, None].clone()
+    vm[..., 2, 3] = 0.6
+    K = torch.tensor([[[[40.0, 0, 16], [0, 40, 16], [0, 0, 1]]]])
+    assert m.scene(poses).normals is None and m.scene(poses, keep_normals=True).normals is not None
+    with torch.no_grad():
+        plain = m.render(poses, vm, K, 32, 32, backend="torch")
+        lit = m.render(poses, vm, K, 32, 32, headlight=0.45, backend="torch")
+    torch.testing.assert_close(lit.alpha, plain.alpha)
+    assert (lit.rgb <= plain.rgb + 1e-5).all() and float((plain.rgb - lit.rgb).max()) > 0.05
+
+
 def test_render_textured_cube_matches_analytic_projection():
     half, dist, f, size = 0.05, 0.5, 160.0, 64
     cube = ObjectGaussians(cube_template(half), k=2, sh_degree=0)

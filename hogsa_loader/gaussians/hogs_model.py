@@ -141,12 +141,15 @@ class HogsModel(nn.Module):
     def num_gaussians(self) -> int:
         return sum(int(p.num_gaussians) for p in self.parts.values())
 
-    def scene(self, poses: Mapping[str, Tensor], sh_degree: Optional[int] = None) -> GaussianSet:
+    def scene(self, poses: Mapping[str, Tensor], sh_degree: Optional[int] = None,
+              keep_normals: bool = False) -> GaussianSet:
         """Posed, composed Gaussians of B frames.
 
         Args:
             poses: the :data:`POSE_KEYS` tensors (see module docstring), batch B.
             sh_degree: keep SH bands up to this degree (default: all).
+            keep_normals: keep the shading normals without a learned light too (headlight
+                shading needs them; with a light they are always kept).
 
         Returns:
             (B, N) :class:`GaussianSet` with part ids.
@@ -162,7 +165,7 @@ class HogsModel(nn.Module):
         scene = compose(sets)
         if sh_degree is not None and sh_degree < scene.sh_degree:
             scene = replace(scene, sh=scene.sh[..., : num_sh_bases(sh_degree), :], sh_degree=sh_degree)
-        return scene if self.light is not None else replace(scene, normals=None)
+        return scene if self.light is not None or keep_normals else replace(scene, normals=None)
 
     def render(
         self,
@@ -191,7 +194,7 @@ class HogsModel(nn.Module):
         Returns:
             :class:`~hogsa_loader.render.api.RenderOutput` with ``part_alpha`` of 3 parts.
         """
-        scene = self.scene(poses, sh_degree=sh_degree)
+        scene = self.scene(poses, sh_degree=sh_degree, keep_normals=render_kwargs.get("headlight") is not None)
         render_kwargs.setdefault("num_parts", 3)
         if self.light is not None and "headlight" not in render_kwargs and "colors" not in render_kwargs:
             render_kwargs["colors"] = self.light(scene, viewmats)

@@ -26,9 +26,29 @@ from hogsa_loader.loader.mixing import MixedLoader
 __all__ = ["wrap_train_loader"]
 
 
+def _unwrap(dataset: Any) -> Any:
+    """The dataset inside ``torch.utils.data.Subset``-like wrappers (``.dataset`` chains)."""
+    seen = 0
+    while dataset is not None and not hasattr(dataset, "setup") and hasattr(dataset, "dataset") and seen < 8:
+        dataset, seen = dataset.dataset, seen + 1
+    return dataset
+
+
 def _root_of(dataset: Any) -> Optional[PathLike]:
     root = getattr(dataset, "root", None)
     return getattr(root, "data_root", None)
+
+
+def _loader_protocol(dataset: Any) -> Optional[str]:
+    """``"p1"`` / ``"p2"`` of the real dataset's setup (``.setup`` of
+    :class:`~hogsa_loader.datasets.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
+    ``p1a`` / ``p2a`` are the same views), or None when it does not say."""
+    from hogsa_loader.datasets.arctic import protocol_views
+
+    setup = getattr(dataset, "setup", None) or getattr(getattr(dataset, "args", None), "setup", None)
+    if setup is None:
+        return None
+    return "p2" if protocol_views(str(setup)) == protocol_views("p2") else "p1"
 
 
 def wrap_train_loader(
@@ -61,17 +81,21 @@ def wrap_train_loader(
         **dataset_kwargs: more :class:`~hogsa_loader.loader.dataset.HOGSADataset`
             arguments (``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...);
             ``protocol``, ``config`` and ``interfield`` default to the real dataset's (so
-            both halves of a batch have the same keys).
+            both halves of a batch have the same keys; the protocol is read from
+            ``.setup`` or, for ARCTIC's own dataset, ``.args.setup``, through ``Subset``
+            wrappers; ``p1a``/``p2a`` count as ``p1``/``p2``). Pass ``protocol=`` when the
+            real dataset says neither (the default is then ``p1``, allocentric).
 
     Returns:
         a :class:`~hogsa_loader.loader.mixing.MixedLoader`.
     """
-    real_ds = getattr(train_loader, "dataset", None)
+    real_ds = _unwrap(getattr(train_loader, "dataset", None))
     root = data_root if data_root is not None else _root_of(real_ds)
     if root is None:
         raise ValueError("data_root is needed (the train loader's dataset does not say where its data is)")
-    if hasattr(real_ds, "setup"):
-        dataset_kwargs.setdefault("protocol", real_ds.setup)  # type: ignore[union-attr]
+    protocol = _loader_protocol(real_ds)
+    if protocol is not None:
+        dataset_kwargs.setdefault("protocol", protocol)
     if hasattr(real_ds, "cfg"):
         dataset_kwargs.setdefault("config", real_ds.cfg)  # type: ignore[union-attr]
     if hasattr(real_ds, "interfield"):
