@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import resource
 import statistics
 import time
@@ -10,6 +11,17 @@ from typing import Any, Callable
 import torch
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask; ``os.cpu_count()`` would count
+    every core of the host, e.g. 64 in a 2-core container)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def bench_threads() -> int:
+    """Torch CPU threads of a benchmark: ``$BENCH_THREADS`` or :func:`available_cores`."""
+    return int(os.environ.get("BENCH_THREADS", available_cores()))
 
 
 def time_render(

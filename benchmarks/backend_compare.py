@@ -40,7 +40,7 @@ import sys
 from typing import Any
 
 import torch
-from _timing import time_render
+from _timing import available_cores, bench_threads, time_render
 
 
 def make_scene(n: int, width: int, device: str) -> dict[str, Any]:
@@ -87,7 +87,7 @@ def _render(s: dict[str, Any], backend: str, **kw: Any):
 
 def run_row(backend: str, device: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
     if device == "cpu":
-        torch.set_num_threads(int(os.environ.get("BENCH_THREADS", os.cpu_count() or 1)))
+        torch.set_num_threads(bench_threads())
     s = make_scene(n, width, device)
     t = time_render(lambda sc: _render(sc, backend).rgb, s, device, warmup, rep_fwd, rep_bwd)
     with torch.no_grad():
@@ -199,7 +199,7 @@ def main() -> None:
             print(f"torch vs gsplat {w}x{w}: {r}", flush=True)
 
     result = {
-        "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu ({os.cpu_count()} cores)",
+        "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu ({available_cores()} cores available)",
         "torch": torch.__version__,
         "scene": f"textured sphere, N={a.n}, r=0.08 m at z=0.5 m, f=2.5W, render_mode RGB for timings",
         "rows": rows,

@@ -36,7 +36,7 @@ import sys
 from typing import Any, Callable
 
 import torch
-from _timing import time_render
+from _timing import bench_threads, time_render
 
 CONFIGS = [(50_000, 224), (50_000, 512), (150_000, 224), (150_000, 512)]
 QUICK_CONFIGS = [(50_000, 224)]
@@ -83,7 +83,7 @@ def _render_fn(backend: str) -> Callable[[dict[str, Any]], torch.Tensor]:
 
 def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
     device = "cuda" if backend == "gsplat" else "cpu"
-    torch.set_num_threads(int(os.environ.get("BENCH_THREADS", os.cpu_count() or 1)))
+    torch.set_num_threads(bench_threads())
     fn = _render_fn(backend)
     s = make_scene(n, width, device)
     t = time_render(fn, s, device, warmup, rep_fwd, rep_bwd)
