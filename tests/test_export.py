@@ -378,6 +378,12 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     assert len(list(SynthShardDataset(out))) == 7
     assert main(args[:-1] + ["--out", str(tmp_path / "if"), "--interfield", "--quiet"]) == 0
     assert made[-1].kw["interfield"] is True
+    assert made[0].kw["exclude_person"] is False and made[0].kw["srm_tta"] == 1
+    assert "exclude_person" not in index["info"] and "srm_tta" not in index["info"]  # (defaults keep old hashes)
+    assert main(args[:-1] + ["--out", str(tmp_path / "ep"), "--exclude-person", "--srm", "--srm-tta", "8", "--quiet"]) == 0
+    assert made[-1].kw["exclude_person"] is True and made[-1].kw["srm_tta"] == 8
+    info = json.loads((tmp_path / "ep" / "index.json").read_text())["info"]
+    assert info["exclude_person"] is True and info["srm_tta"] == 8
     # bad numbers are refused before the dataset is built; another export's folder is refused
     n_made = len(made)
     for flag in ("--num", "--shard-size", "--batch-size"):

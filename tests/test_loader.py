@@ -265,7 +265,7 @@ def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(b
     assert all(torch.equal(a[0]["img"], b[0]["img"]) for a, b in zip(ref, [first, *rest]))  # augmentation of epoch 0 too
 
 
-def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_path):
+def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_path, monkeypatch):
     """A bad COCO folder fails when the dataset is made (not later, inside workers), and
     workers receive the built source."""
     import pickle
@@ -279,6 +279,16 @@ def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_
     ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", num_samples=2)
     assert isinstance(ds.backgrounds, FolderBackgrounds) and ds.backgrounds.paths == [tmp_path / "bg" / "a.png"]
     assert pickle.loads(pickle.dumps(ds)).backgrounds.paths == ds.backgrounds.paths
+    with pytest.raises(ValueError, match="apply to COCO images"):  # not silently ignored
+        HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", exclude_person=True)
+    # COCO options reach the source: people excluded, explicit image folder
+    from test_compose import _write_coco
+
+    monkeypatch.setenv("HOGSA_CACHE", str(tmp_path / "cache"))  # (the COCO selection cache, not ~/.cache)
+    coco = _write_coco(tmp_path / "coco")
+    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=coco, exclude_person=True,
+                      coco_image_dir=coco / "images" / "train2017")  # fmt: skip
+    assert ds.backgrounds.exclude_person and sorted(ds.backgrounds.image_ids) == [1, 3, 5]  # (2, 4 show people)
 
 
 def test_cuda_device_refused_in_workers(bundle_dir, tiny_world):
@@ -380,6 +390,8 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
 
     with pytest.raises(ValueError, match="srm_tta must be one of"):
         _dataset(bundle_dir, tiny_world, srm=True, srm_tta=3)
+    with pytest.raises(ValueError, match="srm_tta applies to the bundle's SRM"):
+        _dataset(bundle_dir, tiny_world, srm_tta=4)
     refine = _dataset(bundle_dir, tiny_world, srm=True, srm_tta=8)._refiner(torch.device("cpu"))
     srm = load_srm(load_bundle(bundle_dir).srm.path)
     rgb, alpha = torch.rand(2, 24, 24, 3), torch.rand(2, 24, 24, 1)

@@ -148,7 +148,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         args.bundle, args.data, coco_root=args.coco_root, coco_ann=args.coco_ann,
         background_folder=args.background_folder,
         categories=[c for c in args.categories.split(",") if c] if args.categories else None,
-        poses=args.poses, srm=args.srm, device=device, batch_size=args.batch_size, seed=args.seed,
+        exclude_person=args.exclude_person, poses=args.poses, srm=args.srm, srm_tta=args.srm_tta, device=device, batch_size=args.batch_size, seed=args.seed,
         num_samples=args.num, render_size=args.render_size, interfield=args.interfield,
     )  # fmt: skip
     info = {
@@ -157,6 +157,11 @@ def _cmd_export(args: argparse.Namespace) -> int:
         "coco_root": args.coco_root, "coco_ann": args.coco_ann, "background_folder": args.background_folder,
         "categories": args.categories, "world_size": world, "epoch": 0, "interfield": args.interfield,
     }  # fmt: skip
+    # (recorded only when set, so exports made before these options keep their settings hash)
+    if args.exclude_person:
+        info["exclude_person"] = True
+    if args.srm_tta != 1:
+        info["srm_tta"] = args.srm_tta
     say = (lambda m: None) if args.quiet else print
     say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
         f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {device})")
@@ -280,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
     e.add_argument("--background-folder", default=None, help="plain image folder for backgrounds")
     e.add_argument("--categories", default=None, help="comma-separated COCO categories for backgrounds")
+    e.add_argument("--exclude-person", action="store_true", help="no COCO background showing people (unlabelled hands)")
+    e.add_argument("--srm-tta", type=int, choices=(1, 2, 4, 8), default=1,
+                   help="with --srm: test-time augmentation (symmetric copies averaged; 8x the SRM cost at 8)")
     e.add_argument("--interfield", action="store_true",
                    help="also store the InterField-SF targets (dist.*/idx.*/object.v_len) of every frame")
     e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")

@@ -74,8 +74,8 @@ def make_backgrounds(
         return CocoBackgrounds(coco_root, coco_ann, image_dir=image_dir, categories=categories,
                                exclude_person=exclude_person, crop=crop, cache_bytes=cache_bytes,
                                index_cache=index_cache)
-    if categories is not None:
-        raise ValueError("categories filter COCO images; give coco_root/coco_ann")
+    if categories is not None or exclude_person or image_dir is not None:
+        raise ValueError("categories, exclude_person and image_dir apply to COCO images; give coco_root/coco_ann")
     if folder is not None:
         return FolderBackgrounds(folder, crop=crop, cache_bytes=cache_bytes)
     if not _FALLBACK_WARNED:

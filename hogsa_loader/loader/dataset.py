@@ -112,7 +112,10 @@ class HOGSADataset(IterableDataset):
         coco_ann: COCO annotation file (default found under ``coco_root``).
         background_folder: a plain image folder instead of COCO.
         categories: COCO category names to draw backgrounds from.
-        backgrounds: an explicit background source (overrides the four arguments above);
+        exclude_person: leave out COCO images showing people (their hands would be
+            unlabelled hands in the training image).
+        coco_image_dir: COCO image folder (default found under ``coco_root``).
+        backgrounds: an explicit background source (overrides the six arguments above);
             without any, procedural backgrounds are used (with a warning). The source is
             built here, in the constructing process (a missing or malformed COCO folder
             fails now, and DataLoader workers receive the parsed image list instead of
@@ -171,6 +174,8 @@ class HOGSADataset(IterableDataset):
         *,
         background_folder: Optional[PathLike] = None,
         categories: Optional[Sequence[str]] = None,
+        exclude_person: bool = False,
+        coco_image_dir: Optional[PathLike] = None,
         backgrounds: Any = None,
         poses: Any = "perturb",
         pose_options: Optional[dict[str, Any]] = None,
@@ -210,7 +215,7 @@ class HOGSADataset(IterableDataset):
         self.cfg = replace(base, ego_image_scale=float(meta.ego_image_scale))
         self.render_size = int(render_size) if render_size else int(round(1.5 * self.cfg.img_res))
         self.background_args = dict(coco_root=coco_root, coco_ann=coco_ann, folder=background_folder,
-                                    categories=categories)
+                                    categories=categories, exclude_person=exclude_person, image_dir=coco_image_dir)
         if backgrounds is None:
             from hogsa_loader.compose import make_backgrounds
 
@@ -223,6 +228,8 @@ class HOGSADataset(IterableDataset):
 
         if srm_tta not in TTA_CODES:
             raise ValueError(f"srm_tta must be one of {sorted(TTA_CODES)}, got {srm_tta!r}")
+        if srm_tta != 1 and (not srm or refiner is not None):
+            raise ValueError("srm_tta applies to the bundle's SRM: give srm=True (and no explicit refiner)")
         self.srm_tta = int(srm_tta)
         self.refiner = refiner
         self.device = str(device)
