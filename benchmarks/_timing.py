@@ -10,13 +10,9 @@ from typing import Any, Callable
 
 import torch
 
+from hogsa_loader.system import available_cores
+
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (its affinity mask; ``os.cpu_count()`` would count
-    every core of the host, e.g. 64 in a 2-core container)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def bench_threads() -> int:

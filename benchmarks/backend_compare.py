@@ -40,7 +40,9 @@ import sys
 from typing import Any
 
 import torch
-from _timing import available_cores, bench_threads, time_render
+from _timing import bench_threads, time_render
+
+from hogsa_loader.system import available_cores
 
 
 def make_scene(n: int, width: int, device: str) -> dict[str, Any]:

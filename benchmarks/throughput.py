@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import resource
 import sys
@@ -52,6 +51,8 @@ from typing import Any, Iterable, Optional
 
 import torch
 from torch.utils.data import DataLoader
+
+from hogsa_loader.system import available_cores
 
 STAGES = ("pose", "pom", "render", "srm", "composite", "targets")
 
@@ -69,7 +70,7 @@ def device_name(device: str) -> str:
                     break
     except OSError:
         pass
-    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    n = available_cores()
     return f"{model} ({n} cores available, torch threads {torch.get_num_threads()})"
 
 

@@ -188,6 +188,11 @@ def test_coco_without_sizes_is_deterministic_and_annotation_ids_checked(tmp_path
     with pytest.raises(AssetError, match="lacks 'id'") as ei:
         CocoBackgrounds(root, index_cache=False)
     assert ei.value.path.endswith("instances_train2017.json")
+    ann["annotations"] = [{"id": [7], "image_id": 1, "category_id": 1, "bbox": [0, 0, 1, 1]}]  # passes the key checks
+    (root / "annotations" / "instances_train2017.json").write_text(json.dumps(ann))
+    with pytest.raises(AssetError, match="not a valid COCO instances file") as ei:  # pycocotools' own error, named
+        CocoBackgrounds(root, index_cache=False)
+    assert ei.value.path.endswith("instances_train2017.json")
     assert CocoBackgrounds(_write_coco(tmp_path / "c2"), categories="cup", index_cache=False).categories == ["cup"]
 
 

@@ -565,6 +565,16 @@ def test_compose_pads_sh_keeps_part_ids_and_broadcasts():
     assert torch.allclose(alone.rgb, padded.rgb, atol=1e-6)
 
 
+def test_render_scene_of_an_empty_set():
+    """No Gaussians: background only, zero alpha, no parts (it used to be refused)."""
+    vm = torch.eye(4)[None, None]
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])[None, None]
+    bg = torch.tensor([0.2, 0.4, 0.6])[None, None]
+    out = render_scene(_toy_set(1, 0, 0, 0, 0), vm, K, 16, 16, backgrounds=bg)
+    assert (out.alpha == 0).all() and torch.allclose(out.rgb, bg[:, :, None, None].expand(1, 1, 16, 16, 3))
+    assert out.part_alpha is None or out.part_alpha.shape[-1] == 0
+
+
 def test_headlight_shading_uses_normal_and_view_direction():
     gs = _toy_set(1, 3, 1, 0, 4)
     gs.means = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]])
@@ -823,4 +833,11 @@ def test_checkpoint_save_is_all_or_nothing_for_bad_metadata(tmp_path, right_hand
     hand = HandGaussians(right_hand, k=1, sh_degree=0)
     with pytest.raises(ValueError):
         save_part(hand, tmp_path / "x", extra={"loss": float("nan")})
-    assert list((tmp_path / "x").iterdir()) == []
+    assert not (tmp_path / "x").exists()  # nothing written, not even the folder
+    save_part(hand, tmp_path / "y")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "y").iterdir()}
+    with torch.no_grad():
+        next(hand.parameters()).fill_(float("nan"))
+    with pytest.raises(ValueError, match="NaN or infinity; not saved"):  # NaN weights: the old checkpoint stays
+        save_part(hand, tmp_path / "y")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "y").iterdir()} == before

@@ -342,6 +342,9 @@ def test_listing_ego_and_pose_download_folders(tree, tmp_path):
     assert r.subjects() == [f"{SUBJ}_ego", "subject2_pose"]
     assert r.sequences() == [(f"{SUBJ}_ego", SCENE, "0"), ("subject2_pose", "h1", "1")]
     assert r.frames(f"{SUBJ}_ego", SCENE, SEQ) == FRAMES
+    # the full download next to the ego one: listed once, the full one
+    shutil.copytree(tree / SUBJ, root / SUBJ)
+    assert H2ORoot(root).subjects() == [SUBJ, "subject2_pose"]
 
 
 # --------------------------------------------------------------------------------------

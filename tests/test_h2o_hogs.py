@@ -143,6 +143,9 @@ def test_export_refuses_to_mix_exports_and_cli_errors(tiny_world, tmp_path, caps
     export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=32)
     with pytest.raises(AssetError, match="already holds an H2O sequence"):
         export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16)
+    with pytest.raises(ValueError, match="articulation varies"):  # a failed overwrite keeps the old export
+        export_h2o_world(tiny_world, out, subject="s01", sequence="box_use_01", image_size=(48, 27), overwrite=True)
+    assert H2ORoot(out).frames("subject1", "h1", 0) == [0, 32]
     rec = export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16, overwrite=True)
     root = H2ORoot(out)
     assert root.frames("subject1", "h1", 0) == rec["frames"] and len(rec["frames"]) > 2
@@ -150,7 +153,7 @@ def test_export_refuses_to_mix_exports_and_cli_errors(tiny_world, tmp_path, caps
     for extra, msg in ((["--object-class", "foo"], "unknown H2O object 'foo'"),
                        (["--mesh-name", "pringles"], "not a known name of H2O class"),
                        (["--subject", "s01", "--sequence", "box_use_01"], "articulation varies"),
-                       (["--frame-stride", "0"], "--frame-stride must be >= 1")):  # fmt: skip
+                       (["--frame-stride", "0"], "frame stride must be >= 1")):  # fmt: skip
         assert cli(base + extra) == 2
         assert msg in capsys.readouterr().err
     assert cli(base[:3] + ["--out", str(out), "--quiet"]) == 1

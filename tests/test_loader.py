@@ -510,6 +510,10 @@ def test_wrap_train_loader_reads_the_protocol(bundle_dir, tiny_world):
     for ds, want in cases:
         loader = wrap_train_loader(types.SimpleNamespace(dataset=ds, batch_size=2), bundle_dir, **kw)
         assert loader.synthetic.protocol == want, (ds, want)
+    # an unknown setup is left to the caller
+    odd = types.SimpleNamespace(dataset=types.SimpleNamespace(setup="p9"), batch_size=2)
+    assert wrap_train_loader(odd, bundle_dir, protocol="p2", **kw).synthetic.protocol == "p2"
+    assert wrap_train_loader(odd, bundle_dir, **kw).synthetic.protocol == "p1"
 
 
 def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):

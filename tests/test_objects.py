@@ -474,6 +474,7 @@ def test_textured_mesh_with_welded_uv_seams(templates, meta_dir, tmp_path, name)
     corner_xyz, corner_uv = _welded_obj(t.tex_verts * 1000.0, t.tex_faces, t.tex_uv, folder / "mesh_tex.obj")
     assert len(np.unique(np.round(t.tex_verts * 1000, 6), axis=0)) < len(t.tex_verts)  # there are seams
     got = load_object_template(folder)
+    assert len(got.tex_verts) == len(t.tex_verts)  # one vertex per (position, UV): not a triangle soup
     np.testing.assert_allclose(got.tex_verts[got.tex_faces] * 1000.0, corner_xyz, atol=1e-5)
     np.testing.assert_allclose(got.tex_uv[got.tex_faces], corner_uv, atol=1e-5)
     # H2O meshes (metres) go through the same kind of loader
@@ -484,7 +485,7 @@ def test_textured_mesh_with_welded_uv_seams(templates, meta_dir, tmp_path, name)
     (h2o / "book.mtl").write_text("newmtl m\nmap_Kd material.jpg\n")
     shutil.copy(folder / "material.jpg", h2o / "material.jpg")
     m = load_h2o_object(tmp_path / "h2o", "book")
-    assert m.has_texture
+    assert m.has_texture and len(m.tex_verts) == len(t.tex_verts)
     np.testing.assert_allclose(m.tex_uv[m.tex_faces], corner_uv, atol=1e-5)
 
 

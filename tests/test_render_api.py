@@ -11,6 +11,7 @@ run only where a GPU and gsplat's CUDA extension are available.
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 import torch
@@ -497,6 +498,13 @@ def test_auto_prefers_gsplat_when_usable(gsplat_double):
     s = ball_scene(N=40)
     assert _call(s).meta["backend"] == "gsplat"
     assert _call(s, backend="torch").meta["backend"] == "torch"
+    # tiles gsplat's kernel cannot launch (tile_size² threads > 1024): auto falls back, gsplat refuses
+    big = _call(s, tile_size=40)
+    assert big.meta["backend"] == "torch" and "tile_size 40 > 32" in big.meta["backend_reason"]
+    assert torch.equal(big.rgb, _call(s, tile_size=40, backend="torch").rgb)
+    with pytest.raises(BackendUnavailableError, match="tile_size 40 > 32"):
+        _call(s, tile_size=40, backend="gsplat")
+    assert _call(s, tile_size=32).meta["backend"] == "gsplat"
 
 
 def test_gsplat_reason_for_cpu_and_dtype():
@@ -518,6 +526,8 @@ def gsplat_ready():
         pytest.skip("no CUDA device")
     reason = gsplat_backend.gsplat_unavailable_reason(torch.device("cuda"), torch.float32)
     if reason is not None:
+        if os.environ.get("HOGSA_REQUIRE_GSPLAT") == "1":  # on a GPU machine meant to test it: a failure
+            pytest.fail(f"HOGSA_REQUIRE_GSPLAT=1 but the gsplat backend is unavailable: {reason}")
         pytest.skip(f"gsplat backend unavailable: {reason}")
 
 

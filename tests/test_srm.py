@@ -114,8 +114,9 @@ def test_refine_test_time_augmentation(scale):
             assert torch.equal(a_out, alpha)
     full = srm.refine(rgb, alpha, tta=8)
     torch.testing.assert_close(srm.refine(turn(rgb), turn(alpha), tta=8), turn(full), atol=1e-5, rtol=0)
-    with pytest.raises(ValueError, match="tta must be one of"):
-        srm.refine(rgb, alpha, tta=3)
+    for bad in (3, True):
+        with pytest.raises(ValueError, match="tta must be one of"):
+            srm.refine(rgb, alpha, tta=bad)
 
 
 def test_training_forward_grad_and_wavelet_options():
@@ -499,7 +500,12 @@ def _check_recorded_targets_and_render_quality_refusal(world, run, srm_dir, tmp_
     rq.loader.exec_module(mod)
     js = tmp_path / "q.json"
     assert mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2"]) == 0
-    assert json.loads(js.read_text())["srm_views_check"].startswith("held-out:")
+    q1 = json.loads(js.read_text())
+    assert q1["srm_views_check"].startswith("held-out:") and q1["srm_tta"] == 1
+    assert mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2",
+                     "--srm-tta", "8"]) == 0  # fmt: skip
+    q8 = json.loads(js.read_text())
+    assert q8["srm_tta"] == 8 and q8["without_srm"] == q1["without_srm"] and q8["with_srm"]["psnr"] != q1["with_srm"]["psnr"]
     # the same SRM claiming it trained on view 8: refused, or scored and marked with the flag
     seen = tmp_path / "seen_srm"
     shutil.copytree(srm_dir, seen, ignore=shutil.ignore_patterns("checkpoints", "cache"))

@@ -206,9 +206,6 @@ def _cmd_h2o_export(args: argparse.Namespace) -> int:
         print(f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
               file=sys.stderr)
         return 2
-    if args.frame_stride < 1:
-        print(f"hogsa: error: --frame-stride must be >= 1, got {args.frame_stride}", file=sys.stderr)
-        return 2
     try:
         rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
                                object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),

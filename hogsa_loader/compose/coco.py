@@ -75,6 +75,11 @@ def default_cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "hogsa_loader"
 
 
+def _category_names(categories: Union[str, Sequence[str], None]) -> Optional[list[str]]:
+    """``"cup"`` or ``["cup", ...]`` → a list of names (None: no filter)."""
+    return None if categories is None else ([categories] if isinstance(categories, str) else list(categories))
+
+
 def _coco_selection(
     ann: Path, categories: Optional[Sequence[str]], exclude_person: bool, index_cache: Optional[Path] = None
 ) -> tuple[list[int], list[str], list[Optional[tuple[int, int]]]]:
@@ -83,7 +88,7 @@ def _coco_selection(
     Memoised in the process, and on disk in ``index_cache`` (a small JSON keyed by the
     annotation file's path, size and mtime and the filters) so that DataLoader workers and
     later runs skip parsing the annotation file."""
-    names = None if categories is None else ([categories] if isinstance(categories, str) else list(categories))
+    names = _category_names(categories)
     st = ann.stat()
     key = (str(ann.resolve()), st.st_size, st.st_mtime_ns, None if names is None else tuple(names),
            bool(exclude_person))
@@ -219,6 +224,6 @@ class CocoBackgrounds(_ImageListSource):
         self.ann_file = ann
         self.image_dir = idir
         self.image_ids = img_ids
-        self.categories = None if categories is None else ([categories] if isinstance(categories, str) else list(categories))
+        self.categories = _category_names(categories)
         self.exclude_person = bool(exclude_person)
 

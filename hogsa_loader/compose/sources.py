@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.system import available_cores
 
 __all__ = ["BackgroundSource", "CropSpec", "FolderBackgrounds", "IMAGE_EXTENSIONS", "ImageCache"]
 
@@ -220,7 +221,7 @@ class BackgroundSource:
         def one(i: int) -> None:
             arr[i], gains[i] = self._draw(h, w, generators[i])
 
-        workers = self.threads if self.threads is not None else min(8, _available_cores())
+        workers = self.threads if self.threads is not None else min(8, available_cores())
         if n >= 4 and workers > 1:
             pool = _executor(workers)
             list(pool.map(one, range(n)))
@@ -237,10 +238,6 @@ def _stack_gains(gains: Sequence[Optional[np.ndarray]]) -> Optional[np.ndarray]:
     if all(g is None for g in gains):
         return None
     return np.stack([np.ones(3, np.float32) if g is None else np.asarray(g, np.float32) for g in gains])
-
-
-def _available_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 _EXECUTORS: dict[tuple[int, int], ThreadPoolExecutor] = {}

@@ -370,8 +370,17 @@ class H2ORoot:
     # -- listing ---------------------------------------------------------------------------
     def subjects(self) -> list[str]:
         """Subject folders (``subjectN``, or ``subjectN_ego`` / ``subjectN_pose`` of the
-        ``ego`` / ``pose`` downloads), in numeric order."""
-        return [d for d in _subdirs(self.root) if _SUBJECT.fullmatch(d)]
+        ``ego`` / ``pose`` downloads), in numeric order; one per subject: where several
+        downloads of a subject are unpacked side by side, the fullest (``subjectN``, then
+        ``_ego``, then ``_pose``: no RGB-D) is listed, so sequences are not counted twice."""
+        best: dict[int, tuple[int, str]] = {}
+        for d in _subdirs(self.root):
+            m = _SUBJECT.fullmatch(d)
+            if m:
+                num, rank = int(m.group(1)), 2 if d.endswith("_pose") else 1 if d.endswith("_ego") else 0
+                if num not in best or rank < best[num][0]:
+                    best[num] = (rank, d)
+        return [best[n][1] for n in sorted(best)]
 
     def sequences(self, subject: Optional[str] = None) -> list[tuple[str, str, str]]:
         """All ``(subject, scene, seq)`` with at least one ``camK`` folder.

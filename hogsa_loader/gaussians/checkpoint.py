@@ -130,12 +130,14 @@ def atomic_write(path: Path, data: bytes) -> None:
 
 
 def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping[str, Tensor], manifest_file: str,
-                               manifest: Mapping[str, Any], indent: int = 1) -> Path:
+                               manifest: Mapping[str, Any], indent: int = 1,
+                               metadata: Optional[Mapping[str, str]] = None) -> Path:
     """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
     tensors first. Everything is checked before anything is written: floating tensors must be
     finite and the manifest strict JSON (no NaN / infinity), so a refused save leaves an
     existing checkpoint as it was. The manifest gets ``tensors_sha256`` (sha256 of the
-    tensors file), which :func:`read_checked_tensors` verifies.
+    tensors file), which :func:`read_checked_tensors` verifies. ``metadata``: string pairs
+    stored in the safetensors header.
 
     Returns:
         the manifest path.
@@ -149,7 +151,7 @@ def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping
     bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
-    blob = st_save(dict(tensors))
+    blob = st_save(dict(tensors), metadata=dict(metadata) if metadata else None)
     try:
         text = json.dumps({**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent,
                           allow_nan=False) + "\n"  # fmt: skip
@@ -211,15 +213,14 @@ def save_part(
 
     Returns:
         the folder.
-    """
-    from safetensors.torch import save as st_save
 
+    Raises:
+        ValueError: NaN or infinite weights or metadata; nothing is written then.
+    """
     import hogsa_loader
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     tensors = {name: t.detach().cpu().contiguous() for name, t in part.splats.state_dict().items()}
-    blob = st_save(tensors, metadata={"format": FORMAT, "schema_version": str(SCHEMA_VERSION)})
     manifest: dict[str, Any] = {
         "format": FORMAT,
         "schema_version": SCHEMA_VERSION,
@@ -238,11 +239,9 @@ def save_part(
         "extra": dict(extra or {}),
         "tensors": {n: {"shape": list(t.shape), "dtype": _dtype_name(t.dtype)} for n, t in tensors.items()},
         "tensors_file": TENSORS_FILE,
-        "tensors_sha256": hashlib.sha256(blob).hexdigest(),
-    }
-    text = json.dumps(manifest, indent=1, sort_keys=False, allow_nan=False) + "\n"
-    atomic_write(folder / TENSORS_FILE, blob)
-    atomic_write(folder / MANIFEST_FILE, text.encode("utf-8"))
+    }  # (+ tensors_sha256, added by the writer)
+    write_tensors_and_manifest(folder, TENSORS_FILE, tensors, MANIFEST_FILE, manifest,
+                               metadata={"format": FORMAT, "schema_version": str(SCHEMA_VERSION)})
     return folder
 
 
@@ -315,7 +314,11 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
     }
     for key, val in expect.items():
         if raw[key] != val:
-            raise AssetError(path, f"{key} is {raw[key]!r} in the checkpoint but {val!r} in the model")
+            hint = ""
+            if part.part_type == "object" and key in ("binding_hash", "num_verts") and "mesh_tex" in str(part.binding_mesh):
+                hint = ("; if the object's mesh_tex.obj has UV seams (several vt per vertex), note that it is now read "
+                        "with seam vertices split (correct UVs), so a part trained on the old reading must be retrained")  # fmt: skip
+            raise AssetError(path, f"{key} is {raw[key]!r} in the checkpoint but {val!r} in the model{hint}")
     cfg = part.config()
     saved = {"weld_seams": False, **raw["config"]}  # (older checkpoints: unwelded, see load_part)
     for key in sorted(set(cfg) | set(saved)):

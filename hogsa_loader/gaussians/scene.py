@@ -146,7 +146,7 @@ def render_scene(
     B, N = scene.batch_size, scene.num_gaussians
     if num_parts is None:
         num_parts = int(scene.part_ids.max()) + 1 if N else 0
-    part_ids = scene.part_ids[None].expand(B, N)
+    part_ids = scene.part_ids[None].expand(B, N) if num_parts > 0 else None  # (an empty scene has no parts)
     if colors is not None:
         if headlight is not None:
             raise ValueError("pass either colors or headlight, not both")

@@ -48,7 +48,11 @@ def _loader_protocol(dataset: Any) -> Optional[str]:
     setup = getattr(dataset, "setup", None) or getattr(getattr(dataset, "args", None), "setup", None)
     if setup is None:
         return None
-    return "p2" if protocol_views(str(setup)) == protocol_views("p2") else "p1"
+    try:
+        views = protocol_views(str(setup))
+    except ValueError:  # a setup this library does not know: the caller says (protocol=)
+        return None
+    return "p2" if views == protocol_views("p2") else "p1"
 
 
 def wrap_train_loader(
@@ -93,9 +97,10 @@ def wrap_train_loader(
     root = data_root if data_root is not None else _root_of(real_ds)
     if root is None:
         raise ValueError("data_root is needed (the train loader's dataset does not say where its data is)")
-    protocol = _loader_protocol(real_ds)
-    if protocol is not None:
-        dataset_kwargs.setdefault("protocol", protocol)
+    if "protocol" not in dataset_kwargs:
+        protocol = _loader_protocol(real_ds)
+        if protocol is not None:
+            dataset_kwargs["protocol"] = protocol
     if hasattr(real_ds, "cfg"):
         dataset_kwargs.setdefault("config", real_ds.cfg)  # type: ignore[union-attr]
     if hasattr(real_ds, "interfield"):

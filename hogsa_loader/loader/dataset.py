@@ -226,7 +226,7 @@ class HOGSADataset(IterableDataset):
         self.srm = bool(srm)
         from hogsa_loader.srm.model import TTA_CODES
 
-        if srm_tta not in TTA_CODES:
+        if isinstance(srm_tta, bool) or srm_tta not in TTA_CODES:
             raise ValueError(f"srm_tta must be one of {sorted(TTA_CODES)}, got {srm_tta!r}")
         if srm_tta != 1 and (not srm or refiner is not None):
             raise ValueError("srm_tta applies to the bundle's SRM: give srm=True (and no explicit refiner)")

@@ -43,6 +43,7 @@ from hogsa_loader.objects.template import (
     bbox_corners,
     farthest_point_sampling,
     max_pairwise_distance,
+    merge_uv_vertices,
 )
 
 __all__ = [
@@ -205,7 +206,8 @@ def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: 
     tex: dict[str, Any] = {}
     image = _texture_image(mesh) if load_texture else None
     if image is not None:
-        tex = dict(tex_verts=verts, tex_faces=faces, tex_uv=np.asarray(mesh.visual.uv, dtype=np.float64), texture=image)
+        tv, tf, tuv = merge_uv_vertices(verts, faces, np.asarray(mesh.visual.uv, dtype=np.float64))
+        tex = dict(tex_verts=tv, tex_faces=tf, tex_uv=tuv, texture=image)
     return rigid_template(cls, w_verts, np.asarray(welded.faces, dtype=np.int64), **tex)
 
 

@@ -321,6 +321,28 @@ def _read_obj(path: Path, keep_order: bool = True) -> Any:
     return mesh
 
 
+def merge_uv_vertices(verts: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge vertices with the same position and texture coordinate (files that give every
+    face corner its own ``vt``, read with seams split, would otherwise be triangle soups).
+    Vertices keep the order of their first occurrence, so a mesh without such duplicates
+    is returned unchanged.
+
+    Args:
+        verts: (V, 3); faces: (F, 3) int; uv: (V, 2).
+
+    Returns:
+        (V', 3) vertices, (F, 3) faces, (V', 2) UVs.
+    """
+    _, first, inv = np.unique(np.concatenate([verts, uv], 1), axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(verts):
+        return verts, faces, uv
+    order = np.argsort(first)  # unique rows by first occurrence
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[order] = np.arange(len(first))
+    keep = first[order]
+    return verts[keep], rank[inv.reshape(-1)][faces], uv[keep]
+
+
 def _read_parts(path: Path, num_verts: int) -> np.ndarray:
     """Read and check ``parts.json`` against the vertex count of ``mesh.obj``."""
     raw = read_json(path)
@@ -367,6 +389,7 @@ def _read_texture(folder: Path, verts_mm: np.ndarray, parts: np.ndarray) -> dict
     uv = np.asarray(uv, dtype=np.float64)
     if not np.isfinite(uv).all():
         raise AssetError(obj_path, "texture coordinates contain NaN or infinite values")
+    tex_verts, tex_faces, uv = merge_uv_vertices(tex_verts, np.asarray(mesh.faces, dtype=np.int64), uv)
     if not img_path.is_file():
         raise AssetError(img_path, f"file is missing (needed by {TEX_MESH_FILE})")
     bgr = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
@@ -375,7 +398,7 @@ def _read_texture(folder: Path, verts_mm: np.ndarray, parts: np.ndarray) -> dict
     _, nearest = cKDTree(verts_mm).query(tex_verts)
     return {
         "tex_verts": tex_verts / MM_PER_M,
-        "tex_faces": np.asarray(mesh.faces, dtype=np.int64),
+        "tex_faces": tex_faces,
         "tex_uv": uv,
         "texture": np.ascontiguousarray(bgr[..., ::-1]),
         "tex_parts": parts[nearest],

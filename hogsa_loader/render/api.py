@@ -27,6 +27,7 @@ from hogsa_loader.render.gaussians import (
     render_gaussians,
 )
 from hogsa_loader.render.gsplat_backend import (
+    MAX_GSPLAT_TILE,
     BackendUnavailableError,
     gsplat_unavailable_reason,
     render_gsplat,
@@ -161,7 +162,8 @@ def render(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
         near_plane, far_plane, backgrounds, part_ids, num_parts, eps2d, torch_backend_options,
     )  # fmt: skip
-    chosen, reason = _choose_backend(backend, means.device, means.dtype)
+    chosen, reason = _choose_backend(backend, means.device, means.dtype,
+                                     int(torch_backend_options.get("tile_size", 16)))  # fmt: skip
 
     if chosen == "gsplat":
         opts = {k: torch_backend_options[k] for k in ("tile_size", "valid") if k in torch_backend_options}
@@ -199,11 +201,14 @@ def render(
 # --------------------------------------------------------------------------------------
 
 
-def _choose_backend(backend: str, device: torch.device, dtype: torch.dtype) -> tuple[str, str]:
+def _choose_backend(backend: str, device: torch.device, dtype: torch.dtype, tile_size: int = 16) -> tuple[str, str]:
     """(chosen backend, why)."""
     if backend == "torch":
         return "torch", "requested"
-    reason = gsplat_unavailable_reason(device, dtype)
+    if tile_size > MAX_GSPLAT_TILE:
+        reason: str | None = f"tile_size {tile_size} > {MAX_GSPLAT_TILE}, the largest gsplat's raster kernel can launch"
+    else:
+        reason = gsplat_unavailable_reason(device, dtype)
     if backend == "gsplat":
         if reason is not None:
             raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}. Use backend='torch' (or 'auto').")

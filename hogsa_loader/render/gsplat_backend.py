@@ -41,7 +41,11 @@ from torch import Tensor
 from hogsa_loader.errors import HogsaError
 from hogsa_loader.render.gaussians import RenderOutput, sh_colors
 
-__all__ = ["BackendUnavailableError", "gsplat_unavailable_reason", "render_gsplat"]
+__all__ = ["BackendUnavailableError", "MAX_GSPLAT_TILE", "gsplat_unavailable_reason", "render_gsplat"]
+
+#: Largest ``tile_size`` gsplat 1.5.3 can launch: its raster kernel runs one thread per
+#: pixel of a tile, and a CUDA block holds at most 1024 threads.
+MAX_GSPLAT_TILE = 32
 
 
 class BackendUnavailableError(HogsaError, RuntimeError):
@@ -144,6 +148,9 @@ def render_gsplat(
     result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
     is gsplat's ``meta`` dict plus ``gsplat_version``.
     """
+    if tile_size > MAX_GSPLAT_TILE:
+        raise BackendUnavailableError(f"backend='gsplat' cannot run: tile_size {tile_size} > {MAX_GSPLAT_TILE} (gsplat's "
+                                      "raster kernel uses tile_size² threads per block, at most 1024)")  # fmt: skip
     reason = gsplat_unavailable_reason(means.device, means.dtype)
     if reason is not None:
         raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}")

@@ -13,6 +13,7 @@ Typical use::
     from hogsa_loader.srm import load_srm
     srm = load_srm("runs/srm", device="cuda")
     refined = srm.refine(rgb, alpha)    # (B,H,W,3) premultiplied, alpha (B,H,W)
+    refined = srm.refine(rgb, alpha, tta=8)   # mean over the 8 symmetries of the square (8x the cost)
 """
 
 from hogsa_loader.srm.io import load_srm, read_srm_manifest, save_srm, seen_views

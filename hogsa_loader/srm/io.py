@@ -25,15 +25,13 @@ naming the offending file. It accepts the checkpoint folder itself or a training
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import torch
 
 from hogsa_loader.errors import AssetError, PathLike, read_json
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.gaussians.checkpoint import read_checked_tensors, write_tensors_and_manifest
 from hogsa_loader.srm.model import SRM
 from hogsa_loader.srm.styleunet import StyleUNetConfig
 
@@ -69,15 +67,14 @@ def save_srm(model: SRM, folder: PathLike, *, extra: Optional[Mapping[str, Any]]
 
     Returns:
         the folder.
-    """
-    from safetensors.torch import save as st_save
 
+    Raises:
+        ValueError: NaN or infinite weights or metadata; nothing is written then.
+    """
     import hogsa_loader
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.net.state_dict().items()}
-    blob = st_save(tensors, metadata={"format": SRM_FORMAT, "schema_version": str(SRM_SCHEMA_VERSION)})
     manifest = {
         "format": SRM_FORMAT,
         "schema_version": SRM_SCHEMA_VERSION,
@@ -88,10 +85,9 @@ def save_srm(model: SRM, folder: PathLike, *, extra: Optional[Mapping[str, Any]]
         "extra": dict(extra or {}),
         "tensors": {k: {"shape": list(v.shape), "dtype": str(v.dtype).removeprefix("torch.")} for k, v in tensors.items()},
         "tensors_file": SRM_TENSORS,
-        "tensors_sha256": hashlib.sha256(blob).hexdigest(),
-    }
-    atomic_write(folder / SRM_TENSORS, blob)
-    atomic_write(folder / SRM_MANIFEST, (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8"))
+    }  # (+ tensors_sha256, added by the writer)
+    write_tensors_and_manifest(folder, SRM_TENSORS, tensors, SRM_MANIFEST, manifest,
+                               metadata={"format": SRM_FORMAT, "schema_version": str(SRM_SCHEMA_VERSION)})
     return folder
 
 
@@ -151,8 +147,6 @@ def load_srm(folder: PathLike, device: Optional[torch.device | str] = None, *, d
         AssetError: missing/malformed manifest or tensors file, checksum mismatch, tensors
             that do not fit the configured architecture (names the file).
     """
-    from safetensors.torch import load as st_load
-
     folder = Path(folder)
     if not folder.is_dir():
         raise AssetError(folder, "SRM checkpoint folder is missing")
@@ -163,16 +157,8 @@ def load_srm(folder: PathLike, device: Optional[torch.device | str] = None, *, d
         model = SRM(cfg)
     except (TypeError, ValueError) as exc:
         raise AssetError(mpath, f"bad StyleUNet config ({exc})") from None
+    tensors = read_checked_tensors(folder / m["tensors_file"], m, mpath)  # (tensors_sha256 is required here)
     tpath = folder / m["tensors_file"]
-    if not tpath.is_file():
-        raise AssetError(tpath, "tensors file is missing")
-    blob = tpath.read_bytes()
-    if hashlib.sha256(blob).hexdigest() != m["tensors_sha256"]:
-        raise AssetError(tpath, "sha256 does not match the manifest (torn write or mismatched pair)")
-    try:
-        tensors = st_load(blob)
-    except Exception as exc:  # noqa: BLE001
-        raise AssetError(tpath, f"cannot read safetensors ({type(exc).__name__}: {exc})") from None
     want = model.net.state_dict()
     missing, unexpected = sorted(set(want) - set(tensors)), sorted(set(tensors) - set(want))
     if missing or unexpected:

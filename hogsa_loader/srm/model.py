@@ -145,7 +145,7 @@ class SRM(nn.Module):
         a = alpha[..., 0] if alpha.ndim == 4 else alpha
         if a.shape != rgb.shape[:3]:
             raise ValueError(f"alpha {tuple(alpha.shape)} does not match rgb {tuple(rgb.shape)}")
-        if tta not in TTA_CODES:
+        if isinstance(tta, bool) or tta not in TTA_CODES:
             raise ValueError(f"tta must be one of {sorted(TTA_CODES)}, got {tta!r}")
         if tta > 1:  # (channel-last images: the symmetries act on axes 1, 2)
             outs = [self.refine(dihedral(rgb.movedim(-1, 1), c).movedim(1, -1), dihedral(a, c), autocast=autocast,

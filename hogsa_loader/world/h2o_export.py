@@ -175,11 +175,10 @@ def export_h2o_world(
     if int(frame_stride) < 1:
         raise ValueError(f"frame stride must be >= 1, got {frame_stride}")
     seq_dir = Path(out) / h2o_subject / scene / str(int(seq_id))
-    if seq_dir.is_dir() and any(seq_dir.iterdir()):
-        if not overwrite:
-            raise AssetError(seq_dir, "already holds an H2O sequence; its frames would mix with this export's "
-                                      "(pass overwrite=True, or --overwrite, to replace it)")  # fmt: skip
-        shutil.rmtree(seq_dir)
+    replace_old = seq_dir.is_dir() and any(seq_dir.iterdir())
+    if replace_old and not overwrite:
+        raise AssetError(seq_dir, "already holds an H2O sequence; its frames would mix with this export's "
+                                  "(pass overwrite=True, or --overwrite, to replace it)")  # fmt: skip
     root = ArcticRoot(arctic_root)
     if seed is None:
         seed = int(root.world_meta().extra.get("seed", 0))
@@ -231,6 +230,8 @@ def export_h2o_world(
             obj_transform=w2c[k] @ obj2world,
             rgb=rgb,
         )
+    if replace_old:  # (only now: a failed export leaves the old one in place)
+        shutil.rmtree(seq_dir)
     write_h2o_sequence(out, h2o_subject, scene, seq_id, idx.tolist(), records)
     record = {
         "source": {"arctic_root": str(root.data_root), "subject": subject, "sequence": sequence,
