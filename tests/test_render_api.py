@@ -465,8 +465,13 @@ def _rasterization_double(means, quats, scales, opacities, colors, viewmats, Ks,
 @pytest.fixture
 def gsplat_double(monkeypatch):
     monkeypatch.setattr(gsplat_backend, "_load_rasterization", lambda: _rasterization_double)
-    monkeypatch.setattr(gsplat_backend, "gsplat_unavailable_reason", lambda device, dtype=None: None)
-    monkeypatch.setattr(api, "gsplat_unavailable_reason", lambda device, dtype=None: None)
+    real = gsplat_backend.gsplat_unavailable_reason
+
+    def usable(device, dtype=None, tile_size=16):  # CUDA "available"; the tile-size limit stays real
+        return real(device, dtype, tile_size) if tile_size > gsplat_backend.MAX_GSPLAT_TILE else None
+
+    monkeypatch.setattr(gsplat_backend, "gsplat_unavailable_reason", usable)
+    monkeypatch.setattr(api, "gsplat_unavailable_reason", usable)
 
 
 @pytest.mark.parametrize(

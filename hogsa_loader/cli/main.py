@@ -148,8 +148,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
         args.bundle, args.data, coco_root=args.coco_root, coco_ann=args.coco_ann,
         background_folder=args.background_folder,
         categories=[c for c in args.categories.split(",") if c] if args.categories else None,
-        exclude_person=args.exclude_person, poses=args.poses, srm=args.srm, srm_tta=args.srm_tta, device=device, batch_size=args.batch_size, seed=args.seed,
-        num_samples=args.num, render_size=args.render_size, interfield=args.interfield,
+        exclude_person=args.exclude_person, poses=args.poses, srm=args.srm, srm_tta=args.srm_tta, device=device,
+        batch_size=args.batch_size, seed=args.seed, num_samples=args.num, render_size=args.render_size, interfield=args.interfield,
     )  # fmt: skip
     info = {
         "bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), "seed": args.seed,

@@ -359,7 +359,7 @@ class _ImageListSource(BackgroundSource):
 
     def _one(self, height: int, width: int, generator: torch.Generator) -> np.ndarray:
         if not self.paths:
-            raise AssetError("<backgrounds>", "no background images to draw from")
+            raise AssetError(self.origin, "no background images to draw from")
         n = len(self.paths)
         first = int(torch.randint(n, (1,), generator=generator).item())
         u_frac, u_x, u_y, u_flip = _uniform(generator, 4)

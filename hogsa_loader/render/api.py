@@ -27,7 +27,6 @@ from hogsa_loader.render.gaussians import (
     render_gaussians,
 )
 from hogsa_loader.render.gsplat_backend import (
-    MAX_GSPLAT_TILE,
     BackendUnavailableError,
     gsplat_unavailable_reason,
     render_gsplat,
@@ -205,10 +204,7 @@ def _choose_backend(backend: str, device: torch.device, dtype: torch.dtype, tile
     """(chosen backend, why)."""
     if backend == "torch":
         return "torch", "requested"
-    if tile_size > MAX_GSPLAT_TILE:
-        reason: str | None = f"tile_size {tile_size} > {MAX_GSPLAT_TILE}, the largest gsplat's raster kernel can launch"
-    else:
-        reason = gsplat_unavailable_reason(device, dtype)
+    reason = gsplat_unavailable_reason(device, dtype, tile_size)
     if backend == "gsplat":
         if reason is not None:
             raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}. Use backend='torch' (or 'auto').")

@@ -74,12 +74,16 @@ def _probe_extension() -> str | None:
     return None
 
 
-def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = None) -> str | None:
-    """Why the gsplat backend cannot render tensors on ``device`` of ``dtype`` (None = it can).
+def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = None, tile_size: int = 16) -> str | None:
+    """Why the gsplat backend cannot render tensors on ``device`` of ``dtype`` with tiles of
+    ``tile_size`` (None = it can).
 
-    Cheap for non-CUDA devices (gsplat is not imported); for CUDA devices the first call
-    may JIT-compile gsplat's extension (minutes, once per machine).
+    Cheap for non-CUDA devices and oversized tiles (gsplat is not imported); for CUDA
+    devices the first call may JIT-compile gsplat's extension (minutes, once per machine).
     """
+    if tile_size > MAX_GSPLAT_TILE:
+        return (f"tile_size {tile_size} > {MAX_GSPLAT_TILE}: gsplat's raster kernel runs tile_size² threads per "
+                "block, at most 1024")  # fmt: skip
     if device.type != "cuda":
         return f"the tensors are on '{device}', and gsplat's rasteriser runs on CUDA tensors only"
     if not torch.cuda.is_available():
@@ -148,10 +152,7 @@ def render_gsplat(
     result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
     is gsplat's ``meta`` dict plus ``gsplat_version``.
     """
-    if tile_size > MAX_GSPLAT_TILE:
-        raise BackendUnavailableError(f"backend='gsplat' cannot run: tile_size {tile_size} > {MAX_GSPLAT_TILE} (gsplat's "
-                                      "raster kernel uses tile_size² threads per block, at most 1024)")  # fmt: skip
-    reason = gsplat_unavailable_reason(means.device, means.dtype)
+    reason = gsplat_unavailable_reason(means.device, means.dtype, tile_size)
     if reason is not None:
         raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}")
     rasterization = _load_rasterization()
