@@ -44,7 +44,7 @@ import torch
 
 from hogsa_loader.errors import PathLike
 
-__all__ = ["DemoConfig", "run_demo", "demo_photographs", "unbatch"]
+__all__ = ["DemoConfig", "run_demo", "build_bundle_stages", "demo_photographs", "unbatch"]
 
 #: Colour photographs in scikit-image's wheel used as demo backgrounds.
 DEMO_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "motorcycle_left.png",
@@ -241,6 +241,21 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     stages.run("bundle", k_bundle, [bundle], lambda: str(write_bundle(
         bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])))
     return data, bundle
+
+
+def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
+                        log: Optional[Callable[[str], None]] = print) -> tuple[Path, Path, dict[str, float]]:
+    """Build (or reuse) the demo's stages up to the bundle: world, HOGS runs, ContactNet,
+    pose bank, SRM, bundle — each cached in ``out`` by its settings.
+
+    Returns:
+        ``(data_root, bundle_folder, stage_seconds)``.
+    """
+    out = Path(os.path.abspath(out))
+    out.mkdir(parents=True, exist_ok=True)
+    stages = _Stages(out, log or (lambda s: None))
+    data, bundle = _build(config, out, stages, log or (lambda s: None))
+    return data, bundle, dict(stages.seconds)
 
 
 def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> dict[str, Any]:

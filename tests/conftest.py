@@ -88,3 +88,45 @@ def tiny_world(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_world")
     assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
     return out
+
+
+def tiny_srm(folder: Path, scale: int = 1) -> Path:
+    """A small untrained SRM saved in ``folder``."""
+    from hogsa_loader.srm import SRM, save_srm
+    from hogsa_loader.srm.styleunet import StyleUNetConfig
+
+    torch.manual_seed(0)
+    cfg = StyleUNetConfig(channels=[8, 8, 8], style_dim=8, mlp_num=1, scale=scale, extra_channels=4)
+    save_srm(SRM(cfg), folder)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
+    """An untrained bundle of the tiny world (colours from the hand albedo / object texture)
+    for s01 + box, with a small untrained SRM."""
+    from hogsa_loader.bundle import write_bundle
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.gaussians.checkpoint import save_part
+    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+
+    root = ArcticRoot(tiny_world)
+    layers, templates = root.mano_layers(), root.object_templates()
+    out = tmp_path_factory.mktemp("bundle")
+    run = out / "runs" / "s01_box"
+    kw = dict(k=1, sh_degree=0)
+    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
+    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
+    save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
+    tiny_srm(out / "srm")
+    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm")
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op thread for a module of small-tensor tests (OpenMP hand-offs cost more than
+    they gain there, and much more on a busy machine); restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

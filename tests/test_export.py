@@ -23,6 +23,7 @@ from hogsa_loader.errors import AssetError
 from hogsa_loader.export import (
     ExportMismatchError,
     SynthShardDataset,
+    SynthShardSamples,
     decode_frame,
     encode_frame,
     expand_shards,
@@ -291,6 +292,30 @@ def test_arctic_samples_and_workers(export_dir):
     plain = [smp for smp in SynthShardDataset(export_dir, arctic_samples=True) if "dist.ro" not in smp[1]]
     batch = next(iter(DataLoader(plain, batch_size=3)))
     assert batch[0]["img"].shape == (3, 3, 224, 224) and batch[1]["joints_valid_r"].dtype == torch.float64
+
+
+def test_map_style_samples_equal_the_stream(export_dir, tmp_path):
+    """SynthShardSamples gives, for each stored frame, the sample the streaming reader gives
+    (same augmentation draw from the global index), in any access order; epochs re-augment."""
+    stream = {m["imgname"]: (i, t) for i, t, m in SynthShardDataset(export_dir, arctic_samples=True, seed=5)}
+    ds = SynthShardSamples(export_dir, seed=5)
+    assert len(ds) == NUM
+    seen = set()
+    for k in reversed(range(len(ds))):
+        inputs, targets, meta = ds[k]
+        ref_in, ref_t = stream[meta["imgname"]]
+        assert torch.equal(inputs["img"], ref_in["img"]) and torch.equal(targets["mano.j2d.norm.r"], ref_t["mano.j2d.norm.r"])
+        seen.add(meta["imgname"])
+    assert len(seen) == NUM
+    ds.set_epoch(1)
+    assert not torch.equal(ds[0][1]["mano.j2d.norm.r"], SynthShardSamples(export_dir, seed=5)[0][1]["mano.j2d.norm.r"])
+    shuffled = DataLoader(ds, batch_size=None, shuffle=True, generator=torch.Generator().manual_seed(0))
+    assert sorted(m["imgname"] for _, _, m in shuffled) == sorted(seen)
+    (tmp_path / "empty").mkdir()
+    with tarfile.open(tmp_path / "empty" / "x.tar", "w"):
+        pass
+    with pytest.raises(AssetError, match="no samples"):
+        SynthShardSamples(tmp_path / "empty")
 
 
 def test_reader_sharding_and_errors(export_dir, tmp_path):

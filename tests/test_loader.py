@@ -20,8 +20,6 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig, patch_warp_matrix, unnormalize_kp2d
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians.checkpoint import save_part
-from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
 from hogsa_loader.loader import (
     CameraConfig,
     HOGSADataset,
@@ -32,6 +30,8 @@ from hogsa_loader.loader import (
     parse_synthetic_imgname,
 )
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
+
+from conftest import tiny_srm
 
 #: Small patches keep rendering cheap; real and synthetic samples use the same config.
 CFG = ArcticConfig(img_res=64)
@@ -48,28 +48,8 @@ def _one_thread():
 
 
 @pytest.fixture(scope="module")
-def bundle_dir(tiny_world, tmp_path_factory) -> Path:
-    """An untrained bundle (colours from the hand albedo / object texture) for s01 + box."""
-    root = ArcticRoot(tiny_world)
-    layers, templates = root.mano_layers(), root.object_templates()
-    out = tmp_path_factory.mktemp("bundle")
-    run = out / "runs" / "s01_box"
-    kw = dict(k=1, sh_degree=0)
-    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
-    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
-    save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
-    _tiny_srm(out / "srm")
-    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm")
-
-
-def _tiny_srm(folder: Path, scale: int = 1) -> Path:
-    from hogsa_loader.srm import SRM, save_srm
-    from hogsa_loader.srm.styleunet import StyleUNetConfig
-
-    torch.manual_seed(0)
-    cfg = StyleUNetConfig(channels=[8, 8, 8], style_dim=8, mlp_num=1, scale=scale, extra_channels=4)
-    save_srm(SRM(cfg), folder)
-    return folder
+def bundle_dir(untrained_bundle) -> Path:
+    return untrained_bundle
 
 
 def _dataset(bundle_dir, world, **kw) -> HOGSADataset:
@@ -381,7 +361,7 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
     with pytest.raises(AssetError, match="SRM checkpoint.*not an SRM checkpoint"):
         load_bundle(tmp_path / "c")
     # scale-2 SRM: refused when the dataset is made, naming its manifest
-    b2 = write_bundle(tmp_path / "b2", tiny_world, [run], srm=_tiny_srm(tmp_path / "srm2", scale=2))
+    b2 = write_bundle(tmp_path / "b2", tiny_world, [run], srm=tiny_srm(tmp_path / "srm2", scale=2))
     with pytest.raises(AssetError, match=r"srm2/manifest.json.*2x its input size"):
         _dataset(b2, tiny_world, srm=True)
     _dataset(bundle_dir, tiny_world, srm=True)  # scale 1: fine

@@ -1,6 +1,7 @@
 """Offline export of synthetic frames as WebDataset tar shards, and reading them back.
 
 * :func:`write_shards` — resumable, rank-sharded writer (``hogsa export`` uses it);
+* :class:`SynthShardSamples` — the same samples as a map-style dataset (shuffled reading);
 * :class:`SynthShardDataset` — torch ``IterableDataset`` over the shards yielding
   :class:`~hogsa_loader.loader.frame.SynthFrame` or, with ``arctic_samples=True``,
   ArcticNet-SF ``(inputs, targets, meta_info)`` samples augmented like ARCTIC;
@@ -8,7 +9,13 @@
 """
 
 from hogsa_loader.export.codec import FORMAT_VERSION, decode_frame, encode_frame, frame_labels
-from hogsa_loader.export.reader import SynthShardDataset, expand_shards, frame_to_arctic_sample, iter_tar_samples
+from hogsa_loader.export.reader import (
+    SynthShardDataset,
+    SynthShardSamples,
+    expand_shards,
+    frame_to_arctic_sample,
+    iter_tar_samples,
+)
 from hogsa_loader.export.writer import (
     INDEX_NAME,
     ExportMismatchError,
@@ -28,6 +35,7 @@ __all__ = [
     "INDEX_NAME",
     "ExportMismatchError",
     "SynthShardDataset",
+    "SynthShardSamples",
     "dataset_frames_for_shard",
     "decode_frame",
     "encode_frame",

@@ -35,7 +35,7 @@ from typing import Any, Iterator, Optional, Sequence, Union
 
 import numpy as np
 import torch
-from torch.utils.data import IterableDataset, get_worker_info
+from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from hogsa_loader.datasets.augment import ArcticConfig, sample_aug_params
 from hogsa_loader.errors import AssetError, PathLike
@@ -43,7 +43,14 @@ from hogsa_loader.export.codec import decode_frame, split_member_name
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.synth import STREAM_AUG, frame_to_sample
 
-__all__ = ["AUG_STREAM", "SynthShardDataset", "expand_shards", "iter_tar_samples", "frame_to_arctic_sample"]
+__all__ = [
+    "AUG_STREAM",
+    "SynthShardDataset",
+    "SynthShardSamples",
+    "expand_shards",
+    "iter_tar_samples",
+    "frame_to_arctic_sample",
+]
 
 _BRACE = re.compile(r"\{([^{}]*)\}")
 
@@ -259,3 +266,79 @@ class SynthShardDataset(IterableDataset):
             seed = self.seed if self.seed is not None else int(frame.meta.get("seed", 0))
             epoch = self.epoch if self.epoch is not None else int(frame.meta.get("epoch", 0))
             yield frame_to_arctic_sample(frame, int(index), seed, epoch, self.augment, self.cfg)
+
+
+def _sample_index(shard: Path, key: str, files: dict[str, bytes]) -> int:
+    """Global sample index of a stored sample (``index`` of its JSON, else its key)."""
+    try:
+        info = json.loads(files["json"].decode("utf-8"))
+    except (KeyError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise AssetError(shard, f"{key}: unreadable sample record ({type(exc).__name__})") from None
+    index = info.get("index")
+    if index is not None:
+        return int(index)
+    try:
+        return int(key.rsplit("/", 1)[-1])
+    except ValueError:
+        raise AssetError(shard, f"{key}: no global index to seed the augmentation") from None
+
+
+class SynthShardSamples(Dataset):
+    """Exported synthetic frames as a map-style dataset of ArcticNet-SF samples.
+
+    The shards' encoded members are held in memory (a few tens of kB per sample) and
+    decoded on access, so a ``DataLoader(shuffle=True)`` draws samples from every model
+    and pose of the export in each batch (:class:`SynthShardDataset` streams them in
+    shard order). Sample ``i`` is augmented from ``default_rng([seed, epoch, index, 3])``
+    with ``index`` its global export index — the same draw as :class:`SynthShardDataset`
+    and the live loader.
+
+    Args:
+        paths: shard folder, glob, brace pattern, file, or a list of them.
+        augment: ARCTIC training augmentation.
+        seed: seed of the augmentation draws; None = each frame's ``meta["seed"]``.
+        epoch: epoch of the augmentation draws (:meth:`set_epoch`).
+        cfg: ArcticNet-SF settings of the samples.
+    """
+
+    def __init__(
+        self,
+        paths: Union[PathLike, Sequence[PathLike]],
+        augment: bool = True,
+        seed: Optional[int] = None,
+        epoch: int = 0,
+        cfg: Optional[ArcticConfig] = None,
+    ) -> None:
+        super().__init__()
+        self.shards = expand_shards(paths)
+        self.augment = bool(augment)
+        self.seed = None if seed is None else int(seed)
+        self.epoch = int(epoch)
+        self.cfg = cfg if cfg is not None else ArcticConfig()
+        self._items: list[tuple[Path, str, int, dict[str, bytes]]] = []
+        for sh in self.shards:
+            for key, files in iter_tar_samples(sh):
+                self._items.append((sh, key, _sample_index(sh, key, files), files))
+        if not self._items:
+            raise AssetError(self.shards[0], "no samples in the export")
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Epoch of the augmentation draws."""
+        self.epoch = int(epoch)
+
+    def frame(self, i: int) -> SynthFrame:
+        """The stored frame of item ``i``."""
+        sh, key, _, files = self._items[i]
+        try:
+            return decode_frame(files, f"{sh}:{key}")
+        except ValueError as exc:
+            raise AssetError(sh, str(exc)) from None
+
+    def __getitem__(self, i: int) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+        frame = self.frame(i)
+        index = self._items[i][2]
+        seed = self.seed if self.seed is not None else int(frame.meta.get("seed", 0))
+        return frame_to_arctic_sample(frame, index, seed, self.epoch, self.augment, self.cfg)

@@ -1,0 +1,622 @@
+"""Does HOGSA improve the baseline? ArcticNet-SF trained with and without synthetic samples.
+
+One command reproduces the shape of the HOGSA paper's Table 1 and ablation on an
+ARCTIC-format world: ArcticNet-SF is trained on the world's ``p1_train`` real loader alone
+and on real + HOGSA samples (:class:`~hogsa_loader.loader.mixing.MixedLoader`, the
+machinery of ``wrap_train_loader``) with the same steps, batch size, optimiser,
+augmentation and seed, and every model is evaluated on the held-out subject (``p1_val``)
+with ARCTIC's metrics.
+
+Arms (``--arms``):
+
+* ``real`` — real frames only;
+* ``hogsa`` — real + HOGSA: POM pose bank + SRM;
+* ``hogsa_no_pom`` — annotated training poses (no POM), novel views, SRM;
+* ``hogsa_no_srm`` — POM pose bank, no SRM;
+* ``hogsa_free`` — the free-3DGS HOGS variant (needs ``--setup-free-bundle``; skipped and
+  recorded otherwise);
+* ``real_low`` / ``hogsa_low`` — the same with ``--low-data`` of the real training frames
+  (a fixed random subset, the same for every seed and arm).
+
+Synthetic frames are rendered once per variant with ``hogsa export``'s writer
+(``OUT/synthetic/<variant>/``, resumable) and read back shuffled
+(:class:`~hogsa_loader.export.SynthShardSamples`) with fresh ARCTIC augmentation per epoch,
+so rendering is paid once. Without ``--setup-data``/``--setup-bundle`` the world and the
+bundle (HOGS for every training (subject, object), ContactNet, pose bank, SRM) are built by
+``hogsa demo``'s cached stages in ``OUT/setup``.
+
+Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run —
+a finished run is reused when its settings are unchanged, so an interrupted command
+continues where it stopped; ``downstream.json`` (per seed, mean ± std, paired differences
+real+HOGSA − real per seed), ``downstream.md`` (tables) and ``downstream.png`` (validation
+curves per arm, metric bars with the seed spread).
+
+Usage::
+
+    python benchmarks/downstream.py --out runs/downstream            # full run, small world
+    python benchmarks/downstream.py --out /tmp/ds_quick --quick      # tiny world, minutes
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Iterator, Literal, Optional
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+
+from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
+
+ARMS = ("real", "hogsa", "hogsa_no_pom", "hogsa_no_srm", "hogsa_free", "real_low", "hogsa_low")
+#: arm → (real share of p1_train, synthetic variant or None)
+ARM_SPECS: dict[str, tuple[str, Optional[str]]] = {
+    "real": ("all", None),
+    "hogsa": ("all", "full"),
+    "hogsa_no_pom": ("all", "no_pom"),
+    "hogsa_no_srm": ("all", "no_srm"),
+    "hogsa_free": ("all", "free"),
+    "real_low": ("low", None),
+    "hogsa_low": ("low", "full"),
+}
+#: Metrics of the tables, in ARCTIC's order, with their direction (True: lower is better).
+METRICS = {
+    "mpjpe/ra/h": ("MPJPE_h (mm)", True),
+    "cdev/ho": ("CDev_ho (mm)", True),
+    "mrrpe/r/l": ("MRRPE_rl (mm)", True),
+    "mrrpe/r/o": ("MRRPE_ro (mm)", True),
+    "mdev/h": ("MDev_h (mm)", True),
+    "acc/h": ("ACC_h (m/s²)", True),
+    "acc/o": ("ACC_o (m/s²)", True),
+    "aae": ("AAE (°)", True),
+    "success_rate/0.05": ("Success (%)", False),
+}
+RESULT_VERSION = 1
+
+
+@dataclass
+class SetupSettings:
+    """Where the world and the bundle come from."""
+
+    preset: str = field(default="small", metadata={"help": "world preset built when --setup-data is not given"})
+    data: Optional[str] = field(default=None, metadata={"help": "an existing ARCTIC(-format) data root"})
+    bundle: Optional[str] = field(default=None, metadata={"help": "an existing bundle built on --setup-data"})
+    free_bundle: Optional[str] = field(default=None, metadata={"help": "bundle of free-3DGS HOGS runs"})
+    hogs_iters: int = field(default=400, metadata={"help": "HOGS steps per (subject, object) when building"})
+    hogs_image_size: int = field(default=128, metadata={"help": "HOGS training resolution when building"})
+    srm_iters: int = field(default=400, metadata={"help": "SRM steps when building"})
+    contactnet_iters: int = field(default=120, metadata={"help": "ContactNet steps when building"})
+    bank_per_sequence: int = field(default=6, metadata={"help": "POM frames per sequence in the pose bank"})
+
+
+@dataclass
+class SyntheticSettings:
+    """Synthetic frames: exported once per variant, read back shuffled."""
+
+    frames: int = field(default=1536, metadata={"help": "synthetic frames per variant"})
+    share: float = field(default=0.5, metadata={"help": "synthetic share of each mixed batch"})
+    render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
+    seed: int = field(default=1000, metadata={"help": "seed of the exported frames"})
+
+
+@dataclass
+class ModelSettings:
+    """The ArcticNet-SF baseline."""
+
+    backbone: Literal["resnet18", "resnet50"] = field(default="resnet18", metadata={"help": "image backbone"})
+    img_res: int = field(default=128, metadata={"help": "patch side in pixels (ARCTIC: 224)"})
+    weights: Optional[str] = field(default=None, metadata={"help": "local backbone weights (.pth/.safetensors)"})
+
+
+@dataclass
+class TrainSettings:
+    """Optimisation (the same for every arm)."""
+
+    steps: int = field(default=300, metadata={"help": "optimisation steps per run"})
+    batch_size: int = field(default=32, metadata={"help": "samples per step (real + synthetic)"})
+    lr: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
+    grad_clip: float = field(default=150.0, metadata={"help": "gradient-norm clip (ARCTIC: 150)"})
+    workers: int = field(default=1, metadata={"help": "DataLoader workers per loader"})
+    evals: int = field(default=4, metadata={"help": "validation points on the curve (the last is the full eval)"})
+    eval_stride: int = field(default=4, metadata={"help": "every k-th val frame for the curve points"})
+
+
+@dataclass
+class DownstreamConfig:
+    """The downstream experiment."""
+
+    out: str = field(default="runs/downstream", metadata={"help": "output and cache folder"})
+    seeds: tuple[int, ...] = field(default=(0, 1, 2), metadata={"help": "training seeds"})
+    arms: tuple[str, ...] = field(default=ARMS, metadata={"help": f"arms to run, of {', '.join(ARMS)}"})
+    low_data: float = field(default=0.25, metadata={"help": "real share of the low-data arms"})
+    device: str = field(default="cpu", metadata={"help": "cpu or cuda"})
+    threads: int = field(default=0, metadata={"help": "torch CPU threads (0: all available cores)"})
+    setup: SetupSettings = field(default_factory=SetupSettings)
+    synthetic: SyntheticSettings = field(default_factory=SyntheticSettings)
+    model: ModelSettings = field(default_factory=ModelSettings)
+    train: TrainSettings = field(default_factory=TrainSettings)
+
+
+def quick_config(cfg: DownstreamConfig) -> DownstreamConfig:
+    """``--quick``: the tiny world, one seed, a few steps — the whole pipeline in minutes."""
+    return replace(
+        cfg, seeds=(0,),
+        setup=replace(cfg.setup, preset="tiny", hogs_iters=40, hogs_image_size=64, srm_iters=20,
+                      contactnet_iters=10, bank_per_sequence=2),
+        synthetic=replace(cfg.synthetic, frames=32),
+        model=replace(cfg.model, img_res=64),
+        train=replace(cfg.train, steps=6, batch_size=8, evals=2, eval_stride=8),
+    )  # fmt: skip
+
+
+def validate(cfg: DownstreamConfig) -> None:
+    """Refuse settings that cannot run, before any work."""
+    unknown = [a for a in cfg.arms if a not in ARM_SPECS]
+    if unknown:
+        raise SystemExit(f"downstream: error: unknown arms {unknown}; known: {', '.join(ARMS)}")
+    checks = [
+        (cfg.seeds, "--seeds needs at least one seed"),
+        (0.0 < cfg.low_data <= 1.0, "--low-data must be in (0, 1]"),
+        (0.0 < cfg.synthetic.share < 1.0, "--synthetic-share must be in (0, 1)"),
+        (cfg.synthetic.frames > 0 and cfg.synthetic.render_batch > 0, "--synthetic-frames/-render-batch must be > 0"),
+        (cfg.train.steps > 0 and cfg.train.batch_size > 1, "--train-steps > 0 and --train-batch-size > 1 needed"),
+        (cfg.train.evals >= 1 and cfg.train.eval_stride >= 1, "--train-evals and --train-eval-stride must be >= 1"),
+        (cfg.train.workers >= 0 and cfg.threads >= 0, "--train-workers and --threads must be >= 0"),
+        (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
+        ((cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
+         "--setup-bundle needs --setup-data"),
+    ]  # fmt: skip
+    for ok, msg in checks:
+        if not ok:
+            raise SystemExit(f"downstream: error: {msg}")
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
+
+
+def _key(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _atomic_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1, allow_nan=False, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _say(msg: str) -> None:
+    print(msg, flush=True)
+
+
+# ----------------------------------------------------------------------------- setup
+
+
+def train_pairs(data: Path) -> list[tuple[str, str]]:
+    """(subject, object) pairs of the ``p1`` training sequences."""
+    from hogsa_loader.datasets.arctic import ArcticRoot
+
+    root = ArcticRoot(data)
+    pairs: list[tuple[str, str]] = []
+    for sid_seq in root.protocol("p1")["train"]:
+        sid, seq = sid_seq.split("/", 1)
+        pair = (sid, seq.split("_", 1)[0])
+        if pair not in pairs:
+            pairs.append(pair)
+    return pairs
+
+
+def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
+    """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
+    from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
+    from hogsa_loader.world import get_preset
+
+    backgrounds = demo_photographs(out / "backgrounds")
+    if cfg.setup.bundle is not None:
+        return {"data": Path(cfg.setup.data).resolve(), "bundle": Path(cfg.setup.bundle).resolve(),
+                "backgrounds": backgrounds, "stage_seconds": {}}
+    s = cfg.setup
+    if s.data is None:
+        preset = get_preset(s.preset)
+        pairs = [(p.sid, q.object) for p in preset.subjects if p.split == "train" for q in p.sequences]
+    else:
+        pairs = train_pairs(Path(s.data))
+    pairs = list(dict.fromkeys(pairs))
+    demo = DemoConfig(preset=s.preset, data=s.data, pairs=tuple(pairs), hogs_iters=s.hogs_iters,
+                      hogs_image_size=s.hogs_image_size, srm_iters=s.srm_iters,
+                      contactnet_iters=s.contactnet_iters, bank_per_sequence=s.bank_per_sequence)
+    data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
+    return {"data": data, "bundle": bundle, "backgrounds": backgrounds, "stage_seconds": seconds, "pairs": pairs}
+
+
+def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) -> Optional[dict[str, Any]]:
+    """HOGSADataset arguments of a synthetic variant (None: not available)."""
+    bundle = setup["bundle"]
+    if variant == "free":
+        if cfg.setup.free_bundle is None:
+            return None
+        bundle = Path(cfg.setup.free_bundle).resolve()
+    poses: dict[str, Any] = {"poses": "bank"}
+    if variant == "no_pom":  # the annotated training poses, unperturbed
+        poses = {"poses": "perturb", "pose_options": {"finger_std": 0.0}}
+    return {"bundle": str(bundle), "srm": variant != "no_srm", **poses}
+
+
+def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Render the frames of one synthetic variant once (resumable ``hogsa export`` shards)."""
+    from hogsa_loader.datasets.augment import ArcticConfig
+    from hogsa_loader.export import dataset_frames_for_shard, write_shards
+    from hogsa_loader.loader import HOGSADataset
+
+    opts = variant_options(variant, cfg, setup)
+    assert opts is not None
+    s = cfg.synthetic
+    shard = s.render_batch * max(1, 256 // s.render_batch)
+    ds = HOGSADataset(opts["bundle"], setup["data"], background_folder=setup["backgrounds"], poses=opts["poses"],
+                      pose_options=opts.get("pose_options"), srm=opts["srm"], device=cfg.device,
+                      batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
+                      config=ArcticConfig(img_res=cfg.model.img_res))
+    info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res}
+    t0 = time.perf_counter()
+    rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), out / "synthetic" / variant, s.frames, shard,
+                       info=info, progress=True)
+    stats = ds.total_stats()
+    return {"variant": variant, "samples": rec["samples"], "seconds": round(time.perf_counter() - t0, 1),
+            "written": len(rec["written"]), "skipped": len(rec["skipped"]), "dropped": dict(stats.dropped),
+            "settings": info}
+
+
+# ----------------------------------------------------------------------------- one run
+
+
+def _single_thread(_: int) -> None:
+    torch.set_num_threads(1)
+
+
+def _loader(ds: Any, batch_size: Optional[int], seed: int, workers: int, drop_last: bool = True,
+            shuffle: bool = True) -> DataLoader:
+    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=drop_last if batch_size else False,
+                      num_workers=workers, worker_init_fn=_single_thread if workers else None,
+                      generator=torch.Generator().manual_seed(seed))
+
+
+def _synthetic_stream(ds: Any, seed: int, workers: int) -> Iterator[Any]:
+    """Endless single samples of an export, reshuffled and re-augmented each pass."""
+    epoch = 0
+    while True:
+        ds.set_epoch(epoch)
+        yield from _loader(ds, None, seed * 1000 + epoch, workers)
+        epoch += 1
+
+
+def low_data_indices(n: int, fraction: float) -> list[int]:
+    """The fixed subset of the low-data arms (seed-independent, sorted)."""
+    k = max(1, int(round(n * fraction)))
+    return sorted(np.random.default_rng(20250125).permutation(n)[:k].tolist())
+
+
+def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Iterator[Any]:
+    """Endless training batches of an arm: real epochs, mixed with synthetic samples when the arm has them."""
+    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+    from hogsa_loader.datasets.augment import ArcticConfig
+    from hogsa_loader.export import SynthShardSamples
+    from hogsa_loader.loader.mixing import MixedLoader
+
+    share, variant = ARM_SPECS[arm]
+    acfg = ArcticConfig(img_res=cfg.model.img_res)
+    real = ArcticDataset(setup["data"], split="p1_train", seed=seed, config=acfg)
+    real_part: Any = real if share == "all" else Subset(real, low_data_indices(len(real), cfg.low_data))
+    syn = None
+    if variant is not None:
+        syn = SynthShardSamples(out / "synthetic" / variant, seed=seed, cfg=acfg)
+        syn_stream = _synthetic_stream(syn, seed, cfg.train.workers)
+    epoch = 0
+    while True:
+        real.set_epoch(epoch)
+        loader = _loader(real_part, cfg.train.batch_size, seed * 1000 + epoch, cfg.train.workers)
+        source: Any = loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share)
+        n = 0
+        for batch in source:
+            n += 1
+            yield batch
+        if n == 0:
+            raise RuntimeError(f"{arm}: the real training set is smaller than one batch")
+        epoch += 1
+
+
+def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
+    from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
+
+    model = ArcticNetSF(cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects,
+                        focal_length=1000.0, img_res=cfg.model.img_res)
+    if cfg.model.weights:
+        from hogsa_loader.baselines.resnet import load_backbone_weights
+
+        load_backbone_weights(model.backbone, cfg.model.weights)
+    return model
+
+
+def val_batches(cfg: DownstreamConfig, setup: dict[str, Any], stride: int) -> tuple[DataLoader, int]:
+    """The held-out subject's frames in temporal order (every ``stride``-th one)."""
+    from hogsa_loader.baselines.engine import temporal_order
+    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+    from hogsa_loader.datasets.augment import ArcticConfig
+
+    val = ArcticDataset(setup["data"], split="p1_val", seed=0, augment=False,
+                        config=ArcticConfig(img_res=cfg.model.img_res))
+    order = temporal_order(val.imgnames)[::stride]
+    return _loader(Subset(val, order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False,
+                   shuffle=False), len(order)
+
+
+def eval_steps(cfg: DownstreamConfig) -> list[int]:
+    n, steps = cfg.train.evals, cfg.train.steps
+    return sorted({max(1, round(steps * (i + 1) / n)) for i in range(n)})
+
+
+def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, Any]:
+    """What a run's result depends on (its cache key)."""
+    _, variant = ARM_SPECS[arm]
+    syn = asdict(cfg.synthetic) if variant else None
+    return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
+            "bundle": str(setup["bundle"]), "variant": variant and variant_options(variant, cfg, setup),
+            "synthetic": syn, "model": asdict(cfg.model), "train": asdict(cfg.train),
+            "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
+
+
+def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same settings."""
+    from tqdm import tqdm
+
+    from hogsa_loader.baselines.engine import BodyLayers, evaluate, training_step
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
+
+    run_dir = out / "runs" / arm / f"seed{seed}"
+    settings = run_settings(arm, seed, cfg, setup)
+    key = _key(settings)
+    res_path = run_dir / "result.json"
+    if res_path.is_file():
+        old = json.loads(res_path.read_text())
+        if old.get("key") == key:
+            _say(f"[{arm} seed {seed}] finished earlier: reused")
+            return old
+        _say(f"[{arm} seed {seed}] settings changed since the saved result: run again")
+    torch.manual_seed(seed)
+    layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
+    model = build_model(cfg, layers).to(cfg.device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
+    batches = train_batches(arm, seed, cfg, setup, out)
+    points = eval_steps(cfg)
+    curve, losses = [], []
+    t0 = time.perf_counter()
+    t_eval = 0.0
+    bar = tqdm(total=cfg.train.steps, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
+    final: dict[str, Any] = {}
+    for step in range(1, cfg.train.steps + 1):
+        rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
+        losses.append(rec["loss"])
+        bar.update(1)
+        bar.set_postfix(loss=f"{rec['loss']:.3f}")
+        if step in points:
+            te = time.perf_counter()
+            last = step == points[-1]
+            loader, n = val_batches(cfg, setup, 1 if last else cfg.train.eval_stride)
+            ev = evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=last)
+            t_eval += time.perf_counter() - te
+            curve.append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})
+            if last:
+                final = ev
+            bar.write(f"[{arm} seed {seed}] step {step}: MPJPE_h {ev['summary'].get('mpjpe/ra/h', float('nan')):.2f} mm,"
+                      f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)")
+    bar.close()
+    state = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
+    write_tensors_and_manifest(run_dir, "model.safetensors", state, "model.json",
+                               {"kind": "arcticnet_sf", "settings": settings})
+    result = {"key": key, "settings": settings, "summary": {k: _num(v) for k, v in final["summary"].items()},
+              "val_frames": final["frames"], "curve": curve, "loss_first": losses[0], "loss_last": losses[-1],
+              "loss_curve": [float(np.mean(losses[i:i + 10])) for i in range(0, len(losses), 10)],
+              "train_seconds": round(time.perf_counter() - t0 - t_eval, 1), "eval_seconds": round(t_eval, 1)}
+    _atomic_json(res_path, result)
+    return result
+
+
+def _num(x: Any) -> Optional[float]:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
+    """Mean ± std over seeds per arm, and paired differences against the matching real arm."""
+    agg: dict[str, Any] = {}
+    for arm, by_seed in results.items():
+        rows = {}
+        for m in METRICS:
+            vals = [r["summary"].get(m) for r in by_seed.values()]
+            vals = [v for v in vals if v is not None]
+            rows[m] = {"mean": float(np.mean(vals)) if vals else None,
+                       "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "n": len(vals)}
+        agg[arm] = rows
+    paired: dict[str, Any] = {}
+    for arm, by_seed in results.items():
+        ref = "real_low" if ARM_SPECS[arm][0] == "low" else "real"
+        if ARM_SPECS[arm][1] is None or ref not in results:
+            continue
+        diffs = {}
+        for m in ("mpjpe/ra/h", "cdev/ho"):
+            d = {s: r["summary"][m] - results[ref][s]["summary"][m] for s, r in by_seed.items()
+                 if s in results[ref] and r["summary"].get(m) is not None
+                 and results[ref][s]["summary"].get(m) is not None}
+            v = list(d.values())
+            diffs[m] = {"per_seed": d, "mean": float(np.mean(v)) if v else None,
+                        "std": float(np.std(v, ddof=1)) if len(v) > 1 else None}
+        paired[f"{arm} - {ref}"] = diffs
+    return {"arms": agg, "paired": paired}
+
+
+def _cell(row: dict[str, Any]) -> str:
+    if row["mean"] is None:
+        return "n/a"
+    return f"{row['mean']:.2f}" + (f" ± {row['std']:.2f}" if row["std"] is not None else "")
+
+
+def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: dict[str, str]) -> str:
+    """The Table 1 / ablation / low-data tables and the paired differences."""
+    head = "| method | " + " | ".join(METRICS[m][0] + (" ↓" if METRICS[m][1] else " ↑") for m in METRICS) + " |"
+    sep = "|" + "---|" * (len(METRICS) + 1)
+    names = {"real": "ArcticNet-SF (real)", "hogsa": "ArcticNet-SF + HOGSA", "hogsa_no_pom": "+ HOGSA w/o POM",
+             "hogsa_no_srm": "+ HOGSA w/o SRM", "hogsa_free": "+ HOGSA, free 3DGS",
+             "real_low": f"real {cfg.low_data:.0%}", "hogsa_low": f"real {cfg.low_data:.0%} + HOGSA"}
+
+    def table(arms: list[str]) -> list[str]:
+        rows = [head, sep]
+        for a in arms:
+            if a in agg["arms"]:
+                rows.append(f"| {names[a]} | " + " | ".join(_cell(agg["arms"][a][m]) for m in METRICS) + " |")
+            elif a in skipped:
+                rows.append(f"| {names[a]} | " + " | ".join("—" for _ in METRICS) + f" |  ({skipped[a]})")
+        return rows
+
+    lines = [f"Seeds {list(cfg.seeds)}, mean ± std; {cfg.model.backbone} at {cfg.model.img_res}², "
+             f"{cfg.train.steps} steps of {cfg.train.batch_size}, synthetic share {cfg.synthetic.share}, "
+             f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.", "",
+             "**Table 1** (p1, held-out subject)", ""] + table(["real", "hogsa"])
+    lines += ["", "**Ablation**", ""] + table(["hogsa_no_srm", "hogsa_no_pom", "hogsa_free", "hogsa"])
+    lines += ["", f"**Low data** ({cfg.low_data:.0%} of the real training frames)", ""] + table(["real_low", "hogsa_low"])
+    lines += ["", "**Paired difference per seed** (negative = HOGSA better)", "",
+              "| pair | ΔMPJPE_h (mm) per seed | mean ± std | ΔCDev_ho (mm) per seed | mean ± std |", "|---|---|---|---|---|"]
+    for pair, d in agg["paired"].items():
+        cells = []
+        for m in ("mpjpe/ra/h", "cdev/ho"):
+            per = ", ".join(f"{v:+.2f}" for v in d[m]["per_seed"].values())
+            ms = "n/a" if d[m]["mean"] is None else f"{d[m]['mean']:+.2f}" + (
+                f" ± {d[m]['std']:.2f}" if d[m]["std"] is not None else "")
+            cells += [per or "n/a", ms]
+        lines.append(f"| {pair} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], path: Path) -> None:
+    """Validation curves per arm (mean over seeds, min–max band) and metric bars with the seed spread."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arms = list(results)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, m in zip(axes[0], ("mpjpe/ra/h", "cdev/ho")):
+        for i, arm in enumerate(arms):
+            curves = [r["curve"] for r in results[arm].values()]
+            steps = [p["step"] for p in curves[0]]
+            vals = np.array([[p.get(m) if p.get(m) is not None else np.nan for p in c] for c in curves], float)
+            mean = np.nanmean(vals, 0)
+            ax.plot(steps, mean, "-o", color=colors[i % len(colors)], label=arm, ms=3)
+            if len(curves) > 1:
+                ax.fill_between(steps, np.nanmin(vals, 0), np.nanmax(vals, 0), color=colors[i % len(colors)], alpha=0.15)
+        ax.set_xlabel("step (last point: all val frames; earlier: a strided subset)")
+        ax.set_ylabel(METRICS[m][0])
+        ax.set_title(f"validation {METRICS[m][0]} (p1_val)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    for ax, m in zip(axes[1], ("mpjpe/ra/h", "cdev/ho")):
+        for i, arm in enumerate(arms):
+            vals = [r["summary"].get(m) for r in results[arm].values()]
+            vals = [v for v in vals if v is not None]
+            if not vals:
+                continue
+            ax.bar(i, np.mean(vals), color=colors[i % len(colors)], alpha=0.6)
+            ax.scatter([i] * len(vals), vals, color="k", s=12, zorder=3)
+        tops = [np.nanmax([v for v in (r["summary"].get(m) for r in results[a].values()) if v is not None] or [np.nan])
+                for a in arms]
+        if np.nanmin(tops) > 0 and np.nanmax(tops) / np.nanmin(tops) > 50:  # e.g. a diverged arm
+            ax.set_yscale("log")
+        ax.set_xticks(range(len(arms)))
+        ax.set_xticklabels(arms, rotation=20, fontsize=8)
+        ax.set_ylabel(METRICS[m][0])
+        ax.set_title(f"final {METRICS[m][0]}: mean (bar) and seeds (dots)")
+        ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def machine_description(cfg: DownstreamConfig) -> str:
+    from hogsa_loader.system import available_cores
+
+    if cfg.device.startswith("cuda"):
+        return f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}"
+    return f"{available_cores()} CPU cores ({platform.processor() or platform.machine()}), torch {torch.__version__}"
+
+
+def run(cfg: DownstreamConfig) -> dict[str, Any]:
+    """The whole experiment; returns the ``downstream.json`` record."""
+    from hogsa_loader.system import available_cores
+
+    validate(cfg)
+    torch.set_num_threads(cfg.threads or available_cores())
+    out = Path(cfg.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    setup = build_setup(cfg, out)
+    skipped: dict[str, str] = {}
+    exports: dict[str, Any] = {}
+    for arm in cfg.arms:
+        variant = ARM_SPECS[arm][1]
+        if variant is None or variant in exports:
+            continue
+        if variant_options(variant, cfg, setup) is None:
+            skipped[arm] = "no free-3DGS bundle given (--setup-free-bundle)"
+            continue
+        _say(f"[synthetic] variant {variant}: {cfg.synthetic.frames} frames")
+        exports[variant] = export_variant(variant, cfg, setup, out)
+    results: dict[str, dict[int, dict[str, Any]]] = {}
+    for seed in cfg.seeds:  # seeds outermost: every arm has a result early in a long run
+        for arm in cfg.arms:
+            if arm in skipped:
+                continue
+            results.setdefault(arm, {})[seed] = run_arm(arm, seed, cfg, setup, out)
+    agg = aggregate(results)
+    machine = machine_description(cfg)
+    record = {"config": asdict(cfg), "machine": machine, "setup": {k: str(v) if isinstance(v, Path) else v
+                                                                   for k, v in setup.items()},
+              "exports": exports, "skipped": skipped,
+              "results": {a: {str(s): r for s, r in rs.items()} for a, rs in results.items()},
+              "aggregate": agg, "total_seconds": round(time.perf_counter() - t0, 1)}
+    _atomic_json(out / "downstream.json", record)
+    (out / "downstream.md").write_text(markdown(agg, cfg, machine, skipped))
+    plot(results, agg, out / "downstream.png")
+    _say((out / "downstream.md").read_text())
+    _say(f"[downstream] {out / 'downstream.json'}, downstream.md, downstream.png; {record['total_seconds']:.0f} s")
+    return record
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--quick", action="store_true")
+    quick = pre.parse_known_args(argv)[0].quick
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help="defaults for the tiny world: one seed, a few steps (minutes); other flags still apply")
+    add_dataclass_arguments(p, DownstreamConfig, quick_config(DownstreamConfig()) if quick else None)
+    cfg = dataclass_from_args(DownstreamConfig, p.parse_args(argv))
+    run(cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

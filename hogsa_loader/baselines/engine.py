@@ -1,0 +1,196 @@
+"""Training and evaluation of the ArcticNet-SF baseline on ARCTIC-format batches.
+
+:func:`training_step` runs one optimisation step on a collated ``(inputs, targets,
+meta_info)`` batch (real, synthetic or mixed): ARCTIC's target preparation, the model,
+ARCTIC's loss, Adam with gradient-norm clipping. :func:`evaluate` runs a model over a
+split in temporal order and returns ARCTIC's per-frame and per-sequence metrics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Mapping, Optional
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from hogsa_loader.baselines.loss import arcticnet_sf_loss
+from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, summarize
+from hogsa_loader.baselines.targets import prepare_targets
+from hogsa_loader.datasets.arctic_dataset import parse_imgname
+
+__all__ = ["BodyLayers", "to_device", "training_step", "evaluate", "temporal_order", "SEQUENCE_KEYS"]
+
+#: Per-frame tensors kept for the temporal metrics (prediction and ground truth).
+SEQUENCE_KEYS = ("mano.v3d.cam.r", "mano.v3d.cam.l", "mano.j3d.cam.r", "mano.j3d.cam.l", "object.v.cam")
+_TARGET_ONLY = ("is_valid", "right_valid", "left_valid", "dist.ro", "dist.lo", "idx.ro", "idx.lo", "object.v_len")
+
+
+@dataclass
+class BodyLayers:
+    """The MANO layers and object layer a model and its targets are built with.
+
+    Attributes:
+        mano_r, mano_l: right / left :class:`~hogsa_loader.hands.mano.MANOLayer`.
+        objects: :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
+    """
+
+    mano_r: nn.Module
+    mano_l: nn.Module
+    objects: nn.Module
+
+    @classmethod
+    def from_root(cls, root: Any) -> "BodyLayers":
+        """The layers of an :class:`~hogsa_loader.datasets.arctic.ArcticRoot`."""
+        layers = root.mano_layers()
+        return cls(layers["right"], layers["left"], root.object_layer())
+
+    def to(self, device: Any) -> "BodyLayers":
+        return BodyLayers(self.mano_r.to(device), self.mano_l.to(device), self.objects.to(device))
+
+
+def to_device(batch: Any, device: Any) -> Any:
+    """Tensors of a nested batch moved to ``device`` (other values kept)."""
+    if isinstance(batch, Tensor):
+        return batch.to(device, non_blocking=True)
+    if isinstance(batch, dict):
+        return {k: to_device(v, device) for k, v in batch.items()}
+    if isinstance(batch, (list, tuple)) and batch and isinstance(batch[0], (Tensor, dict)):
+        return type(batch)(to_device(v, device) for v in batch)
+    return batch
+
+
+def _prepared(model: nn.Module, batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
+    inputs, targets, meta_info = to_device(batch, device)
+    with torch.no_grad():
+        targets, meta_info = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l,
+                                             layers.objects, img_res=img_res)
+    return inputs, targets, meta_info
+
+
+def training_step(
+    model: nn.Module,
+    batch: Any,
+    layers: BodyLayers,
+    optimizer: torch.optim.Optimizer,
+    img_res: int,
+    grad_clip: float = 150.0,
+    device: Any = "cpu",
+) -> dict[str, float]:
+    """One step of ArcticNet-SF training.
+
+    Args:
+        model: :class:`~hogsa_loader.baselines.arcticnet_sf.ArcticNetSF` (put in train mode).
+        batch: collated ``(inputs, targets, meta_info)``.
+        layers: the layers the targets are prepared with.
+        optimizer: the optimiser of ``model``'s parameters.
+        img_res: patch side (px) of the samples.
+        grad_clip: gradient-norm clip (ARCTIC: 150).
+        device: where the step runs.
+
+    Returns:
+        ``{loss key: value}`` of the weighted terms and the total ``loss``.
+
+    Raises:
+        FloatingPointError: the loss is not finite (the step is not applied).
+    """
+    model.train()
+    inputs, targets, meta_info = _prepared(model, batch, layers, img_res, device)
+    pred = model(inputs, meta_info)
+    losses = arcticnet_sf_loss(pred, targets)
+    total = losses["loss"]
+    if not torch.isfinite(total):
+        bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
+        raise FloatingPointError(f"non-finite loss terms: {bad}")
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    if grad_clip and grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
+    optimizer.step()
+    return {k: float(v.detach()) for k, v in losses.items()}
+
+
+def temporal_order(imgnames: Iterable[str]) -> list[int]:
+    """Indices of ``imgnames`` sorted by (subject, sequence, view, frame)."""
+    keys = [parse_imgname(n) for n in imgnames]
+    return sorted(range(len(keys)), key=lambda i: keys[i])
+
+
+def _group_of(imgname: str) -> tuple[tuple[str, str, int], int]:
+    sid, seq, view, frame = parse_imgname(imgname)
+    return (sid, seq, view), frame
+
+
+def _sequence_entry(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any],
+                    b: int) -> dict[str, Any]:
+    """What :func:`sequence_metrics` needs of frame ``b`` of a batch (CPU, float32)."""
+    p = {k: pred[k][b].detach().float().cpu() for k in SEQUENCE_KEYS}
+    t = {k: targets[k][b].detach().cpu() for k in SEQUENCE_KEYS + _TARGET_ONLY if k in targets}
+    t["object.v_len"] = torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len")))[b].cpu()
+    return {"pred": p, "targets": t, "part_ids": torch.as_tensor(meta_info["part_ids"])[b].cpu()}
+
+
+def _flush(frames: list[tuple[int, dict[str, Any]]]) -> dict[str, np.ndarray]:
+    frames.sort(key=lambda x: x[0])
+    entries = [e for _, e in frames]
+    pred = {k: torch.stack([e["pred"][k] for e in entries]) for k in entries[0]["pred"]}
+    targets = {k: torch.stack([e["targets"][k] for e in entries]) for k in entries[0]["targets"]}
+    meta = {"part_ids": torch.stack([e["part_ids"] for e in entries])}
+    return sequence_metrics(pred, targets, meta)
+
+
+@torch.no_grad()
+def evaluate(
+    model: nn.Module,
+    batches: Iterable[Any],
+    layers: BodyLayers,
+    img_res: int,
+    device: Any = "cpu",
+    temporal: bool = True,
+    on_batch: Optional[Callable[[int], None]] = None,
+) -> dict[str, Any]:
+    """ARCTIC's metrics of ``model`` over a split.
+
+    Args:
+        model: the model (put in eval mode here).
+        batches: collated batches of the split, frames of a (subject, sequence, view) in
+            consecutive batches (e.g. a DataLoader over :func:`temporal_order`) when
+            ``temporal``.
+        layers: the layers the targets are prepared with.
+        img_res: patch side (px).
+        device: where the model runs.
+        temporal: also compute MDev and ACC per (subject, sequence, view).
+        on_batch: called with the number of frames after each batch (progress).
+
+    Returns:
+        ``{"summary": {metric: value}, "frames": n, "per_frame": {metric: (n,) array},
+        "imgnames": [...]}``.
+    """
+    model.eval()
+    per_frame: list[dict[str, np.ndarray]] = []
+    per_seq: list[dict[str, np.ndarray]] = []
+    names: list[str] = []
+    current: Optional[tuple[str, str, int]] = None
+    frames: list[tuple[int, dict[str, Any]]] = []
+    for batch in batches:
+        inputs, targets, meta_info = _prepared(model, batch, layers, img_res, device)
+        pred = model(inputs, meta_info)
+        per_frame.append(per_frame_metrics(pred, targets, meta_info))
+        for b, name in enumerate(meta_info["imgname"]):
+            names.append(name)
+            if not temporal:
+                continue
+            group, frame = _group_of(name)
+            if group != current and frames:
+                per_seq.append(_flush(frames))
+                frames = []
+            current = group
+            frames.append((frame, _sequence_entry(pred, targets, meta_info, b)))
+        if on_batch is not None:
+            on_batch(len(meta_info["imgname"]))
+    if frames:
+        per_seq.append(_flush(frames))
+    merged = {k: np.concatenate([p[k] for p in per_frame]) for k in per_frame[0]} if per_frame else {}
+    summary = summarize(per_frame + per_seq)
+    return {"summary": summary, "frames": len(names), "per_frame": merged, "imgnames": names}

@@ -1,0 +1,103 @@
+"""Command-line flags derived from (nested) config dataclasses.
+
+A job's settings live in one dataclass whose fields are plain values or further
+dataclasses (groups). :func:`add_dataclass_arguments` adds one ``--flag`` per leaf field
+(``--group-field`` for a field of a group, an argparse group per dataclass group, help
+from the field's ``metadata["help"]``); :func:`dataclass_from_args` builds the config back
+from the parsed namespace. An option is therefore added in one place: its field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import typing
+from typing import Any, Optional, TypeVar
+
+__all__ = ["add_dataclass_arguments", "dataclass_from_args", "flag_name"]
+
+T = TypeVar("T")
+
+
+def flag_name(path: tuple[str, ...]) -> str:
+    """``("train", "batch_size")`` → ``"--train-batch-size"``."""
+    return "--" + "-".join(p.replace("_", "-") for p in path)
+
+
+def _dest(path: tuple[str, ...]) -> str:
+    return "__".join(path)
+
+
+def _leaf_type(tp: Any) -> tuple[Any, bool]:
+    """``(scalar type, optional)`` of a field annotation (``Optional[X]`` → X, True)."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) is typing.Union and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        return rest[0], True
+    return tp, False
+
+
+def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, default: Any) -> None:
+    kind, optional = _leaf_type(tp)
+    helptext = f.metadata.get("help", "")
+    choices = f.metadata.get("choices")
+    if typing.get_origin(kind) is typing.Literal:
+        choices, kind = typing.get_args(kind), type(typing.get_args(kind)[0])
+    if kind is bool:
+        group.add_argument(flag_name(path), dest=_dest(path), action=argparse.BooleanOptionalAction,
+                           default=default, help=f"{helptext} (default: {default})")
+        return
+    if typing.get_origin(kind) is tuple:
+        item = typing.get_args(kind)[0]
+        group.add_argument(flag_name(path), dest=_dest(path), type=item, nargs="+", default=default,
+                           metavar=path[-1].upper(),
+                           help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})")
+        return
+    conv = kind if kind in (int, float, str) else str
+    group.add_argument(flag_name(path), dest=_dest(path), type=conv, default=default, choices=choices,
+                       metavar=None if choices else path[-1].upper(),
+                       help=f"{helptext} (default: {default}{', optional' if optional else ''})")
+
+
+def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, default: Optional[Any] = None,
+                            prefix: tuple[str, ...] = ()) -> None:
+    """Add one flag per leaf field of the dataclass ``cls`` (groups recurse).
+
+    Args:
+        parser: the parser (or argument group) to add to.
+        cls: the config dataclass.
+        default: an instance whose values are the flags' defaults (default ``cls()``).
+        prefix: field path of ``cls`` inside the root config (flags ``--a-b-field``).
+    """
+    default = cls() if default is None else default
+    hints = typing.get_type_hints(cls)
+    group = parser
+    if prefix and hasattr(parser, "add_argument_group"):
+        group = parser.add_argument_group(" ".join(prefix), (cls.__doc__ or "").strip().splitlines()[0])
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        value = getattr(default, f.name)
+        if dataclasses.is_dataclass(hints[f.name]):
+            add_dataclass_arguments(parser, hints[f.name], value, prefix + (f.name,))
+        else:
+            _add_leaf(group, prefix + (f.name,), f, hints[f.name], value)
+
+
+def dataclass_from_args(cls: type[T], ns: argparse.Namespace, prefix: tuple[str, ...] = ()) -> T:
+    """The config ``cls`` from a namespace parsed with :func:`add_dataclass_arguments`."""
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        path = prefix + (f.name,)
+        if dataclasses.is_dataclass(hints[f.name]):
+            kwargs[f.name] = dataclass_from_args(hints[f.name], ns, path)
+            continue
+        value = getattr(ns, _dest(path))
+        kind, _ = _leaf_type(hints[f.name])
+        if typing.get_origin(kind) is tuple and value is not None:
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)  # type: ignore[call-arg]

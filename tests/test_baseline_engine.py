@@ -1,0 +1,106 @@
+"""ArcticNet-SF training steps on real and mixed real + synthetic batches, and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader, Subset
+
+from hogsa_loader.baselines import (
+    ARCTIC_SF_LOSS_WEIGHTS,
+    ArcticNetSF,
+    BodyLayers,
+    evaluate,
+    per_frame_metrics,
+    prepare_targets,
+    temporal_order,
+    training_step,
+)
+from hogsa_loader.compose import ProceduralBackgrounds
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset, parse_imgname
+from hogsa_loader.datasets.augment import ArcticConfig
+from hogsa_loader.loader import HOGSADataset, MixedLoader, is_synthetic
+
+RES = 64
+CFG = ArcticConfig(img_res=RES)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def layers(tiny_world):
+    return BodyLayers.from_root(ArcticRoot(tiny_world))
+
+
+def _model(layers: BodyLayers) -> ArcticNetSF:
+    torch.manual_seed(0)
+    return ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, img_res=RES)
+
+
+@pytest.fixture(scope="module")
+def batches(tiny_world, untrained_bundle):
+    """A real batch of 4 and a mixed batch (2 real + 2 synthetic) of the tiny world."""
+    real = DataLoader(ArcticDataset(tiny_world, "p1_train", seed=0, config=CFG), batch_size=4, shuffle=True,
+                      generator=torch.Generator().manual_seed(0))
+    syn = HOGSADataset(untrained_bundle, tiny_world, config=CFG, batch_size=4, num_samples=8, seed=1,
+                       backgrounds=ProceduralBackgrounds())
+    return next(iter(real)), next(iter(MixedLoader(real, syn, 0.5)))
+
+
+def test_training_step_on_real_and_mixed_batches(batches, layers):
+    real, mixed = batches
+    assert sum(is_synthetic(n) for n in mixed[2]["imgname"]) == 2
+    for batch in (real, mixed):
+        model = _model(layers)
+        before = model.head_r.hmr_layer.refine[0].weight.detach().clone()
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+        rec = training_step(model, batch, layers, opt, RES)
+        assert set(rec) == set(ARCTIC_SF_LOSS_WEIGHTS) | {"loss"}
+        assert all(np.isfinite(v) for v in rec.values()) and rec["loss"] > 0
+        assert rec["loss"] == pytest.approx(sum(v for k, v in rec.items() if k != "loss"), rel=1e-5)
+        assert not torch.equal(before, model.head_r.hmr_layer.refine[0].weight)
+
+
+def test_training_fits_a_fixed_batch(batches, layers):
+    real, _ = batches
+    model = _model(layers)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-4)
+    losses = [training_step(model, real, layers, opt, RES)["loss"] for _ in range(12)]
+    assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
+
+
+def test_non_finite_loss_is_refused_before_the_update(batches, layers):
+    real, _ = batches
+    model = _model(layers)
+    bad = (dict(real[0]), dict(real[1]), dict(real[2]))
+    bad[1]["mano.beta.r"] = real[1]["mano.beta.r"].clone()
+    bad[1]["mano.beta.r"][0, 0] = float("nan")
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    before = model.head_r.hmr_layer.refine[0].weight.detach().clone()
+    with pytest.raises(FloatingPointError, match="loss/mano/beta/r"):
+        training_step(model, bad, layers, opt, RES)
+    assert torch.equal(before, model.head_r.hmr_layer.refine[0].weight)
+
+
+def test_evaluate_in_temporal_order(tiny_world, layers):
+    val = ArcticDataset(tiny_world, "p1_val", seed=0, augment=False, config=CFG)
+    keys = [parse_imgname(n) for n in val.imgnames]
+    order = temporal_order(val.imgnames)
+    assert [keys[i] for i in order] == sorted(keys)
+    view = keys[order[0]][:3]
+    frames = [i for i in order if keys[i][:3] == view][:12]  # 12 consecutive frames of one view
+    model = _model(layers).eval()
+    res = evaluate(model, DataLoader(Subset(val, frames), batch_size=5), layers, RES)
+    assert res["frames"] == 12 and [parse_imgname(n) for n in res["imgnames"]] == [keys[i] for i in frames]
+    for k in ("mpjpe/ra/h", "cdev/ho", "mrrpe/r/l", "aae", "success_rate/0.05", "acc/h", "acc/o", "mdev/h"):
+        assert k in res["summary"], k
+    assert np.isfinite(res["summary"]["mpjpe/ra/h"]) and np.isfinite(res["summary"]["acc/h"])
+    # the per-frame values are those of per_frame_metrics on the prepared batch
+    batch = next(iter(DataLoader(Subset(val, frames[:5]), batch_size=5)))
+    t, m = prepare_targets(dict(batch[1]), dict(batch[2]), layers.mano_r, layers.mano_l, layers.objects, img_res=RES)
+    with torch.no_grad():
+        direct = per_frame_metrics(model(batch[0], m), t, m)
+    np.testing.assert_allclose(res["per_frame"]["mpjpe/ra/h"][:5], direct["mpjpe/ra/h"], rtol=1e-5)
+    assert np.isfinite(res["per_frame"]["mpjpe/ra/h"]).sum() == 12  # both hands are in every val frame

@@ -1,0 +1,143 @@
+"""The downstream experiment's machinery: config flags, arms, aggregation, tables."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import pytest
+
+from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args, flag_name
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _downstream():
+    spec = importlib.util.spec_from_file_location("downstream_bench", ROOT / "benchmarks" / "downstream.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["downstream_bench"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@dataclass
+class _Inner:
+    """Inner group."""
+
+    size: int = 3
+    mode: Literal["a", "b"] = "a"
+    path: Optional[str] = None
+
+
+@dataclass
+class _Outer:
+    """Outer config."""
+
+    name: str = "x"
+    seeds: tuple[int, ...] = (0, 1)
+    flag: bool = False
+    rate: float = field(default=0.5, metadata={"help": "a rate"})
+    inner: _Inner = field(default_factory=_Inner)
+
+
+def test_dataclass_flags_round_trip():
+    p = argparse.ArgumentParser()
+    add_dataclass_arguments(p, _Outer)
+    assert dataclass_from_args(_Outer, p.parse_args([])) == _Outer()
+    got = dataclass_from_args(_Outer, p.parse_args(
+        ["--name", "y", "--seeds", "4", "5", "6", "--flag", "--rate", "0.25", "--inner-size", "7",
+         "--inner-mode", "b", "--inner-path", "/p"]))
+    assert got == _Outer("y", (4, 5, 6), True, 0.25, _Inner(7, "b", "/p"))
+    with pytest.raises(SystemExit):
+        p.parse_args(["--inner-mode", "c"])  # a Literal's values are the flag's choices
+    assert flag_name(("train", "batch_size")) == "--train-batch-size"
+
+
+def test_dataclass_flags_take_defaults_from_an_instance():
+    p = argparse.ArgumentParser()
+    add_dataclass_arguments(p, _Outer, _Outer(name="q", inner=_Inner(size=9)))
+    assert dataclass_from_args(_Outer, p.parse_args([])) == _Outer(name="q", inner=_Inner(size=9))
+
+
+def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
+    ds = _downstream()
+    seen = {}
+    monkeypatch.setattr(ds, "run", lambda cfg: seen.setdefault("cfg", cfg))
+    ds.main(["--quick", "--train-steps", "11", "--out", "/tmp/x"])
+    cfg = seen["cfg"]
+    assert cfg.train.steps == 11 and cfg.setup.preset == "tiny" and cfg.seeds == (0,) and cfg.out == "/tmp/x"
+    seen.clear()
+    ds.main([])
+    assert seen["cfg"] == ds.DownstreamConfig()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--arms", "real", "bogus"], "unknown arms"),
+    (["--low-data", "0"], "low-data"),
+    (["--synthetic-share", "1.0"], "synthetic-share"),
+    (["--train-batch-size", "1"], "batch-size"),
+    (["--setup-bundle", "b"], "needs --setup-data"),
+])
+def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
+    ds = _downstream()
+    with pytest.raises(SystemExit, match=message):
+        ds.main(argv + ["--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()
+
+
+def test_low_data_subset_is_fixed_and_sized():
+    ds = _downstream()
+    a, b = ds.low_data_indices(1000, 0.25), ds.low_data_indices(1000, 0.25)
+    assert a == b and len(a) == 250 and len(set(a)) == 250 and a == sorted(a) and max(a) < 1000
+    assert ds.low_data_indices(3, 0.1) and len(ds.low_data_indices(3, 0.1)) == 1
+
+
+def test_every_arm_has_a_variant_spec():
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    setup = {"bundle": Path("/b"), "data": Path("/d")}
+    assert set(ds.ARM_SPECS) == set(ds.ARMS)
+    assert ds.variant_options("full", cfg, setup) == {"bundle": "/b", "srm": True, "poses": "bank"}
+    assert ds.variant_options("no_srm", cfg, setup)["srm"] is False
+    nopom = ds.variant_options("no_pom", cfg, setup)
+    assert nopom["poses"] == "perturb" and nopom["pose_options"] == {"finger_std": 0.0}  # annotated poses
+    assert ds.variant_options("free", cfg, setup) is None  # no free-3DGS bundle given
+    # a run's cache key changes with anything its result depends on, not with other arms' settings
+    k = ds.run_settings("real", 0, cfg, setup)
+    assert k["synthetic"] is None and k["variant"] is None
+    assert ds.run_settings("hogsa", 0, cfg, setup)["variant"]["poses"] == "bank"
+    assert ds.run_settings("real", 1, cfg, setup) != k
+
+
+def _result(mpjpe: float, cdev: float) -> dict:
+    summ = {m: 1.0 for m in _downstream().METRICS}
+    summ.update({"mpjpe/ra/h": mpjpe, "cdev/ho": cdev})
+    return {"summary": summ, "curve": [{"step": 5, **summ}, {"step": 10, **summ}]}
+
+
+def test_aggregate_means_stds_and_paired_differences(tmp_path):
+    ds = _downstream()
+    results = {
+        "real": {0: _result(30.0, 50.0), 1: _result(32.0, 54.0), 2: _result(31.0, 52.0)},
+        "hogsa": {0: _result(28.0, 45.0), 1: _result(31.0, 50.0), 2: _result(29.0, 49.0)},
+        "real_low": {0: _result(40.0, 60.0), 1: _result(41.0, 61.0), 2: _result(42.0, 62.0)},
+        "hogsa_low": {0: _result(35.0, 58.0), 1: _result(36.0, 59.0), 2: _result(40.0, 61.0)},
+    }
+    agg = ds.aggregate(results)
+    assert agg["arms"]["real"]["mpjpe/ra/h"]["mean"] == pytest.approx(31.0)
+    assert agg["arms"]["real"]["mpjpe/ra/h"]["std"] == pytest.approx(1.0)  # sample std over seeds
+    d = agg["paired"]["hogsa - real"]["mpjpe/ra/h"]
+    assert d["per_seed"] == {0: -2.0, 1: -1.0, 2: -2.0} and d["mean"] == pytest.approx(-5 / 3)
+    assert d["std"] == pytest.approx(np.std([-2, -1, -2], ddof=1))
+    low = agg["paired"]["hogsa_low - real_low"]["cdev/ho"]  # low-data arms pair with the low-data baseline
+    assert low["per_seed"] == {0: -2.0, 1: -2.0, 2: -1.0}
+    md = ds.markdown(agg, ds.DownstreamConfig(), "2 CPU cores", {"hogsa_free": "no free-3DGS bundle"})
+    assert "| ArcticNet-SF (real) | 31.00 ± 1.00 | 52.00 ± 2.00 |" in md
+    assert "no free-3DGS bundle" in md and "| hogsa - real | -2.00, -1.00, -2.00 | -1.67 ± 0.58 |" in md
+    ds.plot(results, agg, tmp_path / "d.png")
+    assert (tmp_path / "d.png").stat().st_size > 10_000
