@@ -74,6 +74,10 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
     seen.clear()
     ds.main([])
     assert seen["cfg"] == ds.DownstreamConfig()
+    seen.clear()
+    ds.main(["--device", "cuda", "--train-steps", "5"])  # ARCTIC's network settings on a GPU
+    cfg = seen["cfg"]
+    assert (cfg.model.backbone, cfg.model.img_res, cfg.train.batch_size, cfg.train.steps) == ("resnet50", 224, 64, 5)
 
 
 @pytest.mark.parametrize("argv, message", [
