@@ -336,6 +336,7 @@ def test_world_meta(tmp_path):
     wm = r.world_meta()
     assert wm == WorldMeta() and not wm.present
     assert (wm.cropped_size, wm.ego_image_scale, wm.ego_image_size) == (1000, 0.3, (2800, 2000))
+    assert wm.arctic_sized and r.require_arctic_sizes() == wm
     path = r.meta_dir / "hogsa_world.json"
     doc = {"schema_version": 1, "cropped_size": 512, "ego_image_scale": 0.25, "ego_image_size": [1400, 1000],
            "mask_ids": {"background": 0, "right": 1, "left": 2, "object": 3}, "generator": "test"}
@@ -344,6 +345,10 @@ def test_world_meta(tmp_path):
     assert wm.present and wm.schema_version == 1 and wm.cropped_size == 512
     assert wm.ego_image_scale == 0.25 and wm.ego_image_size == (1400, 1000)
     assert dict(wm.mask_ids) == doc["mask_ids"] and wm.extra == {"generator": "test"}
+    assert not wm.arctic_sized
+    with pytest.raises(AssetError, match=r"512-px allocentric crops and ego images 1400x1000 × 0\.25") as ei:
+        ArcticRoot(r.data_root).require_arctic_sizes()
+    assert ei.value.path == str(path)
     for bad, msg in (
         ({k: v for k, v in doc.items() if k != "cropped_size"}, "key 'cropped_size' is missing"),
         (dict(doc, ego_image_size=[1400]), "ego_image_size must be"),
@@ -491,6 +496,42 @@ def test_2d_is_projection_of_cam_coord(processed_verts, arctic_world):
             np.testing.assert_allclose(p2d[f, 9], ref[:, 0], atol=2e-3)
         np.testing.assert_array_equal(out["cam_coord"][key][:, 9, :, 2], out["cam_coord"][key][:, 0, :, 2])
     assert np.abs(out["2d"]["kp3d"][:, 9] - out["2d"]["kp3d"][:, 0]).max() > 1.0  # distortion is not a no-op
+
+
+def _arctic_f32_pixels(world: np.ndarray, world2cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """ARCTIC's arithmetic, written out: float32 cameras, ``M @ [p, 1]`` and ``K @ p`` as
+    batched products, then divisions. (F,N,3), (F,4,4), (F,3,3) -> (F,N,2) float32."""
+    p = torch.from_numpy(world)
+    M = torch.from_numpy(np.ascontiguousarray(world2cam, dtype=np.float32))
+    homo = torch.cat([p, torch.ones(p.shape[0], p.shape[1], 1)], dim=2)
+    q = torch.bmm(M, homo.permute(0, 2, 1)).permute(0, 2, 1)
+    cam = q[:, :, :3] / q[:, :, 3:4]
+    uvw = torch.bmm(torch.from_numpy(np.ascontiguousarray(K, dtype=np.float32)), cam.permute(0, 2, 1)).permute(0, 2, 1)
+    return (uvw[:, :, :2] / uvw[:, :, 2:3]).numpy()
+
+
+def test_2d_and_boxes_use_arctic_float32_arithmetic(processed_verts, arctic_world):
+    """Bit-equal to float32 geometry on the stored float32 world points (float64 geometry
+    rounded to float32 differs in the last bits, which moves truncated pixels)."""
+    misc = arctic_world[1]["misc"]["s01"]
+    _, _, ego = arctic_world[1]["raw"]["s01/box_grab_01"]
+    out = processed_verts
+    F = out["bbox"].shape[0]
+    w2e = np.zeros((F, 4, 4), np.float32)
+    w2e[:, :3, :3], w2e[:, :3, 3], w2e[:, 3, 3] = ego["R_k_cam_np"], ego["T_k_cam_np"][..., 0], 1
+    for key in ("joints.right", "joints.left", "kp3d", "bbox3d", "verts.object"):
+        world = out["world_coord"][key]
+        assert world.dtype == np.float32
+        for v in range(9):
+            M = w2e if v == 0 else np.broadcast_to(np.array(misc["world2cam"][v - 1]), (F, 4, 4))
+            K = np.broadcast_to(ego["intrinsics"] if v == 0 else np.array(misc["intris_mat"][v - 1]), (F, 3, 3))
+            np.testing.assert_array_equal(out["2d"][key][:, v], _arctic_f32_pixels(world, M, K), err_msg=f"{key} {v}")
+    v2d = torch.from_numpy(out["2d"]["verts.object"][:, 1:9])
+    lo, hi = v2d.min(dim=2).values, v2d.max(dim=2).values
+    w, h = hi[..., 0] - lo[..., 0], hi[..., 1] - lo[..., 1]
+    side = torch.where(w / h > 1, w, h) * 1.1 + torch.maximum(w, h) * 0.6
+    ref = torch.stack([lo[..., 0] + w / 2, lo[..., 1] + h / 2, torch.clamp(side / 200.0, min=3.0)], dim=-1)
+    np.testing.assert_array_equal(out["bbox"][:, 1:], ref.numpy())
 
 
 def test_rot_cam_poses_mano_in_camera_frame(processed, root):
@@ -663,24 +704,40 @@ def test_build_split_imgnames(root, processed):
     expected = []
     for key in ("s01/box_grab_01", "s01/laptop_use_02", "s02/notebook_use_01"):
         sid, seq = key.split("/")
-        for gt in range(10, SEQS[key] - 10):
+        for n in range(10, SEQS[key] - 10):  # ARCTIC's file numbers, whatever the ioi_offset
             for view in range(1, 9):
-                expected.append(f"./data/arctic_data/data/images/{sid}/{seq}/{view}/{gt + IOI[sid]:05d}.jpg")
+                expected.append(f"./data/arctic_data/data/images/{sid}/{seq}/{view}/{n:05d}.jpg")
     assert p1["imgnames"] == expected
-    assert p1["imgnames"][0] == "./data/arctic_data/data/images/s01/box_grab_01/1/00012.jpg"
+    assert p1["imgnames"][0] == "./data/arctic_data/data/images/s01/box_grab_01/1/00010.jpg"
     assert p1["imgnames"][-1] == "./data/arctic_data/data/images/s02/notebook_use_01/8/00021.jpg"
-    # what the dataset does: vidx = file number - ioi_offset lands in margin .. F - margin - 1
-    for name in p1["imgnames"]:
-        sid, seq, view, frame = name.split("/")[-4:]
-        vidx = int(frame[:5]) - IOI[sid]
-        assert 10 <= vidx <= SEQS[f"{sid}/{seq}"] - 11
     p2 = build_split(root, "p2", "minival", processed)
     assert list(p2["data_dict"]) == ["s05/box_use_01"]
-    assert p2["imgnames"] == [f"./data/arctic_data/data/images/s05/box_use_01/0/{g + 1:05d}.jpg" for g in range(10, 20)]
+    assert p2["imgnames"] == [f"./data/arctic_data/data/images/s05/box_use_01/0/{n:05d}.jpg" for n in range(10, 20)]
     short = build_split(root, "p2", "val", processed, frame_margin=14)
-    assert [n[-9:-4] for n in short["imgnames"]] == ["00015", "00016"]
+    assert [n[-9:-4] for n in short["imgnames"]] == ["00014", "00015"]
+    with pytest.raises(AssetError, match="subject s01: ioi_offset 2 exceeds the split's frame margin 1"):
+        build_split(root, "p1", "train", processed, frame_margin=1)
     with pytest.raises(ValueError, match="unknown protocol"):
         build_split(root, "p3", "train", processed)
+
+
+def test_split_images_pair_with_arctic_labels(root, processed, monkeypatch):
+    """s01 has ioi_offset 2: its split lists files 00010 .. F − 11 and the dataset pairs file n
+    with GT frame n − 2 (the frame that file shows), as ARCTIC's split files and loader do."""
+    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+
+    split = build_split(root, "p1", "train", processed)
+    monkeypatch.setattr(ArcticRoot, "load_split", lambda self, setup, name: split)
+    ds = ArcticDataset(root.data_root, "p1_train", augment=False, cache_ego_k=False)
+    F = SEQS["s01/box_grab_01"]
+    mine = [i for i, n in enumerate(ds.imgnames) if "/s01/box_grab_01/" in n]
+    assert [ds.imgnames[i][-9:-4] for i in mine[::8]] == [f"{n:05d}" for n in range(10, F - 10)]
+    cam = processed["s01/box_grab_01"]["cam_coord"]
+    for i in (mine[0], mine[9], mine[-1]):
+        view, n = int(ds.imgnames[i].split("/")[-2]), int(ds.imgnames[i][-9:-4])
+        _, targets, meta = ds.getitem(i, load_rgb=False)
+        np.testing.assert_array_equal(targets["mano.j3d.full.r"].numpy(), cam["joints.right"][n - IOI["s01"], view])
+        assert targets["is_valid"] == float(cam["is_valid"][n - IOI["s01"], view])
 
 
 def test_write_processed_splits_round_trip(tmp_path, capsys):
@@ -707,9 +764,9 @@ def test_write_processed_splits_round_trip(tmp_path, capsys):
         for k, v in got[group].items():
             np.testing.assert_array_equal(v, ref[group][k], err_msg=f"{group} {k}")
     np.testing.assert_array_equal(got["bbox"], ref["bbox"])
-    names = [f"./data/arctic_data/data/images/s01/box_grab_01/{v}/{g + 2:05d}.jpg" for g in (10, 11) for v in range(1, 9)]
+    names = [f"./data/arctic_data/data/images/s01/box_grab_01/{v}/{n:05d}.jpg" for n in (10, 11) for v in range(1, 9)]
     assert loaded["imgnames"] == names
-    assert r.load_split("p2", "tinyval")["imgnames"] == ["./data/arctic_data/data/images/s05/box_use_01/0/00011.jpg"]
+    assert r.load_split("p2", "tinyval")["imgnames"] == ["./data/arctic_data/data/images/s05/box_use_01/0/00010.jpg"]
     assert len(r.load_split("p2_train")["imgnames"]) == 2 and len(r.load_split("p1_val")["imgnames"]) == 8
     # the file is what ARCTIC's own loader reads (np.load with allow_pickle, .item())
     raw = np.load(paths["p1_val"], allow_pickle=True).item()
@@ -954,6 +1011,25 @@ def test_malicious_npy_is_refused_and_never_executed(tmp_path):
     np.save(path, evil_mano, allow_pickle=True)
     np.load(path, allow_pickle=True)
     assert sentinel.read_text() == "pwned"
+
+
+def test_sparse_matrices_are_rebuilt_from_checked_arrays(tmp_path):
+    """A world's downsamplers.npy pickles scipy CSR matrices: read_npy rebuilds them with
+    scipy's constructor and refuses inconsistent ones."""
+    from scipy.sparse import csr_matrix
+
+    from hogsa_loader.datasets.arctic import read_npy
+
+    D = csr_matrix((np.ones(3, np.float32), (np.arange(3), np.array([4, 0, 2]))), shape=(3, 5))
+    path = tmp_path / "downsamplers.npy"
+    np.save(path, np.array({"box": {"D": D, "vertex_ids": np.array([4, 0, 2])}}, dtype=object), allow_pickle=True)
+    got = read_npy(path)["box"]["D"]
+    assert isinstance(got, csr_matrix) and got.dtype == np.float32 and (got != D).nnz == 0
+    bad = D.copy()
+    bad.indices = np.array([4, 9, 2], dtype=bad.indices.dtype)  # column 9 of a 5-column matrix
+    np.save(path, np.array({"D": bad}, dtype=object), allow_pickle=True)
+    with pytest.raises(AssetError, match="sparse matrix is inconsistent"):
+        read_npy(path)
 
 
 def test_read_npy_formats(tmp_path):

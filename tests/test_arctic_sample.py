@@ -808,6 +808,21 @@ def _same(a: Any, b: Any) -> bool:
     return a == b
 
 
+def test_dataset_arctic_sizes_refuses_other_image_sizes(mini_arctic: Path, tmp_path: Path) -> None:
+    import shutil
+
+    assert len(ArcticDataset(mini_arctic, "p1_val", arctic_sizes=True)) == MINI_F * 2  # ARCTIC's sizes
+    copy = Path(shutil.copytree(mini_arctic, tmp_path / "data"))
+    doc = {"schema_version": 1, "cropped_size": 256, "ego_image_scale": 0.1, "ego_image_size": [2800, 2000],
+           "mask_ids": {}}
+    meta = copy / "arctic_data" / "data" / "meta" / "hogsa_world.json"
+    meta.write_text(json.dumps(doc))
+    assert ArcticDataset(copy, "p1_val").cropped_size == 256  # the world's own sizes are fine by default
+    with pytest.raises(AssetError, match=r"256-px allocentric crops .* hard-codes 1000-px crops") as info:
+        ArcticDataset(copy, "p1_val", arctic_sizes=True)
+    assert info.value.path == str(meta)
+
+
 def test_dataset_basic(mini_arctic: Path) -> None:
     ds = ArcticDataset(mini_arctic, "p1_train", seed=3)
     assert ds.augment and len(ds) == 2 * MINI_F

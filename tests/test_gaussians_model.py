@@ -829,6 +829,17 @@ def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
     load_state(HandGaussians(right, k=1, sh_degree=0), ref)
 
 
+def test_hand_checkpoint_refuses_a_renumbered_hand(tmp_path, hand_pair):
+    """Same surface, other vertex order (e.g. another synthetic-hand version): a clear refusal."""
+    from hogsa_loader.hands.mano_io import reorder_vertices
+
+    right = hand_pair[0]
+    folder = save_part(HandGaussians(right, k=1, sh_degree=0), tmp_path / "right")
+    renumbered = reorder_vertices(right, np.roll(np.arange(right.num_verts), 1))
+    with pytest.raises(AssetError, match="template hash mismatch.*vertices in their order.*trained again"):
+        load_part(folder, renumbered)
+
+
 def test_checkpoint_save_is_all_or_nothing_for_bad_metadata(tmp_path, right_hand):
     hand = HandGaussians(right_hand, k=1, sh_degree=0)
     with pytest.raises(ValueError):

@@ -47,6 +47,43 @@ def test_matches_smplx_on_the_same_pickle(mano_dir, chumpy_shim, side, use_pca, 
     assert (r.vertices - r.vertices.mean(1, keepdim=True)).abs().max() > 0.02
 
 
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_arctic_21_joint_smplx_mano_matches_on_the_pickle(mano_dir, chumpy_shim, side):
+    """ARCTIC's MANO: smplx's layer on the model folder with the vertex-joint selector enabled,
+    which appends the fingertip vertices 744, 320, 443, 554, 671 (thumb..pinky) by id."""
+    ref = smplx.MANO(str(mano_dir), is_rhand=side == "right", use_pca=False, flat_hand_mean=False, dtype=torch.float64)
+    assert ref.vertex_joint_selector.extra_joints_idxs.tolist() == [744, 320, 443, 554, 671]
+    ours = MANOLayer(mano_dir, side=side, dtype=torch.float64)
+    inp = _random_inputs(6, 45, seed=11 if side == "right" else 12)
+    with torch.no_grad():
+        r = ref(**inp)
+        joints21 = ref.vertex_joint_selector(r.vertices, r.joints)
+        o = ours(**inp)
+    assert joints21.shape == o.joints.shape == (6, 21, 3)
+    assert (o.joints - joints21).abs().max().item() <= 1e-6
+    assert (o.vertices - r.vertices).abs().max().item() <= 1e-6
+
+
+def test_reorder_vertices_renumbers_everything(hand_pair):
+    from hogsa_loader.hands.mano_io import reorder_vertices
+
+    model = hand_pair[1]
+    order = np.random.default_rng(0).permutation(model.num_verts)
+    moved = reorder_vertices(model, order)
+    inp = _random_inputs(3, 45, seed=5)
+    with torch.no_grad():
+        a = MANOLayer(model, dtype=torch.float64)(**inp)
+        b = MANOLayer(moved, dtype=torch.float64)(**inp)
+    assert (b.vertices - a.vertices[:, order]).abs().max() < 1e-12
+    assert (b.joints - a.joints).abs().max() < 1e-12
+    np.testing.assert_array_equal(moved.v_template[moved.faces], model.v_template[model.faces])
+    np.testing.assert_array_equal(moved.vertex_colors, model.vertex_colors[order])
+    for k, ids in model.contact_vertex_ids.items():
+        np.testing.assert_array_equal(np.sort(order[moved.contact_vertex_ids[k]]), ids)
+    with pytest.raises(ValueError, match="permutation"):
+        reorder_vertices(model, order[:-1])
+
+
 def test_npz_model_matches_smplx_npz(mano_dir, tmp_path):
     from hogsa_loader.hands.mano_io import convert_mano_to_npz
 
@@ -60,6 +97,8 @@ def test_npz_model_matches_smplx_npz(mano_dir, tmp_path):
 
 
 def test_fingertips_follow_arctic_order(hand_pair):
+    for model in hand_pair:  # MANO's fingertip ids, which smplx and ARCTIC read by id
+        assert model.tip_vertex_ids.tolist() == [744, 320, 443, 554, 671]
     layer = MANOLayer(hand_pair[0], flat_hand_mean=True, dtype=torch.float64)
     out = layer()
     J = out.joints[0].numpy()

@@ -42,11 +42,22 @@ F64 = torch.float64
 
 # closed-state extents (x, y, z) in mm: x away from the hinge, y stacking, z along the hinge
 EXPECTED_EXTENT_MM = {
+    "capsulemachine": (175.0, 295.0, 120.0),
     "box": (70.0, 159.0, 110.0),
+    "ketchup": (72.0, 207.0, 50.4),
     "laptop": (210.0, 24.0, 300.0),
+    "microwave": (300.0, 234.0, 210.0),
+    "mixer": (230.0, 325.0, 140.0),
     "notebook": (148.0, 13.5, 210.0),
+    "espressomachine": (215.0, 224.0, 300.0),
+    "waffleiron": (270.0, 83.0, 190.0),
+    "scissors": (206.9, 91.0, 10.0),
     "phone": (95.0, 21.0, 50.0),
 }
+#: Axis along which the closed top lies on the bottom: y for lids, z (the pivot) for scissors.
+STACK_AXIS = {"scissors": 2}
+#: Objects assembled from pieces (hogsa_loader.objects.household).
+HOUSEHOLD = ("capsulemachine", "ketchup", "microwave", "mixer", "espressomachine", "waffleiron", "scissors")
 
 
 # --------------------------------------------------------------------------------------
@@ -384,7 +395,9 @@ def test_sizes_and_gap(templates, name):
     top, bottom = t.part_points(TOP), t.part_points(BOTTOM)
     gap = cKDTree(bottom).query(top)[0].min() * 1000
     assert 0.9 * GAP_MM <= gap <= 1.6 * GAP_MM
-    assert t.diameter == pytest.approx(np.linalg.norm(extent_mm) / 1000, rel=0.05)
+    diag = np.linalg.norm(extent_mm) / 1000
+    assert t.diameter == pytest.approx(max_pairwise_distance(t.verts), rel=1e-6)
+    assert extent_mm.max() / 1000 * (1 - 1e-6) <= t.diameter <= diag * (1 + 1e-6)
 
 
 @pytest.mark.parametrize("name", PROCEDURAL_NAMES)
@@ -404,12 +417,14 @@ def test_top_opens_without_entering_bottom(templates, name):
         assert not inside.any(), f"theta={theta:.3f}: {inside.sum()} top vertices inside the bottom box"
         dist.append(np.linalg.norm(posed.mean(0) - centre_bottom))
     assert np.all(np.diff(dist) > 0)  # the lid moves away from the base as it opens
-    # closed at θ = 0: the top lies on the bottom, footprints (x, z) overlap
+    # closed at θ = 0: the top lies on the bottom (along y, or the pivot for scissors)
     top_np = t.part_points(TOP)
-    assert top_np[:, 1].min() > bottom[:, 1].max()
-    overlap = np.prod(np.clip(np.minimum(top_np.max(0), bottom.max(0)) - np.maximum(top_np.min(0), bottom.min(0)), 0, None)[[0, 2]])
-    area = np.prod((top_np.max(0) - top_np.min(0))[[0, 2]])
-    assert overlap > 0.95 * area
+    axis = STACK_AXIS.get(name, 1)
+    assert top_np[:, axis].min() > bottom[:, axis].max()
+    if axis == 1:  # lids: footprints (x, z) overlap
+        overlap = np.prod(np.clip(np.minimum(top_np.max(0), bottom.max(0)) - np.maximum(top_np.min(0), bottom.min(0)), 0, None)[[0, 2]])
+        area = np.prod((top_np.max(0) - top_np.min(0))[[0, 2]])
+        assert overlap > 0.95 * area
 
 
 @pytest.mark.parametrize("name", PROCEDURAL_NAMES)
@@ -426,9 +441,12 @@ def test_keypoints_bbox_and_samples(templates, name):
         np.testing.assert_allclose(bbox, bbox_corners(pts))
         np.testing.assert_allclose(bbox[0], pts.min(0))
         np.testing.assert_allclose(bbox[7], pts.max(0))
-        # farthest-point keypoints are spread: nearest pair at least 1/8 of the part size
+        # farthest-point keypoints are spread: nearest pair at least half the spacing of 16
+        # points evenly covering the part's surface
+        v, f = t.part_mesh(part)
+        area = trimesh.Trimesh(v, f, process=False).area
         d = np.linalg.norm(kp[:, None] - kp[None], axis=-1) + np.eye(16)
-        assert d.min() > np.linalg.norm(pts.max(0) - pts.min(0)) / 8
+        assert d.min() > 0.5 * math.sqrt(area / 16)
 
 
 @pytest.mark.parametrize("name", PROCEDURAL_NAMES)
@@ -519,7 +537,27 @@ def test_write_template_without_texture(templates, tmp_path):
 
 def test_unknown_procedural_name():
     with pytest.raises(KeyError):
-        make_object("scissors")
+        make_object("mug")
+
+
+def test_every_arctic_object_is_procedural_and_distinct(templates):
+    assert PROCEDURAL_NAMES == OBJECT_NAMES
+    extents = {n: np.round((t.verts.max(0) - t.verts.min(0)) * 1000).tolist() for n, t in templates.items()}
+    counts = {n: t.verts.shape[0] for n, t in templates.items()}
+    for a in PROCEDURAL_NAMES:
+        for b in PROCEDURAL_NAMES:
+            if a < b:
+                assert extents[a] != extents[b] or counts[a] != counts[b], (a, b)
+    for name, t in templates.items():
+        assert 0.1 <= t.diameter <= 0.45, name  # ARCTIC's objects are 10-40 cm
+        assert len(t.faces) > 1000 and (t.parts == TOP).sum() > 300 and (t.parts == BOTTOM).sum() > 300
+
+
+@pytest.mark.parametrize("name", HOUSEHOLD)
+def test_household_objects_fit_arctic_vertex_budget(templates, name):
+    """ARCTIC's InterField upsamples object distances to 4000 vertices and masks them with
+    the object's padded vertex mask, so an object must have at most 4000 vertices."""
+    assert templates[name].verts.shape[0] <= 4000
 
 
 # --------------------------------------------------------------------------------------

@@ -257,6 +257,96 @@ def test_reader_opens_every_sequence(world):
         assert all(p is not None for v in range(9) for p in s.mask_paths[v])
 
 
+def test_every_arctic_object_template_is_in_the_world(world):
+    """ARCTIC's ObjectTensors opens all 11 objects; sequences still use the preset's."""
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.objects.template import OBJECT_NAMES
+
+    templates = ArcticRoot(world.root).object_templates()
+    assert tuple(templates) == OBJECT_NAMES
+    meta = json.loads((world.data / "meta" / "object_meta.json").read_text())
+    shapes = set()
+    for name, t in templates.items():
+        assert t.has_texture and 0.1 <= meta[name]["diameter"] <= 0.45, name
+        for part in (0, 1):
+            v, f = t.part_mesh(part)
+            assert len(v) > 300 and len(f) > 300, (name, part)
+        # ARCTIC labels its 600 sub-points by the nearest mesh vertex: 300 top, then 300 bottom
+        sub = np.concatenate([t.sub_top, t.sub_bottom])
+        labels = t.parts[cKDTree(t.verts).query(sub)[1]]
+        assert (labels[:300] == 0).all() and (labels[300:] == 1).all(), name
+        shapes.add((len(t.verts), tuple(np.round((t.verts.max(0) - t.verts.min(0)) * 1000))))
+    assert len(shapes) == len(OBJECT_NAMES)  # eleven different shapes, no copies
+    assert {s["object"] for s in world.meta["sequences"]} == {"box"}
+    assert world.meta["object_templates"] == list(OBJECT_NAMES)
+
+
+def test_decimation_files_have_arctic_structure(world):
+    """mano_decimator_195.npy: dense (195, V) selections ARCTIC's MANODecimator multiplies
+    with the MANO vertices; downsamplers.npy: per object a sparse (600, V) map onto the
+    template's sub-sampled points. Read as ARCTIC does and through the restricted reader."""
+    from scipy.sparse import csr_matrix
+
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+    from hogsa_loader.objects.template import OBJECT_NAMES
+
+    meta = world.data / "meta"
+    dec = np.load(meta / "mano_decimator_195.npy", allow_pickle=True).item()
+    assert sorted(k for k in dec if "D" in k) == ["D_left", "D_right"]
+    for side, is_right in (("right", True), ("left", False)):
+        D, ids = dec[f"D_{side}"], dec[f"vertex_ids_{side}"]
+        V = world.layers[side].num_verts
+        assert D.shape == (195, V) and D.dtype == np.float32 and len(set(ids.tolist())) == 195
+        assert ids.min() >= 0 and ids.max() < V
+        np.testing.assert_array_equal(D.sum(1), 1.0)
+        assert (np.count_nonzero(D, axis=1) == 1).all() and (D[np.arange(195), ids] == 1).all()
+        verts = world.layers[side](betas=torch.zeros(2, 10, dtype=torch.float64)).vertices.float()
+        sub = torch.bmm(torch.FloatTensor(D)[None].repeat(2, 1, 1), verts)  # ARCTIC's downsample
+        torch.testing.assert_close(sub, verts[:, ids])
+    samplers = np.load(meta / "downsamplers.npy", allow_pickle=True).item()
+    assert tuple(samplers) == OBJECT_NAMES
+    restricted = read_npy(meta / "downsamplers.npy")
+    for name, t in ArcticRoot(world.root).object_templates(load_texture=False).items():
+        D = samplers[name]["D"]
+        assert isinstance(D, csr_matrix) and D.shape == (600, len(t.verts))
+        np.testing.assert_array_equal(np.asarray(D.sum(1)).ravel(), 1.0)
+        assert D.indices.min() >= 0 and D.indices.max() < len(t.verts)
+        sub = np.concatenate([t.sub_top, t.sub_bottom]).astype(np.float64)
+        np.testing.assert_allclose(D @ t.verts.astype(np.float64), sub, atol=1e-6)
+        assert (restricted[name]["D"] != D).nnz == 0
+        np.testing.assert_array_equal(restricted[name]["vertex_ids"], samplers[name]["vertex_ids"])
+
+
+def test_body_stand_ins_are_nan_and_recorded(world):
+    """No body: SMPL-X fields are NaN with ARCTIC's shapes, listed in hogsa_world.json with
+    the files left out (no fabricated SMPL-X model)."""
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+    from hogsa_loader.world.stand_ins import SMPLX_PARAMS
+
+    rec = world.meta
+    paths = {e["path"]: e for e in rec["stand_ins"]}
+    assert set(paths) == {"arctic_data/data/raw_seqs/<sid>/<seq>.smplx.npy", "arctic_data/data/splits/<protocol>_<split>.npy"}
+    assert all(e["reason"] and e["content"] and e["keys"] for e in rec["stand_ins"])
+    assert "cam_coord/joints.smplx" in paths["arctic_data/data/splits/<protocol>_<split>.npy"]["keys"]
+    missing = {e["path"] for e in rec["not_provided"]}
+    assert missing == {"body_models/smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz", "arctic_data/data/meta/subject_vtemplates/<sid>.obj"}
+    assert not (world.root / "body_models" / "smplx").exists() and not (world.data / "meta" / "subject_vtemplates").exists()
+    F = rec["num_frames"]
+    for sid, seq in world.seqs:
+        raw = read_npy(world.data / "raw_seqs" / sid / f"{seq}.smplx.npy")
+        assert {k: v.shape for k, v in raw.items()} == {k: (F, w) for k, w in SMPLX_PARAMS.items()}
+        assert all(v.dtype == np.float32 and np.isnan(v).all() for v in raw.values())
+    root = ArcticRoot(world.root)
+    for name in ("p1_train", "p1_val", "p2_train", "p2_val"):
+        for seq in root.load_split(name)["data_dict"].values():  # the reader accepts the NaN keys
+            assert seq["cam_coord"]["joints.smplx"].shape == (F, 10, 127, 3)
+            assert seq["2d"]["joints.smplx"].shape == (F, 10, 127, 2)
+            smplx = [seq["cam_coord"]["joints.smplx"], seq["2d"]["joints.smplx"]]
+            smplx += [seq["params"][f"smplx_{k}"] for k in SMPLX_PARAMS]
+            assert all(np.isnan(a).all() for a in smplx)
+            assert np.isfinite(seq["cam_coord"]["joints.right"]).all()
+
+
 # --------------------------------------------------------------------------------------
 # Images and masks
 # --------------------------------------------------------------------------------------
@@ -630,6 +720,7 @@ def test_annotation_noise_world(tiny_world, tmp_path):
                 np.testing.assert_array_equal(seq["params"][f"fitting_err_{s}"], mano[side]["fitting_err"])
                 assert not np.allclose(ref["data_dict"][key]["params"][f"trans_{s}"], seq["params"][f"trans_{s}"])
             np.testing.assert_array_equal(seq["params"]["obj_trans"], ref["data_dict"][key]["params"]["obj_trans"])
+            assert np.isnan(seq["cam_coord"]["joints.smplx"]).all()  # the body stand-ins are rebuilt too
             assert not np.allclose(seq["cam_coord"]["joints.right"], ref["data_dict"][key]["cam_coord"]["joints.right"])
     skipped = tmp_path / "noisy_no_splits"
     assert main(["world-noise", "--src", str(tiny_world), "--out", str(skipped), "--quiet", "--no-splits"]) == 0

@@ -29,7 +29,9 @@ a crafted file could execute arbitrary code. This reader never does that: :func:
 parses the ``.npy`` header itself, reads numeric arrays without pickle, and unpickles
 object payloads with :class:`NpyUnpickler`, which resolves only the numpy globals needed to
 rebuild arrays, dtypes and scalars (plus the built-in containers pickle encodes without
-globals: dict, list, tuple, str, numbers). Any other global (``os.system``, ``builtins.exec``,
+globals: dict, list, tuple, str, numbers). A pickled ``scipy.sparse`` CSR matrix (as in a
+world's ``meta/downsamplers.npy``) is unpickled as inert state and rebuilt by scipy's public
+constructor from its checked arrays. Any other global (``os.system``, ``builtins.exec``,
 a class) raises :class:`~hogsa_loader.errors.UnsafePickleError` before anything runs. This
 applies to raw sequences and to the project's own ``splits/*.npy`` alike (the brief allowed
 ``allow_pickle=True`` for the latter; the restricted path is used instead because it costs
@@ -41,7 +43,6 @@ from __future__ import annotations
 
 import ast
 import io
-import json
 import math
 import os
 import pickle
@@ -128,7 +129,55 @@ def _npy_allowed_globals() -> dict[tuple[str, str], Any]:
     return allowed
 
 
+class _PickledCSR:
+    """Inert holder of a pickled CSR matrix's state (nothing of scipy runs on unpickling)."""
+
+    state: Any = None
+
+    def __setstate__(self, state: Any) -> None:
+        self.state = state
+
+
 _NPY_ALLOWED = _npy_allowed_globals()
+for _mod in ("scipy.sparse._csr", "scipy.sparse.csr"):
+    _NPY_ALLOWED[(_mod, "csr_matrix")] = _PickledCSR
+
+
+def _csr_from_state(holder: _PickledCSR, path: Path) -> Any:
+    """A ``scipy.sparse.csr_matrix`` from the checked arrays of a pickled one."""
+    from scipy.sparse import csr_matrix
+
+    state = holder.state[0] if isinstance(holder.state, tuple) else holder.state
+    if not isinstance(state, dict):
+        raise AssetError(path, "a pickled sparse matrix has no state dict")
+    parts = [state.get(k) for k in ("data", "indices", "indptr")]
+    shape = state.get("_shape")
+    if not all(isinstance(a, np.ndarray) and a.ndim == 1 and a.dtype.kind in "fiu" for a in parts) or not (
+        isinstance(shape, tuple) and len(shape) == 2 and all(isinstance(n, int) and n >= 0 for n in shape)
+    ):
+        raise AssetError(path, "a pickled sparse matrix lacks numeric data/indices/indptr or its shape")
+    try:
+        mat = csr_matrix(tuple(parts), shape=shape)
+        mat.check_format(full_check=True)
+    except (ValueError, TypeError) as exc:
+        raise AssetError(path, f"a pickled sparse matrix is inconsistent ({exc})") from None
+    return mat
+
+
+def _rebuild_sparse(obj: Any, path: Path) -> Any:
+    """Replace every :class:`_PickledCSR` inside dicts, lists and tuples by its matrix."""
+    if isinstance(obj, _PickledCSR):
+        return _csr_from_state(obj, path)
+    if isinstance(obj, dict):
+        return {k: _rebuild_sparse(v, path) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_rebuild_sparse(v, path) for v in obj)
+    if isinstance(obj, np.ndarray) and obj.dtype == object:
+        out = np.empty(obj.shape, dtype=object)
+        for i, v in np.ndenumerate(obj):
+            out[i] = _rebuild_sparse(v, path)
+        return out
+    return obj
 
 
 class NpyUnpickler(pickle.Unpickler):
@@ -266,7 +315,7 @@ def read_npy(path: PathLike) -> Any:
                     raise AssetError(
                         p, f"pickled payload is not the object array announced by the header {shape}"
                     )
-                return obj.item() if obj.shape == () else obj
+                return _rebuild_sparse(obj.item() if obj.shape == () else obj, p)
             count = math.prod(shape)
             nbytes = count * dtype.itemsize
             left = size - fh.tell()
@@ -464,6 +513,13 @@ class WorldMeta:
     mask_ids: Mapping[str, int] = field(default_factory=dict)
     present: bool = False
     extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def arctic_sized(self) -> bool:
+        """Whether the image files have the sizes ARCTIC's own loader hard-codes (1000-px
+        allocentric crops, the 2800×2000 ego image × 0.3)."""
+        return (self.cropped_size, self.ego_image_scale, tuple(self.ego_image_size)) == (
+            CROPPED_SIZE, EGO_IMAGE_SCALE, EGO_IMAGE_SIZE)
 
 
 @dataclass
@@ -709,6 +765,28 @@ class ArcticRoot:
             path = self.arctic_dir / WORLD_META_FILE
             self._world_meta = self._read_world_meta(path) if path.exists() else WorldMeta()
         return self._world_meta
+
+    def require_arctic_sizes(self) -> WorldMeta:
+        """:meth:`world_meta`, refused unless the image files have ARCTIC's sizes.
+
+        For uses that must see what ARCTIC's own loader sees on these files: it assumes
+        1000-px crops and ego × 0.3, so on other sizes its patches show the wrong region and
+        its ``meta_info['center']`` is off.
+
+        Raises:
+            AssetError: (naming ``meta/hogsa_world.json``) the world has other sizes.
+        """
+        meta = self.world_meta()
+        if not meta.arctic_sized:
+            w, h = meta.ego_image_size
+            raise AssetError(
+                self.arctic_dir / WORLD_META_FILE,
+                f"this world has {meta.cropped_size}-px allocentric crops and ego images {w}x{h} × "
+                f"{meta.ego_image_scale:g}, but ARCTIC's loader hard-codes {CROPPED_SIZE}-px crops and "
+                f"{EGO_IMAGE_SIZE[0]}x{EGO_IMAGE_SIZE[1]} × {EGO_IMAGE_SCALE:g}; generate an ARCTIC-sized world "
+                "(hogsa world --preset small) for ARCTIC-exact use",
+            )
+        return meta
 
     @staticmethod
     def _read_world_meta(path: Path) -> WorldMeta:

@@ -149,6 +149,10 @@ class ArcticDataset(Dataset):
             ``object.v_len``) computed from the frame's annotated meshes
             (:mod:`~hogsa_loader.datasets.interfield`): False (default), True (no clamp) or
             the clamp in metres (0.1 for InterField-SF).
+        arctic_sizes: refuse (:class:`~hogsa_loader.errors.AssetError`) a world whose image
+            files are not ARCTIC's sizes (:meth:`~hogsa_loader.datasets.arctic.ArcticRoot.require_arctic_sizes`),
+            for samples that must equal ARCTIC's own loader's on the same files. Otherwise
+            the sizes come from ``world_meta()`` (the ``tiny`` world's 256-px crops work).
 
     Attributes:
         root: the :class:`~hogsa_loader.datasets.arctic.ArcticRoot` read from.
@@ -173,12 +177,15 @@ class ArcticDataset(Dataset):
         config: Optional[ArcticConfig] = None,
         epoch: int = 0,
         interfield: Union[bool, float] = False,
+        arctic_sizes: bool = False,
     ) -> None:
         if "_" not in split:
             raise ValueError(f"split must look like 'p1_train', got {split!r}")
         self.setup, self.split = split.split("_", 1)
         short = canonical_split(self.split)
         self.root = ArcticRoot(data_root)
+        if arctic_sizes:
+            self.root.require_arctic_sizes()
         data = self.root.load_split(self.setup, short)
         self.data: Mapping[str, Any] = data["data_dict"]
         imgnames = [str(n) for n in data["imgnames"]]

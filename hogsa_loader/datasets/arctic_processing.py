@@ -1,4 +1,4 @@
-"""ARCTIC's sequence processing and split building (``arctic_format.md`` §1.7–1.8).
+"""ARCTIC's sequence processing and split building.
 
 :func:`process_sequence` is ARCTIC's ``process_seq`` (src/arctic/processing.py) on a
 dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`; :func:`build_split`
@@ -21,9 +21,9 @@ ARCTIC: ``[ego undistorted, allo 1..8, ego distorted]``; flags/rotations/bbox us
     pinhole projection of every ``cam_coord`` point key, (F,10,N,2); view 9 projects the
     distorted ego points with ``K_ego``.
 ``bbox`` (F,9,3)
-    ``(cx, cy, scale)``: allocentric = 1.7 × 2D extent of the projected object vertices,
-    scale ≥ 3 (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`); ego = the
-    whole image (:func:`~hogsa_loader.datasets.conventions.ego_bbox`).
+    ``(cx, cy, scale)``: allocentric = (1.1 + 0.6) × 2D extent of the projected object
+    vertices, scale ≥ 3 (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`);
+    ego = the whole image (:func:`~hogsa_loader.datasets.conventions.ego_bbox`).
 ``params`` (per frame)
     ``rot_r, pose_r, trans_r, shape_r (F,10), fitting_err_r`` and the same with ``_l``,
     ``obj_arti`` (F,), ``obj_rot`` (F,3), ``obj_trans`` (F,3) **mm** (as stored in the raw
@@ -35,14 +35,23 @@ Differences from ARCTIC, on purpose:
 * floats are stored as float32 (ARCTIC's tensors are float32 too), flags as int64 (ARCTIC's
   ``long`` flags); ``fitting_err`` is zeros when the sequence has none;
 * computation is batched over chunks of frames (no Python loop over single frames);
-  geometry after the MANO/object layers is done in float64;
 * the ego box and ego validity region use ``ego_image_size`` (ARCTIC hard-codes 2800×2000,
   the default), so generated worlds can declare theirs in ``meta/hogsa_world.json``.
 
-Decision on the spec's UNCERTAIN image numbering (§1.8): split image names are numbered by
-the image file number = GT index + ``ioi_offset`` (ARCTIC's build_split uses the bare GT
-index while its dataset subtracts ``ioi_offset``; with our numbering the dataset's
-``vidx = file number − ioi_offset`` lands exactly on frames ``margin .. F − margin − 1``).
+Precision is ARCTIC's: cameras are rounded to float32, the MANO and object layers run in
+float32, points are moved and projected in float32 (batched homogeneous 4×4 and 3×3
+products, then a division), the ego distortion runs in float64 on the float32 points, and
+the allocentric box and the validity regions are float32 with ARCTIC's order of
+operations. The training dataset truncates 2D labels to integer pixels, so a label that
+float64 geometry would put at 52.999997 px instead of ARCTIC's 53.000005 px lands one
+pixel off. Camera-frame rotations (``rot_*_cam``) are computed in float64 from the float32
+cameras.
+
+Split image names are numbered as ARCTIC's ``build_split`` numbers them: file numbers
+``margin .. F − margin − 1``, whatever the subject's ``ioi_offset``. The dataset reads the
+label of file ``n`` at GT index ``n − ioi_offset`` (the file shows that frame), so with
+offset k a split holds GT frames ``margin − k .. F − margin − 1 − k``, the images and
+labels of ARCTIC's released split files (whose first image is ``…/00010.jpg``).
 """
 
 from __future__ import annotations
@@ -59,11 +68,7 @@ from hogsa_loader.datasets.conventions import (
     ALLO_VIEWS,
     EGO_IMAGE_SIZE,
     EGO_VIEW,
-    allocentric_bbox,
-    distort_points,
     ego_bbox,
-    project,
-    transform,
     validity_flags,
 )
 from hogsa_loader.datasets.types import SequenceData
@@ -112,26 +117,30 @@ def _camera_stack(seq: SequenceData, ego_image_size: tuple[int, int]) -> tuple[n
     return world2cam, K, dist, sizes
 
 
+def _f32(a: np.ndarray) -> torch.Tensor:
+    return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)
+
+
 def _pose_chunk(
     seq: SequenceData,
     sl: slice,
     mano_layers: Mapping[str, Any],
     object_layer: Any,
-) -> dict[str, np.ndarray]:
-    """World-frame points of frames ``sl``: joints (n,21,3), kp3d, bbox3d, verts (float64)."""
-    out: dict[str, np.ndarray] = {}
+) -> dict[str, torch.Tensor]:
+    """World-frame points of frames ``sl``, float32: joints (n,21,3), kp3d, bbox3d, verts."""
+    out: dict[str, torch.Tensor] = {}
     for side, hand in (("right", seq.right), ("left", seq.left)):
         layer = mano_layers[side]
         dt = layer.v_template.dtype
 
-        def t(a: np.ndarray) -> torch.Tensor:
-            return torch.as_tensor(np.ascontiguousarray(a), dtype=dt)
+        def t(a: np.ndarray) -> torch.Tensor:  # float32 values, as ARCTIC's inputs
+            return _f32(a).to(dt)
 
         n = hand.rot[sl].shape[0]
         betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float64).reshape(1, -1), (n, hand.betas.size))
         res = layer(global_orient=t(hand.rot[sl]), hand_pose=t(hand.pose[sl]), betas=t(betas), transl=t(hand.trans[sl]))
-        out[f"joints.{side}"] = res.joints.double().numpy()
-        out[f"verts.{side}"] = res.vertices.double().numpy()
+        out[f"joints.{side}"] = res.joints.float()
+        out[f"verts.{side}"] = res.vertices.float()
     obj = seq.object
     n = obj.rot[sl].shape[0]
     if obj.name not in object_layer.name_to_index:
@@ -140,17 +149,90 @@ def _pose_chunk(
             where = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / obj.name
         raise AssetError(where, f"no template for object '{obj.name}' (sequence {seq.subject}/{seq.name}; "
                                 f"known: {object_layer.names})")
-    f64 = torch.float64
     res = object_layer(
-        angles=torch.as_tensor(obj.arti[sl], dtype=f64).reshape(n, 1),
-        global_orient=torch.as_tensor(obj.rot[sl], dtype=f64),
-        transl=torch.as_tensor(obj.trans[sl], dtype=f64),
+        angles=_f32(obj.arti[sl]).reshape(n, 1),
+        global_orient=_f32(obj.rot[sl]),
+        transl=_f32(obj.trans[sl]),
         names=[obj.name] * n,
     )
-    out["kp3d"] = res["kp3d"].numpy()
-    out["bbox3d"] = res["bbox3d"].numpy()
-    out["verts.object"] = res["v"].numpy()
+    out["kp3d"] = res["kp3d"].float()
+    out["bbox3d"] = res["bbox3d"].float()
+    out["verts.object"] = res["v"].float()
     return out
+
+
+def _to_camera(world2cam: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """ARCTIC's rigid move: ``world2cam @ [p, 1]`` batched, then ``xyz / w``.
+
+    Args:
+        world2cam: (n, 4, 4) float32; points: (n, N, 3) float32.
+
+    Returns:
+        (n, N, 3) float32 camera-frame points.
+    """
+    homo = torch.ones(points.shape[0], points.shape[1], 4, dtype=points.dtype)
+    homo[:, :, :3] = points
+    out = torch.bmm(world2cam, homo.permute(0, 2, 1)).permute(0, 2, 1)
+    return out[:, :, :3] / out[:, :, 3:4]
+
+
+def _project(K: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """ARCTIC's pinhole projection: ``K @ p`` batched, then ``xy / z``.
+
+    Args:
+        K: (n, 3, 3) float32; points: (n, N, 3) float32.
+
+    Returns:
+        (n, N, 2) float32 pixels.
+    """
+    uvw = torch.bmm(K, points.permute(0, 2, 1)).permute(0, 2, 1)
+    return uvw[:, :, :2] / uvw[:, :, 2:3]
+
+
+def _distort(points: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """ARCTIC's ego distortion (OpenCV rational + tangential): float64 on float32 points.
+
+    Args:
+        points: (n, N, 3) float32 camera-frame points; dist: (8,) float32 k1 k2 p1 p2 k3 k4 k5 k6.
+
+    Returns:
+        (n, N, 3) float32 distorted points (same z).
+    """
+    p = points.double()
+    z = p[:, :, 2]
+    z_inv = 1 / z
+    x, y = p[:, :, 0] * z_inv, p[:, :, 1] * z_inv
+    xx, yy, xy = x * x, y * y, x * y
+    r2 = xx + yy
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = (1 + dist[0] * r2 + dist[1] * r4 + dist[4] * r6) / (1 + dist[5] * r2 + dist[6] * r4 + dist[7] * r6)
+    xd = x * radial + 2 * dist[2] * xy + dist[3] * (r2 + 2 * xx)
+    yd = y * radial + 2 * dist[3] * xy + dist[2] * (r2 + 2 * yy)
+    return torch.stack([xd * z, yd * z, z], dim=2).float()
+
+
+def _allo_bbox(v2d: np.ndarray) -> np.ndarray:
+    """ARCTIC's allocentric box in float32: side 1.1·D + 0.6·D around the 2D extent.
+
+    Args:
+        v2d: (..., V, 2) float32 projected object vertices.
+
+    Returns:
+        (..., 3) float32 ``(cx, cy, scale)``, scale ≥ 3.
+    """
+    lo, hi = v2d.min(axis=-2), v2d.max(axis=-2)
+    w, h = hi[..., 0] - lo[..., 0], hi[..., 1] - lo[..., 1]
+    pad = np.maximum(w, h) * np.float32(0.6)
+    cx, cy = lo[..., 0] + w / np.float32(2), lo[..., 1] + h / np.float32(2)
+    side = np.where(w / h > 1, w, h) * np.float32(1.1)
+    scale = np.maximum((side + pad) / np.float32(200), np.float32(3))
+    return np.stack([cx, cy, scale], axis=-1)
+
+
+def _centroid(v2d: np.ndarray) -> np.ndarray:
+    """(..., V, 2) → (..., 1, 2) float32 mean, reduced as ARCTIC (torch, float32)."""
+    return torch.from_numpy(np.ascontiguousarray(v2d)).mean(dim=-2, keepdim=True).numpy()
 
 
 def _rot_cam(world2cam: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
@@ -169,12 +251,13 @@ def process_sequence(
     ego_image_size: tuple[int, int] = EGO_IMAGE_SIZE,
     chunk_frames: int = CHUNK_FRAMES,
 ) -> dict[str, dict[str, np.ndarray] | np.ndarray]:
-    """ARCTIC ``process_seq`` of one sequence (spec §1.7).
+    """ARCTIC ``process_seq`` of one sequence.
 
     Args:
         seq: the sequence (world frame, metres); cameras 0 (ego, per frame, with ``dist``)
             and 1..8 are required.
-        mano_layers: ``{"right": MANOLayer, "left": MANOLayer}`` with ``flat_hand_mean=False``.
+        mano_layers: ``{"right": MANOLayer, "left": MANOLayer}`` with ``flat_hand_mean=False``
+            (outputs are taken as float32, as ARCTIC's layers give).
         object_layer: an :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`
             holding ``seq.object.name``.
         export_verts: also store ``verts.right/left/object`` in every coordinate frame.
@@ -188,8 +271,9 @@ def process_sequence(
     """
     F = seq.num_frames
     world2cam, K, dist, sizes = _camera_stack(seq, ego_image_size)
+    world2cam, K, dist = (a.astype(np.float32) for a in (world2cam, K, dist))  # ARCTIC's FloatTensors
     keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
-    ego_box = ego_bbox(tuple(ego_image_size))
+    ego_box = ego_bbox(tuple(ego_image_size)).astype(np.float32)
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
 
     def push(group: str, key: str, value: np.ndarray) -> None:
@@ -198,47 +282,27 @@ def process_sequence(
     with torch.no_grad():
         for start in range(0, F, max(1, chunk_frames)):
             sl = slice(start, min(F, start + max(1, chunk_frames)))
-            n = sl.stop - sl.start
-            w2c, Kc, dc = world2cam[sl], K[sl], dist[sl]
+            w2c = world2cam[sl]
             world = _pose_chunk(seq, sl, mano_layers, object_layer)
-            cam: dict[str, np.ndarray] = {}
-            p2d: dict[str, np.ndarray] = {}
+            cam, p2d = {}, {}
             for key, pts in world.items():
-                if key not in keep and key != "verts.object":  # object verts: needed for bbox/flags
-                    continue
-                c9 = transform(w2c, pts[:, None])  # (n,9,N,3)
-                cdist = distort_points(c9[:, EGO_VIEW], dc)  # (n,N,3)
-                cam[key] = np.concatenate([c9, cdist[:, None]], axis=1)  # (n,10,N,3)
-                p2d[key] = np.concatenate(
-                    [project(c9, Kc), project(cdist, Kc[:, EGO_VIEW])[:, None]], axis=1
-                )  # (n,10,N,2)
-            # boxes: allocentric from the object vertices, ego = whole image
-            bbox = np.empty((n, 9, 3))
-            bbox[:, EGO_VIEW] = ego_box
-            bbox[:, 1:] = allocentric_bbox(p2d["verts.object"][:, 1:9])
-            # validity on views 0..8, view 0 judged on the *distorted* ego projection (view 9)
-            order = [9] + list(ALLO_VIEWS)
-            is_valid, right_valid, left_valid = validity_flags(
-                p2d["verts.object"][:, order],
-                p2d["joints.right"][:, order],
-                p2d["joints.left"][:, order],
-                bbox,
-                sizes,
-            )
+                if key in keep or key == "verts.object":  # object verts: needed for bbox/flags
+                    cam[key], p2d[key] = _views(pts, _f32(w2c), _f32(K[sl]), _f32(dist[0]))
+            bbox, flags = _boxes_and_flags(p2d, ego_box, sizes)
             for key in keep:
-                push("world_coord", key, world[key].astype(np.float32))
-                push("cam_coord", key, cam[key].astype(np.float32))
-                push("2d", key, p2d[key].astype(np.float32))
-            push("world_coord", "rot_r", seq.right.rot[sl].astype(np.float32))
-            push("world_coord", "rot_l", seq.left.rot[sl].astype(np.float32))
-            push("world_coord", "obj_rot", seq.object.rot[sl].astype(np.float32))
-            push("cam_coord", "rot_r_cam", _rot_cam(w2c, seq.right.rot[sl]).astype(np.float32))
-            push("cam_coord", "rot_l_cam", _rot_cam(w2c, seq.left.rot[sl]).astype(np.float32))
-            push("cam_coord", "obj_rot_cam", _rot_cam(w2c, seq.object.rot[sl]).astype(np.float32))
+                push("world_coord", key, world[key].numpy())
+                push("cam_coord", key, cam[key])
+                push("2d", key, p2d[key])
+            rots = {"rot_r": seq.right.rot[sl], "rot_l": seq.left.rot[sl], "obj_rot": seq.object.rot[sl]}
+            for key, rot in rots.items():
+                push("world_coord", key, rot.astype(np.float32))
+            for key, rot in rots.items():
+                push("cam_coord", f"{key}_cam", _rot_cam(w2c, rot).astype(np.float32))
+            is_valid, right_valid, left_valid = flags
             push("cam_coord", "is_valid", is_valid.astype(np.int64))
             push("cam_coord", "left_valid", left_valid.astype(np.int64))
             push("cam_coord", "right_valid", right_valid.astype(np.int64))
-            push("bbox", "bbox", bbox.astype(np.float32))
+            push("bbox", "bbox", bbox)
 
     out: dict[str, Any] = {
         g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
@@ -248,8 +312,42 @@ def process_sequence(
     return out
 
 
+def _views(points: torch.Tensor, world2cam: torch.Tensor, K: torch.Tensor,
+           dist: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Points in ARCTIC's 10 views ``[ego, allo 1..8, ego distorted]``, float32.
+
+    Args:
+        points: (n, N, 3) world points; world2cam: (n, 9, 4, 4); K: (n, 9, 3, 3); dist: (8,).
+
+    Returns:
+        camera-frame points (n, 10, N, 3) and pixels (n, 10, N, 2).
+    """
+    cams = [_to_camera(world2cam[:, v].contiguous(), points) for v in range(9)]
+    cams.append(_distort(cams[EGO_VIEW], dist))
+    Ks = [K[:, v].contiguous() for v in range(9)] + [K[:, EGO_VIEW].contiguous()]
+    pixels = [_project(k, c) for k, c in zip(Ks, cams)]
+    return torch.stack(cams, dim=1).numpy(), torch.stack(pixels, dim=1).numpy()
+
+
+def _boxes_and_flags(p2d: Mapping[str, np.ndarray], ego_box: np.ndarray,
+                     sizes: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Crop boxes (n, 9, 3) float32 and (is_valid, right_valid, left_valid), each (n, 9).
+
+    Allocentric boxes come from the object vertices; validity on views 0..8 judges view 0
+    on the distorted ego projection (view 9).
+    """
+    v2d = p2d["verts.object"]
+    bbox = np.empty((v2d.shape[0], 9, 3), dtype=np.float32)
+    bbox[:, EGO_VIEW] = ego_box
+    bbox[:, 1:] = _allo_bbox(v2d[:, 1:9])
+    order = [9] + list(ALLO_VIEWS)
+    flags = validity_flags(_centroid(v2d[:, order]), p2d["joints.right"][:, order], p2d["joints.left"][:, order],
+                           bbox, sizes)
+    return bbox, flags
+
+
 def _params(seq: SequenceData, world2ego: np.ndarray, K_ego: np.ndarray, dist: np.ndarray) -> dict[str, np.ndarray]:
-    """ARCTIC ``params`` (spec §1.7), float32, without the SMPL-X keys."""
+    """ARCTIC ``params``, float32, without the SMPL-X keys."""
     F = seq.num_frames
     f32 = np.float32
     p: dict[str, np.ndarray] = {}
@@ -277,6 +375,14 @@ def image_name(sid: str, seq: str, view: int, frame_id: int) -> str:
     return f"./data/arctic_data/data/images/{sid}/{seq}/{view}/{frame_id:05d}.jpg"
 
 
+def _check_offset(root: ArcticRoot, sid: str, frame_margin: int) -> None:
+    """File numbers ``margin .. F − margin − 1`` minus the offset must be GT indices."""
+    offset = root.subject_misc(sid).ioi_offset
+    if abs(offset) > frame_margin:
+        raise AssetError(root.misc_path, f"subject {sid}: ioi_offset {offset} exceeds the split's frame margin "
+                                         f"{frame_margin}, so its first or last listed images have no GT frame")
+
+
 def build_split(
     root: ArcticRoot,
     protocol: str,
@@ -284,7 +390,7 @@ def build_split(
     processed: Optional[Mapping[str, Mapping[str, Any]]] = None,
     frame_margin: int = FRAME_MARGIN,
 ) -> dict[str, Any]:
-    """ARCTIC ``build_split`` (spec §1.8).
+    """ARCTIC ``build_split``.
 
     Args:
         root: the data root (protocol files, misc.json for ``ioi_offset``).
@@ -296,10 +402,12 @@ def build_split(
 
     Returns:
         ``{"data_dict": {"sid/seq": {"cam_coord", "2d", "bbox", "params"}}, "imgnames": [...]}``.
-        Image names cover GT frames ``margin .. F − margin − 1`` (frame-major, then views)
-        and are numbered by **image file number = GT index + ioi_offset** — ARCTIC's
-        build_split numbers them by the GT index (spec §1.8, UNCERTAIN), but the dataset
-        subtracts ``ioi_offset`` to find the GT frame, so this is the consistent choice.
+        Image names have the file numbers ``margin .. F − margin − 1`` (frame-major, then
+        views), as ARCTIC's; the dataset pairs file ``n`` with GT index ``n − ioi_offset``.
+
+    Raises:
+        AssetError: a subject's ``|ioi_offset|`` exceeds ``frame_margin`` (listed images
+            would have no GT frame).
     """
     split = canonical_split(split)
     views = protocol_views(protocol)
@@ -317,10 +425,10 @@ def build_split(
             )
         data_dict[key] = {k: data[k] for k in REQUEST_KEYS}
         F = int(data["params"]["rot_r"].shape[0])
-        offset = root.subject_misc(sid).ioi_offset
+        _check_offset(root, sid, frame_margin)
         for frame in range(frame_margin, F - frame_margin):
             for view in views:
-                imgnames.append(image_name(sid, name, view, frame + offset))
+                imgnames.append(image_name(sid, name, view, frame))
     if len(set(imgnames)) != len(imgnames):
         raise AssetError(root.protocol_path(protocol), f"split {split} lists an image twice")
     return {"data_dict": data_dict, "imgnames": imgnames}

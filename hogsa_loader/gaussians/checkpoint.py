@@ -299,10 +299,15 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
     if raw["part_type"] != part.part_type:
         raise AssetError(path, f"checkpoint is for part_type {raw['part_type']!r}, the model is {part.part_type!r}")
     if raw["template_hash"] != part.template_hash:
+        hint = ""
+        if part.part_type.startswith("hand"):
+            hint = ("; a hand part is bound to its hand model's vertices in their order, so a different MANO file "
+                    "(e.g. another version of the synthetic hand, see its 'generator' metadata) needs the part "
+                    "trained again")  # fmt: skip
         raise AssetError(
             path,
             f"template hash mismatch: the checkpoint was made for template {raw['template_hash'][:16]}..., "
-            f"the given template hashes to {part.template_hash[:16]}...",
+            f"the given template hashes to {part.template_hash[:16]}...{hint}",
         )
     expect = {
         "variant": part.variant,

@@ -7,6 +7,7 @@ from hogsa_loader.hands.mano_io import (
     RestrictedUnpickler,
     convert_mano_to_npz,
     load_mano,
+    reorder_vertices,
     write_mano_pickle,
 )
 from hogsa_loader.hands.manohd import subdivide_model
@@ -26,6 +27,7 @@ __all__ = [
     "load_mano",
     "mirror_to_left",
     "named_articulation",
+    "reorder_vertices",
     "subdivide_model",
     "synthetic_hand_pair",
     "write_mano_pickle",

@@ -1,6 +1,6 @@
 """Batched MANO hand layer (right and left) on top of :mod:`hogsa_loader.hands.lbs`.
 
-Conventions (ARCTIC, ``arctic_format.md`` §5):
+Conventions (ARCTIC's MANO):
 - pose = 3 global + 45 articulation axis-angle values; with ``flat_hand_mean=False`` the
   45 values are offsets from the model's ``hands_mean`` (ARCTIC's setting), with ``True`` a
   zero vector is the flat hand (H2O's setting).

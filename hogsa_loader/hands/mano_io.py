@@ -10,6 +10,7 @@ keeps its pickled state, and refuses anything else with :class:`UnsafePickleErro
 Also here:
 - :class:`ManoModelData`: the validated arrays of one hand model, plus the metadata the
   project needs (side, fingertip vertices, prior-contact vertices, vertex colours).
+- :func:`reorder_vertices`: the same model with its vertices renumbered.
 - :func:`load_mano`: ``.pkl`` (restricted unpickler) or ``.npz`` (no pickle allowed).
 - :func:`convert_mano_to_npz`: one-shot conversion of a pickle to a chumpy-free ``.npz``.
 - :func:`write_mano_pickle`: writes a model in the exact legacy MANO pickle schema
@@ -41,17 +42,19 @@ __all__ = [
     "RestrictedUnpickler",
     "convert_mano_to_npz",
     "load_mano",
+    "reorder_vertices",
     "write_mano_pickle",
 ]
 
-#: Order of the five fingertips appended as joints 16..20 (ARCTIC, ``arctic_format.md`` §5).
+#: Order of the five fingertips appended as joints 16..20 (ARCTIC's 21-joint MANO).
 ARCTIC_TIP_ORDER = ("thumb", "index", "middle", "ring", "pinky")
 
 #: Vertex count of the official MANO release; only used to recognise it and pick the
 #: published fingertip vertices below. Every other count is read from the model file.
 MANO_RELEASE_NUM_VERTS = 778
 
-#: Fingertip vertex ids used by ARCTIC (smplx ``VERTEX_IDS['mano']``), thumb->pinky.
+#: Fingertip vertex ids, thumb->pinky: smplx's ``VERTEX_IDS['mano']``, which smplx (and so
+#: ARCTIC) appends as joints 16..20 by id on any MANO-schema file.
 MANO_RELEASE_TIP_IDS = {"right": (744, 320, 443, 554, 671), "left": (744, 320, 443, 554, 671)}
 
 #: Key under which the project stores its own metadata inside a MANO-schema file.
@@ -330,6 +333,41 @@ def validate_model(m: ManoModelData) -> None:
             fail(f"contact_vertex_ids[{key!r}] must be indices into {V} vertices")
 
 
+def reorder_vertices(model: ManoModelData, order: np.ndarray) -> ManoModelData:
+    """The same hand with its vertices renumbered: new vertex ``i`` is old vertex ``order[i]``.
+
+    Every per-vertex array follows (``v_template``, ``shapedirs``, ``posedirs``,
+    ``weights``, ``J_regressor`` columns, vertex colours) and every vertex id is remapped
+    (faces, fingertips, contact sets), so the posed mesh and the joints are unchanged up to
+    the renumbering.
+
+    Args:
+        model: the hand.
+        order: (V,) a permutation of ``0 .. V-1``.
+
+    Raises:
+        ValueError: ``order`` is not a permutation of the model's vertex ids.
+    """
+    order = np.asarray(order, dtype=np.int64)
+    V = model.num_verts
+    if order.shape != (V,) or not np.array_equal(np.sort(order), np.arange(V)):
+        raise ValueError(f"order must be a permutation of the {V} vertex ids")
+    new_id = np.empty(V, dtype=np.int64)
+    new_id[order] = np.arange(V)
+    colors = model.vertex_colors
+    return model.replace(
+        v_template=model.v_template[order],
+        shapedirs=model.shapedirs[order],
+        posedirs=model.posedirs[order],
+        J_regressor=model.J_regressor[:, order],
+        weights=model.weights[order],
+        faces=new_id[model.faces],
+        tip_vertex_ids=new_id[model.tip_vertex_ids],
+        contact_vertex_ids={k: np.sort(new_id[v]) for k, v in model.contact_vertex_ids.items()},
+        vertex_colors=None if colors is None else colors[order],
+    )
+
+
 # ----------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------
@@ -571,7 +609,9 @@ def write_mano_pickle(model: ManoModelData, path: PathLike) -> None:
     ``shapedirs`` is stored as a chumpy ``Ch`` (as in the release), ``J_regressor`` as a
     ``scipy.sparse`` CSC matrix, ``kintree_table`` with the uint32 root sentinel, and the
     project metadata (side, fingertips, contact sets, colours) under ``hogsa_meta``.
-    The file is written atomically.
+    Readers that ignore ``hogsa_meta`` (smplx, ARCTIC) take the fingertips at
+    :data:`MANO_RELEASE_TIP_IDS`, so a model meant for them has its tips there (the
+    synthetic hand does). The file is written atomically.
     """
     p = os.fspath(path)
     d = _schema_dict(model)

@@ -21,6 +21,8 @@ the MANO right template):
 5. Blend shapes: 10 smooth displacement fields (size, finger length, palm width, thickness,
    ...); pose correctives: knuckle bulges driven by (1 - cos) of flexion.
 6. Pose space: 1554 sampled articulations (curl/spread/opposition families) -> PCA.
+7. Vertex order: the five fingertip vertices are renumbered to MANO's fingertip ids
+   (744, 320, 443, 554, 671), which smplx and ARCTIC append as joints 16..20 by id.
 """
 
 from __future__ import annotations
@@ -38,11 +40,11 @@ from hogsa_loader.hands.anatomy import (
     unit_rows,
     vertex_normals,
 )
-from hogsa_loader.hands.mano_io import ManoModelData, validate_model
+from hogsa_loader.hands.mano_io import MANO_RELEASE_TIP_IDS, ManoModelData, reorder_vertices, validate_model
 
 __all__ = ["HandSpec", "build_synthetic_hand", "mirror_to_left", "synthetic_hand_pair"]
 
-GENERATOR_VERSION = "hogsa-synthetic-hand/1"
+GENERATOR_VERSION = "hogsa-synthetic-hand/2"
 _FINGER_ORDER = ("index", "middle", "pinky", "ring")  # MANO joint order of the 4 fingers
 
 
@@ -501,8 +503,35 @@ def build_synthetic_hand(spec: HandSpec = HandSpec(), seed: int = 0) -> ManoMode
         },
     )
     model = model.replace(contact_vertex_ids=derive_contact_prior(model))
+    model = _tips_at_mano_ids(model)
     validate_model(model)
     return model
+
+
+def _tip_order(tips: np.ndarray, targets: np.ndarray, num_verts: int) -> np.ndarray:
+    """A vertex order (see :func:`reorder_vertices`) moving vertex ``tips[k]`` to id ``targets[k]``.
+
+    The other vertices keep their relative order in the remaining ids.
+
+    Args:
+        tips: (K,) current ids; targets: (K,) wanted ids, both distinct and < ``num_verts``.
+
+    Returns:
+        (num_verts,) permutation: ``order[targets[k]] == tips[k]``.
+    """
+    tips, targets = np.asarray(tips, dtype=np.int64), np.asarray(targets, dtype=np.int64)
+    if targets.max() >= num_verts:
+        raise ValueError(f"a mesh of {num_verts} vertices has no vertex id {int(targets.max())}")
+    order = np.full(num_verts, -1, dtype=np.int64)
+    order[targets] = tips
+    order[order < 0] = np.setdiff1d(np.arange(num_verts), tips)
+    return order
+
+
+def _tips_at_mano_ids(model: ManoModelData) -> ManoModelData:
+    """Renumber the vertices so the fingertips have MANO's fingertip ids."""
+    targets = np.asarray(MANO_RELEASE_TIP_IDS[model.side])
+    return reorder_vertices(model, _tip_order(model.tip_vertex_ids, targets, model.num_verts))
 
 
 _MIRROR = np.array([-1.0, 1.0, 1.0])

@@ -2,9 +2,10 @@
 
 Real ARCTIC templates cannot be downloaded here, so the project generates look-alikes and
 writes them exactly like ``meta/object_vtemplates/<obj>/`` (see
-:mod:`hogsa_loader.objects.template`). Every object is two rounded boxes joined by a
-hinge, which covers ARCTIC's box (juice box with a flip lid), laptop, notebook and phone
-(flip phone).
+:mod:`hogsa_loader.objects.template`), one for each of ARCTIC's 11 object names. Here:
+box (juice box with a flip lid), laptop, notebook and phone (flip phone), each two
+rounded boxes joined by a hinge; the other seven are assembled from several pieces per
+part in :mod:`hogsa_loader.objects.household` and textured by the same atlas code.
 
 Canonical frame (ARCTIC convention, spec §2): the hinge is the z axis through the origin
 and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
@@ -36,6 +37,7 @@ import numpy as np
 from hogsa_loader.errors import PathLike
 from hogsa_loader.objects.template import (
     BOTTOM,
+    OBJECT_NAMES,
     TOP,
     VTEMPLATES_DIR,
     ObjectTemplate,
@@ -51,6 +53,7 @@ __all__ = [
     "ATLAS_SIZE",
     "PROCEDURAL_NAMES",
     "make_object",
+    "make_and_write_objects",
     "write_procedural_objects",
 ]
 
@@ -87,17 +90,19 @@ class Slab:
 
 @dataclass
 class PartMesh:
-    """A rounded box as a welded mesh plus its per-face charts.
+    """A welded mesh plus its texture charts (a rounded box has 6, one per face).
 
     Attributes:
         verts: (V, 3) float64 welded vertices (mm).
         faces: (F, 3) int64 outward-oriented triangles.
-        chart_verts: list of 6 (Vc, 3) vertex arrays, one per box face (unwelded copies).
-        chart_faces: list of 6 (Fc, 3) triangles into the chart's vertices.
-        chart_param: list of 6 (Vc, 2) in-face coordinates ``(fu, fv)`` in [0, 1].
-        chart_keys: list of 6 face names (``"+x"`` ...).
-        chart_size: list of 6 (width, height) extents in mm along (u, v).
-        chart_to_welded: list of 6 (Vc,) indices into ``verts``.
+        chart_verts: per chart, (Vc, 3) vertices (unwelded copies).
+        chart_faces: per chart, (Fc, 3) triangles into the chart's vertices.
+        chart_param: per chart, (Vc, 2) in-chart coordinates ``(fu, fv)`` in [0, 1].
+        chart_keys: per chart, its name (box faces: ``"+x"`` ...).
+        chart_size: per chart, (width, height) extents in mm along (u, v).
+        chart_to_welded: per chart, (Vc,) indices into ``verts``.
+        chart_painters: optional painter of each chart (parts assembled from pieces);
+            empty: the object's spec chooses by face name.
     """
 
     verts: np.ndarray
@@ -108,6 +113,7 @@ class PartMesh:
     chart_keys: list[str] = field(default_factory=list)
     chart_size: list[tuple[float, float]] = field(default_factory=list)
     chart_to_welded: list[np.ndarray] = field(default_factory=list)
+    chart_painters: list[Painter] = field(default_factory=list)
 
 
 _AXES = "xyz"
@@ -837,8 +843,8 @@ _SPECS: dict[str, Callable[[np.random.Generator], ObjectSpec]] = {
     "phone": _spec_phone,
 }
 
-#: Names :func:`make_object` knows (ARCTIC names).
-PROCEDURAL_NAMES: tuple[str, ...] = tuple(_SPECS)
+#: Names :func:`make_object` knows: all 11 ARCTIC objects, in ARCTIC's index order.
+PROCEDURAL_NAMES: tuple[str, ...] = OBJECT_NAMES
 
 
 # ======================================================================================
@@ -857,8 +863,22 @@ def build_parts(spec: ObjectSpec) -> dict[int, PartMesh]:
     }
 
 
-def build_textured(spec: ObjectSpec, parts: dict[int, PartMesh]) -> dict[str, np.ndarray]:
+def _painter(spec: Optional[ObjectSpec], mesh: PartMesh, part: int, k: int) -> Painter:
+    """The painter of chart ``k`` of a part: its own, or the spec's for its face name."""
+    if mesh.chart_painters:
+        return mesh.chart_painters[k]
+    if spec is None:
+        raise ValueError("a part without chart painters needs an ObjectSpec")
+    return spec.painters.get(part, {}).get(mesh.chart_keys[k], spec.default[part])
+
+
+def build_textured(spec: Optional[ObjectSpec], parts: dict[int, PartMesh]) -> dict[str, np.ndarray]:
     """Atlas image and textured mesh (charts unwelded; same surface as the welded mesh).
+
+    Args:
+        spec: whose painters paint the charts by face name; None when every part carries
+            its own chart painters (parts assembled from pieces).
+        parts: both parts' meshes and charts.
 
     Returns:
         dict with ``verts`` (Vt,3) mm, ``faces``, ``uv`` (Vt,2) OBJ convention,
@@ -866,7 +886,7 @@ def build_textured(spec: ObjectSpec, parts: dict[int, PartMesh]) -> dict[str, np
     """
     import cv2
 
-    charts = [(p, k) for p in (TOP, BOTTOM) for k in range(6)]
+    charts = [(p, k) for p in (TOP, BOTTOM) for k in range(len(parts[p].chart_keys))]
     sizes_mm = [parts[p].chart_size[k] for p, k in charts]
     s, positions, sizes_px = pack_charts(sizes_mm)
     side = ATLAS_SIZE
@@ -875,10 +895,8 @@ def build_textured(spec: ObjectSpec, parts: dict[int, PartMesh]) -> dict[str, np
     offset = 0
     for (p, k), (x0, y0), (w, h) in zip(charts, positions, sizes_px):
         mesh = parts[p]
-        key = mesh.chart_keys[k]
-        painter = spec.painters.get(p, {}).get(key, spec.default[p])
-        img = np.ascontiguousarray(painter(h, w, s), dtype=np.float32)
-        assert img.shape == (h, w, 3), (spec.name, p, key, img.shape)
+        img = np.ascontiguousarray(_painter(spec, mesh, p, k)(h, w, s), dtype=np.float32)
+        assert img.shape == (h, w, 3), (p, mesh.chart_keys[k], img.shape)
         padded = cv2.copyMakeBorder(img, CHART_PAD, CHART_PAD, CHART_PAD, CHART_PAD, cv2.BORDER_REPLICATE)
         atlas[y0 - CHART_PAD: y0 + h + CHART_PAD, x0 - CHART_PAD: x0 + w + CHART_PAD] = padded
         fu, fv = mesh.chart_param[k][:, 0], mesh.chart_param[k][:, 1]
@@ -907,23 +925,35 @@ def _part_samples(points_mm: np.ndarray, rng: np.random.Generator) -> dict[str, 
     return {"kp": kp, "sub": sub, "bbox": bbox_corners(points_mm), "mocap": mocap}
 
 
+def _spec_and_parts(name: str, rng: np.random.Generator) -> tuple[Optional[ObjectSpec], dict[int, PartMesh]]:
+    """Painting spec (None for parts that carry their painters) and both part meshes."""
+    if name in _SPECS:
+        spec = _SPECS[name](rng)
+        return spec, build_parts(spec)
+    from hogsa_loader.objects.compound import merge_pieces
+    from hogsa_loader.objects.household import HOUSEHOLD_SPECS
+
+    compound = HOUSEHOLD_SPECS[name](rng)
+    return None, {p: merge_pieces(compound.parts[p]) for p in (TOP, BOTTOM)}
+
+
 def make_object(name: str, seed: int = 0) -> ObjectTemplate:
     """Generate one procedural textured articulated object.
 
     Args:
-        name: one of :data:`PROCEDURAL_NAMES` (``box``, ``laptop``, ``notebook``,
-            ``phone``).
+        name: one of :data:`PROCEDURAL_NAMES` (the 11 ARCTIC objects; ``box``,
+            ``laptop``, ``notebook`` and ``phone`` here, the others in
+            :mod:`hogsa_loader.objects.household`).
         seed: colour/photo/print variation; the geometry does not depend on it.
 
     Returns:
         the template in metres, canonical frame of ARCTIC (hinge = z axis), with a
         textured mesh and a 1024x1024 atlas.
     """
-    if name not in _SPECS:
-        raise KeyError(f"no procedural object {name!r}; known: {list(_SPECS)}")
+    if name not in PROCEDURAL_NAMES:
+        raise KeyError(f"no procedural object {name!r}; known: {list(PROCEDURAL_NAMES)}")
     rng = _rng(name, seed)
-    spec = _SPECS[name](rng)
-    parts = build_parts(spec)
+    spec, parts = _spec_and_parts(name, rng)
 
     verts_mm = np.concatenate([parts[TOP].verts, parts[BOTTOM].verts])
     faces = np.concatenate([parts[TOP].faces, parts[BOTTOM].faces + parts[TOP].verts.shape[0]])
@@ -953,6 +983,16 @@ def make_object(name: str, seed: int = 0) -> ObjectTemplate:
     )
 
 
+def make_and_write_objects(meta_dir: PathLike, names: Iterable[str], seed: int = 0) -> list[ObjectTemplate]:
+    """:func:`write_procedural_objects`, returning the templates written (in memory)."""
+    meta_dir = Path(meta_dir)
+    templates = [make_object(n, seed=seed) for n in names]
+    for t in templates:
+        write_object_template(t, meta_dir / VTEMPLATES_DIR / t.name)
+    write_object_meta(meta_dir, templates)
+    return templates
+
+
 def write_procedural_objects(
     meta_dir: PathLike,
     names: Iterable[str] = ("box", "laptop", "notebook"),
@@ -970,9 +1010,4 @@ def write_procedural_objects(
     Returns:
         the names written, in order.
     """
-    meta_dir = Path(meta_dir)
-    templates = [make_object(n, seed=seed) for n in names]
-    for t in templates:
-        write_object_template(t, meta_dir / VTEMPLATES_DIR / t.name)
-    write_object_meta(meta_dir, templates)
-    return [t.name for t in templates]
+    return [t.name for t in make_and_write_objects(meta_dir, names, seed)]

@@ -231,11 +231,16 @@ def farthest_point_sampling(points: np.ndarray, k: int, start: Optional[int] = N
         start = int(np.argmax(((pts - pts.mean(axis=0)) ** 2).sum(axis=1)))
     chosen = np.empty(k, dtype=np.int64)
     chosen[0] = start
-    dist = ((pts - pts[start]) ** 2).sum(axis=1)
+    x, y, z = (np.ascontiguousarray(pts[:, j]) for j in range(3))
+
+    def sq_dist(i: int) -> np.ndarray:  # summed x, y, z in order: equal to ((pts - p) ** 2).sum(1)
+        return (x - x[i]) ** 2 + (y - y[i]) ** 2 + (z - z[i]) ** 2
+
+    dist = sq_dist(start)
     for i in range(1, k):
         nxt = int(np.argmax(dist))
         chosen[i] = nxt
-        dist = np.minimum(dist, ((pts - pts[nxt]) ** 2).sum(axis=1))
+        np.minimum(dist, sq_dist(nxt), out=dist)
     return chosen
 
 
@@ -565,7 +570,7 @@ def _fmt_rows(rows: np.ndarray, prefix: str) -> str:
     """Lines ``prefix a b c`` with 6 decimals (mm -> nanometre resolution)."""
     cols = rows.shape[1]
     fmt = prefix + " " + " ".join(["%.6f"] * cols) + "\n"
-    return "".join(fmt % tuple(r) for r in rows.tolist())
+    return (fmt * rows.shape[0]) % tuple(rows.ravel().tolist())  # one formatting call
 
 
 def _obj_text(verts_mm: np.ndarray, faces: np.ndarray, uv: Optional[np.ndarray] = None,
@@ -578,9 +583,9 @@ def _obj_text(verts_mm: np.ndarray, faces: np.ndarray, uv: Optional[np.ndarray] 
     f1 = faces.astype(np.int64) + 1
     if uv is not None:
         lines.append(_fmt_rows(uv.astype(np.float64), "vt"))
-        lines.append("".join(f"f {a}/{a} {b}/{b} {c}/{c}\n" for a, b, c in f1.tolist()))
+        lines.append(("f %d/%d %d/%d %d/%d\n" * len(f1)) % tuple(np.repeat(f1, 2, axis=1).ravel().tolist()))
     else:
-        lines.append("".join(f"f {a} {b} {c}\n" for a, b, c in f1.tolist()))
+        lines.append(("f %d %d %d\n" * len(f1)) % tuple(f1.ravel().tolist()))
     return "".join(lines)
 
 

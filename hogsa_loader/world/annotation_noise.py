@@ -164,8 +164,10 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
         protocols = sorted(p.stem.removeprefix("protocol_") for p in (data / "splits_json").glob("protocol_*.json"))
         if process_splits and protocols:
             from hogsa_loader.datasets.arctic_processing import write_processed_splits
+            from hogsa_loader.world.stand_ins import add_split_stand_ins
 
-            write_processed_splits(dst, protocols=protocols, splits=("train", "val"), progress=progress)
+            written = write_processed_splits(dst, protocols=protocols, splits=("train", "val"), progress=progress)
+            add_split_stand_ins(written.values())
     except BaseException:
         shutil.rmtree(dst, ignore_errors=True)
         raise

@@ -1,8 +1,14 @@
 """World presets: which subjects, sequences, frame counts and image sizes to generate.
 
 A preset is a plain frozen dataclass so tests can shrink one with ``dataclasses.replace``.
-Sequence names follow ARCTIC (``<object>_<grab|use>_<NN>``, spec §1.1); subject ids and
-the held-out validation subject follow ARCTIC's protocol (val = s05, test = s03, §1.3).
+Sequence names follow ARCTIC (``<object>_<grab|use>_<NN>``); subject ids and the held-out
+validation subject follow ARCTIC's protocol (val = s05, test = s03).
+
+``small`` has ARCTIC's image sizes, so ARCTIC's own loader reads it as ARCTIC. ``tiny``
+keeps 256-px crops and ego images × 0.1 to stay fast: the project's reader takes the sizes
+from ``meta/hogsa_world.json``, while ARCTIC's loader, which hard-codes 1000 px and 0.3,
+would cut the wrong patches; readers asked for ARCTIC-exact samples refuse it
+(:meth:`~hogsa_loader.datasets.arctic.ArcticRoot.require_arctic_sizes`).
 """
 
 from __future__ import annotations
@@ -125,7 +131,8 @@ def _seqs(*items: tuple[str, str]) -> tuple[SequencePlan, ...]:
 
 
 PRESETS: dict[str, WorldPreset] = {
-    # 2 subjects x 1 sequence x 64 frames x 9 views; small crops; < 1 min on 2 idle CPU cores.
+    # 2 subjects x 1 sequence x 64 frames x 9 views; small crops (not ARCTIC's sizes);
+    # < 1 min on 2 idle CPU cores.
     "tiny": WorldPreset(
         name="tiny",
         subjects=(

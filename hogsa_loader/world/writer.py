@@ -4,9 +4,10 @@ Layout written under ``out`` (which plays ARCTIC's ``./data``)::
 
     body_models/mano/MANO_{RIGHT,LEFT}.pkl          the synthetic MANO-schema hands
     arctic_data/data/meta/misc.json                 per-subject cameras, sizes, ioi_offset, gender
-    arctic_data/data/meta/object_meta.json, object_vtemplates/<obj>/...
-    arctic_data/data/meta/hogsa_world.json          generator record (sizes, mask ids, timings)
-    arctic_data/data/raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy
+    arctic_data/data/meta/object_meta.json, object_vtemplates/<obj>/...   all 11 ARCTIC objects
+    arctic_data/data/meta/mano_decimator_195.npy, downsamplers.npy        decimation maps
+    arctic_data/data/meta/hogsa_world.json          generator record (sizes, mask ids, stand-ins, timings)
+    arctic_data/data/raw_seqs/<sid>/<seq>.{mano,object,egocam.dist,smplx}.npy
     arctic_data/data/splits_json/protocol_p{1,2}.json
     arctic_data/data/cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg
     arctic_data/data/masks/<sid>/<seq>/<view>/<frame:05d>.png
@@ -16,6 +17,10 @@ Layout written under ``out`` (which plays ARCTIC's ``./data``)::
 Determinism: everything derives from ``seed`` through named random streams, arrays are
 written with ``np.save``, JSON with sorted keys, images with fixed OpenCV settings, so the
 same seed gives byte-identical files (``hogsa_world.json`` differs only in ``timings``).
+Every world holds the templates of all 11 ARCTIC objects (ARCTIC's ``ObjectTensors``
+opens them all); sequences use the preset's objects. The subjects have no body: SMPL-X
+fields are NaN stand-ins and the SMPL-X model files are absent
+(:mod:`hogsa_loader.world.stand_ins`, listed in ``hogsa_world.json``).
 The rendering consumes the parameters exactly as stored (float32 raw arrays, JSON
 cameras), so images and annotations agree.
 """
@@ -96,15 +101,18 @@ class _Job:
 
 
 def _write_assets(root: Path, preset: WorldPreset, seed: int) -> tuple[dict, dict, list]:
-    """MANO pickles, object templates (+ object_meta.json); returns what was written, re-read.
+    """MANO pickles, object templates (+ object_meta.json), decimation maps; returns what
+    was written, re-read.
 
     Returns:
-        (models side -> ManoModelData, templates name -> ObjectTemplate, stage MeshParts).
+        (models side -> ManoModelData, templates of the preset's objects name ->
+        ObjectTemplate, stage MeshParts).
     """
     from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
     from hogsa_loader.hands.synthetic import synthetic_hand_pair
-    from hogsa_loader.objects.procedural import write_procedural_objects
+    from hogsa_loader.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
     from hogsa_loader.objects.template import load_object_template, read_object_meta
+    from hogsa_loader.world.decimation import write_decimation_files
     from hogsa_loader.world.stage import build_stage
 
     mano_dir = root / "body_models" / "mano"
@@ -113,7 +121,8 @@ def _write_assets(root: Path, preset: WorldPreset, seed: int) -> tuple[dict, dic
     write_mano_pickle(right, mano_dir / "MANO_RIGHT.pkl")
     write_mano_pickle(left, mano_dir / "MANO_LEFT.pkl")
     models = {side: load_mano(mano_dir, side=side) for side in ("right", "left")}
-    write_procedural_objects(meta, names=preset.objects, seed=seed)
+    every_object = make_and_write_objects(meta, PROCEDURAL_NAMES, seed=seed)  # ARCTIC opens all 11
+    write_decimation_files(meta, models, {t.name: t for t in every_object})
     obj_meta = read_object_meta(meta / "object_meta.json")
     templates = {n: load_object_template(meta / "object_vtemplates" / n, object_meta=obj_meta) for n in preset.objects}
     return models, templates, build_stage(_rng(seed, "stage"))
@@ -127,6 +136,7 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
     """
     from hogsa_loader.world.cameras import allocentric_rig, ego_calibration, ego_trajectory
     from hogsa_loader.world.motion import build_motion
+    from hogsa_loader.world.stand_ins import smplx_raw
     from hogsa_loader.world.subjects import make_subject
 
     F = preset.num_frames
@@ -155,6 +165,7 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
             _save_npy(base / f"{seq.name}.mano.npy", mano)
             _save_npy(base / f"{seq.name}.object.npy", obj_params)
             _save_npy(base / f"{seq.name}.egocam.dist.npy", ego)
+            _save_npy(base / f"{seq.name}.smplx.npy", smplx_raw(F))
             jobs.append(_Job(subj, seq, mano, obj_params, ego))
     _write_json(data / "meta" / "misc.json", misc)
     splits: dict[str, list[str]] = {"train": [], "val": [], "test": []}
@@ -256,8 +267,11 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     Returns:
         the ``hogsa_world.json`` content.
     """
+    from hogsa_loader.objects.procedural import PROCEDURAL_NAMES
     from hogsa_loader.world.grasp import HandKit
     from hogsa_loader.world.scene_render import MASK_IDS
+    from hogsa_loader.world.stand_ins import add_split_stand_ins
+    from hogsa_loader.world.stand_ins import record as stand_in_record
 
     say = log or (lambda s: None)
     t_start = time.perf_counter()
@@ -296,6 +310,8 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
         "hand_model_seed": HAND_MODEL_SEED,
         "subjects": [s.to_json() for s in subjects],
         "sequences": records,
+        "object_templates": list(PROCEDURAL_NAMES),
+        **stand_in_record(),
         "timings": {},
     }
     _write_json(data / "meta" / WORLD_META, record)  # read by the processing and the preview
@@ -309,7 +325,8 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
         t0 = time.perf_counter()
         from hogsa_loader.datasets.arctic_processing import write_processed_splits
 
-        write_processed_splits(root, protocols=("p1", "p2"), splits=("train", "val"), progress=progress)
+        written = write_processed_splits(root, protocols=("p1", "p2"), splits=("train", "val"), progress=progress)
+        add_split_stand_ins(written.values())
         timings["splits_s"] = time.perf_counter() - t0
     timings["total_s"] = time.perf_counter() - t_start
     record["timings"] = {k: round(v, 2) for k, v in timings.items()}
