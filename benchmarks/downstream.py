@@ -255,6 +255,16 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     return {"data": data, "bundle": bundle, "backgrounds": backgrounds, "stage_seconds": seconds, "pairs": pairs}
 
 
+def setup_fingerprint(cfg: DownstreamConfig, setup: dict[str, Any]) -> str:
+    """Hash of what the setup holds: its settings, the world record and the bundle manifests
+    (a world or bundle rebuilt in place gets a new fingerprint)."""
+    parts: list[Any] = [asdict(cfg.setup)]
+    for f in (Path(setup["data"]) / "meta" / "hogsa_world.json", Path(setup["bundle"]) / "manifest.json",
+              Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json"):
+        parts.append(hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None)
+    return _key(parts)
+
+
 def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) -> Optional[dict[str, Any]]:
     """HOGSADataset arguments of a synthetic variant (None: not available)."""
     bundle = setup["bundle"]
@@ -266,6 +276,13 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
     if variant == "no_pom":  # the annotated training poses, unperturbed
         poses = {"poses": "perturb", "pose_options": {"finger_std": 0.0}}
     return {"bundle": str(bundle), "srm": variant != "no_srm", **poses}
+
+
+def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Path:
+    """Folder of a variant's export, named by everything its frames depend on."""
+    key = _key([variant_options(variant, cfg, setup), setup["fingerprint"], asdict(cfg.synthetic),
+                cfg.model.img_res])
+    return out / "synthetic" / f"{variant}-{key[:10]}"
 
 
 def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
@@ -282,10 +299,11 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
                       pose_options=opts.get("pose_options"), srm=opts["srm"], device=cfg.device,
                       batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
                       config=ArcticConfig(img_res=cfg.model.img_res))
-    info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res}
+    info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res,
+            "setup": setup["fingerprint"]}
     t0 = time.perf_counter()
-    rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), out / "synthetic" / variant, s.frames, shard,
-                       info=info, progress=True)
+    rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), export_dir(variant, cfg, setup, out), s.frames,
+                       shard, info=info, progress=True)
     stats = ds.total_stats()
     return {"variant": variant, "samples": rec["samples"], "seconds": round(time.perf_counter() - t0, 1),
             "written": len(rec["written"]), "skipped": len(rec["skipped"]), "dropped": dict(stats.dropped),
@@ -334,7 +352,7 @@ def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, A
     real_part: Any = real if share == "all" else Subset(real, low_data_indices(len(real), cfg.low_data))
     syn = None
     if variant is not None:
-        syn = SynthShardSamples(out / "synthetic" / variant, seed=seed, cfg=acfg)
+        syn = SynthShardSamples(export_dir(variant, cfg, setup, out), seed=seed, cfg=acfg)
         syn_stream = _synthetic_stream(syn, seed, cfg.train.workers)
     epoch = 0
     while True:
@@ -385,6 +403,7 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
     _, variant = ARM_SPECS[arm]
     syn = asdict(cfg.synthetic) if variant else None
     return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
+            "setup": setup["fingerprint"],
             "bundle": str(setup["bundle"]), "variant": variant and variant_options(variant, cfg, setup),
             "synthetic": syn, "model": asdict(cfg.model), "train": asdict(cfg.train),
             "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
@@ -420,7 +439,15 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     bar = tqdm(total=cfg.train.steps, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
     final: dict[str, Any] = {}
     for step in range(1, cfg.train.steps + 1):
-        rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
+        try:
+            rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
+        except FloatingPointError as exc:  # recorded as diverged; the other runs go on
+            bar.close()
+            _say(f"[{arm} seed {seed}] diverged at step {step}: {exc}")
+            result = {"key": key, "settings": settings, "diverged": step, "summary": {m: None for m in METRICS},
+                      "curve": curve, "val_frames": 0}
+            _atomic_json(res_path, result)
+            return result
         losses.append(rec["loss"])
         bar.update(1)
         bar.set_postfix(loss=f"{rec['loss']:.3f}")
@@ -537,7 +564,11 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, m in zip(axes[0], ("mpjpe/ra/h", "cdev/ho")):
         for i, arm in enumerate(arms):
-            curves = [r["curve"] for r in results[arm].values()]
+            curves = [r["curve"] for r in results[arm].values() if not r.get("diverged")]
+            if not curves:
+                continue
+            n = min(len(c) for c in curves)
+            curves = [c[:n] for c in curves]
             steps = [p["step"] for p in curves[0]]
             vals = np.array([[p.get(m) if p.get(m) is not None else np.nan for p in c] for c in curves], float)
             mean = np.nanmean(vals, 0)
@@ -592,6 +623,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     setup = build_setup(cfg, out)
+    setup["fingerprint"] = setup_fingerprint(cfg, setup)
     skipped: dict[str, str] = {}
     exports: dict[str, Any] = {}
     for arm in cfg.arms:

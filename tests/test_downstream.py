@@ -104,7 +104,7 @@ def test_low_data_subset_is_fixed_and_sized():
 def test_every_arm_has_a_variant_spec():
     ds = _downstream()
     cfg = ds.DownstreamConfig()
-    setup = {"bundle": Path("/b"), "data": Path("/d")}
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
     assert set(ds.ARM_SPECS) == set(ds.ARMS)
     assert ds.variant_options("full", cfg, setup) == {"bundle": "/b", "srm": True, "poses": "bank"}
     assert ds.variant_options("no_srm", cfg, setup)["srm"] is False
@@ -116,6 +116,12 @@ def test_every_arm_has_a_variant_spec():
     assert k["synthetic"] is None and k["variant"] is None
     assert ds.run_settings("hogsa", 0, cfg, setup)["variant"]["poses"] == "bank"
     assert ds.run_settings("real", 1, cfg, setup) != k
+    assert ds.run_settings("real", 0, cfg, dict(setup, fingerprint="f1")) != k  # world/bundle rebuilt in place
+    # an export's folder changes with anything its frames depend on
+    a = ds.export_dir("full", cfg, setup, Path("/o"))
+    assert a != ds.export_dir("full", cfg, dict(setup, fingerprint="f1"), Path("/o"))
+    assert a != ds.export_dir("full", ds.quick_config(cfg), setup, Path("/o"))
+    assert a == ds.export_dir("full", cfg, setup, Path("/o")) and a.name.startswith("full-")
 
 
 def _result(mpjpe: float, cdev: float) -> dict:

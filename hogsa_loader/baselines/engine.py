@@ -124,11 +124,14 @@ def _group_of(imgname: str) -> tuple[tuple[str, str, int], int]:
 
 def _sequence_entry(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any],
                     b: int) -> dict[str, Any]:
-    """What :func:`sequence_metrics` needs of frame ``b`` of a batch (CPU, float32)."""
+    """What :func:`sequence_metrics` needs of frame ``b`` of a batch (CPU, float32), the object
+    vertices trimmed to the frame's own count (batches pad them to their longest object)."""
+    n = int(torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len")))[b])
     p = {k: pred[k][b].detach().float().cpu() for k in SEQUENCE_KEYS}
     t = {k: targets[k][b].detach().cpu() for k in SEQUENCE_KEYS + _TARGET_ONLY if k in targets}
-    t["object.v_len"] = torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len")))[b].cpu()
-    return {"pred": p, "targets": t, "part_ids": torch.as_tensor(meta_info["part_ids"])[b].cpu()}
+    p["object.v.cam"], t["object.v.cam"] = p["object.v.cam"][:n], t["object.v.cam"][:n]
+    t["object.v_len"] = torch.tensor(n)
+    return {"pred": p, "targets": t, "part_ids": torch.as_tensor(meta_info["part_ids"])[b, :n].cpu()}
 
 
 def _flush(frames: list[tuple[int, dict[str, Any]]]) -> dict[str, np.ndarray]:
