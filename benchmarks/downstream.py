@@ -380,16 +380,21 @@ def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
     return model
 
 
-def val_batches(cfg: DownstreamConfig, setup: dict[str, Any], stride: int) -> tuple[DataLoader, int]:
-    """The held-out subject's frames in temporal order (every ``stride``-th one)."""
+def val_dataset(cfg: DownstreamConfig, setup: dict[str, Any]) -> tuple[Any, list[int]]:
+    """The held-out subject's frames (``p1_val``, no augmentation) and their temporal order."""
     from hogsa_loader.baselines.engine import temporal_order
     from hogsa_loader.datasets.arctic_dataset import ArcticDataset
     from hogsa_loader.datasets.augment import ArcticConfig
 
     val = ArcticDataset(setup["data"], split="p1_val", seed=0, augment=False,
                         config=ArcticConfig(img_res=cfg.model.img_res))
-    order = temporal_order(val.imgnames)[::stride]
-    return _loader(Subset(val, order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False,
+    return val, temporal_order(val.imgnames)
+
+
+def val_batches(cfg: DownstreamConfig, val: tuple[Any, list[int]], stride: int) -> tuple[DataLoader, int]:
+    """Every ``stride``-th frame of :func:`val_dataset` in temporal order."""
+    order = val[1][::stride]
+    return _loader(Subset(val[0], order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False,
                    shuffle=False), len(order)
 
 
@@ -432,6 +437,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     model = build_model(cfg, layers).to(cfg.device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     batches = train_batches(arm, seed, cfg, setup, out)
+    val = val_dataset(cfg, setup)
     points = eval_steps(cfg)
     curve, losses = [], []
     t0 = time.perf_counter()
@@ -454,7 +460,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         if step in points:
             te = time.perf_counter()
             last = step == points[-1]
-            loader, n = val_batches(cfg, setup, 1 if last else cfg.train.eval_stride)
+            loader, n = val_batches(cfg, val, 1 if last else cfg.train.eval_stride)
             ev = evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=last)
             t_eval += time.perf_counter() - te
             curve.append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})

@@ -33,7 +33,8 @@ from hogsa_loader.baselines import (
     solve_rigid_transform,
     weak_perspective_to_perspective,
 )
-from hogsa_loader.baselines.arcticnet_sf import ArtiHead, ManoHead, normalize_kp2d, patch_intrinsics_wp, project2d
+from hogsa_loader.baselines.arcticnet_sf import ArtiHead, ManoHead, patch_intrinsics_wp, project2d
+from hogsa_loader.datasets.augment import normalize_kp2d
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams, rot_aa
 from hogsa_loader.datasets.interfield import interaction_field
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample

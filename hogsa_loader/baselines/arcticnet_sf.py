@@ -20,7 +20,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys, read_state_dict
+from hogsa_loader.baselines.resnet import (
+    BACKBONE_CHANNELS,
+    build_backbone,
+    check_state_keys,
+    read_state_dict,
+)
+from hogsa_loader.datasets.augment import normalize_kp2d
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
 from hogsa_loader.hands.mano import MANOLayer
@@ -38,12 +44,10 @@ __all__ = [
     "arctic_key_map",
     "load_arctic_checkpoint",
     "matrix_to_rotation_6d",
-    "normalize_kp2d",
     "patch_intrinsics_wp",
     "perspective_to_weak_perspective",
     "project2d",
     "rotation_6d_to_matrix",
-    "unnormalize_kp2d",
     "weak_perspective_to_perspective",
 ]
 
@@ -160,25 +164,6 @@ def project2d(K: Tensor, points: Tensor) -> Tensor:
     """
     uvw = points @ K.transpose(1, 2)
     return uvw[..., :2] / uvw[..., 2:3]
-
-
-def normalize_kp2d(kp2d: Tensor, img_res: int) -> Tensor:
-    """Patch pixels to ``[-1, 1]``: ``2 x / img_res - 1`` (x, y only).
-
-    Args:
-        kp2d: (B, N, 2) or (B, N, 3) pixels (a third column is kept as is).
-        img_res: patch side.
-
-    Returns:
-        same shape as ``kp2d``.
-    """
-    xy = 2.0 * kp2d[..., :2] / img_res - 1.0
-    return torch.cat([xy, kp2d[..., 2:]], dim=-1)
-
-
-def unnormalize_kp2d(kp2d: Tensor, img_res: int) -> Tensor:
-    """Inverse of :func:`normalize_kp2d` for (B, N, 2) points: ``(x + 1) img_res / 2``."""
-    return 0.5 * img_res * (kp2d + 1.0)
 
 
 # --------------------------------------------------------------------------------------

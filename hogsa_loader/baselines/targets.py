@@ -24,7 +24,11 @@ from typing import Any, Mapping, Optional
 import torch
 from torch import Tensor
 
-from hogsa_loader.baselines.arcticnet_sf import mean_focal, perspective_to_weak_perspective, unnormalize_kp2d
+from hogsa_loader.baselines.arcticnet_sf import (
+    mean_focal,
+    perspective_to_weak_perspective,
+)
+from hogsa_loader.datasets.augment import unnormalize_kp2d
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
 

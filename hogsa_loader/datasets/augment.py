@@ -251,14 +251,21 @@ def transform_keypoints(
     return out
 
 
-def normalize_kp2d(kp: np.ndarray, img_res: int) -> np.ndarray:
-    """Patch pixels → ``2u/img_res − 1`` (≈ [−1, 1] inside the patch)."""
-    return 2.0 * np.asarray(kp, dtype=np.float64) / img_res - 1.0
+def _points(kp):
+    """float64 numpy array of ``kp``, or ``kp`` itself when it is a tensor (dtype, device and
+    autograd kept)."""
+    return kp if isinstance(kp, torch.Tensor) else np.asarray(kp, dtype=np.float64)
 
 
-def unnormalize_kp2d(kp_norm: np.ndarray, img_res: int) -> np.ndarray:
-    """Inverse of :func:`normalize_kp2d`: ``(u + 1) · img_res / 2``."""
-    return (np.asarray(kp_norm, dtype=np.float64) + 1.0) * (img_res / 2.0)
+def normalize_kp2d(kp, img_res: int):
+    """Patch pixels → ``2u/img_res − 1`` (≈ [−1, 1] inside the patch); numpy or torch,
+    any shape (..., 2)."""
+    return 2.0 * _points(kp) / img_res - 1.0
+
+
+def unnormalize_kp2d(kp_norm, img_res: int):
+    """Inverse of :func:`normalize_kp2d`: ``(u + 1) · img_res / 2``; numpy or torch."""
+    return (_points(kp_norm) + 1.0) * (img_res / 2.0)
 
 
 def j2d_processing(
