@@ -34,7 +34,8 @@ srm, contactnet   ``null`` or ``{"path", "files": {relative path: sha256}}``
 pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}`` (unique names)
 ================  =========================================================================
 
-:func:`load_bundle` checks every entry — files present, hashes equal, part checkpoints
+:func:`load_bundle` checks every entry — paths relative and inside the bundle (no ``..``,
+no absolute path, no symbolic link leading out), files present, hashes equal, part checkpoints
 readable and made for the recorded hand model / object templates, and (given a data root)
 that the data root's hand model and templates are the ones recorded; the SRM, ContactNet and
 pose banks are read as checkpoints — and raises **one**
@@ -48,10 +49,10 @@ import json
 import os
 import shutil
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Mapping, Optional, Sequence
 
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 
 __all__ = [
     "BUNDLE_FORMAT",
@@ -454,18 +455,40 @@ def write_bundle(
 # --------------------------------------------------------------------------------------
 
 
+def _inside(base: Path, rel: Any) -> Optional[Path]:
+    """``base / rel`` when ``rel`` is a relative POSIX path that stays inside ``base`` (no
+    ``..`` part, not absolute, no symbolic link leading out), else None."""
+    if not isinstance(rel, str) or not rel or "\\" in rel or "\0" in rel:
+        return None
+    pure = PurePosixPath(rel)
+    if pure.is_absolute() or ".." in pure.parts:
+        return None
+    path = base / rel
+    try:
+        if not path.resolve().is_relative_to(base.resolve()):
+            return None
+    except (OSError, RuntimeError):  # unreadable, or a symbolic-link loop
+        return None
+    return path
+
+
 def _check_files(base: Path, what: str, rec: Any, problems: list[str]) -> Optional[ExtraEntry]:
     if not isinstance(rec, dict) or not isinstance(rec.get("path"), str) or not isinstance(rec.get("files"), dict):
         problems.append(f"{what}: entry must be an object with 'path' and 'files'")
         return None
-    path = base / rec["path"]
+    path = _inside(base, rec["path"])
+    if path is None:
+        problems.append(f"{what}: path {rec['path']!r} is not a relative path inside the bundle")
+        return None
     if not path.exists():
         problems.append(f"{what}: {path} is missing")
         return None
     folder = path if path.is_dir() else path.parent
     for rel, sha in rec["files"].items():
-        f = folder / rel
-        if not f.is_file():
+        f = _inside(folder, rel)
+        if f is None or not f.resolve().is_relative_to(base.resolve()):
+            problems.append(f"{what}: file {rel!r} is not a relative path inside the bundle")
+        elif not f.is_file():
             problems.append(f"{what}: file {f} is missing")
         elif _sha256_file(f) != sha:
             problems.append(f"{what}: file {f} does not match its sha256 in the manifest")
@@ -503,9 +526,9 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     if not mpath.is_file():
         raise _bundle_error(path, [f"{MANIFEST_NAME} is missing"])
     try:
-        manifest = json.loads(mpath.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError, OSError) as exc:
-        raise _bundle_error(path, [f"{MANIFEST_NAME} cannot be read ({exc})"]) from None
+        manifest = read_json(mpath, allow_nan=False)  # (its writer never emits NaN / Infinity)
+    except AssetError as exc:
+        raise _bundle_error(path, [f"{MANIFEST_NAME}: {exc.problem}"]) from None
     if not isinstance(manifest, dict):
         raise _bundle_error(path, [f"{MANIFEST_NAME} must hold a JSON object"])
     problems: list[str] = []
@@ -519,6 +542,11 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     for key, typ in (("dataset", dict), ("hand_model", dict), ("objects", dict), ("hogs", list), ("pose_banks", list)):
         if not isinstance(manifest.get(key), typ):
             problems.append(f"key {key!r} is missing or not a JSON {typ.__name__}")
+    if not problems:
+        bad = [f"hand_model.{s}" for s in ("right", "left") if not isinstance(manifest["hand_model"].get(s, {}), dict)]
+        bad += [f"objects.{k}" for k, v in manifest["objects"].items() if not isinstance(v, dict)]
+        if bad:
+            problems.append(f"entries {bad[:3]} must be JSON objects")
     if problems:
         raise _bundle_error(path, problems)
 
@@ -535,7 +563,14 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
         what = f"HOGS run {key[0]}/{key[1]}"
         if key in hogs:
             problems.append(f"{what}: listed twice")
-        run = path / rec["path"]
+        run = _inside(path, rec["path"])
+        if run is None:
+            problems.append(f"{what}: path {rec['path']!r} is not a relative path inside the bundle")
+            continue
+        n_gauss = rec.get("num_gaussians", 0)
+        if not isinstance(n_gauss, int) or isinstance(n_gauss, bool) or n_gauss < 0:
+            problems.append(f"{what}: num_gaussians must be a non-negative integer, got {n_gauss!r}")
+            continue
         parts = rec.get("parts") if isinstance(rec.get("parts"), dict) else {}
         ok = True
         for part in _PARTS:
@@ -585,7 +620,7 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
                     problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
         if ok:
             hogs[key] = HogsEntry(
-                subject=key[0], object=key[1], path=run, num_gaussians=int(rec.get("num_gaussians", 0)),
+                subject=key[0], object=key[1], path=run, num_gaussians=n_gauss,
                 parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
                 light=dict(light) if isinstance(light, dict) else None,
             )

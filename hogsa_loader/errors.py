@@ -33,6 +33,14 @@ class UnsafePickleError(AssetError):
     """A pickle asked for a global (class or function) outside the allow-list."""
 
 
+class UsageError(HogsaError, ValueError):
+    """A command-line argument or setting is invalid; the message names it and says why.
+
+    Raised by the argument checks (:mod:`hogsa_loader.cli.checks`) before any work starts;
+    the command line reports it as one ``PROG: error: MESSAGE`` line (exit status 2).
+    """
+
+
 def read_json(path: PathLike, allow_nan: bool = True) -> "object":
     """Parse a JSON file; :class:`AssetError` naming it when missing, unreadable or malformed.
 

@@ -19,8 +19,9 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from hogsa_loader.bundle import load_bundle, write_bundle
-from hogsa_loader.errors import AssetError
+from hogsa_loader.bundle import MANIFEST_NAME, load_bundle, write_bundle
+from hogsa_loader.cli import checks
+from hogsa_loader.errors import HogsaError, UsageError
 from hogsa_loader.gaussians.hogs_model import HogsModel
 
 
@@ -45,20 +46,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--contactnet", default=None, help="ContactNet checkpoint folder")
     p.add_argument("--pose-bank", action="append", default=[], help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names")
     p.add_argument("--dataset", default="arctic")
+    p.add_argument("--overwrite", action="store_true", help="replace the bundle already in --out")
+    checks.one_line_errors(p)
     args = p.parse_args(argv)
-    runs = find_runs(Path(args.hogs))
-    if not runs:
-        print(f"error: no finished HOGS run under {args.hogs}", file=sys.stderr)
-        return 2
     try:
+        checks.input_dir(args.data, "--data")
+        checks.input_dir(args.hogs, "--hogs")
+        checks.output_dir(args.out, "--out")
+        if (Path(args.out) / MANIFEST_NAME).is_file() and not args.overwrite:
+            raise UsageError(f"--out {args.out}: already holds a bundle (pass --overwrite to replace it)")
+        runs = find_runs(Path(args.hogs))
+        if not runs:
+            raise UsageError(f"--hogs {args.hogs}: no finished HOGS run under it")
         out = write_bundle(
             args.out, args.data, runs, srm=args.srm, contactnet=args.contactnet,
             pose_banks=args.pose_bank, dataset=args.dataset,
         )  # fmt: skip
         bundle = load_bundle(out, data_root=args.data)
-    except AssetError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except (HogsaError, OSError) as exc:
+        return checks.report("build_bundle", exc)
     print(f"bundle {out}: {len(bundle.hogs)} HOGS run(s) {bundle.keys}"
           f"{', SRM' if bundle.srm else ''}{', ContactNet' if bundle.contactnet else ''}"
           f"{f', {len(bundle.pose_banks)} pose bank(s)' if bundle.pose_banks else ''}")

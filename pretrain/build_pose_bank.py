@@ -22,23 +22,27 @@ from typing import Optional, Sequence
 
 import torch
 
+from hogsa_loader.cli import checks
+from hogsa_loader.errors import HogsaError, UsageError
+
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[1])
     p.add_argument("--data", required=True)
     p.add_argument("--contactnet", required=True, help="ContactNet run folder")
     p.add_argument("--out", required=True, help="bank folder")
-    p.add_argument("--per-sequence", type=int, default=16)
-    p.add_argument("--variants", type=int, default=1, help="perturbations per frame")
+    p.add_argument("--per-sequence", type=checks.positive_int, default=16)
+    p.add_argument("--variants", type=checks.positive_int, default=1, help="perturbations per frame")
     p.add_argument("--subjects", default=None, help="comma-separated subjects (default: all)")
     p.add_argument("--sequences", default=None, help="comma-separated sid/seq ids, e.g. s01/box_grab_01 (default: all)")
-    p.add_argument("--iters", type=int, default=200)
-    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--iters", type=checks.non_negative_int, default=200)
+    p.add_argument("--batch", type=checks.positive_int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--keep-rejected", action="store_true")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--device", default="cpu", type=checks.torch_device)
+    p.add_argument("--threads", type=checks.positive_int, default=None)
     p.add_argument("--quiet", action="store_true")
+    checks.one_line_errors(p)
     return p.parse_args(argv)
 
 
@@ -49,15 +53,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from hogsa_loader.pom.jobs import build_pose_bank
 
     try:
+        checks.input_dir(args.data, "--data")
+        checks.input_dir(args.contactnet, "--contactnet")
+        checks.output_dir(args.out, "--out")
         summary = build_pose_bank(
             args.data, args.contactnet, args.out, per_sequence=args.per_sequence, variants=args.variants,
             subjects=args.subjects.split(",") if args.subjects else None,
             sequences=args.sequences.split(",") if args.sequences else None, iters=args.iters, batch=args.batch,
             seed=args.seed, keep_rejected=args.keep_rejected, device=args.device, progress=not args.quiet,
         )  # fmt: skip
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    except (HogsaError, OSError) as exc:
+        return checks.report("build_pose_bank", exc)
+    except ValueError as exc:  # a setting the job refused
+        return checks.report("build_pose_bank", UsageError(str(exc)))
     if not args.quiet:
         print(json.dumps(summary, indent=2))
     return 0

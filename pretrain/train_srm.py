@@ -15,7 +15,9 @@ SRM, per view), ``samples.png`` (coarse | refined | GT) and ``curves.png`` into 
 ``--resume`` continues exactly from the latest checkpoint. ``--cross-hogs FOLDS`` adds
 inputs rendered by view-fold runs that never saw the sample's view; ``--val-views V`` keeps
 those training views out and saves the checkpoint that scores best on them (early stopping
-without looking at the held-out views).
+without looking at the held-out views). A folder holding checkpoints is refused unless
+``--resume`` or ``--overwrite`` (start again from step 0) is given; every argument is checked
+before the runs are read.
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ from typing import Optional, Sequence
 
 import torch
 
-from hogsa_loader.errors import AssetError
+from hogsa_loader.cli import checks
+from hogsa_loader.errors import HogsaError, UsageError
 from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+from hogsa_loader.train.run_folder import check_run_folder
 
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, argparse.Namespace]:
@@ -47,35 +51,38 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
     p.add_argument("--val-views", default=None,
                    help="comma-separated training views kept out of SRM training to pick the best checkpoint "
                         "(their fold renders when --cross-hogs is given); the saved model is the best one")
-    p.add_argument("--max-val", type=int, default=32, help="validation samples per run (evenly spaced)")
+    p.add_argument("--max-val", type=checks.positive_int, default=32, help="validation samples per run (evenly spaced)")
     p.add_argument("--augment", default="d4", choices=["none", "flip", "d4"],
                    help="random flips (and 90° turns with d4) of each training window, input and target alike "
                         "(default d4: +0.36 dB held-out against +0.13 dB without, small world)")
     p.add_argument("--cache", default=None,
                    help="folder for the coarse HOGS renders, shareable between SRM runs (default: OUT/cache)")
-    p.add_argument("--iters", type=int, default=4000)
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--image-size", type=int, default=None, help="output / GT resolution (default: the runs' image size)")
-    p.add_argument("--crop", type=int, default=128, help="training window at the output resolution (0: full images)")
+    p.add_argument("--iters", type=checks.non_negative_int, default=4000)
+    p.add_argument("--batch-size", type=checks.positive_int, default=4)
+    p.add_argument("--image-size", type=checks.positive_int, default=None, help="output / GT resolution (default: the runs' image size)")
+    p.add_argument("--crop", type=checks.non_negative_int, default=128, help="training window at the output resolution (0: full images)")
     p.add_argument("--scale", type=int, default=1, choices=[1, 2], help="output resolution factor (renders at image-size/scale)")
     p.add_argument("--channels", default="32,64,128,128,128", help="StyleUNet widths per level, top (H/2) first")
     p.add_argument("--plain-skips", action="store_true", help="plain RGB skips instead of Haar-wavelet skips")
-    p.add_argument("--lr", type=float, default=0.002)
-    p.add_argument("--lambda-l1", type=float, default=5.0)
-    p.add_argument("--lambda-perc", type=float, default=None, help="default 0.03 with VGG, 1.0 with the substitute")
-    p.add_argument("--lambda-gan", type=float, default=1.0, help="0 disables the discriminator")
-    p.add_argument("--r1-gamma", type=float, default=10.0)
-    p.add_argument("--r1-every", type=int, default=16)
+    p.add_argument("--lr", type=checks.positive_float, default=0.002)
+    p.add_argument("--lambda-l1", type=checks.non_negative_float, default=5.0)
+    p.add_argument("--lambda-perc", type=checks.non_negative_float, default=None, help="default 0.03 with VGG, 1.0 with the substitute")
+    p.add_argument("--lambda-gan", type=checks.non_negative_float, default=1.0, help="0 disables the discriminator")
+    p.add_argument("--r1-gamma", type=checks.non_negative_float, default=10.0)
+    p.add_argument("--r1-every", type=checks.positive_int, default=16)
     p.add_argument("--ema-decay", type=float, default=0.999)
     p.add_argument("--vgg-weights", default=None, help="local torchvision vgg19 state dict (.pth or .safetensors)")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--device", default="cpu", type=checks.torch_device)
+    p.add_argument("--threads", type=checks.positive_int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eval-every", type=int, default=500)
-    p.add_argument("--ckpt-every", type=int, default=500)
-    p.add_argument("--strip-views", type=int, default=4)
+    p.add_argument("--eval-every", type=checks.non_negative_int, default=500)
+    p.add_argument("--ckpt-every", type=checks.non_negative_int, default=500)
+    p.add_argument("--strip-views", type=checks.positive_int, default=4)
     p.add_argument("--resume", action="store_true", help="continue from the run folder's latest checkpoint")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start again from step 0 in a run folder that holds checkpoints (they are deleted)")
     p.add_argument("--quiet", action="store_true")
+    checks.one_line_errors(p)
     a = p.parse_args(argv)
     cfg = SRMTrainConfig(
         data=a.data, hogs=a.hogs, out=a.out, iters=a.iters, batch_size=a.batch_size, image_size=a.image_size,
@@ -96,19 +103,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if a.threads:
         torch.set_num_threads(a.threads)
     try:
+        checks.input_dir(cfg.data, "--data")
+        checks.input_dir(cfg.hogs, "--hogs")
+        if cfg.cross_hogs:
+            checks.input_dir(cfg.cross_hogs, "--cross-hogs")
+        if cfg.cache:
+            checks.output_dir(cfg.cache, "--cache")
+        checks.output_dir(cfg.out, "--out")
+        check_run_folder(cfg.out, resume=a.resume, overwrite=a.overwrite)
         trainer = SRMTrainer(cfg, progress=not a.quiet)
         if a.resume:
             if trainer.resume():
                 print(f"train_srm: resumed {cfg.out} at step {trainer.step}", file=sys.stderr)
             else:
                 print(f"train_srm: nothing to resume in {cfg.out}; starting fresh", file=sys.stderr)
-        elif (trainer.out / "checkpoints" / "latest.json").is_file():
-            print(f"train_srm: error: {cfg.out} already has checkpoints; pass --resume or use a new --out", file=sys.stderr)
-            return 2
-    except (ValueError, AssetError) as exc:
-        print(f"train_srm: error: {exc}", file=sys.stderr)
-        return 2
-    m = trainer.train()
+        m = trainer.train(overwrite=a.overwrite)
+    except (HogsaError, OSError) as exc:
+        return checks.report("train_srm", exc)
+    except ValueError as exc:  # a setting the trainer refused
+        return checks.report("train_srm", UsageError(str(exc)))
     if m["selection"]:
         b = m["selection"]["best"]
         print(f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "

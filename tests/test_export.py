@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
 import tarfile
 
 import numpy as np
@@ -166,7 +167,7 @@ def test_resume_after_interruption(tmp_path, export_dir):
     write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
     first = (out / shard_name(0)).read_bytes()
     assert first == (export_dir / shard_name(0)).read_bytes()  # byte-identical exports
-    # "kill": shard 1 lost, and a crash in the middle of rewriting it leaves a temp file
+    # shard 1 lost; an exception while rewriting it removes its temp file, a SIGKILL leaves one
     (out / shard_name(1)).unlink()
 
     def crashing(shard):
@@ -175,8 +176,9 @@ def test_resume_after_interruption(tmp_path, export_dir):
 
     with pytest.raises(KeyboardInterrupt):
         write_shards(crashing, out, NUM, SHARD, progress=False)
-    assert not (out / shard_name(1)).exists() and list(out.glob(".synth-000001.tar.tmp.*"))
+    assert not (out / shard_name(1)).exists() and not list(out.glob(".synth-000001.tar.tmp.*"))
     assert not json.loads((out / "index.json").read_text())["complete"]
+    (out / ".synth-000001.tar.tmp.999999").write_bytes(b"torn")
     calls.clear()
     res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
     assert calls == [1] and res["skipped"] == [0] and res["complete"]
@@ -390,7 +392,9 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
 
     monkeypatch.setitem(sys.modules, "hogsa_loader.loader.dataset", types.SimpleNamespace(HOGSADataset=StandIn))
     out = tmp_path / "cli"
-    args = ["export", "--bundle", "B", "--data", "D", "--out", str(out), "--num", "7", "--shard-size", "2",
+    (tmp_path / "B").mkdir()  # (folders, as the command checks before any work)
+    (tmp_path / "D").mkdir()
+    args = ["export", "--bundle", str(tmp_path / "B"), "--data", str(tmp_path / "D"), "--out", str(out), "--num", "7", "--shard-size", "2",
             "--batch-size", "2", "--seed", "4", "--quiet"]
     for rank in (1, 0):
         monkeypatch.setenv("RANK", str(rank))
@@ -420,3 +424,59 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     other[other.index("--seed") + 1] = "5"
     assert main(other) == 2
     assert main(other + ["--overwrite"]) == 0 and main(other) == 0
+
+
+def test_failed_export_leaves_nothing_behind(tmp_path):
+    def failing(shard):
+        yield make_frame(0)
+        raise RuntimeError("render failed")
+
+    out = tmp_path / "new"
+    with pytest.raises(RuntimeError, match="render failed"):
+        write_shards(failing, out, NUM, SHARD, progress=False)
+    assert not out.exists()  # a folder the export created is removed again
+    given = tmp_path / "given"
+    given.mkdir()
+    with pytest.raises(RuntimeError, match="render failed"):
+        write_shards(failing, given, NUM, SHARD, progress=False)
+    assert list(given.iterdir()) == []  # no index.json, no temporary shard, no lock file
+
+
+def test_readers_follow_index_json(tmp_path, export_dir):
+    out = tmp_path / "e"
+    write_shards(frames_for([]), out, NUM, SHARD, progress=False, info={"seed": 3}, rank=0, world_size=2)
+    assert not json.loads((out / "index.json").read_text())["complete"]  # rank 1's shard is missing
+    for reader in (SynthShardDataset, SynthShardSamples):
+        with pytest.raises(AssetError, match="export is incomplete: 1 of 2 shards"):
+            reader(out)
+    assert [f.imgname for f in SynthShardDataset(out, incomplete=True)] == [make_frame(i).imgname for i in range(SHARD)]
+    assert len(SynthShardSamples(out, incomplete=True)) == SHARD
+    # a stray .tar in a complete export's folder is not read
+    full = tmp_path / "full"
+    shutil.copytree(export_dir, full)
+    shutil.copy(full / shard_name(0), full / "stray.tar")
+    assert len(list(SynthShardDataset(full))) == NUM and len(SynthShardSamples(full)) == NUM
+    # a shard the index lists but that is missing or resized
+    (full / shard_name(1)).unlink()
+    with pytest.raises(AssetError, match="missing"):
+        SynthShardDataset(full)
+
+
+def test_member_checksums_catch_flipped_bytes(tmp_path, export_dir):
+    out = tmp_path / "e"
+    shutil.copytree(export_dir, out)
+    rec = json.loads((out / "synth-000000.index.json").read_text())
+    assert set(rec["members_sha256"]) >= {"0000000000.jpg", "0000000000.json"}
+    with tarfile.open(out / shard_name(0)) as tar:
+        member = tar.getmember("0000000001.jpg")
+    blob = bytearray((out / shard_name(0)).read_bytes())
+    blob[member.offset_data + member.size // 2] ^= 0x55  # a flipped byte inside the JPEG
+    (out / shard_name(0)).write_bytes(bytes(blob))
+    with pytest.raises(AssetError, match=r"0000000001\.jpg: sha256 does not match"):
+        list(SynthShardDataset(out))
+    with pytest.raises(AssetError, match=r"0000000001\.jpg: sha256 does not match"):
+        SynthShardSamples(out)
+    # shards written before the checksums were recorded are read as they are
+    del rec["members_sha256"]
+    (out / "synth-000000.index.json").write_text(json.dumps(rec))
+    assert len(list(SynthShardDataset(out))) == NUM

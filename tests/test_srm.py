@@ -301,9 +301,8 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4) + ["--resume"]) == 0
     a, b = load_srm(out).net.state_dict(), load_srm(tmp_path / "b").net.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
-    # refusing to overwrite a run without --resume
-    with pytest.warns(SubstituteWarning):
-        assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4)) == 2
+    # refusing to overwrite a run without --resume, before any data is read (no substitute warning)
+    assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 4)) == 2
 
 
 def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):

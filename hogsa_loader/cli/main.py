@@ -12,6 +12,10 @@ Subcommands:
                  [--coco-root C] ...
                                    offline synthetic frames as WebDataset tar shards
                                    (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
+    hogsa view --bundle B --data ROOT --subject S --object O --out DIR [--frame SEQ:IDX ...]
+               [--pose-bank NAME:I ...] [--orbit N] [--transfer-to S2 ...]
+                                   360° orbit sheets and animations (with and without SRM)
+                                   and a pose-transfer grid of a bundle's models
 
 Environment: on Linux, preloading tcmalloc speeds up large CPU tensor work (see README).
 """
@@ -26,6 +30,7 @@ import time
 from typing import Optional, Sequence
 
 from hogsa_loader import __version__
+from hogsa_loader.cli import checks
 
 __all__ = ["main", "build_parser"]
 
@@ -37,10 +42,10 @@ def _cmd_assets(args: argparse.Namespace) -> int:
     from hogsa_loader.hands.synthetic import synthetic_hand_pair
     from hogsa_loader.objects import load_object_templates, write_procedural_objects
 
-    out = os.path.abspath(args.out)
+    names = checks.procedural_objects([n for n in args.objects.split(",") if n])
+    out = os.path.abspath(checks.output_dir(args.out))
     mano_dir = os.path.join(out, "body_models", "mano")
     meta_dir = os.path.join(out, "arctic_data", "data", "meta")
-    names = [n for n in args.objects.split(",") if n]
     steps = ["hands", "objects"] + ([] if args.no_preview else ["hand preview", "object preview"])
     t0 = time.time()
     with tqdm(total=len(steps), desc="hogsa assets", unit="step", disable=args.quiet) as bar:
@@ -74,7 +79,9 @@ def _cmd_assets(args: argparse.Namespace) -> int:
 def _cmd_convert(args: argparse.Namespace) -> int:
     from hogsa_loader.hands.mano_io import convert_mano_to_npz
 
-    model = convert_mano_to_npz(args.src, args.dst, side=args.side)
+    checks.input_file(args.src, "SRC")
+    checks.output_file(args.dst, "DST", overwrite=args.overwrite, suffix=".npz", source=args.src)
+    model = convert_mano_to_npz(args.src, args.dst, side=args.side, overwrite=args.overwrite)
     print(f"{args.dst}: {model.side} hand, {model.num_verts} vertices, {model.faces.shape[0]} faces")
     return 0
 
@@ -85,8 +92,8 @@ def _cmd_world(args: argparse.Namespace) -> int:
     try:
         preset = get_preset(args.preset)
     except KeyError as exc:
-        print(f"hogsa: error: {exc.args[0]}", file=sys.stderr)
-        return 2
+        raise checks.UsageError(f"--preset: {exc.args[0]}") from None
+    checks.output_dir(args.out)
     say = (lambda s: None) if args.quiet else print
     record = generate_world(args.out, preset, seed=args.seed, progress=not args.quiet,
                             process_splits=not args.no_splits, log=say)
@@ -103,6 +110,8 @@ def _cmd_world_noise(args: argparse.Namespace) -> int:
     from hogsa_loader.errors import AssetError
     from hogsa_loader.world.annotation_noise import AnnotationNoise, add_annotation_noise
 
+    checks.input_dir(args.src, "--src")
+    checks.output_dir(args.out)
     try:
         noise = AnnotationNoise(trans_mm=args.trans_mm, rot_deg=args.rot_deg, pose_rad=args.pose_rad,
                                 smooth=args.smooth, seed=args.seed)  # fmt: skip
@@ -131,12 +140,16 @@ def _cmd_export(args: argparse.Namespace) -> int:
     rank = args.rank if args.rank is not None else _env_int("RANK", 0)
     world = args.world_size if args.world_size is not None else _env_int("WORLD_SIZE", 1)
     if not 0 <= rank < world:
-        print(f"hogsa: error: rank {rank} outside world size {world}", file=sys.stderr)
-        return 2
-    for name in ("num", "shard_size", "batch_size"):  # before the (slow) dataset is built
-        if getattr(args, name) <= 0:
-            print(f"hogsa: error: --{name.replace('_', '-')} must be positive, got {getattr(args, name)}", file=sys.stderr)
-            return 2
+        raise checks.UsageError(f"rank {rank} outside world size {world}")
+    checks.multiple_of(args.shard_size, args.batch_size, "--shard-size", "--batch-size")  # (before the slow dataset)
+    checks.input_dir(args.bundle, "--bundle")
+    checks.input_dir(args.data, "--data")
+    for flag, folder in (("--coco-root", args.coco_root), ("--background-folder", args.background_folder)):
+        if folder is not None:
+            checks.input_dir(folder, flag)
+    if args.coco_ann is not None:
+        checks.input_file(args.coco_ann, "--coco-ann")
+    checks.output_dir(args.out)
     device = args.device
     if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
         device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
@@ -184,6 +197,14 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from hogsa_loader.demo import DemoConfig, run_demo
 
+    checks.output_dir(args.out)
+    for flag, folder in (("--backgrounds", args.backgrounds), ("--coco-root", args.coco_root)):
+        if folder is not None:
+            checks.input_dir(folder, flag)
+    if args.coco_ann is not None:
+        checks.input_file(args.coco_ann, "--coco-ann")
+    if args.data is not None:
+        checks.data_root_pairs(args.data, DemoConfig().pairs)
     cfg = DemoConfig(seed=args.seed, data=args.data, samples=args.samples, num_workers=args.workers, backgrounds=args.backgrounds,
                      coco_root=args.coco_root, coco_ann=args.coco_ann, progress=not args.quiet)
     if args.threads:
@@ -191,6 +212,21 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
         torch.set_num_threads(args.threads)
     run_demo(args.out, cfg, log=None if args.quiet else print)
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from hogsa_loader.cli.dataclass_args import dataclass_from_args
+    from hogsa_loader.view.config import ViewConfig, ViewError, check_view_config
+    from hogsa_loader.view.job import run_view
+
+    cfg = dataclass_from_args(ViewConfig, args)
+    try:
+        check_view_config(cfg)
+        run_view(cfg, log=None if cfg.quiet else print)
+    except ViewError as exc:
+        print(f"hogsa view: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -206,6 +242,8 @@ def _cmd_h2o_export(args: argparse.Namespace) -> int:
         print(f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
               file=sys.stderr)
         return 2
+    checks.input_dir(args.world, "--world")
+    checks.output_dir(args.out)
     try:
         rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
                                object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
@@ -237,6 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("src")
     c.add_argument("dst")
     c.add_argument("--side", choices=("right", "left"), default=None)
+    c.add_argument("--overwrite", action="store_true", help="replace an existing DST")
     c.set_defaults(func=_cmd_convert)
 
     w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
@@ -270,14 +309,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--bundle", required=True, help="bundle folder (pretrain/build_bundle.py)")
     e.add_argument("--data", required=True, help="ARCTIC(-format) data root the bundle was built on")
     e.add_argument("--out", required=True, help="output folder of the shards")
-    e.add_argument("--num", type=int, required=True, help="number of sample indices (dropped ones leave gaps)")
-    e.add_argument("--shard-size", type=int, default=1000, help="samples per shard (a multiple of --batch-size)")
+    e.add_argument("--num", type=checks.positive_int, required=True, help="number of sample indices (dropped ones leave gaps)")
+    e.add_argument("--shard-size", type=checks.positive_int, default=1000, help="samples per shard (a multiple of --batch-size)")
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--device", default="cpu", help="cpu or cuda (cuda:LOCAL_RANK under torchrun)")
-    e.add_argument("--batch-size", type=int, default=8, help="render batch")
-    e.add_argument("--poses", default="perturb", help="pose source: perturb, bank, online")
+    e.add_argument("--device", default="cpu", type=checks.torch_device, help="cpu or cuda (cuda:LOCAL_RANK under torchrun)")
+    e.add_argument("--batch-size", type=checks.positive_int, default=8, help="render batch")
+    e.add_argument("--poses", default="perturb", choices=("perturb", "bank", "online"), help="pose source: perturb, bank, online")
     e.add_argument("--srm", action=argparse.BooleanOptionalAction, default=False, help="apply the bundle's SRM")
-    e.add_argument("--render-size", type=int, default=None, help="side of the rendered crop (default 1.5 x 224)")
+    e.add_argument("--render-size", type=checks.positive_int, default=None, help="side of the rendered crop (default 1.5 x 224)")
     e.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
     e.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
     e.add_argument("--background-folder", default=None, help="plain image folder for backgrounds")
@@ -291,9 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
     e.add_argument("--overwrite", action="store_true",
                    help="rewrite shards in --out that another export (other settings, --num or --shard-size) wrote")
-    e.add_argument("--rank", type=int, default=None, help="default: $RANK or 0")
-    e.add_argument("--world-size", type=int, default=None, help="default: $WORLD_SIZE or 1")
-    e.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    e.add_argument("--rank", type=checks.non_negative_int, default=None, help="default: $RANK or 0")
+    e.add_argument("--world-size", type=checks.positive_int, default=None, help="default: $WORLD_SIZE or 1")
+    e.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads (0 = default)")
     e.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     e.set_defaults(func=_cmd_export)
 
@@ -304,9 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="./hogsa_demo", help="demo folder (reused as a cache on later runs)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--data", default=None, help="use this ARCTIC(-format) data root instead of building the small world")
-    d.add_argument("--samples", type=int, default=64, help="synthetic samples to stream")
-    d.add_argument("--workers", type=int, default=2, help="DataLoader workers rendering on the CPU")
-    d.add_argument("--threads", type=int, default=0, help="torch CPU threads of the main process (0 = default)")
+    d.add_argument("--samples", type=checks.positive_int, default=64, help="synthetic samples to stream")
+    d.add_argument("--workers", type=checks.non_negative_int, default=2, help="DataLoader workers rendering on the CPU")
+    d.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads of the main process (0 = default)")
     d.add_argument("--backgrounds", default=None, help="image folder for backgrounds (default: photographs "
                    "shipped with scikit-image)")
     d.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
@@ -328,6 +367,18 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--overwrite", action="store_true", help="replace an existing export of the same H2O sequence")
     h.add_argument("--quiet", action="store_true")
     h.set_defaults(func=_cmd_h2o_export)
+
+    from hogsa_loader.cli.dataclass_args import add_dataclass_arguments
+    from hogsa_loader.view.config import ViewConfig
+
+    v = sub.add_parser("view", help="360° orbits and pose transfer between subjects, as pictures",
+                       description="Render one grasp of a bundle's HOGS model on a full 360° orbit around the "
+                       "interaction centre, with and without the SRM (orbit_<sid>.png, orbit_<sid>.gif), and the same "
+                       "poses on other subjects' hand models (their own betas, wrists re-solved to keep the contacts; "
+                       "transfer.png: rows pose sources, columns subjects; contact / penetration figures in view.json).")
+    add_dataclass_arguments(v, ViewConfig)
+    v.set_defaults(func=_cmd_view)
+    checks.one_line_errors(p)
     return p
 
 
@@ -335,15 +386,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from hogsa_loader.errors import HogsaError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help / --version exit; a bad argument (one line printed) returns its status
+        if not exc.code:
+            raise
+        return int(exc.code)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     try:
         return int(args.func(args))
-    except HogsaError as exc:
-        print(f"hogsa: error: {exc}", file=sys.stderr)
-        return 1
+    except (HogsaError, OSError) as exc:  # argument checks (exit status 2), problems with files (1)
+        return checks.report(f"hogsa {args.command}", exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

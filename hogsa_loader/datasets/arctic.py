@@ -29,7 +29,9 @@ a crafted file could execute arbitrary code. This reader never does that: :func:
 parses the ``.npy`` header itself, reads numeric arrays without pickle, and unpickles
 object payloads with :class:`NpyUnpickler`, which resolves only the numpy globals needed to
 rebuild arrays, dtypes and scalars (plus the built-in containers pickle encodes without
-globals: dict, list, tuple, str, numbers). A pickled ``scipy.sparse`` CSR matrix (as in a
+globals: dict, list, tuple, str, numbers), and holds what it built to element and depth
+caps (:mod:`hogsa_loader.pickle_caps`: shared references count once per use) before any of
+it is converted. A pickled ``scipy.sparse`` CSR matrix (as in a
 world's ``meta/downsamplers.npy``) is unpickled as inert state and rebuilt by scipy's public
 constructor from its checked arrays. Any other global (``os.system``, ``builtins.exec``,
 a class) raises :class:`~hogsa_loader.errors.UnsafePickleError` before anything runs. This
@@ -185,12 +187,23 @@ class NpyUnpickler(pickle.Unpickler):
 
     Resolves only numpy's array/dtype/scalar reconstructors; dicts, lists, tuples, strings
     and numbers need no global. Anything else raises :class:`UnsafePickleError` naming the
-    file and the refused global — nothing from the file is executed.
+    file and the refused global — nothing from the file is executed. :meth:`load` refuses
+    data past the element / depth caps of :func:`~hogsa_loader.pickle_caps.check_unpickled`
+    (``file_size``: the file's size in bytes, which raises the element cap to it).
     """
 
-    def __init__(self, file: Any, path: PathLike = "<npy>") -> None:
+    def __init__(self, file: Any, path: PathLike = "<npy>", file_size: int = 0) -> None:
         super().__init__(file, encoding="latin1", fix_imports=True)
         self._path = os.fspath(path)
+        self._file_size = int(file_size)
+
+    def load(self) -> Any:
+        """Unpickle, then count what was built (:func:`~hogsa_loader.pickle_caps.check_unpickled`)."""
+        from hogsa_loader.pickle_caps import check_unpickled
+
+        obj = super().load()
+        check_unpickled(obj, self._path, self._file_size)
+        return obj
 
     def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
         if (module, name) in NAME_MAPPING:
@@ -304,8 +317,8 @@ def read_npy(path: PathLike) -> Any:
             dtype, fortran, shape = _read_npy_header(fh, p)
             if dtype.hasobject:
                 try:
-                    obj = NpyUnpickler(_CappedReader(fh, size), p).load()
-                except UnsafePickleError:
+                    obj = NpyUnpickler(_CappedReader(fh, size), p, file_size=size).load()
+                except AssetError:  # refused global, element / depth caps
                     raise
                 except Exception as exc:  # the unpickler runs no user code; any failure = corrupt
                     raise AssetError(

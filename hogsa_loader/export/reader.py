@@ -17,6 +17,13 @@ sample index stored with the frame, ``seed``/``epoch`` default to the frame's ow
 back equals the one the live loader made with the same seed; it does not depend on the
 worker count; and batches collate exactly like real ARCTIC ones.
 
+A folder written by :func:`~hogsa_loader.export.writer.write_shards` is read as its
+``index.json`` says: only the shards it lists as complete, in shard order (other ``*.tar``
+files in the folder are ignored); an incomplete export is refused unless ``incomplete=True``
+asks for its complete shards. When a shard's own index records ``members_sha256``, every
+member is checked against it while reading (a flipped byte in an image is an
+:class:`~hogsa_loader.errors.AssetError`, not a silently different sample).
+
 Work is split over ``world_size × num_workers`` readers (rank from the arguments or
 ``torch.distributed``; worker from ``get_worker_info``): whole shards round-robin when
 there are at least as many shards as readers, otherwise samples round-robin.
@@ -25,6 +32,7 @@ there are at least as many shards as readers, otherwise samples round-robin.
 from __future__ import annotations
 
 import glob
+import hashlib
 import itertools
 import json
 import os
@@ -38,7 +46,7 @@ import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from hogsa_loader.datasets.augment import ArcticConfig, sample_aug_params
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.export.codec import decode_frame, split_member_name
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.synth import STREAM_AUG, frame_to_sample
@@ -49,6 +57,7 @@ __all__ = [
     "SynthShardSamples",
     "expand_shards",
     "iter_tar_samples",
+    "member_checksums",
     "frame_to_arctic_sample",
 ]
 
@@ -73,11 +82,49 @@ def _expand_braces(pattern: str) -> list[str]:
     return out
 
 
-def expand_shards(paths: Union[PathLike, Sequence[PathLike]]) -> list[Path]:
-    """Shard files of a folder (its ``*.tar``, sorted), a glob, a brace pattern or a list.
+def _indexed_shards(folder: Path, incomplete: bool) -> list[Path]:
+    """The shards an export's ``index.json`` lists as complete, in shard order."""
+    ipath = folder / "index.json"
+    index = read_json(ipath)
+    shards = index.get("shards") if isinstance(index, dict) else None
+    if not isinstance(shards, list) or not all(isinstance(r, dict) for r in shards):
+        raise AssetError(ipath, "not an export index: no list of shards")
+    if index.get("complete") is not True and not incomplete:
+        raise AssetError(ipath, f"the export is incomplete: {len(shards)} of {index.get('num_shards')} shards written "
+                                f"({index.get('num_samples_written')} samples); run it again to finish it, or read "
+                                "its complete shards with incomplete=True")  # fmt: skip
+    out = []
+    for rec in shards:
+        name = rec.get("file")
+        if not isinstance(name, str) or not name.endswith(".tar") or "/" in name or "\\" in name or name.startswith("."):
+            raise AssetError(ipath, f"lists a shard file {name!r} that is not a .tar file of the folder")
+        shard = folder / name
+        if not shard.is_file():
+            raise AssetError(shard, f"shard listed in {ipath.name} is missing")
+        if isinstance(rec.get("bytes"), int) and shard.stat().st_size != rec["bytes"]:
+            raise AssetError(shard, f"size {shard.stat().st_size} differs from the {rec['bytes']} bytes in {ipath.name} "
+                                    "(torn or modified shard)")  # fmt: skip
+        out.append(shard)
+    if not out:
+        raise AssetError(ipath, "the export has no complete shard")
+    return out
+
+
+def expand_shards(paths: Union[PathLike, Sequence[PathLike]], incomplete: bool = False) -> list[Path]:
+    """Shard files of a folder, a glob, a brace pattern or a list.
+
+    A folder with an ``index.json`` (an export of :func:`~hogsa_loader.export.writer.write_shards`)
+    gives the shards that index lists as complete, in shard order; any other folder its
+    ``*.tar`` files, sorted.
+
+    Args:
+        paths: folder, glob, brace pattern, file, or a list of them.
+        incomplete: accept an export whose index says it is incomplete (its complete shards).
 
     Raises:
-        AssetError: a named file or folder is missing, or nothing matched.
+        AssetError: a named file or folder is missing, nothing matched, an export is
+            incomplete (without ``incomplete``), or its index is malformed or lists a
+            missing or resized shard.
     """
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     out: list[Path] = []
@@ -85,7 +132,9 @@ def expand_shards(paths: Union[PathLike, Sequence[PathLike]]) -> list[Path]:
         s = os.fspath(item)
         for pat in _expand_braces(s):
             p = Path(pat)
-            if p.is_dir():
+            if p.is_dir() and (p / "index.json").is_file():
+                out.extend(_indexed_shards(p, incomplete))
+            elif p.is_dir():
                 found = sorted(p.glob("*.tar"))
                 if not found:
                     raise AssetError(p, "no .tar shards in folder")
@@ -102,18 +151,45 @@ def expand_shards(paths: Union[PathLike, Sequence[PathLike]]) -> list[Path]:
     return out
 
 
-def iter_tar_samples(path: PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
+def member_checksums(shard: PathLike) -> Optional[dict[str, str]]:
+    """``{member name: sha256}`` from the shard's own index file (``<name>.index.json``
+    next to it), or None when it has none (shards written before they were recorded).
+
+    Raises:
+        AssetError: the index is malformed, or the shard's size differs from the one it records.
+    """
+    shard = Path(shard)
+    ipath = shard.with_name(shard.name[: -len(".tar")] + ".index.json") if shard.name.endswith(".tar") else None
+    if ipath is None or not ipath.is_file():
+        return None
+    rec = read_json(ipath)
+    digests = rec.get("members_sha256") if isinstance(rec, dict) else None
+    if digests is None:
+        return None
+    if not isinstance(digests, dict) or not all(isinstance(v, str) for v in digests.values()):
+        raise AssetError(ipath, "members_sha256 must map member names to sha256 strings")
+    if rec.get("bytes") != shard.stat().st_size:
+        raise AssetError(shard, f"size {shard.stat().st_size} differs from the {rec.get('bytes')} bytes in "
+                                f"{ipath.name} (torn or modified shard)")  # fmt: skip
+    return digests
+
+
+def iter_tar_samples(path: PathLike, verify: bool = True) -> Iterator[tuple[str, dict[str, bytes]]]:
     """``(key, {extension: bytes})`` for each sample of a tar shard, in file order.
 
     Members of one sample must be consecutive (WebDataset rule); directories and files
-    whose base name starts with ``.`` are ignored.
+    whose base name starts with ``.`` are ignored. With ``verify`` and a shard index that
+    records ``members_sha256`` (:func:`member_checksums`), every member must be listed
+    there with its sha256, and every listed member present.
 
     Raises:
-        AssetError: unreadable or truncated shard (names the file).
+        AssetError: unreadable, truncated or corrupt shard (names the file and the member).
     """
     path = Path(path)
     key: Optional[str] = None
     files: dict[str, bytes] = {}
+    digests = member_checksums(path) if verify else None
+    seen: set[str] = set()
     try:
         with tarfile.open(path, "r|*") as tar:
             for m in tar:
@@ -125,6 +201,12 @@ def iter_tar_samples(path: PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
                 k, ext = split_member_name(m.name)
                 fh = tar.extractfile(m)
                 data = fh.read() if fh is not None else b""
+                if digests is not None:
+                    if m.name not in digests:
+                        raise AssetError(path, f"member {m.name} is not listed in the shard's index")
+                    if hashlib.sha256(data).hexdigest() != digests[m.name]:
+                        raise AssetError(path, f"member {m.name}: sha256 does not match the shard's index (corrupt shard)")
+                    seen.add(m.name)
                 if key is not None and k != key:
                     yield key, files
                     files = {}
@@ -132,6 +214,9 @@ def iter_tar_samples(path: PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
                 files[ext] = data
     except (tarfile.TarError, OSError, EOFError) as exc:
         raise AssetError(path, f"unreadable tar shard ({type(exc).__name__}: {exc})") from None
+    if digests is not None and len(seen) != len(digests):
+        missing = sorted(set(digests) - seen)
+        raise AssetError(path, f"members {missing[:3]} listed in the shard's index are missing")
     if key is not None:
         yield key, files
 
@@ -177,6 +262,8 @@ class SynthShardDataset(IterableDataset):
         cfg: ArcticNet-SF settings for the samples.
         rank, world_size: distributed reader; default ``torch.distributed`` when
             initialised, else 0 / 1.
+        incomplete: read the complete shards of an export whose ``index.json`` says it is
+            incomplete (otherwise refused, :func:`expand_shards`).
 
     Attributes:
         shards: the shard files.
@@ -197,9 +284,10 @@ class SynthShardDataset(IterableDataset):
         cfg: Optional[ArcticConfig] = None,
         rank: Optional[int] = None,
         world_size: Optional[int] = None,
+        incomplete: bool = False,
     ) -> None:
         super().__init__()
-        self.shards = expand_shards(paths)
+        self.shards = expand_shards(paths, incomplete=incomplete)
         self.arctic_samples = bool(arctic_samples)
         self.augment = bool(augment)
         self.seed = None if seed is None else int(seed)
@@ -299,6 +387,8 @@ class SynthShardSamples(Dataset):
         seed: seed of the augmentation draws; None = each frame's ``meta["seed"]``.
         epoch: epoch of the augmentation draws (:meth:`set_epoch`).
         cfg: ArcticNet-SF settings of the samples.
+        incomplete: read the complete shards of an export whose ``index.json`` says it is
+            incomplete (otherwise refused, :func:`expand_shards`).
     """
 
     def __init__(
@@ -308,9 +398,10 @@ class SynthShardSamples(Dataset):
         seed: Optional[int] = None,
         epoch: int = 0,
         cfg: Optional[ArcticConfig] = None,
+        incomplete: bool = False,
     ) -> None:
         super().__init__()
-        self.shards = expand_shards(paths)
+        self.shards = expand_shards(paths, incomplete=incomplete)
         self.augment = bool(augment)
         self.seed = None if seed is None else int(seed)
         self.epoch = int(epoch)

@@ -5,7 +5,8 @@ Layout of ``out_dir`` for ``num`` samples in shards of ``S``:
 * ``synth-000000.tar`` … — shard ``i`` holds global samples ``[i·S, min((i+1)·S, num))``
   under the keys ``"%010d" % index`` (members: see :mod:`hogsa_loader.export.codec`);
 * ``synth-000000.index.json`` … — per shard: keys, first/last index, count, bytes,
-  seconds, writer rank;
+  seconds, writer rank, and ``members_sha256`` (``{member name: sha256}``, checked by the
+  readers; shards written before it was recorded are read unchecked);
 * ``index.json`` — the whole export: parameters, caller's ``info`` and every complete
   shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
   (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.
@@ -13,7 +14,8 @@ Layout of ``out_dir`` for ``num`` samples in shards of ``S``:
 Shards go to ranks round-robin (``shard % world_size == rank``). Each shard is written
 under a hidden temporary name and renamed when complete (after its index file), so an
 interrupted export is resumed by running it again: complete shards are skipped,
-partial ones are rewritten.
+partial ones are rewritten. A failed shard leaves no temporary file behind, and an export
+that failed before completing any shard leaves no ``index.json`` (nor a folder it created).
 
 A shard counts as complete only if its index file records this export's sample range
 (first, last) and *settings* (image format, JPEG quality, alpha bits, parts, and a hash of
@@ -142,7 +144,8 @@ def _extra_shards(out_dir: Path, n: int, prefix: str) -> list[int]:
     return sorted(s for s in found if s >= n)
 
 
-def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+def _add_member(tar: tarfile.TarFile, name: str, data: bytes, digests: dict[str, str]) -> None:
+    digests[name] = hashlib.sha256(data).hexdigest()
     ti = tarfile.TarInfo(name)
     ti.size = len(data)
     ti.mtime = 0  # byte-identical shards for identical frames
@@ -290,6 +293,7 @@ def write_shards(
     if num <= 0 or shard_size <= 0:
         raise ValueError(f"num and shard_size must be positive, got {num}, {shard_size}")
     out = Path(out_dir)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     n = num_shards(num, shard_size)
     settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
@@ -317,6 +321,8 @@ def write_shards(
     t_all = time.perf_counter()
     written_samples = 0
     bar_postfix = {"dropped": 0}
+    tmp: Optional[Path] = None
+    failed = True
     try:
         for s in todo:
             name = shard_name(s, prefix)
@@ -326,6 +332,7 @@ def write_shards(
             tmp = out / f".{name}.tmp.{os.getpid()}"
             t0 = time.perf_counter()
             keys: list[str] = []
+            digests: dict[str, str] = {}
             with tarfile.open(tmp, "w", format=tarfile.GNU_FORMAT) as tar:
                 last = last_seen = rng.start - 1
                 for j, frame in enumerate(frames_for_shard(s)):
@@ -335,7 +342,7 @@ def write_shards(
                     for member, data in encode_frame(frame, key, index=idx, shard=s, image_format=image_format,
                                                      jpeg_quality=jpeg_quality, alpha_bits=alpha_bits,
                                                      parts=parts).items():
-                        _add_member(tar, member, data)
+                        _add_member(tar, member, data, digests)
                     keys.append(key)
                     if bar is not None:  # progress in indices (dropped ones count as done)
                         bar.update(idx - max(last_seen, rng.start - 1))
@@ -357,18 +364,28 @@ def write_shards(
                 "rank": rank,
                 "world_size": world_size,
                 "settings": settings,
+                "members_sha256": digests,
             }
             _atomic_write_json(_index_path(out, s, prefix), rec)
             os.replace(tmp, out / name)
+            tmp = None
             written_samples += len(keys)
             if bar is not None:
                 bar_postfix["dropped"] += len(rng) - len(keys)
                 bar.set_postfix(bar_postfix)
+        failed = False
     finally:
         if bar is not None:
             bar.close()
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
         # also after an interruption: index.json always describes what is on disk
         index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
+        if failed and not index["shards"] and world_size == 1:  # nothing of this export exists
+            (out / INDEX_NAME).unlink(missing_ok=True)
+            (out / ".index.lock").unlink(missing_ok=True)
+            if created and not any(out.iterdir()):
+                out.rmdir()
     return {
         "written": todo,
         "skipped": skipped,

@@ -66,6 +66,7 @@ __all__ = [
     "MANIFEST_FILE",
     "TENSORS_FILE",
     "save_part",
+    "canonical_safetensors",
     "read_manifest",
     "load_state",
     "load_part",
@@ -129,15 +130,34 @@ def atomic_write(path: Path, data: bytes) -> None:
         os.close(fd)
 
 
+def canonical_safetensors(blob: bytes) -> bytes:
+    """The same safetensors file with its ``__metadata__`` pairs in sorted key order.
+
+    The safetensors writer emits the metadata pairs in hash-map order, which differs
+    between processes; sorting them makes equal tensors and metadata give equal bytes (and
+    so equal ``tensors_sha256``). Tensor entries and data are left as they are.
+    """
+    n = int.from_bytes(blob[:8], "little")
+    header = json.loads(blob[8 : 8 + n].decode("utf-8"))
+    meta = header.get("__metadata__")
+    if not isinstance(meta, dict) or len(meta) < 2:
+        return blob
+    ordered = {"__metadata__": dict(sorted(meta.items())), **{k: v for k, v in header.items() if k != "__metadata__"}}
+    text = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    text += b" " * (max(n, len(text) + (-len(text)) % 8) - len(text))  # space padding, as the writer pads
+    return len(text).to_bytes(8, "little") + text + blob[8 + n :]
+
+
 def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping[str, Tensor], manifest_file: str,
-                               manifest: Mapping[str, Any], indent: int = 1,
-                               metadata: Optional[Mapping[str, str]] = None) -> Path:
+                               manifest: Mapping[str, Any], indent: Optional[int] = 1,
+                               metadata: Optional[Mapping[str, str]] = None, allow_nan: bool = False) -> Path:
     """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
     tensors first. Everything is checked before anything is written: floating tensors must be
-    finite and the manifest strict JSON (no NaN / infinity), so a refused save leaves an
-    existing checkpoint as it was. The manifest gets ``tensors_sha256`` (sha256 of the
-    tensors file), which :func:`read_checked_tensors` verifies. ``metadata``: string pairs
-    stored in the safetensors header.
+    finite and the manifest strict JSON (no NaN / infinity unless ``allow_nan``), so a refused
+    save leaves an existing checkpoint as it was. The manifest gets ``tensors_sha256`` (sha256
+    of the tensors file), which :func:`read_checked_tensors` verifies. ``metadata``: string
+    pairs stored in the safetensors header, in sorted key order (equal inputs give equal
+    bytes, :func:`canonical_safetensors`).
 
     Returns:
         the manifest path.
@@ -151,10 +171,10 @@ def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping
     bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
-    blob = st_save(dict(tensors), metadata=dict(metadata) if metadata else None)
+    blob = canonical_safetensors(st_save(dict(tensors), metadata=dict(metadata) if metadata else None))
     try:
         text = json.dumps({**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent,
-                          allow_nan=False) + "\n"  # fmt: skip
+                          allow_nan=allow_nan) + "\n"  # fmt: skip
     except ValueError as exc:
         raise ValueError(f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); not saved") from None
     folder.mkdir(parents=True, exist_ok=True)

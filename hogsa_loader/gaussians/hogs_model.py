@@ -101,8 +101,10 @@ class HogsModel(nn.Module):
             device, dtype: where and how to hold the parameters.
 
         Raises:
-            AssetError: a part folder is missing, or a checkpoint does not match the
-                given templates (names the file and the mismatch).
+            AssetError: a part folder is missing, a checkpoint does not match the
+                given templates (names the file and the mismatch), or the run was trained
+                with a learned light (``shading`` in its part manifests, or in its
+                ``config.json``) and ``light/`` is missing.
         """
         folder = Path(folder)
         missing = [name for name in PART_NAMES if not (folder / name / MANIFEST_FILE).is_file()]
@@ -128,6 +130,10 @@ class HogsModel(nn.Module):
         }  # fmt: skip
         source = {k: str(v) for k, v in manifest.get("source", {}).items()}
         source.setdefault("object", obj_name)
+        shading = _run_shading(folder, manifest)
+        if shading == "lambert" and not (folder / LIGHT_DIR).is_dir():
+            raise AssetError(folder / LIGHT_DIR, "is missing: the run was trained with shading 'lambert' (its colours "
+                                                 "were fitted under this learned light), so it would render unshaded")  # fmt: skip
         light = load_light(folder / LIGHT_DIR) if (folder / LIGHT_DIR).is_dir() else None
         model = cls(parts["hand_right"], parts["hand_left"], parts["object"], source=source, light=light)
         return model.to(device) if device is not None else model
@@ -199,3 +205,22 @@ class HogsModel(nn.Module):
         if self.light is not None and "headlight" not in render_kwargs and "colors" not in render_kwargs:
             render_kwargs["colors"] = self.light(scene, viewmats)
         return render_scene(scene, viewmats, Ks, width, height, **render_kwargs)  # type: ignore[arg-type]
+
+
+def _run_shading(folder: Path, object_manifest: Mapping[str, object]) -> Optional[str]:
+    """The shading a run was trained with: its parts' ``extra["shading"]``, else its
+    ``config.json``'s ``shading`` (runs checkpointed before the parts recorded it), else None."""
+    shading = object_manifest.get("extra", {}).get("shading") if isinstance(object_manifest.get("extra"), dict) else None
+    if isinstance(shading, str):
+        return shading
+    config = folder / "config.json"
+    if config.is_file():
+        from hogsa_loader.errors import read_json
+
+        try:
+            raw = read_json(config)
+        except AssetError:
+            return None  # (the run's settings file is not part of the checkpoint)
+        if isinstance(raw, dict) and isinstance(raw.get("shading"), str):
+            return raw["shading"]
+    return None

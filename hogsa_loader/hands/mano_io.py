@@ -5,7 +5,9 @@ The official ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl`` are Python-2 pickles (read w
 chumpy objects. Unpickling them normally needs chumpy (broken on numpy >= 1.24) and, worse,
 lets the file run arbitrary code. :class:`RestrictedUnpickler` resolves only an allow-list of
 numpy / scipy.sparse / copyreg globals, maps every ``chumpy.*`` class to an inert stub that
-keeps its pickled state, and refuses anything else with :class:`UnsafePickleError`.
+keeps its pickled state, and refuses anything else with :class:`UnsafePickleError`. What it
+builds is then held to element and depth caps (:mod:`hogsa_loader.pickle_caps`) before any
+value is turned into an array, so a small file of shared references cannot expand to gigabytes.
 
 Also here:
 - :class:`ManoModelData`: the validated arrays of one hand model, plus the metadata the
@@ -33,6 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
+from hogsa_loader.pickle_caps import check_unpickled
 
 __all__ = [
     "ARCTIC_TIP_ORDER",
@@ -40,6 +43,7 @@ __all__ = [
     "MANO_RELEASE_TIP_IDS",
     "ManoModelData",
     "RestrictedUnpickler",
+    "check_npz_destination",
     "convert_mano_to_npz",
     "load_mano",
     "reorder_vertices",
@@ -155,13 +159,24 @@ class RestrictedUnpickler(pickle.Unpickler):
 
     Any other global (``os.system``, ``builtins.eval``, a user class, ...) raises
     :class:`UnsafePickleError` naming the file and the refused global; nothing from the
-    file runs.
+    file runs. :meth:`load` refuses data past the element / depth caps of
+    :func:`~hogsa_loader.pickle_caps.check_unpickled` (:class:`AssetError`).
     """
 
     def __init__(self, file: io.BufferedIOBase, path: PathLike = "<pickle>") -> None:
         super().__init__(file, encoding="latin1", fix_imports=True)
         self._path = os.fspath(path)
         self._allowed = _allowed_globals()
+        try:
+            self._file_size = os.fstat(file.fileno()).st_size
+        except (AttributeError, OSError, ValueError):  # an in-memory stream
+            self._file_size = len(file.getbuffer()) if isinstance(file, io.BytesIO) else 0
+
+    def load(self) -> Any:
+        """Unpickle, then count what was built (:func:`~hogsa_loader.pickle_caps.check_unpickled`)."""
+        obj = super().load()
+        check_unpickled(obj, self._path, self._file_size)
+        return obj
 
     def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
         # Python-2 names (copy_reg, __builtin__) -> Python 3, as pickle's fix_imports does
@@ -384,7 +399,7 @@ def _read_pickle(path: str) -> dict:
     try:
         with open(path, "rb") as fh:
             data = RestrictedUnpickler(fh, path).load()
-    except UnsafePickleError:
+    except AssetError:  # refused global, element / depth caps
         raise
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError,
             LookupError, RecursionError, MemoryError) as exc:
@@ -625,11 +640,35 @@ def write_mano_pickle(model: ManoModelData, path: PathLike) -> None:
     os.replace(tmp, p)
 
 
-def convert_mano_to_npz(src: PathLike, dst: PathLike, side: Optional[str] = None) -> ManoModelData:
+def check_npz_destination(src: PathLike, dst: PathLike, overwrite: bool = False) -> None:
+    """Refuse a destination :func:`convert_mano_to_npz` must not write.
+
+    Raises:
+        AssetError: ``dst`` does not end in ``.npz`` (:func:`load_mano` tells the formats
+            apart by it), is a folder, is ``src`` itself, or exists and not ``overwrite``.
+    """
+    out = os.fspath(dst)
+    if not out.endswith(".npz"):
+        raise AssetError(out, "the converted model must be a .npz file (load_mano reads .npz by its suffix)")
+    if os.path.isdir(out):
+        raise AssetError(out, "is a folder; give the .npz file to write")
+    if os.path.lexists(out):
+        if os.path.exists(src) and os.path.samefile(src, out):
+            raise AssetError(out, "is the source model itself")
+        if not overwrite:
+            raise AssetError(out, "already exists (overwrite=True, or hogsa convert-mano --overwrite, replaces it)")
+
+
+def convert_mano_to_npz(src: PathLike, dst: PathLike, side: Optional[str] = None,
+                        overwrite: bool = False) -> ManoModelData:
     """Convert a MANO pickle into a chumpy-free, pickle-free ``.npz`` (smplx-compatible keys).
+
+    ``dst`` is checked before anything is read (:func:`check_npz_destination`) and written
+    atomically: a temporary file next to it, removed when writing fails.
 
     Returns the loaded model. The npz holds dense arrays only; the metadata is a JSON string.
     """
+    check_npz_destination(src, dst, overwrite)
     model = load_mano(src, side=side)
     d = _schema_dict(model)
     d["J_regressor"] = model.J_regressor
@@ -638,8 +677,15 @@ def convert_mano_to_npz(src: PathLike, dst: PathLike, side: Optional[str] = None
     d["bs_type"] = np.array("lrotmin")
     d["f"] = model.faces.astype(np.int64)
     out = os.fspath(dst)
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    with open(out + ".tmp", "wb") as fh:
-        np.savez(fh, **d)
-    os.replace(out + ".tmp", out)
+    folder = os.path.dirname(os.path.abspath(out))
+    os.makedirs(folder, exist_ok=True)
+    tmp = os.path.join(folder, f".{os.path.basename(out)}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **d)
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        raise
     return model

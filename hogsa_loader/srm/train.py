@@ -37,8 +37,13 @@ Run folder::
     checkpoints/latest.json              {"step", "folder"} (written last)
     checkpoints/step_N/{g, g_ema}/       save_srm folders (+ g_best with val_views)
     checkpoints/step_N/trainer.safetensors   D weights, Adam states, RNG states
-    checkpoints/step_N/trainer.json      step, history, evals, Adam param groups
+    checkpoints/step_N/trainer.json      step, history, evals, Adam param groups, sha256 of
+                                         trainer.safetensors (checked on resuming)
     cache/                               coarse renders (unless ``cache`` names another folder)
+
+:meth:`SRMTrainer.train` refuses to start from step 0 in a folder that holds checkpoints
+(:class:`~hogsa_loader.train.run_folder.RunExistsError`) unless the run was resumed first
+or ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -56,8 +61,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.checkpoint import atomic_write
-from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, latest_checkpoint
+from hogsa_loader.train.run_folder import (
+    RunExistsError,
+    clear_run,
+    commit_checkpoint,
+    config_defaults,
+    has_checkpoints,
+    latest_checkpoint,
+    read_trainer_state,
+    save_trainer_state,
+)
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
 from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
@@ -197,6 +212,7 @@ class SRMTrainer:
         # flat index over (set, sample)
         self.index = [(si, i) for si, s in enumerate(self.sets) for i in range(len(s.train_rows))]
         self.gflops = count_gflops(self.g.net, 256)
+        self.resumed = False
 
     # ------------------------------------------------------------------ batches
     def batch(self) -> tuple[Tensor, Tensor, Tensor]:
@@ -365,11 +381,21 @@ class SRMTrainer:
         out["per_sample"] = rows
         return out
 
-    def train(self) -> dict[str, Any]:
-        """Train to ``cfg.iters`` steps (from the current step), evaluating and checkpointing."""
+    def train(self, overwrite: bool = False) -> dict[str, Any]:
+        """Train to ``cfg.iters`` steps (from the current step), evaluating and checkpointing.
+
+        Args:
+            overwrite: when the run was not resumed and its folder holds checkpoints, empty
+                the folder and start again (otherwise :class:`RunExistsError`).
+        """
         from tqdm import tqdm
 
         cfg = self.cfg
+        if not self.resumed and has_checkpoints(self.out):
+            if not overwrite:
+                raise RunExistsError(self.out, "holds a training run (checkpoints/); resume it (--resume) or "
+                                               "start it again with overwrite (--overwrite)")  # fmt: skip
+            clear_run(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         _write_json(self.out / "config.json", cfg.to_json())
         if self.step == 0 and not self.evals:
@@ -452,8 +478,6 @@ class SRMTrainer:
 
     def save_checkpoint(self) -> Path:
         """``checkpoints/step_N/`` then ``latest.json`` (atomic); older step folders are removed."""
-        from safetensors.torch import save as st_save
-
         ck = self.out / "checkpoints"
         folder = ck / f"step_{self.step:07d}"
         folder.mkdir(parents=True, exist_ok=True)
@@ -472,37 +496,54 @@ class SRMTrainer:
             t, groups_d = _adam_state(self.opt_d, "adam_d")
             tensors.update(t)
             tensors.update({f"d.{k}": v.detach().cpu().contiguous() for k, v in self.d.state_dict().items()})
-        atomic_write(folder / "trainer.safetensors", st_save(tensors))
         state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time,
                  "adam_g_groups": groups_g, "adam_d_groups": groups_d, "best": self.best}  # fmt: skip
-        atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
+        save_trainer_state(folder, tensors, state)
         commit_checkpoint(folder, self.step)
         return folder
 
     def resume(self) -> bool:
-        """Load the latest checkpoint of the run folder (exact continuation); False if none."""
-        from safetensors.torch import load_file
+        """Load the latest checkpoint of the run folder (exact continuation); False if none.
 
+        Raises:
+            ValueError: the run's saved settings differ (outside ``SRMTrainConfig.RESUMABLE``).
+            AssetError: a malformed, torn or corrupt checkpoint file (named), including
+                optimiser or discriminator state that does not fit the networks.
+        """
         folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE, config_defaults(SRMTrainConfig))
         if folder is None:
             return False
+        state, tensors = read_trainer_state(folder)
+        tpath = folder / "trainer.safetensors"
+        if not isinstance(state.get("adam_g_groups"), list) or not isinstance(state.get("adam_d_groups", []), list):
+            raise AssetError(folder / "trainer.json", "'adam_g_groups' / 'adam_d_groups' must be lists")
         self.g.net.load_state_dict(load_srm(folder / "g").net.state_dict())
         self.g_ema.net.load_state_dict(load_srm(folder / "g_ema").net.state_dict())
-        tensors = load_file(str(folder / "trainer.safetensors"))
-        state = json.loads((folder / "trainer.json").read_text())
-        _load_adam(self.opt_g, "adam_g", {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
-                   state["adam_g_groups"])  # fmt: skip
-        if self.d is not None and self.opt_d is not None:
-            self.d.load_state_dict({k[2:]: v for k, v in tensors.items() if k.startswith("d.")})
-            _load_adam(self.opt_d, "adam_d", {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
-                       state["adam_d_groups"])  # fmt: skip
+        try:
+            _load_adam(self.opt_g, "adam_g", {k: v.to(self.device) if not k.endswith(".step") else v
+                                              for k, v in tensors.items()}, state["adam_g_groups"])  # fmt: skip
+            if self.d is not None and self.opt_d is not None:
+                self.d.load_state_dict({k[2:]: v for k, v in tensors.items() if k.startswith("d.")})
+                _load_adam(self.opt_d, "adam_d", {k: v.to(self.device) if not k.endswith(".step") else v
+                                                  for k, v in tensors.items()}, state["adam_d_groups"])  # fmt: skip
+        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+            raise AssetError(tpath, f"optimiser or discriminator state does not fit the networks ({exc})") from None
+        for opt in (self.opt_g, self.opt_d):
+            for p, st in (opt.state.items() if opt is not None else ()):
+                for k in ("exp_avg", "exp_avg_sq"):
+                    if k in st and st[k].shape != p.shape:
+                        raise AssetError(tpath, f"Adam {k} of shape {tuple(st[k].shape)} for a parameter {tuple(p.shape)}")
         self.best = state.get("best")
         if self.best is not None:  # before the RNG is restored: building a model draws random numbers
             self.best_state = load_srm(folder / "g_best").net.state_dict()
-        self.gen.set_state(tensors["rng.sampler"])
-        torch.set_rng_state(tensors["rng.torch"])
-        if "rng.cuda" in tensors and self.device.type == "cuda":
-            torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+        try:
+            self.gen.set_state(tensors["rng.sampler"])
+            torch.set_rng_state(tensors["rng.torch"])
+            if "rng.cuda" in tensors and self.device.type == "cuda":
+                torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+        except (RuntimeError, TypeError) as exc:
+            raise AssetError(tpath, f"unusable RNG state ({exc})") from None
+        self.resumed = True
         self.step = int(state["step"])
         self.history = state["history"]
         self.evals = state["evals"]

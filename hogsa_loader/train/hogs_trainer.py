@@ -15,11 +15,13 @@ Run folder::
     checkpoints/latest.json           {"step", "folder"}, written last (atomic)
     checkpoints/step_XXXXXXX/         hand_right/, hand_left/, object/ (save_part),
                                       trainer.safetensors (Adam moments + RNG state),
-                                      trainer.json (step, history)
+                                      trainer.json (step, history, sha256 of the tensors)
     hand_right/, hand_left/, object/  final parts
     metrics.json, strip.png, curves.png
 
-No pickle anywhere; every file is written atomically.
+No pickle anywhere; every file is written atomically. :meth:`HogsTrainer.train` refuses to
+start from step 0 in a folder that holds checkpoints (:class:`~hogsa_loader.train.run_folder.RunExistsError`)
+unless the run was resumed first or ``overwrite=True``.
 """
 
 from __future__ import annotations
@@ -38,7 +40,17 @@ from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, s
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.gaussians.checkpoint import atomic_write, read_manifest
-from hogsa_loader.train.run_folder import commit_checkpoint, config_defaults, latest_checkpoint
+from hogsa_loader.errors import AssetError
+from hogsa_loader.train.run_folder import (
+    RunExistsError,
+    clear_run,
+    commit_checkpoint,
+    config_defaults,
+    has_checkpoints,
+    latest_checkpoint,
+    read_trainer_state,
+    save_trainer_state,
+)
 from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
@@ -145,6 +157,8 @@ class HogsTrainer:
             raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.shading!r}")
         if cfg.iters < 0 or cfg.batch_size < 1:
             raise ValueError("iters must be >= 0 and batch_size >= 1")
+        if cfg.image_size is not None and cfg.image_size < 1:
+            raise ValueError(f"image_size must be >= 1 (or None: the dataset's crop size), got {cfg.image_size}")
         if cfg.masks not in MASK_MODES:
             raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.masks!r}")
         t0 = time.perf_counter()
@@ -202,6 +216,7 @@ class HogsTrainer:
         self.history: list[dict[str, float]] = []
         self.evals: list[dict[str, Any]] = []
         self._train_time = 0.0
+        self.resumed = False
 
     # ------------------------------------------------------------------ rendering
     def active_sh_degree(self, step: Optional[int] = None) -> int:
@@ -282,11 +297,21 @@ class HogsTrainer:
         ev.pop("lpips", None)
         return {"step": self.step, **ev}
 
-    def train(self) -> dict[str, Any]:
-        """Train up to ``cfg.iters`` steps (from the current step), evaluating and checkpointing."""
+    def train(self, overwrite: bool = False) -> dict[str, Any]:
+        """Train up to ``cfg.iters`` steps (from the current step), evaluating and checkpointing.
+
+        Args:
+            overwrite: when the run was not resumed and its folder holds checkpoints, empty
+                the folder and start again (otherwise :class:`RunExistsError`).
+        """
         from tqdm import tqdm
 
         cfg = self.cfg
+        if not self.resumed and has_checkpoints(self.out):
+            if not overwrite:
+                raise RunExistsError(self.out, "holds a training run (checkpoints/); resume it (--resume) or "
+                                               "start it again with overwrite (--overwrite)")  # fmt: skip
+            clear_run(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         _write_json(self.out / "config.json", cfg.to_json())
         if self.step == 0 and not self.evals:
@@ -325,7 +350,7 @@ class HogsTrainer:
 
     def _save_parts(self, folder: Path) -> None:
         for name, part in self.parts.items():
-            extra: dict[str, Any] = {"step": self.step}
+            extra: dict[str, Any] = {"step": self.step, "shading": self.cfg.shading}
             if name == "object" and self.source.object_provenance:
                 extra["object_mesh"] = self.source.object_provenance
             save_part(part, folder / name, **self._source(), extra=extra)
@@ -340,8 +365,6 @@ class HogsTrainer:
 
     def save_checkpoint(self) -> Path:
         """Write ``checkpoints/step_N`` then point ``latest.json`` at it; older ones are removed."""
-        from safetensors.torch import save as st_save
-
         ck = self.out / "checkpoints"
         folder = ck / f"step_{self.step:07d}"
         folder.mkdir(parents=True, exist_ok=True)
@@ -351,28 +374,41 @@ class HogsTrainer:
             st = self.optimizer.state.get(group["params"][0], {})
             for key, val in st.items():
                 tensors[f"adam.{group['name']}.{key}"] = torch.as_tensor(val).detach().cpu().contiguous()
-        atomic_write(folder / "trainer.safetensors", st_save(tensors))
         state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time}
-        atomic_write(folder / "trainer.json", (json.dumps(state) + "\n").encode())
+        save_trainer_state(folder, tensors, state)
         commit_checkpoint(folder, self.step)
         return folder
 
     def resume(self) -> bool:
-        """Load the latest checkpoint of the run folder; False when there is none."""
-        from safetensors.torch import load_file
+        """Load the latest checkpoint of the run folder; False when there is none.
 
+        Raises:
+            ValueError: the run's saved settings differ (outside ``HogsConfig.RESUMABLE``).
+            AssetError: a malformed, torn or corrupt checkpoint file (named), including
+                optimiser moments that do not fit the model.
+        """
         folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE, config_defaults(HogsConfig))
         if folder is None:
             return False
+        state, tensors = read_trainer_state(folder)
+        for group in self.optimizer.param_groups:
+            p = group["params"][0]
+            prefix = f"adam.{group['name']}."
+            for k, v in tensors.items():
+                if k.startswith(prefix) and k[len(prefix):] in ("exp_avg", "exp_avg_sq") and v.shape != p.shape:
+                    raise AssetError(folder / "trainer.safetensors",
+                                     f"{k} has shape {tuple(v.shape)}, the model's parameter {tuple(p.shape)}")
         for name, part in self.parts.items():
             if not read_manifest(folder / name)["config"].get("weld_seams", False) and part.weld_seams:
                 part.disable_seam_welding()  # checkpointed before seam welding: go on as it was trained
             load_state(part, folder / name)
         if self.model.light is not None:
             load_light(folder / LIGHT_DIR, into=self.model.light)
-        tensors = load_file(str(folder / "trainer.safetensors"))
-        self.gen.set_state(tensors["rng.sampler"])
-        torch.set_rng_state(tensors["rng.torch"])
+        try:
+            self.gen.set_state(tensors["rng.sampler"])
+            torch.set_rng_state(tensors["rng.torch"])
+        except (RuntimeError, TypeError) as exc:
+            raise AssetError(folder / "trainer.safetensors", f"unusable RNG state ({exc})") from None
         for group in self.optimizer.param_groups:
             p = group["params"][0]
             prefix = f"adam.{group['name']}."
@@ -380,11 +416,11 @@ class HogsTrainer:
             if st:
                 st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
                 self.optimizer.state[p] = st
-        state = json.loads((folder / "trainer.json").read_text())
         self.step = int(state["step"])
         self.history = state["history"]
         self.evals = state["evals"]
         self._train_time = float(state["train_time_s"])
+        self.resumed = True
         return True
 
     # ------------------------------------------------------------------ reports

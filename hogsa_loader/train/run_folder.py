@@ -2,19 +2,94 @@
 
 A run folder keeps ``config.json`` and ``checkpoints/step_NNNNNNN/`` folders; ``checkpoints/
 latest.json`` (``{"step", "folder"}``) is written last and atomically, so a run killed at any
-moment resumes from a complete checkpoint.
+moment resumes from a complete checkpoint. A checkpoint's trainer state is a checked pair
+(:func:`save_trainer_state`): ``trainer.safetensors`` (optimiser moments, RNG states) and
+``trainer.json`` (step, history, the sha256 of the tensors file), verified on resuming.
+
+Starting a run again in a folder that holds checkpoints is refused unless the caller asks to
+resume it or to overwrite it (:func:`check_run_folder`, :class:`RunExistsError`): a fresh
+run would otherwise delete the old checkpoints at its first save.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from torch import Tensor
 
-__all__ = ["commit_checkpoint", "latest_checkpoint", "config_defaults"]
+from hogsa_loader.errors import AssetError, PathLike, UsageError, read_json
+from hogsa_loader.gaussians.checkpoint import atomic_write, read_checked_tensors, write_tensors_and_manifest
+
+__all__ = [
+    "RunExistsError",
+    "TRAINER_TENSORS",
+    "TRAINER_STATE",
+    "check_run_folder",
+    "clear_run",
+    "has_checkpoints",
+    "commit_checkpoint",
+    "latest_checkpoint",
+    "config_defaults",
+    "save_trainer_state",
+    "read_trainer_state",
+]
+
+TRAINER_TENSORS = "trainer.safetensors"
+TRAINER_STATE = "trainer.json"
+#: Settings that never block a resume: the run folder may be copied or moved.
+ALWAYS_RESUMABLE = ("out",)
+_STEP_FOLDER = re.compile(r"^step_[0-9]+$")
+
+
+class RunExistsError(AssetError, UsageError):
+    """A fresh run was asked for in a folder that already holds a run's checkpoints."""
+
+
+def has_checkpoints(out: PathLike) -> bool:
+    """Whether the run folder ``out`` holds a complete checkpoint (``checkpoints/latest.json``;
+    a ``step_*`` folder without it is a checkpoint torn while being written)."""
+    return (Path(out) / "checkpoints" / "latest.json").is_file()
+
+
+def check_run_folder(out: PathLike, *, resume: bool, overwrite: bool) -> None:
+    """Refuse, before any work, a run folder a trainer must not start in.
+
+    Args:
+        out: the run folder (may not exist yet).
+        resume: the caller will continue the run's latest checkpoint.
+        overwrite: the caller will start again from step 0, emptying the folder first.
+
+    Raises:
+        AssetError: ``out`` exists and is not a folder.
+        RunExistsError: ``out`` holds checkpoints and neither ``resume`` nor ``overwrite``.
+        ValueError: both ``resume`` and ``overwrite``.
+    """
+    out = Path(out)
+    if resume and overwrite:
+        raise ValueError("--resume and --overwrite exclude each other")
+    if out.exists() and not out.is_dir():
+        raise AssetError(out, "run folder is a file")
+    if not resume and not overwrite and has_checkpoints(out):
+        raise RunExistsError(out, "holds a training run (checkpoints/); pass --resume to continue it or --overwrite "
+                                  "to start it again from step 0 (the folder is emptied)")  # fmt: skip
+
+
+def clear_run(out: PathLike) -> None:
+    """Empty the run folder (a run started again with ``overwrite``): checkpoints, weights,
+    light, metrics and pictures of the old run all go, so nothing of it can be taken for a
+    finished run of the new one."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    for entry in out.iterdir():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
 
 
 def commit_checkpoint(folder: Path, step: int) -> None:
@@ -27,31 +102,86 @@ def commit_checkpoint(folder: Path, step: int) -> None:
             shutil.rmtree(old, ignore_errors=True)
 
 
-def latest_checkpoint(out: Path, config: Mapping[str, Any], resumable: Sequence[str],
-                      defaults: Optional[Mapping[str, Any]] = None) -> Optional[Path]:
+def latest_checkpoint(
+    out: Path, config: Mapping[str, Any], resumable: Sequence[str], defaults: Optional[Mapping[str, Any]] = None
+) -> Optional[Path]:
     """The latest complete checkpoint folder of run ``out``, or None when there is none.
 
     A setting missing from the saved ``config.json`` (added to the library after the run
-    started) matches when ``config`` has its value from ``defaults``.
+    started) matches when ``config`` has its value from ``defaults``. ``out`` itself never
+    has to match: a run folder may be copied or moved and resumed there.
 
     Raises:
         ValueError: a setting outside ``resumable`` differs from the run's saved ``config.json``.
+        AssetError: ``latest.json`` or ``config.json`` is malformed, or names a checkpoint
+            folder that is not a ``step_N`` folder of the run.
     """
+    out = Path(out)
     latest = out / "checkpoints" / "latest.json"
     if not latest.is_file():
         return None
-    saved = json.loads((out / "config.json").read_text())
+    saved = read_json(out / "config.json")
+    if not isinstance(saved, dict):
+        raise AssetError(out / "config.json", f"expected a JSON object, got {type(saved).__name__}")
     defaults = defaults or {}
+    free = set(resumable) | set(ALWAYS_RESUMABLE)
 
     def same(k: str) -> bool:
         if k in saved:
             return saved[k] == config[k]
         return k in defaults and defaults[k] == config[k]
 
-    diff = [k for k in config if k not in resumable and not same(k)]
+    diff = [k for k in config if k not in free and not same(k)]
     if diff:
         raise ValueError(f"cannot resume {out}: settings {diff} differ from the saved config.json")
-    return out / "checkpoints" / json.loads(latest.read_text())["folder"]
+    rec = read_json(latest)
+    name = rec.get("folder") if isinstance(rec, dict) else None
+    if not isinstance(name, str) or not _STEP_FOLDER.match(name):
+        raise AssetError(latest, f'must hold {{"step", "folder": "step_N"}}, got {str(rec)[:80]}')
+    folder = out / "checkpoints" / name
+    if not folder.is_dir():
+        raise AssetError(latest, f"points at {name}, which is missing")
+    return folder
+
+
+def save_trainer_state(folder: Path, tensors: Mapping[str, Tensor], state: Mapping[str, Any]) -> None:
+    """Write a checkpoint's ``trainer.safetensors`` and ``trainer.json`` (with the tensors'
+    sha256), tensors first, each atomically; non-finite tensors are refused (ValueError)."""
+    write_tensors_and_manifest(folder, TRAINER_TENSORS, tensors, TRAINER_STATE, state, indent=None, allow_nan=True)
+
+
+def read_trainer_state(
+    folder: Path, required: Sequence[str] = ("rng.sampler", "rng.torch")
+) -> tuple[dict[str, Any], dict[str, Tensor]]:
+    """Read and check a checkpoint's trainer state: ``(trainer.json, trainer.safetensors)``.
+
+    ``trainer.json`` must hold ``step`` (int), ``history`` and ``evals`` (lists) and
+    ``train_time_s`` (number); the tensors file must match the recorded sha256 (checkpoints
+    written before it was recorded are read as they are), hold the ``required`` tensors
+    and only finite floating values.
+
+    Raises:
+        AssetError: naming the file and the problem.
+    """
+    import torch
+
+    spath, tpath = folder / TRAINER_STATE, folder / TRAINER_TENSORS
+    state = read_json(spath)
+    if not isinstance(state, dict):
+        raise AssetError(spath, f"expected a JSON object, got {type(state).__name__}")
+    for key, typ in (("step", int), ("history", list), ("evals", list), ("train_time_s", (int, float))):
+        if not isinstance(state.get(key), typ) or isinstance(state.get(key), bool):
+            raise AssetError(spath, f"{key!r} is missing or not a {getattr(typ, '__name__', 'number')}")
+    if state["step"] < 0:
+        raise AssetError(spath, f"step is {state['step']}")
+    tensors = read_checked_tensors(tpath, state, spath)
+    missing = [k for k in required if k not in tensors]
+    if missing:
+        raise AssetError(tpath, f"tensors {missing} are missing")
+    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise AssetError(tpath, f"tensors {bad[:3]} contain NaN or infinity (corrupt file)")
+    return state, tensors
 
 
 def config_defaults(cls: type) -> dict[str, Any]:

@@ -1,0 +1,116 @@
+"""Element and depth caps for what the restricted unpicklers build.
+
+A pickle can reference one container many times (its memo), so a file of a few hundred
+bytes can describe a nested list of 10⁹ numbers that only becomes large when it is turned
+into an array — after which nothing can stop the allocation. :func:`check_unpickled` walks
+the objects an unpickler built, before anything is converted, and counts every element
+once per reference: a container shared by ten parents counts ten times, exactly as often
+as ``np.asarray`` would copy it. Every container type is counted (list, tuple, dict, set,
+frozenset, object arrays, the state of inert stand-in objects, whose stored arrays count
+for a pickled sparse matrix); a numeric array counts its elements, and anything that holds
+bytes (strings, byte strings, numpy scalars, arrays of wide items) counts at least one
+element per 8 bytes, so one long string shared many times is refused like a long list.
+The walk refuses
+
+* more than ``max(max_elements, file size in bytes)`` elements (an element of a file that
+  shares nothing costs at least one byte, so no honest file is refused);
+* nesting deeper than ``max_depth``;
+* cycles (a container inside itself);
+
+with an :class:`~hogsa_loader.errors.AssetError` naming the file. Each distinct object is
+visited once (its count is remembered), so the walk costs time proportional to the file,
+never to the count it refuses.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hogsa_loader.errors import AssetError, PathLike
+
+__all__ = ["MAX_ELEMENTS", "MAX_DEPTH", "check_unpickled"]
+
+#: Default cap of the elements an unpickled object may expand to (a file larger than this
+#: many bytes raises the cap to its size).
+MAX_ELEMENTS = 50_000_000
+#: Default cap of container nesting (numpy arrays have at most 64 dimensions).
+MAX_DEPTH = 32
+
+_ATOMS = (int, float, complex, bool, str, bytes, bytearray, type(None), slice, np.generic, np.dtype, type)
+
+
+def _atom_size(x: Any) -> int:
+    """Elements an atom stands for: 1, or one per 8 bytes of what it holds."""
+    if isinstance(x, (str, bytes, bytearray)):
+        return max(1, -(-len(x) // 8))
+    if isinstance(x, np.generic):
+        return max(1, -(-int(x.nbytes) // 8))
+    return 1
+
+
+def check_unpickled(
+    obj: Any, path: PathLike, file_size: int = 0, max_elements: int = MAX_ELEMENTS, max_depth: int = MAX_DEPTH
+) -> int:
+    """Count the elements ``obj`` expands to; refuse it past the caps (see module docstring).
+
+    Args:
+        obj: what the unpickler returned.
+        path: the file, named in errors.
+        file_size: the file's size in bytes (raises the element cap to it).
+        max_elements, max_depth: the caps.
+
+    Returns:
+        the element count.
+
+    Raises:
+        AssetError: too many elements, too deep, or a cycle.
+    """
+    limit = max(int(max_elements), int(file_size))
+    done: dict[int, int] = {}
+    active: set[int] = set()
+    keep: list[Any] = []  # keeps visited objects alive so that their ids stay unique
+
+    def too_many() -> AssetError:
+        return AssetError(path, f"pickled data expands to more than {limit} elements (shared references "
+                                "count once per use); refusing it before anything is allocated")  # fmt: skip
+
+    def count(x: Any, depth: int) -> int:
+        if isinstance(x, _ATOMS) and not isinstance(x, np.ndarray):
+            n = _atom_size(x)
+            if n > limit:
+                raise too_many()
+            return n
+        key = id(x)
+        if key in done:
+            return done[key]
+        if depth > max_depth:
+            raise AssetError(path, f"pickled data is nested more than {max_depth} levels deep")
+        if key in active:
+            raise AssetError(path, "pickled data contains a cycle (a container inside itself)")
+        active.add(key)
+        keep.append(x)
+        n = 0
+        if isinstance(x, np.ndarray):
+            if x.dtype.hasobject:
+                items = x.ravel(order="K") if x.ndim else [x.item()]
+            else:
+                items, n = (), max(int(x.size), -(-int(x.nbytes) // 8))
+        elif isinstance(x, dict):
+            items = [v for kv in x.items() for v in kv]
+        elif isinstance(x, (list, tuple, set, frozenset)):
+            items = x
+        else:  # an inert stand-in (chumpy stub, pickled sparse matrix): its recorded state
+            items = list(getattr(x, "__dict__", {}).values())
+        if n > limit:
+            raise too_many()
+        for item in items:
+            n += count(item, depth + 1)
+            if n > limit:
+                raise too_many()
+        active.discard(key)
+        done[key] = max(n, 1)
+        return done[key]
+
+    return count(obj, 0)
