@@ -76,6 +76,9 @@ class DemoConfig:
             per render call.
         grid_rows, grid_cols: synthetic rows × columns in ``samples.png`` (+ one real row).
         backgrounds, coco_root, coco_ann: background images (see module docstring).
+        orbit_views, orbit_size: the 360° orbit of the first pair's model written to
+            ``OUT/view/`` (:func:`~hogsa_loader.view.job.run_view`; 0 views: none),
+            rendered again on every run (no stage).
     """
 
     preset: str = "small"
@@ -103,6 +106,8 @@ class DemoConfig:
     backgrounds: Optional[str] = None
     coco_root: Optional[str] = None
     coco_ann: Optional[str] = None
+    orbit_views: int = 16
+    orbit_size: int = 192
     progress: bool = field(default=True, compare=False)
 
 
@@ -120,20 +125,24 @@ class _Stages:
         self.seconds: dict[str, float] = {}
         self.reused: list[str] = []
 
-    def run(self, name: str, key: str, outputs: Sequence[Path], fn: Callable[[], Any]) -> Any:
+    def run(self, name: str, key: str, outputs: Sequence[Path], fn: Callable[[], Any], resumable: bool = False) -> Any:
+        """Run ``fn`` unless a record of ``name`` with ``key`` exists and its outputs do. Stale
+        outputs are removed first — but a ``resumable`` stage's outputs with no record (an
+        interrupted build) are left for ``fn`` to resume from."""
         rec_path = self.dir / f"{name.replace('/', '_')}.json"
-        if rec_path.is_file():
-            rec = json.loads(rec_path.read_text())
-            if rec.get("key") == key and all(p.exists() for p in outputs):
-                self.say(f"[{name}] cached ({rec['seconds']:.0f} s when built)")
-                self.reused.append(name)
-                self.seconds[name] = 0.0
-                return rec.get("result")
-        for p in outputs:  # stale: rebuild from scratch
+        rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+        if rec is not None and rec.get("key") == key and all(p.exists() for p in outputs):
+            self.say(f"[{name}] cached ({rec['seconds']:.0f} s when built)")
+            self.reused.append(name)
+            self.seconds[name] = 0.0
+            return rec.get("result")
+        for p in outputs if rec is not None or not resumable else ():  # stale: rebuild from scratch
             if p.is_dir():
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
+        if rec is not None:  # an interruption of the rebuild leaves no stale record behind
+            rec_path.unlink()
         self.say(f"[{name}] building ...")
         t0 = time.perf_counter()
         result = fn()
@@ -201,8 +210,8 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         data = world / "arctic_data" / "data"
         preset = get_preset(cfg.preset)
         k_world = _key("world", cfg.preset, cfg.seed)
-        stages.run("world", k_world, [world], lambda: {
-            "sequences": len(generate_world(world, preset, seed=cfg.seed, progress=cfg.progress, log=say)["sequences"])})
+        stages.run("world", k_world, [world], lambda: {"sequences": len(generate_world(
+            world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
 
     runs = []
     k_hogs = []
@@ -289,6 +298,22 @@ def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) 
     return {"delta_psnr": m["delta_psnr"], "delta_ssim": m["delta_ssim"]}
 
 
+def _orbit(out: Path, bundle: Path, data: Path, cfg: DemoConfig, say: Callable[[str], None]) -> dict[str, Any] | None:
+    """The 360° orbit (with and without SRM) of the first pair's model in ``out/view/``."""
+    from hogsa_loader.view import ViewConfig, run_view
+
+    if cfg.orbit_views <= 0:
+        return None
+    sid, obj = cfg.pairs[0]
+    vc = ViewConfig(bundle=str(bundle), data=str(data), subject=sid, object=obj, out=str(out / "view"),
+                    orbit=cfg.orbit_views, size=cfg.orbit_size, quiet=True)  # fmt: skip
+    rec = run_view(vc, log=None)
+    orbit = rec["orbits"][sid]
+    say(f"[view] 360° orbit of {sid}/{obj} ({cfg.orbit_views} views, with and without SRM) in "
+        f"{rec['seconds']['total']:.1f} s: {orbit['png']}")  # fmt: skip
+    return {"png": orbit["png"], "video": orbit.get("video"), "pose": orbit["pose"], "seconds": rec["seconds"]["total"]}
+
+
 def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
     """Build (or reuse) everything, stream synthetic samples, write the pictures.
 
@@ -370,6 +395,7 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
     mixed = next(iter(MixedLoader(real_loader, syn_single, ratio=0.5)))
     npz_path = out / "batch.npz"
     np.savez_compressed(npz_path, **_flatten_batch(mixed))
+    orbit = _orbit(out, bundle, data, config, say)
 
     record = {
         "config": {k: v for k, v in asdict(config).items() if k != "progress"},
@@ -381,7 +407,7 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
                    "num_workers": config.num_workers, "batch_size": config.batch_size, "models": [list(k) for k in ds.keys],
                    "backgrounds": str(bg)},
         "outputs": {"grid": str(grid_path), "grid_clean": str(out / "samples_clean.png"), "batch": str(npz_path),
-                    "bundle": str(bundle), "data": str(data)},
+                    "bundle": str(bundle), "data": str(data), "orbit": orbit},
         "total_seconds": round(time.perf_counter() - t_start, 1),
     }  # fmt: skip
     (out / "demo.json").write_text(json.dumps(record, indent=1))

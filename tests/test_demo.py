@@ -15,7 +15,7 @@ from hogsa_loader.loader import is_synthetic
 CFG = dict(
     pairs=(("s01", "box"),), hogs_iters=6, hogs_image_size=64, hogs_frame_stride=4, contactnet_iters=10, bank_per_sequence=2,
     srm_iters=2, srm_crop=32, samples=8, batch_size=4, num_workers=0, render_batch=4, grid_rows=2, grid_cols=4,
-    progress=False,
+    orbit_views=4, orbit_size=32, progress=False,
 )
 
 
@@ -50,6 +50,9 @@ def test_demo_writes_grid_batch_and_record(demo):
     assert z["inputs/img"].shape == (4, 3, 224, 224)
     names = z["meta_info/imgname"].tolist()
     assert sum(is_synthetic(n) for n in names) == 2  # ratio 0.5 of a batch of 4
+    orbit = rec["outputs"]["orbit"]  # the 360° orbit of the first model, with and without SRM
+    assert cv2.imread(orbit["png"]) is not None and orbit["video"].endswith(".gif")
+    assert json.loads((out / "view" / "view.json").read_text())["orbits"]["s01"]["views"] == 4
 
 
 def test_demo_second_run_reuses_every_stage(demo):

@@ -646,6 +646,58 @@ def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
         assert must in differ, must
 
 
+def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypatch):
+    """resume=True keeps the sequences an interrupted call finished and renders the rest; the
+    finished ones are left as they were. A world recorded for another seed is rendered again.
+    (The sequence renderer is replaced by a cheap writer of the same files in the same
+    order; that a seed gives a byte-identical world is tested above.)"""
+    import hogsa_loader.world.writer as writer
+
+    preset = dataclasses.replace(_micro_preset(), subjects=(
+        SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),))
+    rendered: list[str] = []
+
+    def fake_render(data, preset, job, *args, frames=None):
+        rendered.append(job.plan.name)
+        sid, name = job.subject.sid, job.plan.name
+        for i in range(preset.num_frames if frames is None else frames):
+            stem = f"{i + job.subject.ioi_offset:05d}"
+            for v in range(9):
+                img = np.full((4, 4, 3), (i * 9 + v + 7 * len(name)) % 256, np.uint8)
+                for folder, ext, pix in (("cropped_images", "jpg", img), (writer.MASK_DIR, "png", img[..., 0])):
+                    path = data / folder / sid / name / str(v) / f"{stem}.{ext}"
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    cv2.imwrite(str(path), pix)
+
+    def interrupted(data, preset, job, *args):
+        if rendered:  # the first sequence finishes; the second stops half-way
+            fake_render(data, preset, job, frames=preset.num_frames // 2)
+            raise KeyboardInterrupt
+        fake_render(data, preset, job)
+
+    kw = dict(seed=7, progress=False, preview=False, process_splits=False)
+    out = tmp_path / "w"
+    monkeypatch.setattr(writer, "_render_sequence", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        generate_world(out, preset, **kw)
+    assert (out / writer.PARTIAL_RECORD).is_file()
+    first = {k: v for k, v in _hash_tree(out).items() if "box_use_01/" in k}
+    monkeypatch.setattr(writer, "_render_sequence", fake_render)
+    rendered.clear()
+    generate_world(out, preset, resume=True, **kw)
+    assert rendered == ["box_grab_01"]
+    assert not (out / writer.PARTIAL_RECORD).exists()
+    after = _hash_tree(out)
+    assert {k: after[k] for k in first} == first  # the finished sequence was kept as it was
+    grab = [k for k in after if "box_grab_01/" in k and k.startswith("arctic_data/data/cropped_images")]
+    assert len(grab) == 9 * preset.num_frames
+
+    (out / writer.PARTIAL_RECORD).write_text(json.dumps(writer._partial_fingerprint(preset, 8)))
+    rendered.clear()  # recorded for another seed: not resumed
+    generate_world(out, preset, resume=True, **kw)
+    assert rendered == ["box_use_01", "box_grab_01"]
+
+
 def test_cli_rejects_unknown_preset(tmp_path, capsys):
     from hogsa_loader.cli.main import main
 

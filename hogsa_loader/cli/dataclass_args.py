@@ -3,7 +3,8 @@
 A job's settings live in one dataclass whose fields are plain values or further
 dataclasses (groups). :func:`add_dataclass_arguments` adds one ``--flag`` per leaf field
 (``--group-field`` for a field of a group, an argparse group per dataclass group, help
-from the field's ``metadata["help"]``); :func:`dataclass_from_args` builds the config back
+from the field's ``metadata["help"]``, a flag that must be given where
+``metadata["required"]`` is true); :func:`dataclass_from_args` builds the config back
 from the parsed namespace. An option is therefore added in one place: its field.
 """
 
@@ -54,6 +55,10 @@ def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, 
                            help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})")
         return
     conv = kind if kind in (int, float, str) else str
+    if f.metadata.get("required"):  # no default: argparse reports the flag missing
+        group.add_argument(flag_name(path), dest=_dest(path), type=conv, required=True, choices=choices,
+                           metavar=None if choices else path[-1].upper(), help=f"{helptext} (required)")
+        return
     group.add_argument(flag_name(path), dest=_dest(path), type=conv, default=default, choices=choices,
                        metavar=None if choices else path[-1].upper(),
                        help=f"{helptext} (default: {default}{', optional' if optional else ''})")

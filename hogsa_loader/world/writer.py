@@ -64,6 +64,23 @@ def _write_json(path: Path, obj) -> None:
     path.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n", encoding="utf-8")
 
 
+def _same_world(record: dict, fingerprint: dict) -> bool:
+    return all(record.get(k) == v for k, v in fingerprint.items())
+
+
+def _write_json_atomic(path: Path, obj) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    _write_json(tmp, obj)
+    os.replace(tmp, path)
+
+
+def _read_json_or_none(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
 def _save_npy(path: Path, obj) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as fh:
@@ -176,9 +193,38 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
     return subjects, jobs
 
 
+PARTIAL_RECORD = ".hogsa_world_partial.json"
+
+
+def _partial_fingerprint(preset: WorldPreset, seed: int) -> dict:
+    """What a partly rendered world must match to be resumed: generators, preset and seed."""
+    from hogsa_loader.hands.synthetic import GENERATOR_VERSION
+
+    digest = zlib.crc32(repr(preset).encode("utf-8"))
+    return {"generator": GENERATOR, "hand_generator": GENERATOR_VERSION, "preset": preset.name,
+            "preset_crc32": int(digest), "seed": int(seed)}
+
+
+def _sequence_finished(data: Path, preset: WorldPreset, job, recorded: frozenset) -> bool:
+    """True when ``job`` is recorded as finished by this world's partial record and its last
+    image and mask decode (files are written frame by frame, views 0..8, image before mask)."""
+    sid, name = job.subject.sid, job.plan.name
+    if f"{sid}/{name}" not in recorded:
+        return False
+    stem = f"{preset.num_frames - 1 + job.subject.ioi_offset:05d}"
+    last_mask = data / MASK_DIR / sid / name / "8" / f"{stem}.png"
+    last_image = data / "cropped_images" / sid / name / "8" / f"{stem}.jpg"
+    return (last_mask.is_file() and last_image.is_file()
+            and cv2.imread(str(last_mask), cv2.IMREAD_UNCHANGED) is not None
+            and cv2.imread(str(last_image)) is not None)  # fmt: skip
+
+
 def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dict, templates: dict, stage: list,
-            progress: bool) -> list[dict]:
-    """Render every frame and view of every job; returns per-sequence records with quality."""
+            progress: bool, finished: frozenset = frozenset(),
+            on_finished: Optional[Callable[[str], None]] = None) -> list[dict]:
+    """Render every frame and view of every job (but the ``(sid, sequence)`` pairs in
+    ``finished``, already on disk; ``on_finished("sid/seq")`` after each rendered one);
+    returns per-sequence records with quality."""
     from tqdm import tqdm
 
     from hogsa_loader.world.cameras import AlloRig
@@ -206,11 +252,19 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
         colors = {side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=torch.float32)
                   for side in ("right", "left")}
         ego0 = mine[0].ego
-        renderer = SubjectRenderer(rig, ego0["intrinsics"].astype(np.float64), ego0["dist8"].astype(np.float64),
-                                   stage, hand_faces, colors, size, preset.ego_image_scale, preset.supersample)
+        renderer = None
         for job, p, bb in zip(mine, posed, boxes):
             bar.set_postfix_str(f"{sid}/{job.plan.name}")
-            _render_sequence(data, preset, job, p, bb, density, renderer, templates[job.plan.object], bar)
+            if (sid, job.plan.name) in finished:
+                bar.update(F * 9)
+            else:
+                if renderer is None:
+                    renderer = SubjectRenderer(rig, ego0["intrinsics"].astype(np.float64),
+                                               ego0["dist8"].astype(np.float64), stage, hand_faces, colors, size,
+                                               preset.ego_image_scale, preset.supersample)  # fmt: skip
+                _render_sequence(data, preset, job, p, bb, density, renderer, templates[job.plan.object], bar)
+                if on_finished is not None:
+                    on_finished(f"{sid}/{job.plan.name}")
             quality = sequence_quality(p.joints, {k: v.numpy() for k, v in p.hands.items()},
                                        job.obj_params.astype(np.float64), fit_part_boxes(templates[job.plan.object]))
             records.append({"sid": sid, "seq": job.plan.name, "object": job.plan.object, "action": job.plan.action,
@@ -251,7 +305,7 @@ def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: n
 
 def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
                    process_splits: bool = True, preview: bool = True,
-                   log: Optional[Callable[[str], None]] = None) -> dict:
+                   log: Optional[Callable[[str], None]] = None, resume: bool = False) -> dict:
     """Generate a world (see module docstring).
 
     Args:
@@ -263,6 +317,12 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
             (:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits`).
         preview: write ``world_preview.png``.
         log: optional line printer.
+        resume: keep the sequences that an interrupted call on ``out`` with the same preset,
+            seed and generators finished: ``out/.hogsa_world_partial.json`` records them, one
+            by one, while a world is being written (and is removed when it is complete); a
+            recorded sequence is kept when its last image and mask decode. Annotations,
+            splits and the preview are always rewritten. Without it, or when the record is
+            of another world, every sequence is rendered.
 
     Returns:
         the ``hogsa_world.json`` content.
@@ -279,6 +339,18 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     root = Path(os.path.abspath(out))
     data = root / "arctic_data" / "data"
 
+    partial = root / PARTIAL_RECORD
+    fingerprint = _partial_fingerprint(preset, seed)
+    old = _read_json_or_none(partial) if resume and partial.is_file() else None
+    done = sorted(old.get("finished", [])) if isinstance(old, dict) and _same_world(old, fingerprint) else []
+    progress_record = {**fingerprint, "finished": done}
+
+    def mark_finished(name: str) -> None:
+        progress_record["finished"] = sorted({*progress_record["finished"], name})
+        _write_json_atomic(partial, progress_record)
+
+    _write_json_atomic(partial, progress_record)
+
     t0 = time.perf_counter()
     models, templates, stage = _write_assets(root, preset, seed)
     kits = {side: HandKit(m) for side, m in models.items()}
@@ -290,8 +362,14 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     timings["motion_s"] = time.perf_counter() - t0
     say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
 
+    recorded = frozenset(done)
+    finished = frozenset((j.subject.sid, j.plan.name) for j in jobs if _sequence_finished(data, preset, j, recorded))
+    progress_record["finished"] = sorted(f"{sid}/{name}" for sid, name in finished)
+    _write_json_atomic(partial, progress_record)
+    if finished:
+        say(f"resuming: {len(finished)} of {len(jobs)} sequences already rendered")
     t0 = time.perf_counter()
-    records = _render(data, preset, jobs, models, kits, templates, stage, progress)
+    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, mark_finished)
     timings["render_s"] = time.perf_counter() - t0
 
     record = {
@@ -331,4 +409,5 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     timings["total_s"] = time.perf_counter() - t_start
     record["timings"] = {k: round(v, 2) for k, v in timings.items()}
     _write_json(data / "meta" / WORLD_META, record)
+    partial.unlink()
     return record
