@@ -147,6 +147,9 @@ class DownstreamConfig:
     low_data: float = field(default=0.25, metadata={"help": "real share of the low-data arms"})
     device: str = field(default="cpu", metadata={"help": "cpu or cuda"})
     threads: int = field(default=0, metadata={"help": "torch CPU threads (0: all available cores)"})
+    report_only: bool = field(default=False, metadata={
+        "help": "tables and figures of the finished runs only (partial results): no export, no training; needs "
+                "a finished setup"})
     setup: SetupSettings = field(default_factory=SetupSettings)
     synthetic: SyntheticSettings = field(default_factory=SyntheticSettings)
     model: ModelSettings = field(default_factory=ModelSettings)
@@ -414,6 +417,16 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
             "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
 
 
+def finished_run(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any],
+                 out: Path) -> Optional[dict[str, Any]]:
+    """The saved result of (arm, seed) when it was run with the current settings, else None."""
+    res_path = out / "runs" / arm / f"seed{seed}" / "result.json"
+    if not res_path.is_file():
+        return None
+    old = json.loads(res_path.read_text())
+    return old if old.get("key") == _key(run_settings(arm, seed, cfg, setup)) else None
+
+
 def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
     """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same settings."""
     from tqdm import tqdm
@@ -426,11 +439,11 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     settings = run_settings(arm, seed, cfg, setup)
     key = _key(settings)
     res_path = run_dir / "result.json"
+    old = finished_run(arm, seed, cfg, setup, out)
+    if old is not None:
+        _say(f"[{arm} seed {seed}] finished earlier: reused")
+        return old
     if res_path.is_file():
-        old = json.loads(res_path.read_text())
-        if old.get("key") == key:
-            _say(f"[{arm} seed {seed}] finished earlier: reused")
-            return old
         _say(f"[{arm} seed {seed}] settings changed since the saved result: run again")
     torch.manual_seed(seed)
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
@@ -628,13 +641,17 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     out = Path(cfg.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    previous = json.loads((out / "downstream.json").read_text()) if (out / "downstream.json").is_file() else {}
+    if cfg.report_only and cfg.setup.bundle is None and not (out / "setup" / "stages" / "bundle.json").is_file():
+        raise SystemExit(f"downstream: error: --report-only needs a finished setup in {out / 'setup'} "
+                         "(or --setup-data/--setup-bundle); nothing has been built yet")
     setup = build_setup(cfg, out)
     setup["fingerprint"] = setup_fingerprint(cfg, setup)
     skipped: dict[str, str] = {}
-    exports: dict[str, Any] = {}
+    exports: dict[str, Any] = dict(previous.get("exports", {})) if cfg.report_only else {}
     for arm in cfg.arms:
         variant = ARM_SPECS[arm][1]
-        if variant is None or variant in exports:
+        if cfg.report_only or variant is None or variant in exports:
             continue
         if variant_options(variant, cfg, setup) is None:
             skipped[arm] = "no free-3DGS bundle given (--setup-free-bundle)"
@@ -645,6 +662,11 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     for seed in cfg.seeds:  # seeds outermost: every arm has a result early in a long run
         for arm in cfg.arms:
             if arm in skipped:
+                continue
+            if cfg.report_only:
+                done = finished_run(arm, seed, cfg, setup, out)
+                if done is not None:
+                    results.setdefault(arm, {})[seed] = done
                 continue
             results.setdefault(arm, {})[seed] = run_arm(arm, seed, cfg, setup, out)
     agg = aggregate(results)

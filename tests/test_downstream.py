@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -151,3 +152,19 @@ def test_aggregate_means_stds_and_paired_differences(tmp_path):
     assert "no free-3DGS bundle" in md and "| hogsa - real | -2.00, -1.00, -2.00 | -1.67 ± 0.58 |" in md
     ds.plot(results, agg, tmp_path / "d.png")
     assert (tmp_path / "d.png").stat().st_size > 10_000
+
+
+def test_finished_runs_are_found_only_with_their_settings(tmp_path):
+    """``--report-only`` tabulates the runs whose saved key matches the current settings."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
+    assert ds.finished_run("real", 0, cfg, setup, tmp_path) is None  # never run
+    res = tmp_path / "runs" / "real" / "seed0" / "result.json"
+    res.parent.mkdir(parents=True)
+    res.write_text(json.dumps({"key": ds._key(ds.run_settings("real", 0, cfg, setup)), **_result(30.0, 50.0)}))
+    assert ds.finished_run("real", 0, cfg, setup, tmp_path)["summary"]["mpjpe/ra/h"] == 30.0
+    assert ds.finished_run("real", 0, cfg, dict(setup, fingerprint="f1"), tmp_path) is None  # setup rebuilt
+    longer = ds.replace(cfg, train=ds.replace(cfg.train, steps=cfg.train.steps + 1))
+    assert ds.finished_run("real", 0, longer, setup, tmp_path) is None
+    assert ds.finished_run("real", 1, cfg, setup, tmp_path) is None
