@@ -177,12 +177,9 @@ def classifier_accuracy(a: tuple[torch.Tensor, torch.Tensor], b: tuple[torch.Ten
 
 def to_uint8(imgs: torch.Tensor) -> np.ndarray:
     """Normalised (N, 3, R, R) → (N, R, R, 3) uint8 RGB."""
-    from hogsa_loader.datasets.augment import ArcticConfig
+    from hogsa_loader.loader.viz import input_image
 
-    c = ArcticConfig()
-    mean = torch.tensor(c.img_norm_mean)[:, None, None]
-    std = torch.tensor(c.img_norm_std)[:, None, None]
-    return ((imgs * std + mean).clamp(0, 1) * 255).round().byte().permute(0, 2, 3, 1).numpy()
+    return np.stack([input_image(im) for im in imgs])
 
 
 def image_statistics(imgs: torch.Tensor) -> dict[str, float]:

@@ -573,6 +573,12 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
             continue
         parts = rec.get("parts") if isinstance(rec.get("parts"), dict) else {}
         ok = True
+        escaping = [f"{rec['path']}/{sub}/{f}" for sub, files in
+                    [(p, (MANIFEST_FILE, TENSORS_FILE)) for p in _PARTS] + [(light_dir, tuple(light_files.values()))]
+                    for f in files if (run / sub / f).exists() and _inside(path, f"{rec['path']}/{sub}/{f}") is None]
+        if escaping:  # e.g. a part folder that is a symbolic link out of the bundle
+            problems.append(f"{what}: {escaping[0]} leads out of the bundle")
+            continue
         for part in _PARTS:
             folder = run / part
             if not (folder / MANIFEST_FILE).is_file():

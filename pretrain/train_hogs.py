@@ -147,11 +147,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         trainer = HogsTrainer(cfg, progress=not quiet)
         if resume and trainer.resume() and not quiet:
             print(f"resumed {cfg.out} at step {trainer.step}")
-        m = trainer.train(overwrite=overwrite)
     except (HogsaError, OSError) as exc:  # files: exit status 1 (a usage error: 2)
         return checks.report("train_hogs", exc)
-    except ValueError as exc:  # a setting the trainer refused
+    except ValueError as exc:  # a setting the trainer refused (errors during training are not usage errors)
         return checks.report("train_hogs", UsageError(str(exc)))
+    try:
+        m = trainer.train(overwrite=overwrite)
+    except (HogsaError, OSError) as exc:
+        return checks.report("train_hogs", exc)
     if not quiet:
         print(json.dumps({k: m[k] for k in ("psnr", "ssim", "iters")} | {"s_per_iter": m["timings"]["s_per_iter"]}))
     return 0

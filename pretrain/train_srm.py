@@ -117,11 +117,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 print(f"train_srm: resumed {cfg.out} at step {trainer.step}", file=sys.stderr)
             else:
                 print(f"train_srm: nothing to resume in {cfg.out}; starting fresh", file=sys.stderr)
+    except (HogsaError, OSError) as exc:
+        return checks.report("train_srm", exc)
+    except ValueError as exc:  # a setting the trainer refused (errors during training are not usage errors)
+        return checks.report("train_srm", UsageError(str(exc)))
+    try:
         m = trainer.train(overwrite=a.overwrite)
     except (HogsaError, OSError) as exc:
         return checks.report("train_srm", exc)
-    except ValueError as exc:  # a setting the trainer refused
-        return checks.report("train_srm", UsageError(str(exc)))
     if m["selection"]:
         b = m["selection"]["best"]
         print(f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "

@@ -139,6 +139,24 @@ def test_moved_run_folder_resumes(tiny_world, hogs_run, tmp_path):
 
 
 # ---------------------------------------------------------------------------- convert-mano
+def test_convert_mano_dangling_link_destination_and_finite_numbers(mano_dir, tmp_path):
+    """A destination that is a dangling symbolic link is an existing file (not a crash), and
+    numeric flags refuse infinity."""
+    import argparse
+
+    from hogsa_loader.cli import checks
+    from hogsa_loader.hands.mano_io import convert_mano_to_npz
+
+    dst = tmp_path / "out.npz"
+    dst.symlink_to(tmp_path / "nowhere.npz")
+    with pytest.raises(AssetError, match="already exists"):
+        convert_mano_to_npz(mano_dir / "MANO_RIGHT.pkl", dst)
+    for bad in ("inf", "-inf", "nan", "0"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            checks.positive_float(bad)
+    assert checks.positive_float("1e-3") == 1e-3
+
+
 def test_convert_mano_never_replaces_its_source_or_leaves_temporaries(mano_dir, tmp_path, capsys):
     from hogsa_loader.cli.main import main
     from hogsa_loader.hands.mano_io import convert_mano_to_npz
@@ -297,6 +315,15 @@ def test_bundle_paths_are_confined(untrained_bundle, tmp_path):
     (b3 / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(AssetError, match="not a relative path inside the bundle"):
         load_bundle(b3)
+    # a part folder that is a symbolic link out of the bundle (its files copied outside)
+    b4 = _edit_bundle(untrained_bundle, tmp_path / "b4", lambda man: None)
+    man = json.loads((b4 / "manifest.json").read_text())
+    part = b4 / man["hogs"][0]["path"] / "hand_right"
+    outside = tmp_path / "outside_part"
+    shutil.move(str(part), str(outside))
+    part.symlink_to(outside, target_is_directory=True)
+    with pytest.raises(AssetError, match="leads out of the bundle"):
+        load_bundle(b4)
 
 
 def test_bundle_manifest_with_nan_is_an_asset_error(untrained_bundle, tmp_path):

@@ -19,6 +19,7 @@ status (2 for a usage error, 1 for a problem met while working).
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -75,8 +76,11 @@ def non_negative_int(text: str) -> int:
 
 
 def positive_float(text: str) -> float:
-    """argparse ``type=``: a finite-or-infinite number > 0 (not NaN)."""
-    return float(_number(text, float, 0.0, strict=True))
+    """argparse ``type=``: a finite number > 0."""
+    value = float(_number(text, float, 0.0, strict=True))
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
 
 
 def non_negative_float(text: str) -> float:

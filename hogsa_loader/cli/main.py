@@ -217,16 +217,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_view(args: argparse.Namespace) -> int:
     from hogsa_loader.cli.dataclass_args import dataclass_from_args
-    from hogsa_loader.view.config import ViewConfig, ViewError, check_view_config
+    from hogsa_loader.view.config import ViewConfig, check_view_config
     from hogsa_loader.view.job import run_view
+
+    from hogsa_loader.cli import checks
+    from hogsa_loader.errors import HogsaError
 
     cfg = dataclass_from_args(ViewConfig, args)
     try:
         check_view_config(cfg)
         run_view(cfg, log=None if cfg.quiet else print)
-    except ViewError as exc:
-        print(f"hogsa view: error: {exc}", file=sys.stderr)
-        return 2
+    except (HogsaError, OSError) as exc:  # ViewError is a usage error (exit status 2), a bad file 1
+        return checks.report("hogsa view", exc)
     return 0
 
 

@@ -653,7 +653,7 @@ def check_npz_destination(src: PathLike, dst: PathLike, overwrite: bool = False)
     if os.path.isdir(out):
         raise AssetError(out, "is a folder; give the .npz file to write")
     if os.path.lexists(out):
-        if os.path.exists(src) and os.path.samefile(src, out):
+        if os.path.exists(src) and os.path.exists(out) and os.path.samefile(src, out):
             raise AssetError(out, "is the source model itself")
         if not overwrite:
             raise AssetError(out, "already exists (overwrite=True, or hogsa convert-mano --overwrite, replaces it)")

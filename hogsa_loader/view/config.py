@@ -11,12 +11,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
+from hogsa_loader.errors import UsageError
+
 __all__ = ["ViewConfig", "ViewError", "check_view_config", "parse_item"]
 
 _ITEM = re.compile(r"^(?P<name>[^:]+):(?P<index>-?\d+)$")
 
 
-class ViewError(ValueError):
+class ViewError(UsageError):
     """A ``hogsa view`` request that cannot be served (reported as one line)."""
 
 
@@ -99,6 +101,9 @@ def check_view_config(cfg: ViewConfig) -> None:
         raise ViewError(f"--data {cfg.data}: no such folder")
     if Path(cfg.out).exists() and not Path(cfg.out).is_dir():  # type: ignore[arg-type]
         raise ViewError(f"--out {cfg.out} exists and is not a folder")
+    from hogsa_loader.cli.checks import output_dir
+
+    output_dir(cfg.out, "--out")  # type: ignore[arg-type]  # writable (UsageError otherwise)
     for v in cfg.frame:
         parse_item(v, "--frame", "SEQ:IDX (e.g. box_grab_01:30)")
     for v in cfg.pose_bank:
