@@ -248,6 +248,10 @@ def test_view_writes_orbits_grid_and_record(view_run):
 
         frames = iio.imread(orb["video"], index=None)
         assert frames.shape[:3] == (4, 32, 64)  # HOGS | HOGS + SRM side by side
+        hogs, srm = frames[..., :32, :3].astype(float), frames[..., 32:, :3].astype(float)
+        # every view shows something different (the camera moves), and the SRM changes the pixels
+        assert min(np.abs(hogs[i] - hogs[j]).mean() for i in range(4) for j in range(i + 1, 4)) > 0.5
+        assert np.abs(hogs - srm).mean() > 0.5
     grid = cv2.imread(str(out / "transfer.png"))
     assert grid is not None and grid.shape[0] > 4 * 32 and grid.shape[1] > 2 * 32  # 2 poses x (HOGS, SRM) x 2 subjects
     assert [p["kind"] for p in rec["poses"]] == ["frame", "pose_bank"]
@@ -260,6 +264,7 @@ def test_view_reports_the_transferred_grasps(view_run):
         assert (t["from"], t["to"]) == ("s01", "s05")
         for stage in ("source", "aligned", "transferred"):
             assert t[stage]["penetration_depth_mm"] >= 0.0 and t[stage]["intersection_cm3"] >= 0.0
+        assert all(np.isfinite(t[stage]["penetration_depth_mm"]) for stage in ("source", "aligned", "transferred"))
 
 
 def test_view_without_transfer_or_srm(two_subject_bundle, tiny_world, tmp_path):
