@@ -210,6 +210,12 @@ class Notes:
             self.patches.append({"what": what, "how": how, "why": why})
 
 
+
+def _ordered_union(groups: Any) -> list[str]:
+    """The keys of several mappings, each once, in order of first appearance."""
+    return list(dict.fromkeys(k for g in groups for k in g))
+
+
 def plan_packages(importable: Mapping[str, bool], checks: Sequence[str]) -> tuple[list[str], list[str]]:
     """Which stubs to inject and which pip packages are missing for ``checks``.
 
@@ -1607,9 +1613,7 @@ def format_dataset(res: Mapping[str, Any]) -> str:
             if k["arctic_only"] or k["ours_only"] or not k["same_order"]:
                 lines.append(f"  {n} {g}: ARCTIC only {k['arctic_only']}, ours only {k['ours_only']}, "
                              f"same order {k['same_order']}")
-    names: list[str] = []
-    for r in runs.values():
-        names += [f for f in r["fields"] if f not in names]
+    names = _ordered_union(r["fields"] for r in runs.values())
     rows = []
     for f in names:
         first = next(r["fields"][f] for r in runs.values() if f in r["fields"])
@@ -1677,9 +1681,7 @@ def format_processing(res: Mapping[str, Any]) -> str:
         lines.append(table(["split", "images arctic/ours", "names equal", "sequences equal", "ok"],
                            [[n, f"{s['num_images'][0]}/{s['num_images'][1]}", str(s["imgnames_equal"]),
                              str(s["sequences_equal"]), "PASS" if s["ok"] else "FAIL"] for n, s in good.items()]))
-        keys: list[str] = []
-        for s in good.values():
-            keys += [k for k in s["keys"] if k not in keys]
+        keys = _ordered_union(s["keys"] for s in good.values())
         rows = []
         for k in keys:
             first = next(s["keys"][k] for s in good.values() if k in s["keys"])
