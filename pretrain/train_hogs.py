@@ -27,7 +27,8 @@ import sys
 from typing import Optional, Sequence
 
 from hogsa_loader.cli import checks
-from hogsa_loader.errors import HogsaError, UsageError
+from hogsa_loader.errors import AssetError, HogsaError, UsageError
+from hogsa_loader.objects.h2o_meshes import find_h2o_mesh
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.run_folder import check_run_folder
 
@@ -135,6 +136,11 @@ def check_args(cfg: HogsConfig) -> None:
     for flag, path in (("--mano-dir", cfg.mano_dir), ("--object-mesh-dir", cfg.object_mesh_dir)):
         if path is not None:
             checks.input_dir(path, flag)
+    if cfg.dataset == "h2o" and cfg.object_mesh_dir is not None:
+        try:
+            find_h2o_mesh(cfg.object_mesh_dir, cfg.object)
+        except AssetError as exc:
+            raise UsageError(f"--object-mesh-dir {exc}") from exc
     checks.output_dir(cfg.out, "--out")
     check_run_folder(cfg.out, resume=cfg.resume, overwrite=cfg.overwrite)  # type: ignore[attr-defined]
 

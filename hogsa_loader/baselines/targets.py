@@ -165,6 +165,7 @@ def prepare_targets(
     object_layer: ArticulatedObjectLayer,
     img_res: int = 224,
     max_dist: float = math.inf,
+    interfield: bool = True,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Add ArcticNet-SF's patch-camera 3D targets to a collated batch (see module doc).
 
@@ -178,6 +179,10 @@ def prepare_targets(
             :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
         img_res: patch side (px) of the normalised 2D labels.
         max_dist: clamp of the ``dist.*`` targets (ArcticNet-SF: none).
+        interfield: add the ``dist.*`` / ``idx.*`` targets (nearest hand-object
+            vertex distances). ARCTIC prepares them for every model; ArcticNet-SF's loss
+            and metrics never read them, and on a CPU they cost more than the whole
+            training step, so its training loop turns them off.
 
     Returns:
         new ``(targets, meta_info)`` dicts: targets gain ``mano.cam_t.{r,l}``,
@@ -186,7 +191,7 @@ def prepare_targets(
         ``object.kp3d.cam`` (B, 32, 3), ``object.bbox3d.cam`` (B, 16, 3), ``object.v.cam``
         (B, L, 3), ``object.v_len`` (B,), ``object.f``, ``object.f_len``,
         ``object.parts_ids`` (B, L), ``dist.{ro,lo}`` (B, V), ``dist.{or,ol}`` (B, L) and
-        the matching ``idx.*``; meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
+        the matching ``idx.*`` (with ``interfield``); meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
     """
     t, meta = dict(targets), dict(meta_info)
     with torch.no_grad():
@@ -223,5 +228,6 @@ def prepare_targets(
         t["object.v.cam"] = obj["v"].to(dtype) + transl[:, None]
         for key in ("v_len", "f", "f_len", "parts_ids"):
             t[f"object.{key}"] = obj[key]
-        _interfield(t, max_dist)
+        if interfield:
+            _interfield(t, max_dist)
     return t, meta
