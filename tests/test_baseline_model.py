@@ -423,11 +423,11 @@ def test_prepare_targets_interaction_field(world, prepared) -> None:
     assert t["dist.ro"].shape == t["mano.v3d.cam.r"].shape[:2] and t["dist.or"].shape == (3, L)
 
 
-def test_prepare_targets_without_interaction_field_keeps_every_other_target(world, prepared) -> None:
+def test_prepare_targets_hand_field_only_keeps_every_other_target(world, prepared) -> None:
     targets, meta, _, t, _ = prepared
-    t2, _ = prepare_targets(targets, meta, world["mano"]["r"], world["mano"]["l"], world["objects"], interfield=False)
-    field = {k for k in t if k.startswith(("dist.", "idx."))}
-    assert len(field) == 8 and not field & set(t2) and set(t2) == set(t) - field
+    t2, _ = prepare_targets(targets, meta, world["mano"]["r"], world["mano"]["l"], world["objects"], field="hands")
+    dropped = {f"{k}.{d}" for k in ("dist", "idx") for d in ("or", "ol")}
+    assert dropped <= set(t) and set(t2) == set(t) - dropped
     for k in t2:
         if isinstance(t2[k], torch.Tensor):
             torch.testing.assert_close(t2[k], t[k], atol=0, rtol=0, msg=k)

@@ -38,14 +38,19 @@ Differences from ARCTIC, on purpose:
 * the ego box and ego validity region use ``ego_image_size`` (ARCTIC hard-codes 2800×2000,
   the default), so generated worlds can declare theirs in ``meta/hogsa_world.json``.
 
-Precision is ARCTIC's: cameras are rounded to float32, the MANO and object layers run in
-float32, points are moved and projected in float32 (batched homogeneous 4×4 and 3×3
-products, then a division), the ego distortion runs in float64 on the float32 points, and
-the allocentric box and the validity regions are float32 with ARCTIC's order of
-operations. The training dataset truncates 2D labels to integer pixels, so a label that
-float64 geometry would put at 52.999997 px instead of ARCTIC's 53.000005 px lands one
-pixel off. Camera-frame rotations (``rot_*_cam``) are computed in float64 from the float32
-cameras.
+Precision is ARCTIC's, bit for bit: the world-frame points and the camera-frame rotations
+are computed in float32 in the same order as ARCTIC's processing so that values match it
+bit for bit (:mod:`hogsa_loader.datasets.arctic_float32`: smplx's MANO ``lbs``,
+``ObjectTensors``' quaternions on ``float32(mm) / 1000`` templates, ``transform_mano_rot_cam``),
+in batches of ARCTIC's 320 frames; cameras are rounded to float32, points are moved and
+projected in float32 (batched homogeneous 4×4 and 3×3 products, then a division), the ego
+distortion runs in float64 on the float32 points, and the allocentric box and the validity
+regions are float32 with ARCTIC's order of operations. The training dataset truncates 2D
+labels to integer pixels, so a label that float64 geometry would put at 52.999997 px
+instead of ARCTIC's 53.000005 px lands one pixel off. The shared MANO and object layers
+(float32 or float64 ``MANOLayer`` / ``ArticulatedObjectLayer``) are only read here (their
+buffers, the part masks); a sequence that was not read from a root with the layer's
+template files is posed from the layer's float32 metres.
 
 Split image names are numbered as ARCTIC's ``build_split`` numbers them: file numbers
 ``margin .. F − margin − 1``, whatever the subject's ``ioi_offset``. The dataset reads the
@@ -56,6 +61,8 @@ labels of ARCTIC's released split files (whose first image is ``…/00010.jpg``)
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
@@ -63,6 +70,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 import torch
 
+from hogsa_loader.datasets import arctic_float32 as a32
 from hogsa_loader.datasets.arctic import ArcticRoot, canonical_split, protocol_views
 from hogsa_loader.datasets.conventions import (
     ALLO_VIEWS,
@@ -73,7 +81,6 @@ from hogsa_loader.datasets.conventions import (
 )
 from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.errors import AssetError, PathLike
-from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 __all__ = [
     "FRAME_MARGIN",
@@ -88,8 +95,9 @@ __all__ = [
 FRAME_MARGIN = 10
 #: Keys of a processed sequence kept in the split files (``--request_keys``).
 REQUEST_KEYS: tuple[str, ...] = ("cam_coord", "2d", "bbox", "params")
-#: Frames posed per batch (bounds memory: ~10 views × object vertices × float64).
-CHUNK_FRAMES = 128
+#: Frames posed per batch: ARCTIC's ``DataLoader`` batch (``construct_loader``,
+#: batch_size=320). Equal values need equal batches (see :mod:`.arctic_float32`).
+CHUNK_FRAMES = 320
 
 _POINT_KEYS = ("joints.right", "joints.left", "kp3d", "bbox3d")
 _VERT_KEYS = ("verts.right", "verts.left", "verts.object")
@@ -125,40 +133,71 @@ def _pose_chunk(
     seq: SequenceData,
     sl: slice,
     mano_layers: Mapping[str, Any],
-    object_layer: Any,
+    obj: a32.ObjectTensors32,
 ) -> dict[str, torch.Tensor]:
-    """World-frame points of frames ``sl``, float32: joints (n,21,3), kp3d, bbox3d, verts."""
+    """World-frame points of frames ``sl``, float32: joints (n,21,3), kp3d, bbox3d, verts.
+
+    Posed with ARCTIC's float32 arithmetic (:mod:`.arctic_float32`) on float32 inputs, as
+    ARCTIC's loader gives them (``obj_trans`` in mm).
+    """
     out: dict[str, torch.Tensor] = {}
     for side, hand in (("right", seq.right), ("left", seq.left)):
         layer = mano_layers[side]
-        dt = layer.v_template.dtype
-
-        def t(a: np.ndarray) -> torch.Tensor:  # float32 values, as ARCTIC's inputs
-            return _f32(a).to(dt)
-
+        if layer.v_template.dtype != torch.float32:  # ARCTIC's layer holds float32 buffers
+            layer = copy.deepcopy(layer).float()
         n = hand.rot[sl].shape[0]
-        betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float64).reshape(1, -1), (n, hand.betas.size))
-        res = layer(global_orient=t(hand.rot[sl]), hand_pose=t(hand.pose[sl]), betas=t(betas), transl=t(hand.trans[sl]))
-        out[f"joints.{side}"] = res.joints.float()
-        out[f"verts.{side}"] = res.vertices.float()
-    obj = seq.object
-    n = obj.rot[sl].shape[0]
-    if obj.name not in object_layer.name_to_index:
-        where: PathLike = obj.name
-        if seq.root is not None:
-            where = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / obj.name
-        raise AssetError(where, f"no template for object '{obj.name}' (sequence {seq.subject}/{seq.name}; "
-                                f"known: {object_layer.names})")
-    res = object_layer(
-        angles=_f32(obj.arti[sl]).reshape(n, 1),
-        global_orient=_f32(obj.rot[sl]),
-        transl=_f32(obj.trans[sl]),
-        names=[obj.name] * n,
-    )
-    out["kp3d"] = res["kp3d"].float()
-    out["bbox3d"] = res["bbox3d"].float()
-    out["verts.object"] = res["v"].float()
+        betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float32).reshape(1, -1), (n, hand.betas.size))
+        verts, joints = a32.mano_forward(layer, _f32(hand.rot[sl]), _f32(hand.pose[sl]), _f32(betas),
+                                         _f32(hand.trans[sl]))
+        out[f"joints.{side}"] = joints
+        out[f"verts.{side}"] = verts
+    o = seq.object
+    res = a32.object_forward(obj, _f32(o.arti[sl]), _f32(o.rot[sl]), _f32(o.trans[sl] * 1000.0))
+    out["kp3d"] = res["kp3d"]
+    out["bbox3d"] = res["bbox3d"]
+    out["verts.object"] = res["v"]
     return out
+
+
+@functools.lru_cache(maxsize=32)
+def _template_mm(folder: str, stamp: tuple[int, ...]) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``mesh.obj`` vertices, keypoints and box corners of a template folder, mm (cached per mtime)."""
+    from hogsa_loader.errors import read_json
+    from hogsa_loader.objects.template import MESH_FILE, PARAMS_FILE, _points, _read_obj
+
+    path = Path(folder)
+    try:
+        verts = np.asarray(_read_obj(path / MESH_FILE).vertices, dtype=np.float64)
+        params = read_json(path / PARAMS_FILE)
+        kp = np.concatenate([_points(params[k], path, k, None) for k in ("keypoints_top", "keypoints_bottom")])
+        bbox = np.concatenate([_points(params[k], path, k, None) for k in ("bbox_top", "bbox_bottom")])
+    except (AssetError, KeyError, TypeError, ValueError):
+        return None
+    return verts, kp, bbox
+
+
+def _object_tensors(seq: SequenceData, object_layer: Any) -> a32.ObjectTensors32:
+    """The sequence's object as ARCTIC's ``ObjectTensors`` holds it.
+
+    From the template files' millimetres when the sequence was read from a root whose
+    template is the layer's (bit-equal to ARCTIC); otherwise the layer's float32 metres.
+    """
+    name = seq.object.name
+    if name not in object_layer.name_to_index:
+        where: PathLike = name
+        if seq.root is not None:
+            where = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / name
+        raise AssetError(where, f"no template for object '{name}' (sequence {seq.subject}/{seq.name}; "
+                                f"known: {object_layer.names})")
+    if seq.root is not None:
+        folder = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / name
+        files = [folder / "mesh.obj", folder / "object_params.json"]
+        if all(f.is_file() for f in files):
+            mm = _template_mm(str(folder), tuple(f.stat().st_mtime_ns for f in files))
+            obj = a32.ObjectTensors32.from_mm(object_layer, name, *mm) if mm is not None else None
+            if obj is not None:
+                return obj
+    return a32.ObjectTensors32.from_layer(object_layer, name)
 
 
 def _to_camera(world2cam: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -236,10 +275,13 @@ def _centroid(v2d: np.ndarray) -> np.ndarray:
 
 
 def _rot_cam(world2cam: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """Axis-angle of ``R_world2cam · R(rotvec)``: (n,9,4,4), (n,3) → (n,9,3)."""
-    Rg = axis_angle_to_matrix(torch.as_tensor(rotvec, dtype=torch.float64))[:, None]
-    Rc = torch.as_tensor(world2cam[..., :3, :3], dtype=torch.float64)
-    return matrix_to_axis_angle(Rc @ Rg).numpy()
+    """Axis-angle of ``R_world2cam · R(rotvec)``: (n,9,4,4) float32, (n,3) → (n,9,3) float32.
+
+    ARCTIC's ``transform_mano_rot_cam`` per view, in float32 quaternions.
+    """
+    rv = _f32(rotvec)
+    views = [a32.rot_to_camera(rv, _f32(world2cam[:, v])) for v in range(world2cam.shape[1])]
+    return torch.stack(views, dim=1).numpy()
 
 
 def process_sequence(
@@ -274,6 +316,7 @@ def process_sequence(
     world2cam, K, dist = (a.astype(np.float32) for a in (world2cam, K, dist))  # ARCTIC's FloatTensors
     keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
     ego_box = ego_bbox(tuple(ego_image_size)).astype(np.float32)
+    obj = _object_tensors(seq, object_layer)
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
 
     def push(group: str, key: str, value: np.ndarray) -> None:
@@ -283,7 +326,7 @@ def process_sequence(
         for start in range(0, F, max(1, chunk_frames)):
             sl = slice(start, min(F, start + max(1, chunk_frames)))
             w2c = world2cam[sl]
-            world = _pose_chunk(seq, sl, mano_layers, object_layer)
+            world = _pose_chunk(seq, sl, mano_layers, obj)
             cam, p2d = {}, {}
             for key, pts in world.items():
                 if key in keep or key == "verts.object":  # object verts: needed for bbox/flags
@@ -297,7 +340,7 @@ def process_sequence(
             for key, rot in rots.items():
                 push("world_coord", key, rot.astype(np.float32))
             for key, rot in rots.items():
-                push("cam_coord", f"{key}_cam", _rot_cam(w2c, rot).astype(np.float32))
+                push("cam_coord", f"{key}_cam", _rot_cam(w2c, rot))
             is_valid, right_valid, left_valid = flags
             push("cam_coord", "is_valid", is_valid.astype(np.int64))
             push("cam_coord", "left_valid", left_valid.astype(np.int64))
