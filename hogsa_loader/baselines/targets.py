@@ -19,9 +19,11 @@ the loss compares with the network outputs, in the patch camera:
 from __future__ import annotations
 
 import math
-from typing import Any, Literal, Mapping, Optional
+from typing import Any, Mapping, Optional
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hogsa_loader.baselines.arcticnet_sf import (
@@ -105,36 +107,40 @@ def nearest_distances(
 ) -> tuple[Tensor, Tensor]:
     """For every valid point of ``src``: distance to and index of its nearest valid ``dst`` point.
 
+    Exact nearest neighbours from a k-d tree (scipy) per frame, in float64 on the host:
+    brute-force distances cost O(N·M) per frame, which on a CPU outweighs the model's
+    whole training step for a few thousand object vertices.
+
     Args:
         src: (B, N, 3); dst: (B, M, 3) points (zero-padded).
         src_len, dst_len: (B,) numbers of valid points (None = all).
 
     Returns:
-        dist (B, N) and idx (B, N) int64; entries of padded ``src`` points are 0.
+        dist (B, N) and idx (B, N) int64 on ``src``'s device; entries of padded ``src``
+        points are 0.
     """
     B, N = src.shape[:2]
-    dist = src.new_zeros(B, N)
-    idx = torch.zeros(B, N, dtype=torch.long, device=src.device)
+    dist = np.zeros((B, N), dtype=np.float64)
+    idx = np.zeros((B, N), dtype=np.int64)
     ns = [N] * B if src_len is None else src_len.tolist()
     ms = [dst.shape[1]] * B if dst_len is None else dst_len.tolist()
-    for b in range(B):
-        n, m = int(ns[b]), int(ms[b])
+    a = src.detach().to("cpu", torch.float64).numpy()
+    b = dst.detach().to("cpu", torch.float64).numpy()
+    for k in range(B):
+        n, m = int(ns[k]), int(ms[k])
         if n == 0 or m == 0:
             continue
-        d = torch.cdist(src[b, :n], dst[b, :m], compute_mode="donot_use_mm_for_euclid_dist")
-        dist[b, :n], idx[b, :n] = d.min(dim=1)
-    return dist, idx
+        dist[k, :n], idx[k, :n] = cKDTree(b[k, :m]).query(a[k, :n], k=1)
+    return torch.from_numpy(dist).to(src.device, src.dtype), torch.from_numpy(idx).to(src.device)
 
 
-def _interfield(t: dict[str, Tensor], max_dist: float, both: bool = True) -> None:
-    """Add ``dist.{ro,lo}`` (and with ``both`` ``dist.{or,ol}``) and ``idx.*`` to ``t`` (clamped to [0, max_dist])."""
+def _interfield(t: dict[str, Tensor], max_dist: float) -> None:
+    """Add ``dist.{ro,lo,or,ol}`` and ``idx.*`` to ``t`` (clamped to [0, max_dist])."""
     v_o, v_len = t["object.v.cam"], t["object.v_len"]
     for s in ("r", "l"):
         v_h = t[f"mano.v3d.cam.{s}"]
         d, i = nearest_distances(v_h, v_o, None, v_len)
         t[f"dist.{s}o"], t[f"idx.{s}o"] = d.clamp(0.0, max_dist), i
-        if not both:
-            continue
         d, i = nearest_distances(v_o, v_h, v_len, None)
         t[f"dist.o{s}"], t[f"idx.o{s}"] = d.clamp(0.0, max_dist), i
 
@@ -167,7 +173,6 @@ def prepare_targets(
     object_layer: ArticulatedObjectLayer,
     img_res: int = 224,
     max_dist: float = math.inf,
-    field: Literal["both", "hands"] = "both",
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Add ArcticNet-SF's patch-camera 3D targets to a collated batch (see module doc).
 
@@ -181,10 +186,6 @@ def prepare_targets(
             :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
         img_res: patch side (px) of the normalised 2D labels.
         max_dist: clamp of the ``dist.*`` targets (ArcticNet-SF: none).
-        field: which nearest-vertex targets to add: ``"both"`` directions (as ARCTIC
-            prepares for every model) or only ``"hands"`` (``dist.{ro,lo}``,
-            ``idx.{ro,lo}``: all that ArcticNet-SF's contact-deviation loss reads; the
-            object-to-hand half costs as much again on a CPU).
 
     Returns:
         new ``(targets, meta_info)`` dicts: targets gain ``mano.cam_t.{r,l}``,
@@ -192,8 +193,8 @@ def prepare_targets(
         ``object.cam_t.kp3d.b``, ``mano.v3d.cam.{r,l}`` (B, V, 3), ``mano.j3d.cam.{r,l}``,
         ``object.kp3d.cam`` (B, 32, 3), ``object.bbox3d.cam`` (B, 16, 3), ``object.v.cam``
         (B, L, 3), ``object.v_len`` (B,), ``object.f``, ``object.f_len``,
-        ``object.parts_ids`` (B, L), ``dist.{ro,lo}`` (B, V), ``dist.{or,ol}`` (B, L; only
-        with ``field="both"``) and the matching ``idx.*``; meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
+        ``object.parts_ids`` (B, L), ``dist.{ro,lo}`` (B, V), ``dist.{or,ol}`` (B, L) and
+        the matching ``idx.*``; meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
     """
     t, meta = dict(targets), dict(meta_info)
     with torch.no_grad():
@@ -230,5 +231,5 @@ def prepare_targets(
         t["object.v.cam"] = obj["v"].to(dtype) + transl[:, None]
         for key in ("v_len", "f", "f_len", "parts_ids"):
             t[f"object.{key}"] = obj[key]
-        _interfield(t, max_dist, both=field == "both")
+        _interfield(t, max_dist)
     return t, meta
