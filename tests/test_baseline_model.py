@@ -423,6 +423,16 @@ def test_prepare_targets_interaction_field(world, prepared) -> None:
     assert t["dist.ro"].shape == t["mano.v3d.cam.r"].shape[:2] and t["dist.or"].shape == (3, L)
 
 
+def test_prepare_targets_hand_field_only_keeps_every_other_target(world, prepared) -> None:
+    targets, meta, _, t, _ = prepared
+    t2, _ = prepare_targets(targets, meta, world["mano"]["r"], world["mano"]["l"], world["objects"], field="hands")
+    dropped = {f"{k}.{d}" for k in ("dist", "idx") for d in ("or", "ol")}
+    assert dropped <= set(t) and set(t2) == set(t) - dropped
+    for k in t2:
+        if isinstance(t2[k], torch.Tensor):
+            torch.testing.assert_close(t2[k], t[k], atol=0, rtol=0, msg=k)
+
+
 def test_prepare_targets_follow_the_rotation_augmentation(world) -> None:
     aug = AugParams(rot=25.0)
     _, targets, meta, _ = _batch(world, 2, aug)

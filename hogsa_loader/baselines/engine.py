@@ -65,7 +65,7 @@ def _prepared(model: nn.Module, batch: Any, layers: BodyLayers, img_res: int, de
     inputs, targets, meta_info = to_device(batch, device)
     with torch.no_grad():
         targets, meta_info = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l,
-                                             layers.objects, img_res=img_res)
+                                             layers.objects, img_res=img_res, field="hands")
     return inputs, targets, meta_info
 
 

@@ -19,7 +19,7 @@ the loss compares with the network outputs, in the patch camera:
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Optional
+from typing import Any, Literal, Mapping, Optional
 
 import numpy as np
 import torch
@@ -134,13 +134,15 @@ def nearest_distances(
     return torch.from_numpy(dist).to(src.device, src.dtype), torch.from_numpy(idx).to(src.device)
 
 
-def _interfield(t: dict[str, Tensor], max_dist: float) -> None:
-    """Add ``dist.{ro,lo,or,ol}`` and ``idx.*`` to ``t`` (clamped to [0, max_dist])."""
+def _interfield(t: dict[str, Tensor], max_dist: float, both: bool = True) -> None:
+    """Add ``dist.{ro,lo}`` (with ``both`` also ``dist.{or,ol}``) and ``idx.*`` to ``t`` (clamped to [0, max_dist])."""
     v_o, v_len = t["object.v.cam"], t["object.v_len"]
     for s in ("r", "l"):
         v_h = t[f"mano.v3d.cam.{s}"]
         d, i = nearest_distances(v_h, v_o, None, v_len)
         t[f"dist.{s}o"], t[f"idx.{s}o"] = d.clamp(0.0, max_dist), i
+        if not both:
+            continue
         d, i = nearest_distances(v_o, v_h, v_len, None)
         t[f"dist.o{s}"], t[f"idx.o{s}"] = d.clamp(0.0, max_dist), i
 
@@ -173,6 +175,7 @@ def prepare_targets(
     object_layer: ArticulatedObjectLayer,
     img_res: int = 224,
     max_dist: float = math.inf,
+    field: Literal["both", "hands"] = "both",
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Add ArcticNet-SF's patch-camera 3D targets to a collated batch (see module doc).
 
@@ -186,6 +189,10 @@ def prepare_targets(
             :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
         img_res: patch side (px) of the normalised 2D labels.
         max_dist: clamp of the ``dist.*`` targets (ArcticNet-SF: none).
+        field: which nearest-vertex targets to add: ``"both"`` directions (as ARCTIC
+            prepares for every model) or only ``"hands"`` (``dist.{ro,lo}`` and
+            ``idx.{ro,lo}``, all that ArcticNet-SF's contact-deviation loss reads; the
+            object-to-hand half is the larger cost on a CPU).
 
     Returns:
         new ``(targets, meta_info)`` dicts: targets gain ``mano.cam_t.{r,l}``,
@@ -193,8 +200,8 @@ def prepare_targets(
         ``object.cam_t.kp3d.b``, ``mano.v3d.cam.{r,l}`` (B, V, 3), ``mano.j3d.cam.{r,l}``,
         ``object.kp3d.cam`` (B, 32, 3), ``object.bbox3d.cam`` (B, 16, 3), ``object.v.cam``
         (B, L, 3), ``object.v_len`` (B,), ``object.f``, ``object.f_len``,
-        ``object.parts_ids`` (B, L), ``dist.{ro,lo}`` (B, V), ``dist.{or,ol}`` (B, L) and
-        the matching ``idx.*``; meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
+        ``object.parts_ids`` (B, L), ``dist.{ro,lo}`` (B, V), ``dist.{or,ol}`` (B, L; only
+        with ``field="both"``) and the matching ``idx.*``; meta_info gains ``part_ids`` (B, L) and ``diameter`` (B,).
     """
     t, meta = dict(targets), dict(meta_info)
     with torch.no_grad():
@@ -231,5 +238,5 @@ def prepare_targets(
         t["object.v.cam"] = obj["v"].to(dtype) + transl[:, None]
         for key in ("v_len", "f", "f_len", "parts_ids"):
             t[f"object.{key}"] = obj[key]
-        _interfield(t, max_dist)
+        _interfield(t, max_dist, both=field == "both")
     return t, meta
