@@ -534,6 +534,142 @@ def test_2d_and_boxes_use_arctic_float32_arithmetic(processed_verts, arctic_worl
     np.testing.assert_array_equal(out["bbox"][:, 1:], ref.numpy())
 
 
+# ARCTIC's float32 posing, written out for the test (smplx MANO lbs, ObjectTensors' and
+# common/rot.py's quaternions): the same torch operations, shapes and layouts in the same
+# order, so the results are bit-equal to ARCTIC's processing.
+def _smplx_mano_f32(layer, rot, pose, betas, transl):
+    """smplx ``MANO(use_pca=False, flat_hand_mean=False)`` + 5 fingertips -> (verts, joints21)."""
+    B, V = rot.shape[0], layer.v_template.shape[0]
+    par = layer.parents.tolist()
+    J = len(par)
+    full = torch.cat([rot, pose], dim=1) + torch.cat([torch.zeros(3), layer.hand_mean])
+    shaped = layer.v_template + torch.einsum("bl,mkl->bmk", betas, layer.shapedirs)
+    rest = torch.einsum("bik,ji->bjk", shaped, layer.J_regressor.T.contiguous().T)  # smplx: column-major
+    aa = full.reshape(-1, 3)
+    ang = torch.norm(aa + 1e-8, dim=1, keepdim=True)
+    d = aa / ang
+    z = torch.zeros(aa.shape[0], 1)
+    K = torch.cat([z, -d[:, 2:3], d[:, 1:2], d[:, 2:3], z, -d[:, 0:1], -d[:, 1:2], d[:, 0:1], z], dim=1).view(-1, 3, 3)
+    R = torch.eye(3)[None] + torch.sin(ang)[:, :, None] * K + (1 - torch.cos(ang)[:, :, None]) * torch.bmm(K, K)
+    R = R.view(B, J, 3, 3)
+    posedirs = layer.posedirs.reshape(V * 3, -1).T  # smplx: (P, V*3), a transposed view
+    posed = torch.matmul((R[:, 1:] - torch.eye(3)).view(B, -1), posedirs).view(B, -1, 3) + shaped
+    rel = rest.clone()
+    rel[:, 1:] -= rest[:, par[1:]]
+    local = torch.zeros(B, J, 4, 4)
+    local[..., :3, :3], local[..., :3, 3], local[..., 3, 3] = R, rel, 1.0
+    G = [local[:, 0]]
+    for j in range(1, J):
+        G.append(torch.matmul(G[par[j]], local[:, j]))
+    G = torch.stack(G, dim=1)
+    A = G.clone()
+    A[..., 3] = G[..., 3] - torch.matmul(G, torch.cat([rest, torch.zeros(B, J, 1)], dim=2)[..., None])[..., 0]
+    T = torch.matmul(layer.lbs_weights[None].expand(B, -1, -1), A.view(B, J, 16)).view(B, -1, 4, 4)
+    verts = torch.matmul(T, torch.cat([posed, torch.ones(B, V, 1)], dim=2)[..., None])[:, :, :3, 0] + transl[:, None]
+    joints = G[:, :, :3, 3] + transl[:, None]
+    return verts, torch.cat([joints, verts[:, layer.tip_ids]], dim=1)
+
+
+def _q_from_aa(aa):
+    ang = torch.norm(aa, p=2, dim=-1, keepdim=True)
+    half, small = ang * 0.5, ang.abs() < 1e-6
+    r = torch.empty_like(ang)
+    r[~small] = torch.sin(half[~small]) / ang[~small]
+    r[small] = 0.5 - (ang[small] * ang[small]) / 48
+    return torch.cat([torch.cos(half), aa * r], dim=-1)
+
+
+def _q_mul(a, b):
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), -1)
+
+
+def _q_apply(q, p):
+    pq = torch.cat([torch.zeros(p.shape[:-1] + (1,)), p], dim=-1)
+    return _q_mul(_q_mul(q, pq), q * torch.tensor([1.0, -1.0, -1.0, -1.0]))[..., 1:]
+
+
+def _q_to_aa(q):
+    half = torch.atan2(torch.norm(q[..., 1:], p=2, dim=-1, keepdim=True), q[..., :1])
+    ang = 2 * half
+    small = ang.abs() < 1e-6
+    r = torch.empty_like(ang)
+    r[~small] = torch.sin(half[~small]) / ang[~small]
+    r[small] = 0.5 - (ang[small] * ang[small]) / 48
+    return q[..., 1:] / r
+
+
+def _q_from_matrix(R):
+    m = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
+    (m00, m01, m02, m10, m11, m12, m20, m21, m22) = m
+    x = torch.stack([1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], -1)
+    qa = torch.zeros_like(x)
+    qa[x > 0] = torch.sqrt(x[x > 0])
+    c = torch.stack([torch.stack([qa[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
+                     torch.stack([m21 - m12, qa[..., 1] ** 2, m10 + m01, m02 + m20], -1),
+                     torch.stack([m02 - m20, m10 + m01, qa[..., 2] ** 2, m12 + m21], -1),
+                     torch.stack([m10 - m01, m20 + m02, m21 + m12, qa[..., 3] ** 2], -1)], -2)
+    c = c / (2.0 * qa[..., None].max(torch.tensor(0.1)))
+    return c[torch.nn.functional.one_hot(qa.argmax(-1), 4) > 0.5, :].reshape(R.shape[:-2] + (4,))
+
+
+def test_world_points_and_rotations_use_arctic_float32_arithmetic(processed_verts, root, arctic_world):
+    """World points, pixels and camera rotations are bit-equal to ARCTIC's float32 posing
+    (smplx MANO, ObjectTensors on float32(mm)/1000 templates, transform_mano_rot_cam).
+    Float64 posing rounded to float32 differs in the last bits: ~5e-4 px at 1000 px."""
+    import trimesh
+
+    mano, obj, ego = arctic_world[1]["raw"]["s01/box_grab_01"]
+    misc = arctic_world[1]["misc"]["s01"]
+    out = processed_verts
+    F = obj.shape[0]
+    f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    layers = root.mano_layers()
+    world = {}
+    for side in ("right", "left"):
+        h = mano[side]
+        v, j = _smplx_mano_f32(layers[side], f32(h["rot"]), f32(h["pose"]), f32(np.tile(h["shape"], (F, 1))),
+                               f32(h["trans"]))
+        world[f"joints.{side}"], world[f"verts.{side}"] = j.numpy(), v.numpy()
+        # float64 posing rounded to float32 is not ARCTIC's (what this test tells apart)
+        l64 = root.mano_layers(F64)[side]
+        j64 = l64(*(torch.as_tensor(h[k], dtype=F64) for k in ("rot", "pose")), torch.as_tensor(
+            np.tile(h["shape"], (F, 1)), dtype=F64), torch.as_tensor(h["trans"], dtype=F64)).joints.float()
+        assert not np.array_equal(j64.numpy(), world[f"joints.{side}"])
+    # the object, from the template files in mm as ARCTIC's ObjectTensors reads them
+    folder = root.meta_dir / "object_vtemplates" / "box"
+    params = json.loads((folder / "object_params.json").read_text())
+    top = torch.from_numpy(np.array(json.loads((folder / "parts.json").read_text())) == 0)
+    tmpl = {"verts.object": (torch.FloatTensor(trimesh.load(folder / "mesh.obj", process=False).vertices), top),
+            "kp3d": (torch.FloatTensor(params["keypoints_top"] + params["keypoints_bottom"]), torch.arange(32) < 16),
+            "bbox3d": (torch.FloatTensor(params["bbox_top"] + params["bbox_bottom"]), torch.arange(16) < 8)}
+    q_arti = _q_from_aa(torch.tensor([[0.0, 0.0, -1.0]]) * f32(obj[:, :1]))[:, None]
+    q_glob = _q_from_aa(f32(obj[:, 1:4]))[:, None]
+    t = (f32(obj[:, 4:7]) / 1000)[:, None]
+    for key, (mm, is_top) in tmpl.items():
+        p = (mm / 1000)[None].expand(F, -1, -1)
+        world[key] = torch.where(is_top[None, :, None], _q_apply(q_glob, _q_apply(q_arti, p)) + t,
+                                 _q_apply(q_glob, p) + t).numpy()
+    w2e = np.zeros((F, 4, 4), np.float32)
+    w2e[:, :3, :3], w2e[:, :3, 3], w2e[:, 3, 3] = ego["R_k_cam_np"], ego["T_k_cam_np"][..., 0], 1
+    for key, ref in world.items():
+        np.testing.assert_array_equal(out["world_coord"][key], ref, err_msg=key)
+        for v in range(9):
+            M = w2e if v == 0 else np.broadcast_to(np.array(misc["world2cam"][v - 1]), (F, 4, 4))
+            K = np.broadcast_to(ego["intrinsics"] if v == 0 else np.array(misc["intris_mat"][v - 1]), (F, 3, 3))
+            np.testing.assert_array_equal(out["2d"][key][:, v], _arctic_f32_pixels(ref, M, K), err_msg=f"{key} {v}")
+    # camera-frame rotations: axis-angle of q(R_world2cam) * q(rot), real part >= 0
+    for key, aa in (("rot_r_cam", mano["right"]["rot"]), ("rot_l_cam", mano["left"]["rot"]),
+                    ("obj_rot_cam", obj[:, 1:4])):
+        for v in range(9):
+            M = f32(w2e if v == 0 else np.broadcast_to(np.array(misc["world2cam"][v - 1]), (F, 4, 4)))
+            q = _q_mul(_q_from_matrix(M[:, :3, :3]), _q_from_aa(f32(aa)))
+            ref = _q_to_aa(torch.where(q[..., 0:1] < 0, -q, q)).numpy()
+            np.testing.assert_array_equal(out["cam_coord"][key][:, v], ref, err_msg=f"{key} {v}")
+
+
 def test_rot_cam_poses_mano_in_camera_frame(processed, root):
     """MANO(rot_r_cam, pose, β) equals the camera-frame joints up to one translation."""
     out = processed["s01/box_grab_01"]
