@@ -552,7 +552,8 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
                 rows.append(f"| {names[a]} | " + " | ".join("—" for _ in METRICS) + f" |  ({skipped[a]})")
         return rows
 
-    lines = [f"Seeds {list(cfg.seeds)}, mean ± std; {cfg.model.backbone} at {cfg.model.img_res}², "
+    done = {a: agg["arms"][a]["mpjpe/ra/h"]["n"] for a in agg["arms"]}
+    lines = [f"Seeds {list(cfg.seeds)} ({', '.join(f'{a}: {n}' for a, n in done.items())} finished), mean ± std; {cfg.model.backbone} at {cfg.model.img_res}², "
              f"{cfg.train.steps} steps of {cfg.train.batch_size}, synthetic share {cfg.synthetic.share}, "
              f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.", "",
              "**Table 1** (p1, held-out subject)", ""] + table(["real", "hogsa"])
@@ -594,6 +595,9 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
             ax.plot(steps, mean, "-o", color=colors[i % len(colors)], label=arm, ms=3)
             if len(curves) > 1:
                 ax.fill_between(steps, np.nanmin(vals, 0), np.nanmax(vals, 0), color=colors[i % len(colors)], alpha=0.15)
+        finite = [p.get(m) for a in arms for r in results[a].values() for p in r["curve"] if p.get(m)]
+        if finite and min(finite) > 0 and max(finite) / min(finite) > 50:  # outliers (e.g. a far object) dominate
+            ax.set_yscale("log")
         ax.set_xlabel("step (last point: all val frames; earlier: a strided subset)")
         ax.set_ylabel(METRICS[m][0])
         ax.set_title(f"validation {METRICS[m][0]} (p1_val)")

@@ -117,7 +117,8 @@ def nearest_distances(
 
     Returns:
         dist (B, N) and idx (B, N) int64 on ``src``'s device; entries of padded ``src``
-        points are 0.
+        points are 0; a non-finite ``src`` point, or every point of a frame whose ``dst``
+        has a non-finite point, gets a NaN distance (index 0).
     """
     B, N = src.shape[:2]
     dist = np.zeros((B, N), dtype=np.float64)
@@ -130,7 +131,12 @@ def nearest_distances(
         n, m = int(ns[k]), int(ms[k])
         if n == 0 or m == 0:
             continue
-        dist[k, :n], idx[k, :n] = cKDTree(b[k, :m]).query(a[k, :n], k=1)
+        ok = np.isfinite(a[k, :n]).all(axis=1)
+        if not (ok.all() and np.isfinite(b[k, :m]).all()):  # as brute force: non-finite in, NaN out
+            dist[k, :n] = np.nan
+            if not np.isfinite(b[k, :m]).all():
+                continue
+        dist[k, :n][ok], idx[k, :n][ok] = cKDTree(b[k, :m]).query(a[k, :n][ok], k=1)
     return torch.from_numpy(dist).to(src.device, src.dtype), torch.from_numpy(idx).to(src.device)
 
 
