@@ -595,8 +595,10 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
             ax.plot(steps, mean, "-o", color=colors[i % len(colors)], label=arm, ms=3)
             if len(curves) > 1:
                 ax.fill_between(steps, np.nanmin(vals, 0), np.nanmax(vals, 0), color=colors[i % len(colors)], alpha=0.15)
-        finite = [p.get(m) for a in arms for r in results[a].values() for p in r["curve"] if p.get(m)]
-        if finite and min(finite) > 0 and max(finite) / min(finite) > 50:  # outliers (e.g. a far object) dominate
+        shown = np.array([p.get(m) for a in arms for r in results[a].values() if not r.get("diverged")
+                          for p in r["curve"] if p.get(m) is not None], float)
+        shown = shown[np.isfinite(shown) & (shown > 0)]
+        if shown.size and shown.max() / shown.min() > 50:  # outliers (e.g. a far object) dominate
             ax.set_yscale("log")
         ax.set_xlabel("step (last point: all val frames; earlier: a strided subset)")
         ax.set_ylabel(METRICS[m][0])

@@ -107,9 +107,9 @@ def nearest_distances(
 ) -> tuple[Tensor, Tensor]:
     """For every valid point of ``src``: distance to and index of its nearest valid ``dst`` point.
 
-    Exact nearest neighbours from a k-d tree (scipy) per frame, in float64 on the host:
-    brute-force distances cost O(N·M) per frame, which on a CPU outweighs the model's
-    whole training step for a few thousand object vertices.
+    On a CPU: exact nearest neighbours from a k-d tree (scipy) per frame, in float64 (a
+    brute-force search costs O(N·M) per frame, more than the model's whole training step
+    for a few thousand object vertices); on a GPU: brute-force distances there.
 
     Args:
         src: (B, N, 3); dst: (B, M, 3) points (zero-padded).
@@ -117,27 +117,36 @@ def nearest_distances(
 
     Returns:
         dist (B, N) and idx (B, N) int64 on ``src``'s device; entries of padded ``src``
-        points are 0; a non-finite ``src`` point, or every point of a frame whose ``dst``
-        has a non-finite point, gets a NaN distance (index 0).
+        points are 0. Non-finite input gives NaN distances: a non-finite ``src`` point's,
+        and on a CPU every distance of a frame whose ``dst`` has a non-finite point.
     """
     B, N = src.shape[:2]
-    dist = np.zeros((B, N), dtype=np.float64)
-    idx = np.zeros((B, N), dtype=np.int64)
     ns = [N] * B if src_len is None else src_len.tolist()
     ms = [dst.shape[1]] * B if dst_len is None else dst_len.tolist()
-    a = src.detach().to("cpu", torch.float64).numpy()
-    b = dst.detach().to("cpu", torch.float64).numpy()
+    if src.device.type != "cpu":
+        dist_t = src.new_zeros(B, N)
+        idx_t = torch.zeros(B, N, dtype=torch.long, device=src.device)
+        for k in range(B):
+            n, m = int(ns[k]), int(ms[k])
+            if n and m:
+                d = torch.cdist(src[k, :n], dst[k, :m], compute_mode="donot_use_mm_for_euclid_dist")
+                dist_t[k, :n], idx_t[k, :n] = d.min(dim=1)
+        return dist_t, idx_t
+    dist = np.zeros((B, N), dtype=np.float64)
+    idx = np.zeros((B, N), dtype=np.int64)
+    a = src.detach().to(torch.float64).numpy()
+    b = dst.detach().to(torch.float64).numpy()
     for k in range(B):
         n, m = int(ns[k]), int(ms[k])
         if n == 0 or m == 0:
             continue
         ok = np.isfinite(a[k, :n]).all(axis=1)
-        if not (ok.all() and np.isfinite(b[k, :m]).all()):  # as brute force: non-finite in, NaN out
+        if not (ok.all() and np.isfinite(b[k, :m]).all()):  # non-finite in, NaN out
             dist[k, :n] = np.nan
             if not np.isfinite(b[k, :m]).all():
                 continue
         dist[k, :n][ok], idx[k, :n][ok] = cKDTree(b[k, :m]).query(a[k, :n][ok], k=1)
-    return torch.from_numpy(dist).to(src.device, src.dtype), torch.from_numpy(idx).to(src.device)
+    return torch.from_numpy(dist).to(src.dtype), torch.from_numpy(idx)
 
 
 def _interfield(t: dict[str, Tensor], max_dist: float, both: bool = True) -> None:

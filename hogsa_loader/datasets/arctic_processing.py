@@ -80,7 +80,8 @@ from hogsa_loader.datasets.conventions import (
     validity_flags,
 )
 from hogsa_loader.datasets.types import SequenceData
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.objects.template import MESH_FILE, PARAMS_FILE, _points, _read_obj
 
 __all__ = [
     "FRAME_MARGIN",
@@ -143,8 +144,6 @@ def _pose_chunk(
     out: dict[str, torch.Tensor] = {}
     for side, hand in (("right", seq.right), ("left", seq.left)):
         layer = mano_layers[side]
-        if layer.v_template.dtype != torch.float32:  # ARCTIC's layer holds float32 buffers
-            layer = copy.deepcopy(layer).float()
         n = hand.rot[sl].shape[0]
         betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float32).reshape(1, -1), (n, hand.betas.size))
         verts, joints = a32.mano_forward(layer, _f32(hand.rot[sl]), _f32(hand.pose[sl]), _f32(betas),
@@ -162,9 +161,6 @@ def _pose_chunk(
 @functools.lru_cache(maxsize=32)
 def _template_mm(folder: str, stamp: tuple[int, ...]) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """``mesh.obj`` vertices, keypoints and box corners of a template folder, mm (cached per mtime)."""
-    from hogsa_loader.errors import read_json
-    from hogsa_loader.objects.template import MESH_FILE, PARAMS_FILE, _points, _read_obj
-
     path = Path(folder)
     try:
         verts = np.asarray(_read_obj(path / MESH_FILE).vertices, dtype=np.float64)
@@ -191,7 +187,7 @@ def _object_tensors(seq: SequenceData, object_layer: Any) -> a32.ObjectTensors32
                                 f"known: {object_layer.names})")
     if seq.root is not None:
         folder = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / name
-        files = [folder / "mesh.obj", folder / "object_params.json"]
+        files = [folder / MESH_FILE, folder / PARAMS_FILE]
         if all(f.is_file() for f in files):
             mm = _template_mm(str(folder), tuple(f.stat().st_mtime_ns for f in files))
             obj = a32.ObjectTensors32.from_mm(object_layer, name, *mm) if mm is not None else None
@@ -305,7 +301,8 @@ def process_sequence(
         export_verts: also store ``verts.right/left/object`` in every coordinate frame.
         ego_image_size: (width, height) of the full ego image, used for the ego box and the
             ego validity region (ARCTIC hard-codes 2800×2000).
-        chunk_frames: frames posed per batch.
+        chunk_frames: frames posed per batch (values equal ARCTIC's bit for bit only at
+            the default, ARCTIC's batch of 320 frames).
 
     Returns:
         ``{"world_coord", "cam_coord", "2d": dicts of arrays, "bbox": (F,9,3), "params": dict}``
@@ -317,6 +314,8 @@ def process_sequence(
     keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
     ego_box = ego_bbox(tuple(ego_image_size)).astype(np.float32)
     obj = _object_tensors(seq, object_layer)
+    mano_layers = {side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
+                   for side, layer in mano_layers.items()}  # ARCTIC's layer holds float32 buffers
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
 
     def push(group: str, key: str, value: np.ndarray) -> None:
