@@ -338,3 +338,22 @@ def test_view_config_flags_come_from_the_dataclass():
     cfg = dataclass_from_args(ViewConfig, ns)
     assert cfg.transfer_to == ("s02", "s05") and cfg.srm is False and cfg.distance == 1.5 and cfg.orbit == 16
     assert (cfg.bundle, cfg.data, cfg.subject, cfg.object, cfg.out) == ("B", "D", "s01", "box", "O")
+
+
+def test_view_keypoints_and_sample_labels_are_drawn_by_one_helper() -> None:
+    from hogsa_loader.loader.viz import COLORS, draw_labels, draw_skeletons
+    from hogsa_loader.view.pictures import draw_keypoints
+
+    img = np.zeros((64, 64, 3), np.uint8)
+    r = np.stack([np.linspace(10, 50, 21), np.full(21, 20.0)], 1)
+    l_ = np.stack([np.linspace(10, 50, 21), np.full(21, 44.0)], 1)
+    obj = np.array([[32.0, 32.0], [5.0, 5.0]])
+    drawn = draw_keypoints(img, {"joints.right": r, "joints.left": l_, "kp3d": obj})
+    assert np.array_equal(drawn, draw_skeletons(img, {"r": r, "l": l_}, obj))
+    assert tuple(drawn[20, 30]) == COLORS["r"] and tuple(drawn[44, 30]) == COLORS["l"]
+    assert tuple(drawn[5, 5]) == COLORS["object"] and not img.any()  # a copy is drawn
+    # the sample labels (normalised to the patch) land on the same pixels
+    norm = {k: torch.as_tensor(v / 32.0 - 1.0, dtype=torch.float32) for k, v in
+            (("mano.j2d.norm.r", r), ("mano.j2d.norm.l", l_), ("object.kp2d.norm", obj))}
+    targets = {**norm, "is_valid": 1.0, "right_valid": 1.0, "left_valid": 0.0}
+    assert np.array_equal(draw_labels(img, targets, img_res=64), draw_skeletons(img, {"r": r}, obj))

@@ -17,7 +17,7 @@ import torch
 from hogsa_loader.datasets.augment import ArcticConfig, unnormalize_kp2d
 from hogsa_loader.datasets.conventions import HAND_BONES
 
-__all__ = ["input_image", "draw_labels", "sample_grid"]
+__all__ = ["input_image", "draw_labels", "draw_skeletons", "sample_grid"]
 
 #: RGB colours of the drawn labels.
 COLORS = {"r": (235, 60, 40), "l": (40, 120, 245), "object": (250, 215, 0)}
@@ -54,15 +54,32 @@ def draw_labels(image: np.ndarray, targets: Mapping[str, Any], img_res: Optional
     Returns:
         a drawn copy of ``image``.
     """
+    res = int(img_res if img_res is not None else round(image.shape[0] / scale))
+    hands = {side: unnormalize_kp2d(_np(targets[f"mano.j2d.norm.{side}"]), res) * scale
+             for side, flag in (("r", "right_valid"), ("l", "left_valid")) if float(_np(targets[flag])) > 0}
+    obj = None
+    if float(_np(targets["is_valid"])) > 0:
+        obj = unnormalize_kp2d(_np(targets["object.kp2d.norm"]), res) * scale
+    return draw_skeletons(image, hands, obj)
+
+
+def draw_skeletons(
+    image: np.ndarray, hands: Mapping[str, np.ndarray], object_kp: Optional[np.ndarray] = None
+) -> np.ndarray:
+    """Hand skeletons (thin bones, joint dots) and object keypoints (small dots) on a copy of ``image``.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        hands: ``{"r" | "l": (21, 2)}`` pixel coordinates (right red, left blue).
+        object_kp: (K, 2) object keypoints in pixels (yellow), drawn under the hands.
+
+    Returns:
+        a drawn copy of ``image``.
+    """
     out = np.ascontiguousarray(image.copy())
-    res = int(img_res if img_res is not None else round(out.shape[0] / scale))
-    if float(_np(targets["is_valid"])) > 0:  # object first (small dots), hands on top
-        for q in unnormalize_kp2d(_np(targets["object.kp2d.norm"]), res) * scale:
-            cv2.circle(out, _pt(q), 1, COLORS["object"], -1, cv2.LINE_AA)
-    for side, flag in (("r", "right_valid"), ("l", "left_valid")):
-        if float(_np(targets[flag])) <= 0:
-            continue
-        p = unnormalize_kp2d(_np(targets[f"mano.j2d.norm.{side}"]), res) * scale
+    for q in () if object_kp is None else object_kp:
+        cv2.circle(out, _pt(q), 1, COLORS["object"], -1, cv2.LINE_AA)
+    for side, p in hands.items():
         for a, b in HAND_BONES:
             cv2.line(out, _pt(p[a]), _pt(p[b]), COLORS[side], 1, cv2.LINE_AA)
         for q in p:

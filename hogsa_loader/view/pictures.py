@@ -33,27 +33,10 @@ def draw_keypoints(image: np.ndarray, kp: Mapping[str, np.ndarray]) -> np.ndarra
         image: (H, W, 3) uint8 RGB; kp: ``joints.right`` / ``joints.left`` (21, 2),
             ``kp3d`` (K, 2) pixel coordinates.
     """
-    import cv2
+    from hogsa_loader.loader.viz import draw_skeletons
 
-    from hogsa_loader.datasets.conventions import HAND_BONES
-    from hogsa_loader.loader.viz import COLORS
-
-    out = np.ascontiguousarray(image.copy())
-
-    def pt(p: np.ndarray) -> tuple[int, int]:
-        return round(float(p[0])), round(float(p[1]))
-
-    for q in kp.get("kp3d", ()):
-        cv2.circle(out, pt(q), 1, COLORS["object"], -1, cv2.LINE_AA)
-    for side, c in (("right", COLORS["r"]), ("left", COLORS["l"])):
-        p = kp.get(f"joints.{side}")
-        if p is None:
-            continue
-        for a, b in HAND_BONES:
-            cv2.line(out, pt(p[a]), pt(p[b]), c, 1, cv2.LINE_AA)
-        for q in p:
-            cv2.circle(out, pt(q), 2, c, -1, cv2.LINE_AA)
-    return out
+    hands = {s[0]: kp[f"joints.{s}"] for s in ("right", "left") if kp.get(f"joints.{s}") is not None}
+    return draw_skeletons(image, hands, kp.get("kp3d"))
 
 
 def sheet(rows: Sequence[tuple[str, Sequence[np.ndarray], Sequence[str]]], cols: int, pad: int = 4) -> np.ndarray:
@@ -102,10 +85,9 @@ def caption(img: np.ndarray, text: str) -> np.ndarray:
 
 def write_png(path: Path, img: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 RGB image (OSError when it cannot be written)."""
-    import cv2
+    from hogsa_loader.render.mesh_raster import save_png
 
-    if not cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write {path}")
+    save_png(path, torch.from_numpy(np.ascontiguousarray(img)))
 
 
 def write_video(path: Path, frames: Sequence[np.ndarray], fps: float) -> None:
