@@ -113,6 +113,10 @@ class SyntheticSettings:
     share: float = field(default=0.5, metadata={"help": "synthetic share of each mixed batch"})
     render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
     seed: int = field(default=1000, metadata={"help": "seed of the exported frames"})
+    backgrounds: Literal["plates", "photos"] = field(
+        default="plates",
+        metadata={"help": "plates: the world's own studio, cleaned of hands and objects (hogsa plates) from the "
+                  "training subjects' frames; photos: scikit-image's colour photographs (a COCO stand-in)"})
 
 
 @dataclass
@@ -240,10 +244,10 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
     from hogsa_loader.world import get_preset
 
-    backgrounds = demo_photographs(out / "backgrounds")
     if cfg.setup.bundle is not None:
-        return {"data": Path(cfg.setup.data).resolve(), "bundle": Path(cfg.setup.bundle).resolve(),
-                "backgrounds": backgrounds, "stage_seconds": {}}
+        data = Path(cfg.setup.data).resolve()
+        return {"data": data, "bundle": Path(cfg.setup.bundle).resolve(),
+                "backgrounds": background_folder(cfg, data, out), "stage_seconds": {}}
     s = cfg.setup
     if s.data is None:
         preset = get_preset(s.preset)
@@ -255,7 +259,25 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
                       hogs_image_size=s.hogs_image_size, srm_iters=s.srm_iters,
                       contactnet_iters=s.contactnet_iters, bank_per_sequence=s.bank_per_sequence)
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
-    return {"data": data, "bundle": bundle, "backgrounds": backgrounds, "stage_seconds": seconds, "pairs": pairs}
+    data, bundle = Path(data).resolve(), Path(bundle).resolve()  # one name per setup, also through links
+    return {"data": data, "bundle": bundle, "backgrounds": background_folder(cfg, data, out), "stage_seconds": seconds,
+            "pairs": pairs}
+
+
+def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
+    """Folder of the synthetic frames' backgrounds (plates built once, cached by settings)."""
+    from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates
+    from hogsa_loader.demo import demo_photographs
+
+    if cfg.synthetic.backgrounds == "photos":
+        return demo_photographs(out / "backgrounds")
+    plates = PlateConfig(data=str(data), out=str(out / "setup" / "plates"), quiet=True)
+    manifest = Path(plates.out) / PLATES_MANIFEST
+    wanted = json.loads(json.dumps(asdict(plates)))  # as stored (tuples become lists)
+    if not (manifest.is_file() and json.loads(manifest.read_text()).get("settings") == wanted):
+        _say(f"[setup] background plates of {data} -> {plates.out}")
+        build_plates(plates)
+    return Path(plates.out)
 
 
 def setup_fingerprint(cfg: DownstreamConfig, setup: dict[str, Any]) -> str:

@@ -168,3 +168,21 @@ def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     longer = ds.replace(cfg, train=ds.replace(cfg.train, steps=cfg.train.steps + 1))
     assert ds.finished_run("real", 0, longer, setup, tmp_path) is None
     assert ds.finished_run("real", 1, cfg, setup, tmp_path) is None
+
+
+def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path):
+    """Plates (the default) are built from the world once and reused; the background choice
+    is part of each synthetic export's name, so photo and plate frames never mix."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    assert cfg.synthetic.backgrounds == "plates"
+    folder = ds.background_folder(cfg, Path(tiny_world), tmp_path)
+    manifest = folder / "plates.json"
+    first = manifest.stat().st_mtime_ns
+    assert json.loads(manifest.read_text())["plates"] and sorted(folder.glob("*_view*.png"))
+    assert ds.background_folder(cfg, Path(tiny_world), tmp_path) == folder
+    assert manifest.stat().st_mtime_ns == first  # reused, not rebuilt
+    photos = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, backgrounds="photos"))
+    assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
+    assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)

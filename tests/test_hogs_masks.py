@@ -20,7 +20,7 @@ import torch
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, render_intrinsics
 from hogsa_loader.train import HogsConfig, HogsTrainer, load_hogs_data
-from hogsa_loader.train.hogs_data import _crop_boxes
+from hogsa_loader.train.hogs_data import crop_boxes
 from hogsa_loader.train.hogs_masks import inside_image, pose_meshes, render_part_mask
 
 PARTS = (1, 2, 3, 4)
@@ -44,7 +44,7 @@ def crop_res_masks(tiny_world):
         seq = root.sequence(sid, name)
         frames = list(range(0, seq.num_frames, 8))
         posed = pose_meshes(seq, frames, root.mano_layers(), root.object_templates()[seq.object.name])
-        boxes = _crop_boxes(root, seq, ALLO_VIEWS)
+        boxes = crop_boxes(root, seq, ALLO_VIEWS)
         for v in ALLO_VIEWS:
             cam = seq.cameras[v]
             for f in frames:

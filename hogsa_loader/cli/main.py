@@ -12,6 +12,9 @@ Subcommands:
                  [--coco-root C] ...
                                    offline synthetic frames as WebDataset tar shards
                                    (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
+    hogsa plates --data ROOT --out DIR [--subjects S ...] [--views V ...]
+                                   clean background plates of the static cameras, made from
+                                   the dataset's own frames (for --background-folder)
     hogsa view --bundle B --data ROOT --subject S --object O --out DIR [--frame SEQ:IDX ...]
                [--pose-bank NAME:I ...] [--orbit N] [--transfer-to S2 ...]
                                    360° orbit sheets and animations (with and without SRM)
@@ -232,6 +235,21 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_plates(args: argparse.Namespace) -> int:
+    from hogsa_loader.cli.dataclass_args import dataclass_from_args
+    from hogsa_loader.compose.plates import PlateConfig, build_plates
+
+    cfg = dataclass_from_args(PlateConfig, args)
+    cfg.check()
+    checks.input_dir(cfg.data, "--data")
+    checks.output_dir(cfg.out)
+    manifest = build_plates(cfg, log=None if cfg.quiet else print)
+    if not cfg.quiet:
+        print(f"{len(manifest['plates'])} plates in {cfg.out} ({len(manifest['skipped'])} skipped); "
+              "use them with --background-folder")
+    return 0
+
+
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
     from hogsa_loader.errors import HogsaError
     from hogsa_loader.world.h2o_export import export_h2o_world
@@ -380,6 +398,15 @@ def build_parser() -> argparse.ArgumentParser:
                        "transfer.png: rows pose sources, columns subjects; contact / penetration figures in view.json).")
     add_dataclass_arguments(v, ViewConfig)
     v.set_defaults(func=_cmd_view)
+
+    from hogsa_loader.compose.plates import PlateConfig
+
+    pl = sub.add_parser("plates", help="clean background plates of the dataset's static cameras, from its own frames",
+                        description="Map the cropped frames of each allocentric view back into the full camera "
+                        "image, mask out the annotated hands and object, and keep the per-pixel median of the "
+                        "background: one PNG per (subject, view) and plates.json, for --background-folder.")
+    add_dataclass_arguments(pl, PlateConfig)
+    pl.set_defaults(func=_cmd_plates)
     checks.one_line_errors(p)
     return p
 

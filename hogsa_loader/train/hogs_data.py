@@ -56,7 +56,7 @@ from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.train.hogs_masks import pose_meshes, render_part_mask
 
 __all__ = ["MASK_MODES", "WINDOWS", "ViewSample", "foreground_window", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
-           "split_role", "check_views", "split_samples", "mask_supersample"]
+           "split_role", "check_views", "split_samples", "mask_supersample", "crop_boxes"]
 
 #: Where the part masks come from (``load_hogs_data(masks=...)``).
 MASK_MODES = ("auto", "files", "render")
@@ -175,7 +175,7 @@ def dilate_mask(mask: Tensor, margin: int) -> Tensor:
     return m[:, 0] > 0.5
 
 
-def _crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> dict[int, np.ndarray]:
+def crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> dict[int, np.ndarray]:
     """view → (F, 3) allocentric crop boxes from the posed object template (as processing does)."""
     layer = root.object_layer()
     obj = seq.object
@@ -397,7 +397,7 @@ def load_hogs_data(
         if render or window == "fg":
             template = root.object_templates()[seq.object.name]
             posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), root.mano_layers(), template)
-        boxes = _crop_boxes(root, seq, views)
+        boxes = crop_boxes(root, seq, views)
         for v, f, role in jobs:
             cam = seq.cameras[v]
             K_crop = render_intrinsics(cropped_intrinsics(cam.K[f], boxes[v][f], crop))

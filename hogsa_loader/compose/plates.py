@@ -1,0 +1,274 @@
+"""Clean background plates of a dataset's static cameras, assembled from its own frames.
+
+A synthetic sample composited on photographs differs from the dataset's real frames in its
+background long before its hands do (colour, brightness, floor, perspective). For ARCTIC's
+static allocentric cameras, the backdrop of every view can be recovered from the dataset:
+each cropped image shows the square of side ``1.5 · 200 · scale`` around its box centre,
+so it maps back into the full camera frame by a scale and a shift. With the annotated
+hands and object masked out (the dataset's ``masks/`` when it has them, else rasterised
+from the posed MANO and object meshes), every plate pixel takes the per-pixel median of
+the frames that saw background there; the subject's arms and other movers vanish in the
+median as they do from a clean plate in film work.
+
+:func:`build_plates` writes one PNG per (subject, view) plus ``plates.json`` into a folder
+that :class:`~hogsa_loader.compose.sources.FolderBackgrounds` reads directly. Plates are
+cut to the region the crops covered; holes inside it are filled by OpenCV's inpainting and
+their share is recorded per plate.
+"""
+
+# ruff: noqa: UP045  (Optional[...] fields: hogsa_loader.cli.dataclass_args reads typing.Optional)
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Literal, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from hogsa_loader.errors import AssetError, UsageError
+
+__all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate"]
+
+PLATES_MANIFEST = "plates.json"
+
+
+@dataclass
+class PlateConfig:
+    """Settings of :func:`build_plates` (``hogsa plates`` derives one flag per field)."""
+
+    data: Optional[str] = field(default=None, metadata={"help": "ARCTIC(-format) data root", "required": True})
+    out: Optional[str] = field(default=None, metadata={"help": "output folder of the plates", "required": True})
+    subjects: tuple[str, ...] = field(
+        default=(), metadata={"help": "subjects (default: the training subjects of protocol p1)"}
+    )
+    views: tuple[int, ...] = field(default=(1, 2, 3, 4, 5, 6, 7, 8), metadata={"help": "allocentric views"})
+    width: int = field(default=960, metadata={"help": "plate width in pixels (the full frame scaled)"})
+    frames_per_sequence: int = field(default=12, metadata={"help": "frames per sequence and view, evenly spaced"})
+    margin: int = field(default=3, metadata={"help": "plate pixels of background dropped around the hands/object"})
+    masks: Literal["auto", "files", "render"] = field(
+        default="auto", metadata={"help": "foreground masks: mask files, rendered from the annotations, or auto"}
+    )
+    min_coverage: float = field(
+        default=0.5, metadata={"help": "skip a plate when less of its box than this was seen as background"}
+    )
+    quiet: bool = field(default=False, metadata={"help": "no progress messages"})
+
+    def check(self) -> None:
+        """Raise :class:`UsageError` for settings that cannot work."""
+        if self.width < 16:
+            raise UsageError(f"--width must be at least 16, got {self.width}")
+        if self.frames_per_sequence < 1:
+            raise UsageError(f"--frames-per-sequence must be positive, got {self.frames_per_sequence}")
+        if self.margin < 0:
+            raise UsageError(f"--margin must be non-negative, got {self.margin}")
+        if not 0.0 <= self.min_coverage <= 1.0:
+            raise UsageError(f"--min-coverage must be in [0, 1], got {self.min_coverage}")
+        bad = [v for v in self.views if not 1 <= v <= 8]
+        if bad or not self.views:
+            raise UsageError(f"--views must be allocentric (static) views 1..8, got {list(self.views)}")
+
+
+def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float) -> np.ndarray:
+    """(2, 3) affine from a resized cropped image's pixels to plate pixels.
+
+    The cropped image (side ``cropped_size``) shows full-image label coordinates
+    ``x = j · 1.5 s / cropped_size + cx − 0.75 s`` at pixel j (s = 200 · scale); it is
+    resized to ``resized`` pixels (OpenCV's pixel-centre convention) and the plate is the
+    full image scaled by ``gain`` (plate pixel p shows full coordinate ``(p + 0.5) / gain −
+    0.5``).
+
+    Args:
+        bbox: (3,) ``(cx, cy, scale)`` of the frame in the full image.
+        cropped_size: side of the dataset's cropped images.
+        resized: side of the resized crop.
+        gain: plate width / full image width.
+    """
+    s = float(bbox[2]) * 200.0
+    a = 1.5 * s * gain / cropped_size  # plate pixels per cropped pixel
+    a2 = a * cropped_size / resized
+    shift = (0.5 * cropped_size / resized - 0.5) * a
+    tx = (float(bbox[0]) - 0.75 * s + 0.5) * gain - 0.5 + shift
+    ty = (float(bbox[1]) - 0.75 * s + 0.5) * gain - 0.5 + shift
+    return np.array([[a2, 0.0, tx], [0.0, a2, ty]])
+
+
+def _frames(num: int, k: int) -> list[int]:
+    """``k`` evenly spaced frame indices of ``num`` (all when ``num <= k``)."""
+    if num <= k:
+        return list(range(num))
+    return sorted(set(np.linspace(0, num - 1, k).round().astype(int).tolist()))
+
+
+def _median(stack_img: list[np.ndarray], stack_ok: list[np.ndarray], rows: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel median of the valid samples: (H, W, 3) uint8 and the (H, W) sample count."""
+    h, w = stack_ok[0].shape
+    plate = np.zeros((h, w, 3), np.uint8)
+    count = np.zeros((h, w), np.int64)
+    for r0 in range(0, h, rows):
+        img = np.stack([x[r0 : r0 + rows] for x in stack_img]).astype(np.float32)
+        ok = np.stack([x[r0 : r0 + rows] for x in stack_ok])
+        img[~ok] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: nobody saw them
+            med = np.nanmedian(img, axis=0)
+        count[r0 : r0 + rows] = ok.sum(0)
+        plate[r0 : r0 + rows] = np.nan_to_num(med, nan=0.0).round().clip(0, 255).astype(np.uint8)
+    return plate, count
+
+
+def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateConfig, cache: dict) -> np.ndarray:
+    """(resized, resized) bool: hands or object in the cropped image of (view, frame)."""
+    from hogsa_loader.datasets.conventions import cropped_intrinsics, render_intrinsics
+    from hogsa_loader.train.hogs_masks import render_part_mask
+
+    mpaths = seq.mask_paths.get(view) if seq.mask_paths else None
+    mp = mpaths[frame] if mpaths is not None else None
+    if cfg.masks == "files" and mp is None:
+        raise AssetError(seq.image_paths[view][frame], "has no mask file (masks='files'; use 'auto' or 'render')")
+    if mp is not None and cfg.masks != "render":
+        m = cv2.imread(str(mp), cv2.IMREAD_UNCHANGED)
+        if m is None:
+            raise AssetError(mp, "cannot be read as an image")
+        fg = cv2.resize((m > 0).astype(np.float32), (resized, resized), interpolation=cv2.INTER_AREA)
+        return fg > 0  # a pixel with any foreground in it is foreground
+    cam = seq.cameras[view]
+    K_crop = render_intrinsics(cropped_intrinsics(cam.K[frame], cache["boxes"][view][frame], crop))
+    Ks = np.diag([resized / crop, resized / crop, 1.0]) @ K_crop
+    mask = render_part_mask(cache["posed"], frame, cam.world2cam[frame], Ks, resized, K_full=cam.K[frame],
+                            full_size=(cam.width, cam.height), supersample=2)  # fmt: skip
+    return mask > 0
+
+
+def _plate_samples(root, sid: str, view: int, seqs: Sequence[str], cfg: PlateConfig, posed_cache: dict):
+    """Warped background samples of one (subject, view): images, masks, full size."""
+    img_s, ok_s, size = [], [], None
+    crop = root.world_meta().cropped_size
+    k_dilate = np.ones((2 * cfg.margin + 1, 2 * cfg.margin + 1), np.uint8) if cfg.margin else None
+    for name in seqs:
+        seq, cache = posed_cache[name]
+        if view not in seq.image_paths:
+            continue
+        cam = seq.cameras[view]
+        full = (int(cam.width), int(cam.height))
+        if size is not None and full != size:
+            raise AssetError(root.misc_path, f"{sid} view {view}: image size differs by sequence ({size}, {full})")
+        size = full
+        gain = cfg.width / full[0]
+        plate_hw = (max(1, round(full[1] * gain)), cfg.width)
+        for f in cache["frames"]:
+            path = seq.image_paths[view][f]
+            if path is None:
+                continue
+            box = cache["boxes"][view][f]
+            resized = max(8, int(round(1.5 * float(box[2]) * 200.0 * gain)))
+            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if img is None:
+                raise AssetError(path, "cannot be read as an image")
+            if img.shape[0] != crop or img.shape[1] != crop:
+                raise AssetError(path, f"is {img.shape[1]}x{img.shape[0]}, expected the cropped size {crop}x{crop}")
+            small = cv2.resize(img, (resized, resized), interpolation=cv2.INTER_AREA)
+            bg = (~_foreground(seq, view, f, resized, crop, cfg, cache)).astype(np.uint8)
+            M = crop_to_plate(box, crop, resized, gain)
+            dsize = (plate_hw[1], plate_hw[0])
+            warped = cv2.warpAffine(small, M, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            inside = cv2.warpAffine(np.ones((resized, resized), np.uint8), M, dsize, flags=cv2.INTER_NEAREST)
+            keep = cv2.warpAffine(bg, M, dsize, flags=cv2.INTER_NEAREST, borderValue=0)
+            fg = (inside > 0) & (keep == 0)
+            if k_dilate is not None:
+                fg = cv2.dilate(fg.astype(np.uint8), k_dilate) > 0
+            # a crop's outer pixel row mixes in its padding: drop it
+            ok = (cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0) & ~fg
+            img_s.append(warped)
+            ok_s.append(ok)
+    return img_s, ok_s, size
+
+
+def _cut_and_fill(plate: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Cut the plate to the box of seen pixels and inpaint the holes inside it."""
+    seen = count > 0
+    ys, xs = np.nonzero(seen)
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    cut = plate[y0:y1, x0:x1].copy()
+    holes = (~seen[y0:y1, x0:x1]).astype(np.uint8)
+    coverage = float(1.0 - holes.mean())
+    if holes.any():
+        cut = cv2.inpaint(cut, holes, 5, cv2.INPAINT_TELEA)
+    return cut, {"box": [x0, y0, x1, y1], "coverage": round(coverage, 4),
+                 "median_samples": float(np.median(count[seen]))}  # fmt: skip
+
+
+def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) -> dict:
+    """Write a clean plate per (subject, allocentric view) of a data root.
+
+    Args:
+        cfg: settings; ``cfg.data`` and ``cfg.out`` are required.
+        log: progress messages (None: silent).
+
+    Returns:
+        The manifest written to ``out/plates.json``: settings and, per plate, its file,
+        subject, view, frames used, box in the plate frame, share of the box seen as
+        background (``coverage``) and median number of samples per seen pixel; and the
+        plates skipped for low coverage.
+
+    Raises:
+        UsageError: bad settings or no usable subject.
+        AssetError: unreadable images or masks, inconsistent cameras.
+    """
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.train.hogs_data import crop_boxes
+    from hogsa_loader.train.hogs_masks import pose_meshes
+
+    cfg.check()
+    if cfg.data is None or cfg.out is None:
+        raise UsageError("build_plates needs data and out")
+    say = log or (lambda _m: None)
+    root = ArcticRoot(cfg.data)
+    subjects = list(cfg.subjects) or sorted({s.split("/", 1)[0] for s in root.protocol("p1")["train"]})
+    unknown = [s for s in subjects if s not in root.subjects()]
+    if unknown:
+        raise UsageError(f"subjects {unknown} are not in {root.misc_path} (have {root.subjects()})")
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    plates, skipped = [], []
+    for sid in subjects:
+        seqs = [s.split("/", 1)[1] for s in root.sequences(sid)]
+        if not seqs:
+            continue
+        cache: dict = {}
+        for name in seqs:
+            seq = root.sequence(sid, name)
+            frames = _frames(seq.num_frames, cfg.frames_per_sequence)
+            c = {"frames": frames, "boxes": crop_boxes(root, seq, cfg.views)}
+            if cfg.masks == "render" or not seq.mask_paths:
+                template = root.object_templates()[seq.object.name]
+                c["posed"] = pose_meshes(seq, frames, root.mano_layers(), template)
+            cache[name] = (seq, c)
+        for view in cfg.views:
+            imgs, oks, size = _plate_samples(root, sid, view, seqs, cfg, cache)
+            if not imgs:
+                skipped.append({"subject": sid, "view": view, "reason": "no cropped images"})
+                continue
+            plate, count = _median(imgs, oks)
+            if not (count > 0).any():
+                skipped.append({"subject": sid, "view": view, "reason": "no background pixel seen"})
+                continue
+            cut, rec = _cut_and_fill(plate, count)
+            entry = {"subject": sid, "view": view, "frames": len(imgs), "full_size": list(size), **rec}
+            if rec["coverage"] < cfg.min_coverage:
+                skipped.append({**entry, "reason": f"coverage {rec['coverage']:.2f} < {cfg.min_coverage}"})
+                continue
+            fname = f"{sid}_view{view}.png"
+            if not cv2.imwrite(str(out / fname), cut):
+                raise AssetError(out / fname, "could not be written")
+            plates.append({"file": fname, **entry})
+            say(f"{sid} view {view}: {len(imgs)} frames, coverage {rec['coverage']:.2f} -> {fname}")
+    if not plates:
+        raise UsageError(f"no plate could be built from {cfg.data} (skipped: {skipped})")
+    manifest = {"kind": "hogsa background plates", "version": 1, "settings": asdict(cfg), "plates": plates,
+                "skipped": skipped}  # fmt: skip
+    (out / PLATES_MANIFEST).write_text(json.dumps(manifest, indent=1))
+    return manifest

@@ -1,0 +1,114 @@
+"""Background plates: the masked median, the crop → plate geometry, plates that reproduce
+the background of every frame they were made from, and the ``hogsa plates`` command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from hogsa_loader.cli.main import main
+from hogsa_loader.compose import FolderBackgrounds
+from hogsa_loader.compose.plates import PlateConfig, _frames, _median, build_plates, crop_to_plate
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.conventions import full_to_cropped
+from hogsa_loader.train.hogs_data import crop_boxes
+
+
+def test_median_uses_only_background_samples() -> None:
+    imgs = [np.full((2, 3, 3), v, np.uint8) for v in (10, 200, 30, 250)]
+    oks = [np.ones((2, 3), bool) for _ in imgs]
+    oks[1][0, 0] = oks[3][0, 0] = False  # the bright frames are foreground at (0, 0)
+    oks[0][1, 2] = oks[1][1, 2] = oks[2][1, 2] = False  # only frame 3 saw (1, 2)
+    for o in oks:
+        o[0, 1] = False  # nobody saw (0, 1)
+    plate, count = _median(imgs, oks, rows=1)
+    assert plate[0, 0].tolist() == [20, 20, 20]  # median of 10 and 30, not of all four
+    assert plate[1, 2].tolist() == [250] * 3
+    assert plate[1, 0].tolist() == [115] * 3  # median of all four
+    assert count.tolist() == [[2, 0, 4], [4, 4, 1]]
+
+
+def test_crop_to_plate_inverts_the_crop() -> None:
+    bbox = np.array([1234.5, 876.25, 3.4])
+    crop, resized, gain = 1000, 317, 960 / 2800
+    full = np.array([[1000.0, 700.0], [1500.2, 1111.7], [1234.5, 876.25]])
+    j = full_to_cropped(full, bbox, crop)  # cropped-image pixels
+    r = (j + 0.5) * resized / crop - 0.5  # the same points in the resized crop (OpenCV centres)
+    M = crop_to_plate(bbox, crop, resized, gain)
+    plate = r @ M[:, :2].T + M[:, 2]
+    np.testing.assert_allclose(plate, (full + 0.5) * gain - 0.5, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def plates(tiny_world, tmp_path_factory):
+    out = tmp_path_factory.mktemp("plates")
+    cfg = PlateConfig(data=str(tiny_world), out=str(out), subjects=("s01",), views=(1, 4), width=480,
+                      frames_per_sequence=6, quiet=True)  # fmt: skip
+    return cfg, build_plates(cfg)
+
+
+def test_plates_reproduce_every_frames_background(plates, tiny_world) -> None:
+    """Warped into a frame it was made from (at the plate's resolution), a plate equals the
+    frame's background pixels (mask files, eroded); shifted by 3 pixels it does not."""
+    cfg, manifest = plates
+    root = ArcticRoot(tiny_world)
+    names = {(p["subject"], p["view"]): p for p in manifest["plates"]}
+    assert set(names) == {("s01", 1), ("s01", 4)}
+    crop = root.world_meta().cropped_size
+    checked = 0
+    for sid_seq in root.sequences("s01"):
+        seq = root.sequence("s01", sid_seq.split("/", 1)[1])
+        boxes = crop_boxes(root, seq, (1, 4))
+        used = _frames(seq.num_frames, cfg.frames_per_sequence)
+        for view in (1, 4):
+            rec = names[("s01", view)]
+            x0, y0, x1, y1 = rec["box"]
+            gain = cfg.width / seq.cameras[view].width
+            canvas = np.zeros((round(seq.cameras[view].height * gain), cfg.width, 3), np.uint8)
+            canvas[y0:y1, x0:x1] = cv2.imread(str(Path(cfg.out) / rec["file"]))
+            for f in (used[0], used[len(used) // 2]):
+                box = boxes[view][f]
+                res = int(round(1.5 * float(box[2]) * 200.0 * gain))
+                img = cv2.imread(str(seq.image_paths[view][f]))
+                bg = (cv2.imread(str(seq.mask_paths[view][f]), cv2.IMREAD_UNCHANGED) == 0) & (img.sum(-1) > 0)
+                small = cv2.resize(img, (res, res), interpolation=cv2.INTER_AREA).astype(float)
+                bg = cv2.resize(bg.astype(np.float32), (res, res), interpolation=cv2.INTER_AREA) >= 1.0
+                bg = cv2.erode(bg.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+                errs = []
+                for shift in (0.0, 3.0):
+                    M = crop_to_plate(box, crop, res, gain)
+                    M[0, 2] += shift
+                    back = cv2.warpAffine(canvas, M, (res, res), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                    errs.append(float(np.abs(back - small)[bg].mean()))
+                assert errs[0] < 4.0, (sid_seq, view, f, errs)
+                assert errs[1] > 1.5 * errs[0], (sid_seq, view, f, errs)
+                checked += 1
+    assert checked >= 4
+
+
+def test_plates_folder_is_a_background_source(plates) -> None:
+    import torch
+
+    cfg, manifest = plates
+    on_disk = json.loads((Path(cfg.out) / "plates.json").read_text())
+    assert on_disk["plates"] == manifest["plates"]
+    assert all(0.5 <= p["coverage"] <= 1.0 and p["frames"] > 0 for p in manifest["plates"])
+    src = FolderBackgrounds(cfg.out)
+    out = src.sample(3, 64, 64, torch.Generator().manual_seed(0))
+    assert out.shape == (3, 64, 64, 3) and float(out.std()) > 0.01
+
+
+def test_plates_command(tiny_world, tmp_path, capsys) -> None:
+    out = tmp_path / "p"
+    assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--subjects", "s01", "--views", "2",
+                 "--width", "320", "--frames-per-sequence", "2", "--masks", "render", "--quiet"]) == 0  # fmt: skip
+    rec = json.loads((out / "plates.json").read_text())
+    assert [p["file"] for p in rec["plates"]] == ["s01_view2.png"] and (out / "s01_view2.png").is_file()
+    assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--views", "0"]) == 2
+    assert "views 1..8" in capsys.readouterr().err
+    assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--subjects", "s99"]) == 2
+    assert "s99" in capsys.readouterr().err
