@@ -32,6 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
+from hogsa_loader.cli import checks
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.gaussians.checkpoint import atomic_write
 from hogsa_loader.gaussians.hogs_model import HogsModel
@@ -58,11 +59,33 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
     p.add_argument("--objects", default=None, help="comma-separated object filter")
     p.add_argument("--sequences-like", default=None,
                    help="comma-separated sequence suffixes to train on, e.g. grab_01,use_01 (the paper's choice)")  # fmt: skip
-    p.add_argument("--array-index", type=int, default=None)
-    p.add_argument("--array-size", type=int, default=None)
-    p.add_argument("--gpus", default=None, help="comma-separated GPU ids: one child process per GPU")
+    p.add_argument("--array-index", type=checks.non_negative_int, default=None, help="this process's slot (default: "
+                   "$SLURM_ARRAY_TASK_ID or $RANK or 0)")
+    p.add_argument("--array-size", type=checks.positive_int, default=None, help="processes in the job array")
+    p.add_argument("--gpus", default=None, type=_gpu_ids, help="comma-separated GPU ids: one child process per GPU")
     p.add_argument("--dry-run", action="store_true", help="list this process's pairs and exit")
-    return p.parse_args(argv), rest
+    checks.one_line_errors(p)
+    a = p.parse_args(argv)
+    if a.array_index is not None and a.array_index >= (a.array_size or 1):
+        size = a.array_size or 1
+        p.error(f"--array-index {a.array_index} is outside 0..{size - 1} (--array-size {size})")
+    return a, rest
+
+
+def _usage(message: str) -> None:
+    """Report a usage error as one line and exit with status 2."""
+    print(f"train_all_hogs: error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _gpu_ids(text: str) -> str:
+    """``--gpus``: comma-separated non-negative integers, no repeats."""
+    ids = [g.strip() for g in text.split(",") if g.strip()]
+    if not ids or not all(g.isdigit() for g in ids):
+        raise argparse.ArgumentTypeError(f"expected comma-separated GPU ids such as 0,1, got {text!r}")
+    if len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"GPU ids repeat in {text!r}")
+    return ",".join(ids)
 
 
 def list_pairs(root: ArcticRoot, a: argparse.Namespace) -> list[tuple[str, str, list[str]]]:
@@ -92,7 +115,7 @@ def list_h2o_pairs(root: Any, a: argparse.Namespace) -> list[tuple[str, str, lis
     from hogsa_loader.datasets.h2o import H2O_EGO_CAMERA, H2O_OBJECT_NAMES
 
     if a.split != "all":
-        raise SystemExit("train_all_hogs: H2O splits by subject; use --subjects instead of --split")
+        _usage("H2O splits by subject; use --subjects instead of --split")
     subjects = set(a.subjects.split(",")) if a.subjects else None
     objects = set(a.objects.split(",")) if a.objects else None
     pairs: dict[tuple[str, str], list[str]] = {}
@@ -121,7 +144,7 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
     else:
         idx, size = 0, 1
     if not 0 <= idx < size:
-        raise SystemExit(f"train_all_hogs: array index {idx} is outside 0..{size - 1}")
+        _usage(f"array index {idx} is outside 0..{size - 1}")
     return idx, size
 
 

@@ -84,8 +84,11 @@ def positive_float(text: str) -> float:
 
 
 def non_negative_float(text: str) -> float:
-    """argparse ``type=``: a number >= 0 (not NaN)."""
-    return float(_number(text, float, 0.0, strict=False))
+    """argparse ``type=``: a finite number >= 0."""
+    value = float(_number(text, float, 0.0, strict=False))
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
 
 
 def torch_device(text: str) -> str:

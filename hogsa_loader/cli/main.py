@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     a = sub.add_parser("assets", help="write the synthetic MANO-format hands, procedural objects and previews")
     a.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
     a.add_argument("--objects", default="box,laptop,notebook", help="comma-separated procedural objects")
-    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--seed", type=checks.non_negative_int, default=0)
     a.add_argument("--no-preview", action="store_true", help="skip the PNG previews")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.set_defaults(func=_cmd_assets)
@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
     w.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
     w.add_argument("--preset", default="tiny", help="tiny (< 1 min, tests) or small (ARCTIC image sizes)")
-    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")
     w.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     w.set_defaults(func=_cmd_world)
@@ -313,11 +313,15 @@ def build_parser() -> argparse.ArgumentParser:
                        "noisy labels.")
     n.add_argument("--src", required=True, help="the world / ARCTIC ./data root")
     n.add_argument("--out", required=True, help="output root (must not exist)")
-    n.add_argument("--trans-mm", type=float, default=2.0, help="wrist translation std per axis (mm)")
-    n.add_argument("--rot-deg", type=float, default=1.5, help="global orientation std per axis (degrees)")
-    n.add_argument("--pose-rad", type=float, default=0.04, help="finger pose std per component (rad)")
-    n.add_argument("--smooth", type=int, default=5, help="frames of the moving average of the per-frame part")
-    n.add_argument("--seed", type=int, default=0)
+    n.add_argument("--trans-mm", type=checks.non_negative_float, default=2.0,
+                   help="wrist translation std per axis (mm)")
+    n.add_argument("--rot-deg", type=checks.non_negative_float, default=1.5,
+                   help="global orientation std per axis (degrees)")
+    n.add_argument("--pose-rad", type=checks.non_negative_float, default=0.04,
+                   help="finger pose std per component (rad)")
+    n.add_argument("--smooth", type=checks.positive_int, default=5,
+                   help="frames of the moving average of the per-frame part")
+    n.add_argument("--seed", type=checks.non_negative_int, default=0)
     n.add_argument("--no-splits", action="store_true", help="do not rebuild splits/ from the noisy labels")
     n.add_argument("--quiet", action="store_true")
     n.set_defaults(func=_cmd_world_noise)
