@@ -266,18 +266,29 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
 
 def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     """Folder of the synthetic frames' backgrounds (plates built once, cached by settings)."""
-    from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates
+    from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
+    from hogsa_loader.datasets.arctic import ArcticRoot
     from hogsa_loader.demo import demo_photographs
 
     if cfg.synthetic.backgrounds == "photos":
         return demo_photographs(out / "backgrounds")
-    plates = PlateConfig(data=str(data), out=str(out / "setup" / "plates"), quiet=True)
+    plates = PlateConfig(data=str(data), out=str(out / "setup" / "plates"))
     manifest = Path(plates.out) / PLATES_MANIFEST
+    old = json.loads(manifest.read_text()) if manifest.is_file() else {}
     wanted = json.loads(json.dumps(asdict(plates)))  # as stored (tuples become lists)
-    if not (manifest.is_file() and json.loads(manifest.read_text()).get("settings") == wanted):
+    if old.get("settings") != wanted or old.get("data_fingerprint") != data_fingerprint(ArcticRoot(data)):
         _say(f"[setup] background plates of {data} -> {plates.out}")
-        build_plates(plates)
+        build_plates(plates, log=lambda m: _say(f"[plates] {m}"))
     return Path(plates.out)
+
+
+def synthetic_key(cfg: DownstreamConfig) -> dict[str, Any]:
+    """The synthetic settings in cache keys (photo backgrounds keep the keys they had
+    before the choice of backgrounds existed)."""
+    syn = asdict(cfg.synthetic)
+    if syn["backgrounds"] == "photos":
+        del syn["backgrounds"]
+    return syn
 
 
 def setup_fingerprint(cfg: DownstreamConfig, setup: dict[str, Any]) -> str:
@@ -305,7 +316,7 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
 
 def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Path:
     """Folder of a variant's export, named by everything its frames depend on."""
-    key = _key([variant_options(variant, cfg, setup), setup["fingerprint"], asdict(cfg.synthetic),
+    key = _key([variant_options(variant, cfg, setup), setup["fingerprint"], synthetic_key(cfg),
                 cfg.model.img_res])
     return out / "synthetic" / f"{variant}-{key[:10]}"
 
@@ -431,7 +442,7 @@ def eval_steps(cfg: DownstreamConfig) -> list[int]:
 def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, Any]:
     """What a run's result depends on (its cache key)."""
     _, variant = ARM_SPECS[arm]
-    syn = asdict(cfg.synthetic) if variant else None
+    syn = synthetic_key(cfg) if variant else None
     return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
             "setup": setup["fingerprint"],
             "bundle": str(setup["bundle"]), "variant": variant and variant_options(variant, cfg, setup),
@@ -474,7 +485,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     batches = train_batches(arm, seed, cfg, setup, out)
     val = val_dataset(cfg, setup)
     points = eval_steps(cfg)
-    curve, losses = [], []
+    curve, losses, terms = [], [], []
     t0 = time.perf_counter()
     t_eval = 0.0
     bar = tqdm(total=cfg.train.steps, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
@@ -490,6 +501,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
             _atomic_json(res_path, result)
             return result
         losses.append(rec["loss"])
+        terms.append({k: float(v) for k, v in rec.items() if k != "loss"})
         bar.update(1)
         bar.set_postfix(loss=f"{rec['loss']:.3f}")
         if step in points:
@@ -510,6 +522,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     result = {"key": key, "settings": settings, "summary": {k: _num(v) for k, v in final["summary"].items()},
               "val_frames": final["frames"], "curve": curve, "loss_first": losses[0], "loss_last": losses[-1],
               "loss_curve": [float(np.mean(losses[i:i + 10])) for i in range(0, len(losses), 10)],
+              "loss_terms_last": {k: float(np.mean([t.get(k, np.nan) for t in terms[-20:]])) for k in terms[-1]},
               "train_seconds": round(time.perf_counter() - t0 - t_eval, 1), "eval_seconds": round(t_eval, 1)}
     _atomic_json(res_path, result)
     return result

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -79,9 +80,10 @@ def _usage(message: str) -> None:
 
 
 def _gpu_ids(text: str) -> str:
-    """``--gpus``: comma-separated non-negative integers, no repeats."""
+    """``--gpus``: comma-separated ``CUDA_VISIBLE_DEVICES`` entries (indices, ``GPU-``/``MIG-``
+    UUIDs), no repeats."""
     ids = [g.strip() for g in text.split(",") if g.strip()]
-    if not ids or not all(g.isdigit() for g in ids):
+    if not ids or not all(re.fullmatch(r"[0-9]+|(GPU|MIG)-[0-9A-Za-z/-]+", g) for g in ids):
         raise argparse.ArgumentTypeError(f"expected comma-separated GPU ids such as 0,1, got {text!r}")
     if len(set(ids)) != len(ids):
         raise argparse.ArgumentTypeError(f"GPU ids repeat in {text!r}")

@@ -70,7 +70,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, ar
     p.add_argument("--lambda-gan", type=checks.non_negative_float, default=1.0, help="0 disables the discriminator")
     p.add_argument("--r1-gamma", type=checks.non_negative_float, default=10.0)
     p.add_argument("--r1-every", type=checks.positive_int, default=16)
-    p.add_argument("--ema-decay", type=float, default=0.999)
+    p.add_argument("--ema-decay", type=checks.unit_float, default=0.999)
     p.add_argument("--vgg-weights", default=None, help="local torchvision vgg19 state dict (.pth or .safetensors)")
     p.add_argument("--device", default="cpu", type=checks.torch_device)
     p.add_argument("--threads", type=checks.positive_int, default=None, help="torch CPU threads (default: torch's)")

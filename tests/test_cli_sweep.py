@@ -45,7 +45,7 @@ TABLE: list[tuple[str, list[str], str, tuple[str, ...]]] = [
     ("plates", ["--data", "{W}", "--out", "o"], "--views", ("0", "9")),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-index", ("-1", "nan", "3")),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-size", ("0",)),
-    ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--gpus", ("-1", "nan", "0,0")),
+    ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--gpus", ("-1", "nan", "0,0", "²")),
     ("train_contactnet", ["--data", "{W}", "--out", "o"], "--iters", ("-1", "nan")),
     ("train_contactnet", ["--data", "{W}", "--out", "o"], "--lr", ("nan", "0")),
     ("build_pose_bank", ["--data", "{W}", "--contactnet", "{B}/contactnet", "--out", "o"], "--per-sequence",
@@ -83,4 +83,13 @@ def test_bad_value_is_refused_before_work(cmd, base, flag, value, tiny_world, un
     lines = [line for line in err.getvalue().splitlines() if line.strip()]
     assert isinstance(rc, int) and rc != 0, (rc, err.getvalue())
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in err.getvalue(), err.getvalue()
+    assert flag in lines[0] or flag.lstrip("-") in lines[0], lines[0]  # refused for this value, not another
     assert not any(tmp_path.iterdir()), sorted(p.name for p in tmp_path.iterdir())
+
+
+def test_gpu_list_accepts_what_cuda_visible_devices_accepts() -> None:
+    spec = importlib.util.spec_from_file_location("sweep_tah", ROOT / "pretrain" / "train_all_hogs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod._gpu_ids("0, 1,3") == "0,1,3"
+    assert mod._gpu_ids("GPU-8f6e2c1a-1b2c,MIG-4d3c/1/0") == "GPU-8f6e2c1a-1b2c,MIG-4d3c/1/0"

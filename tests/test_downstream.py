@@ -186,3 +186,6 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
+    # photo runs keep the keys they had before backgrounds could be chosen
+    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k != "backgrounds"}
+    assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn

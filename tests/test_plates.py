@@ -4,6 +4,7 @@ the background of every frame they were made from, and the ``hogsa plates`` comm
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -12,10 +13,19 @@ import pytest
 
 from hogsa_loader.cli.main import main
 from hogsa_loader.compose import FolderBackgrounds
-from hogsa_loader.compose.plates import PlateConfig, _frames, _median, build_plates, crop_to_plate
+from hogsa_loader.compose.plates import (
+    PlateConfig,
+    _foreground,
+    _frames,
+    _median,
+    _Sample,
+    build_plates,
+    crop_to_plate,
+)
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import full_to_cropped
 from hogsa_loader.train.hogs_data import crop_boxes
+from hogsa_loader.train.hogs_masks import pose_meshes
 
 
 def test_median_uses_only_background_samples() -> None:
@@ -25,11 +35,41 @@ def test_median_uses_only_background_samples() -> None:
     oks[0][1, 2] = oks[1][1, 2] = oks[2][1, 2] = False  # only frame 3 saw (1, 2)
     for o in oks:
         o[0, 1] = False  # nobody saw (0, 1)
-    plate, count = _median(imgs, oks, rows=1)
+    samples = [_Sample(0, 0, i, o) for i, o in zip(imgs, oks, strict=True)]
+    samples.append(_Sample(1, 1, np.full((1, 1, 3), 99, np.uint8), np.ones((1, 1), bool)))  # a window at (1, 1)
+    plate, count = _median(samples, (2, 3), rows=1)
     assert plate[0, 0].tolist() == [20, 20, 20]  # median of 10 and 30, not of all four
     assert plate[1, 2].tolist() == [250] * 3
     assert plate[1, 0].tolist() == [115] * 3  # median of all four
-    assert count.tolist() == [[2, 0, 4], [4, 4, 1]]
+    assert plate[1, 1].tolist() == [99] * 3  # median of 10, 200, 30, 250 and the window's 99
+    assert count.tolist() == [[2, 0, 4], [4, 5, 1]]
+
+
+def test_plate_of_a_known_image_equals_the_image_downscaled() -> None:
+    """Crops made with ``full_to_cropped`` from a known full image land where the image is:
+    the warped crop equals the downscaled full image (a 0.5-pixel error fails)."""
+    W, H, crop, width = 700, 500, 256, 350
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    full = np.stack([127 + 120 * np.sin(xx / 7.0), 127 + 120 * np.cos(yy / 9.0), 127 + 100 * np.sin((xx + yy) / 11.0)],
+                    -1).astype(np.float32)  # fmt: skip
+    gain = width / W
+    ref = cv2.resize(full, (width, round(H * gain)), interpolation=cv2.INTER_AREA)
+    for bbox in (np.array([350.0, 260.0, 1.0]), np.array([301.3, 222.7, 0.83])):
+        src = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 100.0]])
+        dst = full_to_cropped(src, bbox, crop)  # full -> crop, as the dataset defines it
+        A = cv2.getAffineTransform(src.astype(np.float32), dst.astype(np.float32))
+        cropped = cv2.warpAffine(full, A, (crop, crop), flags=cv2.INTER_LINEAR)
+        resized = int(round(1.5 * bbox[2] * 200 * gain))
+        small = cv2.resize(cropped, (resized, resized), interpolation=cv2.INTER_AREA)
+        errs = []
+        for shift in (0.0, 0.5):
+            M = crop_to_plate(bbox, crop, resized, gain)
+            M[:, 2] += shift
+            plate = cv2.warpAffine(small, M, (ref.shape[1], ref.shape[0]), flags=cv2.INTER_LINEAR)
+            seen = cv2.warpAffine(np.ones((resized, resized), np.uint8), M, (ref.shape[1], ref.shape[0]))
+            seen = cv2.erode(seen, np.ones((5, 5), np.uint8)) > 0
+            errs.append(float(np.abs(plate - ref)[seen].mean()))
+        assert errs[0] < 3.0 and errs[1] > 1.5 * errs[0], errs
 
 
 def test_crop_to_plate_inverts_the_crop() -> None:
@@ -43,11 +83,12 @@ def test_crop_to_plate_inverts_the_crop() -> None:
     np.testing.assert_allclose(plate, (full + 0.5) * gain - 0.5, atol=1e-9)
 
 
-@pytest.fixture(scope="module")
-def plates(tiny_world, tmp_path_factory):
+@pytest.fixture(scope="module", params=["files", "render"])
+def plates(tiny_world, tmp_path_factory, request):
+    """Plates from the mask files, and from masks rendered from the annotations (real ARCTIC)."""
     out = tmp_path_factory.mktemp("plates")
     cfg = PlateConfig(data=str(tiny_world), out=str(out), subjects=("s01",), views=(1, 4), width=480,
-                      frames_per_sequence=6, quiet=True)  # fmt: skip
+                      frames_per_sequence=6, masks=request.param, quiet=True)  # fmt: skip
     return cfg, build_plates(cfg)
 
 
@@ -112,3 +153,45 @@ def test_plates_command(tiny_world, tmp_path, capsys) -> None:
     assert "views 1..8" in capsys.readouterr().err
     assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--subjects", "s99"]) == 2
     assert "s99" in capsys.readouterr().err
+
+
+def test_rebuild_removes_stale_plates_and_renders_missing_masks(tiny_world, tmp_path) -> None:
+    """A rebuild leaves only its own plates in the folder; with masks='auto' a frame whose
+    mask file is missing gets a rendered mask (the other frames keep their files)."""
+    root = tmp_path / "w"
+    data = root / "arctic_data" / "data"
+    data.mkdir(parents=True)
+    for entry in (Path(tiny_world) / "arctic_data" / "data").iterdir():
+        if entry.name != "masks":
+            (data / entry.name).symlink_to(entry)
+    (root / "body_models").symlink_to(Path(tiny_world) / "body_models")
+    shutil.copytree(Path(tiny_world) / "arctic_data" / "data" / "masks", data / "masks")
+    gone = sorted((data / "masks" / "s01").glob("*/2/00000.png"))
+    assert gone
+    for f in gone:
+        f.unlink()
+    out = tmp_path / "p"
+    base = dict(data=str(root), out=str(out), subjects=("s01",), width=240, frames_per_sequence=2, quiet=True)
+    build_plates(PlateConfig(views=(2, 3), **base))
+    assert sorted(p.name for p in out.glob("*.png")) == ["s01_view2.png", "s01_view3.png"]
+    rec = build_plates(PlateConfig(views=(3,), **base))
+    assert [p["file"] for p in rec["plates"]] == ["s01_view3.png"]
+    assert sorted(p.name for p in out.glob("*.png")) == ["s01_view3.png"]
+
+
+def test_rendered_foreground_matches_mask_files(tiny_world) -> None:
+    """Where a dataset has no masks (real ARCTIC), the rendered foreground is the mask files'."""
+    root = ArcticRoot(tiny_world)
+    crop = root.world_meta().cropped_size
+    seq = root.sequence("s01", "box_use_01")
+    frames = _frames(seq.num_frames, 3)
+    cache = {"boxes": crop_boxes(root, seq, (1, 5)),
+             "pose": lambda: pose_meshes(seq, frames, root.mano_layers(), root.object_templates()["box"])}  # fmt: skip
+    ious = []
+    for view in (1, 5):
+        for f in frames:
+            res = 96
+            rendered = _foreground(seq, view, f, res, crop, PlateConfig(masks="render"), cache)
+            files = _foreground(seq, view, f, res, crop, PlateConfig(masks="files"), cache)
+            ious.append((rendered & files).sum() / max(1, (rendered | files).sum()))
+    assert min(ious) > 0.9, ious

@@ -3,7 +3,7 @@
 Checks run before any work starts. Two kinds:
 
 * argparse converters (``type=``): :func:`positive_int`, :func:`non_negative_int`,
-  :func:`positive_float`, :func:`non_negative_float`, :func:`torch_device`; they raise
+  :func:`positive_float`, :func:`non_negative_float`, :func:`unit_float`, :func:`torch_device`; they raise
   ``argparse.ArgumentTypeError`` and the parser reports ``PROG: error: argument --x: ...``;
 * checks of whole paths and combinations of arguments: :func:`output_dir`,
   :func:`output_file`, :func:`input_dir`, :func:`input_file`, :func:`multiple_of`,
@@ -32,6 +32,7 @@ __all__ = [
     "non_negative_int",
     "positive_float",
     "non_negative_float",
+    "unit_float",
     "torch_device",
     "output_dir",
     "output_file",
@@ -88,6 +89,14 @@ def non_negative_float(text: str) -> float:
     value = float(_number(text, float, 0.0, strict=False))
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def unit_float(text: str) -> float:
+    """argparse ``type=``: a number in [0, 1]."""
+    value = non_negative_float(text)
+    if value > 1.0:
+        raise argparse.ArgumentTypeError(f"must be <= 1, got {text}")
     return value
 
 

@@ -7,8 +7,9 @@ each cropped image shows the square of side ``1.5 · 200 · scale`` around its b
 so it maps back into the full camera frame by a scale and a shift. With the annotated
 hands and object masked out (the dataset's ``masks/`` when it has them, else rasterised
 from the posed MANO and object meshes), every plate pixel takes the per-pixel median of
-the frames that saw background there; the subject's arms and other movers vanish in the
-median as they do from a clean plate in film work.
+the frames that saw background there. Only hands and object are masked: whatever else
+stays in place in most frames (on real ARCTIC, parts of the subject's arms and body) stays
+in the plate.
 
 :func:`build_plates` writes one PNG per (subject, view) plus ``plates.json`` into a folder
 that :class:`~hogsa_loader.compose.sources.FolderBackgrounds` reads directly. Plates are
@@ -20,6 +21,7 @@ their share is recorded per plate.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from dataclasses import asdict, dataclass, field
@@ -30,8 +32,9 @@ import cv2
 import numpy as np
 
 from hogsa_loader.errors import AssetError, UsageError
+from hogsa_loader.gaussians.checkpoint import atomic_write
 
-__all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate"]
+__all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate", "data_fingerprint"]
 
 PLATES_MANIFEST = "plates.json"
 
@@ -103,20 +106,41 @@ def _frames(num: int, k: int) -> list[int]:
     return sorted(set(np.linspace(0, num - 1, k).round().astype(int).tolist()))
 
 
-def _median(stack_img: list[np.ndarray], stack_ok: list[np.ndarray], rows: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel median of the valid samples: (H, W, 3) uint8 and the (H, W) sample count."""
-    h, w = stack_ok[0].shape
+@dataclass
+class _Sample:
+    """One frame's background in plate pixels: ``img`` (h, w, 3) uint8 and ``ok`` (h, w)
+    bool (background seen) cover rows ``y0:y0+h`` and columns ``x0:x0+w`` of the plate."""
+
+    y0: int
+    x0: int
+    img: np.ndarray
+    ok: np.ndarray
+
+
+def _median(samples: Sequence[_Sample], hw: tuple[int, int], rows: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel median of the valid samples: (H, W, 3) uint8 and the (H, W) sample count.
+
+    Rows are processed in bands of ``rows``; a band stacks only the samples whose window
+    meets it (memory ~ samples per band x band size)."""
+    h, w = hw
     plate = np.zeros((h, w, 3), np.uint8)
     count = np.zeros((h, w), np.int64)
     for r0 in range(0, h, rows):
-        img = np.stack([x[r0 : r0 + rows] for x in stack_img]).astype(np.float32)
-        ok = np.stack([x[r0 : r0 + rows] for x in stack_ok])
-        img[~ok] = np.nan
+        r1 = min(h, r0 + rows)
+        hit = [sm for sm in samples if sm.y0 < r1 and sm.y0 + sm.ok.shape[0] > r0]
+        if not hit:
+            continue
+        img = np.full((len(hit), r1 - r0, w, 3), np.nan, np.float32)
+        for k, sm in enumerate(hit):
+            a0, a1 = max(r0, sm.y0), min(r1, sm.y0 + sm.ok.shape[0])
+            part = sm.img[a0 - sm.y0 : a1 - sm.y0].astype(np.float32)
+            part[~sm.ok[a0 - sm.y0 : a1 - sm.y0]] = np.nan
+            img[k, a0 - r0 : a1 - r0, sm.x0 : sm.x0 + sm.ok.shape[1]] = part
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: nobody saw them
             med = np.nanmedian(img, axis=0)
-        count[r0 : r0 + rows] = ok.sum(0)
-        plate[r0 : r0 + rows] = np.nan_to_num(med, nan=0.0).round().clip(0, 255).astype(np.uint8)
+        count[r0:r1] = (~np.isnan(img[..., 0])).sum(0)
+        plate[r0:r1] = np.nan_to_num(med, nan=0.0).round().clip(0, 255).astype(np.uint8)
     return plate, count
 
 
@@ -138,14 +162,17 @@ def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateC
     cam = seq.cameras[view]
     K_crop = render_intrinsics(cropped_intrinsics(cam.K[frame], cache["boxes"][view][frame], crop))
     Ks = np.diag([resized / crop, resized / crop, 1.0]) @ K_crop
+    if "posed" not in cache:
+        cache["posed"] = cache["pose"]()
     mask = render_part_mask(cache["posed"], frame, cam.world2cam[frame], Ks, resized, K_full=cam.K[frame],
                             full_size=(cam.width, cam.height), supersample=2)  # fmt: skip
     return mask > 0
 
 
 def _plate_samples(root, sid: str, view: int, seqs: Sequence[str], cfg: PlateConfig, posed_cache: dict):
-    """Warped background samples of one (subject, view): images, masks, full size."""
-    img_s, ok_s, size = [], [], None
+    """Background samples of one (subject, view) in plate pixels, the plate size (H, W) and
+    the full image size (W, H)."""
+    samples, size, plate_hw = [], None, None
     crop = root.world_meta().cropped_size
     k_dilate = np.ones((2 * cfg.margin + 1, 2 * cfg.margin + 1), np.uint8) if cfg.margin else None
     for name in seqs:
@@ -165,6 +192,14 @@ def _plate_samples(root, sid: str, view: int, seqs: Sequence[str], cfg: PlateCon
                 continue
             box = cache["boxes"][view][f]
             resized = max(8, int(round(1.5 * float(box[2]) * 200.0 * gain)))
+            M = crop_to_plate(box, crop, resized, gain)
+            # the crop's window in the plate (one pixel of margin), clipped to the plate
+            lo = np.floor(M[:, 2] - 1).astype(int)
+            hi = np.ceil(M[:, 2] + M[0, 0] * resized + 1).astype(int)
+            x0, y0 = max(0, lo[0]), max(0, lo[1])
+            x1, y1 = min(plate_hw[1], hi[0]), min(plate_hw[0], hi[1])
+            if x1 <= x0 or y1 <= y0:
+                continue
             img = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if img is None:
                 raise AssetError(path, "cannot be read as an image")
@@ -172,19 +207,24 @@ def _plate_samples(root, sid: str, view: int, seqs: Sequence[str], cfg: PlateCon
                 raise AssetError(path, f"is {img.shape[1]}x{img.shape[0]}, expected the cropped size {crop}x{crop}")
             small = cv2.resize(img, (resized, resized), interpolation=cv2.INTER_AREA)
             bg = (~_foreground(seq, view, f, resized, crop, cfg, cache)).astype(np.uint8)
-            M = crop_to_plate(box, crop, resized, gain)
-            dsize = (plate_hw[1], plate_hw[0])
-            warped = cv2.warpAffine(small, M, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            inside = cv2.warpAffine(np.ones((resized, resized), np.uint8), M, dsize, flags=cv2.INTER_NEAREST)
-            keep = cv2.warpAffine(bg, M, dsize, flags=cv2.INTER_NEAREST, borderValue=0)
+            Mw = M.copy()
+            Mw[:, 2] -= (x0, y0)
+            dsize = (x1 - x0, y1 - y0)
+            warped = cv2.warpAffine(small, Mw, dsize, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            inside = cv2.warpAffine(np.ones((resized, resized), np.uint8), Mw, dsize, flags=cv2.INTER_NEAREST)
+            keep = cv2.warpAffine(bg, Mw, dsize, flags=cv2.INTER_NEAREST, borderValue=0)
             fg = (inside > 0) & (keep == 0)
             if k_dilate is not None:
                 fg = cv2.dilate(fg.astype(np.uint8), k_dilate) > 0
-            # a crop's outer pixel row mixes in its padding: drop it
+            # a crop's outer pixel row mixes in what lies beyond it: drop it
             ok = (cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0) & ~fg
-            img_s.append(warped)
-            ok_s.append(ok)
-    return img_s, ok_s, size
+            # so does the plate's own border row (crop padding beyond the full image is black)
+            ok[:, : max(0, 1 - x0)] = False
+            ok[: max(0, 1 - y0)] = False
+            ok[:, max(0, plate_hw[1] - 1 - x0) :] = False
+            ok[max(0, plate_hw[0] - 1 - y0) :] = False
+            samples.append(_Sample(y0, x0, warped, ok))
+    return samples, plate_hw, size
 
 
 def _cut_and_fill(plate: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -242,33 +282,47 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
         for name in seqs:
             seq = root.sequence(sid, name)
             frames = _frames(seq.num_frames, cfg.frames_per_sequence)
-            c = {"frames": frames, "boxes": crop_boxes(root, seq, cfg.views)}
-            if cfg.masks == "render" or not seq.mask_paths:
-                template = root.object_templates()[seq.object.name]
-                c["posed"] = pose_meshes(seq, frames, root.mano_layers(), template)
+            c = {"frames": frames, "boxes": crop_boxes(root, seq, cfg.views),
+                 "pose": lambda seq=seq, frames=frames: pose_meshes(  # only when a mask is rendered
+                     seq, frames, root.mano_layers(), root.object_templates()[seq.object.name])}  # fmt: skip
             cache[name] = (seq, c)
         for view in cfg.views:
-            imgs, oks, size = _plate_samples(root, sid, view, seqs, cfg, cache)
-            if not imgs:
+            samples, plate_hw, size = _plate_samples(root, sid, view, seqs, cfg, cache)
+            if not samples:
                 skipped.append({"subject": sid, "view": view, "reason": "no cropped images"})
                 continue
-            plate, count = _median(imgs, oks)
+            plate, count = _median(samples, plate_hw)
             if not (count > 0).any():
                 skipped.append({"subject": sid, "view": view, "reason": "no background pixel seen"})
                 continue
             cut, rec = _cut_and_fill(plate, count)
-            entry = {"subject": sid, "view": view, "frames": len(imgs), "full_size": list(size), **rec}
+            entry = {"subject": sid, "view": view, "frames": len(samples), "full_size": list(size), **rec}
             if rec["coverage"] < cfg.min_coverage:
                 skipped.append({**entry, "reason": f"coverage {rec['coverage']:.2f} < {cfg.min_coverage}"})
                 continue
             fname = f"{sid}_view{view}.png"
-            if not cv2.imwrite(str(out / fname), cut):
-                raise AssetError(out / fname, "could not be written")
+            ok, png = cv2.imencode(".png", cut)
+            if not ok:
+                raise AssetError(out / fname, "could not be encoded as PNG")
+            atomic_write(out / fname, png.tobytes())
             plates.append({"file": fname, **entry})
-            say(f"{sid} view {view}: {len(imgs)} frames, coverage {rec['coverage']:.2f} -> {fname}")
+            say(f"{sid} view {view}: {len(samples)} frames, coverage {rec['coverage']:.2f} -> {fname}")
     if not plates:
         raise UsageError(f"no plate could be built from {cfg.data} (skipped: {skipped})")
-    manifest = {"kind": "hogsa background plates", "version": 1, "settings": asdict(cfg), "plates": plates,
-                "skipped": skipped}  # fmt: skip
-    (out / PLATES_MANIFEST).write_text(json.dumps(manifest, indent=1))
+    for old in out.glob("*_view*.png"):  # plates of earlier builds would be read as backgrounds too
+        if old.name not in {p["file"] for p in plates}:
+            old.unlink()
+    manifest = {"kind": "hogsa background plates", "version": 1, "settings": asdict(cfg),
+                "data_fingerprint": data_fingerprint(root), "plates": plates, "skipped": skipped}  # fmt: skip
+    atomic_write(out / PLATES_MANIFEST, json.dumps(manifest, indent=1).encode())
     return manifest
+
+
+def data_fingerprint(root) -> str:
+    """SHA-256 of the data root's camera file (``misc.json``) and, when present, its world
+    record: plates built from another dataset (or a world rebuilt in place) differ."""
+    h = hashlib.sha256()
+    for path in (root.misc_path, root.arctic_dir / "meta" / "hogsa_world.json"):
+        h.update(path.name.encode())
+        h.update(path.read_bytes() if path.is_file() else b"-")
+    return h.hexdigest()
