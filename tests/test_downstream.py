@@ -170,9 +170,15 @@ def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     assert ds.finished_run("real", 1, cfg, setup, tmp_path) is None
 
 
-def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path):
+def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path, monkeypatch):
     """Plates (the default) are built from the world once and reused; the background choice
     is part of each synthetic export's name, so photo and plate frames never mix."""
+    import functools
+
+    from hogsa_loader.compose import plates
+
+    small = functools.partial(plates.PlateConfig, views=(1, 2), width=160, frames_per_sequence=2)  # a quick build
+    monkeypatch.setattr(plates, "PlateConfig", small)
     ds = _downstream()
     cfg = ds.DownstreamConfig()
     assert cfg.synthetic.backgrounds == "plates"
