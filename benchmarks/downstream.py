@@ -588,7 +588,9 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
         return rows
 
     done = {a: agg["arms"][a]["mpjpe/ra/h"]["n"] for a in agg["arms"]}
-    lines = [f"Seeds {list(cfg.seeds)} ({', '.join(f'{a}: {n}' for a, n in done.items())} finished), mean ± std; {cfg.model.backbone} at {cfg.model.img_res}², "
+    finished = ", ".join(f"{a}: {n}" for a, n in done.items())
+    lines = [f"Seeds {list(cfg.seeds)} ({finished} finished), mean ± std; "
+             f"{cfg.model.backbone} at {cfg.model.img_res}², "
              f"{cfg.train.steps} steps of {cfg.train.batch_size}, synthetic share {cfg.synthetic.share}, "
              f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.", "",
              "**Table 1** (p1, held-out subject)", ""] + table(["real", "hogsa"])

@@ -35,6 +35,7 @@ from typing import Any, Optional, Sequence
 
 from hogsa_loader.cli import checks
 from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.errors import UsageError
 from hogsa_loader.gaussians.checkpoint import atomic_write
 from hogsa_loader.gaussians.hogs_model import HogsModel
 
@@ -75,8 +76,7 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
 
 def _usage(message: str) -> None:
     """Report a usage error as one line and exit with status 2."""
-    print(f"train_all_hogs: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
+    raise SystemExit(checks.report("train_all_hogs", UsageError(message)))
 
 
 def _gpu_ids(text: str) -> str:

@@ -31,6 +31,12 @@ from typing import Callable, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
+from hogsa_loader.datasets.conventions import (
+    BBOX_PIXELS_PER_SCALE,
+    CROP_ENLARGE,
+    cropped_intrinsics,
+    render_intrinsics,
+)
 from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.gaussians.checkpoint import atomic_write
 
@@ -76,13 +82,12 @@ class PlateConfig:
 
 
 def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float) -> np.ndarray:
-    """(2, 3) affine from a resized cropped image's pixels to plate pixels.
+    """(2, 3) affine from a resized cropped image's pixels to plate pixels (OpenCV coordinates).
 
-    The cropped image (side ``cropped_size``) shows full-image label coordinates
-    ``x = j · 1.5 s / cropped_size + cx − 0.75 s`` at pixel j (s = 200 · scale); it is
-    resized to ``resized`` pixels (OpenCV's pixel-centre convention) and the plate is the
-    full image scaled by ``gain`` (plate pixel p shows full coordinate ``(p + 0.5) / gain −
-    0.5``).
+    The cropped image is the dataset's crop of the full image
+    (:func:`~hogsa_loader.datasets.conventions.cropped_intrinsics`), resized to ``resized``
+    pixels; the plate is the full image scaled by ``gain``. Resizing scales coordinates
+    whose pixel centres sit at ``j + 0.5``, so the scales are applied in those.
 
     Args:
         bbox: (3,) ``(cx, cy, scale)`` of the frame in the full image.
@@ -90,13 +95,11 @@ def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float
         resized: side of the resized crop.
         gain: plate width / full image width.
     """
-    s = float(bbox[2]) * 200.0
-    a = 1.5 * s * gain / cropped_size  # plate pixels per cropped pixel
-    a2 = a * cropped_size / resized
-    shift = (0.5 * cropped_size / resized - 0.5) * a
-    tx = (float(bbox[0]) - 0.75 * s + 0.5) * gain - 0.5 + shift
-    ty = (float(bbox[1]) - 0.75 * s + 0.5) * gain - 0.5 + shift
-    return np.array([[a2, 0.0, tx], [0.0, a2, ty]])
+    half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])  # OpenCV -> centres at j + 0.5
+    full_to_crop = cropped_intrinsics(np.eye(3), np.asarray(bbox, np.float64), cropped_size)
+    M = (np.linalg.inv(half) @ np.diag([gain, gain, 1.0]) @ half @ np.linalg.inv(full_to_crop)
+         @ np.linalg.inv(half) @ np.diag([cropped_size / resized, cropped_size / resized, 1.0]) @ half)
+    return M[:2]
 
 
 def _frames(num: int, k: int) -> list[int]:
@@ -146,7 +149,6 @@ def _median(samples: Sequence[_Sample], hw: tuple[int, int], rows: int = 32) -> 
 
 def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateConfig, cache: dict) -> np.ndarray:
     """(resized, resized) bool: hands or object in the cropped image of (view, frame)."""
-    from hogsa_loader.datasets.conventions import cropped_intrinsics, render_intrinsics
     from hogsa_loader.train.hogs_masks import render_part_mask
 
     mpaths = seq.mask_paths.get(view) if seq.mask_paths else None
@@ -191,7 +193,7 @@ def _plate_samples(root, sid: str, view: int, seqs: Sequence[str], cfg: PlateCon
             if path is None:
                 continue
             box = cache["boxes"][view][f]
-            resized = max(8, int(round(1.5 * float(box[2]) * 200.0 * gain)))
+            resized = max(8, int(round(CROP_ENLARGE * BBOX_PIXELS_PER_SCALE * float(box[2]) * gain)))
             M = crop_to_plate(box, crop, resized, gain)
             # the crop's window in the plate (one pixel of margin), clipped to the plate
             lo = np.floor(M[:, 2] - 1).astype(int)
