@@ -126,6 +126,9 @@ class ModelSettings:
     backbone: Literal["resnet18", "resnet50"] = field(default="resnet18", metadata={"help": "image backbone"})
     img_res: int = field(default=96, metadata={"help": "patch side in pixels (ARCTIC: 224)"})
     weights: Optional[str] = field(default=None, metadata={"help": "local backbone weights (.pth/.safetensors)"})
+    camera_prior: int = field(default=256, metadata={
+        "help": "start the cameras at the mean target camera of this many real training frames of the arm "
+                "(HMR's mean-parameter start; 0: random start)"})
 
 
 @dataclass
@@ -197,6 +200,7 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.train.evals >= 1 and cfg.train.eval_stride >= 1, "--train-evals and --train-eval-stride must be >= 1"),
         (cfg.train.workers >= 0 and cfg.threads >= 0, "--train-workers and --threads must be >= 0"),
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
+        (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
         ((cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
          "--setup-bundle needs --setup-data"),
     ]  # fmt: skip
@@ -241,7 +245,7 @@ def train_pairs(data: Path) -> list[tuple[str, str]]:
 
 def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
-    from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
+    from hogsa_loader.demo import DemoConfig, build_bundle_stages
     from hogsa_loader.world import get_preset
 
     if cfg.setup.bundle is not None:
@@ -416,6 +420,22 @@ def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
     return model
 
 
+def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers: Any) -> dict[str, torch.Tensor]:
+    """Mean target camera of ``cfg.model.camera_prior`` real training frames of the arm (a fixed
+    draw, unaugmented: the same for every seed, and for the real and HOGSA arms of one real share)."""
+    from hogsa_loader.baselines.engine import mean_cameras
+    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+    from hogsa_loader.datasets.augment import ArcticConfig
+
+    real = ArcticDataset(setup["data"], split="p1_train", seed=0, augment=False,
+                         config=ArcticConfig(img_res=cfg.model.img_res))
+    pool = list(range(len(real))) if ARM_SPECS[arm][0] == "all" else low_data_indices(len(real), cfg.low_data)
+    pick = np.random.default_rng(7).permutation(len(pool))[:cfg.model.camera_prior]
+    loader = _loader(Subset(real, [pool[i] for i in sorted(pick)]), cfg.train.batch_size, 0, cfg.train.workers,
+                     drop_last=False, shuffle=False)
+    return mean_cameras(loader, layers, cfg.model.img_res, cfg.device)
+
+
 def val_dataset(cfg: DownstreamConfig, setup: dict[str, Any]) -> tuple[Any, list[int]]:
     """The held-out subject's frames (``p1_val``, no augmentation) and their temporal order."""
     from hogsa_loader.baselines.engine import temporal_order
@@ -481,6 +501,11 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     torch.manual_seed(seed)
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
     model = build_model(cfg, layers).to(cfg.device)
+    if cfg.model.camera_prior > 0:
+        prior = camera_prior(arm, cfg, setup, layers)
+        model.init_cameras(prior)
+        _say(f"[{arm} seed {seed}] camera prior (s, tx, ty): "
+             + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items()))
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     batches = train_batches(arm, seed, cfg, setup, out)
     val = val_dataset(cfg, setup)

@@ -12,6 +12,7 @@ from hogsa_loader.baselines import (
     ArcticNetSF,
     BodyLayers,
     evaluate,
+    mean_cameras,
     per_frame_metrics,
     prepare_targets,
     temporal_order,
@@ -69,6 +70,61 @@ def test_training_fits_a_fixed_batch(batches, layers):
     opt = torch.optim.Adam(model.parameters(), lr=3e-4)
     losses = [training_step(model, real, layers, opt, RES)["loss"] for _ in range(12)]
     assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
+
+
+def test_mean_cameras_are_the_mean_over_valid_frames(batches, layers):
+    real, _ = batches
+    inputs, targets, meta = real
+    # frame 0 loses its right hand: it must not count in the right prior
+    targets = dict(targets, right_valid=targets["right_valid"].clone())
+    targets["right_valid"][0] = 0
+    def part(d: dict, i: int) -> dict:
+        return {k: v[i:i + 2] if torch.is_tensor(v) else v for k, v in d.items()}
+
+    halves = [(part(inputs, i), part(targets, i), {k: v[i:i + 2] for k, v in meta.items()}) for i in (0, 2)]
+    prior = mean_cameras(halves, layers, RES)
+    full, _ = prepare_targets(dict(targets), dict(meta), layers.mano_r, layers.mano_l, layers.objects,
+                              img_res=RES, field="hands")
+    for side, cam, valid in (("r", "mano.cam_t.wp.r", "right_valid"), ("l", "mano.cam_t.wp.l", "left_valid"),
+                             ("o", "object.cam_t.wp", "is_valid")):
+        ok = full[valid].reshape(-1).bool()
+        assert ok.sum() == (3 if side == "r" else 4)
+        torch.testing.assert_close(prior[side], full[cam][ok].mean(0), atol=1e-5, rtol=1e-5)
+    assert (prior["r"] != full["mano.cam_t.wp.r"].mean(0)).any()  # frame 0 really left out
+    none = (inputs, dict(targets, is_valid=torch.zeros_like(targets["is_valid"])), meta)
+    with pytest.raises(ValueError, match=r"no valid frame for \['o'\]"):
+        mean_cameras([none], layers, RES)
+
+
+def test_camera_prior_starts_every_head_at_the_prior(batches, layers):
+    """A random head starts near s = 0, under the clamp s >= 0.1 (translations of metres, the
+    contact loss at its largest); init_cameras puts every image's initial camera at the prior."""
+    real, _ = batches
+    prior = mean_cameras([real], layers, RES)
+    model = _model(layers).eval()
+    with torch.no_grad():
+        before = model(real[0], real[2])
+        model.init_cameras(prior)
+        after = model(real[0], real[2])
+    for side, key in (("r", "mano.cam_t.wp.init.r"), ("l", "mano.cam_t.wp.init.l"), ("o", "object.cam_t.wp.init")):
+        assert before[key][:, 0].abs().max() < 0.5 < prior[side][0]
+        torch.testing.assert_close(after[key], prior[side].expand_as(after[key]), atol=0.05 * float(prior[side][0]),
+                                   rtol=0)
+    model.train()
+    targets, _ = prepare_targets(dict(real[1]), dict(real[2]), layers.mano_r, layers.mano_l, layers.objects,
+                                 img_res=RES, field="hands")
+    from hogsa_loader.baselines import arcticnet_sf_loss
+
+    fresh = _model(layers).train()
+    torch.manual_seed(1)
+    cd_before = arcticnet_sf_loss(fresh(real[0], real[2]), targets)["loss/cd"]
+    torch.manual_seed(1)
+    cd_after = arcticnet_sf_loss(model(real[0], real[2]), targets)["loss/cd"]
+    assert cd_after < 0.1 * cd_before
+    with pytest.raises(ValueError, match="priors for heads"):
+        model.init_cameras({"r": prior["r"], "l": prior["l"]})
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        model.init_cameras(dict(prior, o=torch.tensor([float("nan"), 0.0, 0.0])))
 
 
 def test_non_finite_loss_is_refused_before_the_update(batches, layers):

@@ -10,7 +10,7 @@ from hogsa_loader.baselines.arcticnet_sf import (
     rotation_6d_to_matrix,
     weak_perspective_to_perspective,
 )
-from hogsa_loader.baselines.engine import BodyLayers, evaluate, temporal_order, training_step
+from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.loss import ARCTIC_SF_LOSS_WEIGHTS, arcticnet_sf_loss
 from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, summarize
 from hogsa_loader.baselines.resnet import ResNet, build_backbone, load_backbone_weights, resnet18, resnet50
@@ -22,6 +22,7 @@ __all__ = [
     "BodyLayers",
     "arcticnet_sf_loss",
     "evaluate",
+    "mean_cameras",
     "per_frame_metrics",
     "sequence_metrics",
     "summarize",

@@ -454,6 +454,32 @@ class ArcticNetSF(nn.Module):
         out["feat_vec"] = features.flatten(2).sum(dim=2).detach()
         return out
 
+    @torch.no_grad()
+    def init_cameras(self, mean_wp: Mapping[str, Tensor]) -> None:
+        """Start the three weak-perspective cameras at a prior (HMR's mean-parameter start).
+
+        Each ``cam_init`` MLP's last layer gets the prior as its bias and a small weight
+        (Xavier, gain 0.01, as the refine decoders), so a new model predicts
+        ``cam_t.wp.init`` close to the prior for any image. Without it a randomly
+        initialised model starts near ``s = 0``, below ARCTIC's clamp ``s >= 0.1``, where
+        translations are tens of metres: the contact-deviation loss, whose gradient in
+        ``s`` grows as ``1/s^2``, then outweighs the camera loss and keeps ``s`` there.
+
+        Args:
+            mean_wp: ``{"r": (3,), "l": (3,), "o": (3,)}`` prior ``(s, tx, ty)`` per head,
+                e.g. the mean training target (:func:`~hogsa_loader.baselines.engine.mean_cameras`).
+        """
+        missing = {"r", "l", "o"} - set(mean_wp)
+        if missing:
+            raise ValueError(f"init_cameras needs priors for heads {sorted(missing)} (keys r, l, o)")
+        for side, head in (("r", self.head_r), ("l", self.head_l), ("o", self.head_o)):
+            prior = torch.as_tensor(mean_wp[side], dtype=torch.float32).reshape(-1)
+            if prior.shape != (3,) or not torch.isfinite(prior).all():
+                raise ValueError(f"init_cameras: prior {side!r} must be 3 finite numbers, got {prior.tolist()}")
+            last = head.cam_init[-1]
+            nn.init.xavier_uniform_(last.weight, gain=0.01)
+            last.bias.copy_(prior.to(last.bias))
+
     def network_state_dict(self) -> dict[str, Tensor]:
         """The learned weights only (backbone and heads; no MANO / object templates)."""
         return {k: v for k, v in self.state_dict().items() if k.startswith(NETWORK_PREFIXES)}

@@ -20,7 +20,7 @@ from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, 
 from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.datasets.arctic_dataset import parse_imgname
 
-__all__ = ["BodyLayers", "to_device", "training_step", "evaluate", "temporal_order", "SEQUENCE_KEYS"]
+__all__ = ["BodyLayers", "to_device", "training_step", "evaluate", "temporal_order", "mean_cameras", "SEQUENCE_KEYS"]
 
 #: Per-frame tensors kept for the temporal metrics (prediction and ground truth).
 SEQUENCE_KEYS = ("mano.v3d.cam.r", "mano.v3d.cam.l", "mano.j3d.cam.r", "mano.j3d.cam.l", "object.v.cam")
@@ -67,6 +67,42 @@ def _prepared(model: nn.Module, batch: Any, layers: BodyLayers, img_res: int, de
         targets, meta_info = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l,
                                              layers.objects, img_res=img_res, field="hands")
     return inputs, targets, meta_info
+
+
+@torch.no_grad()
+def mean_cameras(batches: Iterable[Any], layers: BodyLayers, img_res: int, device: Any = "cpu") -> dict[str, Tensor]:
+    """Mean target weak-perspective cameras of some batches (a prior for
+    :meth:`~hogsa_loader.baselines.arcticnet_sf.ArcticNetSF.init_cameras`).
+
+    Args:
+        batches: collated ``(inputs, targets, meta_info)`` batches.
+        layers: the layers the targets are prepared with.
+        img_res: patch side (px) of the samples.
+        device: where the targets are prepared.
+
+    Returns:
+        ``{"r": (3,), "l": (3,), "o": (3,)}`` mean ``(s, tx, ty)`` over the frames where
+        that hand (``right_valid`` / ``left_valid``) or the object (``is_valid``) is valid.
+
+    Raises:
+        ValueError: no valid frame of a hand or the object among the batches.
+    """
+    keys = {"r": ("mano.cam_t.wp.r", "right_valid"), "l": ("mano.cam_t.wp.l", "left_valid"),
+            "o": ("object.cam_t.wp", "is_valid")}
+    sums = {k: torch.zeros(3, dtype=torch.float64) for k in keys}
+    counts = dict.fromkeys(keys, 0)
+    for batch in batches:
+        _, targets, meta_info = to_device(batch, device)
+        targets, _ = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l, layers.objects,
+                                     img_res=img_res, field="hands")
+        for k, (cam, valid) in keys.items():
+            ok = targets[valid].reshape(-1).bool()
+            sums[k] += targets[cam][ok].double().sum(0).cpu()
+            counts[k] += int(ok.sum())
+    empty = [k for k, n in counts.items() if n == 0]
+    if empty:
+        raise ValueError(f"mean_cameras: no valid frame for {empty} in the given batches")
+    return {k: (sums[k] / counts[k]).float() for k in keys}
 
 
 def training_step(
