@@ -209,6 +209,29 @@ def test_pickle_bomb_refused_before_allocation(tmp_path):
         assert time.perf_counter() - t0 < 2.0
 
 
+def test_bomb_under_the_element_cap_stays_shared_and_is_refused_by_its_shape(tiny_world, tmp_path):
+    """A raw sequence field of 10^7 shared numbers (under the 5·10^7 cap; found by
+    benchmarks/fuzz_readers.py, 193 s and GBs before): read_npy keeps the references shared
+    (no copy per use) and the reader refuses the shape before any conversion."""
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+
+    src, dst = tiny_world / "arctic_data" / "data", tmp_path / "arctic_data" / "data"
+    (dst / "meta").mkdir(parents=True)
+    shutil.copy2(src / "meta" / "misc.json", dst / "meta" / "misc.json")
+    shutil.copytree(src / "raw_seqs" / "s01", dst / "raw_seqs" / "s01")
+    mano_path = dst / "raw_seqs" / "s01" / "box_use_01.mano.npy"
+    x: list = [0.5]
+    for w in (10, 1000, 1000):
+        x = [x] * w
+    doc = read_npy(mano_path)
+    doc["right"]["pose"] = x
+    np.save(mano_path, np.array(doc, dtype=object), allow_pickle=True)
+    back = read_npy(mano_path)
+    assert back["right"]["pose"][0] is back["right"]["pose"][1]  # one shared row, not 1000 copies
+    with pytest.raises(AssetError, match=r"right.pose is a nested list of shape 1000x1000x10x\.\.\., expected"):
+        ArcticRoot(tmp_path).sequence("s01", "box_use_01")
+
+
 @pytest.mark.parametrize("kind", ["list", "tuple", "dict", "set", "object array", "stub state"])
 def test_element_cap_counts_every_container_and_shared_reference(kind):
     from hogsa_loader.hands.mano_io import ChumpyStub

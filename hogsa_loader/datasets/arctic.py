@@ -166,20 +166,37 @@ def _csr_from_state(holder: _PickledCSR, path: Path) -> Any:
     return mat
 
 
-def _rebuild_sparse(obj: Any, path: Path) -> Any:
-    """Replace every :class:`_PickledCSR` inside dicts, lists and tuples by its matrix."""
+def _rebuild_sparse(obj: Any, path: Path, memo: Optional[dict[int, Any]] = None) -> Any:
+    """Replace every :class:`_PickledCSR` inside dicts, lists, tuples and object arrays by its matrix.
+
+    Each distinct container is visited once (shared references stay shared) and one without
+    a sparse matrix inside is returned as it is, so the cost follows the size of the file,
+    not the size its shared references expand to.
+    """
+    memo = {} if memo is None else memo
     if isinstance(obj, _PickledCSR):
         return _csr_from_state(obj, path)
+    if not isinstance(obj, (dict, list, tuple, np.ndarray)) or (isinstance(obj, np.ndarray) and obj.dtype != object):
+        return obj
+    key = id(obj)
+    if key in memo:
+        return memo[key]
+    out: Any = obj
     if isinstance(obj, dict):
-        return {k: _rebuild_sparse(v, path) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_rebuild_sparse(v, path) for v in obj)
-    if isinstance(obj, np.ndarray) and obj.dtype == object:
-        out = np.empty(obj.shape, dtype=object)
-        for i, v in np.ndenumerate(obj):
-            out[i] = _rebuild_sparse(v, path)
-        return out
-    return obj
+        items = {k: _rebuild_sparse(v, path, memo) for k, v in obj.items()}
+        if any(items[k] is not v for k, v in obj.items()):
+            out = items
+    elif isinstance(obj, (list, tuple)):
+        values = [_rebuild_sparse(v, path, memo) for v in obj]
+        if any(a is not b for a, b in zip(values, obj, strict=True)):
+            out = type(obj)(values)
+    else:
+        values = [_rebuild_sparse(v, path, memo) for v in obj.reshape(-1)]
+        if any(a is not b for a, b in zip(values, obj.reshape(-1), strict=True)):
+            out = np.empty(obj.shape, dtype=object)
+            out.reshape(-1)[:] = values
+    memo[key] = out
+    return out
 
 
 class NpyUnpickler(pickle.Unpickler):
@@ -246,9 +263,11 @@ class _CappedReader:
         return self._fh.readline(left if size is None or size < 0 or size > left else size)
 
     def readinto(self, buf: Any) -> int:
-        view = memoryview(buf).cast("B")
-        n = min(len(view), self._left())
-        return self._fh.readinto(view[:n]) or 0
+        # every view is released before returning: the caller may free ``buf`` right after
+        with memoryview(buf) as mv, mv.cast("B") as view:
+            n = min(len(view), self._left())
+            with view[:n] as part:
+                return self._fh.readinto(part) or 0
 
 
 def _read_npy_header(fh: io.BufferedReader, path: Path) -> tuple[np.dtype, bool, tuple[int, ...]]:
@@ -353,6 +372,27 @@ def _shape_str(spec: Sequence[Union[int, str]]) -> str:
     return f"({inner},)" if len(spec) == 1 else f"({inner})"
 
 
+def _check_nested_shape(
+    value: Any, path: Path, key: str, spec: Sequence[Union[int, str]], frames: Optional[int]
+) -> None:
+    """Refuse nested lists whose shape, read along their first elements, is not ``spec``,
+    before converting them (a list of shared references may expand to millions of numbers)."""
+    shape: list[int] = []
+    node = value
+    while isinstance(node, (list, tuple)) and len(shape) <= len(spec):
+        shape.append(len(node))
+        if not node:
+            break
+        node = node[0]
+    if isinstance(node, np.ndarray):
+        shape.extend(node.shape)
+    want = [frames if s == "F" and frames is not None else s for s in spec]
+    if len(shape) != len(spec) or any(isinstance(w, int) and w != n for w, n in zip(want, shape, strict=True)):
+        extra = f" with F = {frames}" if frames is not None and "F" in spec else ""
+        got = "x".join(map(str, shape[: len(spec) + 1])) + ("x..." if len(shape) > len(spec) else "")
+        raise AssetError(path, f"{key} is a nested list of shape {got}, expected {_shape_str(spec)}{extra}")
+
+
 def _numeric(
     value: Any,
     path: Path,
@@ -377,6 +417,7 @@ def _numeric(
     if isinstance(value, np.ndarray):
         arr = value
     else:
+        _check_nested_shape(value, path, key, spec, frames)
         try:
             arr = np.asarray(value)
         except Exception:  # ragged nested lists
