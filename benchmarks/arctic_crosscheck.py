@@ -1313,19 +1313,9 @@ def _index_batch(batch: Any, keep: Sequence[int]) -> Any:
 
 def untrained_bundle(data_root: Path, out: Path, sid: str, obj: str) -> Path:
     """A bundle of untrained HOGS models (Gaussians initialised from MANO / the template)."""
-    from hogsa_loader.bundle import write_bundle
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+    from hogsa_loader.world.untrained import write_untrained_bundle
 
-    root = ArcticRoot(data_root)
-    layers, templates = root.mano_layers(), root.object_templates()
-    run = out / "runs" / f"{sid}_{obj}"
-    kw = dict(k=1, sh_degree=0)
-    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject=sid)
-    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject=sid)
-    save_part(ObjectGaussians(templates[obj], **kw), run / "object", dataset="arctic", subject=sid)
-    return write_bundle(out / "bundle", data_root, [run])
+    return write_untrained_bundle(data_root, out, sid, obj)
 
 
 def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bundle: Optional[Path], batch: int,

@@ -222,11 +222,8 @@ class Resources:
 def build_resources(scratch: Path, world: Optional[Path] = None, log: Callable[[str], None] = print) -> Resources:
     """Generate the tiny world (unless ``world`` is given), an untrained bundle and a 4-frame
     export in ``scratch``."""
-    from hogsa_loader.bundle import write_bundle
     from hogsa_loader.cli.main import main as hogsa
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+    from hogsa_loader.world.untrained import write_untrained_bundle
 
     world = Path(world) if world is not None else scratch / "world"
     bundle, shards = scratch / "bundle", scratch / "shards"
@@ -235,14 +232,7 @@ def build_resources(scratch: Path, world: Optional[Path] = None, log: Callable[[
         assert hogsa(["world", "--out", str(world), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
     if not (bundle / "bundle" / "manifest.json").is_file():
         log(f"[fuzz] untrained bundle -> {bundle}")
-        root = ArcticRoot(world)
-        layers, templates = root.mano_layers(), root.object_templates()
-        run = bundle / "runs" / "s01_box"
-        kw = dict(k=1, sh_degree=0)
-        save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
-        save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
-        save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
-        write_bundle(bundle / "bundle", world, [run])
+        write_untrained_bundle(world, bundle)
     if not (shards / "index.json").is_file():
         log(f"[fuzz] 4-frame export -> {shards}")
         assert hogsa(["export", "--bundle", str(bundle / "bundle"), "--data", str(world), "--out", str(shards),

@@ -105,21 +105,10 @@ def tiny_srm(folder: Path, scale: int = 1) -> Path:
 def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
     """An untrained bundle of the tiny world (colours from the hand albedo / object texture)
     for s01 + box, with a small untrained SRM."""
-    from hogsa_loader.bundle import write_bundle
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+    from hogsa_loader.world.untrained import write_untrained_bundle
 
-    root = ArcticRoot(tiny_world)
-    layers, templates = root.mano_layers(), root.object_templates()
     out = tmp_path_factory.mktemp("bundle")
-    run = out / "runs" / "s01_box"
-    kw = dict(k=1, sh_degree=0)
-    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject="s01")
-    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject="s01")
-    save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject="s01")
-    tiny_srm(out / "srm")
-    return write_bundle(out / "bundle", tiny_world, [run], srm=out / "srm")
+    return write_untrained_bundle(tiny_world, out, "s01", "box", srm=tiny_srm(out / "srm"))
 
 
 @pytest.fixture(scope="module")
