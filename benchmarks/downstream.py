@@ -280,7 +280,10 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     manifest = Path(plates.out) / PLATES_MANIFEST
     old = json.loads(manifest.read_text()) if manifest.is_file() else {}
     wanted = json.loads(json.dumps(asdict(plates)))  # as stored (tuples become lists)
-    if old.get("settings") != wanted or old.get("data_fingerprint") != data_fingerprint(ArcticRoot(data)):
+    # where the plates live is not what they are: an OUT that reaches the setup through another path reuses them
+    same = {k: v for k, v in (old.get("settings") or {}).items() if k != "out"} == {
+        k: v for k, v in wanted.items() if k != "out"}
+    if not same or old.get("data_fingerprint") != data_fingerprint(ArcticRoot(data)):
         _say(f"[setup] background plates of {data} -> {plates.out}")
         build_plates(plates, log=lambda m: _say(f"[plates] {m}"))
     return Path(plates.out)

@@ -24,13 +24,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Optional, Sequence
 
 from hogsa_loader.cli import checks
 from hogsa_loader.errors import AssetError, HogsaError, UsageError
 from hogsa_loader.objects.h2o_meshes import find_h2o_mesh
 from hogsa_loader.train import HogsConfig, HogsTrainer
-from hogsa_loader.train.run_folder import check_run_folder
+from hogsa_loader.train.run_folder import check_run_folder, config_defaults, latest_checkpoint, read_trainer_state
 
 
 def _lr_overrides(p: argparse.ArgumentParser, items: Sequence[str]) -> dict[str, float]:
@@ -131,7 +132,9 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> HogsConfig:
 
 
 def check_args(cfg: HogsConfig) -> None:
-    """Every check of the paths that needs no data read: raises UsageError / RunExistsError."""
+    """Every check that needs no data read: paths, the run folder and, with ``--resume``, the
+    run's saved settings and its latest trainer state. Raises UsageError / RunExistsError /
+    AssetError (a malformed or corrupt checkpoint) / ValueError (settings that differ)."""
     checks.input_dir(cfg.data, "--data")
     for flag, path in (("--mano-dir", cfg.mano_dir), ("--object-mesh-dir", cfg.object_mesh_dir)):
         if path is not None:
@@ -143,6 +146,13 @@ def check_args(cfg: HogsConfig) -> None:
             raise UsageError(f"--object-mesh-dir {exc}") from exc
     checks.output_dir(cfg.out, "--out")
     check_run_folder(cfg.out, resume=cfg.resume, overwrite=cfg.overwrite)  # type: ignore[attr-defined]
+    if cfg.resume:  # type: ignore[attr-defined]
+        # the run's settings, its latest checkpoint and the hash-checked trainer state, before any data is
+        # read; settings left to the data (None: views, eval views) are compared when the trainer resumes
+        given = {k: v for k, v in cfg.to_json().items() if v is not None}
+        folder = latest_checkpoint(Path(cfg.out), given, HogsConfig.RESUMABLE, config_defaults(HogsConfig))
+        if folder is not None:
+            read_trainer_state(folder)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:

@@ -188,6 +188,11 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert json.loads(manifest.read_text())["plates"] and sorted(folder.glob("*_view*.png"))
     assert ds.background_folder(cfg, Path(tiny_world), tmp_path) == folder
     assert manifest.stat().st_mtime_ns == first  # reused, not rebuilt
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "setup").symlink_to(tmp_path / "setup")  # another OUT sharing the setup
+    ds.background_folder(cfg, Path(tiny_world), other)
+    assert manifest.stat().st_mtime_ns == first  # the plates' own path is not part of their key
     photos = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, backgrounds="photos"))
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}

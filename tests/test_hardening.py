@@ -91,7 +91,13 @@ def test_corrupt_trainer_state_is_refused_on_resume(tiny_world, hogs_run, tmp_pa
     blob[-7] ^= 0xFF  # a flipped byte in an Adam moment
     tpath.write_bytes(bytes(blob))
     capsys.readouterr()
-    assert _script("train_hogs").main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    script = _script("train_hogs")
+
+    def no_trainer(*args, **kwargs):
+        raise AssertionError("the trainer was built (data read) before the checkpoint was checked")
+
+    script.HogsTrainer = no_trainer  # every refusal below comes before any data is read
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "sha256")
     # a checkpoint written before the hash was recorded: NaN moments and truncation are still refused
     del state["tensors_sha256"]
@@ -103,17 +109,17 @@ def test_corrupt_trainer_state_is_refused_on_resume(tiny_world, hogs_run, tmp_pa
     name = next(k for k in bad if k.endswith("exp_avg"))
     bad[name].view(-1)[0] = float("nan")
     tpath.write_bytes(save(bad))
-    assert _script("train_hogs").main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "NaN")
     tpath.write_bytes(save(good)[:100])
-    assert _script("train_hogs").main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "not a valid safetensors")
     # malformed bookkeeping files: one-line errors naming them
     (run / "checkpoints" / "latest.json").write_text("garbage{")
-    assert _script("train_hogs").main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "latest.json", "malformed JSON")
     (run / "checkpoints" / "latest.json").write_text(json.dumps({"step": 1, "folder": "../../etc"}))
-    assert _script("train_hogs").main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "latest.json", "step_N")
 
 
