@@ -30,7 +30,7 @@ import numpy as np
 
 from hogsa_loader.errors import AssetError, PathLike
 
-__all__ = ["MAX_ELEMENTS", "MAX_DEPTH", "check_unpickled"]
+__all__ = ["MAX_ELEMENTS", "MAX_DEPTH", "check_unpickled", "nested_shape"]
 
 #: Default cap of the elements an unpickled object may expand to (a file larger than this
 #: many bytes raises the cap to its size).
@@ -114,3 +114,27 @@ def check_unpickled(
         return done[key]
 
     return count(obj, 0)
+
+
+def nested_shape(value: Any, max_depth: int = MAX_DEPTH) -> tuple[int, ...]:
+    """Shape of nested lists / tuples read along their first elements (an array leaf adds its
+    own shape): what ``np.asarray`` makes of a regular nest, found in time proportional to
+    the depth, so a reader can refuse a wrong or huge shape before converting anything.
+
+    Args:
+        value: a list, tuple or array (anything else has shape ``()``).
+        max_depth: levels followed at most.
+
+    Returns:
+        the shape; at most ``max_depth`` list levels (plus the leaf array's dimensions).
+    """
+    shape: list[int] = []
+    node = value
+    while isinstance(node, (list, tuple)) and len(shape) < max_depth:
+        shape.append(len(node))
+        if not node:
+            break
+        node = node[0]
+    if isinstance(node, np.ndarray):
+        shape.extend(node.shape)
+    return tuple(shape)

@@ -238,6 +238,28 @@ def test_bomb_under_the_element_cap_stays_shared_and_is_refused_by_its_shape(tin
         ArcticRoot(tmp_path).sequence("s01", "box_use_01")
 
 
+def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_pair, tmp_path):
+    """v_template as 3·10^7 shared numbers (under the 5·10^7 element cap; found by
+    benchmarks/fuzz_readers.py: GBs and minutes in np.asarray) is refused by its shape."""
+    import io
+
+    from hogsa_loader.hands import mano_io
+    from hogsa_loader.pickle_caps import nested_shape
+
+    x: list = [0.5]
+    for w in (3, 1000, 10_000):
+        x = [x] * w
+    assert nested_shape(x) == (10_000, 1000, 3, 1)
+    doc = mano_io._schema_dict(hand_pair[0])
+    doc.update(v_template=x, shapedirs=mano_io._ChumpyCh(doc["shapedirs"]))
+    buf = io.BytesIO()
+    mano_io._LegacyPickler(buf, protocol=2).dump(doc)
+    path = tmp_path / "MANO_RIGHT.pkl"
+    path.write_bytes(buf.getvalue())
+    with pytest.raises(AssetError, match=r"v_template.*nested list of shape 10000x1000x3x1 is far larger than any"):
+        mano_io.load_mano(path)
+
+
 @pytest.mark.parametrize("kind", ["list", "tuple", "dict", "set", "object array", "stub state"])
 def test_element_cap_counts_every_container_and_shared_reference(kind):
     from hogsa_loader.hands.mano_io import ChumpyStub

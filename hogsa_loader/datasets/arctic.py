@@ -377,15 +377,9 @@ def _check_nested_shape(
 ) -> None:
     """Refuse nested lists whose shape, read along their first elements, is not ``spec``,
     before converting them (a list of shared references may expand to millions of numbers)."""
-    shape: list[int] = []
-    node = value
-    while isinstance(node, (list, tuple)) and len(shape) <= len(spec):
-        shape.append(len(node))
-        if not node:
-            break
-        node = node[0]
-    if isinstance(node, np.ndarray):
-        shape.extend(node.shape)
+    from hogsa_loader.pickle_caps import nested_shape
+
+    shape = nested_shape(value, max_depth=len(spec) + 1)
     want = [frames if s == "F" and frames is not None else s for s in spec]
     if len(shape) != len(spec) or any(isinstance(w, int) and w != n for w, n in zip(want, shape, strict=True)):
         extra = f" with F = {frames}" if frames is not None and "F" in spec else ""

@@ -25,6 +25,7 @@ from __future__ import annotations
 import copyreg
 import io
 import json
+import math
 import os
 import pickle
 from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING, REVERSE_IMPORT_MAPPING, REVERSE_NAME_MAPPING
@@ -202,6 +203,10 @@ class RestrictedUnpickler(pickle.Unpickler):
 #: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,
 #: has 778·3·135 ≈ 0.3 M; a crafted sparse shape must not allocate terabytes).
 MAX_DENSE_ELEMENTS = 50_000_000
+#: Largest nested Python list turned into an array (MANO files store arrays; a list of
+#: shared references may stand for billions of numbers): 20 M, five times the posedirs of
+#: a 10,000-vertex hand.
+MAX_LIST_ELEMENTS = 20_000_000
 
 
 def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
@@ -232,6 +237,13 @@ def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
             return real((d["data"], d["indices"], d["indptr"]), shape=shape).toarray()
     if isinstance(value, (str, bytes)):
         raise AssetError(where, f"expected an array, found a string {value!r:.40}")
+    if isinstance(value, (list, tuple)):
+        from hogsa_loader.pickle_caps import nested_shape
+
+        shape = nested_shape(value)
+        if math.prod(shape) > MAX_LIST_ELEMENTS:
+            raise AssetError(where, f"nested list of shape {'x'.join(map(str, shape))} is far larger than any MANO "
+                                    "array")  # fmt: skip
     return np.asarray(value)
 
 
