@@ -627,7 +627,7 @@ def _hash_tree(root: Path) -> dict[str, str]:
 def _micro_preset():
     tiny = PRESETS["tiny"]
     return dataclasses.replace(
-        tiny, name="micro", num_frames=26, cropped_size=48, ego_image_scale=0.03, grasp_iters=60,
+        tiny, name="micro", num_frames=52, cropped_size=48, ego_image_scale=0.03, grasp_iters=60,
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"),)),),
     )
 
