@@ -277,6 +277,27 @@ def test_articulation_is_rigid_within_each_part(theta, orient, transl, seed):
 # --------------------------------------------------------------------------------------
 
 
+def test_template_reads_are_cached_as_copies_and_follow_file_changes(meta_dir, tmp_path):
+    from hogsa_loader.objects import template as tmod
+
+    folder = tmp_path / "object_vtemplates" / "box"
+    shutil.copytree(meta_dir / "object_vtemplates" / "box", folder)
+    first = tmod.load_object_template(folder)
+    key = next(k for k in tmod._TEMPLATE_CACHE if k[0] == str(folder.resolve()))
+    first.verts[:] = 0.0  # a caller's change reaches neither the cache nor later reads
+    second = tmod.load_object_template(folder)
+    assert np.abs(second.verts).max() > 0 and second.verts is not tmod._TEMPLATE_CACHE[key].verts
+    # a changed file is read again: keypoints moved by 1 mm
+    params_path = folder / "object_params.json"
+    params = json.loads(params_path.read_text())
+    params["keypoints_top"] = (np.asarray(params["keypoints_top"]) + 1.0).tolist()
+    params_path.write_text(json.dumps(params))
+    third = tmod.load_object_template(folder)
+    np.testing.assert_allclose(third.kp_top, second.kp_top + 1e-3, atol=1e-9)
+    # textures are part of the key: with and without are two entries
+    assert tmod.load_object_template(folder, load_texture=False).texture is None
+
+
 @pytest.mark.parametrize("name", PROCEDURAL_NAMES)
 def test_write_load_round_trip(templates, meta_dir, name):
     t = templates[name]

@@ -28,8 +28,10 @@ articulation axis.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Optional, Sequence
@@ -461,6 +463,9 @@ def load_object_template(
     Returns:
         the template in metres (files are mm and divided by 1000).
 
+    A template read before is returned as a copy while none of the folder's files changed
+    (name, size and modification time).
+
     Raises:
         AssetError: a file is missing, malformed or inconsistent (the message names it).
     """
@@ -468,7 +473,37 @@ def load_object_template(
     if not folder.is_dir():
         raise AssetError(folder, "object template folder is missing")
     name = folder.name if name is None else name
+    entry = None if object_meta is None else object_meta.get(name)
+    key = (str(folder.resolve()), name, bool(load_texture), json.dumps(entry, sort_keys=True, default=str),
+           _folder_fingerprint(folder))
+    if key in _TEMPLATE_CACHE:
+        _TEMPLATE_CACHE.move_to_end(key)
+        return copy.deepcopy(_TEMPLATE_CACHE[key])
+    template = _load_object_template(folder, name, object_meta, load_texture)
+    _TEMPLATE_CACHE[key] = template
+    while len(_TEMPLATE_CACHE) > TEMPLATE_CACHE_SIZE:
+        _TEMPLATE_CACHE.popitem(last=False)
+    return copy.deepcopy(template)
 
+
+#: Templates kept in memory by :func:`load_object_template`, keyed by the folder, the
+#: arguments and every file's (name, size, mtime): a changed file is read again.
+TEMPLATE_CACHE_SIZE = 64
+_TEMPLATE_CACHE: "OrderedDict[tuple, ObjectTemplate]" = OrderedDict()
+
+
+def _folder_fingerprint(folder: Path) -> tuple[tuple[str, int, int], ...]:
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.is_file():
+            st = p.stat()
+            out.append((p.name, st.st_size, st.st_mtime_ns))
+    return tuple(out)
+
+
+def _load_object_template(
+    folder: Path, name: str, object_meta: Optional[Mapping[str, Mapping[str, Any]]], load_texture: bool
+) -> ObjectTemplate:
     mesh = _read_obj(folder / MESH_FILE)
     verts_mm = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
