@@ -281,7 +281,8 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     old = json.loads(manifest.read_text()) if manifest.is_file() else {}
     wanted = json.loads(json.dumps(asdict(plates)))  # as stored (tuples become lists)
     # where the plates live is not what they are: an OUT that reaches the setup through another path reuses them
-    same = {k: v for k, v in (old.get("settings") or {}).items() if k != "out"} == {
+    saved = old.get("settings") if isinstance(old.get("settings"), dict) else {}
+    same = {k: v for k, v in saved.items() if k != "out"} == {
         k: v for k, v in wanted.items() if k != "out"}
     if not same or old.get("data_fingerprint") != data_fingerprint(ArcticRoot(data)):
         _say(f"[setup] background plates of {data} -> {plates.out}")
@@ -462,6 +463,15 @@ def eval_steps(cfg: DownstreamConfig) -> list[int]:
     return sorted({max(1, round(steps * (i + 1) / n)) for i in range(n)})
 
 
+def model_key(cfg: DownstreamConfig) -> dict[str, Any]:
+    """The model settings in cache keys (runs with a random camera start keep the keys they
+    had before the camera prior existed)."""
+    model = asdict(cfg.model)
+    if model["camera_prior"] == 0:
+        del model["camera_prior"]
+    return model
+
+
 def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, Any]:
     """What a run's result depends on (its cache key)."""
     _, variant = ARM_SPECS[arm]
@@ -469,7 +479,7 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
     return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
             "setup": setup["fingerprint"],
             "bundle": str(setup["bundle"]), "variant": variant and variant_options(variant, cfg, setup),
-            "synthetic": syn, "model": asdict(cfg.model), "train": asdict(cfg.train),
+            "synthetic": syn, "model": model_key(cfg), "train": asdict(cfg.train),
             "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
 
 

@@ -4,8 +4,9 @@ Each target mutates one valid file of a generated world, bundle, run or export i
 copy and runs the library's reader on it. Mutations are drawn by hypothesis: bytes
 (truncated, bit-flipped, spliced, zeroed), structure (a field replaced by random JSON or a
 random array, deleted, or a shared-reference container bomb). A case passes when the reader
-accepts the file or refuses it with :class:`~hogsa_loader.errors.AssetError`; any other
-exception is a failure, recorded with its message.
+accepts the file or refuses it with :class:`~hogsa_loader.errors.AssetError` (and, for a
+run folder, the documented ``ValueError`` of settings that differ); any other exception is
+a failure, recorded with its message.
 
 Targets: ``mano_pickle`` (``load_mano``), ``arctic_raw`` (``raw_seqs/*.npy`` through
 ``ArcticRoot.sequence``), ``arctic_misc`` (``meta/misc.json``), ``arctic_split``
@@ -43,9 +44,10 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given, reject, settings
 from hypothesis import seed as hypothesis_seed
 from hypothesis import strategies as st
+from hypothesis.errors import UnsatisfiedAssumption
 
 from hogsa_loader.errors import AssetError
 
@@ -81,9 +83,8 @@ def mutate_bytes(draw: Callable, raw: bytes) -> bytes:
     note(f"bytes {mode} at {i} of {len(b)}")
     if mode == "truncate":
         return bytes(b[:i])
-    if mode == "flip":
-        for _ in range(draw(st.integers(1, 8))):
-            j = draw(st.integers(0, max(0, len(b) - 1)))
+    if mode == "flip":  # distinct positions: every flip changes the file
+        for j in draw(st.sets(st.integers(0, len(b) - 1), min_size=1, max_size=8)):
             b[j] ^= draw(st.integers(1, 255))
         return bytes(b)
     if mode == "splice":
@@ -315,8 +316,8 @@ def _case_mano(draw: Callable, ctx: dict[str, Any]) -> None:
             doc[key] = junk(draw)
         try:
             data = _dump_mano(doc)
-        except (pickle.PicklingError, TypeError, RecursionError):  # not picklable: nothing to read
-            return
+        except (pickle.PicklingError, TypeError, RecursionError):  # not picklable: not a case
+            reject()
     ctx["path"].write_bytes(data)
     load_mano(ctx["path"], side="right")
 
@@ -592,6 +593,8 @@ def fuzz(target: Target, res: Resources, cases: int, seed: int = 0, trace_memory
         t0 = time.perf_counter()
         try:
             target.case(data.draw, ctx)
+        except UnsatisfiedAssumption:  # the case rejected its own input: not counted
+            raise
         except target.allowed as exc:
             tally.refused += 1
             tally.refusals[_reason(exc)] = tally.refusals.get(_reason(exc), 0) + 1

@@ -198,6 +198,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     bar = tqdm(total=args.samples, desc="soak", unit="sample", dynamic_ncols=True)
     try:
         while progress[0] < args.samples:
+            before = progress[0]
             for _, _, meta in mixed:
                 n = sum(is_synthetic(name) for name in meta["imgname"])
                 progress[0] += n
@@ -205,6 +206,8 @@ def main(argv: Optional[list[str]] = None) -> int:
                 bar.update(n)
                 if progress[0] >= args.samples:
                     break
+            if progress[0] == before:
+                raise RuntimeError("a whole pass of the mixed loader yielded no synthetic sample")
     except Exception as exc:  # noqa: BLE001 - a dead worker ends the soak; it is the result
         error = f"{type(exc).__name__}: {exc}"
     bar.close()
@@ -229,7 +232,9 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"[soak] attempted {stats.attempted}, kept {stats.kept}, dropped {stats.num_dropped} "
           f"({ {k: v for k, v in stats.dropped.items() if v} }), worker pids {workers_seen}, error {error}", flush=True)
     print(f"[soak] {out / 'soak.json'}, {out / 'soak.png'}", flush=True)
-    return 0 if error is None and fit.get("flat", False) and record["workers_replaced"] == 0 else 1
+    if "flat" not in fit:
+        print(f"[soak] too short to judge the memory: {fit['points']} RSS samples after warm-up", flush=True)
+    return 0 if error is None and fit.get("flat", True) and record["workers_replaced"] == 0 else 1
 
 
 if __name__ == "__main__":

@@ -148,8 +148,8 @@ def check_args(cfg: HogsConfig) -> None:
     check_run_folder(cfg.out, resume=cfg.resume, overwrite=cfg.overwrite)  # type: ignore[attr-defined]
     if cfg.resume:  # type: ignore[attr-defined]
         # the run's settings, its latest checkpoint and the hash-checked trainer state, before any data is
-        # read; settings left to the data (None: views, eval views) are compared when the trainer resumes
-        given = {k: v for k, v in cfg.to_json().items() if v is not None}
+        # read; views and eval views left to the data (None) are compared when the trainer resumes
+        given = {k: v for k, v in cfg.to_json().items() if not (k in ("views", "eval_views") and v is None)}
         folder = latest_checkpoint(Path(cfg.out), given, HogsConfig.RESUMABLE, config_defaults(HogsConfig))
         if folder is not None:
             read_trainer_state(folder)

@@ -168,6 +168,11 @@ def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     longer = ds.replace(cfg, train=ds.replace(cfg.train, steps=cfg.train.steps + 1))
     assert ds.finished_run("real", 0, longer, setup, tmp_path) is None
     assert ds.finished_run("real", 1, cfg, setup, tmp_path) is None
+    # the camera start is part of the key; a random start (0) keeps the keys runs had before the prior existed
+    random_start = ds.replace(cfg, model=ds.replace(cfg.model, camera_prior=0))
+    assert ds.finished_run("real", 0, random_start, setup, tmp_path) is None
+    assert "camera_prior" not in ds.run_settings("real", 0, random_start, setup)["model"]
+    assert ds.run_settings("real", 0, cfg, setup)["model"]["camera_prior"] == 256
 
 
 def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path, monkeypatch):

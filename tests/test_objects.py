@@ -287,13 +287,22 @@ def test_template_reads_are_cached_as_copies_and_follow_file_changes(meta_dir, t
     first.verts[:] = 0.0  # a caller's change reaches neither the cache nor later reads
     second = tmod.load_object_template(folder)
     assert np.abs(second.verts).max() > 0 and second.verts is not tmod._TEMPLATE_CACHE[key].verts
-    # a changed file is read again: keypoints moved by 1 mm
+    # a changed file is read again, also when its size stays the same (mtime)
     params_path = folder / "object_params.json"
     params = json.loads(params_path.read_text())
     params["keypoints_top"] = (np.asarray(params["keypoints_top"]) + 1.0).tolist()
-    params_path.write_text(json.dumps(params))
+    text = json.dumps(params)
+    params_path.write_text(text)
     third = tmod.load_object_template(folder)
     np.testing.assert_allclose(third.kp_top, second.kp_top + 1e-3, atol=1e-9)
+    at = text.index('"keypoints_top": [[') + len('"keypoints_top": [[')
+    at += 1 if text[at] == "-" else 0  # the first digit of the first coordinate, one higher
+    same_size = text[:at] + str((int(text[at]) + 1) % 10) + text[at + 1:]
+    params_path.write_text(same_size)
+    assert params_path.stat().st_size == len(text)
+    fourth = tmod.load_object_template(folder)
+    new = json.loads(same_size)["keypoints_top"][0][0] / 1000.0
+    assert fourth.kp_top[0, 0] == pytest.approx(new) and new != pytest.approx(third.kp_top[0, 0])
     # textures are part of the key: with and without are two entries
     assert tmod.load_object_template(folder, load_texture=False).texture is None
 

@@ -174,15 +174,17 @@ def _rebuild_sparse(obj: Any, path: Path, memo: Optional[dict[int, Any]] = None)
     not the size its shared references expand to.
     """
     memo = {} if memo is None else memo
-    if isinstance(obj, _PickledCSR):
-        return _csr_from_state(obj, path)
-    if not isinstance(obj, (dict, list, tuple, np.ndarray)) or (isinstance(obj, np.ndarray) and obj.dtype != object):
+    if not isinstance(obj, (_PickledCSR, dict, list, tuple, np.ndarray)) or (
+        isinstance(obj, np.ndarray) and obj.dtype != object
+    ):
         return obj
-    key = id(obj)
+    key = id(obj)  # every object stays alive through the root for the whole walk: ids are not reused
     if key in memo:
         return memo[key]
     out: Any = obj
-    if isinstance(obj, dict):
+    if isinstance(obj, _PickledCSR):
+        out = _csr_from_state(obj, path)
+    elif isinstance(obj, dict):
         items = {k: _rebuild_sparse(v, path, memo) for k, v in obj.items()}
         if any(items[k] is not v for k, v in obj.items()):
             out = items
@@ -194,7 +196,8 @@ def _rebuild_sparse(obj: Any, path: Path, memo: Optional[dict[int, Any]] = None)
         values = [_rebuild_sparse(v, path, memo) for v in obj.reshape(-1)]
         if any(a is not b for a, b in zip(values, obj.reshape(-1), strict=True)):
             out = np.empty(obj.shape, dtype=object)
-            out.reshape(-1)[:] = values
+            for i, v in enumerate(values):
+                out.flat[i] = v
     memo[key] = out
     return out
 
@@ -379,11 +382,11 @@ def _check_nested_shape(
     before converting them (a list of shared references may expand to millions of numbers)."""
     from hogsa_loader.pickle_caps import nested_shape
 
-    shape = nested_shape(value, max_depth=len(spec) + 1)
+    shape = nested_shape(value)
     want = [frames if s == "F" and frames is not None else s for s in spec]
     if len(shape) != len(spec) or any(isinstance(w, int) and w != n for w, n in zip(want, shape, strict=True)):
         extra = f" with F = {frames}" if frames is not None and "F" in spec else ""
-        got = "x".join(map(str, shape[: len(spec) + 1])) + ("x..." if len(shape) > len(spec) else "")
+        got = "x".join(map(str, shape))
         raise AssetError(path, f"{key} is a nested list of shape {got}, expected {_shape_str(spec)}{extra}")
 
 
@@ -411,7 +414,8 @@ def _numeric(
     if isinstance(value, np.ndarray):
         arr = value
     else:
-        _check_nested_shape(value, path, key, spec, frames)
+        if isinstance(value, (list, tuple)):
+            _check_nested_shape(value, path, key, spec, frames)
         try:
             arr = np.asarray(value)
         except Exception:  # ragged nested lists

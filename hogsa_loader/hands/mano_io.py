@@ -203,9 +203,9 @@ class RestrictedUnpickler(pickle.Unpickler):
 #: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,
 #: has 778·3·135 ≈ 0.3 M; a crafted sparse shape must not allocate terabytes).
 MAX_DENSE_ELEMENTS = 50_000_000
-#: Largest nested Python list turned into an array (MANO files store arrays; a list of
-#: shared references may stand for billions of numbers): 20 M, five times the posedirs of
-#: a 10,000-vertex hand.
+#: Largest nested Python list turned into an array (MANO files store arrays; a list of shared
+#: references may stand for up to the unpickler's element cap of 50 M numbers): 20 M, five
+#: times the posedirs of a 10,000-vertex hand.
 MAX_LIST_ELEMENTS = 20_000_000
 
 

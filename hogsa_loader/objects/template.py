@@ -31,6 +31,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -444,6 +445,26 @@ def read_object_meta(path: PathLike) -> dict[str, dict[str, float]]:
     return out
 
 
+#: Templates kept in memory by :func:`load_object_template`, keyed by the folder, the
+#: arguments and every file's (name, size, mtime): a changed file is read again.
+TEMPLATE_CACHE_SIZE = 64
+_TEMPLATE_CACHE: "OrderedDict[tuple, ObjectTemplate]" = OrderedDict()
+_TEMPLATE_CACHE_LOCK = threading.Lock()
+
+
+def _folder_fingerprint(folder: Path) -> tuple[tuple[str, int, int], ...]:
+    """``(name, size, mtime_ns)`` of every file directly in ``folder``, sorted by name."""
+    out = []
+    try:
+        for p in sorted(folder.iterdir()):
+            if p.is_file():
+                st = p.stat()
+                out.append((p.name, st.st_size, st.st_mtime_ns))
+    except OSError as exc:
+        raise AssetError(folder, f"cannot list the object template folder ({exc})") from None
+    return tuple(out)
+
+
 def load_object_template(
     folder: PathLike,
     name: Optional[str] = None,
@@ -460,11 +481,11 @@ def load_object_template(
             diameter is the largest vertex-to-vertex distance.
         load_texture: read ``mesh_tex.obj`` + ``material.jpg`` when ``mesh_tex.obj`` exists.
 
-    Returns:
-        the template in metres (files are mm and divided by 1000).
-
     A template read before is returned as a copy while none of the folder's files changed
     (name, size and modification time).
+
+    Returns:
+        the template in metres (files are mm and divided by 1000).
 
     Raises:
         AssetError: a file is missing, malformed or inconsistent (the message names it).
@@ -476,29 +497,18 @@ def load_object_template(
     entry = None if object_meta is None else object_meta.get(name)
     key = (str(folder.resolve()), name, bool(load_texture), json.dumps(entry, sort_keys=True, default=str),
            _folder_fingerprint(folder))
-    if key in _TEMPLATE_CACHE:
-        _TEMPLATE_CACHE.move_to_end(key)
-        return copy.deepcopy(_TEMPLATE_CACHE[key])
+    with _TEMPLATE_CACHE_LOCK:
+        cached = _TEMPLATE_CACHE.get(key)
+        if cached is not None:
+            _TEMPLATE_CACHE.move_to_end(key)
+    if cached is not None:
+        return copy.deepcopy(cached)
     template = _load_object_template(folder, name, object_meta, load_texture)
-    _TEMPLATE_CACHE[key] = template
-    while len(_TEMPLATE_CACHE) > TEMPLATE_CACHE_SIZE:
-        _TEMPLATE_CACHE.popitem(last=False)
+    with _TEMPLATE_CACHE_LOCK:
+        _TEMPLATE_CACHE[key] = template
+        while len(_TEMPLATE_CACHE) > TEMPLATE_CACHE_SIZE:
+            _TEMPLATE_CACHE.popitem(last=False)
     return copy.deepcopy(template)
-
-
-#: Templates kept in memory by :func:`load_object_template`, keyed by the folder, the
-#: arguments and every file's (name, size, mtime): a changed file is read again.
-TEMPLATE_CACHE_SIZE = 64
-_TEMPLATE_CACHE: "OrderedDict[tuple, ObjectTemplate]" = OrderedDict()
-
-
-def _folder_fingerprint(folder: Path) -> tuple[tuple[str, int, int], ...]:
-    out = []
-    for p in sorted(folder.iterdir()):
-        if p.is_file():
-            st = p.stat()
-            out.append((p.name, st.st_size, st.st_mtime_ns))
-    return tuple(out)
 
 
 def _load_object_template(
