@@ -240,7 +240,8 @@ def test_bomb_under_the_element_cap_stays_shared_and_is_refused_by_its_shape(tin
 
 def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_pair, tmp_path):
     """v_template as 3·10^7 shared numbers (under the 5·10^7 element cap) is refused by its
-    shape, before np.asarray."""
+    shape, before np.asarray; so is a list of 2·10^6 (over the 10^6 list cap), and a list
+    holding an integer beyond int64 is refused as not numeric."""
     import io
 
     from hogsa_loader.hands import mano_io
@@ -258,6 +259,14 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
     path.write_bytes(buf.getvalue())
     with pytest.raises(AssetError, match=r"v_template.*nested list of shape 10000x1000x3x1 is far larger than any"):
         mano_io.load_mano(path)
+    for value, message in (([[[0.5] * 3] * 1000] * 2000, "nested list of shape 2000x1000x3 is far larger"),
+                           ([[2**70, 1, 2]], "expected a numeric array, got dtype object")):
+        doc.update(v_template=value)
+        buf = io.BytesIO()
+        mano_io._LegacyPickler(buf, protocol=2).dump(doc)
+        path.write_bytes(buf.getvalue())
+        with pytest.raises(AssetError, match=message):
+            mano_io.load_mano(path)
 
 
 @pytest.mark.parametrize("kind", ["list", "tuple", "dict", "set", "object array", "stub state"])

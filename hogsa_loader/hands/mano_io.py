@@ -203,10 +203,11 @@ class RestrictedUnpickler(pickle.Unpickler):
 #: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,
 #: has 778·3·135 ≈ 0.3 M; a crafted sparse shape must not allocate terabytes).
 MAX_DENSE_ELEMENTS = 50_000_000
-#: Largest nested Python list turned into an array (MANO files store arrays; a list of shared
-#: references may stand for up to the unpickler's element cap of 50 M numbers): 20 M, five
-#: times the posedirs of a 10,000-vertex hand.
-MAX_LIST_ELEMENTS = 20_000_000
+#: Largest nested Python list turned into an array: 1 M numbers, three times the release's
+#: largest array. MANO files store numpy arrays, which this does not limit; a list of shared
+#: references may stand for up to the unpickler's element cap of 50 M numbers, and
+#: converting that many Python floats takes seconds and GBs.
+MAX_LIST_ELEMENTS = 1_000_000
 
 
 def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
@@ -244,7 +245,13 @@ def _as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
         if math.prod(shape) > MAX_LIST_ELEMENTS:
             raise AssetError(where, f"nested list of shape {'x'.join(map(str, shape))} is far larger than any MANO "
                                     "array")  # fmt: skip
-    return np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError, OverflowError) as exc:  # ragged lists, unconvertible items
+        raise AssetError(where, f"not a numeric array ({type(exc).__name__}: {exc})") from None
+    if arr.dtype.kind not in "biuf":
+        raise AssetError(where, f"expected a numeric array, got dtype {arr.dtype}")
+    return arr
 
 
 # ----------------------------------------------------------------------------------------
