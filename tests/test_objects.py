@@ -287,7 +287,7 @@ def test_template_reads_are_cached_as_copies_and_follow_file_changes(meta_dir, t
     first.verts[:] = 0.0  # a caller's change reaches neither the cache nor later reads
     second = tmod.load_object_template(folder)
     assert np.abs(second.verts).max() > 0 and second.verts is not tmod._TEMPLATE_CACHE[key].verts
-    # a changed file is read again, also when its size stays the same (mtime)
+    # a changed file is read again, also when its size stays the same
     params_path = folder / "object_params.json"
     params = json.loads(params_path.read_text())
     params["keypoints_top"] = (np.asarray(params["keypoints_top"]) + 1.0).tolist()

@@ -29,6 +29,7 @@ articulation axis.
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import threading
@@ -446,20 +447,20 @@ def read_object_meta(path: PathLike) -> dict[str, dict[str, float]]:
 
 
 #: Templates kept in memory by :func:`load_object_template`, keyed by the folder, the
-#: arguments and every file's (name, size, mtime): a changed file is read again.
+#: arguments and every file's name and content hash: a changed file is read again.
 TEMPLATE_CACHE_SIZE = 64
 _TEMPLATE_CACHE: "OrderedDict[tuple, ObjectTemplate]" = OrderedDict()
 _TEMPLATE_CACHE_LOCK = threading.Lock()
 
 
-def _folder_fingerprint(folder: Path) -> tuple[tuple[str, int, int], ...]:
-    """``(name, size, mtime_ns)`` of every file directly in ``folder``, sorted by name."""
+def _folder_fingerprint(folder: Path) -> tuple[tuple[str, str], ...]:
+    """``(name, BLAKE2b of the content)`` of every file directly in ``folder``, sorted by name
+    (hashing a template's files costs milliseconds; parsing them, seconds)."""
     out = []
     try:
         for p in sorted(folder.iterdir()):
             if p.is_file():
-                st = p.stat()
-                out.append((p.name, st.st_size, st.st_mtime_ns))
+                out.append((p.name, hashlib.blake2b(p.read_bytes(), digest_size=16).hexdigest()))
     except OSError as exc:
         raise AssetError(folder, f"cannot list the object template folder ({exc})") from None
     return tuple(out)
@@ -482,7 +483,7 @@ def load_object_template(
         load_texture: read ``mesh_tex.obj`` + ``material.jpg`` when ``mesh_tex.obj`` exists.
 
     A template read before is returned as a copy while none of the folder's files changed
-    (name, size and modification time).
+    (names and contents).
 
     Returns:
         the template in metres (files are mm and divided by 1000).
