@@ -238,6 +238,29 @@ def test_bomb_under_the_element_cap_stays_shared_and_is_refused_by_its_shape(tin
         ArcticRoot(tmp_path).sequence("s01", "box_use_01")
 
 
+def test_egocam_extras_are_checked_once_per_shared_container(tiny_world, tmp_path, monkeypatch):
+    """Extra keys of an egocam file (kept as stored) are checked container by container: a
+    field of 2,500 references to one list costs a handful of checks, not one per reference."""
+    from hogsa_loader.datasets import arctic
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+
+    src, dst = tiny_world / "arctic_data" / "data", tmp_path / "arctic_data" / "data"
+    (dst / "meta").mkdir(parents=True)
+    shutil.copy2(src / "meta" / "misc.json", dst / "meta" / "misc.json")
+    shutil.copytree(src / "raw_seqs" / "s01", dst / "raw_seqs" / "s01")
+    ego_path = dst / "raw_seqs" / "s01" / "box_use_01.egocam.dist.npy"
+    doc = read_npy(ego_path)
+    row = [[0.5, 1.5]] * 50
+    doc["R0"] = [row] * 50
+    np.save(ego_path, np.array(doc, dtype=object), allow_pickle=True)
+    calls = []
+    check = arctic._plain_data
+    monkeypatch.setattr(arctic, "_plain_data", lambda *a, **k: (calls.append(1), check(*a, **k))[1])
+    raw = ArcticRoot(tmp_path).raw_sequence("s01", "box_use_01")
+    assert raw.egocam_extra["R0"][0] is raw.egocam_extra["R0"][1]  # kept shared
+    assert len(calls) < 500  # one check per reference would be > 2,600
+
+
 def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_pair, tmp_path):
     """v_template as 3·10^7 shared numbers (under the 5·10^7 element cap) is refused by its
     shape, before np.asarray; so is a list of 2·10^6 (over the 10^6 list cap), and a list

@@ -464,28 +464,36 @@ def _check_intrinsics(K: np.ndarray, path: Path, key: str) -> None:
                                "(need fx, fy > 0 and last row (0, 0, 1))")
 
 
-def _plain_data(value: Any, path: Path, key: str, depth: int = 0) -> None:
-    """Unused keys may hold strings/numbers/arrays/lists/dicts only (no other objects)."""
+def _plain_data(value: Any, path: Path, key: str, depth: int = 0, seen: Optional[set[int]] = None) -> None:
+    """Unused keys may hold strings/numbers/arrays/lists/dicts only (no other objects).
+
+    Each container is checked once however often it is referenced (``seen``: ids of the
+    containers checked, all alive through ``value``), so the cost follows the file, not what
+    shared references expand to.
+    """
     if depth > 16:
         raise AssetError(path, f"{key} is nested too deeply")
     if value is None or isinstance(value, (str, bytes, int, float, np.generic)):
         return
+    if not isinstance(value, (np.ndarray, list, tuple, dict)):
+        raise AssetError(path, f"{key} holds a {type(value).__name__}, expected plain data")
+    seen = set() if seen is None else seen
+    if id(value) in seen:
+        return
+    seen.add(id(value))
     if isinstance(value, np.ndarray):
         if value.dtype.hasobject:
             for i, item in enumerate(value.reshape(-1)[:10000]):
-                _plain_data(item, path, f"{key}[{i}]", depth + 1)
-        return
-    if isinstance(value, (list, tuple)):
-        for i, item in enumerate(value):
-            _plain_data(item, path, f"{key}[{i}]", depth + 1)
-        return
-    if isinstance(value, dict):
+                _plain_data(item, path, f"{key}[{i}]", depth + 1, seen)
+    elif isinstance(value, dict):
         for k, item in value.items():
-            _plain_data(item, path, f"{key}.{k}", depth + 1)
-        return
-    raise AssetError(path, f"{key} holds a {type(value).__name__}, expected plain data")
-
-
+            _plain_data(item, path, f"{key}.{k}", depth + 1, seen)
+    else:
+        for i, item in enumerate(value):
+            if isinstance(item, (np.ndarray, list, tuple, dict)) or not isinstance(
+                item, (str, bytes, int, float, np.generic, type(None))
+            ):
+                _plain_data(item, path, f"{key}[{i}]", depth + 1, seen)
 
 
 def _json_int(value: Any) -> Optional[int]:
