@@ -215,16 +215,22 @@ def test_pickle_bomb_refused_before_allocation(tmp_path):
         assert time.perf_counter() - t0 < 2.0
 
 
+def _raw_copy(world: Path, out: Path) -> Path:
+    """misc.json and s01's raw sequences of ``world`` copied under ``out``; the copy's ``arctic_data/data``."""
+    src, dst = world / "arctic_data" / "data", out / "arctic_data" / "data"
+    (dst / "meta").mkdir(parents=True)
+    shutil.copy2(src / "meta" / "misc.json", dst / "meta" / "misc.json")
+    shutil.copytree(src / "raw_seqs" / "s01", dst / "raw_seqs" / "s01")
+    return dst
+
+
 def test_bomb_under_the_element_cap_stays_shared_and_is_refused_by_its_shape(tiny_world, tmp_path):
     """A raw sequence field of 10^7 shared numbers (under the 5·10^7 element cap): read_npy
     keeps the references shared (no copy per use) and the reader refuses the shape before
     any conversion."""
     from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
 
-    src, dst = tiny_world / "arctic_data" / "data", tmp_path / "arctic_data" / "data"
-    (dst / "meta").mkdir(parents=True)
-    shutil.copy2(src / "meta" / "misc.json", dst / "meta" / "misc.json")
-    shutil.copytree(src / "raw_seqs" / "s01", dst / "raw_seqs" / "s01")
+    dst = _raw_copy(tiny_world, tmp_path)
     mano_path = dst / "raw_seqs" / "s01" / "box_use_01.mano.npy"
     x: list = [0.5]
     for w in (10, 1000, 1000):
@@ -244,10 +250,7 @@ def test_egocam_extras_are_checked_once_per_shared_container(tiny_world, tmp_pat
     from hogsa_loader.datasets import arctic
     from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
 
-    src, dst = tiny_world / "arctic_data" / "data", tmp_path / "arctic_data" / "data"
-    (dst / "meta").mkdir(parents=True)
-    shutil.copy2(src / "meta" / "misc.json", dst / "meta" / "misc.json")
-    shutil.copytree(src / "raw_seqs" / "s01", dst / "raw_seqs" / "s01")
+    dst = _raw_copy(tiny_world, tmp_path)
     ego_path = dst / "raw_seqs" / "s01" / "box_use_01.egocam.dist.npy"
     doc = read_npy(ego_path)
     row = [[0.5, 1.5]] * 50

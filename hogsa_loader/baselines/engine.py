@@ -61,7 +61,8 @@ def to_device(batch: Any, device: Any) -> Any:
     return batch
 
 
-def _prepared(model: nn.Module, batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
+def _prepared(batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
+    """A batch on ``device`` with ArcticNet-SF's targets prepared (no gradients)."""
     inputs, targets, meta_info = to_device(batch, device)
     with torch.no_grad():
         targets, meta_info = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l,
@@ -92,9 +93,7 @@ def mean_cameras(batches: Iterable[Any], layers: BodyLayers, img_res: int, devic
     sums = {k: torch.zeros(3, dtype=torch.float64) for k in keys}
     counts = dict.fromkeys(keys, 0)
     for batch in batches:
-        _, targets, meta_info = to_device(batch, device)
-        targets, _ = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l, layers.objects,
-                                     img_res=img_res, field="hands")
+        _, targets, _ = _prepared(batch, layers, img_res, device)
         for k, (cam, valid) in keys.items():
             ok = targets[valid].reshape(-1).bool()
             sums[k] += targets[cam][ok].double().sum(0).cpu()
@@ -132,7 +131,7 @@ def training_step(
         FloatingPointError: the loss is not finite (the step is not applied).
     """
     model.train()
-    inputs, targets, meta_info = _prepared(model, batch, layers, img_res, device)
+    inputs, targets, meta_info = _prepared(batch, layers, img_res, device)
     pred = model(inputs, meta_info)
     losses = arcticnet_sf_loss(pred, targets)
     total = losses["loss"]
@@ -213,7 +212,7 @@ def evaluate(
     current: Optional[tuple[str, str, int]] = None
     frames: list[tuple[int, dict[str, Any]]] = []
     for batch in batches:
-        inputs, targets, meta_info = _prepared(model, batch, layers, img_res, device)
+        inputs, targets, meta_info = _prepared(batch, layers, img_res, device)
         pred = model(inputs, meta_info)
         per_frame.append(per_frame_metrics(pred, targets, meta_info))
         for b, name in enumerate(meta_info["imgname"]):
