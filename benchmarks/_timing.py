@@ -36,8 +36,9 @@ def time_render(
         device: "cpu" or "cuda".
 
     Returns:
-        ``fwd_ms``, ``fwd_bwd_ms``, ``peak_mb``, ``base_mb`` (CPU only) and ``memory`` (what
-        the peak measures).
+        ``fwd_ms``, ``fwd_bwd_ms``, ``peak_mb``, ``base_mb`` (CPU only), ``memory`` (what
+        the peak measures) and ``fwd_faults`` / ``fwd_bwd_faults``: minor page faults of the
+        process per timed call (``ru_minflt``; every thread of the process counts).
     """
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -53,14 +54,18 @@ def time_render(
         (image_fn(scene) * scene["wrand"]).sum().backward()
         sync()
 
+    faults: dict[str, float] = {}
+
     def timed(f: Callable[[], None], reps: int) -> float:
         for _ in range(warmup):
             f()
         ts = []
+        minflt = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         for _ in range(reps):
             t0 = time.perf_counter()
             f()
             ts.append(time.perf_counter() - t0)
+        faults[f.__name__] = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - minflt) / max(reps, 1)
         return 1000.0 * statistics.median(ts)
 
     if device == "cuda":
@@ -73,4 +78,5 @@ def time_render(
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         memory = "ru_maxrss (process peak RSS)"
     return {"fwd_ms": fwd_ms, "fwd_bwd_ms": fwd_bwd_ms, "peak_mb": peak_mb,
-            "base_mb": base_mb if device == "cpu" else None, "memory": memory}
+            "base_mb": base_mb if device == "cpu" else None, "memory": memory,
+            "fwd_faults": faults["fwd"], "fwd_bwd_faults": faults["fwd_bwd"]}

@@ -17,12 +17,17 @@ Memory: every (backend, N, resolution) row runs in its own child process. On CPU
 measured after imports and scene creation). On CUDA it is
 ``torch.cuda.max_memory_allocated()`` over the timed runs.
 
+Page faults: ``fwd_faults`` / ``fwd_bwd_faults`` are the minor page faults of the child
+process per timed call. ``--malloc`` runs every row once per allocator, side by side:
+"default" (glibc as the library sets it on the first CPU render, keeping its working memory:
+:func:`hogsa_loader.system.keep_allocator_memory`), "glibc" (glibc untouched,
+``HOGSA_KEEP_MEMORY=0``) and "tcmalloc" (``LD_PRELOAD`` of libtcmalloc_minimal, found in the
+system's library folders or given by ``--tcmalloc``).
+
 Usage::
 
     python benchmarks/render_speed.py --json OUT.json [--backend torch|gsplat|all] [--quick]
-
-For the CPU numbers of the calibration, preload tcmalloc:
-``LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4``.
+    python benchmarks/render_speed.py --quick --malloc default,glibc,tcmalloc --json OUT.json
 """
 
 from __future__ import annotations
@@ -40,6 +45,23 @@ from _timing import bench_threads, time_render
 
 CONFIGS = [(50_000, 224), (50_000, 512), (150_000, 224), (150_000, 512)]
 QUICK_CONFIGS = [(50_000, 224)]
+MALLOCS = ("default", "glibc", "tcmalloc")
+TCMALLOC_PATHS = tuple(f"/usr/{d}/libtcmalloc_minimal.so.4"
+                       for d in ("lib/x86_64-linux-gnu", "lib/aarch64-linux-gnu", "lib64", "lib"))
+
+
+def malloc_env(name: str, tcmalloc: str | None) -> dict[str, str]:
+    """Environment of a child row for allocator ``name`` (one of :data:`MALLOCS`)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "HOGSA_KEEP_MEMORY")}
+    if name == "glibc":
+        env["HOGSA_KEEP_MEMORY"] = "0"
+    elif name == "tcmalloc":
+        path = tcmalloc or next((p for p in TCMALLOC_PATHS if os.path.isfile(p)), None)
+        if path is None or not os.path.isfile(path):
+            raise SystemExit(f"render_speed: tcmalloc not found (looked in {list(TCMALLOC_PATHS)}); "
+                             "install libtcmalloc-minimal4 or pass --tcmalloc PATH")
+        env["LD_PRELOAD"] = path
+    return env
 
 
 def make_scene(n: int, width: int, device: str, seed: int = 0) -> dict[str, Any]:
@@ -82,6 +104,8 @@ def _render_fn(backend: str) -> Callable[[dict[str, Any]], torch.Tensor]:
 
 
 def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
+    from hogsa_loader.system import allocator_status
+
     device = "cuda" if backend == "gsplat" else "cpu"
     torch.set_num_threads(bench_threads())
     fn = _render_fn(backend)
@@ -106,8 +130,30 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
         "base_mb": round(t["base_mb"], 1) if t["base_mb"] is not None else None,
         "memory": t["memory"],
         "n_isects": n_isects,
-        "malloc": "tcmalloc" if "tcmalloc" in os.environ.get("LD_PRELOAD", "") else "default",
+        "fwd_faults": round(t["fwd_faults"], 1),
+        "fwd_bwd_faults": round(t["fwd_bwd_faults"], 1),
+        "malloc": allocator_status(),
+        "ld_preload": os.environ.get("LD_PRELOAD", ""),
     }
+
+
+def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
+    """Each allocator's forward time and page faults relative to the last one listed."""
+    ref_name = mallocs[-1]
+    for r in rows:
+        if r["allocator"] == ref_name:
+            continue
+        ref = next((q for q in rows if q["allocator"] == ref_name and (q["backend"], q["N"], q["width"])
+                    == (r["backend"], r["N"], r["width"])), None)  # fmt: skip
+        if ref is None:
+            continue
+        keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
+        ratio = {k: r[k] / ref[k] if ref[k] else float("inf") for k in keys}
+        r[f"vs_{ref_name}"] = {k: round(v, 3) for k, v in ratio.items()}
+        print(f"{r['backend']} N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
+              f"fwd time {ratio['fwd_ms']:.2f}x, "
+              f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "
+              f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x", flush=True)
 
 
 def main() -> None:
@@ -118,8 +164,15 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--repeats-fwd", type=int, default=7)
     ap.add_argument("--repeats-bwd", type=int, default=5)
+    ap.add_argument("--malloc", default="default",
+                    help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}")
+    ap.add_argument("--tcmalloc", help="path of libtcmalloc_minimal (default: looked up in the library folders)")
     ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width in a child
     a = ap.parse_args()
+    mallocs = [m.strip() for m in a.malloc.split(",") if m.strip()]
+    bad = [m for m in mallocs if m not in MALLOCS]
+    if not mallocs or bad:
+        ap.error(f"--malloc takes a comma-separated list of {list(MALLOCS)}, got {a.malloc!r}")
 
     if a.row:
         backend, n, w = a.row.split(",")
@@ -132,20 +185,25 @@ def main() -> None:
         backends.remove("gsplat")
     configs = QUICK_CONFIGS if a.quick else CONFIGS
     reps = (1, 3, 2) if a.quick else (a.warmup, a.repeats_fwd, a.repeats_bwd)
+    envs = {m: malloc_env(m, a.tcmalloc) for m in mallocs}
     rows = []
     for backend in backends:
         for n, w in configs:
-            cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w}",
-                   "--warmup", str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]  # fmt: skip
-            res = subprocess.run(cmd, capture_output=True, text=True)
-            if res.returncode != 0:
-                print(f"{backend} N={n} {w}x{w}: failed\n{res.stderr[-2000:]}")
-                continue
-            rows.append(json.loads(res.stdout.strip().splitlines()[-1]))
-            r = rows[-1]
-            print(f"{r['backend']:7s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
-                  f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
-                  f"(base {r['base_mb']}) isects {r['n_isects']} [{r['malloc']}]", flush=True)  # fmt: skip
+            for m in mallocs:
+                cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w}", "--warmup",
+                       str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]  # fmt: skip
+                res = subprocess.run(cmd, capture_output=True, text=True, env=envs[m])
+                if res.returncode != 0:
+                    print(f"{backend} N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
+                    continue
+                rows.append({"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])})
+                r = rows[-1]
+                print(f"{r['backend']:7s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                      f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
+                      f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
+                      f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)  # fmt: skip
+    if len(mallocs) > 1:
+        print_ratios(rows, mallocs)
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(rows, fh, indent=1)

@@ -1,13 +1,94 @@
-"""Facts about the machine the code runs on."""
+"""Facts about the machine the code runs on, and the process-wide allocator setting."""
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
+import threading
+from typing import Optional
 
-__all__ = ["available_cores"]
+__all__ = ["available_cores", "keep_allocator_memory", "allocator_status", "KEEP_MEMORY_ENV"]
+
+#: Set to ``0`` to leave the C allocator as the process found it.
+KEEP_MEMORY_ENV = "HOGSA_KEEP_MEMORY"
+#: glibc ``mallopt`` parameter numbers (``malloc.h``) and the values set by :func:`keep_allocator_memory`:
+#: blocks up to 32 MiB (glibc's largest mmap threshold on 64-bit) come from the heap instead of a
+#: fresh ``mmap``, freed memory is kept (trim threshold 2 GiB), and the heap grows 512 MiB at a time
+#: (address space only; pages are backed when first touched).
+GLIBC_SETTINGS = {
+    "M_MMAP_THRESHOLD": (-3, 32 * 2**20),
+    "M_TRIM_THRESHOLD": (-1, 2**31 - 1),
+    "M_TOP_PAD": (-2, 512 * 2**20),
+}
+#: Environment variables through which a user configures glibc's allocator himself; any of them set
+#: means :func:`keep_allocator_memory` leaves it alone.
+GLIBC_ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
+#: Allocators a user may preload instead of glibc's.
+OTHER_ALLOCATORS = ("tcmalloc", "jemalloc", "mimalloc")
+
+_lock = threading.Lock()
+_status: Optional[str] = None
 
 
 def available_cores() -> int:
     """CPU cores this process may run on: its affinity mask where the OS has one
     (``os.cpu_count()`` counts every core of the host, e.g. 64 inside a 2-core container)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _skip_reason() -> Optional[str]:
+    """Why the allocator is left alone, or None when glibc's may be configured."""
+    if os.environ.get(KEEP_MEMORY_ENV, "1") == "0":
+        return f"left alone: {KEEP_MEMORY_ENV}=0"
+    preload = os.environ.get("LD_PRELOAD", "")
+    for name in OTHER_ALLOCATORS:
+        if name in preload:
+            return f"left alone: {name} preloaded"
+    user = [k for k in GLIBC_ENV if k in os.environ]
+    if user or "glibc.malloc" in os.environ.get("GLIBC_TUNABLES", ""):
+        return f"left alone: set by the environment ({', '.join(user) or 'GLIBC_TUNABLES'})"
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return f"left alone: not glibc on Linux ({platform.system()} {platform.libc_ver()[0] or 'unknown libc'})"
+    return None
+
+
+def keep_allocator_memory() -> str:
+    """Make glibc's allocator keep working memory between calls (once per process; idempotent).
+
+    With glibc's defaults, blocks above its (dynamic) mmap threshold get fresh pages from the
+    kernel on every allocation and give them back on free, so every large temporary of a CPU
+    render is page-faulted in again on each call. That costs little on a warm host and up to
+    50x on a freshly booted virtual machine, where each first touch of a page is slow. This
+    sets :data:`GLIBC_SETTINGS` through ``mallopt``, the same effect as
+    ``MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=2147483647 MALLOC_TOP_PAD_=536870912``
+    in the environment. The cost: memory freed after a peak stays with the process (its RSS
+    does not shrink back). Forked children (DataLoader workers) inherit the setting.
+
+    The CPU render path calls this; it does nothing when ``HOGSA_KEEP_MEMORY=0``, when another
+    allocator is preloaded (tcmalloc, jemalloc, mimalloc keep memory on their own), when the
+    user configured glibc's allocator through its environment variables, or off glibc/Linux.
+
+    Returns:
+        What was done, as :func:`allocator_status` reports it.
+    """
+    global _status
+    with _lock:
+        if _status is not None:
+            return _status
+        reason = _skip_reason()
+        if reason is None:
+            try:
+                libc = ctypes.CDLL("libc.so.6")
+                failed = [k for k, (param, value) in GLIBC_SETTINGS.items() if libc.mallopt(param, value) != 1]
+            except (OSError, AttributeError) as exc:
+                reason = f"left alone: mallopt unavailable ({exc})"
+            else:
+                reason = f"glibc mallopt failed for {failed}" if failed else "glibc: keeps memory (mallopt)"
+        _status = reason
+        return _status
+
+
+def allocator_status() -> str:
+    """What :func:`keep_allocator_memory` did in this process ("not configured yet" before its first call)."""
+    return _status if _status is not None else "not configured yet"

@@ -20,7 +20,8 @@ Subcommands:
                                    360° orbit sheets and animations (with and without SRM)
                                    and a pose-transfer grid of a bundle's models
 
-Environment: on Linux, preloading tcmalloc speeds up large CPU tensor work (see README).
+Environment: CPU renders set glibc's allocator to keep its memory (HOGSA_KEEP_MEMORY=0 leaves it alone;
+see README).
 """
 
 from __future__ import annotations

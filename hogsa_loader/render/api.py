@@ -10,6 +10,9 @@
 
 Both backends follow gsplat 1.5.3's conventions (listed in the docstring of
 :mod:`hogsa_loader.render.gaussians`), so they agree up to float32 rounding.
+
+The first CPU render of a process sets glibc's allocator to keep its working memory between
+calls (:func:`hogsa_loader.system.keep_allocator_memory`; ``HOGSA_KEEP_MEMORY=0`` opts out).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from hogsa_loader.render.gsplat_backend import (
     gsplat_unavailable_reason,
     render_gsplat,
 )
+from hogsa_loader.system import keep_allocator_memory
 
 __all__ = ["render", "antialias_compensation", "BackendUnavailableError", "BACKENDS", "RENDER_MODES"]
 
@@ -175,6 +179,8 @@ def render(
             num_parts=num_parts, packed=packed, antialiased=antialiased, eps2d=eps2d, **opts,
         )  # fmt: skip
     else:
+        if x["means"].device.type == "cpu":
+            keep_allocator_memory()
         opts = dict(torch_backend_options)
         if "valid" in opts:
             opts["valid"] = x["valid"]
