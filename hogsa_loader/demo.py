@@ -4,7 +4,7 @@ Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a k
 settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
 second run only streams)::
 
-    world       OUT/world/                the `small` world (hogsa world --preset small)
+    world       OUT/world/                the `demo` world (hogsa world --preset demo)
     hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
     contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
     bank        OUT/runs/pose_bank         POM pose bank of the training subjects
@@ -81,7 +81,7 @@ class DemoConfig:
             rendered again on every run (no stage).
     """
 
-    preset: str = "small"
+    preset: str = "demo"
     seed: int = 0
     data: Optional[str] = None
     pairs: tuple[tuple[str, str], ...] = (("s01", "box"), ("s02", "notebook"))

@@ -87,3 +87,15 @@ def test_unbatch_inverts_default_collate():
     assert torch.equal(one[0]["img"], items[2][0]["img"])
     assert float(one[1]["v"]) == 2.0 and torch.equal(one[1]["j"], items[2][1]["j"])
     assert one[2]["name"] == "n2"
+
+
+def test_demo_world_preset_holds_what_the_demo_uses():
+    from hogsa_loader.world import get_preset
+
+    cfg = DemoConfig()
+    preset = get_preset(cfg.preset)
+    have = {(s.sid, q.object) for s in preset.subjects for q in s.sequences if s.split == "train"}
+    assert set(cfg.pairs) <= have  # every HOGS model trains on the world's training split
+    assert any(s.split == "val" for s in preset.subjects)  # ContactNet validates on a held-out subject
+    assert preset.cropped_size == 1000 and preset.num_frames >= 52  # ARCTIC's crop size, ARCTIC's frame floor
+    assert sum(len(s.sequences) for s in preset.subjects) < sum(len(s.sequences) for s in get_preset("small").subjects)

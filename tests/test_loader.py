@@ -211,6 +211,19 @@ def test_same_seed_same_samples_with_two_workers(bundle_dir, tiny_world):
     assert one is not None and torch.allclose(one[0]["img"], a[-1][1], atol=1e-4)
 
 
+def test_batches_are_balanced_over_the_models(bundle_dir, tiny_world):
+    ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=3)
+    ds.keys = [("s01", "box"), ("s01", "laptop"), ("s02", "notebook")]  # only batch_key reads them here
+    for epoch in (0, 1):
+        keys = [ds.batch_key(g, epoch) for g in range(60)]
+        for block in range(20):  # each block of len(keys) batches uses every model once
+            assert sorted(keys[3 * block:3 * block + 3]) == sorted(ds.keys)
+        orders = {tuple(keys[3 * b:3 * b + 3]) for b in range(20)}
+        assert len(orders) > 1  # the order within a block is drawn, not fixed
+    assert [ds.batch_key(g, 0) for g in range(60)] != [ds.batch_key(g, 1) for g in range(60)]
+    assert [ds.batch_key(g, 0) for g in range(9)] == [ds.batch_key(g, 0) for g in range(9)]
+
+
 def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(bundle_dir, tiny_world):
     ds = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=2, seed=5)
     dl = DataLoader(ds, batch_size=None, num_workers=1, persistent_workers=True)

@@ -5,7 +5,7 @@ Subcommands:
     hogsa assets --out DIR         synthetic MANO-format hands, procedural ARCTIC-format objects,
                                    and PNG previews of both
     hogsa convert-mano SRC DST     one-shot MANO .pkl -> chumpy-free, pickle-free .npz
-    hogsa world --out DIR --preset tiny|small [--seed N]
+    hogsa world --out DIR --preset tiny|demo|small [--seed N]
                                    a synthetic ARCTIC-format world (raw_seqs, misc, cropped
                                    images, masks, splits) rendered with the mesh rasteriser
     hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
@@ -301,7 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
     w.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
-    w.add_argument("--preset", default="tiny", help="tiny (< 1 min, tests) or small (ARCTIC image sizes)")
+    w.add_argument("--preset", default="tiny",
+                   help="tiny (< 1 min, tests), demo (what hogsa demo uses) or small (ARCTIC image sizes)")
     w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")
     w.add_argument("--quiet", action="store_true", help="no progress bar or messages")

@@ -378,9 +378,16 @@ class HOGSADataset(IterableDataset):
         return self.epoch if epoch is None else int(epoch)
 
     def batch_key(self, batch_index: int, epoch: Optional[int] = None) -> tuple[str, str]:
-        """The (subject, object) model of render batch ``batch_index`` (at ``epoch``, default the current one)."""
-        rng = np.random.default_rng([self.seed, self._epoch_or(epoch), int(batch_index), 7])
-        return self.keys[int(rng.integers(len(self.keys)))]
+        """The (subject, object) model of render batch ``batch_index`` (at ``epoch``, default the current one).
+
+        Balanced: the batches are taken in blocks of ``len(keys)``, and each block uses every
+        model once, in an order drawn from (seed, epoch, block). So every model renders the same
+        number of batches, up to one, in any stretch of the stream that starts at a block.
+        """
+        k = len(self.keys)
+        block, slot = divmod(int(batch_index), k)
+        order = np.random.default_rng([self.seed, self._epoch_or(epoch), block, 7]).permutation(k)
+        return self.keys[int(order[slot])]
 
     def batch_indices(self, batch_index: int) -> list[int]:
         """Global sample indices of render batch ``batch_index``."""

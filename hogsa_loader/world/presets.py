@@ -155,6 +155,19 @@ PRESETS: dict[str, WorldPreset] = {
         cropped_size=1000,
         ego_image_scale=0.3,
     ),
+    # What `hogsa demo` trains on and streams, at ARCTIC's image sizes: the sequences of its two
+    # (subject, object) models and one of the held-out subject (ContactNet's validation).
+    "demo": WorldPreset(
+        name="demo",
+        subjects=(
+            SubjectPlan("s01", "train", _seqs(("box", "grab"))),
+            SubjectPlan("s02", "train", _seqs(("notebook", "grab"))),
+            SubjectPlan("s05", "val", _seqs(("box", "use"))),
+        ),
+        num_frames=64,
+        cropped_size=1000,
+        ego_image_scale=0.3,
+    ),
 }
 
 
