@@ -368,7 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "drawn), batch.npz and demo.json, and print the throughput.")
     d.add_argument("--out", default="./hogsa_demo", help="demo folder (reused as a cache on later runs)")
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--data", default=None, help="use this ARCTIC(-format) data root instead of building the small world")
+    d.add_argument("--data", default=None, help="use this ARCTIC(-format) data root instead of building the demo world")
     d.add_argument("--samples", type=checks.positive_int, default=64, help="synthetic samples to stream")
     d.add_argument("--workers", type=checks.non_negative_int, default=2, help="DataLoader workers rendering on the CPU")
     d.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads of the main process (0 = default)")
