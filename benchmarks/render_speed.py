@@ -148,8 +148,8 @@ def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
         if ref is None:
             continue
         keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
-        ratio = {k: r[k] / ref[k] if ref[k] else float("inf") for k in keys}
-        r[f"vs_{ref_name}"] = {k: round(v, 3) for k, v in ratio.items()}
+        ratio = {k: r[k] / ref[k] if ref[k] else float("nan") for k in keys}
+        r[f"vs_{ref_name}"] = {k: None if v != v else round(v, 3) for k, v in ratio.items()}  # no ratio to 0
         print(f"{r['backend']} N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
               f"fwd time {ratio['fwd_ms']:.2f}x, "
               f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "

@@ -53,7 +53,7 @@ DEMO_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "moto
 
 @dataclass
 class DemoConfig:
-    """Settings of :func:`run_demo` (defaults: ≤ 15 min on 2 CPU cores on first run).
+    """Settings of :func:`run_demo` (defaults: the ``demo`` world and brief training on 2 CPU cores).
 
     Attributes:
         preset, seed: the world.

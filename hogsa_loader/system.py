@@ -13,7 +13,7 @@ __all__ = ["available_cores", "keep_allocator_memory", "allocator_status", "KEEP
 #: Set to ``0`` to leave the C allocator as the process found it.
 KEEP_MEMORY_ENV = "HOGSA_KEEP_MEMORY"
 #: glibc ``mallopt`` parameter numbers (``malloc.h``) and the values set by :func:`keep_allocator_memory`:
-#: blocks up to 32 MiB (glibc's largest mmap threshold on 64-bit) come from the heap instead of a
+#: blocks up to 32 MiB (the ceiling of glibc's dynamic mmap threshold on 64-bit) come from the heap instead of a
 #: fresh ``mmap``, freed memory is kept (trim threshold 2 GiB), and the heap grows 512 MiB at a time
 #: (address space only; pages are backed when first touched).
 GLIBC_SETTINGS = {
@@ -29,6 +29,8 @@ OTHER_ALLOCATORS = ("tcmalloc", "jemalloc", "mimalloc")
 
 _lock = threading.Lock()
 _status: Optional[str] = None
+if hasattr(os, "register_at_fork"):  # a child forked while another thread held the lock must not deadlock
+    os.register_at_fork(after_in_child=lambda: globals().__setitem__("_lock", threading.Lock()))
 
 
 def available_cores() -> int:
@@ -57,13 +59,17 @@ def keep_allocator_memory() -> str:
     """Make glibc's allocator keep working memory between calls (once per process; idempotent).
 
     With glibc's defaults, blocks above its (dynamic) mmap threshold get fresh pages from the
-    kernel on every allocation and give them back on free, so every large temporary of a CPU
-    render is page-faulted in again on each call. That costs little on a warm host and up to
-    50x on a freshly booted virtual machine, where each first touch of a page is slow. This
+    kernel on every allocation and give them back on free, and the top of the heap is trimmed,
+    so large temporaries of a CPU render are page-faulted in again on later calls (blocks above
+    32 MiB still are with this setting). Each fault costs little on a warm host and much more on
+    a freshly booted virtual machine, where each first touch of a page is slow. This
     sets :data:`GLIBC_SETTINGS` through ``mallopt``, the same effect as
     ``MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=2147483647 MALLOC_TOP_PAD_=536870912``
     in the environment. The cost: memory freed after a peak stays with the process (its RSS
-    does not shrink back). Forked children (DataLoader workers) inherit the setting.
+    does not shrink back), and the heap reserves address space 512 MiB at a time (which counts
+    against the commit limit under ``vm.overcommit_memory=2``). It applies to the whole process
+    that renders, e.g. a training loop rendering in its main process. Forked children
+    (DataLoader workers) inherit the setting.
 
     The CPU render path calls this; it does nothing when ``HOGSA_KEEP_MEMORY=0``, when another
     allocator is preloaded (tcmalloc, jemalloc, mimalloc keep memory on their own), when the
@@ -73,6 +79,8 @@ def keep_allocator_memory() -> str:
         What was done, as :func:`allocator_status` reports it.
     """
     global _status
+    if _status is not None:
+        return _status
     with _lock:
         if _status is not None:
             return _status

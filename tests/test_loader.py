@@ -221,7 +221,12 @@ def test_batches_are_balanced_over_the_models(bundle_dir, tiny_world):
         orders = {tuple(keys[3 * b:3 * b + 3]) for b in range(20)}
         assert len(orders) > 1  # the order within a block is drawn, not fixed
     assert [ds.batch_key(g, 0) for g in range(60)] != [ds.batch_key(g, 1) for g in range(60)]
-    assert [ds.batch_key(g, 0) for g in range(9)] == [ds.batch_key(g, 0) for g in range(9)]
+    same = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=3)
+    other = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=4)
+    for d in (same, other):
+        d.keys = list(ds.keys)
+    assert [same.batch_key(g, 0) for g in range(30)] == [ds.batch_key(g, 0) for g in range(30)]  # a pure function
+    assert [other.batch_key(g, 0) for g in range(30)] != [ds.batch_key(g, 0) for g in range(30)]  # of the seed
 
 
 def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(bundle_dir, tiny_world):

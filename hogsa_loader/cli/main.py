@@ -363,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_export)
 
     d = sub.add_parser("demo", help="the main job: world, brief HOGS/ContactNet/POM/SRM training, bundle, stream",
-                       description="Build (or reuse, cached per stage) the small world and a small bundle, stream "
+                       description="Build (or reuse, cached per stage) the demo world and a small bundle, stream "
                        "synthetic samples through a DataLoader, write samples.png (synthetic next to real, 2D labels "
                        "drawn), batch.npz and demo.json, and print the throughput.")
     d.add_argument("--out", default="./hogsa_demo", help="demo folder (reused as a cache on later runs)")

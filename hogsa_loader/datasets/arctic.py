@@ -844,7 +844,7 @@ class ArcticRoot:
                 f"this world has {meta.cropped_size}-px allocentric crops and ego images {w}x{h} × "
                 f"{meta.ego_image_scale:g}, but ARCTIC's loader hard-codes {CROPPED_SIZE}-px crops and "
                 f"{EGO_IMAGE_SIZE[0]}x{EGO_IMAGE_SIZE[1]} × {EGO_IMAGE_SCALE:g}; generate an ARCTIC-sized world "
-                "(hogsa world --preset small) for ARCTIC-exact use",
+                "(hogsa world --preset small or demo) for ARCTIC-exact use",
             )
         return meta
 

@@ -11,9 +11,11 @@ epoch and global index that reproduce the sample (:meth:`HOGSADataset.sample`).
 
 Determinism and sharding
     The global sample index space is cut into render batches of ``batch_size``
-    consecutive indices; batch ``g`` renders one (subject, object) model drawn from
-    ``(seed, epoch, g)``, and every random draw of sample ``i`` (pose, camera, background,
-    augmentation) comes from ``(seed, epoch, i)``. Batches are dealt round-robin over
+    consecutive indices; batch ``g`` renders one (subject, object) model: the batches
+    form blocks of ``len(keys)``, each block uses every model once in an order drawn from
+    ``(seed, epoch, g // len(keys))`` (:meth:`HOGSADataset.batch_key`), and every random
+    draw of sample ``i`` (pose, camera, background, augmentation) comes from
+    ``(seed, epoch, i)``. Batches are dealt round-robin over
     ``world_size × num_workers`` shards (torch.distributed rank, then DataLoader worker),
     so the same seed gives the same samples for the same world size and worker count
     (and the same *set* of samples for any of them). Dropped samples leave a gap.

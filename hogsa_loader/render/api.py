@@ -133,6 +133,9 @@ def render(
             gsplat backend ``tile_size`` is passed on, ``valid`` becomes opacity 0, the
             speed knobs are ignored. Any other name is a TypeError.
 
+    The first call on CPU tensors sets this process's glibc allocator to keep freed memory
+    (:func:`hogsa_loader.system.keep_allocator_memory`; ``HOGSA_KEEP_MEMORY=0`` opts out).
+
     Returns:
         :class:`~hogsa_loader.render.gaussians.RenderOutput` with
         ``rgb`` (B, C, H, W, D) (D = 3 with SH), background included;

@@ -4,7 +4,8 @@ A preset is a plain frozen dataclass so tests can shrink one with ``dataclasses.
 Sequence names follow ARCTIC (``<object>_<grab|use>_<NN>``); subject ids and the held-out
 validation subject follow ARCTIC's protocol (val = s05, test = s03).
 
-``small`` has ARCTIC's image sizes, so ARCTIC's own loader reads it as ARCTIC. ``tiny``
+``small`` and ``demo`` (the three sequences ``hogsa demo`` uses) have ARCTIC's image sizes, so
+ARCTIC's own loader reads them as ARCTIC. ``tiny``
 keeps 256-px crops and ego images × 0.1 to stay fast: the project's reader takes the sizes
 from ``meta/hogsa_world.json``, while ARCTIC's loader, which hard-codes 1000 px and 0.3,
 would cut the wrong patches; readers asked for ARCTIC-exact samples refuse it
