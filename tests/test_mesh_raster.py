@@ -1,11 +1,13 @@
 """Tests of the classical mesh rasteriser (hogsa_loader.render.mesh_raster).
 
 Expected values come from independent numpy computations (point-in-triangle tests, ray /
-plane intersections, analytic pixel counts), not from the module under test.
+plane intersections, analytic pixel counts), not from the module under test. Every test
+runs on both backends (the vectorised PyTorch path and the compiled CPU kernels).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -14,6 +16,7 @@ import pytest
 import torch
 import trimesh
 
+import hogsa_loader.render.mesh_raster as mr
 from hogsa_loader.render.mesh_raster import (
     Light,
     MeshPart,
@@ -73,6 +76,14 @@ def _tilted_triangle() -> np.ndarray:
 
 def _t(x: np.ndarray, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     return torch.tensor(x, dtype=dtype)
+
+
+@pytest.fixture(autouse=True, params=["torch", "numba"])
+def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run the test with ``rasterize`` and ``render_meshes`` bound to one backend."""
+    for name in ("rasterize", "render_meshes"):
+        monkeypatch.setitem(globals(), name, functools.partial(getattr(mr, name), backend=request.param))
+    return request.param
 
 
 # --------------------------------------------------------------------------------------
@@ -558,8 +569,6 @@ def test_mesh_part_and_render_validation() -> None:
 
 
 def test_mixed_colour_sources_and_shading_chunks(monkeypatch: pytest.MonkeyPatch) -> None:
-    import hogsa_loader.render.mesh_raster as mr
-
     H, W = 10, 20
     K = torch.tensor([[10.0, 0, 10], [0, 10.0, 5], [0, 0, 1]])
     faces = torch.tensor([[0, 1, 2], [0, 2, 3]])

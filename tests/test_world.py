@@ -633,11 +633,14 @@ def _micro_preset():
 
 
 def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
-    preset = _micro_preset()
+    """Also with the sequences rendered in one process or side by side in two."""
+    preset = dataclasses.replace(_micro_preset(), subjects=(
+        SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),))
     hashes = []
-    for name, seed in (("a", 7), ("b", 7), ("c", 8)):
-        generate_world(tmp_path / name, preset, seed=seed, progress=False)
+    for name, seed, workers in (("a", 7, 1), ("b", 7, 2), ("c", 8, None)):
+        generate_world(tmp_path / name, preset, seed=seed, progress=False, workers=workers)
         hashes.append(_hash_tree(tmp_path / name))
+    assert len([k for k in hashes[0] if "box_grab_01/" in k and k.endswith(".jpg")]) == 9 * preset.num_frames
     assert hashes[0] == hashes[1]
     assert set(hashes[0]) == set(hashes[2])
     differ = [k for k in hashes[0] if hashes[0][k] != hashes[2][k]]
@@ -675,7 +678,7 @@ def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypat
             raise KeyboardInterrupt
         fake_render(data, preset, job)
 
-    kw = dict(seed=7, progress=False, preview=False, process_splits=False)
+    kw = dict(seed=7, progress=False, preview=False, process_splits=False, workers=1)
     out = tmp_path / "w"
     monkeypatch.setattr(writer, "_render_sequence", interrupted)
     with pytest.raises(KeyboardInterrupt):

@@ -221,16 +221,16 @@ def _sequence_finished(data: Path, preset: WorldPreset, job, recorded: frozenset
 
 def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dict, templates: dict, stage: list,
             progress: bool, finished: frozenset = frozenset(),
-            on_finished: Optional[Callable[[str], None]] = None) -> list[dict]:
+            on_finished: Optional[Callable[[str], None]] = None, workers: int = 1) -> list[dict]:
     """Render every frame and view of every job (but the ``(sid, sequence)`` pairs in
-    ``finished``, already on disk; ``on_finished("sid/seq")`` after each rendered one);
-    returns per-sequence records with quality."""
+    ``finished``, already on disk; ``on_finished("sid/seq")`` after each rendered one), one
+    sequence per task on ``workers`` processes; returns per-sequence records with quality."""
     from tqdm import tqdm
 
     from hogsa_loader.world.cameras import AlloRig
     from hogsa_loader.world.grasp import fit_part_boxes
     from hogsa_loader.world.quality import sequence_quality
-    from hogsa_loader.world.scene_render import HAND_BASE_SKIN, SubjectRenderer, crop_boxes, pose_sequence
+    from hogsa_loader.world.scene_render import HAND_BASE_SKIN, crop_boxes, pose_sequence
 
     F, size = preset.num_frames, preset.cropped_size
     misc = json.loads((data / "meta" / "misc.json").read_text())
@@ -238,7 +238,7 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
     hand_faces = {side: torch.as_tensor(models[side].faces) for side in ("right", "left")}
     bar = tqdm(total=len(jobs) * F * 9, desc="hogsa world", unit="img", disable=not progress, smoothing=0.05,
                mininterval=2.0)
-    records = []
+    records, tasks = [], []
     for sid in dict.fromkeys(j.subject.sid for j in jobs):
         mine = [j for j in jobs if j.subject.sid == sid]
         m = misc[sid]
@@ -251,26 +251,126 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
         tone = np.clip(np.asarray(mine[0].subject.skin_rgb) / HAND_BASE_SKIN, 0.2, 1.3)
         colors = {side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=torch.float32)
                   for side in ("right", "left")}
-        ego0 = mine[0].ego
-        renderer = None
-        for job, p, bb in zip(mine, posed, boxes):
-            bar.set_postfix_str(f"{sid}/{job.plan.name}")
+        for job, p, bb in zip(mine, posed, boxes, strict=True):
             if (sid, job.plan.name) in finished:
                 bar.update(F * 9)
             else:
-                if renderer is None:
-                    renderer = SubjectRenderer(rig, ego0["intrinsics"].astype(np.float64),
-                                               ego0["dist8"].astype(np.float64), stage, hand_faces, colors, size,
-                                               preset.ego_image_scale, preset.supersample)  # fmt: skip
-                _render_sequence(data, preset, job, p, bb, density, renderer, templates[job.plan.object], bar)
-                if on_finished is not None:
-                    on_finished(f"{sid}/{job.plan.name}")
+                tasks.append(_RenderTask(job, p, bb, density, rig, mine[0].ego, colors))
             quality = sequence_quality(p.joints, {k: v.numpy() for k, v in p.hands.items()},
                                        job.obj_params.astype(np.float64), fit_part_boxes(templates[job.plan.object]))
             records.append({"sid": sid, "seq": job.plan.name, "object": job.plan.object, "action": job.plan.action,
                             "split": job.subject.split, "num_frames": F, "quality": quality})
+    shared = _RenderShared(data, preset, tasks, stage, hand_faces, templates)
+    done = on_finished or (lambda name: None)
+    if workers <= 1 or len(tasks) <= 1:
+        renderers: dict = {}
+        for task in tasks:
+            bar.set_postfix_str(task.name)
+            renderer = renderers.get(task.job.subject.sid)
+            done(_render_task(shared, task, bar, renderer, renderers))
+    else:
+        _render_in_processes(shared, min(workers, len(tasks)), bar, done)
     bar.close()
     return records
+
+
+@dataclass
+class _RenderTask:
+    """One sequence to render, with what its subject's renderer needs."""
+
+    job: "_Job"
+    posed: object
+    boxes: np.ndarray
+    density: np.ndarray
+    rig: object
+    ego: dict
+    colors: dict
+
+    @property
+    def name(self) -> str:
+        return f"{self.job.subject.sid}/{self.job.plan.name}"
+
+
+@dataclass
+class _RenderShared:
+    """What every render task reads (inherited by forked render processes)."""
+
+    data: Path
+    preset: WorldPreset
+    tasks: list
+    stage: list
+    hand_faces: dict
+    templates: dict
+
+
+def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderer=None, cache: Optional[dict] = None) -> str:
+    """Render one sequence (reusing ``renderer`` when it is its subject's); returns ``sid/seq``."""
+    from hogsa_loader.world.scene_render import SubjectRenderer
+
+    if renderer is None:
+        renderer = SubjectRenderer(task.rig, task.ego["intrinsics"].astype(np.float64),
+                                   task.ego["dist8"].astype(np.float64), shared.stage, shared.hand_faces, task.colors,
+                                   shared.preset.cropped_size, shared.preset.ego_image_scale,
+                                   shared.preset.supersample)  # fmt: skip
+        if cache is not None:
+            cache[task.job.subject.sid] = renderer
+    _render_sequence(shared.data, shared.preset, task.job, task.posed, task.boxes, task.density, renderer,
+                     shared.templates[task.job.plan.object], bar)
+    return task.name
+
+
+_SHARED: Optional[_RenderShared] = None  # set in the parent before the render processes fork
+
+
+class _CountingBar:
+    """The ``update`` of a progress bar, counted in shared memory for the parent's bar."""
+
+    def __init__(self, counter) -> None:
+        self.counter = counter
+
+    def update(self, n: int = 1) -> None:
+        with self.counter.get_lock():
+            self.counter.value += n
+
+
+def _process_init(threads: int, counter) -> None:
+    global _COUNTER
+    torch.set_num_threads(threads)
+    _COUNTER = counter
+
+
+_COUNTER = None
+
+
+def _process_task(i: int) -> str:
+    assert _SHARED is not None
+    return _render_task(_SHARED, _SHARED.tasks[i], _CountingBar(_COUNTER))
+
+
+def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callable[[str], None]) -> None:
+    """Render ``shared.tasks`` on ``workers`` forked processes (``torch`` threads split between
+    them), calling ``done`` in the parent as each sequence finishes; the first error is raised."""
+    import multiprocessing as mp
+
+    global _SHARED
+    ctx = mp.get_context("fork")
+    counter = ctx.Value("q", 0)
+    threads = max(1, torch.get_num_threads() // workers)
+    start = bar.n
+    _SHARED = shared
+    try:
+        with ctx.Pool(workers, initializer=_process_init, initargs=(threads, counter)) as pool:
+            pending = [pool.apply_async(_process_task, (i,)) for i in range(len(shared.tasks))]
+            while pending:
+                for r in [r for r in pending if r.ready()]:
+                    pending.remove(r)
+                    done(r.get())
+                bar.update(start + counter.value - bar.n)
+                if pending:
+                    pending[0].wait(0.5)
+    finally:
+        _SHARED = None
+    bar.update(start + counter.value - bar.n)
 
 
 def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray,
@@ -303,9 +403,20 @@ def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: n
             bar.update()
 
 
+def _default_workers() -> int:
+    """Render processes by default: one per CPU core this process may use, where fork exists."""
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():
+        return 1
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores)
+
+
 def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
                    process_splits: bool = True, preview: bool = True,
-                   log: Optional[Callable[[str], None]] = None, resume: bool = False) -> dict:
+                   log: Optional[Callable[[str], None]] = None, resume: bool = False,
+                   workers: Optional[int] = None) -> dict:
     """Generate a world (see module docstring).
 
     Args:
@@ -323,6 +434,9 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
             recorded sequence is kept when its last image and mask decode. Annotations,
             splits and the preview are always rewritten. Without it, or when the record is
             of another world, every sequence is rendered.
+        workers: processes rendering sequences side by side (forked, ``torch`` threads
+            split between them; the files are the same for any count). Default: one per CPU
+            core available to this process, 1 where ``fork`` does not exist.
 
     Returns:
         the ``hogsa_world.json`` content.
@@ -369,7 +483,10 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     if finished:
         say(f"resuming: {len(finished)} of {len(jobs)} sequences already rendered")
     t0 = time.perf_counter()
-    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, mark_finished)
+    if workers is None:
+        workers = _default_workers()
+    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, mark_finished,
+                      workers=workers)
     timings["render_s"] = time.perf_counter() - t0
 
     record = {
