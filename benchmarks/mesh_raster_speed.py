@@ -71,7 +71,7 @@ def scene(kind: str, size: int) -> tuple[list[MeshPart], torch.Tensor, torch.Ten
         wall.apply_translation((0.0, -0.8, 4.0))
         parts = [_textured(floor, 1, texture, 8.0), _textured(wall, 2, texture, 4.0)]
         W, H = 2800, 2000
-        K = intrinsics_from_fov(70.0, H, W)
+        K = intrinsics_from_fov(70.0, W, H)
         return parts, w2c, K, H, W, torch.zeros(H, W, 3)
     raise ValueError(f"unknown scene {kind!r}")
 

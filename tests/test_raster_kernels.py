@@ -70,23 +70,28 @@ def test_face_tables_are_bit_identical(dtype: torch.dtype, cull: bool) -> None:
         assert torch.equal(getattr(out, name), getattr(ref, name)), name
 
 
-def test_shaded_render_matches_the_pytorch_path() -> None:
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_shaded_render_matches_the_pytorch_path(dtype: torch.dtype) -> None:
     g = torch.Generator().manual_seed(0)
-    verts, faces, K = _soup(200, torch.float32, seed=5, snap=False)
-    half = faces.shape[0] // 2
+    verts, faces, K = _soup(200, dtype, seed=5, snap=False)
+    third = faces.shape[0] // 3
     tex = torch.rand(7, 9, 3, generator=g)
     parts = [
-        MeshPart(verts, faces[:half], 3, vertex_colors=torch.rand(verts.shape[0], 3, generator=g)),
-        MeshPart(verts, faces[half:], 7, uv=torch.rand(verts.shape[0], 2, generator=g) * 1.2 - 0.1, texture=tex),
-        MeshPart(verts + 0.01, faces[half:], 9, uv=torch.rand(verts.shape[0], 2, generator=g), texture=tex),
+        MeshPart(verts, faces[:third], 3, vertex_colors=torch.rand(verts.shape[0], 3, generator=g)),
+        MeshPart(verts, faces[third:], 7, uv=torch.rand(verts.shape[0], 2, generator=g) * 1.2 - 0.1, texture=tex),
+        MeshPart(verts + 0.01, faces[third:], 9, uv=torch.rand(verts.shape[0], 2, generator=g), texture=tex),
+        MeshPart(verts - 0.01, faces[:third], 11, uv=torch.rand(verts.shape[0], 2, generator=g),
+                 texture=torch.rand(1, 1, 3, generator=g)),  # a one-texel texture
     ]
-    bg = torch.rand(32, 40, 3, generator=g)
+    bg = torch.rand(32, 40, 3, generator=g, dtype=dtype)
     light = Light(direction=(0.3, -0.2, 1.0), specular=0.4, shininess=12.0)
     for smooth in (True, False):
         kw = dict(light=light, background=bg, supersample=2, smooth_normals=smooth)
-        ref = render_meshes(parts, torch.eye(4), K * torch.tensor([[0.5], [0.5], [1.0]]), 32, 40, backend="torch", **kw)
-        out = render_meshes(parts, torch.eye(4), K * torch.tensor([[0.5], [0.5], [1.0]]), 32, 40, backend="numba", **kw)
-        assert torch.equal(out.part_id, ref.part_id) and set(ref.part_id.unique().tolist()) == {0, 3, 7, 9}
+        Kh = K * torch.tensor([[0.5], [0.5], [1.0]], dtype=dtype)
+        ref = render_meshes(parts, torch.eye(4, dtype=dtype), Kh, 32, 40, backend="torch", **kw)
+        out = render_meshes(parts, torch.eye(4, dtype=dtype), Kh, 32, 40, backend="numba", **kw)
+        assert out.rgb.dtype == dtype
+        assert torch.equal(out.part_id, ref.part_id) and set(ref.part_id.unique().tolist()) == {0, 3, 7, 9, 11}
         assert torch.equal(out.alpha, ref.alpha)
         assert torch.equal(out.depth, ref.depth)
         torch.testing.assert_close(out.rgb, ref.rgb, rtol=0, atol=2e-6)
@@ -104,3 +109,27 @@ def test_backend_choice_and_errors() -> None:
         rasterize(verts.half(), faces, K.half(), 16, 16, backend="numba")
     auto = rasterize(grad_verts, faces, K, 16, 16)  # falls back to the PyTorch path
     assert torch.equal(auto.face_idx, rasterize(verts, faces, K, 16, 16, backend="torch").face_idx)
+
+
+def test_auto_runs_the_kernels_on_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = []
+    for name in ("setup_faces", "zbuffer", "resolve", "shade"):
+        fn = getattr(raster_kernels, name)
+        monkeypatch.setattr(raster_kernels, name, lambda *a, _fn=fn, _name=name: calls.append(_name) or _fn(*a))
+    verts, faces, K = _soup(20, torch.float32, seed=2, snap=False)
+    render_meshes([MeshPart(verts, faces, 1, vertex_colors=torch.ones(verts.shape[0], 3))], torch.eye(4), K, 16, 16)
+    assert calls == ["setup_faces", "zbuffer", "resolve", "shade"]
+    calls.clear()
+    render_meshes([MeshPart(verts, faces, 1, vertex_colors=torch.ones(verts.shape[0], 3))], torch.eye(4), K, 16, 16,
+                  backend="torch")
+    assert calls == []
+
+
+def test_nan_texture_coordinates_read_inside_the_texture() -> None:
+    verts = torch.tensor([[-0.5, -0.5, 1.0], [0.5, -0.5, 1.0], [0.0, 0.5, 1.0]])
+    uv = torch.tensor([[float("nan"), 0.2], [0.5, float("nan")], [0.3, 0.3]])
+    part = MeshPart(verts, torch.tensor([[0, 1, 2]]), 1, uv=uv, texture=torch.full((4, 4, 3), 0.5))
+    out = render_meshes([part], torch.eye(4), torch.tensor([[8.0, 0, 8], [0, 8.0, 8], [0, 0, 1]]), 16, 16,
+                        backend="numba")
+    assert (out.part_id == 1).sum() > 20
+    assert torch.isfinite(out.rgb).all()

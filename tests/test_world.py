@@ -700,6 +700,13 @@ def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypat
     generate_world(out, preset, resume=True, **kw)
     assert rendered == ["box_use_01", "box_grab_01"]
 
+    def broken(data, preset, job, *args):
+        raise RuntimeError(f"cannot render {job.plan.name}")
+
+    monkeypatch.setattr(writer, "_render_sequence", broken)  # in forked render processes too
+    with pytest.raises(RuntimeError, match="cannot render box_"):
+        generate_world(out, preset, **{**kw, "workers": 2})
+
 
 def test_cli_rejects_unknown_preset(tmp_path, capsys):
     from hogsa_loader.cli.main import main

@@ -1,7 +1,9 @@
 """A small classical triangle-mesh rasteriser (z-buffer, textures, Blinn-Phong shading).
 
-Pure PyTorch, device agnostic (CPU / CUDA), vectorised over triangle-pixel pairs in
-memory-bounded chunks. It never uses Gaussian splatting.
+Two backends with the same conventions: vectorised PyTorch over triangle-pixel pairs in
+memory-bounded chunks (any device), and compiled CPU kernels that loop over pixels
+(:mod:`hogsa_loader.render.raster_kernels`, numba; same fragments bit for bit, shading within
+float rounding), chosen by ``backend``. It never uses Gaussian splatting.
 
 Notation: V vertices, F faces, H x W image, N covered pixels, P triangle-pixel pairs.
 
@@ -62,6 +64,7 @@ __all__ = [
     "MeshRender",
     "rasterize",
     "render_meshes",
+    "warm_up_kernels",
     "project_points",
     "scale_intrinsics",
     "transform_points",
@@ -770,11 +773,24 @@ def _setup_faces_kernel(
         face_ids.numpy(), a.numpy(), b.numpy(), x.numpy(), y.numpy(), tl.numpy(), inv_z.numpy(),
         row0.numpy(), col0.numpy(), nrows.numpy(), ncols.numpy(),
     )
-    return _FaceTables(
-        face_ids=face_ids[:kept], edge_a=a[:, :kept], edge_b=b[:, :kept], edge_x=x[:, :kept],
-        edge_y=y[:, :kept], edge_tl=tl[:, :kept], inv_z=inv_z[:, :kept], row0=row0[:kept],
-        col0=col0[:kept], nrows=nrows[:kept], ncols=ncols[:kept],
+    return _FaceTables(  # contiguous copies: one compiled signature per dtype downstream
+        face_ids=face_ids[:kept], edge_a=a[:, :kept].contiguous(), edge_b=b[:, :kept].contiguous(),
+        edge_x=x[:, :kept].contiguous(), edge_y=y[:, :kept].contiguous(), edge_tl=tl[:, :kept].contiguous(),
+        inv_z=inv_z[:, :kept].contiguous(), row0=row0[:kept], col0=col0[:kept], nrows=nrows[:kept],
+        ncols=ncols[:kept],
     )
+
+
+def warm_up_kernels() -> None:
+    """Compile (or load from numba's cache) the CPU kernels for float32 scenes now, e.g. in a
+    parent process before it forks renderers, so that they do not each compile them."""
+    if not raster_kernels.AVAILABLE:
+        return
+    verts = torch.tensor([[-0.1, -0.1, 1.0], [0.1, -0.1, 1.0], [0.0, 0.1, 1.0], [0.0, 0.0, -1.0]])
+    faces = torch.tensor([[0, 1, 2], [0, 1, 3]])
+    parts = [MeshPart(verts, faces, 1, vertex_colors=torch.ones(4, 3)),
+             MeshPart(verts, faces, 2, uv=torch.zeros(4, 2), texture=torch.ones(1, 1, 3))]
+    render_meshes(parts, torch.eye(4), intrinsics_from_fov(60.0, 4, 4), 4, 4, backend="numba")
 
 
 def _zbuffer_kernel(tables: _FaceTables, height: int, width: int) -> Tensor:

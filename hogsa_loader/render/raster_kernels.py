@@ -27,9 +27,15 @@ _INT64_MAX = np.iinfo(np.int64).max
 
 
 def _jit(fn):
-    """Compile with numba when it is installed: cached on disk, GIL released, IEEE float
-    semantics (division by zero gives inf / nan, as in PyTorch, instead of raising)."""
-    return njit(cache=True, nogil=True, error_model="numpy")(fn) if AVAILABLE else fn
+    """Compile with numba when it is installed: GIL released, IEEE float semantics (division
+    by zero gives inf / nan, as in PyTorch, instead of raising), cached on disk where numba
+    finds a writable cache folder (else compiled once per process)."""
+    if not AVAILABLE:
+        return fn
+    try:
+        return njit(cache=True, nogil=True, error_model="numpy")(fn)
+    except RuntimeError:  # no writable cache location (read-only install)
+        return njit(nogil=True, error_model="numpy")(fn)
 
 
 @_jit
@@ -204,6 +210,10 @@ def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, 
             # grid_sample, bilinear, border padding, align_corners=False
             ix = ((tu * two - one + one) * twf - one) / two
             iy = (((one - tv) * two - one + one) * thf - one) / two
+            if not ix >= zero:  # also NaN (from NaN uv): stay inside the texture
+                ix = zero
+            if not iy >= zero:
+                iy = zero
             ix = min(max(ix, zero), twf - one)
             iy = min(max(iy, zero), thf - one)
             x0 = np.floor(ix)

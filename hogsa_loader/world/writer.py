@@ -28,7 +28,9 @@ cameras), so images and annotations agree.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
+import sys
 import time
 import zlib
 from dataclasses import dataclass
@@ -41,6 +43,7 @@ import torch
 
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
 from hogsa_loader.errors import PathLike
+from hogsa_loader.render import raster_kernels
 from hogsa_loader.world.presets import SequencePlan, WorldPreset
 
 if TYPE_CHECKING:
@@ -262,12 +265,11 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
                             "split": job.subject.split, "num_frames": F, "quality": quality})
     shared = _RenderShared(data, preset, tasks, stage, hand_faces, templates)
     done = on_finished or (lambda name: None)
-    if workers <= 1 or len(tasks) <= 1:
+    if workers <= 1 or len(tasks) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
         renderers: dict = {}
         for task in tasks:
             bar.set_postfix_str(task.name)
-            renderer = renderers.get(task.job.subject.sid)
-            done(_render_task(shared, task, bar, renderer, renderers))
+            done(_render_task(shared, task, bar, renderers))
     else:
         _render_in_processes(shared, min(workers, len(tasks)), bar, done)
     bar.close()
@@ -303,23 +305,27 @@ class _RenderShared:
     templates: dict
 
 
-def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderer=None, cache: Optional[dict] = None) -> str:
-    """Render one sequence (reusing ``renderer`` when it is its subject's); returns ``sid/seq``."""
+def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderers: dict) -> str:
+    """Render one sequence with its subject's renderer (kept in ``renderers``, one subject at
+    a time: its stage backgrounds are rendered once); returns ``sid/seq``."""
     from hogsa_loader.world.scene_render import SubjectRenderer
 
+    sid = task.job.subject.sid
+    renderer = renderers.get(sid)
     if renderer is None:
-        renderer = SubjectRenderer(task.rig, task.ego["intrinsics"].astype(np.float64),
-                                   task.ego["dist8"].astype(np.float64), shared.stage, shared.hand_faces, task.colors,
-                                   shared.preset.cropped_size, shared.preset.ego_image_scale,
-                                   shared.preset.supersample)  # fmt: skip
-        if cache is not None:
-            cache[task.job.subject.sid] = renderer
+        renderers.clear()
+        renderer = renderers[sid] = SubjectRenderer(
+            task.rig, task.ego["intrinsics"].astype(np.float64), task.ego["dist8"].astype(np.float64), shared.stage,
+            shared.hand_faces, task.colors, shared.preset.cropped_size, shared.preset.ego_image_scale,
+            shared.preset.supersample)  # fmt: skip
     _render_sequence(shared.data, shared.preset, task.job, task.posed, task.boxes, task.density, renderer,
                      shared.templates[task.job.plan.object], bar)
     return task.name
 
 
 _SHARED: Optional[_RenderShared] = None  # set in the parent before the render processes fork
+_COUNTER = None  # images rendered, shared by the render processes
+_RENDERERS: dict = {}  # a render process's subject renderer
 
 
 class _CountingBar:
@@ -337,39 +343,47 @@ def _process_init(threads: int, counter) -> None:
     global _COUNTER
     torch.set_num_threads(threads)
     _COUNTER = counter
-
-
-_COUNTER = None
+    _RENDERERS.clear()
 
 
 def _process_task(i: int) -> str:
     assert _SHARED is not None
-    return _render_task(_SHARED, _SHARED.tasks[i], _CountingBar(_COUNTER))
+    return _render_task(_SHARED, _SHARED.tasks[i], _CountingBar(_COUNTER), _RENDERERS)
 
 
 def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callable[[str], None]) -> None:
     """Render ``shared.tasks`` on ``workers`` forked processes (``torch`` threads split between
-    them), calling ``done`` in the parent as each sequence finishes; the first error is raised."""
-    import multiprocessing as mp
+    them), calling ``done`` in the parent for every sequence that finishes. The first error
+    (a process that dies included) is raised once the finished sequences are recorded; tasks
+    not yet started are cancelled."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    from hogsa_loader.render.mesh_raster import warm_up_kernels
 
     global _SHARED
-    ctx = mp.get_context("fork")
+    warm_up_kernels()  # the processes inherit the compiled kernels
+    ctx = multiprocessing.get_context("fork")
     counter = ctx.Value("q", 0)
     threads = max(1, torch.get_num_threads() // workers)
     start = bar.n
     _SHARED = shared
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_process_init, initargs=(threads, counter))
+    error = None
     try:
-        with ctx.Pool(workers, initializer=_process_init, initargs=(threads, counter)) as pool:
-            pending = [pool.apply_async(_process_task, (i,)) for i in range(len(shared.tasks))]
-            while pending:
-                for r in [r for r in pending if r.ready()]:
-                    pending.remove(r)
-                    done(r.get())
-                bar.update(start + counter.value - bar.n)
-                if pending:
-                    pending[0].wait(0.5)
+        pending = {pool.submit(_process_task, i) for i in range(len(shared.tasks))}
+        while pending and error is None:
+            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+            for f in finished:
+                if f.exception() is None:
+                    done(f.result())
+                elif error is None:
+                    error = f.exception()
+            bar.update(start + counter.value - bar.n)
     finally:
+        pool.shutdown(wait=error is None, cancel_futures=True)
         _SHARED = None
+    if error is not None:
+        raise error
     bar.update(start + counter.value - bar.n)
 
 
@@ -404,13 +418,11 @@ def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: n
 
 
 def _default_workers() -> int:
-    """Render processes by default: one per CPU core this process may use, where fork exists."""
-    import multiprocessing as mp
-
-    if "fork" not in mp.get_all_start_methods():
+    """Render processes by default: one per CPU core this process may use (at most 8), on Linux
+    (where forking a process that has loaded torch and OpenCV is safe); else 1."""
+    if not sys.platform.startswith("linux"):
         return 1
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, cores)
+    return max(1, min(8, len(os.sched_getaffinity(0))))
 
 
 def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
@@ -436,7 +448,8 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
             of another world, every sequence is rendered.
         workers: processes rendering sequences side by side (forked, ``torch`` threads
             split between them; the files are the same for any count). Default: one per CPU
-            core available to this process, 1 where ``fork`` does not exist.
+            core available to this process, at most 8, on Linux; 1 elsewhere (forking is
+            not safe there). Each holds a copy of its subject's renderer.
 
     Returns:
         the ``hogsa_world.json`` content.
@@ -502,6 +515,8 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
         "mask_dir": MASK_DIR,
         "mask_ids": dict(MASK_IDS),
         "rendered_frames": "all",
+        # shading of the two backends differs by float rounding (a uint8 level on rare pixels)
+        "mesh_rasteriser": "numba" if raster_kernels.AVAILABLE else "torch",
         "hand_model_seed": HAND_MODEL_SEED,
         "subjects": [s.to_json() for s in subjects],
         "sequences": records,
