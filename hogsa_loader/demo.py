@@ -12,6 +12,11 @@ second run only streams)::
                 OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
                                            or labels are removed after each SRM build)
     bundle      OUT/bundle                 the bundle the loader reads
+
+Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
+the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
+core, each starts on a forked process as soon as the stages it needs are done (torch threads
+split between the processes, no progress bars).
     stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
                                            through a DataLoader; samples.png, batch.npz,
                                            demo.json, throughput on stdout
@@ -32,10 +37,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import shutil
+import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -125,6 +132,12 @@ class _Stages:
         self.seconds: dict[str, float] = {}
         self.reused: list[str] = []
 
+    def is_cached(self, name: str, key: str, outputs: Sequence[Path]) -> bool:
+        """Whether :meth:`run` would reuse ``name`` (its record has ``key`` and its outputs exist)."""
+        rec_path = self.dir / f"{name.replace('/', '_')}.json"
+        rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+        return rec is not None and rec.get("key") == key and all(p.exists() for p in outputs)
+
     def run(self, name: str, key: str, outputs: Sequence[Path], fn: Callable[[], Any], resumable: bool = False) -> Any:
         """Run ``fn`` unless a record of ``name`` with ``key`` exists and its outputs do. Stale
         outputs are removed first — but a ``resumable`` stage's outputs with no record (an
@@ -213,6 +226,13 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         stages.run("world", k_world, [world], lambda: {"sequences": len(generate_world(
             world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
 
+    from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
+
+    def child_cfg() -> DemoConfig:
+        return _CHILD_CFG or cfg
+
+    # (name, key, outputs, build, stages it needs): the stages between the world and the bundle
+    nodes: list[_StageNode] = []
     runs = []
     k_hogs = []
     for sid, obj in cfg.pairs:
@@ -221,35 +241,114 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         k = _key("hogs", k_world, sid, obj, cfg.hogs_iters, cfg.hogs_image_size, cfg.hogs_sh_degree,
                  cfg.hogs_frame_stride, cfg.hogs_k, cfg.hogs_object_subdivide, cfg.hogs_window)
         k_hogs.append(k)
-        stages.run(f"hogs/{sid}_{obj}", k, [run], lambda sid=sid, obj=obj, run=run: _train_hogs(cfg, data, sid, obj, run))
-
-    from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
+        nodes.append(_StageNode(f"hogs/{sid}_{obj}", k, [run],
+                                lambda sid=sid, obj=obj, run=run: _train_hogs(child_cfg(), data, sid, obj, run)))
 
     cn = out / "runs" / "contactnet"
     k_cn = _key("contactnet", k_world, cfg.contactnet_iters)
+
     def contactnet() -> dict[str, Any]:
-        m = fit_contactnet(data, cn, iters=cfg.contactnet_iters, seed=cfg.seed, val_every=cfg.contactnet_iters,
-                           progress=cfg.progress)
+        c = child_cfg()
+        m = fit_contactnet(data, cn, iters=c.contactnet_iters, seed=c.seed, val_every=c.contactnet_iters,
+                           progress=c.progress)
         return {k: m[k] for k in ("val_mae", "val_iou05")}
 
-    stages.run("contactnet", k_cn, [cn], contactnet)
-
+    nodes.append(_StageNode("contactnet", k_cn, [cn], contactnet))
     bank = out / "runs" / "pose_bank"
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs)
-    stages.run("bank", k_bank, [bank], lambda: build_pose_bank(
-        data, cn, bank, per_sequence=cfg.bank_per_sequence, sequences=seqs, seed=cfg.seed, progress=cfg.progress))
-
+    nodes.append(_StageNode("bank", k_bank, [bank], lambda: build_pose_bank(
+        data, cn, bank, per_sequence=cfg.bank_per_sequence, sequences=seqs, seed=cfg.seed,
+        progress=child_cfg().progress), needs=("contactnet",)))
     srm = out / "runs" / "srm"
     k_srm = _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment)
-    stages.run("srm", k_srm, [srm], lambda: _train_srm(cfg, data, out / "runs" / "hogs", srm, out / "cache" / "srm"))
+    nodes.append(_StageNode("srm", k_srm, [srm], lambda: _train_srm(
+        child_cfg(), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
+        needs=tuple(n.name for n in nodes if n.name.startswith("hogs/"))))
+    _run_stage_graph(stages, nodes, cfg, say)
 
     bundle = out / "bundle"
     k_bundle = _key("bundle", k_hogs, k_cn, k_bank, k_srm, BUNDLE_SCHEMA_VERSION)
     stages.run("bundle", k_bundle, [bundle], lambda: str(write_bundle(
         bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])))
     return data, bundle
+
+
+@dataclass
+class _StageNode:
+    """A stage of the build graph: :meth:`_Stages.run` arguments and the stages it needs."""
+
+    name: str
+    key: str
+    outputs: list[Path]
+    build: Callable[[], Any]
+    needs: tuple[str, ...] = ()
+
+
+_NODES: list[_StageNode] = []  # the stage graph, set in the parent before the stage processes fork
+_CHILD_CFG: Optional[DemoConfig] = None  # the settings inside a stage process (no progress bars)
+_SAY: Callable[[str], None] = print  # the parent's line printer, inherited by the stage processes
+
+
+def _run_node(i: int, out: str) -> tuple[float, bool]:
+    """Build stage ``i`` in a stage process; returns its seconds and whether it was reused."""
+    stages = _Stages(Path(out), _SAY)
+    node = _NODES[i]
+    stages.run(node.name, node.key, node.outputs, node.build)
+    return stages.seconds[node.name], node.name in stages.reused
+
+
+def _stage_process_init(threads: int, cfg: DemoConfig) -> None:
+    global _CHILD_CFG
+    torch.set_num_threads(threads)
+    _CHILD_CFG = replace(cfg, progress=False)
+
+
+def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, say: Callable[[str], None]) -> None:
+    """Run the stages, each once the stages it needs are done. On Linux with more than one core
+    and more than one stage to build, they run side by side on forked processes (``torch``
+    threads split between them, no progress bars); else one after the other, in list order
+    (which respects ``needs``). Cached stages are reported and skipped in the parent."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    global _NODES, _SAY
+    todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+    workers = min(len(todo), cores, max(2, torch.get_num_threads()))
+    if workers < 2 or not sys.platform.startswith("linux"):
+        for n in nodes:
+            stages.run(n.name, n.key, n.outputs, n.build)
+        return
+    done = set()
+    for n in nodes:
+        if n not in todo:
+            stages.run(n.name, n.key, n.outputs, n.build)
+            done.add(n.name)
+    say(f"[stages] building {', '.join(n.name for n in todo)} on {workers} processes")
+    _NODES, _SAY = todo, say
+    threads = max(1, torch.get_num_threads() // workers)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_stage_process_init, initargs=(threads, cfg))
+    try:
+        waiting, running = list(range(len(todo))), {}
+        while waiting or running:
+            for i in [i for i in waiting if all(d in done for d in todo[i].needs)]:
+                waiting.remove(i)
+                running[pool.submit(_run_node, i, str(stages.dir.parent))] = i
+            if not running:
+                raise RuntimeError(f"stages {[todo[i].name for i in waiting]} need stages that are not built")
+            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
+            for f in finished:
+                name = todo[running.pop(f)].name
+                seconds, reused = f.result()
+                stages.seconds[name] = seconds
+                if reused:
+                    stages.reused.append(name)
+                done.add(name)
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+        _NODES = []
 
 
 def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),

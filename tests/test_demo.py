@@ -99,3 +99,42 @@ def test_demo_world_preset_holds_what_the_demo_uses():
     assert any(s.split == "val" for s in preset.subjects)  # ContactNet validates on a held-out subject
     assert preset.cropped_size == 1000 and preset.num_frames >= 52  # ARCTIC's crop size, ARCTIC's frame floor
     assert sum(len(s.sequences) for s in preset.subjects) < sum(len(s.sequences) for s in get_preset("small").subjects)
+
+
+def _timed_stage(folder, log, name: str, seconds: float):
+    """A stage build that logs its start and end times and creates its output folder."""
+    import time
+
+    def build() -> str:
+        with open(log, "a") as f:
+            f.write(f"start {name} {time.time()}\n")
+        time.sleep(seconds)
+        (folder / name).mkdir()
+        with open(log, "a") as f:
+            f.write(f"end {name} {time.time()}\n")
+        return name
+
+    return build
+
+
+def test_stage_graph_runs_each_stage_after_what_it_needs(tmp_path):
+    """Stages start only once the stages they need have ended (side by side on forked
+    processes where there are two cores, else in order); a second run reuses all of them."""
+    from hogsa_loader.demo import _run_stage_graph, _Stages, _StageNode
+
+    log = tmp_path / "log.txt"
+    nodes = [_StageNode("a", "ka", [tmp_path / "a"], _timed_stage(tmp_path, log, "a", 0.4)),
+             _StageNode("b", "kb", [tmp_path / "b"], _timed_stage(tmp_path, log, "b", 0.1)),
+             _StageNode("c", "kc", [tmp_path / "c"], _timed_stage(tmp_path, log, "c", 0.0), needs=("a", "b")),
+             _StageNode("d", "kd", [tmp_path / "d"], _timed_stage(tmp_path, log, "d", 0.0), needs=("b",))]
+    stages = _Stages(tmp_path / "out", lambda s: None)
+    _run_stage_graph(stages, nodes, DemoConfig(progress=False), lambda s: None)
+    t = {tuple(line.split()[:2]): float(line.split()[2]) for line in log.read_text().splitlines()}
+    assert len(t) == 8
+    assert t["start", "c"] >= max(t["end", "a"], t["end", "b"])
+    assert t["start", "d"] >= t["end", "b"]
+    assert set(stages.seconds) == {"a", "b", "c", "d"} and stages.reused == []
+    again = _Stages(tmp_path / "out", lambda s: None)
+    _run_stage_graph(again, nodes, DemoConfig(progress=False), lambda s: None)
+    assert sorted(again.reused) == ["a", "b", "c", "d"]
+    assert len(log.read_text().splitlines()) == 8  # nothing was built again

@@ -117,11 +117,11 @@ def test_auto_runs_the_kernels_on_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
         fn = getattr(raster_kernels, name)
         monkeypatch.setattr(raster_kernels, name, lambda *a, _fn=fn, _name=name: calls.append(_name) or _fn(*a))
     verts, faces, K = _soup(20, torch.float32, seed=2, snap=False)
-    render_meshes([MeshPart(verts, faces, 1, vertex_colors=torch.ones(verts.shape[0], 3))], torch.eye(4), K, 16, 16)
+    part = MeshPart(verts, faces, 1, vertex_colors=torch.ones(verts.shape[0], 3))
+    assert (render_meshes([part], torch.eye(4), K, 64, 80).part_id == 1).any()
     assert calls == ["setup_faces", "zbuffer", "resolve", "shade"]
     calls.clear()
-    render_meshes([MeshPart(verts, faces, 1, vertex_colors=torch.ones(verts.shape[0], 3))], torch.eye(4), K, 16, 16,
-                  backend="torch")
+    render_meshes([part], torch.eye(4), K, 64, 80, backend="torch")
     assert calls == []
 
 
