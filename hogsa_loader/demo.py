@@ -12,14 +12,14 @@ second run only streams)::
                 OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
                                            or labels are removed after each SRM build)
     bundle      OUT/bundle                 the bundle the loader reads
-
-Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
-the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
-core, each starts on a forked process as soon as the stages it needs are done (torch threads
-split between the processes, no progress bars).
     stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
                                            through a DataLoader; samples.png, batch.npz,
                                            demo.json, throughput on stdout
+
+Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
+the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
+core and more than one stage to build, each starts on a forked process as soon as the stages
+it needs are done (torch threads split between the stages running, no progress bars).
 
 ``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
 of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
@@ -134,16 +134,24 @@ class _Stages:
 
     def is_cached(self, name: str, key: str, outputs: Sequence[Path]) -> bool:
         """Whether :meth:`run` would reuse ``name`` (its record has ``key`` and its outputs exist)."""
-        rec_path = self.dir / f"{name.replace('/', '_')}.json"
-        rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+        rec = self._record(name)
         return rec is not None and rec.get("key") == key and all(p.exists() for p in outputs)
+
+    def _record(self, name: str) -> Optional[dict]:
+        """The stage's record, or None (absent or unreadable: a build interrupted mid-write)."""
+        rec_path = self.dir / f"{name.replace('/', '_')}.json"
+        try:
+            rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+        except (OSError, ValueError):
+            return None
+        return rec if isinstance(rec, dict) else None
 
     def run(self, name: str, key: str, outputs: Sequence[Path], fn: Callable[[], Any], resumable: bool = False) -> Any:
         """Run ``fn`` unless a record of ``name`` with ``key`` exists and its outputs do. Stale
         outputs are removed first — but a ``resumable`` stage's outputs with no record (an
         interrupted build) are left for ``fn`` to resume from."""
         rec_path = self.dir / f"{name.replace('/', '_')}.json"
-        rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
+        rec = self._record(name)
         if rec is not None and rec.get("key") == key and all(p.exists() for p in outputs):
             self.say(f"[{name}] cached ({rec['seconds']:.0f} s when built)")
             self.reused.append(name)
@@ -154,14 +162,16 @@ class _Stages:
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
-        if rec is not None:  # an interruption of the rebuild leaves no stale record behind
+        if rec_path.exists():  # an interruption of the rebuild leaves no stale record behind
             rec_path.unlink()
         self.say(f"[{name}] building ...")
         t0 = time.perf_counter()
         result = fn()
         dt = time.perf_counter() - t0
         self.seconds[name] = dt
-        rec_path.write_text(json.dumps({"key": key, "seconds": dt, "result": result}, indent=1, default=str))
+        tmp = rec_path.with_name(rec_path.name + ".tmp")
+        tmp.write_text(json.dumps({"key": key, "seconds": dt, "result": result}, indent=1, default=str))
+        os.replace(tmp, rec_path)  # atomic: a record is whole or absent
         self.say(f"[{name}] done in {dt:.0f} s")
         return result
 
@@ -291,31 +301,44 @@ _CHILD_CFG: Optional[DemoConfig] = None  # the settings inside a stage process (
 _SAY: Callable[[str], None] = print  # the parent's line printer, inherited by the stage processes
 
 
-def _run_node(i: int, out: str) -> tuple[float, bool]:
-    """Build stage ``i`` in a stage process; returns its seconds and whether it was reused."""
+def _run_node(i: int, out: str, threads: int) -> tuple[float, bool]:
+    """Build stage ``i`` in a stage process on ``threads`` torch threads; returns its seconds
+    and whether it was reused."""
+    torch.set_num_threads(threads)
     stages = _Stages(Path(out), _SAY)
     node = _NODES[i]
     stages.run(node.name, node.key, node.outputs, node.build)
     return stages.seconds[node.name], node.name in stages.reused
 
 
-def _stage_process_init(threads: int, cfg: DemoConfig) -> None:
+def _stage_process_init(cfg: DemoConfig) -> None:
     global _CHILD_CFG
-    torch.set_num_threads(threads)
     _CHILD_CFG = replace(cfg, progress=False)
+
+
+def _check_graph(nodes: list[_StageNode]) -> None:
+    """Every stage needs only stages listed before it (so list order is a valid build order)."""
+    seen: set[str] = set()
+    for n in nodes:
+        missing = [d for d in n.needs if d not in seen]
+        if missing:
+            raise ValueError(f"stage {n.name!r} needs {missing}, which are not listed before it")
+        seen.add(n.name)
 
 
 def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, say: Callable[[str], None]) -> None:
     """Run the stages, each once the stages it needs are done. On Linux with more than one core
-    and more than one stage to build, they run side by side on forked processes (``torch``
-    threads split between them, no progress bars); else one after the other, in list order
-    (which respects ``needs``). Cached stages are reported and skipped in the parent."""
+    and more than one stage to build, they run on forked processes, side by side where the graph
+    allows (torch threads split between the stages running, no progress bars); else one after
+    the other in list order. Cached stages are reported and skipped in the parent. On an error
+    the other stage processes are stopped and the error is raised."""
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     global _NODES, _SAY
+    _check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
-    workers = min(len(todo), cores, max(2, torch.get_num_threads()))
+    workers = min(len(todo), cores)
     if workers < 2 or not sys.platform.startswith("linux"):
         for n in nodes:
             stages.run(n.name, n.key, n.outputs, n.build)
@@ -325,19 +348,22 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
         if n not in todo:
             stages.run(n.name, n.key, n.outputs, n.build)
             done.add(n.name)
-    say(f"[stages] building {', '.join(n.name for n in todo)} on {workers} processes")
+    say(f"[stages] building {', '.join(n.name for n in todo)} on up to {workers} processes")
     _NODES, _SAY = todo, say
-    threads = max(1, torch.get_num_threads() // workers)
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_stage_process_init, initargs=(threads, cfg))
+                               initializer=_stage_process_init, initargs=(cfg,))
+    failed = True
     try:
         waiting, running = list(range(len(todo))), {}
         while waiting or running:
-            for i in [i for i in waiting if all(d in done for d in todo[i].needs)]:
-                waiting.remove(i)
-                running[pool.submit(_run_node, i, str(stages.dir.parent))] = i
+            ready = [i for i in waiting if all(d in done for d in todo[i].needs)]
+            if ready:  # the parent's torch threads, split between the stages that will run
+                threads = max(1, torch.get_num_threads() // min(workers, len(running) + len(ready)))
+                for i in ready:
+                    waiting.remove(i)
+                    running[pool.submit(_run_node, i, str(stages.dir.parent), threads)] = i
             if not running:
-                raise RuntimeError(f"stages {[todo[i].name for i in waiting]} need stages that are not built")
+                raise RuntimeError(f"stages {[todo[i].name for i in waiting]} wait for stages that are not built")
             finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
             for f in finished:
                 name = todo[running.pop(f)].name
@@ -346,8 +372,12 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
                 if reused:
                     stages.reused.append(name)
                 done.add(name)
+        failed = False
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        if failed:  # stop the stages still running: they would write into folders a retry rebuilds
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
         _NODES = []
 
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import cv2
 import numpy as np
@@ -133,8 +135,22 @@ def test_stage_graph_runs_each_stage_after_what_it_needs(tmp_path):
     assert len(t) == 8
     assert t["start", "c"] >= max(t["end", "a"], t["end", "b"])
     assert t["start", "d"] >= t["end", "b"]
+    if sys.platform.startswith("linux") and len(os.sched_getaffinity(0)) > 1:  # side by side
+        assert t["start", "b"] < t["end", "a"] and t["start", "a"] < t["end", "b"]
     assert set(stages.seconds) == {"a", "b", "c", "d"} and stages.reused == []
     again = _Stages(tmp_path / "out", lambda s: None)
     _run_stage_graph(again, nodes, DemoConfig(progress=False), lambda s: None)
     assert sorted(again.reused) == ["a", "b", "c", "d"]
     assert len(log.read_text().splitlines()) == 8  # nothing was built again
+
+    def broken() -> None:
+        raise RuntimeError("stage failed on purpose")
+
+    bad = [_StageNode("e", "ke", [tmp_path / "e"], broken), _StageNode("f", "kf", [tmp_path / "f"],
+                                                                       _timed_stage(tmp_path, log, "f", 0.0))]
+    with pytest.raises(RuntimeError, match="on purpose"):
+        _run_stage_graph(_Stages(tmp_path / "out", lambda s: None), bad, DemoConfig(progress=False), lambda s: None)
+    with pytest.raises(ValueError, match="not listed before it"):
+        _run_stage_graph(_Stages(tmp_path / "out", lambda s: None),
+                         [_StageNode("g", "kg", [tmp_path / "g"], broken, needs=("h",))],
+                         DemoConfig(progress=False), lambda s: None)

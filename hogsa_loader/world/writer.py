@@ -265,7 +265,7 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
                             "split": job.subject.split, "num_frames": F, "quality": quality})
     shared = _RenderShared(data, preset, tasks, stage, hand_faces, templates)
     done = on_finished or (lambda name: None)
-    if workers <= 1 or len(tasks) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+    if workers <= 1 or len(tasks) <= 1 or not sys.platform.startswith("linux"):
         renderers: dict = {}
         for task in tasks:
             bar.set_postfix_str(task.name)
@@ -354,8 +354,8 @@ def _process_task(i: int) -> str:
 def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callable[[str], None]) -> None:
     """Render ``shared.tasks`` on ``workers`` forked processes (``torch`` threads split between
     them), calling ``done`` in the parent for every sequence that finishes. The first error
-    (a process that dies included) is raised once the finished sequences are recorded; tasks
-    not yet started are cancelled."""
+    (a process that dies included) is raised once the finished sequences are recorded; the
+    other processes are stopped (a resumed run renders their sequences again)."""
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     from hogsa_loader.render.mesh_raster import warm_up_kernels
@@ -368,7 +368,7 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
     start = bar.n
     _SHARED = shared
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_process_init, initargs=(threads, counter))
-    error = None
+    error: Optional[BaseException] = None
     try:
         pending = {pool.submit(_process_task, i) for i in range(len(shared.tasks))}
         while pending and error is None:
@@ -379,8 +379,13 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
                 elif error is None:
                     error = f.exception()
             bar.update(start + counter.value - bar.n)
+    except BaseException as e:  # KeyboardInterrupt in the parent
+        error = e
     finally:
-        pool.shutdown(wait=error is None, cancel_futures=True)
+        if error is not None:  # stop the other sequences: a resumed run renders them again
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
         _SHARED = None
     if error is not None:
         raise error
