@@ -37,10 +37,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import os
 import shutil
-import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -299,13 +297,15 @@ class _StageNode:
 _NODES: list[_StageNode] = []  # the stage graph, set in the parent before the stage processes fork
 _CHILD_CFG: Optional[DemoConfig] = None  # the settings inside a stage process (no progress bars)
 _SAY: Callable[[str], None] = print  # the parent's line printer, inherited by the stage processes
+_OUT = Path(".")  # the demo folder, inherited by the stage processes
+_PARENT_THREADS = 1  # the parent's torch threads, split between the stages running
 
 
-def _run_node(i: int, out: str, threads: int) -> tuple[float, bool]:
-    """Build stage ``i`` in a stage process on ``threads`` torch threads; returns its seconds
-    and whether it was reused."""
-    torch.set_num_threads(threads)
-    stages = _Stages(Path(out), _SAY)
+def _run_node(i: int, concurrent: int) -> tuple[float, bool]:
+    """Build stage ``i`` in a stage process, on the parent's torch threads split between the
+    ``concurrent`` stages running; returns its seconds and whether it was reused."""
+    torch.set_num_threads(max(1, _PARENT_THREADS // concurrent))
+    stages = _Stages(_OUT, _SAY)
     node = _NODES[i]
     stages.run(node.name, node.key, node.outputs, node.build)
     return stages.seconds[node.name], node.name in stages.reused
@@ -327,57 +327,38 @@ def _check_graph(nodes: list[_StageNode]) -> None:
 
 
 def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, say: Callable[[str], None]) -> None:
-    """Run the stages, each once the stages it needs are done. On Linux with more than one core
-    and more than one stage to build, they run on forked processes, side by side where the graph
-    allows (torch threads split between the stages running, no progress bars); else one after
-    the other in list order. Cached stages are reported and skipped in the parent. On an error
-    the other stage processes are stopped and the error is raised."""
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    """Run the stages, each once the stages it needs are done. Where forking is safe
+    (:func:`hogsa_loader.system.can_fork`), with more than one core and more than one stage to
+    build, they run on forked processes, side by side where the graph allows (torch threads
+    split between the stages running, no progress bars); else one after the other in list
+    order. Cached stages are reported and skipped in the parent. On an error the other stage
+    processes are stopped and the error is raised."""
+    from hogsa_loader.system import available_cores, can_fork, run_forked
 
-    global _NODES, _SAY
+    global _NODES, _SAY, _OUT, _PARENT_THREADS
     _check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
-    workers = min(len(todo), cores)
-    if workers < 2 or not sys.platform.startswith("linux"):
+    workers = min(len(todo), available_cores())
+    if workers < 2 or not can_fork():
         for n in nodes:
             stages.run(n.name, n.key, n.outputs, n.build)
         return
-    done = set()
     for n in nodes:
         if n not in todo:
             stages.run(n.name, n.key, n.outputs, n.build)
-            done.add(n.name)
     say(f"[stages] building {', '.join(n.name for n in todo)} on up to {workers} processes")
-    _NODES, _SAY = todo, say
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                               initializer=_stage_process_init, initargs=(cfg,))
-    failed = True
+    index = {n.name: i for i, n in enumerate(todo)}
+    needs = [tuple(index[d] for d in n.needs if d in index) for n in todo]  # cached needs are done
+
+    def record(i: int, result: tuple[float, bool]) -> None:
+        stages.seconds[todo[i].name] = result[0]
+        if result[1]:
+            stages.reused.append(todo[i].name)
+
+    _NODES, _SAY, _OUT, _PARENT_THREADS = todo, say, stages.dir.parent, torch.get_num_threads()
     try:
-        waiting, running = list(range(len(todo))), {}
-        while waiting or running:
-            ready = [i for i in waiting if all(d in done for d in todo[i].needs)]
-            if ready:  # the parent's torch threads, split between the stages that will run
-                threads = max(1, torch.get_num_threads() // min(workers, len(running) + len(ready)))
-                for i in ready:
-                    waiting.remove(i)
-                    running[pool.submit(_run_node, i, str(stages.dir.parent), threads)] = i
-            if not running:
-                raise RuntimeError(f"stages {[todo[i].name for i in waiting]} wait for stages that are not built")
-            finished, _ = wait(list(running), return_when=FIRST_COMPLETED)
-            for f in finished:
-                name = todo[running.pop(f)].name
-                seconds, reused = f.result()
-                stages.seconds[name] = seconds
-                if reused:
-                    stages.reused.append(name)
-                done.add(name)
-        failed = False
+        run_forked(_run_node, needs, workers, on_result=record, initializer=_stage_process_init, initargs=(cfg,))
     finally:
-        if failed:  # stop the stages still running: they would write into folders a retry rebuilds
-            for proc in list(getattr(pool, "_processes", {}).values()):
-                proc.terminate()
-        pool.shutdown(wait=True, cancel_futures=True)
         _NODES = []
 
 

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import ctypes
+import multiprocessing
 import os
 import platform
+import sys
 import threading
-from typing import Optional
+from typing import Any, Callable, Optional, Sequence
 
-__all__ = ["available_cores", "keep_allocator_memory", "allocator_status", "KEEP_MEMORY_ENV"]
+__all__ = ["available_cores", "can_fork", "run_forked", "keep_allocator_memory", "allocator_status",
+           "KEEP_MEMORY_ENV"]
 
 #: Set to ``0`` to leave the C allocator as the process found it.
 KEEP_MEMORY_ENV = "HOGSA_KEEP_MEMORY"
@@ -37,6 +40,64 @@ def available_cores() -> int:
     """CPU cores this process may run on: its affinity mask where the OS has one
     (``os.cpu_count()`` counts every core of the host, e.g. 64 inside a 2-core container)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def can_fork() -> bool:
+    """Whether work may be forked into processes after torch and OpenCV are loaded: on Linux
+    (macOS lists ``fork`` but it is unsafe there with these libraries; Windows has none)."""
+    return sys.platform.startswith("linux")
+
+
+def run_forked(fn: Callable[[int, int], Any], needs: Sequence[Sequence[int]], workers: int,
+               on_result: Callable[[int, Any], None], initializer: Optional[Callable[..., None]] = None,
+               initargs: tuple = (), poll: Optional[Callable[[], None]] = None) -> None:
+    """Run ``fn(i, concurrent)`` for every task ``i`` on ``workers`` forked processes, each
+    once the tasks in ``needs[i]`` are done (``concurrent``: how many tasks run at once as it
+    starts, e.g. to split torch threads). ``fn`` and what it reads are inherited through
+    fork, so they need not pickle; results must. ``on_result(i, result)`` runs in the caller
+    as each task ends and ``poll()`` about every 0.5 s. The first error (a process that dies,
+    or an interrupt of the caller, included) is raised after the results of the tasks that
+    ended are reported; the processes still running are terminated first.
+
+    Raises:
+        ValueError: ``needs`` names a task that is not listed before it.
+    """
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    for i, deps in enumerate(needs):
+        if any(not 0 <= d < i for d in deps):
+            raise ValueError(f"task {i} needs {list(deps)}: only tasks listed before it")
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=initializer,
+                               initargs=initargs)
+    error: Optional[BaseException] = None
+    try:
+        done: set[int] = set()
+        waiting, running = list(range(len(needs))), {}
+        while (waiting or running) and error is None:
+            ready = [i for i in waiting if all(d in done for d in needs[i])]
+            concurrent = min(workers, len(running) + len(ready))
+            for i in ready:
+                waiting.remove(i)
+                running[pool.submit(fn, i, concurrent)] = i
+            finished, _ = wait(list(running), timeout=0.5, return_when=FIRST_COMPLETED)
+            for f in finished:
+                i = running.pop(f)
+                if f.exception() is not None:
+                    error = error or f.exception()
+                else:
+                    on_result(i, f.result())
+                    done.add(i)
+            if poll is not None:
+                poll()
+    except BaseException as e:  # an interrupt of the caller
+        error = e
+    finally:
+        if error is not None:  # what still runs would write outputs a retry rebuilds
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+        pool.shutdown(wait=True, cancel_futures=True)
+    if error is not None:
+        raise error
 
 
 def _skip_reason() -> Optional[str]:

@@ -17,7 +17,6 @@ import torch
 import trimesh
 
 import hogsa_loader.render.mesh_raster as mr
-from hogsa_loader.render import raster_kernels
 from hogsa_loader.render.mesh_raster import (
     Light,
     MeshPart,
@@ -82,8 +81,6 @@ def _t(x: np.ndarray, dtype: torch.dtype = torch.float32) -> torch.Tensor:
 @pytest.fixture(autouse=True, params=["torch", "numba"])
 def backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run the test with ``rasterize`` and ``render_meshes`` bound to one backend."""
-    if request.param == "numba" and not raster_kernels.AVAILABLE:
-        pytest.skip("numba is not installed")
     for name in ("rasterize", "render_meshes"):
         monkeypatch.setitem(globals(), name, functools.partial(getattr(mr, name), backend=request.param))
     return request.param

@@ -793,35 +793,34 @@ def warm_up_kernels() -> None:
     render_meshes(parts, torch.eye(4), intrinsics_from_fov(60.0, 4, 4), 4, 4, backend="numba")
 
 
-def _zbuffer_kernel(tables: _FaceTables, height: int, width: int) -> Tensor:
-    """:func:`_zbuffer` by the compiled kernel (bit-identical keys)."""
+def _zbuffer_kernel(tables: _FaceTables, pxs: Tensor, pys: Tensor) -> Tensor:
+    """:func:`_zbuffer` by the compiled kernel (bit-identical keys); ``pxs`` (W,), ``pys`` (H,)
+    are the pixel centres (:func:`_pixel_centres`)."""
+    height, width = pys.shape[0], pxs.shape[0]
     zkey = torch.full((height * width,), _INT64_MAX, dtype=torch.int64)
     if tables.face_ids.numel() == 0:
         return zkey
-    dtype = tables.edge_a.dtype
     raster_kernels.zbuffer(
         tables.edge_a.numpy(), tables.edge_b.numpy(), tables.edge_x.numpy(), tables.edge_y.numpy(),
         tables.edge_tl.numpy(), tables.inv_z.numpy(), tables.row0.numpy(), tables.col0.numpy(),
-        tables.nrows.numpy(), tables.ncols.numpy(), _pixel_centres(width, dtype).numpy(),
-        _pixel_centres(height, dtype).numpy(), width, zkey.numpy(),
+        tables.nrows.numpy(), tables.ncols.numpy(), pxs.numpy(), pys.numpy(), width, zkey.numpy(),
     )
     return zkey
 
 
 def _resolve_kernel(
-    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor,
-    height: int, width: int,
+    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor, pxs: Tensor, pys: Tensor,
 ) -> Fragments:
     """:func:`_resolve_fragments` by the compiled kernel (bit-identical fragments)."""
     dtype = verts_cam.dtype
+    height, width = pys.shape[0], pxs.shape[0]
     face_idx = torch.empty((height * width,), dtype=torch.int64)
     bary = torch.empty((height * width, 3), dtype=dtype)
     depth = torch.empty((height * width,), dtype=dtype)
     consts = torch.tensor([torch.finfo(dtype).tiny, 1.0], dtype=dtype)
     raster_kernels.resolve(
         zkey.numpy(), tables.face_ids.numpy(), verts_cam.detach().contiguous().numpy(),
-        faces.contiguous().numpy(), K.detach().contiguous().numpy(),
-        _pixel_centres(width, dtype).numpy(), _pixel_centres(height, dtype).numpy(), width,
+        faces.contiguous().numpy(), K.detach().contiguous().numpy(), pxs.numpy(), pys.numpy(), width,
         consts.numpy(), face_idx.numpy(), bary.numpy(), depth.numpy(),
     )
     return Fragments(
@@ -871,8 +870,8 @@ def rasterize(
     faces = faces.to(device=verts_cam.device, dtype=torch.int64)
     if _use_kernels(backend, (verts_cam, K)):
         tables = _setup_faces_kernel(verts_cam, faces, K, height, width, near, cull_backfaces)
-        zkey = _zbuffer_kernel(tables, height, width)
-        return _resolve_kernel(zkey, tables, verts_cam, faces, K, height, width)
+        pxs, pys = _pixel_centres(width, verts_cam.dtype), _pixel_centres(height, verts_cam.dtype)
+        return _resolve_kernel(_zbuffer_kernel(tables, pxs, pys), tables, verts_cam, faces, K, pxs, pys)
     tables = _setup_faces(verts_cam, faces, K, height, width, near, cull_backfaces)
     zkey = _zbuffer(tables, height, width, max_pairs)
     return _resolve_fragments(zkey, tables, verts_cam, faces, K, height, width,
@@ -1033,6 +1032,14 @@ def _shading_normals(
     return n * facing
 
 
+def _to_light(light: Light, dtype: torch.dtype, device: torch.device | str = "cpu") -> Tensor:
+    """(3,) unit vector toward the light (``-direction``, normalised)."""
+    direction = torch.tensor(light.direction, dtype=dtype, device=device)
+    if direction.norm() == 0:
+        raise ValueError("Light.direction must be non-zero")
+    return -direction / direction.norm()
+
+
 def shade_blinn_phong(albedo: Tensor, normal: Tensor, points: Tensor, light: Light) -> Tensor:
     """Ambient + Lambert + Blinn-Phong shading (see :class:`Light`).
 
@@ -1045,10 +1052,7 @@ def shade_blinn_phong(albedo: Tensor, normal: Tensor, points: Tensor, light: Lig
     Returns:
         (N, 3) colours clamped to [0, 1].
     """
-    direction = torch.tensor(light.direction, dtype=albedo.dtype, device=albedo.device)
-    if direction.norm() == 0:
-        raise ValueError("Light.direction must be non-zero")
-    to_light = -direction / direction.norm()
+    to_light = _to_light(light, albedo.dtype, albedo.device)
     view = _normalize(-points)
     n_dot_l = (normal * to_light).sum(-1).clamp_min(0.0)
     half = _normalize(to_light + view)
@@ -1145,10 +1149,7 @@ def _shade_kernel(
     """:func:`_shade_samples` by the compiled kernel (colours within a few float ulps)."""
     sh, sw = frags.face_idx.shape
     dtype = verts_cam.dtype
-    direction = torch.tensor(light.direction, dtype=dtype)
-    if direction.norm() == 0:
-        raise ValueError("Light.direction must be non-zero")
-    to_light = -direction / direction.norm()
+    to_light = _to_light(light, dtype)
     num_v = scene.verts.shape[0]
     colors = torch.zeros((num_v, 3), dtype=dtype)
     uv = torch.zeros((num_v, 2), dtype=dtype)

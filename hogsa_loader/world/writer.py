@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import sys
 import time
 import zlib
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ import torch
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
 from hogsa_loader.errors import PathLike
 from hogsa_loader.render import raster_kernels
+from hogsa_loader.system import available_cores, can_fork
 from hogsa_loader.world.presets import SequencePlan, WorldPreset
 
 if TYPE_CHECKING:
@@ -265,7 +265,7 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
                             "split": job.subject.split, "num_frames": F, "quality": quality})
     shared = _RenderShared(data, preset, tasks, stage, hand_faces, templates)
     done = on_finished or (lambda name: None)
-    if workers <= 1 or len(tasks) <= 1 or not sys.platform.startswith("linux"):
+    if workers <= 1 or len(tasks) <= 1 or not can_fork():
         renderers: dict = {}
         for task in tasks:
             bar.set_postfix_str(task.name)
@@ -346,49 +346,31 @@ def _process_init(threads: int, counter) -> None:
     _RENDERERS.clear()
 
 
-def _process_task(i: int) -> str:
+def _process_task(i: int, concurrent: int) -> str:
     assert _SHARED is not None
     return _render_task(_SHARED, _SHARED.tasks[i], _CountingBar(_COUNTER), _RENDERERS)
 
 
 def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callable[[str], None]) -> None:
     """Render ``shared.tasks`` on ``workers`` forked processes (``torch`` threads split between
-    them), calling ``done`` in the parent for every sequence that finishes. The first error
-    (a process that dies included) is raised once the finished sequences are recorded; the
-    other processes are stopped (a resumed run renders their sequences again)."""
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
+    them), calling ``done`` in the parent for every sequence that finishes
+    (:func:`hogsa_loader.system.run_forked`: on an error the others are stopped; a resumed
+    run renders their sequences again)."""
     from hogsa_loader.render.mesh_raster import warm_up_kernels
+    from hogsa_loader.system import run_forked
 
     global _SHARED
     warm_up_kernels()  # the processes inherit the compiled kernels
-    ctx = multiprocessing.get_context("fork")
-    counter = ctx.Value("q", 0)
-    threads = max(1, torch.get_num_threads() // workers)
+    counter = multiprocessing.get_context("fork").Value("q", 0)
     start = bar.n
     _SHARED = shared
-    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_process_init, initargs=(threads, counter))
-    error: Optional[BaseException] = None
     try:
-        pending = {pool.submit(_process_task, i) for i in range(len(shared.tasks))}
-        while pending and error is None:
-            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-            for f in finished:
-                if f.exception() is None:
-                    done(f.result())
-                elif error is None:
-                    error = f.exception()
-            bar.update(start + counter.value - bar.n)
-    except BaseException as e:  # KeyboardInterrupt in the parent
-        error = e
+        run_forked(_process_task, [()] * len(shared.tasks), workers,
+                   on_result=lambda i, name: done(name), initializer=_process_init,
+                   initargs=(max(1, torch.get_num_threads() // workers), counter),
+                   poll=lambda: bar.update(start + counter.value - bar.n))
     finally:
-        if error is not None:  # stop the other sequences: a resumed run renders them again
-            for proc in list(getattr(pool, "_processes", {}).values()):
-                proc.terminate()
-        pool.shutdown(wait=True, cancel_futures=True)
         _SHARED = None
-    if error is not None:
-        raise error
     bar.update(start + counter.value - bar.n)
 
 
@@ -423,11 +405,9 @@ def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: n
 
 
 def _default_workers() -> int:
-    """Render processes by default: one per CPU core this process may use (at most 8), on Linux
-    (where forking a process that has loaded torch and OpenCV is safe); else 1."""
-    if not sys.platform.startswith("linux"):
-        return 1
-    return max(1, min(8, len(os.sched_getaffinity(0))))
+    """Render processes by default: one per CPU core this process may use (at most 8) where
+    forking is safe (:func:`hogsa_loader.system.can_fork`); else 1."""
+    return max(1, min(8, available_cores())) if can_fork() else 1
 
 
 def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
