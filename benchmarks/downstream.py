@@ -299,14 +299,37 @@ def synthetic_key(cfg: DownstreamConfig) -> dict[str, Any]:
     return syn
 
 
-def setup_fingerprint(cfg: DownstreamConfig, setup: dict[str, Any]) -> str:
-    """Hash of what the setup holds: its settings, the world record and the bundle manifests
-    (a world or bundle rebuilt in place gets a new fingerprint)."""
-    parts: list[Any] = [asdict(cfg.setup)]
-    for f in (Path(setup["data"]) / "meta" / "hogsa_world.json", Path(setup["bundle"]) / "manifest.json",
-              Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json"):
-        parts.append(hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None)
-    return _key(parts)
+def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:
+    """Hashes of what the setup holds, one per depth a run reads it to (a world or bundle
+    rebuilt in place gets new ones):
+
+    * ``"world"``: the data (world record) -- the real arms;
+    * ``"bundle"``: also the bundle without its pose banks -- variants that do not draw from
+      the bank;
+    * ``"all"``: also the pose banks and the free-3DGS bundle.
+    """
+    def digest(f: Path, drop: tuple[str, ...] = ()) -> Optional[str]:
+        if not f.is_file():
+            return None
+        if not drop:
+            return hashlib.sha256(f.read_bytes()).hexdigest()
+        body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
+        return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+    s = asdict(cfg.setup)
+    world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
+    manifest = Path(setup["bundle"]) / "manifest.json"
+    no_bank = {k: v for k, v in s.items() if k not in ("bank_per_sequence", "free_bundle")}
+    return {"world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
+            "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
+            "all": _key([s, world, digest(manifest),
+                         digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")])}
+
+
+def reads(arm_or_variant: Optional[str]) -> str:
+    """Which :func:`setup_fingerprints` entry a run or an export depends on."""
+    variant = ARM_SPECS[arm_or_variant][1] if arm_or_variant in ARM_SPECS else arm_or_variant
+    return "world" if variant is None else "bundle" if variant == "no_pom" else "all"
 
 
 def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) -> Optional[dict[str, Any]]:
@@ -324,7 +347,7 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
 
 def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Path:
     """Folder of a variant's export, named by everything its frames depend on."""
-    key = _key([variant_options(variant, cfg, setup), setup["fingerprint"], synthetic_key(cfg),
+    key = _key([variant_options(variant, cfg, setup), setup["fingerprints"][reads(variant)], synthetic_key(cfg),
                 cfg.model.img_res])
     return out / "synthetic" / f"{variant}-{key[:10]}"
 
@@ -344,7 +367,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
                       batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
                       config=ArcticConfig(img_res=cfg.model.img_res))
     info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res,
-            "setup": setup["fingerprint"]}
+            "setup": setup["fingerprints"][reads(variant)]}
     t0 = time.perf_counter()
     rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), export_dir(variant, cfg, setup, out), s.frames,
                        shard, info=info, progress=True)
@@ -477,8 +500,9 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
     _, variant = ARM_SPECS[arm]
     syn = synthetic_key(cfg) if variant else None
     return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
-            "setup": setup["fingerprint"],
-            "bundle": str(setup["bundle"]), "variant": variant and variant_options(variant, cfg, setup),
+            "setup": setup["fingerprints"][reads(arm)],
+            "bundle": str(setup["bundle"]) if variant else None,
+            "variant": variant and variant_options(variant, cfg, setup),
             "synthetic": syn, "model": model_key(cfg), "train": asdict(cfg.train),
             "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
 
@@ -727,7 +751,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
         raise SystemExit(f"downstream: error: --report-only needs a finished setup in {out / 'setup'} "
                          "(or --setup-data/--setup-bundle); nothing has been built yet")
     setup = build_setup(cfg, out)
-    setup["fingerprint"] = setup_fingerprint(cfg, setup)
+    setup["fingerprints"] = setup_fingerprints(cfg, setup)
     skipped: dict[str, str] = {}
     exports: dict[str, Any] = dict(previous.get("exports", {})) if cfg.report_only else {}
     for arm in cfg.arms:

@@ -235,6 +235,7 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
             world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
 
     from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
+    from hogsa_loader.pom.perturb import KEEP_ARTICULATION
 
     def child_cfg() -> DemoConfig:
         return _CHILD_CFG or cfg
@@ -265,7 +266,7 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     bank = out / "runs" / "pose_bank"
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs)
+    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, asdict(KEEP_ARTICULATION))  # the start perturbation
     nodes.append(_StageNode("bank", k_bank, [bank], lambda: build_pose_bank(
         data, cn, bank, per_sequence=cfg.bank_per_sequence, sequences=seqs, seed=cfg.seed,
         progress=child_cfg().progress), needs=("contactnet",)))

@@ -39,11 +39,17 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--batch", type=checks.positive_int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--keep-rejected", action="store_true")
+    p.add_argument("--arti-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+                   help="draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314 0.628) "
+                        "instead of keeping the annotated angle")
     p.add_argument("--device", default="cpu", type=checks.torch_device)
     p.add_argument("--threads", type=checks.positive_int, default=None)
     p.add_argument("--quiet", action="store_true")
     checks.one_line_errors(p)
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.arti_range is not None and not 0.0 <= args.arti_range[0] <= args.arti_range[1]:
+        p.error(f"argument --arti-range: need 0 <= LO <= HI, got {args.arti_range[0]} {args.arti_range[1]}")
+    return args
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -51,16 +57,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     from hogsa_loader.pom.jobs import build_pose_bank
+    from hogsa_loader.pom.perturb import PerturbConfig
 
     try:
         checks.input_dir(args.data, "--data")
         checks.input_dir(args.contactnet, "--contactnet")
         checks.output_dir(args.out, "--out")
+        pert = None if args.arti_range is None else PerturbConfig(arti_range=tuple(args.arti_range))
         summary = build_pose_bank(
             args.data, args.contactnet, args.out, per_sequence=args.per_sequence, variants=args.variants,
             subjects=args.subjects.split(",") if args.subjects else None,
             sequences=args.sequences.split(",") if args.sequences else None, iters=args.iters, batch=args.batch,
-            seed=args.seed, keep_rejected=args.keep_rejected, device=args.device, progress=not args.quiet,
+            seed=args.seed, keep_rejected=args.keep_rejected, perturbation=pert, device=args.device, progress=not args.quiet,
         )  # fmt: skip
     except (HogsaError, OSError) as exc:
         return checks.report("build_pose_bank", exc)

@@ -87,6 +87,16 @@ def test_bad_value_is_refused_before_work(cmd, base, flag, value, tiny_world, un
     assert not any(tmp_path.iterdir()), sorted(p.name for p in tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("lo_hi", [("0.5", "0.1"), ("-0.1", "0.2"), ("nan", "0.2")])
+def test_pose_bank_articulation_range_is_checked(lo_hi, tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as exc:
+        _script_main("build_pose_bank")(["--data", "w", "--contactnet", "c", "--out", "o", "--arti-range", *lo_hi])
+    assert exc.value.code != 0 and "--arti-range" in err.getvalue() and "Traceback" not in err.getvalue()
+    assert not any(tmp_path.iterdir())
+
+
 def test_gpu_list_accepts_what_cuda_visible_devices_accepts() -> None:
     spec = importlib.util.spec_from_file_location("sweep_tah", ROOT / "pretrain" / "train_all_hogs.py")
     mod = importlib.util.module_from_spec(spec)

@@ -102,10 +102,14 @@ def test_low_data_subset_is_fixed_and_sized():
     assert ds.low_data_indices(3, 0.1) and len(ds.low_data_indices(3, 0.1)) == 1
 
 
+def _prints(world: str, bundle: str, everything: str) -> dict[str, str]:
+    return {"world": world, "bundle": bundle, "all": everything}
+
+
 def test_every_arm_has_a_variant_spec():
     ds = _downstream()
     cfg = ds.DownstreamConfig()
-    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert set(ds.ARM_SPECS) == set(ds.ARMS)
     assert ds.variant_options("full", cfg, setup) == {"bundle": "/b", "srm": True, "poses": "bank"}
     assert ds.variant_options("no_srm", cfg, setup)["srm"] is False
@@ -117,12 +121,41 @@ def test_every_arm_has_a_variant_spec():
     assert k["synthetic"] is None and k["variant"] is None
     assert ds.run_settings("hogsa", 0, cfg, setup)["variant"]["poses"] == "bank"
     assert ds.run_settings("real", 1, cfg, setup) != k
-    assert ds.run_settings("real", 0, cfg, dict(setup, fingerprint="f1")) != k  # world/bundle rebuilt in place
+    assert ds.run_settings("real", 0, cfg, dict(setup, fingerprints=_prints("w1", "b0", "a0"))) != k  # new world
+    # a run's key follows the part of the setup it reads: a new pose bank re-runs the bank arms only
+    new_bank = dict(setup, fingerprints=_prints("w0", "b0", "a1"))
+    for arm, changed in (("real", False), ("real_low", False), ("hogsa_no_pom", False), ("hogsa", True),
+                         ("hogsa_no_srm", True), ("hogsa_low", True)):
+        assert (ds.run_settings(arm, 0, cfg, new_bank) != ds.run_settings(arm, 0, cfg, setup)) == changed, arm
+    assert ds.run_settings("hogsa_no_pom", 0, cfg, dict(setup, fingerprints=_prints("w0", "b1", "a1"))) != \
+        ds.run_settings("hogsa_no_pom", 0, cfg, setup)  # new HOGS/SRM
     # an export's folder changes with anything its frames depend on
     a = ds.export_dir("full", cfg, setup, Path("/o"))
-    assert a != ds.export_dir("full", cfg, dict(setup, fingerprint="f1"), Path("/o"))
+    assert a != ds.export_dir("full", cfg, new_bank, Path("/o"))
+    assert ds.export_dir("no_pom", cfg, new_bank, Path("/o")) == ds.export_dir("no_pom", cfg, setup, Path("/o"))
     assert a != ds.export_dir("full", ds.quick_config(cfg), setup, Path("/o"))
     assert a == ds.export_dir("full", cfg, setup, Path("/o")) and a.name.startswith("full-")
+
+
+def test_setup_fingerprints_follow_what_changed(tmp_path):
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    (tmp_path / "d" / "meta").mkdir(parents=True)
+    (tmp_path / "b").mkdir()
+    world, manifest = tmp_path / "d" / "meta" / "hogsa_world.json", tmp_path / "b" / "manifest.json"
+    setup = {"data": tmp_path / "d", "bundle": tmp_path / "b"}
+    world.write_text('{"seed": 0}')
+    manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
+    first = ds.setup_fingerprints(cfg, setup)
+    assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 3
+    manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "2"}}]}))
+    bank = ds.setup_fingerprints(cfg, setup)  # a new pose bank
+    assert bank["world"] == first["world"] and bank["bundle"] == first["bundle"] and bank["all"] != first["all"]
+    manifest.write_text(json.dumps({"hogs": [{"files": {"a": "2"}}], "pose_banks": [{"files": {"p": "2"}}]}))
+    hogs = ds.setup_fingerprints(cfg, setup)  # a new HOGS
+    assert hogs["world"] == first["world"] and hogs["bundle"] != bank["bundle"] and hogs["all"] != bank["all"]
+    world.write_text('{"seed": 1}')
+    assert all(a != b for a, b in zip(ds.setup_fingerprints(cfg, setup).values(), hogs.values(), strict=True))  # a new world
 
 
 def _result(mpjpe: float, cdev: float) -> dict:
@@ -158,13 +191,13 @@ def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     """``--report-only`` tabulates the runs whose saved key matches the current settings."""
     ds = _downstream()
     cfg = ds.DownstreamConfig()
-    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.finished_run("real", 0, cfg, setup, tmp_path) is None  # never run
     res = tmp_path / "runs" / "real" / "seed0" / "result.json"
     res.parent.mkdir(parents=True)
     res.write_text(json.dumps({"key": ds._key(ds.run_settings("real", 0, cfg, setup)), **_result(30.0, 50.0)}))
     assert ds.finished_run("real", 0, cfg, setup, tmp_path)["summary"]["mpjpe/ra/h"] == 30.0
-    assert ds.finished_run("real", 0, cfg, dict(setup, fingerprint="f1"), tmp_path) is None  # setup rebuilt
+    assert ds.finished_run("real", 0, cfg, dict(setup, fingerprints=_prints("w1", "b1", "a1")), tmp_path) is None
     longer = ds.replace(cfg, train=ds.replace(cfg.train, steps=cfg.train.steps + 1))
     assert ds.finished_run("real", 0, longer, setup, tmp_path) is None
     assert ds.finished_run("real", 1, cfg, setup, tmp_path) is None
@@ -200,7 +233,7 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert manifest.stat().st_mtime_ns == first  # the plates' own path is not part of their key
     photos = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, backgrounds="photos"))
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
-    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprint": "f0"}
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
     # photo runs keep the keys they had before backgrounds could be chosen
     syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k != "backgrounds"}

@@ -483,6 +483,31 @@ def test_tiny_world_frames_to_bank(tiny_world, tmp_path):
     torch.testing.assert_close(bank.state.hands["right"].trans, aug.result.hands["right"].trans)
 
 
+@pytest.mark.slow
+def test_pose_bank_keeps_the_annotated_articulation(tiny_world, tmp_path):
+    """The bank's start perturbation keeps each frame's annotated θ unless a range is asked for."""
+    from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.jobs import build_pose_bank
+    from hogsa_loader.pom.perturb import PerturbConfig
+
+    torch.manual_seed(0)
+    save_contactnet(ContactNet().eval(), tmp_path / "cn", {})
+    root = ArcticRoot(tiny_world)
+    seq = root.sequences()[0]
+    kw = dict(per_sequence=3, sequences=[seq], iters=1, keep_rejected=True, progress=False)
+    build_pose_bank(tiny_world, tmp_path / "cn", tmp_path / "keep", **kw)
+    bank = load_pose_bank(tmp_path / "keep")
+    sid, name = seq.split("/")
+    annotated = root.sequence(sid, name).object.arti
+    expect = [annotated[f] for _, _, f in bank.sources]
+    np.testing.assert_allclose(bank.state.obj_arti.numpy(), expect, atol=1e-6)
+    assert json.loads((tmp_path / "keep" / "manifest.json").read_text())["info"]["perturbation"]["arti_range"] is None
+    build_pose_bank(tiny_world, tmp_path / "cn", tmp_path / "paper", perturbation=PerturbConfig(arti_range=(0.3, 0.4)),
+                    **kw)
+    drawn = load_pose_bank(tmp_path / "paper").state.obj_arti
+    assert bool(((drawn >= 0.3) & (drawn <= 0.4)).all())
+
+
 # --------------------------------------------------------------------------------------
 # Pose bank
 # --------------------------------------------------------------------------------------

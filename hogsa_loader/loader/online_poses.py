@@ -4,7 +4,7 @@ For every sample, :meth:`OnlinePoses.sample` draws an annotated *contact* frame 
 (subject, object)'s training sequences (a hand within 5 mm of the object) and a
 perturbation seed, both from the sample's own generator; :meth:`OnlinePoses.optimize`
 then applies the paper's perturbation (:func:`~hogsa_loader.pom.perturb.perturb`, one
-generator per sample) and optimises the whole render batch at once with
+generator per sample; the annotated articulation θ kept) and optimises the whole render batch at once with
 :func:`~hogsa_loader.pom.optimize.optimise_grasps` (object fixed, both hands; the bundle's
 ContactNet), on the loader's device. The loader times this as the ``pom`` stage.
 
@@ -22,6 +22,7 @@ prefer ``poses="bank"`` (the same optimisation, done offline).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -43,7 +44,8 @@ class OnlinePoses:
             ``contactnet`` is given).
         contactnet: a ContactNet checkpoint folder (default: the bundle's).
         iters: POM iterations (paper: 200).
-        perturb_scale: scales the paper's perturbation ranges (1 = paper).
+        perturb_scale: scales the paper's rotation and jitter ranges (1 = paper); θ keeps the
+            annotated angle (:data:`~hogsa_loader.pom.perturb.KEEP_ARTICULATION`).
         contact_threshold: a source frame needs a hand within this distance (m).
 
     Raises:
@@ -64,7 +66,7 @@ class OnlinePoses:
         from hogsa_loader.pom.hands import hand_infos
         from hogsa_loader.pom.objects import ObjectSet
         from hogsa_loader.pom.optimize import POMConfig
-        from hogsa_loader.pom.perturb import PerturbConfig
+        from hogsa_loader.pom.perturb import KEEP_ARTICULATION
         from hogsa_loader.pom.pipeline import contact_frames
 
         if contactnet is None:
@@ -79,7 +81,7 @@ class OnlinePoses:
         self.infos = hand_infos(context.root.mano_layers())
         self.objects = ObjectSet(context.root.object_templates(load_texture=False))
         self.config = POMConfig(iters=int(iters))
-        self.perturb_config = PerturbConfig(scale=float(perturb_scale))
+        self.perturb_config = replace(KEEP_ARTICULATION, scale=float(perturb_scale))
         allowed = set(split_sequences(context.root, context.protocol, context.split))
         self.frames: dict[tuple[str, str], Any] = {}
         for sid, obj in context.keys:

@@ -18,12 +18,12 @@ from hogsa_loader.pom.hands import HandInfo, hand_infos
 from hogsa_loader.pom.metrics import diversity, grasp_metrics, summarize
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig, POMResult, optimise_grasps
-from hogsa_loader.pom.perturb import PerturbConfig, PerturbRecord, perturb
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION, PerturbConfig, PerturbRecord, perturb
 from hogsa_loader.pom.state import GraspState, HandParams, load_frames
 
 __all__ = [
     "ContactNet", "ContactNetConfig", "contact_map", "load_contactnet", "save_contactnet",
     "GraspState", "HandParams", "load_frames", "HandInfo", "hand_infos", "ObjectSet",
-    "PerturbConfig", "PerturbRecord", "perturb", "POMConfig", "POMResult", "optimise_grasps",
+    "PerturbConfig", "KEEP_ARTICULATION", "PerturbRecord", "perturb", "POMConfig", "POMResult", "optimise_grasps",
     "grasp_metrics", "diversity", "summarize", "PoseBank", "load_pose_bank", "save_pose_bank",
 ]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import time
 import zlib
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -17,6 +18,7 @@ import torch
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import PathLike
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION, PerturbConfig
 
 __all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "variant_seed"]
 
@@ -165,6 +167,7 @@ def build_pose_bank(
     batch: int = 16,
     seed: int = 0,
     keep_rejected: bool = False,
+    perturbation: Optional[PerturbConfig] = None,
     device: str = "cpu",
     progress: bool = True,
 ) -> dict[str, Any]:
@@ -180,6 +183,8 @@ def build_pose_bank(
         seed: base seed; each (sequence, variant) draws from its own seed derived from
             ``(seed, sequence id, variant)`` (:func:`variant_seed`).
         keep_rejected: also keep grasps that fail acceptance.
+        perturbation: the start perturbation; default :data:`KEEP_ARTICULATION` (the paper's
+            ranges, annotated θ kept, so the bank's θ follows the data's).
 
     Returns:
         a summary (``bank``, ``entries``, ``optimised``, ``dropped`` by reason, ``seconds``).
@@ -208,6 +213,7 @@ def build_pose_bank(
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
     cfg = POMConfig(iters=iters)
+    pert = KEEP_ARTICULATION if perturbation is None else perturbation
     states, sources = [], []
     metrics: dict[str, list[np.ndarray]] = {k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")}
     dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0, "rejected": 0}
@@ -217,7 +223,8 @@ def build_pose_bank(
         if frames.state.batch == 0:
             continue
         for v in range(variants):
-            aug = augment(frames, infos, objects, net, cfg, seed=variant_seed(seed, seq, v), batch=batch, device=device)
+            aug = augment(frames, infos, objects, net, cfg, seed=variant_seed(seed, seq, v), batch=batch,
+                          perturb_config=pert, device=device)
             total += frames.state.batch
             for k, c in aug.dropped.items():
                 dropped[k] += c
@@ -236,7 +243,7 @@ def build_pose_bank(
     state = GraspState.cat(states)
     info = {"data": str(root.data_root), "contactnet": str(contactnet), "per_sequence": per_sequence,
             "variants": variants, "seed": seed, "optimised": total, "dropped": dropped,
-            "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+            "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}, "perturbation": asdict(pert),
             "seconds": time.perf_counter() - t0}  # fmt: skip
     path = save_pose_bank(out, state, sources, {k: np.concatenate(v) for k, v in metrics.items()}, info)
     return {"bank": str(path.parent), "entries": state.batch, "optimised": total, "dropped": dropped,

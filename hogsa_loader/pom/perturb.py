@@ -9,7 +9,11 @@ For every sample, in this order:
    (the centroid of the object's surface samples, original object pose);
 3. each hand and the object get a translation jitter: uniform direction, length uniform in
    [0, 6 cm];
-4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects).
+4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects), or kept.
+
+The paper's θ draw never gives a closed object (θ = 0), although most annotated frames
+hold one; a model trained on such grasps learns a biased θ. :data:`KEEP_ARTICULATION`
+(the paper's ranges with the annotated θ kept) is what pose banks and online POM use.
 
 All draws come from one seeded :class:`torch.Generator`; :class:`PerturbRecord` returns
 them so tests can check the ranges.
@@ -29,7 +33,7 @@ from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.objects import ObjectSet, to_world
 from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
 
-__all__ = ["PerturbConfig", "PerturbRecord", "perturb", "euler_xyz_matrix", "random_directions"]
+__all__ = ["PerturbConfig", "KEEP_ARTICULATION", "PerturbRecord", "perturb", "euler_xyz_matrix", "random_directions"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,10 @@ class PerturbConfig:
     max_jitter: float = 0.06
     arti_range: Optional[tuple[float, float]] = (0.01 * math.pi, 0.2 * math.pi)
     scale: float = 1.0
+
+
+KEEP_ARTICULATION = PerturbConfig(arti_range=None)
+"""The paper's rotation, root and jitter ranges; θ stays the annotated angle."""
 
 
 @dataclass
