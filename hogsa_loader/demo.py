@@ -334,6 +334,7 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
     split between the stages running, no progress bars); else one after the other in list
     order. Cached stages are reported and skipped in the parent. On an error the other stage
     processes are stopped and the error is raised."""
+    from hogsa_loader.render.gaussians import warm_up_compositor
     from hogsa_loader.system import available_cores, can_fork, run_forked
 
     global _NODES, _SAY, _OUT, _PARENT_THREADS
@@ -348,6 +349,7 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
         if n not in todo:
             stages.run(n.name, n.key, n.outputs, n.build)
     say(f"[stages] building {', '.join(n.name for n in todo)} on up to {workers} processes")
+    warm_up_compositor()  # the stage processes inherit the compiled kernels
     index = {n.name: i for i, n in enumerate(todo)}
     needs = [tuple(index[d] for d in n.needs if d in index) for n in todo]  # cached needs are done
 

@@ -1,4 +1,5 @@
-"""Tests of the pure-PyTorch Gaussian splatting rasteriser (gsplat 1.5.3 conventions)."""
+"""Tests of the CPU Gaussian splatting rasteriser (gsplat 1.5.3 conventions); every test runs
+with both compositors (vectorised PyTorch and the compiled kernels)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,13 @@ from hogsa_loader.render.gaussians import (
 )
 
 gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
+
+
+@pytest.fixture(autouse=True, params=["torch", "numba"])
+def compositor(request, monkeypatch):
+    """Run the test with ``render_gaussians``' default compositor set to each one."""
+    monkeypatch.setitem(render_gaussians.__kwdefaults__, "compositor", request.param)
+    return request.param
 
 
 # --------------------------------------------------------------------------------------
@@ -475,3 +483,68 @@ def test_empty_scene_gives_background(n):
     assert torch.equal(out.rgb, bg[:, :, None, None, :].expand(1, 1, 17, 20, 3))
     assert out.alpha.eq(0).all() and out.depth.eq(0).all() and out.part_alpha.eq(0).all()
     assert out.meta["n_isects"] == 0
+
+
+# --------------------------------------------------------------------------------------
+# the two compositors
+# --------------------------------------------------------------------------------------
+
+
+def _two_image_scene(dtype):
+    """Two samples, two cameras each: RGB + depth + parts, a background, padding Gaussians,
+    and Gaussians large enough that many pixels saturate (stop before the list's end)."""
+    g = torch.Generator().manual_seed(11)
+    B, C, N, W, H = 2, 2, 600, 45, 37
+    means = (torch.rand(B, N, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([0.2, 0.2, 0.2]) + \
+        torch.tensor([0.0, 0.0, 0.7])
+    quats = torch.randn(B, N, 4, generator=g, dtype=torch.float64)
+    scales = torch.exp(torch.empty(B, N, 3, dtype=torch.float64).uniform_(math.log(0.004), math.log(0.04),
+                                                                          generator=g))
+    opac = torch.rand(B, N, generator=g, dtype=torch.float64) * 0.7 + 0.29
+    cols = torch.rand(B, N, 3, generator=g, dtype=torch.float64)
+    viewmats = torch.stack([torch.stack([_look_at((0.0, 0.0, 0.0), dtype=torch.float64),
+                                         _look_at((0.08, -0.05, 0.02), dtype=torch.float64)])] * B)
+    Ks = _intrinsics(50.0, 22.0, 18.5, torch.float64).expand(B, C, 3, 3)
+    valid = torch.rand(B, N, generator=g) > 0.1
+    part_ids = torch.randint(-1, 3, (B, N), generator=g)
+    bg = torch.rand(B, C, 3, generator=g, dtype=torch.float64)
+    tensors = [t.to(dtype) for t in (means, quats, scales, opac, cols, viewmats, Ks, bg)]
+    return tensors, dict(W=W, H=H, valid=valid, part_ids=part_ids)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 5e-5)])
+def test_compositors_agree(compositor, dtype, tol):
+    """The compiled kernels give the PyTorch compositor's images and gradients (float64:
+    to ~1e-10; float32: to rounding of the different evaluation order)."""
+    (means, quats, scales, opac, cols, viewmats, Ks, bg), kw = _two_image_scene(dtype)
+    wr = torch.rand(2, 2, kw["H"], kw["W"], 8, generator=torch.Generator().manual_seed(3), dtype=dtype)
+    results = {}
+    for comp in ("torch", "numba"):
+        ins = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
+        out = render_gaussians(*ins, viewmats, Ks, kw["W"], kw["H"], background=bg, part_ids=kw["part_ids"],
+                               num_parts=3, valid=kw["valid"], compositor=comp)
+        img = torch.cat([out.rgb, out.alpha, out.depth, out.part_alpha], -1)
+        (img * wr).sum().backward()
+        results[comp] = (img.detach(), [t.grad for t in ins], out.meta["n_isects"])
+    img_t, grads_t, n_t = results["torch"]
+    img_n, grads_n, n_n = results["numba"]
+    assert n_t == n_n > 1000
+    saturated = (1.0 - img_t[..., 3]).lt(1e-3).float().mean()
+    assert 0.05 < saturated < 0.95  # the stop rule is exercised, and so are unsaturated pixels
+    torch.testing.assert_close(img_n, img_t, rtol=0, atol=tol)
+    for name, gt, gn in zip(("means", "quats", "scales", "opacities", "colors"), grads_t, grads_n, strict=True):
+        scale = gt.abs().max()
+        assert scale > 0, name
+        torch.testing.assert_close(gn / scale, gt / scale, rtol=0, atol=tol * 10, msg=name)
+
+
+def test_compositor_choice_is_checked():
+    means, quats, scales, opac, cols = _ball_scene(10, 1)
+    args = (means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+            _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
+    with pytest.raises(ValueError, match="compositor must be"):
+        render_gaussians(*args, compositor="cuda")
+    with pytest.raises(ValueError, match="float32 or float64"):
+        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args), compositor="numba")
+    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args), compositor="auto")
+    assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor

@@ -1,7 +1,8 @@
 """The one public Gaussian-splatting entry point, :func:`render`, with two backends.
 
-* ``"torch"``: :func:`hogsa_loader.render.gaussians.render_gaussians`, the pure-PyTorch
-  rasteriser (any device, float32 or float64, differentiable by autograd).
+* ``"torch"``: :func:`hogsa_loader.render.gaussians.render_gaussians`, the CPU rasteriser
+  (PyTorch, with compiled compositing kernels on the CPU; any device, float32 or float64,
+  differentiable).
 * ``"gsplat"``: gsplat 1.5.3's CUDA ``rasterization()`` (CUDA float32 tensors only; see
   :mod:`hogsa_loader.render.gsplat_backend`).
 * ``"auto"``: ``"gsplat"`` when the tensors are CUDA float32 and gsplat's CUDA extension
@@ -42,9 +43,9 @@ BACKENDS = ("auto", "torch", "gsplat")
 RENDER_MODES = ("RGB", "RGB+ED", "RGB+D")
 # render_gaussians keyword arguments reachable through **torch_backend_options (the others
 # are arguments of render itself). For the gsplat backend: tile_size is passed on,
-# valid is applied as opacity 0, and chunk / tile_batch / checkpoint (speed / memory
-# knobs that do not change results) are ignored.
-TORCH_BACKEND_OPTIONS = ("tile_size", "valid", "chunk", "tile_batch", "checkpoint")
+# valid is applied as opacity 0, and chunk / tile_batch / checkpoint / compositor (speed /
+# memory knobs that do not change results) are ignored.
+TORCH_BACKEND_OPTIONS = ("tile_size", "valid", "chunk", "tile_batch", "checkpoint", "compositor")
 
 
 def render(
@@ -129,9 +130,9 @@ def render(
         eps2d: 2D dilation (px^2) added to the projected covariance.
         **torch_backend_options: keyword arguments of ``render_gaussians``:
             ``tile_size`` (16), ``valid`` ((B, N) bool, False = padding),
-            ``chunk``, ``tile_batch``, ``checkpoint`` (speed / memory knobs). With the
-            gsplat backend ``tile_size`` is passed on, ``valid`` becomes opacity 0, the
-            speed knobs are ignored. Any other name is a TypeError.
+            ``chunk``, ``tile_batch``, ``checkpoint``, ``compositor`` (speed / memory
+            knobs). With the gsplat backend ``tile_size`` is passed on, ``valid``
+            becomes opacity 0, the speed knobs are ignored. Any other name is a TypeError.
 
     The first call on CPU tensors sets this process's glibc allocator to keep freed memory
     (:func:`hogsa_loader.system.keep_allocator_memory`; ``HOGSA_KEEP_MEMORY=0`` opts out).

@@ -1,9 +1,12 @@
-"""Pure-PyTorch 3D Gaussian splatting rasteriser with gsplat 1.5.3 conventions.
+"""CPU 3D Gaussian splatting rasteriser with gsplat 1.5.3 conventions.
 
 One public entry point, :func:`render_gaussians`, which runs on any device (it is written
-for the CPU, where gsplat's CUDA kernels cannot run) and is differentiable through
-autograd with respect to ``means``, ``quats``, ``scales``, ``opacities`` and ``colors``
-(RGB or SH coefficients). There is no hand-written backward pass.
+for the CPU, where gsplat's CUDA kernels cannot run) and is differentiable with respect to
+``means``, ``quats``, ``scales``, ``opacities`` and ``colors`` (RGB or SH coefficients).
+Projection, colours and tiling are PyTorch (autograd). Compositing has two
+implementations with the same results within float rounding: vectorised PyTorch
+(autograd; any device and dtype) and compiled CPU kernels
+(:mod:`hogsa_loader.render.splat_kernels`, numba, with a hand-written backward pass).
 
 Notation: B samples (scenes), C cameras per sample, N Gaussians per sample (a dense,
 padded tensor), I = B * C images, K (Gaussian, tile) intersections, P = tile_size**2
@@ -52,14 +55,16 @@ the ``gsplat`` package)
 Known, deliberate differences from gsplat's CUDA kernels (all at float32 rounding level)
 ------------------------------------------------------------------------------------------
 * ``log(o) - sigma`` is evaluated as a quadratic polynomial in tile-local pixel
-  coordinates (one matmul per chunk), and ``alpha = exp(log o - sigma)`` instead of
-  ``o * __expf(-sigma)``; within a chunk of D Gaussians the transmittance is a
-  ``cumprod`` times the transmittance before the chunk (gsplat: one running product).
+  coordinates (one matmul per chunk; the compiled compositor evaluates it per pixel), and
+  ``alpha = exp(log o - sigma)`` instead of ``o * __expf(-sigma)``; within a chunk of D
+  Gaussians the transmittance is a ``cumprod`` times the transmittance before the chunk
+  (gsplat and the compiled compositor: one running product).
   The cut-off keeps ``alpha > 1/255`` (gsplat: ``>=``). Decisions taken exactly at a
   threshold (``alpha`` = 1/255, ``next_T`` = 1e-4) can therefore flip in rare cases.
 * gsplat also skips a sample when ``sigma < 0``; for a positive-definite conic that only
   happens by rounding, and it is not reproduced.
-* Gradients come from autograd. As in gsplat's backward kernels, nothing flows through
+* Gradients come from autograd, and for compositing by the compiled compositor from its
+  backward pass (the same rules). As in gsplat's backward kernels, nothing flows through
   the 0.999 clamp (``RasterizeToPixels3DGSBwd.cu``: ``if (opac * vis <= 0.999f)``), the
   1/255 cut-off, the termination test or the integer radii; the clamped Jacobian and the
   SH view direction (into ``means``) are differentiated like gsplat's VJPs do. Gradients
@@ -71,8 +76,9 @@ padding, or set their opacity to 0 (``opacity < 1/255`` is culled, as in gsplat)
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -80,8 +86,11 @@ import torch.utils.checkpoint
 from torch import Tensor
 
 from hogsa_loader.geometry.quaternion import quat_to_matrix
+from hogsa_loader.render import splat_kernels
+from hogsa_loader.render.raster_kernels import use_kernels
 
-__all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors"]
+__all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors",
+           "warm_up_compositor"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # cuda/include/Common.h: ALPHA_THRESHOLD
 ALPHA_MAX = 0.999  # RasterizeToPixels3DGSFwd.cu: min(0.999f, opac * __expf(-sigma))
@@ -514,6 +523,73 @@ def _composite_tiles(
         acc = acc.index_add(0, torch.cat(out_idx), torch.cat(outs))
     return acc, trans
 
+
+def _run_split(kernel: Any, work: Tensor, args: tuple) -> None:
+    """Run ``kernel(sel, *args)`` over the busy tiles, dealt round-robin (they come sorted
+    by list length) to as many threads as torch uses; the kernels release the GIL."""
+    n = max(1, min(torch.get_num_threads(), work.numel()))
+    parts = [work[i::n].numpy() for i in range(n)]
+    if n == 1:
+        kernel(parts[0], *args)
+        return
+    threads = [threading.Thread(target=kernel, args=(part, *args)) for part in parts[1:]]
+    for t in threads:
+        t.start()
+    try:
+        kernel(parts[0], *args)
+    finally:
+        for t in threads:
+            t.join()
+
+
+class _CompiledComposite(torch.autograd.Function):
+    """Compositing of the busy tiles by :mod:`hogsa_loader.render.splat_kernels`, with its
+    hand-written backward pass (the same gradients as the PyTorch compositor)."""
+
+    @staticmethod
+    def forward(ctx: Any, means2d: Tensor, conics: Tensor, log_o: Tensor, feats: Tensor, radii: Tensor,
+                gids: Tensor, busy: Tensor, start: Tensor, count: Tensor, geometry: tuple[int, ...]
+                ) -> tuple[Tensor, Tensor]:
+        """means2d (M, 2), conics (M, 3), log_o (M,), feats (M, F), radii (M, 2) int32,
+        gids (K,), busy / start / count (nb,) int64, geometry ``(tile_size, tile_w, n_tiles,
+        width, height)`` -> acc (nb, P, F), trans (nb, P)."""
+        tile_size = geometry[0]
+        nb, p, nf = busy.shape[0], tile_size * tile_size, feats.shape[1]
+        dtype = feats.dtype
+        tables = tuple(t.detach().contiguous() for t in (means2d.to(dtype), conics.to(dtype), log_o.to(dtype), feats))
+        consts = torch.tensor([ALPHA_THRESHOLD, ALPHA_MAX, T_MIN, 1.0], dtype=dtype)
+        acc = torch.zeros(nb, p, nf, dtype=dtype)
+        trans = torch.ones(nb, p, dtype=dtype)
+        last = torch.zeros(nb, p, dtype=torch.int32)
+        radii = radii.contiguous()
+        order = torch.argsort(count, descending=True, stable=True)
+        common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), *(t.numpy() for t in tables[:3]),
+                  radii.numpy(), tables[3].numpy(), *geometry, consts.numpy())
+        _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()))
+        ctx.save_for_backward(*tables, radii, gids, busy, start, count, trans, last, consts, order)
+        ctx.geometry = geometry
+        ctx.dtypes = (means2d.dtype, conics.dtype, log_o.dtype)
+        return acc, trans
+
+    @staticmethod
+    def backward(ctx: Any, v_acc: Tensor, v_trans: Tensor) -> tuple[Any, ...]:
+        m2d, con, lo, feats, radii, gids, busy, start, count, trans, last, consts, order = ctx.saved_tensors
+        dtype, nf = feats.dtype, feats.shape[1]
+        grads = torch.zeros(gids.shape[0], splat_kernels.GRAD_COLUMNS + nf, dtype=dtype)
+        v_acc = torch.zeros_like(trans)[..., None].expand(-1, -1, nf) if v_acc is None else v_acc
+        v_trans = torch.zeros_like(trans) if v_trans is None else v_trans
+        common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), m2d.numpy(), con.numpy(), lo.numpy(),
+                  radii.numpy(), feats.numpy(), *ctx.geometry, consts.numpy())
+        _run_split(splat_kernels.composite_backward, order,
+                   (*common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
+                    v_trans.to(dtype).contiguous().numpy(), grads.numpy()))
+        per_row = torch.zeros(m2d.shape[0], grads.shape[1], dtype=dtype).index_add_(0, gids, grads)
+        d_m2d, d_con, d_lo = per_row[:, 0:2], per_row[:, 2:5], per_row[:, 5]
+        d_feat = per_row[:, splat_kernels.GRAD_COLUMNS:]
+        t_m2d, t_con, t_lo = ctx.dtypes
+        return (d_m2d.to(t_m2d), d_con.to(t_con), d_lo.to(t_lo), d_feat) + (None,) * 6
+
+
 # --------------------------------------------------------------------------------------
 # Public entry point
 # --------------------------------------------------------------------------------------
@@ -543,6 +619,7 @@ def render_gaussians(
     chunk: int = 32,
     tile_batch: int = 2048,
     checkpoint: bool = False,
+    compositor: Literal["auto", "torch", "numba"] = "auto",
 ) -> RenderOutput:
     """Render 3D Gaussians into B x C images with gsplat 1.5.3 conventions (see module doc).
 
@@ -573,6 +650,11 @@ def render_gaussians(
             (``torch.utils.checkpoint``) instead of keeping its intermediates: with a
             small ``tile_batch`` (e.g. 64) this bounds backward memory at the cost of a
             second compositing pass. Results and gradients are unchanged.
+        compositor: ``"torch"``, the vectorised PyTorch compositor (any device and dtype;
+            ``chunk``, ``tile_batch`` and ``checkpoint`` apply to it); ``"numba"``, the
+            compiled CPU kernels (float32 / float64 on the CPU, their own backward pass,
+            threads as ``torch.get_num_threads()``; same images and gradients within float
+            rounding, small memory); ``"auto"``, the kernels wherever they can run.
 
     Returns:
         :class:`RenderOutput` with rgb (B, C, H, W, D), alpha (B, C, H, W, 1),
@@ -590,6 +672,7 @@ def render_gaussians(
         raise ValueError("num_parts > 0 needs part_ids")
     dtype, dev = means.dtype, means.device
     n_img = B * C
+    kernels = use_kernels("compositor", compositor, [means, colors, opacities], differentiable=True)
 
     # 1. projection (gsplat: fully_fused_projection with opacities)
     covars = quat_scale_to_covar(quats, scales)
@@ -632,6 +715,14 @@ def render_gaussians(
         # clamp: rows with opacity < 1/255 are culled and never read; without it a zero
         # opacity (the padding convention) gives log(0) and a NaN opacity gradient
         log_o = torch.log(opacities.clamp(min=ALPHA_THRESHOLD))[:, None, :].expand(B, C, N).reshape(-1)
+    if busy.numel() > 0 and kernels:
+        tile_start = torch.cumsum(tile_counts, 0) - tile_counts
+        acc_b, trans_b = _CompiledComposite.apply(
+            means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat, radii.reshape(-1, 2), flat_ids, busy,
+            tile_start[busy], tile_counts[busy], (tile_size, tile_w, n_tiles, width, height))
+        acc = acc.index_copy(0, busy, acc_b)
+        trans = trans.index_copy(0, busy, trans_b)
+    elif busy.numel() > 0:
         table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
         gids = torch.cat([flat_ids, flat_ids.new_full((1,), n_img * N)])
         tile_start = torch.cumsum(tile_counts, 0) - tile_counts
@@ -688,3 +779,17 @@ def render_gaussians(
         "tile_size": tile_size,
     }
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, part_alpha=part_alpha, meta=meta)
+
+
+def warm_up_compositor() -> None:
+    """Compile (or load from numba's cache) the compiled compositor for float32 scenes,
+    forward and backward, now: e.g. in a parent process before it forks renderers, so that
+    they do not each compile it."""
+    if not splat_kernels.AVAILABLE:
+        return
+    means = torch.tensor([[[0.0, 0.0, 1.0]]], requires_grad=True)
+    K = torch.tensor([[[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]]])
+    out = render_gaussians(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),
+                           torch.full((1, 1), 0.5), torch.ones(1, 1, 3), torch.eye(4)[None, None], K, 8, 8,
+                           compositor="numba")
+    out.rgb.sum().backward()

@@ -82,7 +82,6 @@ _NORMAL_EPS = 1e-12
 _SHADE_CHUNK = 1 << 20  # covered samples shaded at a time in render_meshes
 
 Backend = Literal["auto", "torch", "numba"]
-_KERNEL_DTYPES = (torch.float32, torch.float64)
 
 
 # --------------------------------------------------------------------------------------
@@ -728,22 +727,7 @@ def _use_kernels(backend: str, tensors: Sequence[Tensor]) -> bool:
     Raises:
         ValueError: unknown backend, or ``"numba"`` where the kernels cannot run.
     """
-    if backend not in ("auto", "torch", "numba"):
-        raise ValueError(f"backend must be 'auto', 'torch' or 'numba', got {backend!r}")
-    if backend == "torch":
-        return False
-    why = None
-    if not raster_kernels.AVAILABLE:
-        why = "numba is not installed (pip install numba)"
-    elif any(t.device.type != "cpu" for t in tensors):
-        why = "the tensors are not on the CPU"
-    elif any(t.dtype not in _KERNEL_DTYPES for t in tensors if t.is_floating_point()):
-        why = "the kernels take float32 or float64"
-    elif torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        why = "an input requires grad (the kernels are not differentiable)"
-    if why is not None and backend == "numba":
-        raise ValueError(f"backend='numba' cannot run: {why}")
-    return why is None
+    return raster_kernels.use_kernels("backend", backend, tensors, differentiable=False)
 
 
 def _pixel_centres(n: int, dtype: torch.dtype) -> Tensor:

@@ -14,19 +14,20 @@ Notation: V vertices, F faces, Fk kept faces, H x W image, N covered samples.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 try:
     from numba import njit
 except ImportError:  # pragma: no cover - numba is a declared dependency
     njit = None
 
-__all__ = ["AVAILABLE", "setup_faces", "zbuffer", "resolve", "shade"]
+__all__ = ["AVAILABLE", "compile_kernel", "use_kernels", "setup_faces", "zbuffer", "resolve", "shade"]
 
 AVAILABLE = njit is not None
 _INT64_MAX = np.iinfo(np.int64).max
 
 
-def _jit(fn):
+def compile_kernel(fn):
     """Compile with numba when it is installed: GIL released, IEEE float semantics (division
     by zero gives inf / nan, as in PyTorch, instead of raising), cached on disk where numba
     finds a writable cache folder (else compiled once per process)."""
@@ -38,7 +39,33 @@ def _jit(fn):
         return njit(nogil=True, error_model="numpy")(fn)
 
 
-@_jit
+def use_kernels(option: str, choice: str, tensors, differentiable: bool) -> bool:
+    """Whether compiled kernels run for ``option=choice`` (``"auto"``, ``"torch"`` or
+    ``"numba"``) on ``tensors``: numba installed, CPU tensors, float32 / float64, and, for
+    kernels that are not ``differentiable``, no input that requires grad.
+
+    Raises:
+        ValueError: an unknown choice, or ``"numba"`` where the kernels cannot run.
+    """
+    if choice not in ("auto", "torch", "numba"):
+        raise ValueError(f"{option} must be 'auto', 'torch' or 'numba', got {choice!r}")
+    if choice == "torch":
+        return False
+    why = None
+    if not AVAILABLE:
+        why = "numba is not installed (pip install numba)"
+    elif any(t.device.type != "cpu" for t in tensors):
+        why = "the tensors are not on the CPU"
+    elif any(t.dtype not in (torch.float32, torch.float64) for t in tensors if t.is_floating_point()):
+        why = "the kernels take float32 or float64"
+    elif not differentiable and torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        why = "an input requires grad (the kernels are not differentiable)"
+    if why is not None and choice == "numba":
+        raise ValueError(f"{option}='numba' cannot run: {why}")
+    return why is None
+
+
+@compile_kernel
 def zbuffer(a, b, x, y, tl, inv_z, row0, col0, nrows, ncols, pxs, pys, width, zkey):  # pragma: no cover
     """Nearest (depth, face) key per pixel over every kept face's pixel box.
 
@@ -89,7 +116,7 @@ def zbuffer(a, b, x, y, tl, inv_z, row0, col0, nrows, ncols, pxs, pys, width, zk
                     zkey[base + c] = key
 
 
-@_jit
+@compile_kernel
 def resolve(zkey, face_ids, verts_cam, faces, K, pxs, pys, width, consts,
             face_idx, bary, depth):  # pragma: no cover
     """Visible face, perspective-correct barycentrics and depth of every covered pixel.
@@ -145,7 +172,7 @@ def resolve(zkey, face_ids, verts_cam, faces, K, pxs, pys, width, consts,
         depth[p] = one / inv
 
 
-@_jit
+@compile_kernel
 def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, part_ids, part_tex,
           colors, uv, tex, tex_off, tex_h, tex_w, tex_hw, light, consts, color, normal, pid):  # pragma: no cover
     """Blinn-Phong colour, shading normal and part id of every covered sample.
@@ -254,7 +281,7 @@ def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, 
         pid[p] = part_ids[part]
 
 
-@_jit
+@compile_kernel
 def setup_faces(verts_cam, faces, K, height, width, near, front, consts,
                 face_ids, a, b, x, y, tl, inv_z, row0, col0, nrows, ncols):  # pragma: no cover
     """Project, drop (near plane, non-finite, culled, degenerate, off-screen) and tabulate
