@@ -24,9 +24,12 @@ process per timed call. ``--malloc`` runs every row once per allocator, side by 
 ``HOGSA_KEEP_MEMORY=0``) and "tcmalloc" (``LD_PRELOAD`` of libtcmalloc_minimal, found in the
 system's library folders or given by ``--tcmalloc``).
 
+The torch backend's compositor (``--compositor``): ``auto`` (the default, the compiled
+kernels on the CPU), ``torch`` (vectorised PyTorch), ``numba``, or ``both`` (a row each).
+
 Usage::
 
-    python benchmarks/render_speed.py --json OUT.json [--backend torch|gsplat|all] [--quick]
+    python benchmarks/render_speed.py --json OUT.json [--backend torch|gsplat|all] [--quick] [--compositor both]
     python benchmarks/render_speed.py --quick --malloc default,glibc,tcmalloc --json OUT.json
 """
 
@@ -87,28 +90,31 @@ def make_scene(n: int, width: int, device: str, seed: int = 0) -> dict[str, Any]
     return scene
 
 
-def _render_fn(backend: str) -> Callable[[dict[str, Any]], torch.Tensor]:
+def _render_fn(backend: str, compositor: str) -> Callable[[dict[str, Any]], torch.Tensor]:
     """Both backends go through the public entry point ``hogsa_loader.render.render``
     (render_mode "RGB"; gsplat unpacked as in the original gsplat rows, the torch backend
-    ignores ``packed``)."""
+    ignores ``packed``; ``compositor`` is the torch backend's)."""
     if backend not in ("torch", "gsplat"):
         raise ValueError(backend)
     from hogsa_loader.render import render
 
+    opts = {"compositor": compositor} if backend == "torch" else {}
+
     def fn(s: dict[str, Any]) -> torch.Tensor:
         out = render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmats"], s["Ks"],
-                     s["width"], s["width"], backend=backend, render_mode="RGB", packed=False)  # fmt: skip
+                     s["width"], s["width"], backend=backend, render_mode="RGB", packed=False, **opts)  # fmt: skip
         return out.rgb
 
     return fn
 
 
-def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
+def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int,
+            compositor: str = "auto") -> dict[str, Any]:
     from hogsa_loader.system import allocator_status
 
     device = "cuda" if backend == "gsplat" else "cpu"
     torch.set_num_threads(bench_threads())
-    fn = _render_fn(backend)
+    fn = _render_fn(backend, compositor)
     s = make_scene(n, width, device)
     t = time_render(fn, s, device, warmup, rep_fwd, rep_bwd)
     with torch.no_grad():
@@ -120,6 +126,7 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
                               s["viewmats"], s["Ks"], width, width, backend="torch").meta["n_isects"]  # fmt: skip
     return {
         "backend": backend,
+        "compositor": compositor if backend == "torch" else None,
         "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu x{torch.get_num_threads()} threads",
         "N": n,
         "width": width,
@@ -143,14 +150,14 @@ def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
     for r in rows:
         if r["allocator"] == ref_name:
             continue
-        ref = next((q for q in rows if q["allocator"] == ref_name and (q["backend"], q["N"], q["width"])
-                    == (r["backend"], r["N"], r["width"])), None)  # fmt: skip
+        ref = next((q for q in rows if q["allocator"] == ref_name and (q["backend"], q["compositor"], q["N"],
+                    q["width"]) == (r["backend"], r["compositor"], r["N"], r["width"])), None)  # fmt: skip
         if ref is None:
             continue
         keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
         ratio = {k: r[k] / ref[k] if ref[k] else float("nan") for k in keys}
         r[f"vs_{ref_name}"] = {k: None if v != v else round(v, 3) for k, v in ratio.items()}  # no ratio to 0
-        print(f"{r['backend']} N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
+        print(f"{r['backend']} ({r['compositor']}) N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
               f"fwd time {ratio['fwd_ms']:.2f}x, "
               f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "
               f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x", flush=True)
@@ -167,7 +174,9 @@ def main() -> None:
     ap.add_argument("--malloc", default="default",
                     help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}")
     ap.add_argument("--tcmalloc", help="path of libtcmalloc_minimal (default: looked up in the library folders)")
-    ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width in a child
+    ap.add_argument("--compositor", default="auto", choices=["auto", "torch", "numba", "both"],
+                    help="the torch backend's compositor (render_gaussians); both: a row for each of torch, numba")
+    ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width,compositor in a child
     a = ap.parse_args()
     mallocs = [m.strip() for m in a.malloc.split(",") if m.strip()]
     bad = [m for m in mallocs if m not in MALLOCS]
@@ -175,8 +184,8 @@ def main() -> None:
         ap.error(f"--malloc takes a comma-separated list of {list(MALLOCS)}, got {a.malloc!r}")
 
     if a.row:
-        backend, n, w = a.row.split(",")
-        print(json.dumps(run_row(backend, int(n), int(w), a.warmup, a.repeats_fwd, a.repeats_bwd)))
+        backend, n, w, comp = a.row.split(",")
+        print(json.dumps(run_row(backend, int(n), int(w), a.warmup, a.repeats_fwd, a.repeats_bwd, comp)))
         return
 
     backends = ["torch", "gsplat"] if a.backend == "all" else [a.backend]
@@ -186,19 +195,21 @@ def main() -> None:
     configs = QUICK_CONFIGS if a.quick else CONFIGS
     reps = (1, 3, 2) if a.quick else (a.warmup, a.repeats_fwd, a.repeats_bwd)
     envs = {m: malloc_env(m, a.tcmalloc) for m in mallocs}
+    compositors = ["torch", "numba"] if a.compositor == "both" else [a.compositor]
+    runs = [(b, c) for b in backends for c in (compositors if b == "torch" else ["auto"])]
     rows = []
-    for backend in backends:
+    for backend, comp in runs:
         for n, w in configs:
             for m in mallocs:
-                cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w}", "--warmup",
+                cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w},{comp}", "--warmup",
                        str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]  # fmt: skip
                 res = subprocess.run(cmd, capture_output=True, text=True, env=envs[m])
                 if res.returncode != 0:
-                    print(f"{backend} N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
+                    print(f"{backend} ({comp}) N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
                     continue
                 rows.append({"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])})
                 r = rows[-1]
-                print(f"{r['backend']:7s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                print(f"{r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
                       f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
                       f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
                       f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)  # fmt: skip

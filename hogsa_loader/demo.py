@@ -299,13 +299,10 @@ _NODES: list[_StageNode] = []  # the stage graph, set in the parent before the s
 _CHILD_CFG: Optional[DemoConfig] = None  # the settings inside a stage process (no progress bars)
 _SAY: Callable[[str], None] = print  # the parent's line printer, inherited by the stage processes
 _OUT = Path(".")  # the demo folder, inherited by the stage processes
-_PARENT_THREADS = 1  # the parent's torch threads, split between the stages running
 
 
-def _run_node(i: int, concurrent: int) -> tuple[float, bool]:
-    """Build stage ``i`` in a stage process, on the parent's torch threads split between the
-    ``concurrent`` stages running; returns its seconds and whether it was reused."""
-    torch.set_num_threads(max(1, _PARENT_THREADS // concurrent))
+def _run_node(i: int) -> tuple[float, bool]:
+    """Build stage ``i`` in a stage process; returns its seconds and whether it was reused."""
     stages = _Stages(_OUT, _SAY)
     node = _NODES[i]
     stages.run(node.name, node.key, node.outputs, node.build)
@@ -330,14 +327,13 @@ def _check_graph(nodes: list[_StageNode]) -> None:
 def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, say: Callable[[str], None]) -> None:
     """Run the stages, each once the stages it needs are done. Where forking is safe
     (:func:`hogsa_loader.system.can_fork`), with more than one core and more than one stage to
-    build, they run on forked processes, side by side where the graph allows (torch threads
-    split between the stages running, no progress bars); else one after the other in list
-    order. Cached stages are reported and skipped in the parent. On an error the other stage
+    build, they run on forked processes, side by side where the graph allows (one torch
+    thread each, no progress bars); else one after the other in list order. Cached stages are reported and skipped in the parent. On an error the other stage
     processes are stopped and the error is raised."""
     from hogsa_loader.render.gaussians import warm_up_compositor
     from hogsa_loader.system import available_cores, can_fork, run_forked
 
-    global _NODES, _SAY, _OUT, _PARENT_THREADS
+    global _NODES, _SAY, _OUT
     _check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
     workers = min(len(todo), available_cores())
@@ -358,7 +354,7 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
         if result[1]:
             stages.reused.append(todo[i].name)
 
-    _NODES, _SAY, _OUT, _PARENT_THREADS = todo, say, stages.dir.parent, torch.get_num_threads()
+    _NODES, _SAY, _OUT = todo, say, stages.dir.parent
     try:
         run_forked(_run_node, needs, workers, on_result=record, initializer=_stage_process_init, initargs=(cfg,))
     finally:

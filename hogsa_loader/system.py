@@ -48,16 +48,21 @@ def can_fork() -> bool:
     return sys.platform.startswith("linux")
 
 
-def run_forked(fn: Callable[[int, int], Any], needs: Sequence[Sequence[int]], workers: int,
+def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers: int,
                on_result: Callable[[int, Any], None], initializer: Optional[Callable[..., None]] = None,
                initargs: tuple = (), poll: Optional[Callable[[], None]] = None) -> None:
-    """Run ``fn(i, concurrent)`` for every task ``i`` on ``workers`` forked processes, each
-    once the tasks in ``needs[i]`` are done (``concurrent``: how many tasks run at once as it
-    starts, e.g. to split torch threads). ``fn`` and what it reads are inherited through
-    fork, so they need not pickle; results must. ``on_result(i, result)`` runs in the caller
-    as each task ends and ``poll()`` about every 0.5 s. The first error (a process that dies,
-    or an interrupt of the caller, included) is raised after the results of the tasks that
-    ended are reported; the processes still running are terminated first.
+    """Run ``fn(i)`` for every task ``i`` on ``workers`` forked processes, each once the tasks
+    in ``needs[i]`` are done. ``fn`` and what it reads are inherited through fork, so they
+    need not pickle; results must. ``on_result(i, result)`` runs in the caller as each task
+    ends and ``poll()`` about every 0.5 s. The first error (a process that dies, or an
+    interrupt of the caller, included) is raised after the results of the tasks that ended
+    are reported; the processes still running are terminated first.
+
+    The processes run with one torch thread, set before ``initializer``: GNU OpenMP,
+    PyTorch's CPU thread pool on Linux, hangs in the first parallel region of a process
+    forked from one that had already run parallel regions, if the child asks for more
+    than one thread (its pool's threads do not exist after ``fork``). ``fn`` must not raise
+    the thread count either; the processes themselves are the parallelism.
 
     Raises:
         ValueError: ``needs`` names a task that is not listed before it.
@@ -67,18 +72,17 @@ def run_forked(fn: Callable[[int, int], Any], needs: Sequence[Sequence[int]], wo
     for i, deps in enumerate(needs):
         if any(not 0 <= d < i for d in deps):
             raise ValueError(f"task {i} needs {list(deps)}: only tasks listed before it")
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=initializer,
-                               initargs=initargs)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=_forked_init,
+                               initargs=(initializer, initargs))
     error: Optional[BaseException] = None
     try:
         done: set[int] = set()
         waiting, running = list(range(len(needs))), {}
         while (waiting or running) and error is None:
             ready = [i for i in waiting if all(d in done for d in needs[i])]
-            concurrent = min(workers, len(running) + len(ready))
             for i in ready:
                 waiting.remove(i)
-                running[pool.submit(fn, i, concurrent)] = i
+                running[pool.submit(fn, i)] = i
             finished, _ = wait(list(running), timeout=0.5, return_when=FIRST_COMPLETED)
             for f in finished:
                 i = running.pop(f)
@@ -98,6 +102,15 @@ def run_forked(fn: Callable[[int, int], Any], needs: Sequence[Sequence[int]], wo
         pool.shutdown(wait=True, cancel_futures=True)
     if error is not None:
         raise error
+
+
+def _forked_init(initializer: Optional[Callable[..., None]], initargs: tuple) -> None:
+    """A :func:`run_forked` process: one torch thread (see there), then the caller's setup."""
+    import torch
+
+    torch.set_num_threads(1)
+    if initializer is not None:
+        initializer(*initargs)
 
 
 def _skip_reason() -> Optional[str]:

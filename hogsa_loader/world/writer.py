@@ -339,21 +339,20 @@ class _CountingBar:
             self.counter.value += n
 
 
-def _process_init(threads: int, counter) -> None:
+def _process_init(counter) -> None:
     global _COUNTER
-    torch.set_num_threads(threads)
     _COUNTER = counter
     _RENDERERS.clear()
 
 
-def _process_task(i: int, concurrent: int) -> str:
+def _process_task(i: int) -> str:
     assert _SHARED is not None
     return _render_task(_SHARED, _SHARED.tasks[i], _CountingBar(_COUNTER), _RENDERERS)
 
 
 def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callable[[str], None]) -> None:
-    """Render ``shared.tasks`` on ``workers`` forked processes (``torch`` threads split between
-    them), calling ``done`` in the parent for every sequence that finishes
+    """Render ``shared.tasks`` on ``workers`` forked processes (one torch thread each), calling
+    ``done`` in the parent for every sequence that finishes
     (:func:`hogsa_loader.system.run_forked`: on an error the others are stopped; a resumed
     run renders their sequences again)."""
     from hogsa_loader.render.mesh_raster import warm_up_kernels
@@ -367,7 +366,7 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
     try:
         run_forked(_process_task, [()] * len(shared.tasks), workers,
                    on_result=lambda i, name: done(name), initializer=_process_init,
-                   initargs=(max(1, torch.get_num_threads() // workers), counter),
+                   initargs=(counter,),
                    poll=lambda: bar.update(start + counter.value - bar.n))
     finally:
         _SHARED = None
@@ -431,8 +430,8 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
             recorded sequence is kept when its last image and mask decode. Annotations,
             splits and the preview are always rewritten. Without it, or when the record is
             of another world, every sequence is rendered.
-        workers: processes rendering sequences side by side (forked, ``torch`` threads
-            split between them; the files are the same for any count). Default: one per CPU
+        workers: processes rendering sequences side by side (forked, one torch thread
+            each; the files are the same for any count). Default: one per CPU
             core available to this process, at most 8, on Linux; 1 elsewhere (forking is
             not safe there). Each holds a copy of its subject's renderer.
 
