@@ -167,10 +167,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", required=False, help="write the rows to this file")
     ap.add_argument("--backend", default="torch", choices=["torch", "gsplat", "all"])
-    ap.add_argument("--quick", action="store_true", help="50k @ 224 only, fewer repeats")
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--repeats-fwd", type=int, default=7)
-    ap.add_argument("--repeats-bwd", type=int, default=5)
+    ap.add_argument("--quick", action="store_true",
+                    help="50k @ 224 only, fewer repeats (1, 3, 2) unless the repeat flags are given")
+    ap.add_argument("--warmup", type=int, default=None, help="default 2")
+    ap.add_argument("--repeats-fwd", type=int, default=None, help="default 7")
+    ap.add_argument("--repeats-bwd", type=int, default=None, help="default 5")
     ap.add_argument("--malloc", default="default",
                     help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}")
     ap.add_argument("--tcmalloc", help="path of libtcmalloc_minimal (default: looked up in the library folders)")
@@ -193,7 +194,8 @@ def main() -> None:
         print("gsplat backend skipped: CUDA is not available (gsplat's rasteriser is CUDA-only)")
         backends.remove("gsplat")
     configs = QUICK_CONFIGS if a.quick else CONFIGS
-    reps = (1, 3, 2) if a.quick else (a.warmup, a.repeats_fwd, a.repeats_bwd)
+    reps = tuple(given if given is not None else default for given, default in
+                 zip((a.warmup, a.repeats_fwd, a.repeats_bwd), (1, 3, 2) if a.quick else (2, 7, 5), strict=True))
     envs = {m: malloc_env(m, a.tcmalloc) for m in mallocs}
     compositors = ["torch", "numba"] if a.compositor == "both" else [a.compositor]
     runs = [(b, c) for b in backends for c in (compositors if b == "torch" else ["auto"])]

@@ -76,9 +76,10 @@ padding, or set their opacity to 0 (``opacity < 1/255`` is culled, as in gsplat)
 
 from __future__ import annotations
 
-import threading
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Optional
 
 import torch
 import torch.nn.functional as F
@@ -524,22 +525,32 @@ def _composite_tiles(
     return acc, trans
 
 
-def _run_split(kernel: Any, work: Tensor, args: tuple) -> None:
-    """Run ``kernel(sel, *args)`` over the busy tiles, dealt round-robin (they come sorted
-    by list length) to as many threads as torch uses; the kernels release the GIL."""
+_POOL: Optional[tuple[int, ThreadPoolExecutor]] = None  # (owner pid, threads of the compiled compositor)
+
+
+def _thread_pool(n: int) -> ThreadPoolExecutor:
+    """This process's threads for the compiled compositor (kept between calls, so that no
+    thread, stack or allocator arena is created per render; made anew in a forked child)."""
+    global _POOL
+    if _POOL is None or _POOL[0] != os.getpid() or _POOL[1]._max_workers < n:
+        _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=n, thread_name_prefix="hogsa-composite"))
+    return _POOL[1]
+
+
+def _run_split(kernel: Any, work: Tensor, args: tuple, scratch: tuple[int, torch.dtype]) -> None:
+    """Run ``kernel(sel, *args, scratch_i)`` over the busy tiles, dealt round-robin (they
+    come sorted by list length) to as many threads as torch uses (the caller's and pool
+    threads; the kernels release the GIL). Each thread gets its own scratch array of
+    ``scratch`` = (size, dtype)."""
     n = max(1, min(torch.get_num_threads(), work.numel()))
     parts = [work[i::n].numpy() for i in range(n)]
-    if n == 1:
-        kernel(parts[0], *args)
-        return
-    threads = [threading.Thread(target=kernel, args=(part, *args)) for part in parts[1:]]
-    for t in threads:
-        t.start()
+    buf = torch.empty(n, scratch[0], dtype=scratch[1]).numpy()
+    others = [_thread_pool(n - 1).submit(kernel, part, *args, buf[i + 1]) for i, part in enumerate(parts[1:])]
     try:
-        kernel(parts[0], *args)
+        kernel(parts[0], *args, buf[0])
     finally:
-        for t in threads:
-            t.join()
+        for f in others:
+            f.result()
 
 
 class _CompiledComposite(torch.autograd.Function):
@@ -565,7 +576,8 @@ class _CompiledComposite(torch.autograd.Function):
         order = torch.argsort(count, descending=True, stable=True)
         common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), *(t.numpy() for t in tables[:3]),
                   radii.numpy(), tables[3].numpy(), *geometry, consts.numpy())
-        _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()))
+        _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()),
+                   (p, torch.bool))
         ctx.save_for_backward(*tables, radii, gids, busy, start, count, trans, last, consts, order)
         ctx.geometry = geometry
         ctx.dtypes = (means2d.dtype, conics.dtype, log_o.dtype)
@@ -582,7 +594,7 @@ class _CompiledComposite(torch.autograd.Function):
                   radii.numpy(), feats.numpy(), *ctx.geometry, consts.numpy())
         _run_split(splat_kernels.composite_backward, order,
                    (*common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
-                    v_trans.to(dtype).contiguous().numpy(), grads.numpy()))
+                    v_trans.to(dtype).contiguous().numpy(), grads.numpy()), (2 * trans.shape[1] + nf, dtype))
         per_row = torch.zeros(m2d.shape[0], grads.shape[1], dtype=dtype).index_add_(0, gids, grads)
         d_m2d, d_con, d_lo = per_row[:, 0:2], per_row[:, 2:5], per_row[:, 5]
         d_feat = per_row[:, splat_kernels.GRAD_COLUMNS:]

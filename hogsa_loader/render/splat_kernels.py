@@ -65,7 +65,7 @@ def _visibility(mx, dy, a, b, c, lo, px, half):  # pragma: no cover
 
 @compile_kernel
 def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                      n_tiles, width, height, consts, acc, trans, last):  # pragma: no cover
+                      n_tiles, width, height, consts, acc, trans, last, done):  # pragma: no cover
     """Composite the busy tiles ``sel`` front to back.
 
     Args:
@@ -80,12 +80,13 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
         consts: (4,) in the feature dtype: 1/255, 0.999, 1e-4, 1.
         acc: (nb, P, F) zeros, trans: (nb, P) ones, last: (nb, P) int32 zeros; written for
             the rows in ``sel``: ``sum w feat``, final transmittance, list entries used.
+        done: (P,) bool scratch (passed in: the kernel allocates nothing, so threads that
+            run it create no allocator state).
     """
     thr, amax, tmin, one = consts[0], consts[1], consts[2], consts[3]
     half = one / (one + one)
     nfeat = feats.shape[1]
     P = tile_size * tile_size
-    done = np.empty(P, np.bool_)
     for i in sel:
         x0, y0 = _tile_origin(busy[i], n_tiles, tile_w, tile_size)
         n_done = 0
@@ -124,7 +125,8 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
 
 @compile_kernel
 def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                       n_tiles, width, height, consts, trans, last, v_acc, v_trans, grads):  # pragma: no cover
+                       n_tiles, width, height, consts, trans, last, v_acc, v_trans, grads,
+                       scratch):  # pragma: no cover
     """Gradients of :func:`composite_forward`'s outputs, per intersection.
 
     Args:
@@ -133,14 +135,15 @@ def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, ra
         v_acc: (nb, P, F), v_trans: (nb, P) gradients of the outputs.
         grads: (K, 6 + F) zeros; row ``j`` gets the gradient of intersection ``j`` with
             respect to its Gaussian's ``mx, my, A, B, C, log o, feats``.
+        scratch: (2 P + F,) in the feature dtype (passed in, as in :func:`composite_forward`).
     """
     thr, amax, one = consts[0], consts[1], consts[3]
     half = one / (one + one)
     nfeat = feats.shape[1]
     P = tile_size * tile_size
-    t_cur = np.empty(P, trans.dtype)  # transmittance after the entry being visited
-    after = np.empty(P, trans.dtype)  # sum over later entries of w (feat . v) + T_final v_T
-    gfeat = np.empty(nfeat, trans.dtype)
+    t_cur = scratch[:P]  # transmittance after the entry being visited
+    after = scratch[P:2 * P]  # sum over later entries of w (feat . v) + T_final v_T
+    gfeat = scratch[2 * P:]
     for i in sel:
         x0, y0 = _tile_origin(busy[i], n_tiles, tile_w, tile_size)
         n_used = 0
