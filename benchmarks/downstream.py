@@ -306,7 +306,8 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
     * ``"world"``: the data (world record) -- the real arms;
     * ``"bundle"``: also the bundle without its pose banks -- variants that do not draw from
       the bank;
-    * ``"all"``: also the pose banks and the free-3DGS bundle.
+    * ``"all"``: also the pose banks -- variants that draw from the bank;
+    * ``"free"``: the data and the free-3DGS bundle -- the free variant.
     """
     def digest(f: Path, drop: tuple[str, ...] = ()) -> Optional[str]:
         if not f.is_file():
@@ -323,13 +324,15 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
     return {"world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
             "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
             "all": _key([s, world, digest(manifest),
-                         digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")])}
+                         digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")]),
+            "free": _key([{"data": s["data"], "preset": s["preset"], "free_bundle": s["free_bundle"]}, world,
+                          digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")])}
 
 
 def reads(arm_or_variant: Optional[str]) -> str:
     """Which :func:`setup_fingerprints` entry a run or an export depends on."""
     variant = ARM_SPECS[arm_or_variant][1] if arm_or_variant in ARM_SPECS else arm_or_variant
-    return "world" if variant is None else "bundle" if variant == "no_pom" else "all"
+    return {None: "world", "no_pom": "bundle", "free": "free"}.get(variant, "all")
 
 
 def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) -> Optional[dict[str, Any]]:

@@ -108,6 +108,14 @@ def _render_fn(backend: str, compositor: str) -> Callable[[dict[str, Any]], torc
     return fn
 
 
+def _compositor_used(compositor: str, s: dict[str, Any]) -> str:
+    """The compositor ``render_gaussians`` runs for ``compositor`` on this scene."""
+    from hogsa_loader.render.raster_kernels import use_kernels
+
+    return "numba" if use_kernels("compositor", compositor, [s["means"], s["colors"], s["opacities"]],
+                                  differentiable=True) else "torch"
+
+
 def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int,
             compositor: str = "auto") -> dict[str, Any]:
     from hogsa_loader.system import allocator_status
@@ -126,7 +134,7 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
                               s["viewmats"], s["Ks"], width, width, backend="torch").meta["n_isects"]  # fmt: skip
     return {
         "backend": backend,
-        "compositor": compositor if backend == "torch" else None,
+        "compositor": _compositor_used(compositor, s) if backend == "torch" else None,
         "device": torch.cuda.get_device_name() if device == "cuda" else f"cpu x{torch.get_num_threads()} threads",
         "N": n,
         "width": width,
@@ -211,7 +219,8 @@ def main() -> None:
                     continue
                 rows.append({"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])})
                 r = rows[-1]
-                print(f"{r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                print(f"{r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} N={r['N']:>7d} "
+                      f"{r['width']:>4d}x{r['height']:<4d} "
                       f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
                       f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
                       f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)  # fmt: skip

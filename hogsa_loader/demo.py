@@ -19,7 +19,8 @@ second run only streams)::
 Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
 the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
 core and more than one stage to build, each starts on a forked process as soon as the stages
-it needs are done (torch threads split between the stages running, no progress bars).
+it needs are done (one torch thread each, no progress bars; a stage that is the only one
+able to run builds in the demo's own process, on all threads).
 
 ``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
 of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
@@ -328,12 +329,14 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
     """Run the stages, each once the stages it needs are done. Where forking is safe
     (:func:`hogsa_loader.system.can_fork`), with more than one core and more than one stage to
     build, they run on forked processes, side by side where the graph allows (one torch
-    thread each, no progress bars); else one after the other in list order. Cached stages are reported and skipped in the parent. On an error the other stage
-    processes are stopped and the error is raised."""
+    thread each, no progress bars; a stage that is the only one able to run builds in this
+    process, on all threads); else one after the other in list order. Cached stages are
+    reported and skipped in the parent. On an error the other stage processes are stopped
+    and the error is raised."""
     from hogsa_loader.render.gaussians import warm_up_compositor
     from hogsa_loader.system import available_cores, can_fork, run_forked
 
-    global _NODES, _SAY, _OUT
+    global _NODES, _SAY, _OUT, _CHILD_CFG
     _check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
     workers = min(len(todo), available_cores())
@@ -358,7 +361,7 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
     try:
         run_forked(_run_node, needs, workers, on_result=record, initializer=_stage_process_init, initargs=(cfg,))
     finally:
-        _NODES = []
+        _NODES, _CHILD_CFG = [], None  # (a stage built in this process set the stage settings here)
 
 
 def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),

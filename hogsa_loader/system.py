@@ -62,7 +62,10 @@ def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers
     PyTorch's CPU thread pool on Linux, hangs in the first parallel region of a process
     forked from one that had already run parallel regions, if the child asks for more
     than one thread (its pool's threads do not exist after ``fork``). ``fn`` must not raise
-    the thread count either; the processes themselves are the parallelism.
+    the thread count either; the processes themselves are the parallelism. A task that is
+    ready while no other task runs or is ready (everything left waits for it) runs in the
+    caller instead, on all of its threads (``initializer`` is then run in the caller first,
+    once).
 
     Raises:
         ValueError: ``needs`` names a task that is not listed before it.
@@ -75,11 +78,20 @@ def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=_forked_init,
                                initargs=(initializer, initargs))
     error: Optional[BaseException] = None
+    caller_ready = False
     try:
         done: set[int] = set()
         waiting, running = list(range(len(needs))), {}
         while (waiting or running) and error is None:
             ready = [i for i in waiting if all(d in done for d in needs[i])]
+            if len(ready) == 1 and not running:  # alone: in the caller, whose threads are all usable
+                if not caller_ready and initializer is not None:
+                    initializer(*initargs)
+                caller_ready = True
+                waiting.remove(ready[0])
+                on_result(ready[0], fn(ready[0]))
+                done.add(ready[0])
+                continue
             for i in ready:
                 waiting.remove(i)
                 running[pool.submit(fn, i)] = i

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from typing import Optional, Sequence
 
@@ -47,8 +48,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--quiet", action="store_true")
     checks.one_line_errors(p)
     args = p.parse_args(argv)
-    if args.arti_range is not None and not 0.0 <= args.arti_range[0] <= args.arti_range[1]:
-        p.error(f"argument --arti-range: need 0 <= LO <= HI, got {args.arti_range[0]} {args.arti_range[1]}")
+    if args.arti_range is not None and not 0.0 <= args.arti_range[0] <= args.arti_range[1] < math.inf:
+        p.error(f"argument --arti-range: need finite 0 <= LO <= HI, got {args.arti_range[0]} {args.arti_range[1]}")
     return args
 
 
@@ -68,7 +69,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             args.data, args.contactnet, args.out, per_sequence=args.per_sequence, variants=args.variants,
             subjects=args.subjects.split(",") if args.subjects else None,
             sequences=args.sequences.split(",") if args.sequences else None, iters=args.iters, batch=args.batch,
-            seed=args.seed, keep_rejected=args.keep_rejected, perturbation=pert, device=args.device, progress=not args.quiet,
+            seed=args.seed, keep_rejected=args.keep_rejected, perturbation=pert, device=args.device,
+            progress=not args.quiet,
         )  # fmt: skip
     except (HogsaError, OSError) as exc:
         return checks.report("build_pose_bank", exc)

@@ -14,7 +14,9 @@ import pytest
 GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
 # Renders a small scene 5 times in a fresh process and prints the allocator status and the
-# minor page faults per call of the last three (after two warm-up calls).
+# minor page faults per call of the last three (after two warm-up calls). The PyTorch compositor
+# is used: its large temporaries are what glibc would hand back and fault in again (the compiled
+# compositor allocates little either way).
 CHILD = textwrap.dedent(
     """
     import json, resource, torch
@@ -35,7 +37,7 @@ CHILD = textwrap.dedent(
         for i in range(5):
             if i == 2:
                 f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-            render(means, quats, scales, opac, cols, torch.eye(4)[None], K, w, w, backend="torch")
+            render(means, quats, scales, opac, cols, torch.eye(4)[None], K, w, w, backend="torch", compositor="torch")
     faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 3
     print(json.dumps({"before": before, "after": allocator_status(), "faults": faults}))
     """

@@ -87,7 +87,7 @@ def test_bad_value_is_refused_before_work(cmd, base, flag, value, tiny_world, un
     assert not any(tmp_path.iterdir()), sorted(p.name for p in tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("lo_hi", [("0.5", "0.1"), ("-0.1", "0.2"), ("nan", "0.2")])
+@pytest.mark.parametrize("lo_hi", [("0.5", "0.1"), ("-0.1", "0.2"), ("nan", "0.2"), ("0", "inf")])
 def test_pose_bank_articulation_range_is_checked(lo_hi, tmp_path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
     err = io.StringIO()

@@ -102,8 +102,8 @@ def test_low_data_subset_is_fixed_and_sized():
     assert ds.low_data_indices(3, 0.1) and len(ds.low_data_indices(3, 0.1)) == 1
 
 
-def _prints(world: str, bundle: str, everything: str) -> dict[str, str]:
-    return {"world": world, "bundle": bundle, "all": everything}
+def _prints(world: str, bundle: str, everything: str, free: str = "f0") -> dict[str, str]:
+    return {"world": world, "bundle": bundle, "all": everything, "free": free}
 
 
 def test_every_arm_has_a_variant_spec():
@@ -124,8 +124,8 @@ def test_every_arm_has_a_variant_spec():
     assert ds.run_settings("real", 0, cfg, dict(setup, fingerprints=_prints("w1", "b0", "a0"))) != k  # new world
     # a run's key follows the part of the setup it reads: a new pose bank re-runs the bank arms only
     new_bank = dict(setup, fingerprints=_prints("w0", "b0", "a1"))
-    for arm, changed in (("real", False), ("real_low", False), ("hogsa_no_pom", False), ("hogsa", True),
-                         ("hogsa_no_srm", True), ("hogsa_low", True)):
+    for arm, changed in (("real", False), ("real_low", False), ("hogsa_no_pom", False), ("hogsa_free", False),
+                         ("hogsa", True), ("hogsa_no_srm", True), ("hogsa_low", True)):
         assert (ds.run_settings(arm, 0, cfg, new_bank) != ds.run_settings(arm, 0, cfg, setup)) == changed, arm
     assert ds.run_settings("hogsa_no_pom", 0, cfg, dict(setup, fingerprints=_prints("w0", "b1", "a1"))) != \
         ds.run_settings("hogsa_no_pom", 0, cfg, setup)  # new HOGS/SRM
@@ -147,10 +147,11 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     world.write_text('{"seed": 0}')
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
-    assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 3
+    assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "2"}}]}))
     bank = ds.setup_fingerprints(cfg, setup)  # a new pose bank
     assert bank["world"] == first["world"] and bank["bundle"] == first["bundle"] and bank["all"] != first["all"]
+    assert bank["free"] == first["free"]
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "2"}}], "pose_banks": [{"files": {"p": "2"}}]}))
     hogs = ds.setup_fingerprints(cfg, setup)  # a new HOGS
     assert hogs["world"] == first["world"] and hogs["bundle"] != bank["bundle"] and hogs["all"] != bank["all"]

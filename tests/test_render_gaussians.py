@@ -13,6 +13,7 @@ from hogsa_loader.render.gaussians import (
     quat_scale_to_covar,
     render_gaussians,
     sh_colors,
+    warm_up_compositor,
 )
 
 gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
@@ -512,6 +513,7 @@ def _two_image_scene(dtype):
     return tensors, dict(W=W, H=H, valid=valid, part_ids=part_ids)
 
 
+@pytest.mark.parametrize("compositor", ["both"])  # compares the two itself (overrides the fixture)
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 5e-5)])
 def test_compositors_agree(compositor, dtype, tol):
     """The compiled kernels give the PyTorch compositor's images and gradients (float64:
@@ -548,3 +550,24 @@ def test_compositor_choice_is_checked():
         render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args), compositor="numba")
     half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args), compositor="auto")
     assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor
+    # opacities above 1 reach beyond the radius, where the kernels do not look: the PyTorch path
+    big = (means[None], quats[None], scales[None] * 4, (opac[None] * 3).clamp(min=1.5), cols[None],
+           *args[5:])  # fmt: skip
+    with pytest.raises(ValueError, match="opacity is above 1"):
+        render_gaussians(*big, compositor="numba")
+    torch.testing.assert_close(render_gaussians(*big, compositor="auto").rgb,
+                               render_gaussians(*big, compositor="torch").rgb, rtol=0, atol=0)
+
+
+def test_second_order_gradients_are_refused_by_the_kernels():
+    means, quats, scales, opac, cols = _ball_scene(10, 1)
+    m = means[None].clone().requires_grad_(True)
+    out = render_gaussians(m, quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+                           _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16, compositor="numba")
+    with pytest.raises(RuntimeError, match="first-order gradients only"):
+        torch.autograd.grad(out.rgb.sum(), m, create_graph=True)
+
+
+def test_warm_up_runs_under_no_grad():
+    with torch.no_grad():
+        warm_up_compositor()

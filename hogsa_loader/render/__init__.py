@@ -1,7 +1,8 @@
 """Classical rendering utilities (mesh rasterisation, previews) and Gaussian splatting.
 
-The Gaussian-splatting entry point is :func:`render` (gsplat-like, with a pure-PyTorch
-backend and a gsplat CUDA backend); it imports gsplat lazily, only for CUDA tensors.
+The Gaussian-splatting entry point is :func:`render` (gsplat-like, with a CPU backend --
+PyTorch, compositing by compiled kernels on the CPU -- and a gsplat CUDA backend); it
+imports gsplat lazily, only for CUDA tensors.
 """
 
 from hogsa_loader.render.api import BackendUnavailableError, antialias_compensation, render

@@ -81,6 +81,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 import torch.utils.checkpoint
@@ -525,16 +526,19 @@ def _composite_tiles(
     return acc, trans
 
 
-_POOL: Optional[tuple[int, ThreadPoolExecutor]] = None  # (owner pid, threads of the compiled compositor)
+_POOL: Optional[tuple[int, int, ThreadPoolExecutor]] = None  # (owner pid, threads, pool) of the compositor
 
 
 def _thread_pool(n: int) -> ThreadPoolExecutor:
     """This process's threads for the compiled compositor (kept between calls, so that no
-    thread, stack or allocator arena is created per render; made anew in a forked child)."""
+    thread, stack or allocator arena is created per render; made anew in a forked child,
+    whose copy of the parent's pool has no threads)."""
     global _POOL
-    if _POOL is None or _POOL[0] != os.getpid() or _POOL[1]._max_workers < n:
-        _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=n, thread_name_prefix="hogsa-composite"))
-    return _POOL[1]
+    if _POOL is None or _POOL[0] != os.getpid() or _POOL[1] < n:
+        if _POOL is not None and _POOL[0] == os.getpid():
+            _POOL[2].shutdown(wait=False)
+        _POOL = (os.getpid(), n, ThreadPoolExecutor(max_workers=n, thread_name_prefix="hogsa-composite"))
+    return _POOL[2]
 
 
 def _run_split(kernel: Any, work: Tensor, args: tuple, scratch: tuple[int, torch.dtype]) -> None:
@@ -543,7 +547,7 @@ def _run_split(kernel: Any, work: Tensor, args: tuple, scratch: tuple[int, torch
     threads; the kernels release the GIL). Each thread gets its own scratch array of
     ``scratch`` = (size, dtype)."""
     n = max(1, min(torch.get_num_threads(), work.numel()))
-    parts = [work[i::n].numpy() for i in range(n)]
+    parts = [np.ascontiguousarray(work[i::n].numpy()) for i in range(n)]
     buf = torch.empty(n, scratch[0], dtype=scratch[1]).numpy()
     others = [_thread_pool(n - 1).submit(kernel, part, *args, buf[i + 1]) for i, part in enumerate(parts[1:])]
     try:
@@ -551,6 +555,14 @@ def _run_split(kernel: Any, work: Tensor, args: tuple, scratch: tuple[int, torch
     finally:
         for f in others:
             f.result()
+
+
+def _pixel_centres(geometry: tuple[int, ...], dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates ``j + 0.5`` of the tile grid's columns and rows in ``dtype``
+    (``geometry`` = tile_size, tile_w, n_tiles, width, height)."""
+    ts, tile_w, n_tiles = geometry[:3]
+    tile_h = n_tiles // tile_w
+    return ((torch.arange(tile_w * ts) + 0.5).to(dtype).numpy(), (torch.arange(tile_h * ts) + 0.5).to(dtype).numpy())
 
 
 class _CompiledComposite(torch.autograd.Function):
@@ -575,7 +587,7 @@ class _CompiledComposite(torch.autograd.Function):
         radii = radii.contiguous()
         order = torch.argsort(count, descending=True, stable=True)
         common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), *(t.numpy() for t in tables[:3]),
-                  radii.numpy(), tables[3].numpy(), *geometry, consts.numpy())
+                  radii.numpy(), tables[3].numpy(), *geometry, *_pixel_centres(geometry, dtype), consts.numpy())
         _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()),
                    (p, torch.bool))
         ctx.save_for_backward(*tables, radii, gids, busy, start, count, trans, last, consts, order)
@@ -585,13 +597,14 @@ class _CompiledComposite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, v_acc: Tensor, v_trans: Tensor) -> tuple[Any, ...]:
+        if torch.is_grad_enabled():  # backward(create_graph=True): the kernels' gradients are not differentiable
+            raise RuntimeError("the compiled compositor gives first-order gradients only; render with "
+                               "compositor='torch' for higher-order ones")
         m2d, con, lo, feats, radii, gids, busy, start, count, trans, last, consts, order = ctx.saved_tensors
         dtype, nf = feats.dtype, feats.shape[1]
         grads = torch.zeros(gids.shape[0], splat_kernels.GRAD_COLUMNS + nf, dtype=dtype)
-        v_acc = torch.zeros_like(trans)[..., None].expand(-1, -1, nf) if v_acc is None else v_acc
-        v_trans = torch.zeros_like(trans) if v_trans is None else v_trans
         common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), m2d.numpy(), con.numpy(), lo.numpy(),
-                  radii.numpy(), feats.numpy(), *ctx.geometry, consts.numpy())
+                  radii.numpy(), feats.numpy(), *ctx.geometry, *_pixel_centres(ctx.geometry, dtype), consts.numpy())
         _run_split(splat_kernels.composite_backward, order,
                    (*common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
                     v_trans.to(dtype).contiguous().numpy(), grads.numpy()), (2 * trans.shape[1] + nf, dtype))
@@ -664,9 +677,10 @@ def render_gaussians(
             second compositing pass. Results and gradients are unchanged.
         compositor: ``"torch"``, the vectorised PyTorch compositor (any device and dtype;
             ``chunk``, ``tile_batch`` and ``checkpoint`` apply to it); ``"numba"``, the
-            compiled CPU kernels (float32 / float64 on the CPU, their own backward pass,
-            threads as ``torch.get_num_threads()``; same images and gradients within float
-            rounding, small memory); ``"auto"``, the kernels wherever they can run.
+            compiled CPU kernels (float32 / float64 on the CPU, opacities at most 1, their
+            own backward pass, first-order only; threads as ``torch.get_num_threads()``; same
+            images and gradients within float rounding, small memory); ``"auto"``, the
+            kernels wherever they can run.
 
     Returns:
         :class:`RenderOutput` with rgb (B, C, H, W, D), alpha (B, C, H, W, 1),
@@ -685,6 +699,11 @@ def render_gaussians(
     dtype, dev = means.dtype, means.device
     n_img = B * C
     kernels = use_kernels("compositor", compositor, [means, colors, opacities], differentiable=True)
+    if kernels and opacities.numel() > 0 and bool(opacities.detach().max() > 1.0):
+        # a Gaussian's pixels lie within its radius only for opacities up to 1
+        if compositor == "numba":
+            raise ValueError("compositor='numba' cannot run: an opacity is above 1")
+        kernels = False
 
     # 1. projection (gsplat: fully_fused_projection with opacities)
     covars = quat_scale_to_covar(quats, scales)
@@ -799,6 +818,11 @@ def warm_up_compositor() -> None:
     they do not each compile it."""
     if not splat_kernels.AVAILABLE:
         return
+    with torch.enable_grad():
+        _warm_up()
+
+
+def _warm_up() -> None:
     means = torch.tensor([[[0.0, 0.0, 1.0]]], requires_grad=True)
     K = torch.tensor([[[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]]])
     out = render_gaussians(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),

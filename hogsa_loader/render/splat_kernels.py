@@ -58,14 +58,14 @@ def _gaussian(g, means2d, conics, log_o, radii, x0, y0, tile_size):  # pragma: n
 
 @compile_kernel
 def _visibility(mx, dy, a, b, c, lo, px, half):  # pragma: no cover
-    """``dx = mx - px`` and ``exp(log o - sigma)`` at a pixel centre (``dy = my - py``)."""
+    """``dx = mx - px`` and ``exp(log o - sigma)`` at a pixel centre ``px`` (``dy = my - py``)."""
     dx = mx - px
     return dx, np.exp(lo - (half * (a * dx * dx + c * dy * dy) + b * dx * dy))
 
 
 @compile_kernel
 def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                      n_tiles, width, height, consts, acc, trans, last, done):  # pragma: no cover
+                      n_tiles, width, height, pxs, pys, consts, acc, trans, last, done):  # pragma: no cover
     """Composite the busy tiles ``sel`` front to back.
 
     Args:
@@ -77,6 +77,8 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
         log_o: (M,) log opacity; radii: (M, 2) int32 pixel radii; feats: (M, F).
         tile_size, tile_w, n_tiles, width, height: tile edge, tile grid width, tiles per
             image, image size.
+        pxs, pys: pixel-centre coordinates ``j + 0.5`` of every column / row of the tile
+            grid, in the feature dtype (float32 features are evaluated in float32).
         consts: (4,) in the feature dtype: 1/255, 0.999, 1e-4, 1.
         acc: (nb, P, F) zeros, trans: (nb, P) ones, last: (nb, P) int32 zeros; written for
             the rows in ``sel``: ``sum w feat``, final transmittance, list entries used.
@@ -101,12 +103,12 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
             g = gids[s + k]
             mx, my, a, b, c, lo, (c0, c1, r0, r1) = _gaussian(g, means2d, conics, log_o, radii, x0, y0, tile_size)
             for r in range(r0, r1):
-                dy = my - (y0 + r + half)
+                dy = my - pys[y0 + r]
                 for cc in range(c0, c1):
                     p = r * tile_size + cc
                     if done[p]:
                         continue
-                    dx, vis = _visibility(mx, dy, a, b, c, lo, x0 + cc + half, half)
+                    dx, vis = _visibility(mx, dy, a, b, c, lo, pxs[x0 + cc], half)
                     if not vis > thr:
                         continue
                     alpha = min(vis, amax)
@@ -125,7 +127,7 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
 
 @compile_kernel
 def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                       n_tiles, width, height, consts, trans, last, v_acc, v_trans, grads,
+                       n_tiles, width, height, pxs, pys, consts, trans, last, v_acc, v_trans, grads,
                        scratch):  # pragma: no cover
     """Gradients of :func:`composite_forward`'s outputs, per intersection.
 
@@ -159,12 +161,12 @@ def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, ra
             for f in range(nfeat):
                 gfeat[f] = one - one
             for r in range(r0, r1):
-                dy = my - (y0 + r + half)
+                dy = my - pys[y0 + r]
                 for cc in range(c0, c1):
                     p = r * tile_size + cc
                     if k >= last[i, p]:
                         continue
-                    dx, vis = _visibility(mx, dy, a, b, c, lo, x0 + cc + half, half)
+                    dx, vis = _visibility(mx, dy, a, b, c, lo, pxs[x0 + cc], half)
                     if not vis > thr:
                         continue
                     alpha = min(vis, amax)
