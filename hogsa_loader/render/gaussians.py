@@ -89,7 +89,7 @@ from torch import Tensor
 
 from hogsa_loader.geometry.quaternion import quat_to_matrix
 from hogsa_loader.render import splat_kernels
-from hogsa_loader.render.raster_kernels import use_kernels
+from hogsa_loader.render.raster_kernels import pixel_centres, use_kernels
 
 __all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors",
            "warm_up_compositor"]
@@ -557,14 +557,6 @@ def _run_split(kernel: Any, work: Tensor, args: tuple, scratch: tuple[int, torch
             f.result()
 
 
-def _pixel_centres(geometry: tuple[int, ...], dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre coordinates ``j + 0.5`` of the tile grid's columns and rows in ``dtype``
-    (``geometry`` = tile_size, tile_w, n_tiles, width, height)."""
-    ts, tile_w, n_tiles = geometry[:3]
-    tile_h = n_tiles // tile_w
-    return ((torch.arange(tile_w * ts) + 0.5).to(dtype).numpy(), (torch.arange(tile_h * ts) + 0.5).to(dtype).numpy())
-
-
 class _CompiledComposite(torch.autograd.Function):
     """Compositing of the busy tiles by :mod:`hogsa_loader.render.splat_kernels`, with its
     hand-written backward pass (the same gradients as the PyTorch compositor)."""
@@ -586,12 +578,14 @@ class _CompiledComposite(torch.autograd.Function):
         last = torch.zeros(nb, p, dtype=torch.int32)
         radii = radii.contiguous()
         order = torch.argsort(count, descending=True, stable=True)
+        ts, tile_w, n_tiles = geometry[:3]
+        pxs, pys = (pixel_centres(n, dtype).numpy() for n in (tile_w * ts, n_tiles // tile_w * ts))
         common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), *(t.numpy() for t in tables[:3]),
-                  radii.numpy(), tables[3].numpy(), *geometry, *_pixel_centres(geometry, dtype), consts.numpy())
+                  radii.numpy(), tables[3].numpy(), *geometry, pxs, pys, consts.numpy())
         _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()),
                    (p, torch.bool))
-        ctx.save_for_backward(*tables, radii, gids, busy, start, count, trans, last, consts, order)
-        ctx.geometry = geometry
+        ctx.save_for_backward(*tables, gids, trans, last)  # (in-place changes before backward are caught)
+        ctx.common, ctx.order = common, order  # the kernels' shared arguments, views of the saved tensors
         ctx.dtypes = (means2d.dtype, conics.dtype, log_o.dtype)
         return acc, trans
 
@@ -600,13 +594,11 @@ class _CompiledComposite(torch.autograd.Function):
         if torch.is_grad_enabled():  # backward(create_graph=True): the kernels' gradients are not differentiable
             raise RuntimeError("the compiled compositor gives first-order gradients only; render with "
                                "compositor='torch' for higher-order ones")
-        m2d, con, lo, feats, radii, gids, busy, start, count, trans, last, consts, order = ctx.saved_tensors
+        m2d, _, _, feats, gids, trans, last = ctx.saved_tensors
         dtype, nf = feats.dtype, feats.shape[1]
         grads = torch.zeros(gids.shape[0], splat_kernels.GRAD_COLUMNS + nf, dtype=dtype)
-        common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), m2d.numpy(), con.numpy(), lo.numpy(),
-                  radii.numpy(), feats.numpy(), *ctx.geometry, *_pixel_centres(ctx.geometry, dtype), consts.numpy())
-        _run_split(splat_kernels.composite_backward, order,
-                   (*common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
+        _run_split(splat_kernels.composite_backward, ctx.order,
+                   (*ctx.common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
                     v_trans.to(dtype).contiguous().numpy(), grads.numpy()), (2 * trans.shape[1] + nf, dtype))
         per_row = torch.zeros(m2d.shape[0], grads.shape[1], dtype=dtype).index_add_(0, gids, grads)
         d_m2d, d_con, d_lo = per_row[:, 0:2], per_row[:, 2:5], per_row[:, 5]
@@ -746,8 +738,8 @@ def render_gaussians(
         # clamp: rows with opacity < 1/255 are culled and never read; without it a zero
         # opacity (the padding convention) gives log(0) and a NaN opacity gradient
         log_o = torch.log(opacities.clamp(min=ALPHA_THRESHOLD))[:, None, :].expand(B, C, N).reshape(-1)
-    if busy.numel() > 0 and kernels:
         tile_start = torch.cumsum(tile_counts, 0) - tile_counts
+    if busy.numel() > 0 and kernels:
         acc_b, trans_b = _CompiledComposite.apply(
             means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat, radii.reshape(-1, 2), flat_ids, busy,
             tile_start[busy], tile_counts[busy], (tile_size, tile_w, n_tiles, width, height))
@@ -756,7 +748,6 @@ def render_gaussians(
     elif busy.numel() > 0:
         table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
         gids = torch.cat([flat_ids, flat_ids.new_full((1,), n_img * N)])
-        tile_start = torch.cumsum(tile_counts, 0) - tile_counts
         basis = _tile_basis(tile_size, dtype, dev)
         local_tile = busy % n_tiles
         tx, ty = local_tile % tile_w, local_tile // tile_w

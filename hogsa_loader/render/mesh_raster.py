@@ -730,11 +730,6 @@ def _use_kernels(backend: str, tensors: Sequence[Tensor]) -> bool:
     return raster_kernels.use_kernels("backend", backend, tensors, differentiable=False)
 
 
-def _pixel_centres(n: int, dtype: torch.dtype) -> Tensor:
-    """(n,) pixel centre coordinates ``i + 0.5`` in ``dtype``."""
-    return torch.arange(n).to(dtype) + 0.5
-
-
 def _setup_faces_kernel(
     verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float,
     cull_backfaces: bool,
@@ -779,7 +774,7 @@ def warm_up_kernels() -> None:
 
 def _zbuffer_kernel(tables: _FaceTables, pxs: Tensor, pys: Tensor) -> Tensor:
     """:func:`_zbuffer` by the compiled kernel (bit-identical keys); ``pxs`` (W,), ``pys`` (H,)
-    are the pixel centres (:func:`_pixel_centres`)."""
+    are the pixel centres (:func:`~hogsa_loader.render.raster_kernels.pixel_centres`)."""
     height, width = pys.shape[0], pxs.shape[0]
     zkey = torch.full((height * width,), _INT64_MAX, dtype=torch.int64)
     if tables.face_ids.numel() == 0:
@@ -854,7 +849,7 @@ def rasterize(
     faces = faces.to(device=verts_cam.device, dtype=torch.int64)
     if _use_kernels(backend, (verts_cam, K)):
         tables = _setup_faces_kernel(verts_cam, faces, K, height, width, near, cull_backfaces)
-        pxs, pys = _pixel_centres(width, verts_cam.dtype), _pixel_centres(height, verts_cam.dtype)
+        pxs, pys = (raster_kernels.pixel_centres(n, verts_cam.dtype) for n in (width, height))
         return _resolve_kernel(_zbuffer_kernel(tables, pxs, pys), tables, verts_cam, faces, K, pxs, pys)
     tables = _setup_faces(verts_cam, faces, K, height, width, near, cull_backfaces)
     zkey = _zbuffer(tables, height, width, max_pairs)

@@ -21,7 +21,7 @@ try:
 except ImportError:  # pragma: no cover - numba is a declared dependency
     njit = None
 
-__all__ = ["AVAILABLE", "compile_kernel", "use_kernels", "setup_faces", "zbuffer", "resolve", "shade"]
+__all__ = ["AVAILABLE", "compile_kernel", "use_kernels", "pixel_centres", "setup_faces", "zbuffer", "resolve", "shade"]
 
 AVAILABLE = njit is not None
 _INT64_MAX = np.iinfo(np.int64).max
@@ -37,6 +37,12 @@ def compile_kernel(fn):
         return njit(cache=True, nogil=True, error_model="numpy")(fn)
     except RuntimeError:  # no writable cache location (read-only install)
         return njit(nogil=True, error_model="numpy")(fn)
+
+
+def pixel_centres(n: int, dtype: torch.dtype) -> torch.Tensor:
+    """(n,) pixel centre coordinates ``i + 0.5`` in ``dtype`` (kernels take them as arrays of
+    the input dtype, so that float32 scenes are evaluated in float32)."""
+    return torch.arange(n).to(dtype) + 0.5
 
 
 def use_kernels(option: str, choice: str, tensors, differentiable: bool) -> bool:
