@@ -30,6 +30,10 @@ def time_render(
 ) -> dict[str, Any]:
     """Median forward (no_grad) and forward + ``(img * scene["wrand"]).sum().backward()`` times.
 
+    Page faults come in bursts: a fresh process's heap grows to its plateau over tens of
+    calls (pages touched for the first time), and allocators that give memory back do so
+    every so many calls; comparing allocators takes on the order of a hundred timed calls.
+
     Args:
         image_fn: scene dict -> rendered image tensor.
         scene: tensors keyed by :data:`PARAMS` plus ``wrand`` (random loss weights).
@@ -37,8 +41,10 @@ def time_render(
 
     Returns:
         ``fwd_ms``, ``fwd_bwd_ms``, ``peak_mb``, ``base_mb`` (CPU only), ``memory`` (what
-        the peak measures) and ``fwd_faults`` / ``fwd_bwd_faults``: minor page faults of the
-        process per timed call (``ru_minflt``; every thread of the process counts).
+        the peak measures), ``fwd_faults`` / ``fwd_bwd_faults``: minor page faults of the
+        process per timed call (``ru_minflt``; every thread of the process counts), and
+        ``fwd_warmup_faults`` / ``fwd_bwd_warmup_faults``: the warm-up's faults in total
+        (the first call's included).
     """
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -55,17 +61,23 @@ def time_render(
         sync()
 
     faults: dict[str, float] = {}
+    warm: dict[str, int] = {}
+
+    def minflt() -> int:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
     def timed(f: Callable[[], None], reps: int) -> float:
+        f0 = minflt()
         for _ in range(warmup):
             f()
+        warm[f.__name__] = minflt() - f0
         ts = []
-        minflt = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        f0 = minflt()
         for _ in range(reps):
             t0 = time.perf_counter()
             f()
             ts.append(time.perf_counter() - t0)
-        faults[f.__name__] = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - minflt) / max(reps, 1)
+        faults[f.__name__] = (minflt() - f0) / max(reps, 1)
         return 1000.0 * statistics.median(ts)
 
     if device == "cuda":
@@ -79,4 +91,5 @@ def time_render(
         memory = "ru_maxrss (process peak RSS)"
     return {"fwd_ms": fwd_ms, "fwd_bwd_ms": fwd_bwd_ms, "peak_mb": peak_mb,
             "base_mb": base_mb if device == "cpu" else None, "memory": memory,
-            "fwd_faults": faults["fwd"], "fwd_bwd_faults": faults["fwd_bwd"]}
+            "fwd_faults": faults["fwd"], "fwd_bwd_faults": faults["fwd_bwd"],
+            "fwd_warmup_faults": warm["fwd"], "fwd_bwd_warmup_faults": warm["fwd_bwd"]}

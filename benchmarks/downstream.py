@@ -111,6 +111,9 @@ class SyntheticSettings:
 
     frames: int = field(default=1536, metadata={"help": "synthetic frames per variant"})
     share: float = field(default=0.5, metadata={"help": "synthetic share of each mixed batch"})
+    mix: Literal["replace", "add"] = field(default="replace", metadata={
+        "help": "replace: synthetic samples take their share of each batch of --train-batch-size; add: every "
+                "real batch kept whole (the real arm's batches), synthetic samples appended (larger batches)"})
     render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
     seed: int = field(default=1000, metadata={"help": "seed of the exported frames"})
     backgrounds: Literal["plates", "photos"] = field(
@@ -136,7 +139,8 @@ class TrainSettings:
     """Optimisation (the same for every arm)."""
 
     steps: int = field(default=200, metadata={"help": "optimisation steps per run"})
-    batch_size: int = field(default=32, metadata={"help": "samples per step (real + synthetic)"})
+    batch_size: int = field(default=32, metadata={
+        "help": "samples per step (real + synthetic; the real ones only with --synthetic-mix add)"})
     lr: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
     grad_clip: float = field(default=150.0, metadata={"help": "gradient-norm clip (ARCTIC: 150)"})
     workers: int = field(default=1, metadata={"help": "DataLoader workers per loader"})
@@ -290,12 +294,15 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     return Path(plates.out)
 
 
-def synthetic_key(cfg: DownstreamConfig) -> dict[str, Any]:
-    """The synthetic settings in cache keys (photo backgrounds keep the keys they had
-    before the choice of backgrounds existed)."""
+def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str, Any]:
+    """The synthetic settings in cache keys (photo backgrounds and the replace mix keep the
+    keys they had before these choices existed; ``frames_only``: without the mix, which the
+    exported frames do not depend on)."""
     syn = asdict(cfg.synthetic)
     if syn["backgrounds"] == "photos":
         del syn["backgrounds"]
+    if frames_only or syn["mix"] == "replace":
+        del syn["mix"]
     return syn
 
 
@@ -350,8 +357,8 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
 
 def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Path:
     """Folder of a variant's export, named by everything its frames depend on."""
-    key = _key([variant_options(variant, cfg, setup), setup["fingerprints"][reads(variant)], synthetic_key(cfg),
-                cfg.model.img_res])
+    key = _key([variant_options(variant, cfg, setup), setup["fingerprints"][reads(variant)],
+                synthetic_key(cfg, frames_only=True), cfg.model.img_res])
     return out / "synthetic" / f"{variant}-{key[:10]}"
 
 
@@ -428,7 +435,8 @@ def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, A
     while True:
         real.set_epoch(epoch)
         loader = _loader(real_part, cfg.train.batch_size, seed * 1000 + epoch, cfg.train.workers)
-        source: Any = loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share)
+        source: Any = loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share,
+                                                             mode=cfg.synthetic.mix)
         n = 0
         for batch in source:
             n += 1
@@ -656,7 +664,9 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
     finished = ", ".join(f"{a}: {n}" for a, n in done.items())
     lines = [f"Seeds {list(cfg.seeds)} ({finished} finished), mean ± std; "
              f"{cfg.model.backbone} at {cfg.model.img_res}², "
-             f"{cfg.train.steps} steps of {cfg.train.batch_size}, synthetic share {cfg.synthetic.share}, "
+             f"{cfg.train.steps} steps of {cfg.train.batch_size}"
+             f"{' real + synthetic appended' if cfg.synthetic.mix == 'add' else ''}, "
+             f"synthetic share {cfg.synthetic.share}, "
              f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.", "",
              "**Table 1** (p1, held-out subject)", ""] + table(["real", "hogsa"])
     lines += ["", "**Ablation**", ""] + table(["hogsa_no_srm", "hogsa_no_pom", "hogsa_free", "hogsa"])

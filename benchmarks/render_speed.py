@@ -17,12 +17,20 @@ Memory: every (backend, N, resolution) row runs in its own child process. On CPU
 measured after imports and scene creation). On CUDA it is
 ``torch.cuda.max_memory_allocated()`` over the timed runs.
 
-Page faults: ``fwd_faults`` / ``fwd_bwd_faults`` are the minor page faults of the child
-process per timed call. ``--malloc`` runs every row once per allocator, side by side:
-"default" (glibc as the library sets it on the first CPU render, keeping its working memory:
+Allocators: ``--malloc`` runs every row once per allocator, side by side: "default" (glibc
+as the library sets it on the first CPU render, keeping its working memory:
 :func:`hogsa_loader.system.keep_allocator_memory`), "glibc" (glibc untouched,
 ``HOGSA_KEEP_MEMORY=0``) and "tcmalloc" (``LD_PRELOAD`` of libtcmalloc_minimal, found in the
 system's library folders or given by ``--tcmalloc``).
+
+Page faults: ``fwd_faults`` / ``fwd_bwd_faults`` are the minor page faults of the child
+process per timed call (memory given back and faulted in again shows here);
+``fwd_warmup_faults`` / ``fwd_bwd_warmup_faults`` are the warm-up's faults in total (mostly
+the first touches of a fresh process, paid once). Faults come in bursts (the heap growing to
+its plateau over tens of calls, or an allocator returning memory every so many calls), so
+with more than one allocator the defaults are 10 warm-up and 100 / 40 timed calls. Timing on
+a shared or virtual machine drifts: ``--rounds`` repeats every row, allocators interleaved
+(default 3 with more than one allocator), and reports median times and mean faults.
 
 The torch backend's compositor (``--compositor``): ``auto`` (the default, the compiled
 kernels on the CPU), ``torch`` (vectorised PyTorch), ``numba``, or ``both`` (a row each).
@@ -39,6 +47,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 from typing import Any, Callable
@@ -147,9 +156,25 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
         "n_isects": n_isects,
         "fwd_faults": round(t["fwd_faults"], 1),
         "fwd_bwd_faults": round(t["fwd_bwd_faults"], 1),
+        "fwd_warmup_faults": t["fwd_warmup_faults"],
+        "fwd_bwd_warmup_faults": t["fwd_bwd_warmup_faults"],
         "malloc": allocator_status(),
         "ld_preload": os.environ.get("LD_PRELOAD", ""),
     }
+
+
+def merge_rounds(rs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One row from the rounds of one (allocator, backend, compositor, N, width): median
+    times, mean faults, largest peak; the per-round figures under ``rounds``."""
+    out = dict(rs[0])
+    for k in ("fwd_ms", "fwd_bwd_ms"):
+        out[k] = round(statistics.median(r[k] for r in rs), 1)
+    for k in ("fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults"):
+        out[k] = round(statistics.fmean(r[k] for r in rs), 1)
+    out["peak_mb"] = max(r["peak_mb"] for r in rs)
+    keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
+    out["rounds"] = [{k: r[k] for k in keys} for r in rs]
+    return out
 
 
 def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
@@ -162,13 +187,14 @@ def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
                     q["width"]) == (r["backend"], r["compositor"], r["N"], r["width"])), None)  # fmt: skip
         if ref is None:
             continue
-        keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
+        keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults")
         ratio = {k: r[k] / ref[k] if ref[k] else float("nan") for k in keys}
         r[f"vs_{ref_name}"] = {k: None if v != v else round(v, 3) for k, v in ratio.items()}  # no ratio to 0
         print(f"{r['backend']} ({r['compositor']}) N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
               f"fwd time {ratio['fwd_ms']:.2f}x, "
               f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "
-              f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x", flush=True)
+              f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x; warm-up faults fwd {ratio['fwd_warmup_faults']:.2f}x, "
+              f"fwd+bwd {ratio['fwd_bwd_warmup_faults']:.2f}x", flush=True)
 
 
 def main() -> None:
@@ -177,14 +203,17 @@ def main() -> None:
     ap.add_argument("--backend", default="torch", choices=["torch", "gsplat", "all"])
     ap.add_argument("--quick", action="store_true",
                     help="50k @ 224 only, fewer repeats (1, 3, 2) unless the repeat flags are given")
-    ap.add_argument("--warmup", type=int, default=None, help="default 2")
-    ap.add_argument("--repeats-fwd", type=int, default=None, help="default 7")
-    ap.add_argument("--repeats-bwd", type=int, default=None, help="default 5")
+    ap.add_argument("--warmup", type=int, default=None, help="default 2 (quick 1; 10 with several --malloc)")
+    ap.add_argument("--repeats-fwd", type=int, default=None, help="default 7 (quick 3; 100 with several --malloc)")
+    ap.add_argument("--repeats-bwd", type=int, default=None, help="default 5 (quick 2; 40 with several --malloc)")
     ap.add_argument("--malloc", default="default",
                     help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}")
     ap.add_argument("--tcmalloc", help="path of libtcmalloc_minimal (default: looked up in the library folders)")
     ap.add_argument("--compositor", default="auto", choices=["auto", "torch", "numba", "both"],
                     help="the torch backend's compositor (render_gaussians); both: a row for each of torch, numba")
+    ap.add_argument("--rounds", type=int, default=None,
+                    help="rounds over the rows, allocators interleaved; median time, mean faults (default 1; "
+                         "3 with several --malloc)")
     ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width,compositor in a child
     a = ap.parse_args()
     mallocs = [m.strip() for m in a.malloc.split(",") if m.strip()]
@@ -202,28 +231,33 @@ def main() -> None:
         print("gsplat backend skipped: CUDA is not available (gsplat's rasteriser is CUDA-only)")
         backends.remove("gsplat")
     configs = QUICK_CONFIGS if a.quick else CONFIGS
+    # fault counts need a long window (they come in bursts; see the module docstring)
+    defaults = (10, 100, 40) if len(mallocs) > 1 else (1, 3, 2) if a.quick else (2, 7, 5)
     reps = tuple(given if given is not None else default for given, default in
-                 zip((a.warmup, a.repeats_fwd, a.repeats_bwd), (1, 3, 2) if a.quick else (2, 7, 5), strict=True))
+                 zip((a.warmup, a.repeats_fwd, a.repeats_bwd), defaults, strict=True))
     envs = {m: malloc_env(m, a.tcmalloc) for m in mallocs}
     compositors = ["torch", "numba"] if a.compositor == "both" else [a.compositor]
     runs = [(b, c) for b in backends for c in (compositors if b == "torch" else ["auto"])]
-    rows = []
-    for backend, comp in runs:
-        for n, w in configs:
-            for m in mallocs:
-                cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w},{comp}", "--warmup",
-                       str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]  # fmt: skip
-                res = subprocess.run(cmd, capture_output=True, text=True, env=envs[m])
-                if res.returncode != 0:
-                    print(f"{backend} ({comp}) N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
-                    continue
-                rows.append({"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])})
-                r = rows[-1]
-                print(f"{r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} N={r['N']:>7d} "
-                      f"{r['width']:>4d}x{r['height']:<4d} "
-                      f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
-                      f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
-                      f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)  # fmt: skip
+    rounds = a.rounds if a.rounds is not None else 3 if len(mallocs) > 1 else 1
+    runs_by_key: dict[tuple, list[dict[str, Any]]] = {}
+    for rnd in range(rounds):  # allocators interleaved, so that a drifting machine affects them alike
+        for backend, comp in runs:
+            for n, w in configs:
+                for m in mallocs:
+                    cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w},{comp}",
+                           "--warmup", str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]
+                    res = subprocess.run(cmd, capture_output=True, text=True, env=envs[m])
+                    if res.returncode != 0:
+                        print(f"{backend} ({comp}) N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
+                        continue
+                    r = {"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])}
+                    runs_by_key.setdefault((m, backend, comp, n, w), []).append(r)
+                    print(f"[round {rnd + 1}/{rounds}] {r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} "
+                          f"N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                          f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
+                          f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
+                          f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)
+    rows = [merge_rounds(rs) for rs in runs_by_key.values()]
     if len(mallocs) > 1:
         print_ratios(rows, mallocs)
     if a.json:

@@ -236,6 +236,11 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
-    # photo runs keep the keys they had before backgrounds could be chosen
-    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k != "backgrounds"}
+    # photo runs keep the keys they had before backgrounds (and the mix) could be chosen
+    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix")}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
+    # appending synthetic samples changes the runs, not the exported frames
+    add = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, mix="add"))
+    assert ds.export_dir("full", add, setup, tmp_path) == ds.export_dir("full", cfg, setup, tmp_path)
+    assert ds.run_settings("hogsa", 0, add, setup) != ds.run_settings("hogsa", 0, cfg, setup)
+    assert ds.run_settings("real", 0, add, setup) == ds.run_settings("real", 0, cfg, setup)

@@ -29,6 +29,7 @@ from hogsa_loader.loader import (
     num_synthetic,
     parse_synthetic_imgname,
 )
+from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
 
 from conftest import tiny_srm
@@ -192,6 +193,27 @@ def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_l
     for b in batches:
         k = len(b["x"])
         assert k <= B and int((b["x"] < 0).sum()) == num_synthetic(ratio, k)
+
+
+@pytest.mark.parametrize("n, B, ratio, drop_last", [(23, 8, 0.5, False), (23, 8, 0.25, True), (30, 6, 0.6, False)])
+def test_mixed_loader_add_mode_keeps_the_real_batches(n, B, ratio, drop_last):
+    ds = _Indexed(n)
+    real = DataLoader(ds, batch_size=B, drop_last=drop_last)
+    mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, mode="add")
+    batches = list(mixed)
+    assert len(mixed) == len(batches) == len(real)
+    assert mixed.batch_size == B + added_synthetic(ratio, B)
+    for b, r in zip(batches, real, strict=True):
+        k = len(r["x"])
+        assert torch.equal(b["x"][:k], r["x"])  # the real batch, whole and first
+        n_syn = int((b["x"] < 0).sum())
+        assert n_syn == added_synthetic(ratio, k) == len(b["x"]) - k
+        assert abs(n_syn / len(b["x"]) - ratio) <= 0.5 / len(b["x"]) + 1e-9
+    assert added_synthetic(0.5, 32) == 32 and added_synthetic(0.25, 30) == 10
+    with pytest.raises(ValueError, match="ratio < 1"):
+        MixedLoader(real, [], ratio=1.0, mode="add")
+    with pytest.raises(ValueError, match="mode"):
+        MixedLoader(real, [], ratio=0.5, mode="append")
 
 
 def test_same_seed_same_samples_with_two_workers(bundle_dir, tiny_world):

@@ -14,7 +14,7 @@ Example (ArcticNet-SF training, real-format data)::
 
 from __future__ import annotations
 
-from typing import Any, Optional, Union
+from typing import Any, Literal, Optional, Union
 
 from torch.utils.data import DataLoader
 
@@ -65,13 +65,14 @@ def wrap_train_loader(
     device: str = "cpu",
     seed: int = 0,
     drop_last: bool = True,
+    mode: Literal["replace", "add"] = "replace",
     **dataset_kwargs: Any,
 ) -> MixedLoader:
     """Mix synthetic HOGSA samples into an ARCTIC train loader.
 
     Args:
         train_loader: the real DataLoader (ArcticNet-SF ``(inputs, targets, meta_info)``
-            batches); its batch size B is kept.
+            batches); its batch size B is kept (``mode="replace"``).
         bundle: bundle folder or :class:`~hogsa_loader.bundle.Bundle`.
         ratio: synthetic share; each batch has exactly ``round(ratio·B)`` (half up)
             synthetic samples.
@@ -82,6 +83,9 @@ def wrap_train_loader(
         device: rendering device.
         seed: synthetic stream seed.
         drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
+        mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
+            B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
+            their share is about ``ratio``); see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
         **dataset_kwargs: more :class:`~hogsa_loader.loader.dataset.HOGSADataset`
             arguments (``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...);
             ``protocol``, ``config`` and ``interfield`` default to the real dataset's (so
@@ -111,4 +115,4 @@ def wrap_train_loader(
         if device.startswith("cuda"):
             raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
         source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
-    return MixedLoader(train_loader, source, ratio, drop_last=drop_last)
+    return MixedLoader(train_loader, source, ratio, drop_last=drop_last, mode=mode)

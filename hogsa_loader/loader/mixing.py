@@ -10,21 +10,32 @@ No real sample is wasted: the real samples a mixed batch does not use are kept f
 next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
 covers the real epoch (the last real samples that cannot fill a batch are dropped when
 ``drop_last`` is True, else they form a smaller last batch with its own rounded share).
+
+``mode="add"`` instead keeps every real batch as the real loader yields it and appends
+``n_syn = added_synthetic(ratio, b)`` synthetic samples to a batch of b real ones, so that a
+training run sees the same real batches as without synthetic data (larger batches, synthetic
+share ``n_syn / (b + n_syn)`` ≈ ratio).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable, Iterable, Iterator, Optional
+from typing import Any, Callable, Iterable, Iterator, Literal, Optional
 
 import torch
 from torch.utils.data import default_collate
 
-__all__ = ["MixedLoader", "num_synthetic", "batch_size_of"]
+__all__ = ["MixedLoader", "num_synthetic", "added_synthetic", "batch_size_of"]
 
 
 def num_synthetic(ratio: float, batch_size: int) -> int:
     """Synthetic samples in a batch of ``batch_size``: ``floor(ratio·B + 0.5)``."""
     return int(ratio * batch_size + 0.5)
+
+
+def added_synthetic(ratio: float, real: int) -> int:
+    """Synthetic samples appended to ``real`` real ones so that their share is ``ratio``:
+    ``floor(ratio / (1 - ratio) · real + 0.5)`` (``ratio < 1``)."""
+    return int(ratio / (1.0 - ratio) * real + 0.5)
 
 
 _CONTAINERS = (torch.Tensor, dict, tuple, list)
@@ -93,7 +104,10 @@ class MixedLoader:
         ratio: synthetic share in [0, 1].
         collate_fn: collate of the synthetic samples; default the real loader's own
             ``collate_fn`` (or torch's ``default_collate``).
-        drop_last: drop the real samples that cannot fill a last batch.
+        drop_last: drop the real samples that cannot fill a last batch (``"replace"`` mode).
+        mode: ``"replace"``, batches of B with ``num_synthetic(ratio, B)`` of them synthetic;
+            ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
+            samples (ratio < 1).
     """
 
     def __init__(
@@ -103,9 +117,15 @@ class MixedLoader:
         ratio: float,
         collate_fn: Optional[Callable[[list[Any]], Any]] = None,
         drop_last: bool = True,
+        mode: Literal["replace", "add"] = "replace",
     ) -> None:
         if not 0.0 <= float(ratio) <= 1.0:
             raise ValueError(f"ratio must be in [0, 1], got {ratio}")
+        if mode not in ("replace", "add"):
+            raise ValueError(f"mode must be 'replace' or 'add', got {mode!r}")
+        if mode == "add" and not float(ratio) < 1.0:
+            raise ValueError("mode='add' needs ratio < 1 (real samples in every batch)")
+        self.mode = mode
         self.real_loader = real_loader
         self.synthetic = synthetic
         self.ratio = float(ratio)
@@ -115,7 +135,11 @@ class MixedLoader:
 
     @property
     def batch_size(self) -> Optional[int]:
-        return getattr(self.real_loader, "batch_size", None)
+        """Samples per mixed batch (None when the real loader's batch size is unknown)."""
+        B = getattr(self.real_loader, "batch_size", None)
+        if self.mode == "add" and B:
+            return B + added_synthetic(self.ratio, B)
+        return B
 
     def _real_samples(self) -> int:
         """Real samples one pass of the real loader yields: its sampler's length (per rank
@@ -134,6 +158,8 @@ class MixedLoader:
         return (n // size) * size if drop and size else n
 
     def __len__(self) -> int:
+        if self.mode == "add":
+            return len(self.real_loader)  # type: ignore[arg-type]
         B = self.batch_size
         if B is None:
             raise TypeError("length unknown: the real loader has no batch_size")
@@ -166,6 +192,10 @@ class MixedLoader:
         return _cat(parts) if len(parts) > 1 else parts[0]
 
     def __iter__(self) -> Iterator[Any]:
+        if self.mode == "add":
+            for batch in self.real_loader:
+                yield self._mixed(batch, added_synthetic(self.ratio, batch_size_of(batch)))
+            return
         B = self.batch_size
         buf: list[Any] = []  # collated real chunks not used yet
         have = 0
