@@ -44,7 +44,7 @@ def time_render(
         the peak measures), ``fwd_faults`` / ``fwd_bwd_faults``: minor page faults of the
         process per timed call (``ru_minflt``; every thread of the process counts), and
         ``fwd_warmup_faults`` / ``fwd_bwd_warmup_faults``: the warm-up's faults in total
-        (the first call's included).
+        (the process's first call included when ``warmup`` >= 1).
     """
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     base_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

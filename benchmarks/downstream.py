@@ -3,8 +3,8 @@
 One command reproduces the shape of the HOGSA paper's Table 1 and ablation on an
 ARCTIC-format world: ArcticNet-SF is trained on the world's ``p1_train`` real loader alone
 and on real + HOGSA samples (:class:`~hogsa_loader.loader.mixing.MixedLoader`, the
-machinery of ``wrap_train_loader``) with the same steps, batch size, optimiser,
-augmentation and seed, and every model is evaluated on the held-out subject (``p1_val``)
+machinery of ``wrap_train_loader``) with the same steps, batch size (real batches with
+``--synthetic-mix add``), optimiser, augmentation and seed, and every model is evaluated on the held-out subject (``p1_val``)
 with ARCTIC's metrics.
 
 Arms (``--arms``):
@@ -18,6 +18,12 @@ Arms (``--arms``):
 * ``real_low`` / ``hogsa_low`` — the same with ``--low-data`` of the real training frames
   (a fixed random subset, the same for every seed and arm).
 
+Mixing (``--synthetic-mix``): ``replace`` (default), synthetic samples take
+``--synthetic-share`` of every batch, so a HOGSA arm sees fewer real samples per step than
+its real arm; ``add``, each HOGSA batch is its real arm's batch, whole, with synthetic
+samples appended (larger batches, the same real samples in the same order); its HOGSA runs
+are kept apart from the replace runs (``runs/<arm>+add/``).
+
 Synthetic frames are rendered once per variant with ``hogsa export``'s writer
 (``OUT/synthetic/<variant>/``, resumable) and read back shuffled
 (:class:`~hogsa_loader.export.SynthShardSamples`) with fresh ARCTIC augmentation per epoch,
@@ -25,7 +31,8 @@ so rendering is paid once. Without ``--setup-data``/``--setup-bundle`` the world
 bundle (HOGS for every training (subject, object), ContactNet, pose bank, SRM) are built by
 ``hogsa demo``'s cached stages in ``OUT/setup``.
 
-Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run —
+Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run
+(``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``) —
 a finished run is reused when its settings are unchanged, so an interrupted command
 continues where it stopped; ``downstream.json`` (per seed, mean ± std, paired differences
 real+HOGSA − real per seed), ``downstream.md`` (tables) and ``downstream.png`` (validation
@@ -63,6 +70,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
+from hogsa_loader.loader.mixing import MixMode
 
 ARMS = ("real", "hogsa", "hogsa_no_pom", "hogsa_no_srm", "hogsa_free", "real_low", "hogsa_low")
 #: arm → (real share of p1_train, synthetic variant or None)
@@ -111,7 +119,7 @@ class SyntheticSettings:
 
     frames: int = field(default=1536, metadata={"help": "synthetic frames per variant"})
     share: float = field(default=0.5, metadata={"help": "synthetic share of each mixed batch"})
-    mix: Literal["replace", "add"] = field(default="replace", metadata={
+    mix: MixMode = field(default="replace", metadata={
         "help": "replace: synthetic samples take their share of each batch of --train-batch-size; add: every "
                 "real batch kept whole (the real arm's batches), synthetic samples appended (larger batches)"})
     render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
@@ -518,10 +526,17 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
             "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
 
 
+def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
+    """Folder of one (arm, seed) run: HOGSA arms with appended synthetic samples apart from
+    the replace runs, so that both mixes can share one OUT (and its exports)."""
+    add = ARM_SPECS[arm][1] is not None and cfg.synthetic.mix == "add"
+    return out / "runs" / (f"{arm}+add" if add else arm) / f"seed{seed}"
+
+
 def finished_run(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any],
                  out: Path) -> Optional[dict[str, Any]]:
     """The saved result of (arm, seed) when it was run with the current settings, else None."""
-    res_path = out / "runs" / arm / f"seed{seed}" / "result.json"
+    res_path = run_dir(arm, seed, cfg, out) / "result.json"
     if not res_path.is_file():
         return None
     old = json.loads(res_path.read_text())
@@ -536,10 +551,10 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     from hogsa_loader.datasets.arctic import ArcticRoot
     from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
 
-    run_dir = out / "runs" / arm / f"seed{seed}"
+    folder = run_dir(arm, seed, cfg, out)
     settings = run_settings(arm, seed, cfg, setup)
     key = _key(settings)
-    res_path = run_dir / "result.json"
+    res_path = folder / "result.json"
     old = finished_run(arm, seed, cfg, setup, out)
     if old is not None:
         _say(f"[{arm} seed {seed}] finished earlier: reused")
@@ -590,7 +605,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
                       f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)")
     bar.close()
     state = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
-    write_tensors_and_manifest(run_dir, "model.safetensors", state, "model.json",
+    write_tensors_and_manifest(folder, "model.safetensors", state, "model.json",
                                {"kind": "arcticnet_sf", "settings": settings})
     result = {"key": key, "settings": settings, "summary": {k: _num(v) for k, v in final["summary"].items()},
               "val_frames": final["frames"], "curve": curve, "loss_first": losses[0], "loss_last": losses[-1],

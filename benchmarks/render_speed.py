@@ -165,14 +165,16 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
 
 def merge_rounds(rs: list[dict[str, Any]]) -> dict[str, Any]:
     """One row from the rounds of one (allocator, backend, compositor, N, width): median
-    times, mean faults, largest peak; the per-round figures under ``rounds``."""
+    times, mean faults, largest peak and base memory; the per-round figures under ``rounds``."""
     out = dict(rs[0])
     for k in ("fwd_ms", "fwd_bwd_ms"):
         out[k] = round(statistics.median(r[k] for r in rs), 1)
     for k in ("fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults"):
         out[k] = round(statistics.fmean(r[k] for r in rs), 1)
     out["peak_mb"] = max(r["peak_mb"] for r in rs)
-    keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults")
+    out["base_mb"] = max(r["base_mb"] for r in rs) if rs[0]["base_mb"] is not None else None
+    keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults",
+            "peak_mb", "base_mb")
     out["rounds"] = [{k: r[k] for k in keys} for r in rs]
     return out
 
@@ -202,7 +204,8 @@ def main() -> None:
     ap.add_argument("--json", required=False, help="write the rows to this file")
     ap.add_argument("--backend", default="torch", choices=["torch", "gsplat", "all"])
     ap.add_argument("--quick", action="store_true",
-                    help="50k @ 224 only, fewer repeats (1, 3, 2) unless the repeat flags are given")
+                    help="50k @ 224 only, fewer repeats (1, 3, 2; with several --malloc 10, 100, 40) unless the "
+                         "repeat flags are given")
     ap.add_argument("--warmup", type=int, default=None, help="default 2 (quick 1; 10 with several --malloc)")
     ap.add_argument("--repeats-fwd", type=int, default=None, help="default 7 (quick 3; 100 with several --malloc)")
     ap.add_argument("--repeats-bwd", type=int, default=None, help="default 5 (quick 2; 40 with several --malloc)")
@@ -220,6 +223,8 @@ def main() -> None:
     bad = [m for m in mallocs if m not in MALLOCS]
     if not mallocs or bad:
         ap.error(f"--malloc takes a comma-separated list of {list(MALLOCS)}, got {a.malloc!r}")
+    if a.rounds is not None and a.rounds < 1:
+        ap.error(f"--rounds must be at least 1, got {a.rounds}")
 
     if a.row:
         backend, n, w, comp = a.row.split(",")

@@ -209,6 +209,26 @@ def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     assert ds.run_settings("real", 0, cfg, setup)["model"]["camera_prior"] == 256
 
 
+def test_appended_synthetic_samples_key_the_runs_not_the_frames(tmp_path):
+    """--synthetic-mix add: HOGSA runs get their own key and folder; exports, real runs and
+    the replace runs' keys stay as they were."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    add = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, mix="add"))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    assert ds.export_dir("full", add, setup, tmp_path) == ds.export_dir("full", cfg, setup, tmp_path)
+    assert ds.run_settings("hogsa", 0, add, setup) != ds.run_settings("hogsa", 0, cfg, setup)
+    assert "mix" not in ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]
+    assert ds.run_settings("real", 0, add, setup) == ds.run_settings("real", 0, cfg, setup)
+    assert ds.run_dir("hogsa", 0, add, tmp_path) != ds.run_dir("hogsa", 0, cfg, tmp_path)
+    assert ds.run_dir("real", 0, add, tmp_path) == ds.run_dir("real", 0, cfg, tmp_path) == tmp_path / "runs/real/seed0"
+    res = ds.run_dir("hogsa", 0, cfg, tmp_path) / "result.json"  # a replace run ...
+    res.parent.mkdir(parents=True)
+    res.write_text(json.dumps({"key": ds._key(ds.run_settings("hogsa", 0, cfg, setup)), **_result(30.0, 50.0)}))
+    assert ds.finished_run("hogsa", 0, cfg, setup, tmp_path) is not None
+    assert ds.finished_run("hogsa", 0, add, setup, tmp_path) is None  # ... is not an add run
+
+
 def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path, monkeypatch):
     """Plates (the default) are built from the world once and reused; the background choice
     is part of each synthetic export's name, so photo and plate frames never mix."""
@@ -239,8 +259,4 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     # photo runs keep the keys they had before backgrounds (and the mix) could be chosen
     syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix")}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
-    # appending synthetic samples changes the runs, not the exported frames
-    add = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, mix="add"))
-    assert ds.export_dir("full", add, setup, tmp_path) == ds.export_dir("full", cfg, setup, tmp_path)
-    assert ds.run_settings("hogsa", 0, add, setup) != ds.run_settings("hogsa", 0, cfg, setup)
-    assert ds.run_settings("real", 0, add, setup) == ds.run_settings("real", 0, cfg, setup)
+

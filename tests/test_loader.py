@@ -195,11 +195,14 @@ def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_l
         assert k <= B and int((b["x"] < 0).sum()) == num_synthetic(ratio, k)
 
 
-@pytest.mark.parametrize("n, B, ratio, drop_last", [(23, 8, 0.5, False), (23, 8, 0.25, True), (30, 6, 0.6, False)])
+@pytest.mark.parametrize("n, B, ratio, drop_last", [
+    (23, 8, 0.5, False), (23, 8, 0.25, True), (35, 6, 0.6, False), (9, 4, 0.0, False)])  # fmt: skip
 def test_mixed_loader_add_mode_keeps_the_real_batches(n, B, ratio, drop_last):
     ds = _Indexed(n)
     real = DataLoader(ds, batch_size=B, drop_last=drop_last)
-    mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, mode="add")
+    # MixedLoader's own drop_last is for "replace"; the real loader's decides here
+    mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, mode="add",
+                        drop_last=not drop_last)
     batches = list(mixed)
     assert len(mixed) == len(batches) == len(real)
     assert mixed.batch_size == B + added_synthetic(ratio, B)
@@ -210,6 +213,9 @@ def test_mixed_loader_add_mode_keeps_the_real_batches(n, B, ratio, drop_last):
         assert n_syn == added_synthetic(ratio, k) == len(b["x"]) - k
         assert abs(n_syn / len(b["x"]) - ratio) <= 0.5 / len(b["x"]) + 1e-9
     assert added_synthetic(0.5, 32) == 32 and added_synthetic(0.25, 30) == 10
+    assert [added_synthetic(0.6, b) for b in (1, 3, 5)] == [2, 5, 8]  # exact halves round up
+    with pytest.raises(ValueError, match="single samples"):
+        MixedLoader(DataLoader(ds, batch_size=None), [], ratio=0.5)
     with pytest.raises(ValueError, match="ratio < 1"):
         MixedLoader(real, [], ratio=1.0, mode="add")
     with pytest.raises(ValueError, match="mode"):
@@ -534,6 +540,8 @@ def test_wrap_train_loader_reads_the_protocol(bundle_dir, tiny_world):
     odd = types.SimpleNamespace(dataset=types.SimpleNamespace(setup="p9"), batch_size=2)
     assert wrap_train_loader(odd, bundle_dir, protocol="p2", **kw).synthetic.protocol == "p2"
     assert wrap_train_loader(odd, bundle_dir, **kw).synthetic.protocol == "p1"
+    assert wrap_train_loader(odd, bundle_dir, **kw).mode == "replace"
+    assert wrap_train_loader(odd, bundle_dir, mode="add", **kw).mode == "add"
 
 
 def test_pose_bank_source(bundle_dir, tiny_world, tmp_path):

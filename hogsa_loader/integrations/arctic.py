@@ -14,14 +14,14 @@ Example (ArcticNet-SF training, real-format data)::
 
 from __future__ import annotations
 
-from typing import Any, Literal, Optional, Union
+from typing import Any, Optional, Union
 
 from torch.utils.data import DataLoader
 
 from hogsa_loader.bundle import Bundle
 from hogsa_loader.errors import PathLike
 from hogsa_loader.loader.dataset import HOGSADataset
-from hogsa_loader.loader.mixing import MixedLoader
+from hogsa_loader.loader.mixing import MixedLoader, MixMode
 
 __all__ = ["wrap_train_loader"]
 
@@ -65,7 +65,7 @@ def wrap_train_loader(
     device: str = "cpu",
     seed: int = 0,
     drop_last: bool = True,
-    mode: Literal["replace", "add"] = "replace",
+    mode: MixMode = "replace",
     **dataset_kwargs: Any,
 ) -> MixedLoader:
     """Mix synthetic HOGSA samples into an ARCTIC train loader.
@@ -75,14 +75,16 @@ def wrap_train_loader(
             batches); its batch size B is kept (``mode="replace"``).
         bundle: bundle folder or :class:`~hogsa_loader.bundle.Bundle`.
         ratio: synthetic share; each batch has exactly ``round(ratio·B)`` (half up)
-            synthetic samples.
+            synthetic samples (``mode="replace"``; with ``"add"``,
+            ``added_synthetic(ratio, b)`` are appended to a real batch of b).
         data_root: ARCTIC data root (default: ``train_loader.dataset.root.data_root`` of a
             :class:`~hogsa_loader.datasets.ArcticDataset`).
         num_workers: DataLoader workers of the synthetic stream (CPU rendering only;
             keep 0 with ``device="cuda"`` — workers must not touch CUDA).
         device: rendering device.
         seed: synthetic stream seed.
-        drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
+        drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader` (``"replace"`` only;
+            with ``"add"`` the train loader's own ``drop_last`` applies).
         mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
             their share is about ``ratio``); see :class:`~hogsa_loader.loader.mixing.MixedLoader`.

@@ -1,20 +1,20 @@
 """``MixedLoader``: real ARCTIC batches with an exact share of synthetic samples.
 
-Every yielded batch of size B holds exactly ``n_syn = floor(ratio·B + 0.5)`` synthetic
-samples (round half up) after ``B − n_syn`` real ones, collated exactly like the real
-batches: the synthetic samples go through the real loader's ``collate_fn`` and are
-concatenated with the real part along the batch dimension (tensors with ``torch.cat``,
-lists of strings by concatenation, dicts / tuples recursively).
+With the default ``mode="replace"``, every yielded batch of size B holds exactly
+``n_syn = floor(ratio·B + 0.5)`` synthetic samples (round half up) after ``B − n_syn`` real
+ones, collated exactly like the real batches: the synthetic samples go through the real
+loader's ``collate_fn`` and are concatenated with the real part along the batch dimension
+(tensors with ``torch.cat``, lists of strings by concatenation, dicts / tuples recursively).
 
 No real sample is wasted: the real samples a mixed batch does not use are kept for the
 next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
 covers the real epoch (the last real samples that cannot fill a batch are dropped when
 ``drop_last`` is True, else they form a smaller last batch with its own rounded share).
 
-``mode="add"`` instead keeps every real batch as the real loader yields it and appends
-``n_syn = added_synthetic(ratio, b)`` synthetic samples to a batch of b real ones, so that a
-training run sees the same real batches as without synthetic data (larger batches, synthetic
-share ``n_syn / (b + n_syn)`` ≈ ratio).
+``mode="add"`` instead keeps every real batch as the real loader yields it (its own
+``drop_last`` applies) and appends ``n_syn = added_synthetic(ratio, b)`` synthetic samples to
+a batch of b real ones, so that a training run sees the same real batches as without
+synthetic data (larger batches, synthetic share ``n_syn / (b + n_syn)`` ≈ ratio).
 """
 
 from __future__ import annotations
@@ -24,7 +24,10 @@ from typing import Any, Callable, Iterable, Iterator, Literal, Optional
 import torch
 from torch.utils.data import default_collate
 
-__all__ = ["MixedLoader", "num_synthetic", "added_synthetic", "batch_size_of"]
+__all__ = ["MixedLoader", "MixMode", "num_synthetic", "added_synthetic", "batch_size_of"]
+
+#: How synthetic samples enter a real batch (see the module docstring).
+MixMode = Literal["replace", "add"]
 
 
 def num_synthetic(ratio: float, batch_size: int) -> int:
@@ -34,8 +37,9 @@ def num_synthetic(ratio: float, batch_size: int) -> int:
 
 def added_synthetic(ratio: float, real: int) -> int:
     """Synthetic samples appended to ``real`` real ones so that their share is ``ratio``:
-    ``floor(ratio / (1 - ratio) · real + 0.5)`` (``ratio < 1``)."""
-    return int(ratio / (1.0 - ratio) * real + 0.5)
+    ``floor(ratio / (1 - ratio) · real + 0.5)`` (``ratio < 1``; a 1e-9 margin keeps exact
+    halves such as 0.6 / 0.4 = 1.5 from rounding down in floating point)."""
+    return int(ratio / (1.0 - ratio) * real + 0.5 + 1e-9)
 
 
 _CONTAINERS = (torch.Tensor, dict, tuple, list)
@@ -92,11 +96,12 @@ def _cat(parts: list[Any]) -> Any:
 
 
 class MixedLoader:
-    """Real batches with exactly ``round(ratio·B)`` synthetic samples each.
+    """Real batches with exactly ``round(ratio·B)`` synthetic samples each (``mode="replace"``),
+    or real batches with ``added_synthetic(ratio, b)`` synthetic samples appended (``"add"``).
 
     Args:
-        real_loader: the real DataLoader (collated ``(inputs, targets, meta_info)`` batches);
-            its ``batch_size`` is B (else the first batch's size).
+        real_loader: the real DataLoader (collated ``(inputs, targets, meta_info)`` batches,
+            so not ``batch_size=None``); its ``batch_size`` is B (else the first batch's size).
         synthetic: an iterable of **single** synthetic samples — a
             :class:`~hogsa_loader.loader.dataset.HOGSADataset` (iterated in this process)
             or ``DataLoader(hogsa_dataset, batch_size=None, num_workers=k)``. It is
@@ -104,7 +109,8 @@ class MixedLoader:
         ratio: synthetic share in [0, 1].
         collate_fn: collate of the synthetic samples; default the real loader's own
             ``collate_fn`` (or torch's ``default_collate``).
-        drop_last: drop the real samples that cannot fill a last batch (``"replace"`` mode).
+        drop_last: drop the real samples that cannot fill a last batch (``"replace"``; with
+            ``"add"`` the real loader's own ``drop_last`` applies).
         mode: ``"replace"``, batches of B with ``num_synthetic(ratio, B)`` of them synthetic;
             ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
             samples (ratio < 1).
@@ -117,7 +123,7 @@ class MixedLoader:
         ratio: float,
         collate_fn: Optional[Callable[[list[Any]], Any]] = None,
         drop_last: bool = True,
-        mode: Literal["replace", "add"] = "replace",
+        mode: MixMode = "replace",
     ) -> None:
         if not 0.0 <= float(ratio) <= 1.0:
             raise ValueError(f"ratio must be in [0, 1], got {ratio}")
@@ -125,6 +131,9 @@ class MixedLoader:
             raise ValueError(f"mode must be 'replace' or 'add', got {mode!r}")
         if mode == "add" and not float(ratio) < 1.0:
             raise ValueError("mode='add' needs ratio < 1 (real samples in every batch)")
+        if hasattr(real_loader, "batch_sampler") and real_loader.batch_sampler is None:
+            raise ValueError("the real loader yields single samples (batch_size=None); MixedLoader needs "
+                             "collated batches")
         self.mode = mode
         self.real_loader = real_loader
         self.synthetic = synthetic
