@@ -1313,7 +1313,7 @@ def _index_batch(batch: Any, keep: Sequence[int]) -> Any:
 
 def untrained_bundle(data_root: Path, out: Path, sid: str, obj: str) -> Path:
     """A bundle of untrained HOGS models (Gaussians initialised from MANO / the template)."""
-    from hogsa_loader.world.untrained import write_untrained_bundle
+    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
 
     return write_untrained_bundle(data_root, out, sid, obj)
 

@@ -258,7 +258,7 @@ def train_pairs(data: Path) -> list[tuple[str, str]]:
 def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
     from hogsa_loader.demo import DemoConfig, build_bundle_stages
-    from hogsa_loader.world import get_preset
+    from hogsa_loader.synthetic.world import get_preset
 
     if cfg.setup.bundle is not None:
         data = Path(cfg.setup.data).resolve()

@@ -32,9 +32,10 @@ import torch
 
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, compose, render_scene
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
-from hogsa_loader.hands import ManoModelData, named_articulation, synthetic_hand_pair
+from hogsa_loader.hands import ManoModelData, named_articulation
 from hogsa_loader.hands.anatomy import derive_joint_axes, rest_joints
-from hogsa_loader.objects import make_object
+from hogsa_loader.synthetic.hand import synthetic_hand_pair
+from hogsa_loader.synthetic.objects.procedural import make_object
 from hogsa_loader.render.mesh_raster import camera_look_at, intrinsics_from_fov, save_png
 
 BACKGROUND = (0.93, 0.93, 0.95)

@@ -224,7 +224,7 @@ def build_resources(scratch: Path, world: Optional[Path] = None, log: Callable[[
     """Generate the tiny world (unless ``world`` is given), an untrained bundle and a 4-frame
     export in ``scratch``."""
     from hogsa_loader.cli.main import main as hogsa
-    from hogsa_loader.world.untrained import write_untrained_bundle
+    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
 
     world = Path(world) if world is not None else scratch / "world"
     bundle, shards = scratch / "bundle", scratch / "shards"

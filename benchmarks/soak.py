@@ -145,7 +145,7 @@ def setup(out: Path, data: Optional[str], bundle: Optional[str]) -> tuple[Path, 
     if data is not None:
         return Path(data), Path(bundle)  # type: ignore[arg-type]
     from hogsa_loader.cli.main import main as hogsa
-    from hogsa_loader.world.untrained import write_untrained_bundle
+    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
 
     world, made = out / "setup" / "world", out / "setup" / "untrained"
     if not (world / "arctic_data" / "data" / "meta" / "hogsa_world.json").is_file():

@@ -222,7 +222,7 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle."""
     from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
     from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.world import generate_world, get_preset
+    from hogsa_loader.synthetic.world import generate_world, get_preset
 
     if cfg.data is not None:
         data = Path(os.path.abspath(cfg.data))

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from hogsa_loader.hands.mano_io import write_mano_pickle
-from hogsa_loader.hands.synthetic import synthetic_hand_pair
+from hogsa_loader.synthetic.hand import synthetic_hand_pair
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
@@ -105,7 +105,7 @@ def tiny_srm(folder: Path, scale: int = 1) -> Path:
 def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
     """An untrained bundle of the tiny world (colours from the hand albedo / object texture)
     for s01 + box, with a small untrained SRM."""
-    from hogsa_loader.world.untrained import write_untrained_bundle
+    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
 
     out = tmp_path_factory.mktemp("bundle")
     return write_untrained_bundle(tiny_world, out, "s01", "box", srm=tiny_srm(out / "srm"))

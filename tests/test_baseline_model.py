@@ -41,7 +41,7 @@ from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_s
 from hogsa_loader.errors import AssetError
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.hands.mano import MANOLayer
-from hogsa_loader.hands.synthetic import HandSpec, synthetic_hand_pair
+from hogsa_loader.synthetic.hand import HandSpec, synthetic_hand_pair
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.objects.template import ObjectTemplate, bbox_corners
 

@@ -92,7 +92,7 @@ def test_unbatch_inverts_default_collate():
 
 
 def test_demo_world_preset_holds_what_the_demo_uses():
-    from hogsa_loader.world import get_preset
+    from hogsa_loader.synthetic.world import get_preset
 
     cfg = DemoConfig()
     preset = get_preset(cfg.preset)

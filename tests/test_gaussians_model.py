@@ -133,7 +133,7 @@ def right_hand(hand_pair):
 
 @pytest.fixture(scope="module")
 def box_template():
-    from hogsa_loader.objects import make_object
+    from hogsa_loader.synthetic.objects.procedural import make_object
 
     return make_object("box")
 
@@ -591,8 +591,8 @@ def test_hogs_model_headlight_without_learned_light():
     """HogsModel.render(headlight=...) shades with the camera light whether or not the model
     has a learned light (the normals are kept for it), and darkens the grazing surfaces."""
     from hogsa_loader.gaussians.hogs_model import HogsModel
-    from hogsa_loader.hands import synthetic_hand_pair
-    from hogsa_loader.objects import make_object
+    from hogsa_loader.synthetic.hand import synthetic_hand_pair
+    from hogsa_loader.synthetic.objects.procedural import make_object
 
     r, l = synthetic_hand_pair()
     m = HogsModel(HandGaussians(r, sh_degree=0), HandGaussians(l, sh_degree=0),

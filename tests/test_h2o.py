@@ -18,13 +18,11 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from hogsa_loader.datasets.h2o import (
-    H2OCameraRecord,
     H2ORoot,
     change_mano_frame,
     h2o_mano_from_tracks,
     mano_root_joint,
     read_h2o_rgb,
-    write_h2o_sequence,
 )
 from hogsa_loader.datasets.h2o_io import (
     H2O_COUNTS,
@@ -43,6 +41,7 @@ from hogsa_loader.datasets.h2o_io import (
     parse_h2o_verb_label,
 )
 from hogsa_loader.errors import AssetError
+from hogsa_loader.synthetic.h2o_writer import H2OCameraRecord, write_h2o_sequence
 from hogsa_loader.hands.mano import MANOLayer
 
 F64 = torch.float64

@@ -25,7 +25,7 @@ from hogsa_loader.objects.template import BOTTOM
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
-from hogsa_loader.world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
+from hogsa_loader.synthetic.world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 

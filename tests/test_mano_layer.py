@@ -303,7 +303,7 @@ def test_named_poses_deform_without_tearing(hand_pair, pose):
 
 def test_synthetic_hand_is_deterministic(tmp_path, hand_pair):
     from hogsa_loader.hands.mano_io import write_mano_pickle
-    from hogsa_loader.hands.synthetic import synthetic_hand_pair
+    from hogsa_loader.synthetic.hand import synthetic_hand_pair
 
     again, _ = synthetic_hand_pair()
     write_mano_pickle(hand_pair[0], tmp_path / "a.pkl")

@@ -22,21 +22,18 @@ from hogsa_loader.errors import AssetError
 from hogsa_loader.objects import (
     BOTTOM,
     OBJECT_NAMES,
-    PROCEDURAL_NAMES,
     TOP,
     ArticulatedObjectLayer,
     articulate,
     load_object_template,
     load_object_templates,
-    make_object,
     parse_h2o_obj_pose_rt,
     pose_rigid,
     read_h2o_obj_pose_rt,
     write_object_template,
-    write_procedural_objects,
 )
-from hogsa_loader.objects.procedural import GAP_MM
 from hogsa_loader.objects.template import bbox_corners, max_pairwise_distance
+from hogsa_loader.synthetic.objects.procedural import GAP_MM, PROCEDURAL_NAMES, make_object, write_procedural_objects
 
 F64 = torch.float64
 
@@ -56,7 +53,7 @@ EXPECTED_EXTENT_MM = {
 }
 #: Axis along which the closed top lies on the bottom: y for lids, z (the pivot) for scissors.
 STACK_AXIS = {"scissors": 2}
-#: Objects assembled from pieces (hogsa_loader.objects.household).
+#: Objects assembled from pieces (hogsa_loader.synthetic.objects.household).
 HOUSEHOLD = ("capsulemachine", "ketchup", "microwave", "mixer", "espressomachine", "waffleiron", "scissors")
 
 

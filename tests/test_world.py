@@ -28,7 +28,7 @@ from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import load_mano
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import load_object_template
-from hogsa_loader.world import PRESETS, SequencePlan, SubjectPlan, generate_world
+from hogsa_loader.synthetic.world import PRESETS, SequencePlan, SubjectPlan, generate_world
 
 MASK_IDS = {"background": 0, "right": 1, "left": 2, "object_top": 3, "object_bottom": 4}
 HAND_ID = {"right": 1, "left": 2}
@@ -321,7 +321,7 @@ def test_body_stand_ins_are_nan_and_recorded(world):
     """No body: SMPL-X fields are NaN with ARCTIC's shapes, listed in hogsa_world.json with
     the files left out (no fabricated SMPL-X model)."""
     from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
-    from hogsa_loader.world.stand_ins import SMPLX_PARAMS
+    from hogsa_loader.synthetic.world.stand_ins import SMPLX_PARAMS
 
     rec = world.meta
     paths = {e["path"]: e for e in rec["stand_ins"]}
@@ -654,7 +654,7 @@ def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypat
     finished ones are left as they were. A world recorded for another seed is rendered again.
     (The sequence renderer is replaced by a cheap writer of the same files in the same
     order; that a seed gives a byte-identical world is tested above.)"""
-    import hogsa_loader.world.writer as writer
+    import hogsa_loader.synthetic.world.writer as writer
 
     preset = dataclasses.replace(_micro_preset(), subjects=(
         SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),))
@@ -723,7 +723,7 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     from hogsa_loader.cli.main import main
     from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
     from hogsa_loader.errors import AssetError
-    from hogsa_loader.world.annotation_noise import AnnotationNoise, add_annotation_noise, perturb_hand
+    from hogsa_loader.synthetic.world.annotation_noise import AnnotationNoise, add_annotation_noise, perturb_hand
 
     # the noise model: requested std per component (offset + smoothed jitter), zero noise = identity
     rng = np.random.default_rng(0)

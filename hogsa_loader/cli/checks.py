@@ -211,7 +211,7 @@ def multiple_of(value: int, base: int, flag: str, base_flag: str) -> None:
 
 def procedural_objects(names: Sequence[str], flag: str = "--objects") -> list[str]:
     """Names of procedural objects: at least one, each known, none repeated."""
-    from hogsa_loader.objects.procedural import PROCEDURAL_NAMES
+    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
 
     names = list(names)
     if not names:

@@ -43,8 +43,9 @@ def _cmd_assets(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from hogsa_loader.hands.mano_io import write_mano_pickle
-    from hogsa_loader.hands.synthetic import synthetic_hand_pair
-    from hogsa_loader.objects import load_object_templates, write_procedural_objects
+    from hogsa_loader.synthetic.hand import synthetic_hand_pair
+    from hogsa_loader.objects import load_object_templates
+    from hogsa_loader.synthetic.objects.procedural import write_procedural_objects
 
     names = checks.procedural_objects([n for n in args.objects.split(",") if n])
     out = os.path.abspath(checks.output_dir(args.out))
@@ -91,7 +92,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_world(args: argparse.Namespace) -> int:
-    from hogsa_loader.world import generate_world, get_preset
+    from hogsa_loader.synthetic.world import generate_world, get_preset
 
     try:
         preset = get_preset(args.preset)
@@ -112,7 +113,7 @@ def _cmd_world(args: argparse.Namespace) -> int:
 
 def _cmd_world_noise(args: argparse.Namespace) -> int:
     from hogsa_loader.errors import AssetError
-    from hogsa_loader.world.annotation_noise import AnnotationNoise, add_annotation_noise
+    from hogsa_loader.synthetic.world.annotation_noise import AnnotationNoise, add_annotation_noise
 
     checks.input_dir(args.src, "--src")
     checks.output_dir(args.out)
@@ -253,7 +254,7 @@ def _cmd_plates(args: argparse.Namespace) -> int:
 
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
     from hogsa_loader.errors import HogsaError
-    from hogsa_loader.world.h2o_export import export_h2o_world
+    from hogsa_loader.synthetic.world.h2o_export import export_h2o_world
 
     try:
         w, h = (int(v) for v in args.image_size.split("x"))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "MASK_IDS",
     "ALLO_VIEWS",
     "HAND_BONES",
     "BBOX_PIXELS_PER_SCALE",
@@ -28,6 +29,7 @@ __all__ = [
     "cropped_bbox",
     "cropped_intrinsics",
     "distort_points",
+    "undistort_map",
     "ego_bbox",
     "full_to_cropped",
     "project",
@@ -35,6 +37,9 @@ __all__ = [
     "transform",
     "validity_flags",
 ]
+
+#: Part ids of ARCTIC-format segmentation masks (and of the mesh rasteriser's part buffer).
+MASK_IDS = {"background": 0, "right": 1, "left": 2, "object_top": 3, "object_bottom": 4}
 
 #: (parent, child) pairs of the 21 ARCTIC/MANO joints (ARCTIC's joint order: wrist, then
 #: index, middle, pinky, ring, thumb chains of three, then the five tips 16..20).
@@ -271,3 +276,42 @@ def validity_flags(
 
     f32 = np.float32
     return is_valid.astype(f32), hand(joints2d_r).astype(f32), hand(joints2d_l).astype(f32)
+
+
+def undistort_map(K: np.ndarray, dist8: np.ndarray, width: int, height: int,
+                  iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps that turn an undistorted rendering into the distorted image.
+
+    For every distorted output pixel (OpenCV/ARCTIC convention: pixel (i, j) centred on
+    label coordinate (j, i)) the undistorted normalised point is found by fixed-point
+    inversion of the distortion model of
+    :func:`distort_points`; the maps hold its label
+    coordinate in the undistorted image, which is its pixel index there when that image
+    was rendered with :func:`render_intrinsics`.
+
+    Args:
+        K: (3, 3) intrinsics of the (width, height) image.
+        dist8: (8,) distortion.
+
+    Returns:
+        map_x, map_y: (height, width) float32.
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6 = dist8
+    jj, ii = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    xd = (jj - K[0, 2]) / K[0, 0]
+    yd = (ii - K[1, 2]) / K[1, 1]
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iters):
+        r2 = x * x + y * y
+        radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    check = distort_points(np.stack([x, y, np.ones_like(x)], -1).reshape(-1, 3), np.asarray(dist8, dtype=np.float64))
+    err = np.abs(check[:, 0] - xd.reshape(-1)).max() + np.abs(check[:, 1] - yd.reshape(-1)).max()
+    if not err < 1e-7:
+        raise RuntimeError(f"distortion inversion did not converge (residual {err:.2e})")
+    map_x = x * K[0, 0] + K[0, 2]
+    map_y = y * K[1, 1] + K[1, 2]
+    return map_x.astype(np.float32), map_y.astype(np.float32)

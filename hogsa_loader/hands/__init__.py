@@ -11,24 +11,19 @@ from hogsa_loader.hands.mano_io import (
     write_mano_pickle,
 )
 from hogsa_loader.hands.manohd import subdivide_model
-from hogsa_loader.hands.synthetic import HandSpec, build_synthetic_hand, mirror_to_left, synthetic_hand_pair
 
 __all__ = [
-    "HandSpec",
     "MANOLayer",
     "ManoModelData",
     "ManoOutput",
     "NAMED_POSES",
     "RestrictedUnpickler",
-    "build_synthetic_hand",
     "convert_mano_to_npz",
     "derive_contact_prior",
     "derive_joint_axes",
     "load_mano",
-    "mirror_to_left",
     "named_articulation",
     "reorder_vertices",
     "subdivide_model",
-    "synthetic_hand_pair",
     "write_mano_pickle",
 ]

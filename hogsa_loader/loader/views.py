@@ -12,7 +12,7 @@
     crop box is the whole frame, side ``W``). With ``distortion=True`` (default) the pixels
     go through the camera's lens distortion like ARCTIC's egocentric images (rendered
     undistorted with a margin, then resampled, see
-    :func:`~hogsa_loader.world.cameras.undistort_map`), while the 2D labels stay in the
+    :func:`~hogsa_loader.datasets.conventions.undistort_map`), while the 2D labels stay in the
     **undistorted** space as ARCTIC's view-0 targets do; validity flags use the distorted
     2D in the whole image, as ARCTIC's processing does. ``distortion=False`` renders a
     pinhole image whose pixels match the labels exactly.
@@ -41,6 +41,7 @@ from hogsa_loader.datasets.conventions import (
     project,
     render_intrinsics,
     transform,
+    undistort_map,
     validity_flags,
 )
 from hogsa_loader.loader.cameras import CameraSampler
@@ -153,8 +154,6 @@ _MAP_CACHE: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
 
 def _distortion_map(K: np.ndarray, dist: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
-    from hogsa_loader.world.cameras import undistort_map
-
     key = np.concatenate([K.ravel(), dist.ravel(), [w, h]]).astype(np.float64).tobytes()
     if key not in _MAP_CACHE:
         if len(_MAP_CACHE) > 64:

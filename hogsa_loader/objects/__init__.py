@@ -11,11 +11,6 @@ from hogsa_loader.objects.articulated import (
     articulate,
     articulation_matrix,
 )
-from hogsa_loader.objects.procedural import (
-    PROCEDURAL_NAMES,
-    make_object,
-    write_procedural_objects,
-)
 from hogsa_loader.objects.rigid import (
     H2O_OBJECT_NAMES,
     parse_h2o_obj_pose_rt,
@@ -41,18 +36,15 @@ __all__ = [
     "H2O_OBJECT_NAMES",
     "OBJECT_NAMES",
     "ObjectTemplate",
-    "PROCEDURAL_NAMES",
     "TOP",
     "articulate",
     "articulation_matrix",
     "load_object_template",
     "load_object_templates",
-    "make_object",
     "parse_h2o_obj_pose_rt",
     "pose_rigid",
     "read_h2o_obj_pose_rt",
     "read_object_meta",
     "write_object_meta",
     "write_object_template",
-    "write_procedural_objects",
 ]

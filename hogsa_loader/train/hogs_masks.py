@@ -13,7 +13,7 @@ applies, so it is rasterised here from the annotated, posed meshes:
   :func:`~hogsa_loader.objects.articulated.articulate`. A rigid (H2O) template has every
   vertex in the bottom part, so it is all part id 4.
 
-Part ids are the world's :data:`~hogsa_loader.world.scene_render.MASK_IDS` (1 right hand,
+Part ids are the world's :data:`~hogsa_loader.datasets.conventions.MASK_IDS` (1 right hand,
 2 left hand, 3 object top, 4 object bottom, 0 background). The meshes are rasterised with
 :func:`~hogsa_loader.render.mesh_raster.render_meshes` (z-buffer, nearest surface wins) at
 the training resolution with the training render intrinsics; with ``supersample`` s a
@@ -37,7 +37,7 @@ from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
-from hogsa_loader.world.scene_render import MASK_IDS
+from hogsa_loader.datasets.conventions import MASK_IDS
 
 __all__ = ["PosedMeshes", "object_part_meshes", "pose_meshes", "render_part_mask", "inside_image"]
 

@@ -28,7 +28,7 @@ class SequencePlan:
 
     Attributes:
         object: procedural object; (object, action) must be one of
-            :data:`~hogsa_loader.world.grasp.GRASP_DESIGNS` (box grab/use, laptop grab,
+            :data:`~hogsa_loader.synthetic.world.grasp.GRASP_DESIGNS` (box grab/use, laptop grab,
             notebook grab).
         action: ``grab`` (both hands carry the object) or ``use`` (one hand holds the
             base, the other opens and closes the top part).
@@ -42,7 +42,7 @@ class SequencePlan:
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
             raise ValueError(f"action must be one of {ACTIONS}, got {self.action!r}")
-        from hogsa_loader.world.grasp import GRASP_DESIGNS
+        from hogsa_loader.synthetic.world.grasp import GRASP_DESIGNS
 
         if (self.object, self.action) not in GRASP_DESIGNS:
             raise ValueError(f"({self.object!r}, {self.action!r}) has no designed grasp; choose from {GRASP_DESIGNS}")

@@ -6,7 +6,7 @@ the z axis through the origin by ``R_z(-θ)`` (``θ = 0`` closed). Lid-like tops
 object but the scissors) lie in ``x <= 0, y >= GAP/2`` with the hinge at their ``x = 0``
 edge and the bottom in ``y <= -GAP/2``, so opening by ``θ`` in ``[0, π/2]`` swings the
 top up and back without entering the bottom (as the boxes of
-:mod:`hogsa_loader.objects.procedural`): the microwave door and the mixer head are such
+:mod:`hogsa_loader.synthetic.objects.procedural`): the microwave door and the mixer head are such
 tops. The scissors' blades are stacked along the hinge instead (top ``z >= GAP/2``,
 bottom ``z <= -GAP/2``) and open in the x-y plane. The piece of each part that meets the
 other part shares its grid with it, so the closed parts face each other at exactly the
@@ -20,8 +20,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from hogsa_loader.objects.compound import CompoundSpec, Piece, box_piece, disc_profile, lathe
-from hogsa_loader.objects.procedural import (
+from hogsa_loader.synthetic.objects.compound import CompoundSpec, Piece, box_piece, disc_profile, lathe
+from hogsa_loader.synthetic.objects.procedural import (
     GAP_MM,
     PHOTOS,
     Image,

@@ -3,7 +3,7 @@
 A piece is one closed, outward-oriented mesh with its texture charts and the painters of
 those charts; a part is the union of its pieces (concatenated, not welded: pieces may
 overlap, each stays a closed solid). Rounded boxes come from
-:func:`hogsa_loader.objects.procedural.rounded_box` (six charts ``"+x"`` ...); a lathe
+:func:`hogsa_loader.synthetic.objects.procedural.rounded_box` (six charts ``"+x"`` ...); a lathe
 (:func:`lathe`) revolves a profile about a coordinate axis and is one chart ``"side"``
 (u around the axis, v along the profile).
 """
@@ -16,7 +16,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from hogsa_loader.objects.procedural import Painter, PartMesh, rounded_box
+from hogsa_loader.synthetic.objects.procedural import Painter, PartMesh, rounded_box
 
 __all__ = ["Piece", "CompoundSpec", "box_piece", "lathe", "disc_profile", "merge_pieces"]
 
@@ -52,7 +52,7 @@ class CompoundSpec:
 def box_piece(lo: Sequence[float], hi: Sequence[float], radius: float, default: Painter,
               painters: Optional[Mapping[str, Painter]] = None, spacing: float = 6.0, band: int = 2,
               up: Optional[dict[str, str]] = None) -> Piece:
-    """A rounded box piece (see :func:`~hogsa_loader.objects.procedural.rounded_box`)."""
+    """A rounded box piece (see :func:`~hogsa_loader.synthetic.objects.procedural.rounded_box`)."""
     return Piece(rounded_box(lo, hi, radius, spacing, band, up=up), default, dict(painters or {}))
 
 

@@ -5,7 +5,7 @@ writes them exactly like ``meta/object_vtemplates/<obj>/`` (see
 :mod:`hogsa_loader.objects.template`), one for each of ARCTIC's 11 object names. Here:
 box (juice box with a flip lid), laptop, notebook and phone (flip phone), each two
 rounded boxes joined by a hinge; the other seven are assembled from several pieces per
-part in :mod:`hogsa_loader.objects.household` and textured by the same atlas code.
+part in :mod:`hogsa_loader.synthetic.objects.household` and textured by the same atlas code.
 
 Canonical frame (ARCTIC convention, spec §2): the hinge is the z axis through the origin
 and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
@@ -930,8 +930,8 @@ def _spec_and_parts(name: str, rng: np.random.Generator) -> tuple[Optional[Objec
     if name in _SPECS:
         spec = _SPECS[name](rng)
         return spec, build_parts(spec)
-    from hogsa_loader.objects.compound import merge_pieces
-    from hogsa_loader.objects.household import HOUSEHOLD_SPECS
+    from hogsa_loader.synthetic.objects.compound import merge_pieces
+    from hogsa_loader.synthetic.objects.household import HOUSEHOLD_SPECS
 
     compound = HOUSEHOLD_SPECS[name](rng)
     return None, {p: merge_pieces(compound.parts[p]) for p in (TOP, BOTTOM)}
@@ -943,7 +943,7 @@ def make_object(name: str, seed: int = 0) -> ObjectTemplate:
     Args:
         name: one of :data:`PROCEDURAL_NAMES` (the 11 ARCTIC objects; ``box``,
             ``laptop``, ``notebook`` and ``phone`` here, the others in
-            :mod:`hogsa_loader.objects.household`).
+            :mod:`hogsa_loader.synthetic.objects.household`).
         seed: colour/photo/print variation; the geometry does not depend on it.
 
     Returns:

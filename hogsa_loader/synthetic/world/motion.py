@@ -24,10 +24,10 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from hogsa_loader.objects.template import TOP, ObjectTemplate
-from hogsa_loader.world.grasp import (
+from hogsa_loader.synthetic.world.grasp import (
     Grasp, HandKit, RoundedBox, fit_part_boxes, grasp_specs, object_sdf, optimise_grasp, rot_z_matrix,
 )
-from hogsa_loader.world.stage import TABLE_Z, WORKSPACE
+from hogsa_loader.synthetic.world.stage import TABLE_Z, WORKSPACE
 
 __all__ = ["SequenceMotion", "min_jerk", "rot_z", "build_motion", "hands_to_params"]
 
@@ -169,7 +169,7 @@ def _rest_pose(kit: HandKit, betas: np.ndarray, side: str, rng: np.random.Genera
         half_width: the object's half extent along world x at rest, from the workspace
             centre; the hand rests beyond it.
     """
-    from hogsa_loader.world.grasp import placement_rotation
+    from hogsa_loader.synthetic.world.grasp import placement_rotation
 
     sgn = 1.0 if side == "right" else -1.0
     art = kit.mean * rng.uniform(0.7, 0.9)

@@ -11,7 +11,7 @@ full-resolution frames:
   full-resolution image are black (as ``cv2.warpAffine`` padding makes them in ARCTIC).
 * egocentric view 0: the whole 2800x2000 frame scaled by the ego scale, rendered
   undistorted (with a margin) and then warped through the lens distortion
-  (:func:`~hogsa_loader.world.cameras.undistort_map` + ``cv2.remap``).
+  (:func:`~hogsa_loader.datasets.conventions.undistort_map` + ``cv2.remap``).
 
 Masks use ``MASK_IDS`` and share the geometry of their image.
 """
@@ -25,19 +25,19 @@ import numpy as np
 import torch
 
 from hogsa_loader.datasets.conventions import (
+    MASK_IDS,
+    undistort_map,
     BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, EGO_IMAGE_SIZE, allocentric_bbox, cropped_intrinsics, project, render_intrinsics, transform,
 )
-from hogsa_loader.hands.synthetic import HandSpec
+from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
-from hogsa_loader.world.cameras import undistort_map
-from hogsa_loader.world.stage import light_for_camera
+from hogsa_loader.synthetic.world.stage import light_for_camera
 
-__all__ = ["MASK_IDS", "HAND_BASE_SKIN", "PosedSequence", "pose_sequence", "crop_boxes", "object_meshes",
+__all__ = ["HAND_BASE_SKIN", "PosedSequence", "pose_sequence", "crop_boxes", "object_meshes",
            "foreground", "SubjectRenderer"]
 
-MASK_IDS = {"background": 0, "right": 1, "left": 2, "object_top": 3, "object_bottom": 4}
 #: Skin colour the synthetic hand's albedo was painted with; a subject's tone rescales it.
 HAND_BASE_SKIN = np.asarray(HandSpec().skin_rgb, dtype=np.float64)
 _F32 = torch.float32
@@ -99,7 +99,7 @@ def crop_boxes(rig, obj_mesh: np.ndarray, size: int) -> np.ndarray:
     """Crop boxes of every allocentric view and frame.
 
     Args:
-        rig: :class:`~hogsa_loader.world.cameras.AlloRig`.
+        rig: :class:`~hogsa_loader.synthetic.world.cameras.AlloRig`.
         obj_mesh: (F, V, 3) posed ``mesh.obj`` vertices.
 
     Returns:
@@ -135,7 +135,7 @@ class SubjectRenderer:
     """Renders the frames of one subject's sequences (cameras, skin and stage fixed).
 
     Args:
-        rig: the subject's :class:`~hogsa_loader.world.cameras.AlloRig`.
+        rig: the subject's :class:`~hogsa_loader.synthetic.world.cameras.AlloRig`.
         ego_K: (3, 3) full-res ego intrinsics; ego_dist: (8,) distortion.
         stage: static MeshParts (table, room).
         hand_faces: side -> (Fh, 3) faces; hand_colors: side -> (V, 3) albedo of this subject.

@@ -2,7 +2,7 @@
 
 All computed from the posed geometry (hands from MANO forward of the stored parameters,
 object posed from ``.object.npy``), with the analytic rounded-box SDF of
-:mod:`hogsa_loader.world.grasp` (exact for the procedural objects; the triangle mesh is
+:mod:`hogsa_loader.synthetic.world.grasp` (exact for the procedural objects; the triangle mesh is
 inscribed in it, so these depths are upper bounds of the depth inside the mesh).
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from hogsa_loader.world.grasp import RoundedBox, object_sdf, rot_z_matrix as rot_z
+from hogsa_loader.synthetic.world.grasp import RoundedBox, object_sdf, rot_z_matrix as rot_z
 from scipy.spatial.transform import Rotation
 
 __all__ = ["CONTACT_THRESHOLD", "hand_object_distances", "sequence_quality"]

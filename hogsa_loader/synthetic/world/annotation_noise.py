@@ -125,7 +125,7 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
         AssetError: ``src`` is not a world root, or ``dst`` exists.
     """
     from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
-    from hogsa_loader.world.writer import _save_npy
+    from hogsa_loader.synthetic.world.writer import _save_npy
 
     src, dst = Path(src), Path(dst)
     data = src / _DATA
@@ -164,7 +164,7 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
         protocols = sorted(p.stem.removeprefix("protocol_") for p in (data / "splits_json").glob("protocol_*.json"))
         if process_splits and protocols:
             from hogsa_loader.datasets.arctic_processing import write_processed_splits
-            from hogsa_loader.world.stand_ins import add_split_stand_ins
+            from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins
 
             written = write_processed_splits(dst, protocols=protocols, splits=("train", "val"), progress=progress)
             add_split_stand_ins(written.values())

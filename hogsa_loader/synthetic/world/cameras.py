@@ -14,10 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
-from hogsa_loader.world.stage import TABLE_Y, TABLE_Z, WORKSPACE
+from hogsa_loader.synthetic.world.stage import TABLE_Y, TABLE_Z, WORKSPACE
 
-__all__ = ["AlloRig", "EgoCamera", "look_at", "allocentric_rig", "ego_calibration", "ego_trajectory",
-           "undistort_map"]
+__all__ = ["AlloRig", "EgoCamera", "look_at", "allocentric_rig", "ego_calibration", "ego_trajectory"]
 
 #: Full-res sizes (w, h) of the allocentric views, alternating landscape / portrait.
 ALLO_SIZES = ((2800, 2000), (2000, 2800))
@@ -167,44 +166,3 @@ def ego_trajectory(num_frames: int, rng: np.random.Generator, focus: np.ndarray)
         R.append(M[:3, :3])
         T.append(M[:3, 3:4])
     return np.stack(R), np.stack(T)
-
-
-def undistort_map(K: np.ndarray, dist8: np.ndarray, width: int, height: int,
-                  iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
-    """``cv2.remap`` maps that turn an undistorted rendering into the distorted image.
-
-    For every distorted output pixel (OpenCV/ARCTIC convention: pixel (i, j) centred on
-    label coordinate (j, i)) the undistorted normalised point is found by fixed-point
-    inversion of the distortion model of
-    :func:`hogsa_loader.datasets.conventions.distort_points`; the maps hold its label
-    coordinate in the undistorted image, which is its pixel index there when that image
-    was rendered with :func:`~hogsa_loader.datasets.conventions.render_intrinsics`.
-
-    Args:
-        K: (3, 3) intrinsics of the (width, height) image.
-        dist8: (8,) distortion.
-
-    Returns:
-        map_x, map_y: (height, width) float32.
-    """
-    from hogsa_loader.datasets.conventions import distort_points
-
-    k1, k2, p1, p2, k3, k4, k5, k6 = dist8
-    jj, ii = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    xd = (jj - K[0, 2]) / K[0, 0]
-    yd = (ii - K[1, 2]) / K[1, 1]
-    x, y = xd.copy(), yd.copy()
-    for _ in range(iters):
-        r2 = x * x + y * y
-        radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
-        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x = (xd - dx) / radial
-        y = (yd - dy) / radial
-    check = distort_points(np.stack([x, y, np.ones_like(x)], -1).reshape(-1, 3), np.asarray(dist8, dtype=np.float64))
-    err = np.abs(check[:, 0] - xd.reshape(-1)).max() + np.abs(check[:, 1] - yd.reshape(-1)).max()
-    if not err < 1e-7:
-        raise RuntimeError(f"distortion inversion did not converge (residual {err:.2e})")
-    map_x = x * K[0, 0] + K[0, 2]
-    map_y = y * K[1, 1] + K[1, 2]
-    return map_x.astype(np.float32), map_y.astype(np.float32)

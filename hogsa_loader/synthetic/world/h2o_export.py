@@ -23,7 +23,7 @@ world (the object's articulation is constant there) into an H2O tree that
   object-to-camera) in **every** camera's frame, as H2O stores them, converted with
   :func:`~hogsa_loader.datasets.h2o.h2o_mano_from_tracks` (the inverse of what
   :class:`H2ORoot` reads).
-* **Images.** The world's scene renderer (:mod:`hogsa_loader.world.scene_render`): the
+* **Images.** The world's scene renderer (:mod:`hogsa_loader.synthetic.world.scene_render`): the
   world's stage, this subject's skin, the world light, the mesh rasteriser.
 * **Frames.** Every ``frame_stride``-th frame of the sequence, file numbers = the ARCTIC GT
   frame indices.
@@ -44,7 +44,8 @@ import torch
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import EGO_VIEW, render_intrinsics
-from hogsa_loader.datasets.h2o import H2OCameraRecord, h2o_mano_from_tracks, write_h2o_sequence
+from hogsa_loader.datasets.h2o import h2o_mano_from_tracks
+from hogsa_loader.synthetic.h2o_writer import H2OCameraRecord, write_h2o_sequence
 from hogsa_loader.datasets.h2o_io import H2OIntrinsics
 from hogsa_loader.datasets.types import HandTrack, SequenceData
 from hogsa_loader.errors import AssetError, PathLike
@@ -110,7 +111,7 @@ def _frames_track(h: HandTrack, idx: np.ndarray) -> HandTrack:
 
 def _hand_colors(root: ArcticRoot, subject: str, models: dict) -> dict[str, torch.Tensor]:
     """Per-vertex albedo of the subject's hands, as the world renders them."""
-    from hogsa_loader.world.scene_render import HAND_BASE_SKIN
+    from hogsa_loader.synthetic.world.scene_render import HAND_BASE_SKIN
 
     subj = [s for s in root.world_meta().extra.get("subjects", []) if s.get("sid") == subject]
     skin = np.asarray(subj[0]["skin_rgb"], np.float64) if subj else HAND_BASE_SKIN
@@ -162,9 +163,9 @@ def export_h2o_world(
         AssetError: the sequence folder already holds files and ``overwrite`` is False.
     """
     from hogsa_loader.hands.mano_io import load_mano
-    from hogsa_loader.world.scene_render import foreground, object_meshes, pose_sequence
-    from hogsa_loader.world.stage import build_stage, light_for_camera
-    from hogsa_loader.world.writer import _rng  # the world's named random streams (same stage)
+    from hogsa_loader.synthetic.world.scene_render import foreground, object_meshes, pose_sequence
+    from hogsa_loader.synthetic.world.stage import build_stage, light_for_camera
+    from hogsa_loader.synthetic.world.writer import _rng  # the world's named random streams (same stage)
 
     cls = h2o_class_name(object_class)
     mesh_name = mesh_name or H2O_MESH_NAMES[cls][-1]

@@ -20,7 +20,7 @@ same seed gives byte-identical files (``hogsa_world.json`` differs only in ``tim
 Every world holds the templates of all 11 ARCTIC objects (ARCTIC's ``ObjectTensors``
 opens them all); sequences use the preset's objects. The subjects have no body: SMPL-X
 fields are NaN stand-ins and the SMPL-X model files are absent
-(:mod:`hogsa_loader.world.stand_ins`, listed in ``hogsa_world.json``).
+(:mod:`hogsa_loader.synthetic.world.stand_ins`, listed in ``hogsa_world.json``).
 The rendering consumes the parameters exactly as stored (float32 raw arrays, JSON
 cameras), so images and annotations agree.
 """
@@ -40,14 +40,14 @@ import cv2
 import numpy as np
 import torch
 
-from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
+from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE, MASK_IDS
 from hogsa_loader.errors import PathLike
 from hogsa_loader.render import raster_kernels
 from hogsa_loader.system import available_cores, can_fork
-from hogsa_loader.world.presets import SequencePlan, WorldPreset
+from hogsa_loader.synthetic.world.presets import SequencePlan, WorldPreset
 
 if TYPE_CHECKING:
-    from hogsa_loader.world.subjects import Subject
+    from hogsa_loader.synthetic.world.subjects import Subject
 
 __all__ = ["SCHEMA_VERSION", "GENERATOR", "generate_world", "WORLD_META", "MASK_DIR"]
 
@@ -129,11 +129,11 @@ def _write_assets(root: Path, preset: WorldPreset, seed: int) -> tuple[dict, dic
         ObjectTemplate, stage MeshParts).
     """
     from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
-    from hogsa_loader.hands.synthetic import synthetic_hand_pair
-    from hogsa_loader.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
+    from hogsa_loader.synthetic.hand import synthetic_hand_pair
+    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
     from hogsa_loader.objects.template import load_object_template, read_object_meta
-    from hogsa_loader.world.decimation import write_decimation_files
-    from hogsa_loader.world.stage import build_stage
+    from hogsa_loader.synthetic.world.decimation import write_decimation_files
+    from hogsa_loader.synthetic.world.stage import build_stage
 
     mano_dir = root / "body_models" / "mano"
     meta = root / "arctic_data" / "data" / "meta"
@@ -154,10 +154,10 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
     Returns:
         (subjects, jobs) with the annotations exactly as stored (float32 arrays).
     """
-    from hogsa_loader.world.cameras import allocentric_rig, ego_calibration, ego_trajectory
-    from hogsa_loader.world.motion import build_motion
-    from hogsa_loader.world.stand_ins import smplx_raw
-    from hogsa_loader.world.subjects import make_subject
+    from hogsa_loader.synthetic.world.cameras import allocentric_rig, ego_calibration, ego_trajectory
+    from hogsa_loader.synthetic.world.motion import build_motion
+    from hogsa_loader.synthetic.world.stand_ins import smplx_raw
+    from hogsa_loader.synthetic.world.subjects import make_subject
 
     F = preset.num_frames
     misc, subjects, jobs = {}, [], []
@@ -201,7 +201,7 @@ PARTIAL_RECORD = ".hogsa_world_partial.json"
 
 def _partial_fingerprint(preset: WorldPreset, seed: int) -> dict:
     """What a partly rendered world must match to be resumed: generators, preset and seed."""
-    from hogsa_loader.hands.synthetic import GENERATOR_VERSION
+    from hogsa_loader.synthetic.hand import GENERATOR_VERSION
 
     digest = zlib.crc32(repr(preset).encode("utf-8"))
     return {"generator": GENERATOR, "hand_generator": GENERATOR_VERSION, "preset": preset.name,
@@ -230,10 +230,10 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
     sequence per task on ``workers`` processes; returns per-sequence records with quality."""
     from tqdm import tqdm
 
-    from hogsa_loader.world.cameras import AlloRig
-    from hogsa_loader.world.grasp import fit_part_boxes
-    from hogsa_loader.world.quality import sequence_quality
-    from hogsa_loader.world.scene_render import HAND_BASE_SKIN, crop_boxes, pose_sequence
+    from hogsa_loader.synthetic.world.cameras import AlloRig
+    from hogsa_loader.synthetic.world.grasp import fit_part_boxes
+    from hogsa_loader.synthetic.world.quality import sequence_quality
+    from hogsa_loader.synthetic.world.scene_render import HAND_BASE_SKIN, crop_boxes, pose_sequence
 
     F, size = preset.num_frames, preset.cropped_size
     misc = json.loads((data / "meta" / "misc.json").read_text())
@@ -308,7 +308,7 @@ class _RenderShared:
 def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderers: dict) -> str:
     """Render one sequence with its subject's renderer (kept in ``renderers``, one subject at
     a time: its stage backgrounds are rendered once); returns ``sid/seq``."""
-    from hogsa_loader.world.scene_render import SubjectRenderer
+    from hogsa_loader.synthetic.world.scene_render import SubjectRenderer
 
     sid = task.job.subject.sid
     renderer = renderers.get(sid)
@@ -376,7 +376,7 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
 def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray,
                      renderer, template, bar) -> None:
     """Write the cropped images and masks of one sequence (all frames, views 0..8)."""
-    from hogsa_loader.world.scene_render import foreground, object_meshes
+    from hogsa_loader.synthetic.world.scene_render import foreground, object_meshes
 
     sid, name = job.subject.sid, job.plan.name
     meshes = object_meshes(template)
@@ -438,11 +438,10 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     Returns:
         the ``hogsa_world.json`` content.
     """
-    from hogsa_loader.objects.procedural import PROCEDURAL_NAMES
-    from hogsa_loader.world.grasp import HandKit
-    from hogsa_loader.world.scene_render import MASK_IDS
-    from hogsa_loader.world.stand_ins import add_split_stand_ins
-    from hogsa_loader.world.stand_ins import record as stand_in_record
+    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
+    from hogsa_loader.synthetic.world.grasp import HandKit
+    from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins
+    from hogsa_loader.synthetic.world.stand_ins import record as stand_in_record
 
     say = log or (lambda s: None)
     t_start = time.perf_counter()
@@ -511,7 +510,7 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     _write_json(data / "meta" / WORLD_META, record)  # read by the processing and the preview
     if preview:
         t0 = time.perf_counter()
-        from hogsa_loader.world.preview import write_world_preview
+        from hogsa_loader.synthetic.world.preview import write_world_preview
 
         write_world_preview(root, root / "world_preview.png", frames=preset.preview_frames)
         timings["preview_s"] = time.perf_counter() - t0
