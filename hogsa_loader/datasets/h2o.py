@@ -1,49 +1,12 @@
-"""Reader of the real H2O layout.
-
-Layout (``h2o_mano_peers.md`` §1.1)::
+"""Reader of the real H2O layout::
 
     <root>/subjectN/<scene>/<seq>/camK/<modality>/<frame:06d>.<ext>
     <root>/subjectN/<scene>/<seq>/camK/cam_intrinsics.txt
 
 with scenes ``h1 h2 k1 k2 o1 o2``, integer sequences, ``cam0``..``cam3`` static third-person
 cameras and ``cam4`` the head-mounted (egocentric) one. Text formats are parsed in
-:mod:`hogsa_loader.datasets.h2o_io`. ``hand_pose_mano`` / ``obj_pose_rt`` folders are
-found under the lower-case names every loader uses, or the README's ``hand_pose_MANO`` /
-``obj_pose_RT``.
-
-:meth:`H2ORoot.sequence` returns the dataset-independent :class:`SequenceData`:
-
-* **Label camera.** MANO and object labels are stored in every camera folder, each in
-  that camera's frame. They are read from one camera folder, ``label_cam`` (default
-  ``4``, the egocentric view that HACO and the official pose lists use).
-* **Output frame** (``world``): ``"world"`` (default) moves labels with the label
-  camera's ``cam_pose`` (camera-to-world, per frame) into H2O's world frame, like
-  h2oplayer. ``"camK"`` expresses everything in camera K's frame instead (for the moving
-  ``cam4`` this frame changes every frame; camera K then has identity extrinsics).
-* **MANO frame change** rotates about the root joint J0 (depends on betas), not about the
-  origin: global rotation ``R·R_g``, translation ``R·(J0 + t) + T − J0``
-  (:func:`change_mano_frame`).
-* **Mean pose.** H2O poses use ``flat_hand_mean=True``; :class:`HandTrack` wants the finger
-  pose relative to the MANO mean, so ``pose_rel = pose_flat − hands_mean`` of the given
-  model of each side.
-* **Betas.** H2O stores betas per frame; :class:`HandTrack` has one vector per sequence: the
-  per-hand **median over valid frames** (zeros when a hand is never valid). The translation
-  is set so that the root joint stays exactly where the per-frame betas put it
-  (``trans = R·(J0(β_f) + t) + T − J0(β_median)``); other joints move by the (small)
-  shape difference. :meth:`H2ORoot.read_mano` gives the exact per-frame labels.
-* **Validity.** Per frame and hand from the ``valid`` flag; invalid frames hold zeros in
-  ``rot``/``pose``/``trans``. The object is invalid where the class id is 0 (its
-  ``rot``/``trans`` are zeros there); ``arti`` is always 0 (H2O objects are rigid). The
-  object name comes from the class id (README names, ``H2O_OBJECT_NAMES``); a sequence
-  showing several non-zero classes raises unless ``object_class`` picks one.
-* **Cameras.** Every ``camK`` folder (or the ones asked for) with per-frame ``world2cam``
-  = inverse of ``cam_pose`` (composed with the output frame), ``K`` from
-  ``cam_intrinsics.txt`` (static, repeated per frame), no distortion, ``egocentric`` for
-  ``cam4``. ``image_paths`` point to ``rgb/<frame>.png`` (None where missing).
-* **Frames** are the files of the label camera's ``hand_pose_mano`` folder; every other
-  per-frame file read must exist for each of them.
-
-All arrays are float64 (the text files hold float64 values; cast as needed).
+:mod:`hogsa_loader.datasets.h2o_io`; :meth:`H2ORoot.sequence` returns the
+dataset-independent :class:`SequenceData`. All arrays are float64.
 """
 
 from __future__ import annotations
@@ -54,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence, TypeVar, Union
 
+import cv2
 import numpy as np
 import torch
 
@@ -528,7 +492,42 @@ class H2ORoot:
         frames: Optional[Sequence[int]] = None,
         object_class: Optional[int] = None,
     ) -> SequenceData:
-        """Read one sequence as :class:`SequenceData` (conventions in the module docstring).
+        """Read one sequence as :class:`SequenceData`.
+
+        Conventions:
+
+        * **Label camera.** MANO and object labels are stored in every camera folder, each
+          in that camera's frame. They are read from one camera folder, ``label_cam``
+          (default ``4``, the egocentric view that HACO and the official pose lists use).
+          ``hand_pose_mano`` / ``obj_pose_rt`` folders are found under these lower-case
+          names or the README's ``hand_pose_MANO`` / ``obj_pose_RT``.
+        * **Output frame** (``world``): ``"world"`` moves labels with the label camera's
+          ``cam_pose`` (camera-to-world, per frame) into H2O's world frame, like
+          h2oplayer. ``"camK"`` expresses everything in camera K's frame instead (for the
+          moving ``cam4`` this frame changes every frame; camera K then has identity
+          extrinsics).
+        * **MANO frame change** rotates about the root joint J0 (depends on betas), not
+          about the origin: global rotation ``R·R_g``, translation ``R·(J0 + t) + T − J0``
+          (:func:`change_mano_frame`).
+        * **Mean pose.** H2O poses use ``flat_hand_mean=True``; :class:`HandTrack` wants
+          the finger pose relative to the MANO mean, so ``pose_rel = pose_flat −
+          hands_mean`` of the given model of each side.
+        * **Betas.** H2O stores betas per frame; :class:`HandTrack` has one vector per
+          sequence: the per-hand **median over valid frames** (zeros when a hand is never
+          valid). The translation keeps the root joint exactly where the per-frame betas
+          put it (``trans = R·(J0(β_f) + t) + T − J0(β_median)``); other joints move by
+          the (small) shape difference. :meth:`read_mano` gives the exact per-frame labels.
+        * **Validity.** Per frame and hand from the ``valid`` flag; invalid frames hold
+          zeros in ``rot``/``pose``/``trans``. The object is invalid where the class id is
+          0 (its ``rot``/``trans`` are zeros there); ``arti`` is always 0 (H2O objects are
+          rigid). The object name comes from the class id (``H2O_OBJECT_NAMES``).
+        * **Cameras.** Every ``camK`` folder (or the ones asked for) with per-frame
+          ``world2cam`` = inverse of ``cam_pose`` (composed with the output frame), ``K``
+          from ``cam_intrinsics.txt`` (static, repeated per frame), no distortion,
+          ``egocentric`` for ``cam4``. ``image_paths`` point to ``rgb/<frame>.png`` (None
+          where missing).
+        * **Frames** are the files of the label camera's ``hand_pose_mano`` folder; every
+          other per-frame file read must exist for each of them.
 
         Args:
             subject, scene, seq: e.g. ``"subject1", "h1", 0``.
@@ -556,69 +555,14 @@ class H2ORoot:
         target = _parse_world(world)
         seq = str(seq)
         cams = self.cameras(subject, scene, seq) if cameras is None else sorted({int(c) for c in cameras})
-        frame_ids = self.frames(subject, scene, seq, label_cam) if frames is None else [int(f) for f in frames]
-        if not frame_ids:
-            raise AssetError(
-                self.modality_dir(subject, scene, seq, label_cam, "hand_pose_mano"), "no frame files (NNNNNN.txt)"
-            )
-        # Camera-to-world of every camera needed, per frame.
-        needed = {*cams, label_cam} | ({target} if target is not None else set())
-        c2w = {c: self.read_cam_poses(subject, scene, seq, c, frame_ids) for c in sorted(needed)}
-        # out2world: output frame -> world (identity for "world", cam_pose of camera K for "camK").
-        out2world = np.broadcast_to(np.eye(4), (len(frame_ids), 4, 4)) if target is None else c2w[target]
-        if target == label_cam:
-            label_to_out = np.repeat(np.eye(4)[None], len(frame_ids), axis=0)
-        else:
-            label_to_out = np.linalg.inv(out2world) @ c2w[label_cam]
+        frame_ids = self._sequence_frames(subject, scene, seq, label_cam, frames)
+        c2w, out2world, label_to_out = self._output_frames(subject, scene, seq, cams, label_cam, target, frame_ids)
 
         mano = self.read_mano(subject, scene, seq, label_cam, frame_ids)
         tracks = {s: h2o_mano_to_track(mano.hand(s), label_to_out, models[s]) for s in H2O_SIDES}
-
-        cls, obj_cam = self.read_obj_poses(subject, scene, seq, label_cam, frame_ids)
-        classes = sorted(set(cls[cls > 0].tolist()))
-        if object_class is not None:
-            if not 1 <= int(object_class) < len(H2O_OBJECT_NAMES):
-                raise ValueError(f"object_class must be in 1..{len(H2O_OBJECT_NAMES) - 1}, got {object_class}")
-            classes = [int(object_class)]
-        elif len(classes) > 1:
-            raise AssetError(
-                self.modality_dir(subject, scene, seq, label_cam, "obj_pose_rt"),
-                f"sequence shows several object classes {[H2O_OBJECT_NAMES[c] for c in classes]}; "
-                "pass object_class to pick one",
-            )
-        obj_valid = (cls > 0) & (cls == (classes[0] if classes else 0))
-        obj_out = label_to_out @ obj_cam
-        obj_rot = _mat_to_aa(obj_out[:, :3, :3])
-        obj_trans = obj_out[:, :3, 3].copy()
-        obj_rot[~obj_valid] = 0.0
-        obj_trans[~obj_valid] = 0.0
-        obj = ObjectTrack(
-            name=H2O_OBJECT_NAMES[classes[0] if classes else 0],
-            arti=np.zeros(len(frame_ids)),
-            rot=obj_rot,
-            trans=obj_trans,
-            valid=obj_valid,
-        )
-
-        camera_tracks: dict[int, CameraTrack] = {}
-        image_paths: dict[int, list[Optional[Path]]] = {}
-        for c in cams:
-            intr = self.read_intrinsics(subject, scene, seq, c)
-            if target == c:
-                w2c = np.repeat(np.eye(4)[None], len(frame_ids), axis=0)
-            else:
-                w2c = np.linalg.inv(c2w[c]) @ out2world
-            camera_tracks[c] = CameraTrack(
-                view=c,
-                world2cam=w2c,
-                K=np.repeat(intr.K[None], len(frame_ids), axis=0),
-                width=intr.width,
-                height=intr.height,
-                dist=None,
-                egocentric=c == H2O_EGO_CAMERA,
-            )
-            image_paths[c] = self._image_paths(subject, scene, seq, c, frame_ids)
-
+        obj = self._object_track(subject, scene, seq, label_cam, frame_ids, label_to_out, object_class)
+        camera_tracks = {c: self._camera_track(subject, scene, seq, c, c2w, out2world, target) for c in cams}
+        image_paths = {c: self._image_paths(subject, scene, seq, c, frame_ids) for c in cams}
         return SequenceData(
             dataset="h2o",
             subject=subject,
@@ -630,6 +574,114 @@ class H2ORoot:
             frame_ids=np.asarray(frame_ids, dtype=np.int64),
             image_paths=image_paths,
             root=self.root,
+        )
+
+    def _sequence_frames(
+        self, subject: str, scene: str, seq: str, label_cam: int, frames: Optional[Sequence[int]]
+    ) -> list[int]:
+        """The frame numbers to read: ``frames``, or those of the label camera's MANO folder."""
+        frame_ids = self.frames(subject, scene, seq, label_cam) if frames is None else [int(f) for f in frames]
+        if not frame_ids:
+            raise AssetError(
+                self.modality_dir(subject, scene, seq, label_cam, "hand_pose_mano"), "no frame files (NNNNNN.txt)"
+            )
+        return frame_ids
+
+    def _output_frames(
+        self,
+        subject: str,
+        scene: str,
+        seq: str,
+        cams: Sequence[int],
+        label_cam: int,
+        target: Optional[int],
+        frame_ids: Sequence[int],
+    ) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+        """Per-frame (F, 4, 4) transforms between the cameras, the world and the output frame.
+
+        Returns:
+            ``c2w`` camera-to-world of every camera needed, ``out2world`` output frame →
+            world (identity for ``"world"``, ``cam_pose`` of camera K for ``"camK"``), and
+            ``label_to_out`` label camera → output frame.
+        """
+        needed = {*cams, label_cam} | ({target} if target is not None else set())
+        c2w = {c: self.read_cam_poses(subject, scene, seq, c, frame_ids) for c in sorted(needed)}
+        out2world = np.broadcast_to(np.eye(4), (len(frame_ids), 4, 4)) if target is None else c2w[target]
+        if target == label_cam:
+            label_to_out = np.repeat(np.eye(4)[None], len(frame_ids), axis=0)
+        else:
+            label_to_out = np.linalg.inv(out2world) @ c2w[label_cam]
+        return c2w, out2world, label_to_out
+
+    def _object_class(
+        self, subject: str, scene: str, seq: str, label_cam: int, cls: np.ndarray, object_class: Optional[int]
+    ) -> list[int]:
+        """The tracked object class as a one-element list (empty when no frame shows an object)."""
+        classes = sorted(set(cls[cls > 0].tolist()))
+        if object_class is not None:
+            if not 1 <= int(object_class) < len(H2O_OBJECT_NAMES):
+                raise ValueError(f"object_class must be in 1..{len(H2O_OBJECT_NAMES) - 1}, got {object_class}")
+            return [int(object_class)]
+        if len(classes) > 1:
+            raise AssetError(
+                self.modality_dir(subject, scene, seq, label_cam, "obj_pose_rt"),
+                f"sequence shows several object classes {[H2O_OBJECT_NAMES[c] for c in classes]}; "
+                "pass object_class to pick one",
+            )
+        return classes
+
+    def _object_track(
+        self,
+        subject: str,
+        scene: str,
+        seq: str,
+        label_cam: int,
+        frame_ids: Sequence[int],
+        label_to_out: np.ndarray,
+        object_class: Optional[int],
+    ) -> ObjectTrack:
+        """The object's pose (F,) in the output frame; zeros and invalid where another class shows."""
+        cls, obj_cam = self.read_obj_poses(subject, scene, seq, label_cam, frame_ids)
+        classes = self._object_class(subject, scene, seq, label_cam, cls, object_class)
+        obj_valid = (cls > 0) & (cls == (classes[0] if classes else 0))
+        obj_out = label_to_out @ obj_cam
+        obj_rot = _mat_to_aa(obj_out[:, :3, :3])
+        obj_trans = obj_out[:, :3, 3].copy()
+        obj_rot[~obj_valid] = 0.0
+        obj_trans[~obj_valid] = 0.0
+        return ObjectTrack(
+            name=H2O_OBJECT_NAMES[classes[0] if classes else 0],
+            arti=np.zeros(len(frame_ids)),
+            rot=obj_rot,
+            trans=obj_trans,
+            valid=obj_valid,
+        )
+
+    def _camera_track(
+        self,
+        subject: str,
+        scene: str,
+        seq: str,
+        cam: int,
+        c2w: Mapping[int, np.ndarray],
+        out2world: np.ndarray,
+        target: Optional[int],
+    ) -> CameraTrack:
+        """Camera ``cam`` seen from the output frame: (F, 4, 4) ``world2cam`` and (F, 3, 3) ``K``."""
+        intr = self.read_intrinsics(subject, scene, seq, cam)
+        n = len(out2world)
+        if target == cam:
+            w2c = np.repeat(np.eye(4)[None], n, axis=0)
+        else:
+            w2c = np.linalg.inv(c2w[cam]) @ out2world
+        return CameraTrack(
+            view=cam,
+            world2cam=w2c,
+            K=np.repeat(intr.K[None], n, axis=0),
+            width=intr.width,
+            height=intr.height,
+            dist=None,
+            egocentric=cam == H2O_EGO_CAMERA,
         )
 
     def _image_paths(self, subject: str, scene: str, seq: str, cam: int, frames: Sequence[int]) -> list[Optional[Path]]:
@@ -657,8 +709,6 @@ def read_h2o_rgb(path: PathLike, expected_size: Optional[tuple[int, int]] = None
     Raises:
         AssetError: missing or undecodable file, or a size other than ``expected_size``.
     """
-    import cv2
-
     p = Path(path)
     if not p.is_file():
         raise AssetError(p, "image file is missing")

@@ -1,32 +1,9 @@
-"""The one ArcticNet-SF sample builder (spec ``arctic_format.md`` §3.3–3.4).
+"""The one ArcticNet-SF sample builder.
 
-:func:`make_arctic_sample` turns one posed frame — an image, its crop box, the camera,
-the two hands and the object, all expressed in that image — into the exact
-``(inputs, targets, meta_info)`` triple that ARCTIC's ``ArcticDataset.getitem`` returns.
-The real-data :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` and the
+:func:`make_arctic_sample` turns one posed frame (image, crop box, camera, two hands and
+the object, all expressed in that image) into the ``(inputs, targets, meta_info)`` triple
+that ARCTIC's ``ArcticDataset.getitem`` returns. The real-data ``ArcticDataset`` and the
 synthetic loader both call it, so real and synthetic samples share one code path.
-
-Value types follow ARCTIC exactly, because PyTorch's default collate turns them into
-different batch types (float → float64 tensor, ``np.float32`` → float32 tensor,
-int → int64 tensor, str → list of str):
-
-* ``inputs["img"]``: torch float32 (3, 224, 224);
-* every other array target is a torch float32 tensor, except ``joints_valid_r/l`` which
-  are numpy float64 (21,) arrays; ``is_valid``, ``left_valid``, ``right_valid`` are
-  python floats; ``object.radian`` is a 0-dim float32 tensor;
-* ``meta_info``: ``imgname``/``query_names`` str, ``window_size`` int64 tensor (1,),
-  ``intrinsics`` float32 tensor (3, 3), ``dist`` float32 tensor (8,), ``center`` numpy
-  float32 (2,), ``is_flipped`` int, ``rot_angle`` ``np.float32``, ``kp3d.cano`` float32
-  tensor (16, 3) (canonical bottom keypoints divided by 1000 *again* — ARCTIC's quirk;
-  only its rotation is ever used).
-
-Dict insertion order matches ARCTIC's.
-
-``object.rot`` is the Kabsch/Arun rotation from ``kp3d.cano`` to ``object.kp3d.full.b``
-(float32 inputs, as ARCTIC), turned into axis-angle with the project's quaternion-based
-:func:`~hogsa_loader.geometry.rotations.matrix_to_axis_angle` (ARCTIC uses ``acos`` of
-the trace, which loses precision near π; the rotation is the same), then left-multiplied
-by ``R_z(−rot)``.
 """
 
 from __future__ import annotations
@@ -159,6 +136,123 @@ def _check(name: str, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
+def _checked_points(right: HandLabels, left: HandLabels, obj: ObjectLabels) -> dict[str, np.ndarray]:
+    """The 2D and 3D point labels of a frame, each checked for its shape."""
+    return {
+        "j2d_r": _check("right.j2d", right.j2d, (21, 2)),
+        "j2d_l": _check("left.j2d", left.j2d, (21, 2)),
+        "kp2d": _check("obj.kp2d", obj.kp2d, (32, 2)),
+        "bb2d": _check("obj.bbox2d", obj.bbox2d, (16, 2)),
+        "kp3d": _check("obj.kp3d_full", obj.kp3d_full, (32, 3)),
+        "bb3d": _check("obj.bbox3d_full", obj.bbox3d_full, (16, 3)),
+        "cano": _check("obj.kp_bottom_cano", obj.kp_bottom_cano, (16, 3)),
+    }
+
+
+def _rotated_pose(h: HandLabels, side: str, rot: float) -> torch.Tensor:
+    """(48,) float32 hand pose with its global orientation turned by the in-plane ``rot`` (deg)."""
+    p = np.array(_check(f"{side}.pose48", h.pose48, (48,)), dtype=np.float32)
+    p[:3] = rot_aa(p[:3].astype(np.float64), rot)
+    return torch.from_numpy(p.astype(np.float32))
+
+
+def _hand_targets(
+    right: HandLabels, left: HandLabels, j2d_r: np.ndarray, j2d_l: np.ndarray, rot: float
+) -> dict[str, torch.Tensor]:
+    """MANO pose (48,), shape (10,) and normalised patch joints (21, 2) of both hands."""
+    return {
+        "mano.pose.r": _rotated_pose(right, "right", rot),
+        "mano.pose.l": _rotated_pose(left, "left", rot),
+        "mano.beta.r": _f32(_check("right.betas", right.betas, (10,))),
+        "mano.beta.l": _f32(_check("left.betas", left.betas, (10,))),
+        "mano.j2d.norm.r": _f32(j2d_r),
+        "mano.j2d.norm.l": _f32(j2d_l),
+    }
+
+
+def _object_targets(
+    obj: ObjectLabels, pts: dict[str, np.ndarray], center: list[float], scale: float, aug: AugParams, res: int
+) -> dict[str, torch.Tensor]:
+    """Object keypoints and box corners split into top (first half) and bottom parts.
+
+    3D values are float32 tensors in the full-image camera frame (m): keypoints (16, 3),
+    corners (8, 3). 2D values are normalised patch coordinates: keypoints (16, 2) per
+    part and (32, 2) [top, bottom] together; corners (8, 2) per part and (16, 2) together.
+    """
+    kp2d, bb2d, kp3d, bb3d = pts["kp2d"], pts["bb2d"], pts["kp3d"], pts["bb3d"]
+    kp2d_t, kp2d_b = (j2d_processing(kp2d[:16], center, scale, aug, res),
+                      j2d_processing(kp2d[16:], center, scale, aug, res))
+    bbox2d_t, bbox2d_b = (j2d_processing(bb2d[:8], center, scale, aug, res),
+                          j2d_processing(bb2d[8:], center, scale, aug, res))
+    return {
+        "object.kp3d.full.b": _f32(kp3d[16:]),
+        "object.kp2d.norm.b": _f32(kp2d_b),
+        "object.kp3d.full.t": _f32(kp3d[:16]),
+        "object.kp2d.norm.t": _f32(kp2d_t),
+        "object.bbox3d.full.b": _f32(bb3d[8:]),
+        "object.bbox2d.norm.b": _f32(bbox2d_b),
+        "object.bbox3d.full.t": _f32(bb3d[:8]),
+        "object.bbox2d.norm.t": _f32(bbox2d_t),
+        "object.radian": torch.tensor(float(obj.radian), dtype=torch.float32),
+        "object.kp2d.norm": _f32(np.concatenate([kp2d_t, kp2d_b], axis=0)),
+        "object.bbox2d.norm": _f32(np.concatenate([bbox2d_t, bbox2d_b], axis=0)),
+    }
+
+
+def _object_rotation(
+    cano: np.ndarray, kp3d_bottom: torch.Tensor, rot: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """ARCTIC's ``kp3d.cano`` and ``object.rot`` of a frame.
+
+    ``kp3d.cano`` is the (16, 3) float32 canonical bottom keypoints divided by 1000
+    *again* (ARCTIC's quirk; only the rotation is ever used). ``object.rot`` (1, 3) is the
+    Kabsch/Arun rotation from ``kp3d.cano`` to the camera-frame bottom keypoints
+    ``kp3d_bottom`` (16, 3), turned into axis-angle with the quaternion-based
+    :func:`~hogsa_loader.geometry.rotations.matrix_to_axis_angle` (ARCTIC uses ``acos``
+    of the trace, which loses precision near π; the rotation is the same), then
+    left-multiplied by ``R_z(−rot)``.
+    """
+    kp3d_cano = torch.from_numpy(np.asarray(cano, dtype=np.float32).copy()) / 1000
+    R = solve_rigid_rotation(kp3d_cano.numpy(), kp3d_bottom.numpy())
+    obj_rot = matrix_to_axis_angle(torch.from_numpy(R).float().view(1, 3, 3)).view(3).numpy()
+    return kp3d_cano, _f32(rot_aa(obj_rot.astype(np.float64), rot)).view(1, 3)
+
+
+def _camera_meta(
+    K_full: np.ndarray,
+    image_size: Sequence[float],
+    aug: AugParams,
+    egocentric: bool,
+    dist: Optional[np.ndarray],
+    ego_patch_k: Optional[np.ndarray],
+    cfg: ArcticConfig,
+) -> dict[str, torch.Tensor]:
+    """Patch intrinsics (3, 3) and lens distortion (8,) (all NaN for allocentric views)."""
+    use_gt_k = bool(cfg.use_gt_k or egocentric)
+    K = patch_intrinsics(K_full, image_size, aug.sc, use_gt_k, cfg)
+    if egocentric and ego_patch_k is not None:
+        K = np.asarray(ego_patch_k, dtype=np.float64)
+    if egocentric:
+        d = np.zeros(8) if dist is None else np.asarray(dist, dtype=np.float64).reshape(8)
+    else:
+        d = np.full(8, np.nan)
+    return {"intrinsics": _f32(K), "dist": _f32(d)}
+
+
+def _validity_targets(right: HandLabels, left: HandLabels, obj: ObjectLabels) -> dict[str, Any]:
+    """Frame and hand validity: python floats, per-joint flags as float64 (21,) arrays."""
+    is_valid = float(obj.valid)
+    left_valid = float(left.valid) * is_valid
+    right_valid = float(right.valid) * is_valid
+    return {
+        "is_valid": is_valid,
+        "left_valid": left_valid,
+        "right_valid": right_valid,
+        "joints_valid_r": np.ones(21) * right_valid,
+        "joints_valid_l": np.ones(21) * left_valid,
+    }
+
+
 def make_arctic_sample(
     image: Optional[np.ndarray],
     bbox: Sequence[float],
@@ -176,14 +270,34 @@ def make_arctic_sample(
     ego_patch_k: Optional[np.ndarray] = None,
     source_scale: float = 1.0,
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-    """Build ARCTIC's ``(inputs, targets, meta_info)`` for one posed frame (§3.3 steps 6–13).
+    """Build ARCTIC's ``(inputs, targets, meta_info)`` for one posed frame.
+
+    The steps follow ARCTIC's ``getitem``: augment the patch (egocentric views keep
+    ``sc = 1``), map the 2D labels into it, rotate the global orientations, solve the
+    object rotation, set the patch camera and the validity flags.
+
+    Value types follow ARCTIC exactly, because PyTorch's default collate turns them into
+    different batch types (float → float64 tensor, ``np.float32`` → float32 tensor,
+    int → int64 tensor, str → list of str):
+
+    * ``inputs["img"]``: torch float32 (3, 224, 224);
+    * every other array target is a torch float32 tensor, except ``joints_valid_r/l``
+      which are numpy float64 (21,) arrays; ``is_valid``, ``left_valid``,
+      ``right_valid`` are python floats; ``object.radian`` is a 0-dim float32 tensor;
+    * ``meta_info``: ``imgname``/``query_names`` str, ``window_size`` int64 tensor (1,),
+      ``intrinsics`` float32 tensor (3, 3), ``dist`` float32 tensor (8,), ``center``
+      numpy float32 (2,), ``is_flipped`` int, ``rot_angle`` ``np.float32``, ``kp3d.cano``
+      float32 tensor (16, 3) (see :func:`_object_rotation`).
+
+    Dict keys come in ARCTIC's insertion order (:data:`SAMPLE_TARGET_KEYS` etc.).
 
     Args:
         image: (H, W, 3) RGB uint8 (or float in [0, 255]) — the image the 2D labels and
             the box refer to (for real ARCTIC data the cropped image); None = missing
             image (ARCTIC's zero stand-in).
         bbox: ``(cx, cy, scale)`` crop box in ``image`` pixels, side ``200·scale``.
-        K_full: (3, 3) intrinsics of the full-resolution image (GT-K rule, step 12).
+        K_full: (3, 3) intrinsics of the full-resolution image (used by the GT-K rule of
+            :func:`~hogsa_loader.datasets.augment.patch_intrinsics`).
         image_size: (W, H) of the full-resolution image (GT-K rule).
         right, left: hand labels (2D in ``image`` pixels).
         obj: object labels.
@@ -201,91 +315,33 @@ def make_arctic_sample(
             :func:`~hogsa_loader.datasets.augment.process_image`).
 
     Returns:
-        ``(inputs, targets, meta_info)`` dicts, types per the module docstring.
+        ``(inputs, targets, meta_info)`` dicts with the types listed above.
     """
     if egocentric and aug.sc != 1.0:
         aug = replace(aug, sc=1.0)
-    use_gt_k = bool(cfg.use_gt_k or egocentric)
     res = cfg.img_res
     center = [float(bbox[0]), float(bbox[1])]
     scale = float(bbox[2])
+    pts = _checked_points(right, left, obj)
+    j2d_r = j2d_processing(pts["j2d_r"], center, scale, aug, res)
+    j2d_l = j2d_processing(pts["j2d_l"], center, scale, aug, res)
+    inputs: dict[str, Any] = {"img": process_image(image, center, scale, aug, cfg, source_scale=source_scale)}
 
-    j2d_r = _check("right.j2d", right.j2d, (21, 2))
-    j2d_l = _check("left.j2d", left.j2d, (21, 2))
-    kp2d = _check("obj.kp2d", obj.kp2d, (32, 2))
-    bb2d = _check("obj.bbox2d", obj.bbox2d, (16, 2))
-    kp3d = _check("obj.kp3d_full", obj.kp3d_full, (32, 3))
-    bb3d = _check("obj.bbox3d_full", obj.bbox3d_full, (16, 3))
-    cano = _check("obj.kp_bottom_cano", obj.kp_bottom_cano, (16, 3))
-
-    def proc(kp: np.ndarray) -> np.ndarray:
-        return j2d_processing(kp, center, scale, aug, res)
-
-    joints2d_r, joints2d_l = proc(j2d_r), proc(j2d_l)
-    kp2d_t, kp2d_b = proc(kp2d[:16]), proc(kp2d[16:])
-    bbox2d_t, bbox2d_b = proc(bb2d[:8]), proc(bb2d[8:])
-
-    img = process_image(image, center, scale, aug, cfg, source_scale=source_scale)
-
-    inputs: dict[str, Any] = {"img": img}
-    targets: dict[str, Any] = {}
-    meta: dict[str, Any] = {"imgname": imgname}
-
-    def pose(h: HandLabels, side: str) -> torch.Tensor:
-        p = np.array(_check(f"{side}.pose48", h.pose48, (48,)), dtype=np.float32)
-        p[:3] = rot_aa(p[:3].astype(np.float64), aug.rot)
-        return torch.from_numpy(p.astype(np.float32))
-
-    targets["mano.pose.r"] = pose(right, "right")
-    targets["mano.pose.l"] = pose(left, "left")
-    targets["mano.beta.r"] = _f32(_check("right.betas", right.betas, (10,)))
-    targets["mano.beta.l"] = _f32(_check("left.betas", left.betas, (10,)))
-    targets["mano.j2d.norm.r"] = _f32(joints2d_r)
-    targets["mano.j2d.norm.l"] = _f32(joints2d_l)
-
-    targets["object.kp3d.full.b"] = _f32(kp3d[16:])
-    targets["object.kp2d.norm.b"] = _f32(kp2d_b)
-    targets["object.kp3d.full.t"] = _f32(kp3d[:16])
-    targets["object.kp2d.norm.t"] = _f32(kp2d_t)
-    targets["object.bbox3d.full.b"] = _f32(bb3d[8:])
-    targets["object.bbox2d.norm.b"] = _f32(bbox2d_b)
-    targets["object.bbox3d.full.t"] = _f32(bb3d[:8])
-    targets["object.bbox2d.norm.t"] = _f32(bbox2d_t)
-    targets["object.radian"] = torch.tensor(float(obj.radian), dtype=torch.float32)
-    targets["object.kp2d.norm"] = _f32(np.concatenate([kp2d_t, kp2d_b], axis=0))
-    targets["object.bbox2d.norm"] = _f32(np.concatenate([bbox2d_t, bbox2d_b], axis=0))
-
-    # Object rotation: canonical bottom keypoints (the ×1e-3 ARCTIC quirk does not
-    # change the rotation) → camera-frame bottom keypoints, then the in-plane aug.
-    kp3d_cano = torch.from_numpy(np.asarray(cano, dtype=np.float32).copy()) / 1000
-    meta["kp3d.cano"] = kp3d_cano
-    R = solve_rigid_rotation(kp3d_cano.numpy(), targets["object.kp3d.full.b"].numpy())
-    obj_rot = matrix_to_axis_angle(torch.from_numpy(R).float().view(1, 3, 3)).view(3).numpy()
-    targets["object.rot"] = _f32(rot_aa(obj_rot.astype(np.float64), aug.rot)).view(1, 3)
-
+    targets: dict[str, Any] = _hand_targets(right, left, j2d_r, j2d_l, aug.rot)
+    targets.update(_object_targets(obj, pts, center, scale, aug, res))
+    kp3d_cano, targets["object.rot"] = _object_rotation(pts["cano"], targets["object.kp3d.full.b"], aug.rot)
     targets["mano.j3d.full.r"] = _f32(_check("right.j3d_full", right.j3d_full, (21, 3)))
     targets["mano.j3d.full.l"] = _f32(_check("left.j3d_full", left.j3d_full, (21, 3)))
+    targets.update(_validity_targets(right, left, obj))
 
-    meta["query_names"] = obj.name if query_name is None else query_name
-    meta["window_size"] = torch.tensor([int(cfg.window_size)], dtype=torch.int64)
-
-    K = patch_intrinsics(K_full, image_size, aug.sc, use_gt_k, cfg)
-    if egocentric and ego_patch_k is not None:
-        K = np.asarray(ego_patch_k, dtype=np.float64)
-    meta["intrinsics"] = _f32(K)
-    if egocentric:
-        d = np.zeros(8) if dist is None else np.asarray(dist, dtype=np.float64).reshape(8)
-    else:
-        d = np.full(8, np.nan)
-    meta["dist"] = _f32(d)
+    meta: dict[str, Any] = {
+        "imgname": imgname,
+        "kp3d.cano": kp3d_cano,
+        "query_names": obj.name if query_name is None else query_name,
+        "window_size": torch.tensor([int(cfg.window_size)], dtype=torch.int64),
+    }
+    meta.update(_camera_meta(K_full, image_size, aug, egocentric, dist, ego_patch_k, cfg))
     meta["center"] = np.array(center, dtype=np.float32)
     meta["is_flipped"] = int(aug.flip)
     meta["rot_angle"] = np.float32(aug.rot)
-
-    is_valid = float(obj.valid)
-    targets["is_valid"] = is_valid
-    targets["left_valid"] = float(left.valid) * is_valid
-    targets["right_valid"] = float(right.valid) * is_valid
-    targets["joints_valid_r"] = np.ones(21) * targets["right_valid"]
-    targets["joints_valid_l"] = np.ones(21) * targets["left_valid"]
     return inputs, targets, meta
