@@ -20,8 +20,8 @@ import torch
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, render_intrinsics
 from hogsa_loader.train import HogsConfig, HogsTrainer, load_hogs_data
-from hogsa_loader.train.hogs_data import crop_boxes
-from hogsa_loader.train.hogs_masks import inside_image, pose_meshes, render_part_mask
+from hogsa_loader.datasets.arctic_processing import crop_boxes
+from hogsa_loader.compose.part_masks import inside_image, pose_meshes, render_part_mask
 
 PARTS = (1, 2, 3, 4)
 

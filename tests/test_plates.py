@@ -24,8 +24,8 @@ from hogsa_loader.compose.plates import (
 )
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import full_to_cropped
-from hogsa_loader.train.hogs_data import crop_boxes
-from hogsa_loader.train.hogs_masks import pose_meshes
+from hogsa_loader.datasets.arctic_processing import crop_boxes
+from hogsa_loader.compose.part_masks import pose_meshes
 
 
 def test_median_uses_only_background_samples() -> None:

@@ -31,6 +31,9 @@ from typing import Callable, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
+from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import (
     BBOX_PIXELS_PER_SCALE,
     CROP_ENLARGE,
@@ -149,8 +152,6 @@ def _median(samples: Sequence[_Sample], hw: tuple[int, int], rows: int = 32) -> 
 
 def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateConfig, cache: dict) -> np.ndarray:
     """(resized, resized) bool: hands or object in the cropped image of (view, frame)."""
-    from hogsa_loader.train.hogs_masks import render_part_mask
-
     mpaths = seq.mask_paths.get(view) if seq.mask_paths else None
     mp = mpaths[frame] if mpaths is not None else None
     if cfg.masks == "files" and mp is None:
@@ -260,10 +261,6 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
         UsageError: bad settings or no usable subject.
         AssetError: unreadable images or masks, inconsistent cameras.
     """
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.train.hogs_data import crop_boxes
-    from hogsa_loader.train.hogs_masks import pose_meshes
-
     cfg.check()
     if cfg.data is None or cfg.out is None:
         raise UsageError("build_plates needs data and out")

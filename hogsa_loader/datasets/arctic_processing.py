@@ -69,6 +69,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from hogsa_loader.datasets import arctic_float32 as a32
 from hogsa_loader.datasets.arctic import ArcticRoot, canonical_split, protocol_views
@@ -76,7 +77,10 @@ from hogsa_loader.datasets.conventions import (
     ALLO_VIEWS,
     EGO_IMAGE_SIZE,
     EGO_VIEW,
+    allocentric_bbox,
     ego_bbox,
+    project,
+    transform,
     validity_flags,
 )
 from hogsa_loader.datasets.types import SequenceData
@@ -87,6 +91,7 @@ __all__ = [
     "FRAME_MARGIN",
     "REQUEST_KEYS",
     "build_split",
+    "crop_boxes",
     "image_name",
     "process_sequence",
     "write_processed_splits",
@@ -412,6 +417,32 @@ def _params(seq: SequenceData, world2ego: np.ndarray, K_ego: np.ndarray, dist: n
 # ----------------------------------------------------------------------------------------
 # Splits
 # ----------------------------------------------------------------------------------------
+def crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> dict[int, np.ndarray]:
+    """view → (F, 3) allocentric crop boxes ``(cx, cy, scale)`` of every frame of ``seq``.
+
+    The object template is posed by ``root.object_layer()`` in float64 and its projected
+    vertices give the box (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`),
+    as processing does.
+    """
+    layer = root.object_layer()
+    obj = seq.object
+    n = obj.rot.shape[0]
+    f64 = torch.float64
+    with torch.no_grad():
+        res = layer(
+            angles=torch.as_tensor(obj.arti, dtype=f64).reshape(n, 1),
+            global_orient=torch.as_tensor(obj.rot, dtype=f64),
+            transl=torch.as_tensor(obj.trans, dtype=f64),
+            names=[obj.name] * n,
+        )
+    verts = res["v"].numpy()  # (F, V, 3)
+    out = {}
+    for v in views:
+        cam = seq.cameras[v]
+        out[v] = allocentric_bbox(project(transform(cam.world2cam[:, None], verts[:, None])[:, 0], cam.K))
+    return out
+
+
 def image_name(sid: str, seq: str, view: int, frame_id: int) -> str:
     """``./data/arctic_data/data/images/<sid>/<seq>/<view>/<frame_id:05d>.jpg`` (ARCTIC imgname)."""
     return f"./data/arctic_data/data/images/{sid}/{seq}/{view}/{frame_id:05d}.jpg"
@@ -506,8 +537,6 @@ def write_processed_splits(
     Returns:
         ``{"p1_train": path, ...}``.
     """
-    from tqdm import tqdm
-
     root = ArcticRoot(data_root)
     ego_size = root.world_meta().ego_image_size
     plan = {(p, canonical_split(s)): root.protocol(p)[canonical_split(s)] for p in protocols for s in splits}

@@ -10,7 +10,7 @@ processing does (object-template vertices posed by the object layer, projected, 
 resolution, so rendered pixels line up with the labels.
 
 Masks (``masks``): ``"files"`` reads the generated world's ``masks/`` images; ``"render"``
-rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.train.hogs_masks`),
+rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.compose.part_masks`),
 for real ARCTIC, which ships none; ``"auto"`` (default) uses the files of a sequence when
 every used image has one, else renders. With mask files the background is removed at the
 native resolution before resizing (:func:`_read_foreground`). With rendered masks the
@@ -43,17 +43,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import (
     ALLO_VIEWS,
-    allocentric_bbox,
     cropped_intrinsics,
     project,
     render_intrinsics,
     transform,
 )
 from hogsa_loader.datasets.types import SequenceData
-from hogsa_loader.train.hogs_masks import pose_meshes, render_part_mask
 
 __all__ = ["MASK_MODES", "WINDOWS", "ViewSample", "foreground_window", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
            "split_role", "check_views", "split_samples", "mask_supersample", "crop_boxes"]
@@ -175,27 +175,6 @@ def dilate_mask(mask: Tensor, margin: int) -> Tensor:
     return m[:, 0] > 0.5
 
 
-def crop_boxes(root: ArcticRoot, seq: SequenceData, views: Sequence[int]) -> dict[int, np.ndarray]:
-    """view → (F, 3) allocentric crop boxes from the posed object template (as processing does)."""
-    layer = root.object_layer()
-    obj = seq.object
-    n = obj.rot.shape[0]
-    f64 = torch.float64
-    with torch.no_grad():
-        res = layer(
-            angles=torch.as_tensor(obj.arti, dtype=f64).reshape(n, 1),
-            global_orient=torch.as_tensor(obj.rot, dtype=f64),
-            transl=torch.as_tensor(obj.trans, dtype=f64),
-            names=[obj.name] * n,
-        )
-    verts = res["v"].numpy()  # (F, V, 3)
-    out = {}
-    for v in views:
-        cam = seq.cameras[v]
-        out[v] = allocentric_bbox(project(transform(cam.world2cam[:, None], verts[:, None])[:, 0], cam.K))
-    return out
-
-
 def _cut(img: np.ndarray, window: Optional[tuple[int, int, int]]) -> np.ndarray:
     """``img[y0:y0+side, x0:x0+side]`` for ``window = (x0, y0, side)`` (None: whole image)."""
     if window is None:
@@ -251,7 +230,7 @@ def foreground_window(posed, frame: int, world2cam: np.ndarray, K_crop: np.ndarr
     """Square window ``(x0, y0, side)`` (cropped-image pixels) around the posed meshes.
 
     Args:
-        posed: :class:`~hogsa_loader.train.hogs_masks.PosedMeshes` holding ``frame``.
+        posed: :class:`~hogsa_loader.compose.part_masks.PosedMeshes` holding ``frame``.
         world2cam: (4, 4); K_crop: (3, 3) render intrinsics of the whole cropped image.
         crop: cropped-image side; size: training resolution.
         margin: added on each side, as a fraction of the meshes' larger extent.

@@ -13,7 +13,7 @@ of the subject showing the object, every used camera and frame becomes a
   (crop pixel i shows label coordinate ``origin + i · side / size``, black outside the
   frame, like ARCTIC's padding), supersampled and box-filtered when the crop shrinks.
 * **Mask.** Always rendered from the annotated meshes at the training resolution
-  (:mod:`hogsa_loader.train.hogs_masks`); the object is rigid, so it is all part id 4.
+  (:mod:`hogsa_loader.compose.part_masks`); the object is rigid, so it is all part id 4.
   The image keeps its real background (see :mod:`hogsa_loader.train.hogs_data`).
 * **Views.** ``views`` default the static cameras 0–3; the egocentric camera 4 (moving,
   head-mounted) is used only when listed. ``eval_views`` default camera 3, held out.
@@ -56,7 +56,7 @@ from hogsa_loader.train.hogs_data import (
     split_role,
     split_samples,
 )
-from hogsa_loader.train.hogs_masks import pose_meshes, render_part_mask
+from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 
 __all__ = [
     "H2O_VIEWS",

@@ -1,27 +1,11 @@
 """Part masks rendered from the annotated meshes, for datasets that ship no masks.
 
 Real ARCTIC and H2O have no per-image hand/object masks (only the generated world writes
-``masks/``). HOGS training needs one per (frame, view) to know where the photometric loss
-applies, so it is rasterised here from the annotated, posed meshes:
-
-* right / left hand: the MANO layers (``flat_hand_mean=False``, the
-  :class:`~hogsa_loader.datasets.types.HandTrack` convention) posed with the frame's
-  parameters;
-* object: the template's textured mesh when it has one (the mesh the world renders),
-  else ``verts``/``faces``, split into its top and bottom parts by the part labels (a face
-  belongs to a part when its three vertices do, as the world does), posed by
-  :func:`~hogsa_loader.objects.articulated.articulate`. A rigid (H2O) template has every
-  vertex in the bottom part, so it is all part id 4.
-
-Part ids are the world's :data:`~hogsa_loader.datasets.conventions.MASK_IDS` (1 right hand,
-2 left hand, 3 object top, 4 object bottom, 0 background). The meshes are rasterised with
-:func:`~hogsa_loader.render.mesh_raster.render_meshes` (z-buffer, nearest surface wins) at
-the training resolution with the training render intrinsics; with ``supersample`` s a
-pixel takes the part of the nearest of its s×s samples, so every pixel with partial
-coverage gets a part id (like the resized mask files of
-:func:`~hogsa_loader.train.hogs_data.load_hogs_data`). Pixels whose centre lies outside the
-full original image are set to 0, as the world does for crop padding (full-image pixel i
-covers label coordinates [i − 0.5, i + 0.5]).
+``masks/``). HOGS training (where the photometric loss applies) and the background plates
+(which pixels show background) need one per (frame, view): :func:`pose_meshes` poses the
+annotated meshes and :func:`render_part_mask` rasterises them. Part ids are
+:data:`~hogsa_loader.datasets.conventions.MASK_IDS` (1 right hand, 2 left hand, 3 object
+top, 4 object bottom, 0 background).
 """
 
 from __future__ import annotations
@@ -106,6 +90,14 @@ def pose_meshes(
 ) -> PosedMeshes:
     """Pose both hands and the object at the given frames of a sequence (world frame).
 
+    Hands: the MANO layers (``flat_hand_mean=False``, the
+    :class:`~hogsa_loader.datasets.types.HandTrack` convention) posed with the frame's
+    parameters. Object: the template's textured mesh when it has one (the mesh the world
+    renders), else ``verts``/``faces``, split into its top and bottom parts by the part
+    labels (a face belongs to a part when its three vertices do, as the world does), posed
+    by :func:`~hogsa_loader.objects.articulated.articulate`. A rigid (H2O) template has
+    every vertex in the bottom part, so it is all part id 4.
+
     Args:
         seq: annotations (hands relative to the MANO mean, object θ / axis-angle / metres).
         frames: frame indices into the sequence.
@@ -165,6 +157,13 @@ def render_part_mask(
     supersample: int = 1,
 ) -> np.ndarray:
     """(size, size) uint8 part mask of one (frame, view).
+
+    The meshes are rasterised with :func:`~hogsa_loader.render.mesh_raster.render_meshes`
+    (z-buffer, nearest surface wins); with ``supersample`` s a pixel takes the part of the
+    nearest of its s×s samples, so every pixel with partial coverage gets a part id (like
+    resized mask files dilated by one pixel). Pixels whose centre lies outside the full
+    original image are set to 0, as the world does for crop padding (full-image pixel i
+    covers label coordinates [i − 0.5, i + 0.5]).
 
     Args:
         posed: meshes from :func:`pose_meshes`.
