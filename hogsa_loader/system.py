@@ -8,6 +8,7 @@ import os
 import platform
 import sys
 import threading
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Optional, Sequence
 
 __all__ = ["available_cores", "can_fork", "run_forked", "keep_allocator_memory", "allocator_status",
@@ -70,8 +71,6 @@ def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers
     Raises:
         ValueError: ``needs`` names a task that is not listed before it.
     """
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
     for i, deps in enumerate(needs):
         if any(not 0 <= d < i for d in deps):
             raise ValueError(f"task {i} needs {list(deps)}: only tasks listed before it")
@@ -118,7 +117,7 @@ def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers
 
 def _forked_init(initializer: Optional[Callable[..., None]], initargs: tuple) -> None:
     """A :func:`run_forked` process: one torch thread (see there), then the caller's setup."""
-    import torch
+    import torch  # deferred: system.py stays importable without torch (machine facts, allocator setup)
 
     torch.set_num_threads(1)
     if initializer is not None:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Literal, Optional, Union
 
 import torch
+from safetensors.torch import load_file
 from torch import Tensor, nn
 
 from hogsa_loader.errors import AssetError, PathLike
@@ -193,8 +194,6 @@ def read_state_dict(path: PathLike, weights_only: bool = True) -> dict[str, Tens
     if not path.is_file():
         raise AssetError(path, "file is missing")
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
         try:
             return load_file(str(path), device="cpu")
         except Exception as exc:  # safetensors raises its own error types

@@ -18,6 +18,8 @@ import os
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
+from pycocotools.coco import COCO
+
 from hogsa_loader.compose.sources import CropSpec, _ImageListSource
 from hogsa_loader.errors import AssetError, PathLike, read_json
 
@@ -35,8 +37,6 @@ COCO_PERSON: str = "person"
 
 def _load_coco(ann_file: Path):
     """A ``pycocotools.coco.COCO`` of ``ann_file``; :class:`AssetError` on bad files."""
-    from pycocotools.coco import COCO
-
     data = read_json(ann_file)
     if not isinstance(data, dict):
         raise AssetError(ann_file, "not a COCO instances file (top level is not an object)")

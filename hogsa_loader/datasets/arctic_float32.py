@@ -35,6 +35,8 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
+from hogsa_loader.objects.articulated import TOP_ID
+
 __all__ = [
     "ObjectTensors32",
     "mano_forward",
@@ -226,8 +228,6 @@ class ObjectTensors32:
 
     @staticmethod
     def _masks(layer: Any, name: str) -> tuple[Tensor, Tensor, Tensor, int]:
-        from hogsa_loader.objects.articulated import TOP_ID
-
         i = layer.name_to_index[name]
         n = int(layer.v_len[i])
         return layer.parts_ids[i, :n] == TOP_ID, layer.kp_is_top, layer.bbox_is_top, n
