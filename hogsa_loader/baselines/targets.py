@@ -1,19 +1,6 @@
 """Training targets of ArcticNet-SF from dataset samples (ARCTIC's pre-loss processing).
 
-A batch of :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` (or synthetic)
-samples holds MANO and object parameters plus 3D labels in the camera of the *full*
-image and 2D labels in the patch. :func:`prepare_targets` turns them into the 3D labels
-the loss compares with the network outputs, in the patch camera:
-
-1. pose the object with its GT rotation and angle, no translation ("object canonical
-   space"); solve the rigid transform taking the full-camera bottom keypoints onto it
-   (Kabsch) and apply it to the GT hand joints;
-2. pose MANO without translation and shift its vertices by the mean joint offset to
-   those joints;
-3. estimate the translation bringing the posed bottom keypoints onto their 2D labels
-   (linear least squares with the patch intrinsics) and add it to everything;
-4. derive the hand / object translations (and weak-perspective cameras) and the
-   hand↔object nearest-vertex distances.
+:func:`prepare_targets` is the entry point; the steps are listed there.
 """
 
 from __future__ import annotations
@@ -192,7 +179,22 @@ def prepare_targets(
     max_dist: float = math.inf,
     field: Literal["both", "hands"] = "both",
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Add ArcticNet-SF's patch-camera 3D targets to a collated batch (see module doc).
+    """Add ArcticNet-SF's patch-camera 3D targets to a collated batch.
+
+    A batch of :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` (or synthetic)
+    samples holds MANO and object parameters plus 3D labels in the camera of the *full*
+    image and 2D labels in the patch. :func:`prepare_targets` turns them into the 3D labels
+    the loss compares with the network outputs, in the patch camera:
+
+    1. pose the object with its GT rotation and angle, no translation ("object canonical
+       space"); solve the rigid transform taking the full-camera bottom keypoints onto it
+       (Kabsch) and apply it to the GT hand joints;
+    2. pose MANO without translation and shift its vertices by the mean joint offset to
+       those joints;
+    3. estimate the translation bringing the posed bottom keypoints onto their 2D labels
+       (linear least squares with the patch intrinsics) and add it to everything;
+    4. derive the hand / object translations (and weak-perspective cameras) and the
+       hand↔object nearest-vertex distances.
 
     Args:
         targets: batch targets with ``mano.pose.{r,l}`` (B, 48), ``mano.beta.{r,l}``

@@ -1,21 +1,9 @@
 """Alpha compositing of rendered (premultiplied) foregrounds onto backgrounds.
 
-Gaussian splatting renders colour already multiplied by opacity on a black background
-(``C = Σ cᵢ αᵢ Tᵢ``, ``A = Σ αᵢ Tᵢ``), i.e. **premultiplied** colour. The "over" operator
-is then
-
-    out = rgb + (1 − α) · background
-
-so ``α = 1`` gives the foreground exactly and ``α = 0`` the background exactly.
-
-All functions work on channels-last tensors, batch first:
-
-* ``rgb``: (B, H, W, 3) premultiplied colour,
-* ``alpha``: (B, H, W, 1) or (B, H, W),
-* ``background``: (B, H, W, 3) (or anything broadcastable, e.g. (1, H, W, 3) or (3,)).
-
+:func:`composite` / :class:`AlphaComposite` apply the premultiplied "over" operator;
 :func:`harmonize` is an optional, mild photometric matching of the foreground to the
-background statistics (off by default in :class:`AlphaComposite`).
+background statistics (off by default in :class:`AlphaComposite`). All functions work on
+channels-last tensors, batch first.
 """
 
 from __future__ import annotations
@@ -44,6 +32,14 @@ def composite(
     clamp: bool = False,
 ) -> torch.Tensor:
     """Premultiplied "over": ``rgb + (1 − alpha) · background``.
+
+    Gaussian splatting renders colour already multiplied by opacity on a black background
+    (``C = Σ cᵢ αᵢ Tᵢ``, ``A = Σ αᵢ Tᵢ``), i.e. **premultiplied** colour. The "over" operator
+    is then
+
+        out = rgb + (1 − α) · background
+
+    so ``α = 1`` gives the foreground exactly and ``α = 0`` the background exactly.
 
     Args:
         rgb: (B, H, W, 3) premultiplied foreground colour (colour × alpha, on black).

@@ -1,35 +1,8 @@
 """``ArcticDataset``: ArcticNet-SF's training/validation dataset over processed ARCTIC splits.
 
-Equivalent of ``zc-alexfan/arctic`` ``src/datasets/arctic_dataset.py`` (spec
-``arctic_format.md`` §1.3, §1.7–1.9, §3), built on the shared sample builder
-:func:`~hogsa_loader.datasets.sample.make_arctic_sample`.
-
-Differences from ARCTIC, all deliberate and documented:
-
-* **Randomness is explicit.** Sample ``i`` of epoch ``e`` draws its augmentation from
-  ``numpy.random.default_rng([seed, e, i])``, so a seed fixes every sample, whatever the
-  DataLoader worker count or order. Call :meth:`ArcticDataset.set_epoch` before each
-  epoch (with ``persistent_workers=True`` the workers keep the epoch they were started
-  with — recreate the iterator instead).
-* **Egocentric K cache.** ARCTIC caches the first egocentric patch K it computes in
-  each dataset object (hence per DataLoader worker, in whatever order that worker
-  happens to see samples) and reuses it for every later egocentric sample. With
-  ``cache_ego_k=True`` (default) this dataset does the same but fixes "first" to the
-  first egocentric image **in split order**, computed once at construction, so the result
-  does not depend on workers or shuffling. It equals ARCTIC's value whenever all ego K
-  in the split agree (the egocentric K is rescaled with ``sc = 1`` only, so only the
-  per-sequence full-image K matters) and for a single-process, unshuffled pass.
-* **Missing images.** Like ARCTIC an unreadable image is replaced by a zero image with
-  a warning; in addition each occurrence is counted in :attr:`ArcticDataset.missing_images`
-  (and the path recorded in :attr:`ArcticDataset.missing_image_paths`). The counters
-  live in the process that loaded the sample (DataLoader workers have their own copies).
-* **Sub-sampled splits.** ``mini/tiny/small`` splits take ARCTIC's counts and its
-  ``random.seed(1)`` draw (one ``randint(0, 100)`` then ``random.sample``), using a
-  private ``random.Random`` so global state is untouched. When the split has fewer
-  images than the count (possible on small generated worlds, where ARCTIC would raise),
-  all images are taken in that random order.
-* Negative GT indices (``frame < ioi_offset``) raise an :class:`AssetError` instead of
-  wrapping around.
+Equivalent of ``zc-alexfan/arctic`` ``src/datasets/arctic_dataset.py``, built on the shared
+sample builder :func:`~hogsa_loader.datasets.sample.make_arctic_sample`; the deliberate
+differences from ARCTIC are listed on :class:`ArcticDataset`.
 """
 
 from __future__ import annotations
@@ -61,7 +34,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Images kept by the sub-sampled split names (``get_num_images``, spec §1.3).
+#: Images kept by the sub-sampled split names (ARCTIC's ``get_num_images``).
 SUBSAMPLE_COUNTS: dict[str, int] = {
     "smalltrain": 100000,
     "tinytrain": 12000,
@@ -126,8 +99,36 @@ def rewrite_imgname(imgname: str, speedup: bool) -> str:
 class ArcticDataset(Dataset):
     """ArcticNet-SF samples of one processed ARCTIC split (torch ``Dataset``).
 
-    Each item is ``(inputs, targets, meta_info)`` exactly as ARCTIC's ``getitem``
-    (spec §3.4); batches from the default collate match ARCTIC's.
+    Each item is ``(inputs, targets, meta_info)`` exactly as ARCTIC's ``getitem`` (types
+    listed on :func:`~hogsa_loader.datasets.sample.make_arctic_sample`); batches from the
+    default collate match ARCTIC's.
+
+    Differences from ARCTIC, all deliberate:
+
+    * **Randomness is explicit.** Sample ``i`` of epoch ``e`` draws its augmentation from
+      ``numpy.random.default_rng([seed, e, i])``, so a seed fixes every sample, whatever the
+      DataLoader worker count or order. Call :meth:`ArcticDataset.set_epoch` before each
+      epoch (with ``persistent_workers=True`` the workers keep the epoch they were started
+      with — recreate the iterator instead).
+    * **Egocentric K cache.** ARCTIC caches the first egocentric patch K it computes in
+      each dataset object (hence per DataLoader worker, in whatever order that worker
+      happens to see samples) and reuses it for every later egocentric sample. With
+      ``cache_ego_k=True`` (default) this dataset does the same but fixes "first" to the
+      first egocentric image **in split order**, computed once at construction, so the result
+      does not depend on workers or shuffling. It equals ARCTIC's value whenever all ego K
+      in the split agree (the egocentric K is rescaled with ``sc = 1`` only, so only the
+      per-sequence full-image K matters) and for a single-process, unshuffled pass.
+    * **Missing images.** Like ARCTIC an unreadable image is replaced by a zero image with
+      a warning; in addition each occurrence is counted in :attr:`ArcticDataset.missing_images`
+      (and the path recorded in :attr:`ArcticDataset.missing_image_paths`). The counters
+      live in the process that loaded the sample (DataLoader workers have their own copies).
+    * **Sub-sampled splits.** ``mini/tiny/small`` splits take ARCTIC's counts and its
+      ``random.seed(1)`` draw (one ``randint(0, 100)`` then ``random.sample``), using a
+      private ``random.Random`` so global state is untouched. When the split has fewer
+      images than the count (possible on small generated worlds, where ARCTIC would raise),
+      all images are taken in that random order.
+    * Negative GT indices (``frame < ioi_offset``) raise an :class:`AssetError` instead of
+      wrapping around.
 
     Args:
         data_root: ARCTIC's ``./data`` folder (holding ``arctic_data/data`` with
@@ -138,10 +139,11 @@ class ArcticDataset(Dataset):
         augment: augment the samples; None = ARCTIC's rule (split ends with ``train``
             and no single sequence requested).
         seed: base seed of the per-sample generators.
-        use_gt_k: patch intrinsics from the GT K (step 12); egocentric always uses it.
+        use_gt_k: patch intrinsics from the GT K (see
+            :func:`~hogsa_loader.datasets.augment.patch_intrinsics`); egocentric always uses it.
         speedup: read ``cropped_images`` (2D and box moved into cropped pixels).
         seq: only the images of this sequence name (e.g. ``"box_use_01"``).
-        cache_ego_k: replicate ARCTIC's egocentric K cache (see module docstring).
+        cache_ego_k: replicate ARCTIC's egocentric K cache (see above).
         config: sample settings; ``use_gt_k`` and ``ego_image_scale`` are overridden by
             the argument and by the dataset's ``world_meta()`` respectively.
         epoch: initial epoch (see :meth:`set_epoch`).
@@ -277,7 +279,7 @@ class ArcticDataset(Dataset):
         return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
     def expected_image_size(self, sid: str, view: int) -> tuple[int, int]:
-        """(width, height) of the file read for ``view`` (§1.9): the cropped side, the ego
+        """(width, height) of the file read for ``view``: the cropped side, the ego
         image × ``ego_image_scale``, or without speed-up the full image."""
         w, h = (int(v) for v in self.root.subject_misc(sid).image_size[view])
         if not self.speedup:
@@ -293,7 +295,11 @@ class ArcticDataset(Dataset):
                                    f"{w}x{h} px ({'cropped_images' if self.speedup else 'images'}, view {view})")
 
     def to_image_pixels(self, points2d: np.ndarray, bbox_full: np.ndarray, view: int) -> np.ndarray:
-        """Full-resolution 2D points → pixels of the image that is read (§1.9)."""
+        """Full-resolution 2D points → pixels of the image that is read.
+
+        Allocentric cropped images show the box enlarged 1.5× resized to the cropped side;
+        egocentric ones the whole frame × ``ego_image_scale``.
+        """
         if not self.speedup:
             return np.asarray(points2d, dtype=np.float64)
         if view == EGO_VIEW:
@@ -301,7 +307,7 @@ class ArcticDataset(Dataset):
         return full_to_cropped(np.asarray(points2d, dtype=np.float64), bbox_full, self.cropped_size)
 
     def image_bbox(self, bbox_full: np.ndarray, view: int) -> np.ndarray:
-        """The crop box in pixels of the image that is read (§1.9)."""
+        """The crop box in pixels of the image that is read (see :meth:`to_image_pixels`)."""
         bbox_full = np.asarray(bbox_full, dtype=np.float64)
         if not self.speedup:
             return bbox_full
@@ -313,7 +319,7 @@ class ArcticDataset(Dataset):
         return self.getitem(int(index))
 
     def getitem(self, index: int, load_rgb: bool = True) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
-        """Item ``index`` (§3.3; negative counts from the end). ``load_rgb=False`` skips
+        """Item ``index`` (negative counts from the end). ``load_rgb=False`` skips
         reading the file (zero image).
 
         Raises:

@@ -1,28 +1,11 @@
 """World-frame posing of ARCTIC's ``process_seq`` in ARCTIC's own float32 arithmetic.
 
-The processed splits (:mod:`hogsa_loader.datasets.arctic_processing`) are computed in
-float32 in the same order as ARCTIC's processing so that values match it bit for bit:
-ARCTIC poses the hands with smplx's ``MANO`` layer and the object with its
-``ObjectTensors`` (quaternions), all in float32 torch, then moves and projects the points.
-A float64 computation rounded to float32 (what :class:`~hogsa_loader.hands.mano.MANOLayer`
-or :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer` give) differs from it
-in the last bits, which the projection to ~1000 px turns into ~5e-4 px.
-
-Only the split building uses this module; the shared layers are left as they are.
-Equality needs the same torch operations on tensors of the same shapes and memory
-layouts (reductions, matrix products and the vectorised ``sin``/``cos``/``atan2``
-kernels depend on them), so the batch is the whole chunk of frames, as ARCTIC's
-``DataLoader`` batch is, and every step below names the operation it reproduces.
-
-* :func:`mano_forward` — smplx ``MANO.forward`` with ``lbs`` (pose2rot), ARCTIC's layer
-  settings (``use_pca=False``, ``flat_hand_mean=False``, transl) and the 5 fingertip
-  vertices appended after the translation.
-* :class:`ObjectTensors32` / :func:`object_forward` — ``common/object_tensors.py``
-  ``ObjectTensors.forward``: templates ``float32(mm) / 1000``, the top part turned by the
-  articulation quaternion, then the global quaternion, then ``+ obj_trans_mm / 1000``.
-* :func:`rot_to_camera` — ``src/arctic/processing.py`` ``transform_mano_rot_cam``:
-  axis-angle of ``q(R_world2cam) ⊗ q(rot)`` (quaternion conversions of
-  ``common/rot.py``).
+The processed splits (:mod:`hogsa_loader.datasets.arctic_processing`) must match ARCTIC's
+bit for bit: a float64 computation rounded to float32 (what the shared MANO and object
+layers give) differs in the last bits, which the projection to ~1000 px turns into ~5e-4
+px. Equality needs the same torch operations on tensors of the same shapes and memory
+layouts, so the batch is the whole chunk of frames, as ARCTIC's ``DataLoader`` batch is,
+and every function names the ARCTIC operation it reproduces.
 """
 
 from __future__ import annotations

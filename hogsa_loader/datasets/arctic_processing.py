@@ -1,62 +1,10 @@
 """ARCTIC's sequence processing and split building.
 
 :func:`process_sequence` is ARCTIC's ``process_seq`` (src/arctic/processing.py) on a
-dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`; :func:`build_split`
-is ``build_split`` (src/arctic/split.py); :func:`write_processed_splits` writes
-``splits/<p>_<split>.npy`` for a whole root (the world generator calls it).
-
-Output of :func:`process_sequence` (F frames; views in ``cam_coord``/``2d`` are the 10 of
-ARCTIC: ``[ego undistorted, allo 1..8, ego distorted]``; flags/rotations/bbox use views 0..8):
-
-``world_coord`` (metres, world frame)
-    ``joints.right``/``joints.left`` (F,21,3), ``kp3d`` (F,32,3), ``bbox3d`` (F,16,3),
-    ``rot_r``/``rot_l``/``obj_rot`` (F,3) (+ ``verts.right``/``verts.left`` (F,V,3),
-    ``verts.object`` (F,Vo,3) with ``export_verts``).
-``cam_coord`` (metres, camera frame of each view)
-    ``joints.right``/``joints.left`` (F,10,21,3), ``kp3d`` (F,10,32,3), ``bbox3d``
-    (F,10,16,3), ``rot_r_cam``/``rot_l_cam``/``obj_rot_cam`` (F,9,3) axis-angle of
-    ``R_world2cam · R_global`` (angle in [0, π]), ``is_valid``/``left_valid``/``right_valid``
-    (F,9) int64 in {0,1} (+ ``verts.*`` (F,10,V,3) with ``export_verts``).
-``2d`` (full-resolution pixels)
-    pinhole projection of every ``cam_coord`` point key, (F,10,N,2); view 9 projects the
-    distorted ego points with ``K_ego``.
-``bbox`` (F,9,3)
-    ``(cx, cy, scale)``: allocentric = (1.1 + 0.6) × 2D extent of the projected object
-    vertices, scale ≥ 3 (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`);
-    ego = the whole image (:func:`~hogsa_loader.datasets.conventions.ego_bbox`).
-``params`` (per frame)
-    ``rot_r, pose_r, trans_r, shape_r (F,10), fitting_err_r`` and the same with ``_l``,
-    ``obj_arti`` (F,), ``obj_rot`` (F,3), ``obj_trans`` (F,3) **mm** (as stored in the raw
-    file), ``world2ego`` (F,4,4), ``dist`` (F,8), ``K_ego`` (F,3,3).
-
-Differences from ARCTIC, on purpose:
-* no SMPL-X: the project's worlds have no body, so ``joints.smplx``/``verts.smplx`` and
-  the ``smplx_*`` params are omitted (the training dataset does not read them);
-* floats are stored as float32 (ARCTIC's tensors are float32 too), flags as int64 (ARCTIC's
-  ``long`` flags); ``fitting_err`` is zeros when the sequence has none;
-* computation is batched over chunks of frames (no Python loop over single frames);
-* the ego box and ego validity region use ``ego_image_size`` (ARCTIC hard-codes 2800×2000,
-  the default), so generated worlds can declare theirs in ``meta/hogsa_world.json``.
-
-Precision is ARCTIC's, bit for bit: the world-frame points and the camera-frame rotations
-are computed in float32 in the same order as ARCTIC's processing so that values match it
-bit for bit (:mod:`hogsa_loader.datasets.arctic_float32`: smplx's MANO ``lbs``,
-``ObjectTensors``' quaternions on ``float32(mm) / 1000`` templates, ``transform_mano_rot_cam``),
-in batches of ARCTIC's 320 frames; cameras are rounded to float32, points are moved and
-projected in float32 (batched homogeneous 4×4 and 3×3 products, then a division), the ego
-distortion runs in float64 on the float32 points, and the allocentric box and the validity
-regions are float32 with ARCTIC's order of operations. The training dataset truncates 2D
-labels to integer pixels, so a label that float64 geometry would put at 52.999997 px
-instead of ARCTIC's 53.000005 px lands one pixel off. The shared MANO and object layers
-(float32 or float64 ``MANOLayer`` / ``ArticulatedObjectLayer``) are only read here (their
-buffers, the part masks); a sequence that was not read from a root with the layer's
-template files is posed from the layer's float32 metres.
-
-Split image names are numbered as ARCTIC's ``build_split`` numbers them: file numbers
-``margin .. F − margin − 1``, whatever the subject's ``ioi_offset``. The dataset reads the
-label of file ``n`` at GT index ``n − ioi_offset`` (the file shows that frame), so with
-offset k a split holds GT frames ``margin − k .. F − margin − 1 − k``, the images and
-labels of ARCTIC's released split files (whose first image is ``…/00010.jpg``).
+dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`, with ARCTIC's
+float32 arithmetic bit for bit; :func:`build_split` is ``build_split``
+(src/arctic/split.py); :func:`write_processed_splits` writes ``splits/<p>_<split>.npy``
+for a whole root (the world generator calls it).
 """
 
 from __future__ import annotations
@@ -296,6 +244,39 @@ def process_sequence(
 ) -> dict[str, dict[str, np.ndarray] | np.ndarray]:
     """ARCTIC ``process_seq`` of one sequence.
 
+    Output (F frames; views in ``cam_coord``/``2d`` are the 10 of
+    ARCTIC: ``[ego undistorted, allo 1..8, ego distorted]``; flags/rotations/bbox use views 0..8):
+
+    ``world_coord`` (metres, world frame)
+        ``joints.right``/``joints.left`` (F,21,3), ``kp3d`` (F,32,3), ``bbox3d`` (F,16,3),
+        ``rot_r``/``rot_l``/``obj_rot`` (F,3) (+ ``verts.right``/``verts.left`` (F,V,3),
+        ``verts.object`` (F,Vo,3) with ``export_verts``).
+    ``cam_coord`` (metres, camera frame of each view)
+        ``joints.right``/``joints.left`` (F,10,21,3), ``kp3d`` (F,10,32,3), ``bbox3d``
+        (F,10,16,3), ``rot_r_cam``/``rot_l_cam``/``obj_rot_cam`` (F,9,3) axis-angle of
+        ``R_world2cam · R_global`` (angle in [0, π]), ``is_valid``/``left_valid``/``right_valid``
+        (F,9) int64 in {0,1} (+ ``verts.*`` (F,10,V,3) with ``export_verts``).
+    ``2d`` (full-resolution pixels)
+        pinhole projection of every ``cam_coord`` point key, (F,10,N,2); view 9 projects the
+        distorted ego points with ``K_ego``.
+    ``bbox`` (F,9,3)
+        ``(cx, cy, scale)``: allocentric = (1.1 + 0.6) × 2D extent of the projected object
+        vertices, scale ≥ 3 (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`);
+        ego = the whole image (:func:`~hogsa_loader.datasets.conventions.ego_bbox`).
+    ``params`` (per frame)
+        ``rot_r, pose_r, trans_r, shape_r (F,10), fitting_err_r`` and the same with ``_l``,
+        ``obj_arti`` (F,), ``obj_rot`` (F,3), ``obj_trans`` (F,3) **mm** (as stored in the raw
+        file), ``world2ego`` (F,4,4), ``dist`` (F,8), ``K_ego`` (F,3,3).
+
+    Differences from ARCTIC, on purpose:
+
+    * no SMPL-X: the project's worlds have no body, so ``joints.smplx``/``verts.smplx`` and
+      the ``smplx_*`` params are omitted (the training dataset does not read them);
+    * floats are stored as float32 (ARCTIC's tensors are float32 too), flags as int64 (ARCTIC's
+      ``long`` flags); ``fitting_err`` is zeros when the sequence has none;
+    * computation is batched over chunks of frames (no Python loop over single frames);
+    * ``ego_image_size`` is an argument (ARCTIC hard-codes 2800×2000, the default).
+
     Args:
         seq: the sequence (world frame, metres); cameras 0 (ego, per frame, with ``dist``)
             and 1..8 are required.
@@ -305,13 +286,12 @@ def process_sequence(
             holding ``seq.object.name``.
         export_verts: also store ``verts.right/left/object`` in every coordinate frame.
         ego_image_size: (width, height) of the full ego image, used for the ego box and the
-            ego validity region (ARCTIC hard-codes 2800×2000).
+            ego validity region (generated worlds declare theirs in ``meta/hogsa_world.json``).
         chunk_frames: frames posed per batch (values equal ARCTIC's bit for bit only at
             the default, ARCTIC's batch of 320 frames).
 
     Returns:
-        ``{"world_coord", "cam_coord", "2d": dicts of arrays, "bbox": (F,9,3), "params": dict}``
-        with the keys and shapes listed in the module docstring.
+        ``{"world_coord", "cam_coord", "2d", "bbox", "params"}`` as listed above.
     """
     F = seq.num_frames
     world2cam, K, dist, sizes = _camera_stack(seq, ego_image_size)
@@ -322,40 +302,75 @@ def process_sequence(
     mano_layers = {side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
                    for side, layer in mano_layers.items()}  # ARCTIC's layer holds float32 buffers
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
-
-    def push(group: str, key: str, value: np.ndarray) -> None:
-        acc[group].setdefault(key, []).append(value)
-
     with torch.no_grad():
         for start in range(0, F, max(1, chunk_frames)):
             sl = slice(start, min(F, start + max(1, chunk_frames)))
-            w2c = world2cam[sl]
-            world = _pose_chunk(seq, sl, mano_layers, obj)
-            cam, p2d = {}, {}
-            for key, pts in world.items():
-                if key in keep or key == "verts.object":  # object verts: needed for bbox/flags
-                    cam[key], p2d[key] = _views(pts, _f32(w2c), _f32(K[sl]), _f32(dist[0]))
-            bbox, flags = _boxes_and_flags(p2d, ego_box, sizes)
-            for key in keep:
-                push("world_coord", key, world[key].numpy())
-                push("cam_coord", key, cam[key])
-                push("2d", key, p2d[key])
-            rots = {"rot_r": seq.right.rot[sl], "rot_l": seq.left.rot[sl], "obj_rot": seq.object.rot[sl]}
-            for key, rot in rots.items():
-                push("world_coord", key, rot.astype(np.float32))
-            for key, rot in rots.items():
-                push("cam_coord", f"{key}_cam", _rot_cam(w2c, rot))
-            is_valid, right_valid, left_valid = flags
-            push("cam_coord", "is_valid", is_valid.astype(np.int64))
-            push("cam_coord", "left_valid", left_valid.astype(np.int64))
-            push("cam_coord", "right_valid", right_valid.astype(np.int64))
-            push("bbox", "bbox", bbox)
-
-    out: dict[str, Any] = {
-        g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
-    }
+            for group, key, value in _process_chunk(seq, sl, world2cam, K, dist, mano_layers, obj, keep,
+                                                    ego_box, sizes):
+                acc[group].setdefault(key, []).append(value)
+    out: dict[str, Any] = {g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()}
+                           for g in ("world_coord", "cam_coord", "2d")}  # fmt: skip
     out["bbox"] = np.concatenate(acc["bbox"]["bbox"], axis=0)
     out["params"] = _params(seq, world2cam[:, EGO_VIEW], K[:, EGO_VIEW], dist)
+    return out
+
+
+def _process_chunk(
+    seq: SequenceData,
+    sl: slice,
+    world2cam: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray,
+    mano_layers: Mapping[str, Any],
+    obj: a32.ObjectTensors32,
+    keep: Sequence[str],
+    ego_box: np.ndarray,
+    sizes: np.ndarray,
+) -> list[tuple[str, str, np.ndarray]]:
+    """The outputs of frames ``sl`` as ``(group, key, value)`` in ARCTIC's key order.
+
+    Precision is ARCTIC's, bit for bit: the world-frame points and the camera-frame rotations
+    are computed in float32 in the same order as ARCTIC's processing so that values match it
+    bit for bit (:mod:`hogsa_loader.datasets.arctic_float32`: smplx's MANO ``lbs``,
+    ``ObjectTensors``' quaternions on ``float32(mm) / 1000`` templates, ``transform_mano_rot_cam``),
+    in batches of ARCTIC's 320 frames; cameras are rounded to float32, points are moved and
+    projected in float32 (batched homogeneous 4×4 and 3×3 products, then a division), the ego
+    distortion runs in float64 on the float32 points, and the allocentric box and the validity
+    regions are float32 with ARCTIC's order of operations. The training dataset truncates 2D
+    labels to integer pixels, so a label that float64 geometry would put at 52.999997 px
+    instead of ARCTIC's 53.000005 px lands one pixel off. The shared MANO and object layers
+    (float32 or float64 ``MANOLayer`` / ``ArticulatedObjectLayer``) are only read here (their
+    buffers, the part masks); a sequence that was not read from a root with the layer's
+    template files is posed from the layer's float32 metres.
+
+    Args:
+        seq: the sequence; sl: its frames in this chunk.
+        world2cam: (F, 9, 4, 4), K: (F, 9, 3, 3), dist: (F, 8) float32 cameras.
+        mano_layers: float32 MANO layers; obj: the object's float32 tensors.
+        keep: point keys stored; ego_box: (3,) float32; sizes: per-view image sizes.
+    """
+    out: list[tuple[str, str, np.ndarray]] = []
+    w2c = world2cam[sl]
+    world = _pose_chunk(seq, sl, mano_layers, obj)
+    cam, p2d = {}, {}
+    for key, pts in world.items():
+        if key in keep or key == "verts.object":  # object verts: needed for bbox/flags
+            cam[key], p2d[key] = _views(pts, _f32(w2c), _f32(K[sl]), _f32(dist[0]))
+    bbox, flags = _boxes_and_flags(p2d, ego_box, sizes)
+    for key in keep:
+        out.append(("world_coord", key, world[key].numpy()))
+        out.append(("cam_coord", key, cam[key]))
+        out.append(("2d", key, p2d[key]))
+    rots = {"rot_r": seq.right.rot[sl], "rot_l": seq.left.rot[sl], "obj_rot": seq.object.rot[sl]}
+    for key, rot in rots.items():
+        out.append(("world_coord", key, rot.astype(np.float32)))
+    for key, rot in rots.items():
+        out.append(("cam_coord", f"{key}_cam", _rot_cam(w2c, rot)))
+    is_valid, right_valid, left_valid = flags
+    out.append(("cam_coord", "is_valid", is_valid.astype(np.int64)))
+    out.append(("cam_coord", "left_valid", left_valid.astype(np.int64)))
+    out.append(("cam_coord", "right_valid", right_valid.astype(np.int64)))
+    out.append(("bbox", "bbox", bbox))
     return out
 
 
@@ -464,6 +479,12 @@ def build_split(
     frame_margin: int = FRAME_MARGIN,
 ) -> dict[str, Any]:
     """ARCTIC ``build_split``.
+
+    Split image names are numbered as ARCTIC's ``build_split`` numbers them: file numbers
+    ``margin .. F − margin − 1``, whatever the subject's ``ioi_offset``. The dataset reads the
+    label of file ``n`` at GT index ``n − ioi_offset`` (the file shows that frame), so with
+    offset k a split holds GT frames ``margin − k .. F − margin − 1 − k``, the images and
+    labels of ARCTIC's released split files (whose first image is ``…/00010.jpg``).
 
     Args:
         root: the data root (protocol files, misc.json for ``ioi_offset``).

@@ -1,27 +1,11 @@
-"""ArcticNet-SF data augmentation and patch geometry (spec ``arctic_format.md`` §3.1, §3.3).
+"""ArcticNet-SF data augmentation and patch geometry.
 
 Everything that turns an image region plus 2D/3D labels into the 224×224 training patch
-of ArcticNet-SF, written from the specification (and checked against the behaviour of
-``zc-alexfan/arctic`` ``common/data_utils.py``):
-
-* :class:`ArcticConfig` — the config defaults of §3.1 that the sample depends on;
-* :class:`AugParams` / :func:`sample_aug_params` — step 7 (rotation, scale, colour noise),
-  with the randomness drawn from an explicit :class:`numpy.random.Generator` in the same
-  order as ARCTIC draws from the global ``np.random`` state;
-* :func:`process_image` — step 8: Gaussian blur 5×5 σ=8 of the source, OpenCV bicubic
-  affine warp of the (rotated, scaled) square crop to the patch, per-channel colour noise,
-  clipping, CHW, /255 and ImageNet normalisation;
-* :func:`hmr_transform_matrix`, :func:`transform_keypoints`, :func:`normalize_kp2d` —
-  step 9: the HMR similarity transform of 2D keypoints with its integer truncation;
-* :func:`rot_aa` — step 10: the in-plane rotation of a global orientation;
-* :func:`patch_intrinsics` — step 12: the patch intrinsics (fixed or "GT-K" rule).
-
-Pixel convention: OpenCV's (pixel *i* has its centre at coordinate *i*). The image warp
-and the keypoint transform use the same similarity (centre → ``img_res/2``, side →
-``img_res``, rotation by ``-rot`` degrees about the patch centre); the keypoint labels
-are then truncated to integers the HMR way, so a label lies ``[0, 1]`` px right/below of
-the exact patch position for points inside the patch (``[0, 2]`` px where the exact
-coordinate is negative, because truncation goes towards zero).
+of ArcticNet-SF, matching ``zc-alexfan/arctic`` ``common/data_utils.py``: the augmentation
+draw (:func:`sample_aug_params`), the image patch (:func:`process_image`), the 2D keypoint
+transform (:func:`j2d_processing`), the rotation of global orientations (:func:`rot_aa`)
+and the patch intrinsics (:func:`patch_intrinsics`). Pixels follow OpenCV (pixel *i* has
+its centre at coordinate *i*).
 """
 
 from __future__ import annotations
@@ -52,7 +36,7 @@ __all__ = [
     "ROT_ZERO_PROB",
 ]
 
-#: Gaussian anti-aliasing kernel applied to the source before the warp (step 8).
+#: Gaussian anti-aliasing kernel applied to the source before the warp (:func:`process_image`).
 BLUR_KERNEL: int = 5
 BLUR_SIGMA: float = 8.0
 
@@ -67,13 +51,13 @@ def _kernel_std(ksize: int, sigma: float) -> float:
 #: Footprint of ARCTIC's blur (5×5, σ = 8: almost a box filter) as a Gaussian std in
 #: source pixels (≈ 1.41 px); :func:`process_image` scales it for smaller sources.
 BLUR_PIXEL_STD: float = _kernel_std(BLUR_KERNEL, BLUR_SIGMA)
-#: Probability that the sampled rotation is replaced by 0 (step 7).
+#: Probability that the sampled rotation is replaced by 0 (:func:`sample_aug_params`).
 ROT_ZERO_PROB: float = 0.6
 
 
 @dataclass(frozen=True)
 class ArcticConfig:
-    """The ArcticNet-SF settings a sample depends on (defaults: spec §3.1).
+    """The ArcticNet-SF settings a sample depends on (defaults: ArcticNet-SF's config).
 
     Attributes:
         img_res: patch side (px).
@@ -85,7 +69,7 @@ class ArcticConfig:
             still drawn for it so that the random stream matches ARCTIC's draw order.
         img_norm_mean, img_norm_std: ImageNet normalisation (RGB order).
         window_size: ``meta_info.window_size``.
-        use_gt_k: patch intrinsics from the full-image K (step 12); forced True for
+        use_gt_k: patch intrinsics from the full-image K (:func:`patch_intrinsics`); forced True for
             egocentric samples regardless of this flag.
         ego_image_scale: egocentric cropped images are the full frame times this factor.
     """
@@ -144,7 +128,7 @@ def sample_aug_params(
     egocentric: bool = False,
     cfg: ArcticConfig = ArcticConfig(),
 ) -> AugParams:
-    """Draw the augmentation of one sample (step 7).
+    """Draw the augmentation of one sample (rotation, scale, colour noise).
 
     Training draws, in ARCTIC's order: one uniform for the (disabled) flip, three
     colour multipliers ``U(1 − noise, 1 + noise)``, ``rot = clip(N(0,1)·rot_factor,
@@ -179,7 +163,7 @@ def sample_aug_params(
 
 
 # --------------------------------------------------------------------------------------
-# 2D keypoints (step 9)
+# 2D keypoints
 # --------------------------------------------------------------------------------------
 
 
@@ -191,7 +175,7 @@ def _rot2d(deg: float) -> np.ndarray:
 
 
 def hmr_transform_matrix(center: Sequence[float], scale: float, rot: float, img_res: int) -> np.ndarray:
-    """The HMR crop similarity of 2D keypoints (step 9) as a 3×3 matrix.
+    """The HMR crop similarity of 2D keypoints as a 3×3 matrix.
 
     Maps the square of side ``200·scale`` centred on ``center`` onto the ``img_res``
     patch: ``p' = R(−rot) · (p − center) · img_res / (200·scale) + img_res/2`` where
@@ -271,7 +255,14 @@ def unnormalize_kp2d(kp_norm, img_res: int):
 def j2d_processing(
     kp: np.ndarray, center: Sequence[float], scale: float, aug: AugParams, img_res: int
 ) -> np.ndarray:
-    """Step 9: 2D keypoints (source pixels) → normalised patch coordinates.
+    """2D keypoints (source pixels) → normalised patch coordinates.
+
+    The image warp (:func:`patch_warp_matrix`) and this keypoint transform use the same
+    similarity (centre → ``img_res/2``, side → ``img_res``, rotation by ``-rot`` degrees
+    about the patch centre); the labels are then truncated to integers the HMR way
+    (:func:`transform_keypoints`), so a label lies ``[0, 1]`` px right/below of the exact
+    patch position for points inside the patch (``[0, 2]`` px where the exact coordinate
+    is negative, because truncation goes towards zero).
 
     Args:
         kp: (N, 2) source-image pixels.
@@ -287,7 +278,7 @@ def j2d_processing(
 
 
 # --------------------------------------------------------------------------------------
-# Image (step 8)
+# Image
 # --------------------------------------------------------------------------------------
 
 
@@ -315,7 +306,7 @@ def process_image(
     cfg: ArcticConfig = ArcticConfig(),
     source_scale: float = 1.0,
 ) -> torch.Tensor:
-    """Step 8: source image → normalised ``(3, img_res, img_res)`` float32 patch.
+    """Source image → normalised ``(3, img_res, img_res)`` float32 patch.
 
     Gaussian blur (5×5, σ=8, OpenCV default border) of the float32 source; OpenCV
     bicubic warp (constant-0 border) of the square of side ``int(sc·scale·200)`` around
@@ -371,7 +362,7 @@ def process_image(
 
 
 # --------------------------------------------------------------------------------------
-# 3D rotation (steps 10, 11) and intrinsics (step 12)
+# 3D rotation and intrinsics
 # --------------------------------------------------------------------------------------
 
 
@@ -383,7 +374,7 @@ def rotation_z(deg: float) -> np.ndarray:
 
 
 def rot_aa(aa: np.ndarray, rot: float) -> np.ndarray:
-    """Step 10: left-multiply a camera-frame orientation by ``R_z(−rot)``.
+    """Left-multiply a camera-frame orientation by ``R_z(−rot)``.
 
     ``R_z(−rot)`` turns camera-frame points exactly like the 2D keypoint transform turns
     their projections about the principal point (both use ``R(−rot)`` in the y-down
@@ -409,7 +400,7 @@ def patch_intrinsics(
     use_gt_k: bool,
     cfg: ArcticConfig = ArcticConfig(),
 ) -> np.ndarray:
-    """Step 12: intrinsics of the patch (``get_aug_intrix``).
+    """Intrinsics of the patch (ARCTIC's ``get_aug_intrix``).
 
     * ``use_gt_k=False``: ``[[f, 0, res/2], [0, f, res/2], [0, 0, 1]]`` with
       ``f = cfg.focal_length`` (``res // 2`` exactly as ARCTIC).

@@ -1,4 +1,4 @@
-"""ARCTIC camera, crop and validity conventions (spec ``arctic_format.md`` §1.5–1.9, §3).
+"""ARCTIC camera, crop and validity conventions.
 
 Small numpy functions shared by the ARCTIC processing code, the world generator and the
 sample builder, so that every producer and consumer of ARCTIC-format data uses one
@@ -48,22 +48,23 @@ HAND_BONES: tuple[tuple[int, int], ...] = (
     (0, 10), (10, 11), (11, 12), (12, 19), (0, 13), (13, 14), (14, 15), (15, 16),
 )
 
-#: View 0 is the egocentric camera, 1..8 the allocentric ones (§1.3).
+#: View 0 is the egocentric camera, 1..8 the allocentric ones.
 EGO_VIEW: int = 0
 ALLO_VIEWS: tuple[int, ...] = tuple(range(1, 9))
-#: Index of the distorted-ego copy in processed ``cam_coord``/``2d`` (10 views, §1.7).
+#: Index of the distorted-ego copy in processed ``cam_coord``/``2d``, which hold 10 views
+#: (the 9 cameras, then the egocentric view with its lens distortion applied).
 EGO_DISTORTED_VIEW: int = 9
-#: Egocentric image size assumed by the ARCTIC code, (width, height) (§1.5).
+#: Egocentric image size assumed by the ARCTIC code, (width, height).
 EGO_IMAGE_SIZE: tuple[int, int] = (2800, 2000)
-#: Egocentric cropped images are the whole frame resized by this factor (§1.9).
+#: Egocentric cropped images are the whole frame resized by this factor.
 EGO_IMAGE_SCALE: float = 0.3
-#: Allocentric cropped images are square crops of this side (§1.9).
+#: Allocentric cropped images are square crops of this side.
 CROPPED_SIZE: int = 1000
-#: The cropped image covers the box enlarged by this factor (§1.9).
+#: The cropped image covers the box enlarged by this factor.
 CROP_ENLARGE: float = 1.5
-#: Box side in pixels per unit of ``scale`` (§1.7).
+#: Box side in pixels per unit of ``scale``.
 BBOX_PIXELS_PER_SCALE: float = 200.0
-#: Allocentric boxes are at least this scale (600 px) (§1.7).
+#: Allocentric boxes are at least this scale (600 px).
 MIN_ALLO_SCALE: float = 3.0
 
 
@@ -97,7 +98,7 @@ def project(points_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def distort_points(points_cam: np.ndarray, dist8: np.ndarray) -> np.ndarray:
-    """Apply ARCTIC's egocentric lens distortion in 3D (``distort_pts3d_all``, §1.7).
+    """Apply ARCTIC's egocentric lens distortion in 3D (``distort_pts3d_all``).
 
     A point (X, Y, Z) becomes x = X/Z, y = Y/Z, r² = x² + y², radial factor
     ``(1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶)`` plus OpenCV tangential
@@ -122,7 +123,7 @@ def distort_points(points_cam: np.ndarray, dist8: np.ndarray) -> np.ndarray:
 
 
 def allocentric_bbox(points2d: np.ndarray) -> np.ndarray:
-    """Object-centred square box of an allocentric view (``get_bbox_from_kp2d``, §1.7).
+    """Object-centred square box of an allocentric view (``get_bbox_from_kp2d``).
 
     D = max(x-extent, y-extent) of the projected object vertices; side = 1.7·D centred on
     the extent centre; scale = side / 200, clamped to ≥ 3 (600 px).
@@ -148,7 +149,7 @@ def ego_bbox(image_size: tuple[int, int] = EGO_IMAGE_SIZE) -> np.ndarray:
 
 
 def full_to_cropped(points2d: np.ndarray, bbox: np.ndarray, size: int = CROPPED_SIZE) -> np.ndarray:
-    """Map full-image pixels into the allocentric cropped image (``transform_kp2d``, §1.9).
+    """Map full-image pixels into the allocentric cropped image (``transform_kp2d``).
 
     The cropped image shows the square of side ``1.5 · 200 · scale`` around the box
     centre, resized to ``size × size``: ``x' = (x − (cx − 0.75·s)) · size / (1.5·s)``.
@@ -239,7 +240,7 @@ def validity_flags(
     image_size: np.ndarray,
     min_joints: int = 3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ARCTIC validity flags of one view (``forward_valid``, §1.7).
+    """ARCTIC validity flags of one view (``forward_valid``).
 
     The region is the crop box clipped to the image: x ∈ [max(cx − side/2, 1),
     min(cx + side/2, W)], same for y. ``is_valid`` = the 2D centroid of the object vertices

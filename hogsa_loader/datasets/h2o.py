@@ -315,6 +315,41 @@ def _parse_world(world: str) -> Optional[int]:
 class H2ORoot:
     """An H2O dataset root (the folder holding ``subject1``, ``subject2``...).
 
+    Conventions of :meth:`sequence`:
+
+    * **Label camera.** MANO and object labels are stored in every camera folder, each
+      in that camera's frame. They are read from one camera folder, ``label_cam``
+      (default ``4``, the egocentric view that HACO and the official pose lists use).
+      ``hand_pose_mano`` / ``obj_pose_rt`` folders are found under these lower-case
+      names or the README's ``hand_pose_MANO`` / ``obj_pose_RT``.
+    * **Output frame** (``world``): ``"world"`` moves labels with the label camera's
+      ``cam_pose`` (camera-to-world, per frame) into H2O's world frame, like
+      h2oplayer. ``"camK"`` expresses everything in camera K's frame instead (for the
+      moving ``cam4`` this frame changes every frame; camera K then has identity
+      extrinsics).
+    * **MANO frame change** rotates about the root joint J0 (depends on betas), not
+      about the origin: global rotation ``R·R_g``, translation ``R·(J0 + t) + T − J0``
+      (:func:`change_mano_frame`).
+    * **Mean pose.** H2O poses use ``flat_hand_mean=True``; :class:`HandTrack` wants
+      the finger pose relative to the MANO mean, so ``pose_rel = pose_flat −
+      hands_mean`` of the given model of each side.
+    * **Betas.** H2O stores betas per frame; :class:`HandTrack` has one vector per
+      sequence: the per-hand **median over valid frames** (zeros when a hand is never
+      valid). The translation keeps the root joint exactly where the per-frame betas
+      put it (``trans = R·(J0(β_f) + t) + T − J0(β_median)``); other joints move by
+      the (small) shape difference. :meth:`read_mano` gives the exact per-frame labels.
+    * **Validity.** Per frame and hand from the ``valid`` flag; invalid frames hold
+      zeros in ``rot``/``pose``/``trans``. The object is invalid where the class id is
+      0 (its ``rot``/``trans`` are zeros there); ``arti`` is always 0 (H2O objects are
+      rigid). The object name comes from the class id (``H2O_OBJECT_NAMES``).
+    * **Cameras.** Every ``camK`` folder (or the ones asked for) with per-frame
+      ``world2cam`` = inverse of ``cam_pose`` (composed with the output frame), ``K``
+      from ``cam_intrinsics.txt`` (static, repeated per frame), no distortion,
+      ``egocentric`` for ``cam4``. ``image_paths`` point to ``rgb/<frame>.png`` (None
+      where missing).
+    * **Frames** are the files of the label camera's ``hand_pose_mano`` folder; every
+      other per-frame file read must exist for each of them.
+
     Args:
         root: dataset root.
 
@@ -492,42 +527,7 @@ class H2ORoot:
         frames: Optional[Sequence[int]] = None,
         object_class: Optional[int] = None,
     ) -> SequenceData:
-        """Read one sequence as :class:`SequenceData`.
-
-        Conventions:
-
-        * **Label camera.** MANO and object labels are stored in every camera folder, each
-          in that camera's frame. They are read from one camera folder, ``label_cam``
-          (default ``4``, the egocentric view that HACO and the official pose lists use).
-          ``hand_pose_mano`` / ``obj_pose_rt`` folders are found under these lower-case
-          names or the README's ``hand_pose_MANO`` / ``obj_pose_RT``.
-        * **Output frame** (``world``): ``"world"`` moves labels with the label camera's
-          ``cam_pose`` (camera-to-world, per frame) into H2O's world frame, like
-          h2oplayer. ``"camK"`` expresses everything in camera K's frame instead (for the
-          moving ``cam4`` this frame changes every frame; camera K then has identity
-          extrinsics).
-        * **MANO frame change** rotates about the root joint J0 (depends on betas), not
-          about the origin: global rotation ``R·R_g``, translation ``R·(J0 + t) + T − J0``
-          (:func:`change_mano_frame`).
-        * **Mean pose.** H2O poses use ``flat_hand_mean=True``; :class:`HandTrack` wants
-          the finger pose relative to the MANO mean, so ``pose_rel = pose_flat −
-          hands_mean`` of the given model of each side.
-        * **Betas.** H2O stores betas per frame; :class:`HandTrack` has one vector per
-          sequence: the per-hand **median over valid frames** (zeros when a hand is never
-          valid). The translation keeps the root joint exactly where the per-frame betas
-          put it (``trans = R·(J0(β_f) + t) + T − J0(β_median)``); other joints move by
-          the (small) shape difference. :meth:`read_mano` gives the exact per-frame labels.
-        * **Validity.** Per frame and hand from the ``valid`` flag; invalid frames hold
-          zeros in ``rot``/``pose``/``trans``. The object is invalid where the class id is
-          0 (its ``rot``/``trans`` are zeros there); ``arti`` is always 0 (H2O objects are
-          rigid). The object name comes from the class id (``H2O_OBJECT_NAMES``).
-        * **Cameras.** Every ``camK`` folder (or the ones asked for) with per-frame
-          ``world2cam`` = inverse of ``cam_pose`` (composed with the output frame), ``K``
-          from ``cam_intrinsics.txt`` (static, repeated per frame), no distortion,
-          ``egocentric`` for ``cam4``. ``image_paths`` point to ``rgb/<frame>.png`` (None
-          where missing).
-        * **Frames** are the files of the label camera's ``hand_pose_mano`` folder; every
-          other per-frame file read must exist for each of them.
+        """Read one sequence as :class:`SequenceData` (conventions on :class:`H2ORoot`).
 
         Args:
             subject, scene, seq: e.g. ``"subject1", "h1", 0``.

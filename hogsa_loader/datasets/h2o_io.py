@@ -1,30 +1,11 @@
 """H2O per-frame text formats: strict parsers, readers and line formatters.
 
-Every H2O label file is one line of space-separated numbers (``h2o_mano_peers.md`` §1.2):
-
-======================  =====  ==============================================================
-folder / file           count  layout
-======================  =====  ==============================================================
-``cam_pose/``           16     row-major 4x4 **camera-to-world** transform
-``hand_pose_mano/``     124    2 x ``[valid, trans 3, pose 48, betas 10]``, **left first**;
-                               ``flat_hand_mean=True``; frame of the camera folder
-``obj_pose_rt/``        17     class id + row-major 4x4 **object-to-camera** transform
-``hand_pose/``          128    2 x ``[valid, 21 x (x, y, z)]``, left first, camera frame (m)
-``obj_pose/``           64     class id + 21 x (x, y, z) box points (centre, 8 corners,
-                               12 edge midpoints), camera frame (m)
-``action_label/``       1      integer 0..36 (0 = background)
-``verb_label/``         1      integer 0..11 (0 = background)
-``cam_intrinsics.txt``  6      ``fx fy cx cy width height``
-======================  =====  ==============================================================
-
-The README's "first 59 numbers belong to the left hand" is wrong (1 + 3 + 48 + 10 = 62);
-every loader slices 62 per hand, and so do we (:data:`H2O_MANO_HAND_SLICES`).
-
-Tokens must be plain decimal numbers (``1``, ``-0.5``, ``1e-3``); anything else (``nan``,
-``inf``, ``1_000``, ``0x1f``, commas) raises :class:`~hogsa_loader.errors.AssetError`
-naming the file, as do wrong counts, non-finite values, flags other than 0/1, class ids out
-of range and 4x4 matrices whose last row is not ``[0, 0, 0, 1]`` or whose rotation block
-is not a rotation.
+Every H2O label file is one line of space-separated numbers (counts in
+:data:`H2O_COUNTS`; each parser's docstring gives its layout). Tokens must be plain
+decimal numbers (``1``, ``-0.5``, ``1e-3``); anything else (``nan``, ``inf``, ``1_000``,
+``0x1f``, commas) raises :class:`~hogsa_loader.errors.AssetError` naming the file, as do
+wrong counts, non-finite values, flags other than 0/1, class ids out of range and 4x4
+matrices whose last row is not ``[0, 0, 0, 1]`` or whose rotation block is not a rotation.
 """
 
 from __future__ import annotations
@@ -223,7 +204,7 @@ def parse_h2o_cam_pose(values: _NumbersLike, path: Optional[PathLike] = None, at
 def parse_h2o_obj_pose_rt_strict(
     values: _NumbersLike, path: Optional[PathLike] = None, atol: float = 1e-3
 ) -> tuple[int, np.ndarray]:
-    """Parse ``obj_pose_rt/XXXXXX.txt`` with the strict tokenizer of this module.
+    """Parse ``obj_pose_rt/XXXXXX.txt``: class id + row-major 4x4 object-to-camera transform.
 
     Tokenizes like every other H2O parser here, then delegates the class-id and rigidity
     checks to :func:`hogsa_loader.objects.rigid.parse_h2o_obj_pose_rt`.
@@ -365,6 +346,11 @@ class H2OManoLabels:
 
 def parse_h2o_hand_pose_mano(values: _NumbersLike, path: Optional[PathLike] = None) -> H2OManoLabels:
     """Parse ``hand_pose_mano/XXXXXX.txt`` (124 numbers, left hand first, 62 per hand).
+
+    Each hand is ``[valid, trans 3, pose 48, betas 10]`` with ``flat_hand_mean=True``, in
+    the frame of the camera folder. The README's "first 59 numbers belong to the left hand"
+    is wrong (1 + 3 + 48 + 10 = 62); every loader slices 62 per hand, and so does this one
+    (:data:`H2O_MANO_HAND_SLICES`).
 
     Returns:
         :class:`H2OManoLabels` with F = 1.

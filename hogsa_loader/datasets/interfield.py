@@ -1,26 +1,7 @@
-"""Interaction-field targets of InterField-SF (ARCTIC §6): nearest hand↔object distances.
+"""Interaction-field targets of InterField-SF: nearest hand↔object vertex distances.
 
-For the right/left MANO meshes and the object mesh of one frame (all in one frame; the
-distances do not depend on which):
-
-=================  ==============  ==========================================================
-key                shape           value
-=================  ==============  ==========================================================
-``dist.ro``        (Vh,) float32   each right-hand vertex → nearest object vertex (m)
-``dist.lo``        (Vh,) float32   left hand → object
-``dist.or``        (Vmax,) float32 each object vertex → nearest right-hand vertex (padded)
-``dist.ol``        (Vmax,) float32 object → left hand (padded)
-``idx.ro/lo``      (Vh,) int64     index of that nearest object vertex
-``idx.or/ol``      (Vmax,) int64   index of that nearest hand vertex (padded)
-``object.v_len``   int             real object vertex count (entries ≥ it are padding: 0)
-=================  ==============  ==========================================================
-
-Distances are clamped to ``[0, max_dist]`` (ARCTIC: 0.10 m for InterField-SF, no clamp =
-``inf`` for ArcticNet-SF). ARCTIC computes these in its training step from the GT meshes
-with ``knn_points`` (K = 1) over the full object mesh zero-padded to the batch's largest
-object; here they are per sample, padded to the largest template of the data root
-(``Vmax``), so the default collate batches them. Vertex counts come from the models
-(never hard-coded).
+:func:`interaction_field` computes them for one frame's meshes, :class:`InterFieldTargets`
+from pose parameters, and :func:`interfield_targets` builds the latter for a data root.
 """
 
 from __future__ import annotations
@@ -47,7 +28,29 @@ def _nearest(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def interaction_field(v_r: Any, v_l: Any, v_o: Any, v_max: int, max_dist: float = math.inf) -> dict[str, Any]:
-    """Interaction-field targets of one frame (see module docstring).
+    """Interaction-field targets of one frame.
+
+    For the right/left MANO meshes and the object mesh of one frame (all in one frame; the
+    distances do not depend on which):
+
+    =================  ==============  ==========================================================
+    key                shape           value
+    =================  ==============  ==========================================================
+    ``dist.ro``        (Vh,) float32   each right-hand vertex → nearest object vertex (m)
+    ``dist.lo``        (Vh,) float32   left hand → object
+    ``dist.or``        (Vmax,) float32 each object vertex → nearest right-hand vertex (padded)
+    ``dist.ol``        (Vmax,) float32 object → left hand (padded)
+    ``idx.ro/lo``      (Vh,) int64     index of that nearest object vertex
+    ``idx.or/ol``      (Vmax,) int64   index of that nearest hand vertex (padded)
+    ``object.v_len``   int             real object vertex count (entries ≥ it are padding: 0)
+    =================  ==============  ==========================================================
+
+    Distances are clamped to ``[0, max_dist]`` (ARCTIC: 0.10 m for InterField-SF, no clamp =
+    ``inf`` for ArcticNet-SF). ARCTIC computes these in its training step from the GT meshes
+    with ``knn_points`` (K = 1) over the full object mesh zero-padded to the batch's largest
+    object; here they are per sample, padded to the largest template of the data root
+    (``Vmax``), so the default collate batches them. Vertex counts come from the models
+    (never hard-coded).
 
     Args:
         v_r, v_l: (Vh, 3) right / left hand vertices; v_o: (Vo, 3) object vertices (m).

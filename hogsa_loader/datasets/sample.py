@@ -36,6 +36,19 @@ __all__ = [
 ]
 
 #: Keys of the three dicts, in ARCTIC's insertion order.
+#:
+#: Value types follow ARCTIC exactly, because PyTorch's default collate turns them into
+#: different batch types (float → float64 tensor, ``np.float32`` → float32 tensor,
+#: int → int64 tensor, str → list of str):
+#:
+#: * ``inputs["img"]``: torch float32 (3, 224, 224);
+#: * every other array target is a torch float32 tensor, except ``joints_valid_r/l``
+#:   which are numpy float64 (21,) arrays; ``is_valid``, ``left_valid``,
+#:   ``right_valid`` are python floats; ``object.radian`` is a 0-dim float32 tensor;
+#: * ``meta_info``: ``imgname``/``query_names`` str, ``window_size`` int64 tensor (1,),
+#:   ``intrinsics`` float32 tensor (3, 3), ``dist`` float32 tensor (8,), ``center``
+#:   numpy float32 (2,), ``is_flipped`` int, ``rot_angle`` ``np.float32``, ``kp3d.cano``
+#:   float32 tensor (16, 3) (see ``_object_rotation``).
 SAMPLE_INPUT_KEYS: tuple[str, ...] = ("img",)
 SAMPLE_TARGET_KEYS: tuple[str, ...] = (
     "mano.pose.r", "mano.pose.l", "mano.beta.r", "mano.beta.l",
@@ -276,20 +289,8 @@ def make_arctic_sample(
     ``sc = 1``), map the 2D labels into it, rotate the global orientations, solve the
     object rotation, set the patch camera and the validity flags.
 
-    Value types follow ARCTIC exactly, because PyTorch's default collate turns them into
-    different batch types (float → float64 tensor, ``np.float32`` → float32 tensor,
-    int → int64 tensor, str → list of str):
-
-    * ``inputs["img"]``: torch float32 (3, 224, 224);
-    * every other array target is a torch float32 tensor, except ``joints_valid_r/l``
-      which are numpy float64 (21,) arrays; ``is_valid``, ``left_valid``,
-      ``right_valid`` are python floats; ``object.radian`` is a 0-dim float32 tensor;
-    * ``meta_info``: ``imgname``/``query_names`` str, ``window_size`` int64 tensor (1,),
-      ``intrinsics`` float32 tensor (3, 3), ``dist`` float32 tensor (8,), ``center``
-      numpy float32 (2,), ``is_flipped`` int, ``rot_angle`` ``np.float32``, ``kp3d.cano``
-      float32 tensor (16, 3) (see :func:`_object_rotation`).
-
-    Dict keys come in ARCTIC's insertion order (:data:`SAMPLE_TARGET_KEYS` etc.).
+    Dict keys come in ARCTIC's insertion order and values have ARCTIC's types (both listed
+    with :data:`SAMPLE_TARGET_KEYS`).
 
     Args:
         image: (H, W, 3) RGB uint8 (or float in [0, 255]) — the image the 2D labels and

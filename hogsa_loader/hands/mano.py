@@ -1,15 +1,6 @@
 """Batched MANO hand layer (right and left) on top of :mod:`hogsa_loader.hands.lbs`.
 
-Conventions (ARCTIC's MANO):
-- pose = 3 global + 45 articulation axis-angle values; with ``flat_hand_mean=False`` the
-  45 values are offsets from the model's ``hands_mean`` (ARCTIC's setting), with ``True`` a
-  zero vector is the flat hand (H2O's setting).
-- PCA mode: ``hand_pose`` holds ``num_pca_comps`` coefficients of ``hands_components``.
-- Outputs are in metres. Joints: 16 MANO joints (wrist, index, middle, pinky, ring, thumb;
-  3 each) followed by 5 fingertip vertices thumb, index, middle, ring, pinky = 21 joints.
-- The known left-MANO ``shapedirs[:, 0, :]`` sign issue (smplx issue #48: in the official
-  left model the x component of the shape blend shapes is not mirrored) is left as in the
-  file by default, as ARCTIC and smplx do; ``fix_left_shapedirs=True`` negates it.
+:class:`MANOLayer` follows ARCTIC's MANO conventions (listed on the class).
 """
 
 from __future__ import annotations
@@ -51,13 +42,24 @@ class ManoOutput:
 class MANOLayer(nn.Module):
     """Differentiable, batched MANO layer.
 
+    Conventions (ARCTIC's MANO):
+    - pose = 3 global + 45 articulation axis-angle values; with ``flat_hand_mean=False`` the
+      45 values are offsets from the model's ``hands_mean`` (ARCTIC's setting), with ``True`` a
+      zero vector is the flat hand (H2O's setting).
+    - PCA mode: ``hand_pose`` holds ``num_pca_comps`` coefficients of ``hands_components``.
+    - Outputs are in metres. Joints: 16 MANO joints (wrist, index, middle, pinky, ring, thumb;
+      3 each) followed by 5 fingertip vertices thumb, index, middle, ring, pinky = 21 joints.
+    - The known left-MANO ``shapedirs[:, 0, :]`` sign issue (smplx issue #48: in the official
+      left model the x component of the shape blend shapes is not mirrored) is left as in the
+      file by default, as ARCTIC and smplx do; ``fix_left_shapedirs=True`` negates it.
+
     Args:
         model: a :class:`ManoModelData` or a path accepted by :func:`load_mano`.
         side: hand side when ``model`` is a folder path.
         use_pca: interpret ``hand_pose`` as PCA coefficients.
         num_pca_comps: number of PCA components used when ``use_pca``.
         flat_hand_mean: if False, add the model's ``hands_mean`` to the articulation.
-        fix_left_shapedirs: negate ``shapedirs[:, 0, :]`` of a left model (see module doc).
+        fix_left_shapedirs: negate ``shapedirs[:, 0, :]`` of a left model (see above).
         num_betas: number of shape coefficients used (<= those in the file).
         dtype: float32 or float64 buffers.
     """

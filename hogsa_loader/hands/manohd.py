@@ -1,18 +1,6 @@
 """MANO-HD: edge-midpoint subdivision of a MANO-schema model (HandAvatar, CVPR 2023).
 
-Each level adds one vertex at the midpoint of every edge (old vertices keep their indices,
-new ones are appended in sorted-edge order) and splits every triangle into four, so
-``V' = V + E`` and ``F' = 4 F`` (778 -> 3093 -> 12337 vertices on the official MANO mesh).
-Blend shapes, pose correctives, skinning weights and vertex colours of a new vertex are the
-mean of its edge's endpoints; ``J_regressor`` gets zero columns, so joints are unchanged
-(with the default ``laplacian_passes=0``; smoothing moves the old vertices too, so the
-21 joints shift slightly: up to 0.57 mm, at a fingertip, at level 1 with 3 passes on the
-synthetic hand).
-Fingertips and contact vertices keep their (old) indices; a new vertex joins a contact set
-when both endpoints are in it.
-
-Skinning weights may be refined later (HandAvatar optimises them): pass ``lbs_weights`` to
-use refined ones instead of the interpolated ones.
+:func:`subdivide_model` builds the model; :func:`subdivide_mesh` the mesh step.
 """
 
 from __future__ import annotations
@@ -83,6 +71,20 @@ def subdivide_model(
     laplacian_passes: int = 0,
 ) -> ManoModelData:
     """MANO-HD model by ``levels`` rounds of midpoint subdivision.
+
+    Each level adds one vertex at the midpoint of every edge (old vertices keep their indices,
+    new ones are appended in sorted-edge order) and splits every triangle into four, so
+    ``V' = V + E`` and ``F' = 4 F`` (778 -> 3093 -> 12337 vertices on the official MANO mesh).
+    Blend shapes, pose correctives, skinning weights and vertex colours of a new vertex are the
+    mean of its edge's endpoints; ``J_regressor`` gets zero columns, so joints are unchanged
+    (with the default ``laplacian_passes=0``; smoothing moves the old vertices too, so the
+    21 joints shift slightly: up to 0.57 mm, at a fingertip, at level 1 with 3 passes on the
+    synthetic hand).
+    Fingertips and contact vertices keep their (old) indices; a new vertex joins a contact set
+    when both endpoints are in it.
+
+    Skinning weights may be refined later (HandAvatar optimises them): pass ``lbs_weights`` to
+    use refined ones instead of the interpolated ones.
 
     Args:
         model: any MANO-schema model.

@@ -1,8 +1,8 @@
 """Objects: ARCTIC articulated templates and layer, H2O rigid poses, procedural objects.
 
-Conventions follow the ARCTIC specification (``arctic_format.md`` §1.6, §2): templates in
-metres in a canonical frame whose z axis is the hinge; ``parts.json`` 0 = top
-(articulated), 1 = bottom (base); the top rotates by ``R_z(-θ)`` before the global pose.
+ARCTIC's conventions hold throughout: templates in metres in a canonical frame whose z
+axis is the hinge; ``parts.json`` 0 = top (articulated), 1 = bottom (base); the top
+rotates by ``R_z(-θ)`` before the global pose.
 """
 
 from hogsa_loader.objects.articulated import (

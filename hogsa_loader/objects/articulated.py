@@ -1,22 +1,7 @@
 """Articulation of ARCTIC objects (two rigid parts joined by one revolute hinge).
 
-Conventions (ARCTIC specification ``arctic_format.md`` §2, ``common/object_tensors.py``):
-
-* An object pose is 7 numbers: the articulation angle θ (radians), a global rotation ω
-  (axis-angle, 3) and a translation t (metres, 3).
-* The hinge is the **z axis of the canonical frame through the canonical origin**. The top
-  part (``parts.json`` value 0, ``parts_ids == 1``) is first rotated by
-  ``R_z(-θ)`` = axis-angle ``θ · (0, 0, -1)``; then every point gets the global pose:
-
-  - top point:    ``p' = R(ω) · R_z(-θ) · p + t``
-  - bottom point: ``p' = R(ω) · p + t``
-
-* Keypoints (``kp3d``: 16 top then 16 bottom), box corners (``bbox3d``: 8 top then 8
-  bottom) and the 600 sub-sampled points (``v_sub``: 300 top then 300 bottom) are the
-  fixed template points posed with the same transforms; they are not recomputed from the
-  vertices.
-* Vertex buffers are zero-padded to the longest object (``mask``/``v_len`` tell the real
-  vertices; ``parts_ids`` = ``parts.json + 1`` with 0 on padding).
+:func:`articulate` poses points, :class:`ArticulatedObjectLayer` a fixed set of objects
+with ARCTIC's ``common/object_tensors.py`` conventions (listed on the layer).
 """
 
 from __future__ import annotations
@@ -110,7 +95,7 @@ def articulate(
     global_orient: Tensor,
     transl: Optional[Tensor],
 ) -> Tensor:
-    """Pose canonical object points (ARCTIC spec §2).
+    """Pose canonical object points (ARCTIC's hinge convention).
 
     ``top: p' = R(ω) R_z(-θ) p + t``, ``bottom: p' = R(ω) p + t``.
 
@@ -143,7 +128,7 @@ def _pad_stack(arrays: Sequence[np.ndarray], length: int, fill: float = 0) -> np
 
 def _sub_part_ids(template: ObjectTemplate) -> np.ndarray:
     """parts_ids of the 600 sub-points: part of the nearest mesh vertex, plus 1."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # deferred: scipy.spatial adds ~1 s to every process importing objects
 
     sub = np.concatenate([template.sub_top, template.sub_bottom], axis=0)
     _, nearest = cKDTree(template.verts.astype(np.float64)).query(sub.astype(np.float64))
@@ -153,8 +138,26 @@ def _sub_part_ids(template: ObjectTemplate) -> np.ndarray:
 class ArticulatedObjectLayer(torch.nn.Module):
     """Poses a fixed set of ARCTIC-style articulated objects, batched.
 
-    Buffers follow ARCTIC's ``ObjectTensors`` (spec §2): for K objects and the longest
-    vertex count ``Vmax``,
+    Conventions (ARCTIC's ``common/object_tensors.py``):
+
+    * An object pose is 7 numbers: the articulation angle θ (radians), a global rotation ω
+      (axis-angle, 3) and a translation t (metres, 3).
+    * The hinge is the **z axis of the canonical frame through the canonical origin**. The top
+      part (``parts.json`` value 0, ``parts_ids == 1``) is first rotated by
+      ``R_z(-θ)`` = axis-angle ``θ · (0, 0, -1)``; then every point gets the global pose:
+
+      - top point:    ``p' = R(ω) · R_z(-θ) · p + t``
+      - bottom point: ``p' = R(ω) · p + t``
+
+    * Keypoints (``kp3d``: 16 top then 16 bottom), box corners (``bbox3d``: 8 top then 8
+      bottom) and the 600 sub-sampled points (``v_sub``: 300 top then 300 bottom) are the
+      fixed template points posed with the same transforms; they are not recomputed from the
+      vertices.
+    * Vertex buffers are zero-padded to the longest object (``mask``/``v_len`` tell the real
+      vertices; ``parts_ids`` = ``parts.json + 1`` with 0 on padding).
+
+    Buffers follow ARCTIC's ``ObjectTensors``: for K objects and the longest vertex count
+    ``Vmax``,
 
     * ``v`` (K, Vmax, 3), ``v_len`` (K,), ``f`` (K, Fmax, 3) faces padded with 0,
       ``f_len`` (K,), ``mask`` (K, Vmax) bool,

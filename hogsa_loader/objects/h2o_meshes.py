@@ -1,30 +1,9 @@
 """H2O object meshes as rigid :class:`~hogsa_loader.objects.template.ObjectTemplate` objects.
 
 H2O ships its 8 object meshes separately from the sequences, in metres, in the object
-frame that ``obj_pose_rt`` poses (``h2o_mano_peers.md`` §1.3). The folder and file names
-differ between the public loaders, so :func:`find_h2o_mesh` looks under
-``<mesh_dir>/<folder>/<file>.{obj,ply}`` for every known name variant of a class (README
-name, h2oplayer name: e.g. cocoa = ``ovomaltine``, chips = ``pringles``, cappuccino =
-``starbucks``, spray = ``lotion_spray``; HACO's ``spray/lotion_spray.obj`` is a
-folder/file mix, so every folder × file combination is tried).
-
-:func:`load_h2o_object` returns the mesh as a *rigid* template that the articulated
-machinery (``ObjectGaussians``, ``HogsModel``, checkpoints) takes unchanged:
-
-* every vertex and face is in the **bottom** part (``parts == BOTTOM``; the top part is
-  empty), so the articulation ``R_z(-θ)`` never moves anything (H2O's θ is always 0);
-  rendered part masks show the object as "object bottom" (id 4);
-* ``verts``/``faces``: the mesh with coincident vertices welded (UV seams split them in
-  an OBJ); with a UV texture (an OBJ's ``map_Kd`` image, a PLY's texture file) the unwelded
-  mesh is kept as the textured mesh (``tex_verts``/``tex_faces``/``tex_uv``/``texture``,
-  all bottom) that ``ObjectGaussians`` binds to and takes its initial colours from;
-  a mesh without a texture (e.g. vertex colours only) starts from a constant grey;
-* the ARCTIC-shaped point sets keep their shapes (16 + 16 keypoints, 8 + 8 box corners,
-  300 + 300 samples): a rigid object's "top" and "bottom" sets are the same points
-  (farthest-point samples of the vertices, box corners of the vertices);
-* ``diameter``: the largest vertex distance.
-
-:func:`h2o_mesh_provenance` describes the file (path, sha256) for run manifests.
+frame that ``obj_pose_rt`` poses. :func:`find_h2o_mesh` finds the file of a class,
+:func:`load_h2o_object` reads it as a rigid template and :func:`h2o_mesh_provenance`
+describes the file (path, sha256) for run manifests.
 """
 
 from __future__ import annotations
@@ -104,6 +83,13 @@ def h2o_mesh_candidates(mesh_dir: PathLike, name: Union[str, int]) -> list[Path]
 def find_h2o_mesh(mesh_dir: PathLike, name: Union[str, int]) -> Path:
     """The mesh file of an H2O class under ``mesh_dir`` (first existing candidate).
 
+    The folder and file names differ between the public loaders, so this looks under
+    ``<mesh_dir>/<folder>/<file>.{obj,ply}`` for every known name variant of a class
+    (README name, h2oplayer name: e.g. cocoa = ``ovomaltine``, chips = ``pringles``,
+    cappuccino = ``starbucks``, spray = ``lotion_spray``; HACO's
+    ``spray/lotion_spray.obj`` is a folder/file mix, so every folder × file combination
+    is tried).
+
     Raises:
         AssetError: ``mesh_dir`` is missing, or no candidate exists (lists the names tried).
     """
@@ -147,7 +133,7 @@ def rigid_template(
     tex_uv: Optional[np.ndarray] = None,
     texture: Optional[np.ndarray] = None,
 ) -> ObjectTemplate:
-    """A rigid :class:`ObjectTemplate` (all bottom part; see module docstring).
+    """A rigid :class:`ObjectTemplate` (all bottom part; see :func:`load_h2o_object`).
 
     Args:
         name: object name.
@@ -173,6 +159,22 @@ def rigid_template(
 def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: bool = True) -> ObjectTemplate:
     """Find and read the mesh of an H2O class as a rigid template named by its class.
 
+    Returns the mesh as a *rigid* template that the articulated
+    machinery (``ObjectGaussians``, ``HogsModel``, checkpoints) takes unchanged:
+
+    * every vertex and face is in the **bottom** part (``parts == BOTTOM``; the top part is
+      empty), so the articulation ``R_z(-θ)`` never moves anything (H2O's θ is always 0);
+      rendered part masks show the object as "object bottom" (id 4);
+    * ``verts``/``faces``: the mesh with coincident vertices welded (UV seams split them in
+      an OBJ); with a UV texture (an OBJ's ``map_Kd`` image, a PLY's texture file) the unwelded
+      mesh is kept as the textured mesh (``tex_verts``/``tex_faces``/``tex_uv``/``texture``,
+      all bottom) that ``ObjectGaussians`` binds to and takes its initial colours from;
+      a mesh without a texture (e.g. vertex colours only) starts from a constant grey;
+    * the ARCTIC-shaped point sets keep their shapes (16 + 16 keypoints, 8 + 8 box corners,
+      300 + 300 samples): a rigid object's "top" and "bottom" sets are the same points
+      (farthest-point samples of the vertices, box corners of the vertices);
+    * ``diameter``: the largest vertex distance.
+
     Args:
         mesh_dir: the folder holding the per-object mesh folders.
         name: class id (1..8), README name or mesh-name variant.
@@ -182,7 +184,7 @@ def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: 
         AssetError: no mesh (names tried), unreadable mesh, no triangles, non-finite
             values, or a size that is not in metres.
     """
-    import trimesh
+    import trimesh  # deferred: trimesh adds ~1-3 s to every process importing objects
 
     cls = h2o_class_name(name)
     path = find_h2o_mesh(mesh_dir, cls)

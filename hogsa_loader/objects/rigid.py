@@ -1,11 +1,10 @@
 """H2O rigid objects: ``obj_pose_rt`` parsing and rigid posing.
 
-H2O stores one line of 17 numbers per frame in ``obj_pose_rt/XXXXXX.txt``
-(``h2o_mano_peers.md`` §1.2): ``[class_id, 16 numbers]`` where the 16 numbers are a
-**row-major 4x4 object-to-camera** transform (object mesh vertices in metres, object
-frame -> camera frame: ``p_cam = R p_obj + t``). Class 0 means "no object" (§1.3:
-0 background, 1 book, 2 espresso, 3 lotion, 4 spray, 5 milk, 6 cocoa, 7 chips,
-8 cappuccino).
+H2O stores one line of 17 numbers per frame in ``obj_pose_rt/XXXXXX.txt``:
+``[class_id, 16 numbers]`` where the 16 numbers are a **row-major 4x4 object-to-camera**
+transform (object mesh vertices in metres, object frame -> camera frame:
+``p_cam = R p_obj + t``). Class 0 means "no object" (0 background, 1 book, 2 espresso,
+3 lotion, 4 spray, 5 milk, 6 cocoa, 7 chips, 8 cappuccino).
 """
 
 from __future__ import annotations

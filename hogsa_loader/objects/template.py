@@ -1,29 +1,11 @@
 """ARCTIC object templates: reading and writing ``meta/object_vtemplates/<obj>/``.
 
-The folder layout follows the ARCTIC specification (``arctic_format.md`` §1.6):
-
-============================  ===========================================================
-file                          content (units as stored on disk)
-============================  ===========================================================
-``mesh.obj``                  the mesh all numbers refer to (mm), read with trimesh
-                              ``process=False``
-``parts.json``                one int per ``mesh.obj`` vertex, values in {0, 1}
-``object_params.json``        ``mocap_top``/``mocap_bottom`` (M,3), ``bbox_top``/
-                              ``bbox_bottom`` (8,3), ``keypoints_top``/
-                              ``keypoints_bottom`` (16,3), mm
-``top_keypoints_300.json``    ``{"keypoints": 300x3}`` farthest-point samples of the top
-``bottom_keypoints_300.json`` same for the bottom part
-``top.obj``/``bottom.obj``    the two parts as separate meshes (mm, optional)
-``mesh_tex.obj`` + ``material.mtl`` + ``material.jpg``  textured mesh (mm, optional)
-============================  ===========================================================
-
-Part labels follow the **code** convention of ARCTIC (spec §1.6, DOC≠CODE note): in
-``parts.json`` **0 = top (articulated) and 1 = bottom (base)**; the object layer adds 1
-(``parts_ids``), so ``parts_ids == 1`` is the top and ``parts_ids == 2`` the bottom.
-
-In memory every length is in metres (the files are in mm and are divided by 1000 on load,
-as ARCTIC's ``ObjectTensors`` does), in the object's canonical frame whose z axis is the
-articulation axis.
+Part labels follow the **code** convention of ARCTIC (its ``data_doc.md`` states the
+opposite): in ``parts.json`` **0 = top (articulated) and 1 = bottom (base)**; the object
+layer adds 1 (``parts_ids``), so ``parts_ids == 1`` is the top and ``parts_ids == 2`` the
+bottom. In memory every length is in metres (the files are in mm and are divided by 1000
+on load, as ARCTIC's ``ObjectTensors`` does), in the object's canonical frame whose z axis
+is the articulation axis.
 """
 
 from __future__ import annotations
@@ -38,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Optional, Sequence
 
+import cv2
 import numpy as np
 
 from hogsa_loader.errors import AssetError, PathLike, read_json
@@ -59,7 +42,7 @@ __all__ = [
 ]
 
 #: ARCTIC's 11 objects; the position in this tuple is ARCTIC's object index
-#: (``common/object_tensors.py`` ``OBJECTS``, spec §1.2).
+#: (``common/object_tensors.py`` ``OBJECTS``).
 OBJECT_NAMES: tuple[str, ...] = (
     "capsulemachine",
     "box",
@@ -257,8 +240,8 @@ def max_pairwise_distance(points: np.ndarray) -> float:
     Returns:
         the diameter of the point set, in the unit of ``points``.
     """
-    from scipy.spatial import ConvexHull
-    from scipy.spatial.distance import pdist
+    from scipy.spatial import ConvexHull  # deferred: scipy.spatial adds ~1 s to every process importing templates
+    from scipy.spatial.distance import pdist  # deferred: as above
 
     pts = np.asarray(points, dtype=np.float64)
     try:
@@ -307,7 +290,7 @@ def _read_obj(path: Path, keep_order: bool = True) -> Any:
             keeping the order would keep one coordinate per vertex and smear every face
             along the seam across the texture atlas.
     """
-    import trimesh
+    import trimesh  # deferred: trimesh adds ~1-3 s to every process importing templates
 
     if not path.is_file():
         raise AssetError(path, "file is missing")
@@ -385,8 +368,7 @@ def _read_sub(path: Path) -> np.ndarray:
 
 def _read_texture(folder: Path, verts_mm: np.ndarray, parts: np.ndarray) -> dict[str, Any]:
     """Read ``mesh_tex.obj`` + ``material.jpg``; label textured vertices by nearest vertex."""
-    import cv2
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # deferred: scipy.spatial adds ~1 s to every process importing templates
 
     obj_path = folder / TEX_MESH_FILE
     img_path = folder / TEX_IMAGE_FILE
@@ -473,6 +455,23 @@ def load_object_template(
     load_texture: bool = True,
 ) -> ObjectTemplate:
     """Read one ARCTIC ``meta/object_vtemplates/<obj>/`` folder.
+
+    The folder holds:
+
+    ============================  ===========================================================
+    file                          content (units as stored on disk)
+    ============================  ===========================================================
+    ``mesh.obj``                  the mesh all numbers refer to (mm), read with trimesh
+                                  ``process=False``
+    ``parts.json``                one int per ``mesh.obj`` vertex, values in {0, 1}
+    ``object_params.json``        ``mocap_top``/``mocap_bottom`` (M,3), ``bbox_top``/
+                                  ``bbox_bottom`` (8,3), ``keypoints_top``/
+                                  ``keypoints_bottom`` (16,3), mm
+    ``top_keypoints_300.json``    ``{"keypoints": 300x3}`` farthest-point samples of the top
+    ``bottom_keypoints_300.json`` same for the bottom part
+    ``top.obj``/``bottom.obj``    the two parts as separate meshes (mm, optional)
+    ``mesh_tex.obj`` + ``material.mtl`` + ``material.jpg``  textured mesh (mm, optional)
+    ============================  ===========================================================
 
     Args:
         folder: the object's folder.
@@ -661,8 +660,6 @@ def write_object_template(template: ObjectTemplate, folder: PathLike) -> Path:
     Returns:
         the folder.
     """
-    import cv2
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     verts_mm = template.verts.astype(np.float64) * MM_PER_M
