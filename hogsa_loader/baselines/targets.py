@@ -169,6 +169,49 @@ def _hand_in_object_space(mano: MANOLayer, pose: Tensor, beta: Tensor, j3d: Tens
     return verts + shift, j3d, joints[:, 0]
 
 
+def _object_canonical(t: Mapping[str, Any], meta: Mapping[str, Any], object_layer: ArticulatedObjectLayer,
+                      dev: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
+    """The object posed with its GT rotation and angle, no translation ("object canonical space")."""
+    names = [meta["query_names"]] if isinstance(meta["query_names"], str) else list(meta["query_names"])
+    return object_layer(
+        angles=torch.as_tensor(t["object.radian"]).to(dev, dtype).reshape(-1, 1),
+        global_orient=torch.as_tensor(t["object.rot"]).to(dev, dtype).reshape(-1, 3),
+        transl=None, names=names,
+    )
+
+
+def _hand_cam_targets(t: Mapping[str, Any], s: str, mano: MANOLayer, R0: Tensor, T0: Tensor, transl: Tensor,
+                      dev: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
+    """Patch-camera vertices (B, V, 3), joints (B, J, 3) and root translation (B, 3) of hand ``s``.
+
+    ``R0``, ``T0`` take full-camera points into object canonical space; ``transl`` (B, 3)
+    takes that space into the patch camera.
+    """
+    j_full = torch.as_tensor(t[f"mano.j3d.full.{s}"]).to(dev, dtype)
+    j0 = j_full @ R0.transpose(1, 2) + T0[:, None]
+    pose, beta = (torch.as_tensor(t[f"mano.{k}.{s}"]).to(dev, dtype) for k in ("pose", "beta"))
+    verts, joints, root_cano = _hand_in_object_space(mano, pose, beta, j0)
+    j3d = joints + transl[:, None]
+    return {f"mano.v3d.cam.{s}": verts + transl[:, None], f"mano.j3d.cam.{s}": j3d,
+            f"mano.cam_t.{s}": j3d[:, 0] - root_cano}
+
+
+def _object_cam_targets(t: Mapping[str, Any], obj: Mapping[str, Tensor], transl: Tensor, focal: Tensor,
+                        img_res: int, dtype: torch.dtype) -> dict[str, Any]:
+    """Translations (perspective and weak-perspective) and the patch-camera object points."""
+    out: dict[str, Any] = {"object.cam_t": transl}
+    for s in ("r", "l"):
+        out[f"mano.cam_t.wp.{s}"] = perspective_to_weak_perspective(t[f"mano.cam_t.{s}"], focal, img_res)
+    out["object.cam_t.wp"] = perspective_to_weak_perspective(transl, focal, img_res)
+    out["object.cam_t.kp3d.b"] = transl
+    out["object.kp3d.cam"] = obj["kp3d"].to(dtype) + transl[:, None]
+    out["object.bbox3d.cam"] = obj["bbox3d"].to(dtype) + transl[:, None]
+    out["object.v.cam"] = obj["v"].to(dtype) + transl[:, None]
+    for key in ("v_len", "f", "f_len", "parts_ids"):
+        out[f"object.{key}"] = obj[key]
+    return out
+
+
 def prepare_targets(
     targets: Mapping[str, Any],
     meta_info: Mapping[str, Any],
@@ -225,35 +268,14 @@ def prepare_targets(
         kp3d_b = torch.as_tensor(t["object.kp3d.full.b"])
         dtype, dev = kp3d_b.dtype, kp3d_b.device
         K = torch.as_tensor(meta["intrinsics"]).to(dev, dtype)
-        names = [meta["query_names"]] if isinstance(meta["query_names"], str) else list(meta["query_names"])
-        obj = object_layer(
-            angles=torch.as_tensor(t["object.radian"]).to(dev, dtype).reshape(-1, 1),
-            global_orient=torch.as_tensor(t["object.rot"]).to(dev, dtype).reshape(-1, 3),
-            transl=None, names=names,
-        )
+        obj = _object_canonical(t, meta, object_layer, dev, dtype)
         meta["part_ids"], meta["diameter"] = obj["parts_ids"], obj["diameter"]
         kp_b_cano = obj["kp3d"][:, obj["kp3d"].shape[1] // 2:].to(dtype)
         R0, T0 = solve_rigid_transform(kp3d_b, kp_b_cano)
         kp2d_b = unnormalize_kp2d(torch.as_tensor(t["object.kp2d.norm.b"]).to(dev, dtype), img_res)
         transl = estimate_translation_k(kp_b_cano, kp2d_b, K)
-        focal = mean_focal(K)
         for s, mano in (("r", mano_r), ("l", mano_l)):
-            j_full = torch.as_tensor(t[f"mano.j3d.full.{s}"]).to(dev, dtype)
-            j0 = j_full @ R0.transpose(1, 2) + T0[:, None]
-            pose, beta = (torch.as_tensor(t[f"mano.{k}.{s}"]).to(dev, dtype) for k in ("pose", "beta"))
-            verts, joints, root_cano = _hand_in_object_space(mano, pose, beta, j0)
-            t[f"mano.v3d.cam.{s}"] = verts + transl[:, None]
-            t[f"mano.j3d.cam.{s}"] = joints + transl[:, None]
-            t[f"mano.cam_t.{s}"] = t[f"mano.j3d.cam.{s}"][:, 0] - root_cano
-        t["object.cam_t"] = transl
-        for s in ("r", "l"):
-            t[f"mano.cam_t.wp.{s}"] = perspective_to_weak_perspective(t[f"mano.cam_t.{s}"], focal, img_res)
-        t["object.cam_t.wp"] = perspective_to_weak_perspective(transl, focal, img_res)
-        t["object.cam_t.kp3d.b"] = transl
-        t["object.kp3d.cam"] = obj["kp3d"].to(dtype) + transl[:, None]
-        t["object.bbox3d.cam"] = obj["bbox3d"].to(dtype) + transl[:, None]
-        t["object.v.cam"] = obj["v"].to(dtype) + transl[:, None]
-        for key in ("v_len", "f", "f_len", "parts_ids"):
-            t[f"object.{key}"] = obj[key]
+            t.update(_hand_cam_targets(t, s, mano, R0, T0, transl, dev, dtype))
+        t.update(_object_cam_targets(t, obj, transl, mean_focal(K), img_res, dtype))
         _interfield(t, max_dist, both=field == "both")
     return t, meta
