@@ -374,16 +374,17 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
     """Render the frames of one synthetic variant once (resumable ``hogsa export`` shards)."""
     from hogsa_loader.datasets.augment import ArcticConfig
     from hogsa_loader.export import dataset_frames_for_shard, write_shards
-    from hogsa_loader.loader import HOGSADataset
+    from hogsa_loader.loader import HOGSADataset, with_options
 
     opts = variant_options(variant, cfg, setup)
     assert opts is not None
     s = cfg.synthetic
     shard = s.render_batch * max(1, 256 // s.render_batch)
-    ds = HOGSADataset(opts["bundle"], setup["data"], background_folder=setup["backgrounds"], poses=opts["poses"],
-                      pose_options=opts.get("pose_options"), srm=opts["srm"], device=cfg.device,
-                      batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
-                      config=ArcticConfig(img_res=cfg.model.img_res))
+    config = with_options(background_folder=setup["backgrounds"], poses=opts["poses"],
+                          pose_options=opts.get("pose_options") or {}, srm=opts["srm"], device=cfg.device,
+                          batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
+                          arctic=ArcticConfig(img_res=cfg.model.img_res))
+    ds = HOGSADataset(opts["bundle"], setup["data"], config)
     info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res,
             "setup": setup["fingerprints"][reads(variant)]}
     t0 = time.perf_counter()

@@ -152,6 +152,7 @@ def stage_report(stats: Any) -> dict[str, Any]:
 
 
 def make_synth(args: argparse.Namespace, device: str):
+    from hogsa_loader.loader.config import with_options
     from hogsa_loader.loader.dataset import HOGSADataset
 
     kw: dict[str, Any] = dict(coco_root=args.coco_root, coco_ann=args.coco_ann, srm=args.srm, device=device,
@@ -162,7 +163,7 @@ def make_synth(args: argparse.Namespace, device: str):
         kw["poses"] = args.poses
     if args.render_size:
         kw["render_size"] = args.render_size
-    return HOGSADataset(args.bundle, args.data, **kw)
+    return HOGSADataset(args.bundle, args.data, with_options(**kw))
 
 
 def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:

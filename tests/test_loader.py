@@ -23,11 +23,13 @@ from hogsa_loader.errors import AssetError
 from hogsa_loader.loader import (
     CameraConfig,
     HOGSADataset,
+    LoaderConfig,
     MixedLoader,
     SampleChecks,
     is_synthetic,
     num_synthetic,
     parse_synthetic_imgname,
+    with_options,
 )
 from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
@@ -53,11 +55,18 @@ def bundle_dir(untrained_bundle) -> Path:
     return untrained_bundle
 
 
-def _dataset(bundle_dir, world, **kw) -> HOGSADataset:
+def _config(**kw) -> LoaderConfig:
+    """The tests' loader config: ``CFG`` samples and the options ``kw`` by name."""
+    return with_options(LoaderConfig(), arctic=CFG, **kw)
+
+
+def _dataset(bundle_dir, world, *, backgrounds=None, poses=None, **kw) -> HOGSADataset:
     kw.setdefault("batch_size", 4)
     kw.setdefault("num_samples", 4)
-    kw.setdefault("backgrounds", ProceduralBackgrounds())
-    return HOGSADataset(bundle_dir, world, config=CFG, **kw)
+    if isinstance(poses, str):  # a registered name: a config setting; else a pose-source object
+        kw["poses"], poses = poses, None
+    return HOGSADataset(bundle_dir, world, _config(**kw), poses=poses,
+                        backgrounds=backgrounds if backgrounds is not None else ProceduralBackgrounds())
 
 
 @pytest.fixture(scope="module")
@@ -299,21 +308,21 @@ def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_
     from hogsa_loader.compose import FolderBackgrounds
 
     with pytest.raises(AssetError, match="nope"):
-        HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=tmp_path / "nope")
+        HOGSADataset(bundle_dir, tiny_world, _config(coco_root=tmp_path / "nope"))
     (tmp_path / "bg").mkdir()
     cv2.imwrite(str(tmp_path / "bg" / "a.png"), np.full((40, 50, 3), 90, np.uint8))
-    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", num_samples=2)
+    ds = HOGSADataset(bundle_dir, tiny_world, _config(background_folder=tmp_path / "bg", num_samples=2))
     assert isinstance(ds.backgrounds, FolderBackgrounds) and ds.backgrounds.paths == [tmp_path / "bg" / "a.png"]
     assert pickle.loads(pickle.dumps(ds)).backgrounds.paths == ds.backgrounds.paths
     with pytest.raises(ValueError, match="apply to COCO images"):  # not silently ignored
-        HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", exclude_person=True)
+        HOGSADataset(bundle_dir, tiny_world, _config(background_folder=tmp_path / "bg", exclude_person=True))
     # COCO options reach the source: people excluded, explicit image folder
     from test_compose import _write_coco
 
     monkeypatch.setenv("HOGSA_CACHE", str(tmp_path / "cache"))  # (the COCO selection cache, not ~/.cache)
     coco = _write_coco(tmp_path / "coco")
-    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=coco, exclude_person=True,
-                      coco_image_dir=coco / "images" / "train2017")  # fmt: skip
+    ds = HOGSADataset(bundle_dir, tiny_world, _config(coco_root=coco, exclude_person=True,
+                                                       coco_image_dir=coco / "images" / "train2017"))
     assert ds.backgrounds.exclude_person and sorted(ds.backgrounds.image_ids) == [1, 3, 5]  # (2, 4 show people)
 
 
