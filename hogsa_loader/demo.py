@@ -1,37 +1,8 @@
 """``hogsa demo``: the whole pipeline on the embedded default world, cached stage by stage.
 
-Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a key of its
-settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
-second run only streams)::
-
-    world       OUT/world/                the `demo` world (hogsa world --preset demo)
-    hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
-    contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
-    bank        OUT/runs/pose_bank         POM pose bank of the training subjects
-    srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
-                OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
-                                           or labels are removed after each SRM build)
-    bundle      OUT/bundle                 the bundle the loader reads
-    stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
-                                           through a DataLoader; samples.png, batch.npz,
-                                           demo.json, throughput on stdout
-
-Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
-the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
-core and more than one stage to build, each starts on a forked process as soon as the stages
-it needs are done (one torch thread each, no progress bars; a stage that is the only one
-able to run builds in the demo's own process, on all threads).
-
-``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
-of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
-object keypoints yellow), above a row of real samples of the same world;
-``samples_clean.png``: the same without labels.
-``batch.npz``: one mixed batch (``MixedLoader``, half synthetic) flattened to
-``inputs/<key>``, ``targets/<key>``, ``meta_info/<key>`` arrays.
-
-Backgrounds: ``coco_root``/``coco_ann`` or ``backgrounds`` (an image folder) when given,
-else the colour photographs shipped inside scikit-image's wheel (astronaut, cat, coffee,
-rocket, motorcycle) — real photographs without any download.
+:func:`run_demo` builds (or reuses) the world, the HOGS models, ContactNet, the pose bank, the
+SRM and the bundle (:func:`build_bundle_stages`), streams synthetic samples through a
+DataLoader and writes ``samples.png``, ``batch.npz`` and ``demo.json``.
 """
 
 from __future__ import annotations
@@ -374,6 +345,28 @@ def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
     """Build (or reuse) the demo's stages up to the bundle: world, HOGS runs, ContactNet,
     pose bank, SRM, bundle — each cached in ``out`` by its settings.
 
+    Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a key of its
+    settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
+    second run only streams)::
+
+        world       OUT/world/                the `demo` world (hogsa world --preset demo)
+        hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
+        contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
+        bank        OUT/runs/pose_bank         POM pose bank of the training subjects
+        srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
+                    OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
+                                               or labels are removed after each SRM build)
+        bundle      OUT/bundle                 the bundle the loader reads
+        stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
+                                               through a DataLoader; samples.png, batch.npz,
+                                               demo.json, throughput on stdout
+
+    Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
+    the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
+    core and more than one stage to build, each starts on a forked process as soon as the stages
+    it needs are done (one torch thread each, no progress bars; a stage that is the only one
+    able to run builds in the demo's own process, on all threads).
+
     Returns:
         ``(data_root, bundle_folder, stage_seconds)``.
     """
@@ -497,6 +490,17 @@ def _write_grids(out: Path, rows: list[tuple[str, list[Any]]], ds: HOGSADataset)
 
 def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
     """Build (or reuse) everything, stream synthetic samples, write the pictures.
+
+    ``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
+    of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
+    object keypoints yellow), above a row of real samples of the same world;
+    ``samples_clean.png``: the same without labels.
+    ``batch.npz``: one mixed batch (``MixedLoader``, half synthetic) flattened to
+    ``inputs/<key>``, ``targets/<key>``, ``meta_info/<key>`` arrays.
+
+    Backgrounds: ``coco_root``/``coco_ann`` or ``backgrounds`` (an image folder) when given,
+    else the colour photographs shipped inside scikit-image's wheel (astronaut, cat, coffee,
+    rocket, motorcycle) — real photographs without any download.
 
     Args:
         out: demo folder (created).

@@ -685,3 +685,34 @@ def test_egocentric_protocol_p2(bundle_dir, tiny_world):
             hits.extend(joints_on_alpha(h.j2d[ok], a.alpha, radius=0))
     assert len(hits) >= 60 and float(np.mean(hits)) >= 0.99
     assert pin.aug_params(3).sc == 1.0  # ARCTIC forces sc = 1 for egocentric samples
+
+
+def test_explicit_objects_refuse_settings_of_their_config_group(bundle_dir, tiny_world):
+    """An explicit backgrounds / poses / refiner object replaces its config group; non-default
+    settings of that group beside it are refused, not silently ignored."""
+    procedural = ProceduralBackgrounds()
+    with pytest.raises(ValueError, match="backgrounds= is given together with non-default config.backgrounds"):
+        HOGSADataset(bundle_dir, tiny_world, _config(background_folder="x"), backgrounds=procedural)
+    with pytest.raises(ValueError, match="refiner= is given together with non-default config.refinement"):
+        HOGSADataset(bundle_dir, tiny_world, _config(srm=True), backgrounds=procedural, refiner=lambda rgb, a: rgb)
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+    with pytest.raises(ValueError, match="poses= is given together with non-default config.poses"):
+        HOGSADataset(bundle_dir, tiny_world, _config(poses="bank"), backgrounds=procedural, poses=inner)
+    with pytest.raises(TypeError, match="unknown loader option"):
+        with_options(sed=1)
+    ds = _dataset(bundle_dir, tiny_world, seed=9, batch_size=3, num_samples=8)
+    plan = ds.plan(2, epoch=4)
+    assert (plan.seed, plan.epoch, plan.key, plan.indices) == (9, 4, ds.batch_key(2, 4), (6, 7))
+
+
+def test_export_info_is_the_config_with_the_first_exports_keys():
+    """The recorded settings of a default config have exactly the keys the first exports
+    recorded (their settings hash is kept); options set away from their defaults are added."""
+    from hogsa_loader.loader.config import export_info
+
+    assert set(export_info(LoaderConfig())) == {"seed", "poses", "srm", "batch_size", "render_size", "coco_root",
+                                                "coco_ann", "background_folder", "categories", "epoch", "interfield"}
+    info = export_info(with_options(exclude_person=True, srm=True, srm_tta=8, cameras=CameraConfig(roll_deg=0.0),
+                                    device="cuda", num_samples=5))
+    assert info["exclude_person"] is True and info["srm_tta"] == 8 and info["cameras"]["roll_deg"] == 0.0
+    assert "device" not in info and "num_samples" not in info

@@ -8,44 +8,6 @@ collate batches them identically and they can be mixed with real samples
 ``meta_info["imgname"]`` (``./hogsa_synth/<sid>/<obj>_synth_s<seed>e<epoch>/<view>/<index>.jpg``,
 see :func:`~hogsa_loader.loader.synth.parse_synthetic_imgname`), which carries the seed,
 epoch and global index that reproduce the sample (:meth:`HOGSADataset.sample`).
-
-Determinism and sharding
-    The global sample index space is cut into render batches of ``batch_size``
-    consecutive indices; batch ``g`` renders one (subject, object) model: the batches
-    form blocks of ``len(keys)``, each block uses every model once in an order drawn from
-    ``(seed, epoch, g // len(keys))`` (:meth:`HOGSADataset.batch_key`), and every random
-    draw of sample ``i`` (pose, camera, background, augmentation) comes from
-    ``(seed, epoch, i)``. Batches are dealt round-robin over
-    ``world_size × num_workers`` shards (torch.distributed rank, then DataLoader worker),
-    so the same seed gives the same samples for the same world size and worker count
-    (and the same *set* of samples for any of them). Dropped samples leave a gap.
-
-    The epoch (:meth:`HOGSADataset.set_epoch`) lives in shared memory, so DataLoader
-    workers see it even when they persist across epochs (``persistent_workers=True``);
-    an iterator reads it once when it starts and keeps it to its end (a ``set_epoch``
-    during an iteration applies to the next one). With torch.distributed, shards of one
-    rank can hold up to one render batch more than another's (plus their own dropped
-    samples): for a fixed number of steps per epoch, iterate an endless dataset (e.g.
-    through :class:`~hogsa_loader.loader.mixing.MixedLoader`) rather than a finite one.
-
-Recommended DataLoader settings
-    * CPU rendering: ``DataLoader(ds, batch_size=B, num_workers=k, persistent_workers=True)``
-      with ``device="cpu"``; each worker renders its own batches (set
-      ``torch.set_num_threads(1)`` in ``worker_init_fn`` when k ≥ cores).
-    * GPU rendering: ``device="cuda"`` and ``num_workers=0`` — rendering happens batched in
-      the main process (``batch_size`` of the dataset = the render batch, e.g. 64).
-      DataLoader workers must **never** touch CUDA (forked processes and CUDA do not mix);
-      iterating a ``device="cuda"`` dataset inside a worker raises ``RuntimeError``.
-    * ``batch_size=None`` gives single samples (what :class:`MixedLoader` consumes).
-
-Statistics
-    :attr:`HOGSADataset.stats` (:class:`~hogsa_loader.loader.synth.SynthStats`) counts
-    attempted / kept / dropped samples (by reason) and accumulates per-stage seconds
-    (``pose``, ``pom``, ``render``, ``srm``, ``composite``, ``targets``) *in the process
-    that iterates*. DataLoader workers add theirs to a shared-memory table as they go (one
-    row per worker id), so :meth:`HOGSADataset.total_stats` in the main process gives this
-    process's counts plus every worker's (per torch.distributed rank: each rank has its own
-    dataset).
 """
 
 from __future__ import annotations
@@ -102,6 +64,46 @@ def shard_info() -> tuple[int, int]:
 
 class HOGSADataset(IterableDataset):
     """Synthetic ArcticNet-SF samples rendered from a bundle's HOGS models.
+
+    Determinism and sharding
+        The global sample index space is cut into render batches of ``batch_size``
+        consecutive indices; batch ``g`` renders one (subject, object) model: the batches
+        form blocks of ``len(keys)``, each block uses every model once in an order drawn from
+        ``(seed, epoch, g // len(keys))`` (:meth:`HOGSADataset.batch_key`), and every random
+        draw of sample ``i`` (pose, camera, background, augmentation) comes from
+        ``(seed, epoch, i)`` (the streams of :mod:`~hogsa_loader.loader.plan`); batch ``g`` is
+        rendered from its :class:`~hogsa_loader.loader.plan.BatchPlan` (:meth:`plan`).
+        Batches are dealt round-robin over
+        ``world_size × num_workers`` shards (torch.distributed rank, then DataLoader worker),
+        so the same seed gives the same samples for the same world size and worker count
+        (and the same *set* of samples for any of them). Dropped samples leave a gap.
+
+        The epoch (:meth:`HOGSADataset.set_epoch`) lives in shared memory, so DataLoader
+        workers see it even when they persist across epochs (``persistent_workers=True``);
+        an iterator reads it once when it starts and keeps it to its end (a ``set_epoch``
+        during an iteration applies to the next one). With torch.distributed, shards of one
+        rank can hold up to one render batch more than another's (plus their own dropped
+        samples): for a fixed number of steps per epoch, iterate an endless dataset (e.g.
+        through :class:`~hogsa_loader.loader.mixing.MixedLoader`) rather than a finite one.
+
+    Recommended DataLoader settings (``device``, ``batch_size``: :class:`~hogsa_loader.loader.config.RunConfig`)
+        * CPU rendering: ``DataLoader(ds, batch_size=B, num_workers=k, persistent_workers=True)``
+          with ``device="cpu"``; each worker renders its own batches (set
+          ``torch.set_num_threads(1)`` in ``worker_init_fn`` when k ≥ cores).
+        * GPU rendering: ``device="cuda"`` and ``num_workers=0`` — rendering happens batched in
+          the main process (the config's ``batch_size`` = the render batch, e.g. 64).
+          DataLoader workers must **never** touch CUDA (forked processes and CUDA do not mix);
+          iterating a ``device="cuda"`` dataset inside a worker raises ``RuntimeError``.
+        * ``batch_size=None`` gives single samples (what :class:`MixedLoader` consumes).
+
+    Statistics
+        :attr:`HOGSADataset.stats` (:class:`~hogsa_loader.loader.synth.SynthStats`) counts
+        attempted / kept / dropped samples (by reason) and accumulates per-stage seconds
+        (``pose``, ``pom``, ``render``, ``srm``, ``composite``, ``targets``) *in the process
+        that iterates*. DataLoader workers add theirs to a shared-memory table as they go (one
+        row per worker id), so :meth:`HOGSADataset.total_stats` in the main process gives this
+        process's counts plus every worker's (per torch.distributed rank: each rank has its own
+        dataset).
 
     Args:
         bundle: bundle folder or a loaded :class:`~hogsa_loader.bundle.Bundle` (validated

@@ -3,6 +3,7 @@
 Every random draw of the loader comes from one of the streams in :data:`STREAMS`, each a
 numpy generator seeded by a fixed sequence: a sample's streams by ``(seed, epoch, index,
 stream)``, the model order of a block of render batches by ``(seed, epoch, block, 7)``.
+The export readers draw their shard order from :func:`shard_order`.
 A :class:`BatchPlan` is everything one render batch depends on; the dataset builds it
 and :class:`~hogsa_loader.loader.synth.SynthPipeline` renders it.
 """
@@ -13,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["STREAMS", "STREAM_AUG", "BATCH_ORDER_STREAM", "sample_rng", "batch_order", "BatchPlan"]
+__all__ = ["STREAMS", "STREAM_AUG", "BATCH_ORDER_STREAM", "SHARD_ORDER_STREAM", "sample_rng", "batch_order",
+           "shard_order", "BatchPlan"]
 
 #: The random streams of one sample: name → last entry of its seed sequence.
 STREAMS: dict[str, int] = {"pose": 0, "camera": 1, "background": 2, "augment": 3}
@@ -21,6 +23,8 @@ STREAMS: dict[str, int] = {"pose": 0, "camera": 1, "background": 2, "augment": 3
 STREAM_AUG: int = STREAMS["augment"]
 #: Last entry of the seed sequence of a block's model order (:func:`batch_order`).
 BATCH_ORDER_STREAM: int = 7
+#: Last entry of the seed sequence of an export reader's shard order (:func:`shard_order`).
+SHARD_ORDER_STREAM: int = 0x5A4D
 
 
 def sample_rng(seed: int, epoch: int, index: int, stream: int) -> np.random.Generator:
@@ -36,6 +40,11 @@ def sample_rng(seed: int, epoch: int, index: int, stream: int) -> np.random.Gene
 def batch_order(seed: int, epoch: int, block: int, num_keys: int) -> np.ndarray:
     """(num_keys,) int: the order in which the render batches of ``block`` use the models."""
     return np.random.default_rng([int(seed), int(epoch), int(block), BATCH_ORDER_STREAM]).permutation(int(num_keys))
+
+
+def shard_order(seed: int, epoch: int, num_shards: int) -> np.ndarray:
+    """(num_shards,) int: the order in which a shuffling export reader visits the shards at ``epoch``."""
+    return np.random.default_rng([int(seed), int(epoch), SHARD_ORDER_STREAM]).permutation(int(num_shards))
 
 
 @dataclass(frozen=True)
