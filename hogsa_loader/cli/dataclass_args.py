@@ -7,7 +7,8 @@ from the field's ``metadata["help"]``, a flag that must be given where
 ``metadata["required"]`` is true); :func:`dataclass_from_args` builds the config back
 from the parsed namespace. An option is therefore added in one place: its field.
 
-More field metadata: ``"type"`` (an argparse converter), ``"choices"``, ``"name"`` (the
+More field metadata: ``"type"`` (an argparse converter, or the name of one in
+:mod:`hogsa_loader.cli.checks`), ``"choices"``, ``"name"`` (the
 flag is ``--<name>`` instead of one made from the field path), ``"cli_type"`` (the type
 the flag parses, for a field whose annotation is not a flag type), ``"cli": False`` (no
 flag: the field keeps its default); on a group field, ``"flat": True`` (its flags carry
@@ -20,6 +21,8 @@ import argparse
 import dataclasses
 import typing
 from typing import Any, Optional, TypeVar
+
+from hogsa_loader.cli import checks
 
 __all__ = ["add_dataclass_arguments", "dataclass_from_args", "flag_name"]
 
@@ -50,6 +53,8 @@ def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, 
     helptext = f.metadata.get("help", "")
     choices = f.metadata.get("choices")
     flag = flag_name((f.metadata["name"],) if "name" in f.metadata else flag_path)
+    convert = f.metadata.get("type")
+    convert = getattr(checks, convert) if isinstance(convert, str) else convert
     if typing.get_origin(kind) is typing.Literal:
         choices, kind = typing.get_args(kind), type(typing.get_args(kind)[0])
     if kind is bool:
@@ -58,11 +63,11 @@ def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, 
         return
     if typing.get_origin(kind) is tuple:
         item = typing.get_args(kind)[0]
-        group.add_argument(flag, dest=_dest(path), type=f.metadata.get("type") or item, nargs="+", default=default,
+        group.add_argument(flag, dest=_dest(path), type=convert or item, nargs="+", default=default,
                            metavar=path[-1].upper(),
                            help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})")
         return
-    conv = f.metadata.get("type") or (kind if kind in (int, float, str) else str)
+    conv = convert or (kind if kind in (int, float, str) else str)
     if f.metadata.get("required"):  # no default: argparse reports the flag missing
         group.add_argument(flag, dest=_dest(path), type=conv, required=True, choices=choices,
                            metavar=None if choices else path[-1].upper(), help=f"{helptext} (required)")

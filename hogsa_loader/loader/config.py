@@ -1,13 +1,8 @@
-"""``LoaderConfig``: every setting of a :class:`~hogsa_loader.loader.dataset.HOGSADataset`.
+"""``LoaderConfig``: every setting of a :class:`~hogsa_loader.loader.dataset.HOGSADataset`, in small groups.
 
-One frozen dataclass of small groups. Each leaf field carries what the ``hogsa export``
-command and its ``index.json`` need: ``help`` (and ``type`` / ``choices``) for the flag made
-by :func:`~hogsa_loader.cli.dataclass_args.add_dataclass_arguments`, ``name`` where the flag
-and the recorded key differ from the field name, ``cli: False`` for settings that are
-objects rather than flags, and ``record`` (:func:`export_info`): ``"always"`` (default),
-``"if_set"`` (recorded only when not the default, so that exports made before the option
-existed keep their settings hash) or ``"never"`` (does not change the frames). Groups whose
-flags carry no group prefix are marked ``flat``. A new loader option is one field here.
+The same fields make the ``hogsa export`` flags
+(:func:`~hogsa_loader.cli.dataclass_args.add_dataclass_arguments`) and the settings an export
+records (:func:`export_info`): a new loader option is one field here.
 """
 
 from __future__ import annotations
@@ -16,7 +11,6 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional, Union
 
-from hogsa_loader.cli import checks
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.loader.cameras import CameraConfig
 from hogsa_loader.srm.model import TTA_CODES
@@ -41,6 +35,11 @@ SRM_TTA_CHOICES: tuple[int, ...] = tuple(sorted(TTA_CODES))
 _IF_SET = {"record": "if_set"}
 
 
+def _comma_joined(names: Optional[tuple[str, ...]]) -> Optional[str]:
+    """Names recorded as one comma-separated string (as the first exports recorded the flag)."""
+    return None if names is None else ",".join(names)
+
+
 @dataclass(frozen=True)
 class BackgroundConfig:
     """Backgrounds behind the renders (:func:`~hogsa_loader.compose.make_backgrounds`; none: procedural)."""
@@ -49,8 +48,8 @@ class BackgroundConfig:
     coco_ann: Optional[str] = field(default=None, metadata={"help": "COCO instances json (default under --coco-root)"})
     folder: Optional[str] = field(default=None, metadata={"help": "plain image folder for backgrounds",
                                                           "name": "background_folder"})
-    categories: Optional[tuple[str, ...]] = field(
-        default=None, metadata={"help": "COCO categories for backgrounds (names, or one comma-separated list)"})
+    categories: Optional[tuple[str, ...]] = field(default=None, metadata={
+        "help": "COCO categories for backgrounds (names, or one comma-separated list)", "recorded": _comma_joined})
     exclude_person: bool = field(default=False, metadata={
         "help": "no COCO background showing people (their hands would be unlabelled hands)", **_IF_SET})
     image_dir: Optional[str] = field(default=None, metadata={"help": "COCO image folder (default under --coco-root)",
@@ -104,7 +103,7 @@ class SampleConfig:
     augment: bool = field(default=True, metadata={
         "help": "ARCTIC training augmentation (rotation, scale, colour noise)", **_IF_SET})
     render_size: Optional[int] = field(default=None, metadata={
-        "help": "side of the rendered crop (default 1.5 x img_res)", "type": checks.positive_int})
+        "help": "side of the rendered crop (default 1.5 x img_res)", "type": "positive_int"})
     arctic: ArcticConfig = field(default_factory=ArcticConfig, metadata={"cli": False, **_IF_SET})
     interfield: Union[bool, float] = field(default=False, metadata={
         "help": "also make the InterField-SF targets (dist.*/idx.*/object.v_len); in Python a float is the clamp "
@@ -148,11 +147,11 @@ class RunConfig:
     """Where and how much: device, render batch, seed, epoch, models."""
 
     device: str = field(default="cpu", metadata={
-        "help": "cpu or cuda (cuda:LOCAL_RANK under torchrun)", "type": checks.torch_device, "record": "never"})
+        "help": "cpu or cuda (cuda:LOCAL_RANK under torchrun)", "type": "torch_device", "record": "never"})
     batch_size: int = field(default=8, metadata={
-        "help": "render batch (samples per render call, one model per batch)", "type": checks.positive_int})
+        "help": "render batch (samples per render call, one model per batch)", "type": "positive_int"})
     seed: int = field(default=0, metadata={"help": "base seed of every random draw"})
-    epoch: int = field(default=0, metadata={"help": "initial epoch (set_epoch)", "type": checks.non_negative_int})
+    epoch: int = field(default=0, metadata={"help": "initial epoch (set_epoch)", "type": "non_negative_int"})
     num_samples: Optional[int] = field(default=None, metadata={
         "help": "samples per epoch (None: endless)", "cli": False, "record": "never"})
     backend: str = field(default="auto", metadata={
@@ -183,6 +182,15 @@ class LoaderConfig:
         sample: :class:`SampleConfig`.
         checks: :class:`SampleChecks` (when samples are dropped).
         run: :class:`RunConfig`.
+
+    Field metadata: ``help``, ``type`` (a converter of :mod:`hogsa_loader.cli.checks`, by
+    name) and ``choices`` shape the flag; ``name`` is the flag and recorded key where it
+    differs from the field name; ``cli: False`` marks settings that are objects rather than
+    flags; ``flat`` marks groups whose flags carry no group prefix; ``recorded`` writes the
+    value for the export (default: JSON-able as is); ``record`` says when it is recorded:
+    ``"always"`` (default), ``"if_set"`` (only when not the default, so that exports made
+    before the option existed keep their settings hash) or ``"never"`` (it does not change
+    the frames).
     """
 
     backgrounds: BackgroundConfig = field(default_factory=BackgroundConfig, metadata={"flat": True})
@@ -226,7 +234,7 @@ def export_info(config: Any) -> dict[str, Any]:
         record = f.metadata.get("record", "always")
         if record == "never" or (record == "if_set" and value == getattr(default, f.name)):
             continue
-        out[f.metadata.get("name", f.name)] = _json_value(value)
+        out[f.metadata.get("name", f.name)] = f.metadata.get("recorded", _json_value)(value)
     return out
 
 
