@@ -1326,7 +1326,7 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
     from hogsa_loader.compose import ProceduralBackgrounds
     from hogsa_loader.datasets.arctic import ArcticRoot
     from hogsa_loader.datasets.arctic_dataset import ArcticDataset as OurDataset
-    from hogsa_loader.loader import HOGSADataset, MixedLoader, is_synthetic
+    from hogsa_loader.loader import HOGSADataset, MixedLoader, is_synthetic, with_options
 
     result: dict[str, Any] = {"notes": []}
     args = sess.args("p1")
@@ -1355,9 +1355,10 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
     else:
         result["bundle"] = {"path": str(bundle), "trained": True}
     n_syn = int(math.floor(ratio * batch + 0.5))
-    synth = HOGSADataset(bundle, data_root, backgrounds=ProceduralBackgrounds(), poses="perturb",
-                         batch_size=max(1, n_syn), num_samples=max(1, n_syn) * 4, seed=seed, protocol="p1",
-                         split="train", config=our_config(args))
+    synth = HOGSADataset(bundle, data_root, with_options(poses="perturb", batch_size=max(1, n_syn),
+                                                        num_samples=max(1, n_syn) * 4, seed=seed, protocol="p1",
+                                                        split="train", arctic=our_config(args)),
+                         backgrounds=ProceduralBackgrounds())
     gen = torch.Generator().manual_seed(seed)
     mixed = MixedLoader(DataLoader(real, batch_size=batch, shuffle=True, generator=gen), synth, ratio=ratio)
     t1 = time.time()

@@ -68,9 +68,23 @@ from typing import Any, Iterator, Literal, Optional
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Subset
+from tqdm import tqdm
 
+from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
+from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
+from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
-from hogsa_loader.loader.mixing import MixMode
+from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.datasets.augment import ArcticConfig
+from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
+from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
+from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
+from hogsa_loader.loader import HOGSADataset, with_options
+from hogsa_loader.loader.mixing import MixMode, MixedLoader
+from hogsa_loader.synthetic.world import get_preset
+from hogsa_loader.system import available_cores
 
 ARMS = ("real", "hogsa", "hogsa_no_pom", "hogsa_no_srm", "hogsa_free", "real_low", "hogsa_low")
 #: arm → (real share of p1_train, synthetic variant or None)
@@ -243,8 +257,6 @@ def _say(msg: str) -> None:
 
 def train_pairs(data: Path) -> list[tuple[str, str]]:
     """(subject, object) pairs of the ``p1`` training sequences."""
-    from hogsa_loader.datasets.arctic import ArcticRoot
-
     root = ArcticRoot(data)
     pairs: list[tuple[str, str]] = []
     for sid_seq in root.protocol("p1")["train"]:
@@ -257,9 +269,6 @@ def train_pairs(data: Path) -> list[tuple[str, str]]:
 
 def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
-    from hogsa_loader.demo import DemoConfig, build_bundle_stages
-    from hogsa_loader.synthetic.world import get_preset
-
     if cfg.setup.bundle is not None:
         data = Path(cfg.setup.data).resolve()
         return {"data": data, "bundle": Path(cfg.setup.bundle).resolve(),
@@ -282,10 +291,6 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
 
 def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     """Folder of the synthetic frames' backgrounds (plates built once, cached by settings)."""
-    from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.demo import demo_photographs
-
     if cfg.synthetic.backgrounds == "photos":
         return demo_photographs(out / "backgrounds")
     plates = PlateConfig(data=str(data), out=str(out / "setup" / "plates"))
@@ -372,18 +377,15 @@ def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: 
 
 def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
     """Render the frames of one synthetic variant once (resumable ``hogsa export`` shards)."""
-    from hogsa_loader.datasets.augment import ArcticConfig
-    from hogsa_loader.export import dataset_frames_for_shard, write_shards
-    from hogsa_loader.loader import HOGSADataset
-
     opts = variant_options(variant, cfg, setup)
     assert opts is not None
     s = cfg.synthetic
     shard = s.render_batch * max(1, 256 // s.render_batch)
-    ds = HOGSADataset(opts["bundle"], setup["data"], background_folder=setup["backgrounds"], poses=opts["poses"],
-                      pose_options=opts.get("pose_options"), srm=opts["srm"], device=cfg.device,
-                      batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
-                      config=ArcticConfig(img_res=cfg.model.img_res))
+    config = with_options(background_folder=setup["backgrounds"], poses=opts["poses"],
+                          pose_options=opts.get("pose_options") or {}, srm=opts["srm"], device=cfg.device,
+                          batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
+                          arctic=ArcticConfig(img_res=cfg.model.img_res))
+    ds = HOGSADataset(opts["bundle"], setup["data"], config)
     info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res,
             "setup": setup["fingerprints"][reads(variant)]}
     t0 = time.perf_counter()
@@ -426,11 +428,6 @@ def low_data_indices(n: int, fraction: float) -> list[int]:
 
 def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Iterator[Any]:
     """Endless training batches of an arm: real epochs, mixed with synthetic samples when the arm has them."""
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.datasets.augment import ArcticConfig
-    from hogsa_loader.export import SynthShardSamples
-    from hogsa_loader.loader.mixing import MixedLoader
-
     share, variant = ARM_SPECS[arm]
     acfg = ArcticConfig(img_res=cfg.model.img_res)
     real = ArcticDataset(setup["data"], split="p1_train", seed=seed, config=acfg)
@@ -455,13 +452,9 @@ def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, A
 
 
 def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
-    from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
-
     model = ArcticNetSF(cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects,
                         focal_length=1000.0, img_res=cfg.model.img_res)
     if cfg.model.weights:
-        from hogsa_loader.baselines.resnet import load_backbone_weights
-
         load_backbone_weights(model.backbone, cfg.model.weights)
     return model
 
@@ -469,10 +462,6 @@ def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
 def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers: Any) -> dict[str, torch.Tensor]:
     """Mean target camera of ``cfg.model.camera_prior`` real training frames of the arm (a fixed
     draw, unaugmented: the same for every seed, and for the real and HOGSA arms of one real share)."""
-    from hogsa_loader.baselines.engine import mean_cameras
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.datasets.augment import ArcticConfig
-
     real = ArcticDataset(setup["data"], split="p1_train", seed=0, augment=False,
                          config=ArcticConfig(img_res=cfg.model.img_res))
     pool = list(range(len(real))) if ARM_SPECS[arm][0] == "all" else low_data_indices(len(real), cfg.low_data)
@@ -484,10 +473,6 @@ def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers:
 
 def val_dataset(cfg: DownstreamConfig, setup: dict[str, Any]) -> tuple[Any, list[int]]:
     """The held-out subject's frames (``p1_val``, no augmentation) and their temporal order."""
-    from hogsa_loader.baselines.engine import temporal_order
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.datasets.augment import ArcticConfig
-
     val = ArcticDataset(setup["data"], split="p1_val", seed=0, augment=False,
                         config=ArcticConfig(img_res=cfg.model.img_res))
     return val, temporal_order(val.imgnames)
@@ -545,12 +530,6 @@ def finished_run(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
 
 def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
     """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same settings."""
-    from tqdm import tqdm
-
-    from hogsa_loader.baselines.engine import BodyLayers, evaluate, training_step
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
-
     folder = run_dir(arm, seed, cfg, out)
     settings = run_settings(arm, seed, cfg, setup)
     key = _key(settings)
@@ -701,10 +680,10 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
 
 def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], path: Path) -> None:
     """Validation curves per arm (mean over seeds, min–max band) and metric bars with the seed spread."""
-    import matplotlib
+    import matplotlib  # deferred: the Agg backend is chosen before pyplot loads
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: after matplotlib.use
 
     arms = list(results)
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
@@ -758,8 +737,6 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
 
 
 def machine_description(cfg: DownstreamConfig) -> str:
-    from hogsa_loader.system import available_cores
-
     if cfg.device.startswith("cuda"):
         return f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}"
     return f"{available_cores()} CPU cores ({platform.processor() or platform.machine()}), torch {torch.__version__}"
@@ -767,8 +744,6 @@ def machine_description(cfg: DownstreamConfig) -> str:
 
 def run(cfg: DownstreamConfig) -> dict[str, Any]:
     """The whole experiment; returns the ``downstream.json`` record."""
-    from hogsa_loader.system import available_cores
-
     validate(cfg)
     torch.set_num_threads(cfg.threads or available_cores())
     out = Path(cfg.out).resolve()

@@ -32,6 +32,15 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from hogsa_loader.cli.main import main as hogsa
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.integrations.arctic import wrap_train_loader
+from hogsa_loader.loader import is_synthetic
+from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
 
 #: Share of the run treated as warm-up (caches, allocator pools, first renders).
 WARMUP = 0.2
@@ -115,10 +124,10 @@ def flatness(rows: list[dict[str, Any]], total: int) -> dict[str, Any]:
 
 
 def plot(rows: list[dict[str, Any]], total: int, path: Path, title: str) -> None:
-    import matplotlib
+    import matplotlib  # deferred: the Agg backend is chosen before pyplot loads
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: after matplotlib.use
 
     x = np.array([r["samples"] for r in rows])
     main = np.array([r["main"] for r in rows]) / 2**20
@@ -144,9 +153,6 @@ def setup(out: Path, data: Optional[str], bundle: Optional[str]) -> tuple[Path, 
         raise SystemExit("soak: error: --data and --bundle go together")
     if data is not None:
         return Path(data), Path(bundle)  # type: ignore[arg-type]
-    from hogsa_loader.cli.main import main as hogsa
-    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
-
     world, made = out / "setup" / "world", out / "setup" / "untrained"
     if not (world / "arctic_data" / "data" / "meta" / "hogsa_world.json").is_file():
         print(f"[soak] tiny world -> {world}", flush=True)
@@ -171,14 +177,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = p.parse_args(argv)
     if args.samples < 10 or args.workers < 1 or args.batch_size < 2 or args.period <= 0 or args.render_size < 32:
         p.error("--samples >= 10, --workers >= 1, --batch-size >= 2, --period > 0 and --render-size >= 32 needed")
-    import torch
-    from torch.utils.data import DataLoader
-    from tqdm import tqdm
-
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.integrations.arctic import wrap_train_loader
-    from hogsa_loader.loader import is_synthetic
-
     torch.set_num_threads(1)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)

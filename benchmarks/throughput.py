@@ -52,6 +52,10 @@ from typing import Any, Iterable, Optional
 import torch
 from torch.utils.data import DataLoader
 
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.loader.config import with_options
+from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.loader.synth import SynthStats
 from hogsa_loader.system import available_cores
 
 STAGES = ("pose", "pom", "render", "srm", "composite", "targets")
@@ -152,8 +156,6 @@ def stage_report(stats: Any) -> dict[str, Any]:
 
 
 def make_synth(args: argparse.Namespace, device: str):
-    from hogsa_loader.loader.dataset import HOGSADataset
-
     kw: dict[str, Any] = dict(coco_root=args.coco_root, coco_ann=args.coco_ann, srm=args.srm, device=device,
                               batch_size=args.render_batch or args.batch_size, seed=args.seed)
     if args.background_folder:
@@ -162,7 +164,7 @@ def make_synth(args: argparse.Namespace, device: str):
         kw["poses"] = args.poses
     if args.render_size:
         kw["render_size"] = args.render_size
-    return HOGSADataset(args.bundle, args.data, **kw)
+    return HOGSADataset(args.bundle, args.data, with_options(**kw))
 
 
 def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:
@@ -185,8 +187,6 @@ def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:
     res = timed_iteration(loader, args.seconds, warmup_batches(args.warmup, workers), on_warm=on_warm, sync=sync)
     out: dict[str, Any] = {"timed": res, "num_workers": workers}
     if workers and "workers" in at_warm:
-        from hogsa_loader.loader.synth import SynthStats
-
         timed = SynthStats.from_vector(ds.worker_stats().to_vector() - at_warm["workers"])
         out["timed_worker_stats"] = timed.as_dict()
         out["timed_worker_stages"] = stage_report(timed)
@@ -220,8 +220,6 @@ def _worker_init(_: int) -> None:
 
 
 def bench_real(args: argparse.Namespace) -> dict[str, Any]:
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-
     root = args.real_data or args.data
     ds = ArcticDataset(root, split=args.real_split, seed=args.seed)
     g = torch.Generator().manual_seed(args.seed)

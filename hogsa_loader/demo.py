@@ -1,37 +1,8 @@
 """``hogsa demo``: the whole pipeline on the embedded default world, cached stage by stage.
 
-Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a key of its
-settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
-second run only streams)::
-
-    world       OUT/world/                the `demo` world (hogsa world --preset demo)
-    hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
-    contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
-    bank        OUT/runs/pose_bank         POM pose bank of the training subjects
-    srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
-                OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
-                                           or labels are removed after each SRM build)
-    bundle      OUT/bundle                 the bundle the loader reads
-    stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
-                                           through a DataLoader; samples.png, batch.npz,
-                                           demo.json, throughput on stdout
-
-Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
-the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
-core and more than one stage to build, each starts on a forked process as soon as the stages
-it needs are done (one torch thread each, no progress bars; a stage that is the only one
-able to run builds in the demo's own process, on all threads).
-
-``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
-of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
-object keypoints yellow), above a row of real samples of the same world;
-``samples_clean.png``: the same without labels.
-``batch.npz``: one mixed batch (``MixedLoader``, half synthetic) flattened to
-``inputs/<key>``, ``targets/<key>``, ``meta_info/<key>`` arrays.
-
-Backgrounds: ``coco_root``/``coco_ann`` or ``backgrounds`` (an image folder) when given,
-else the colour photographs shipped inside scikit-image's wheel (astronaut, cat, coffee,
-rocket, motorcycle) — real photographs without any download.
+:func:`run_demo` builds (or reuses) the world, the HOGS models, ContactNet, the pose bank, the
+SRM and the bundle (:func:`build_bundle_stages`), streams synthetic samples through a
+DataLoader and writes ``samples.png``, ``batch.npz`` and ``demo.json``.
 """
 
 from __future__ import annotations
@@ -45,10 +16,24 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
+import cv2
 import numpy as np
+import skimage.data
 import torch
+from torch.utils.data import DataLoader
 
+from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.errors import PathLike
+from hogsa_loader.loader.config import LoaderConfig, with_options
+from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.loader.mixing import MixedLoader
+from hogsa_loader.loader.viz import sample_grid
+from hogsa_loader.render.gaussians import warm_up_compositor
+from hogsa_loader.synthetic.world import generate_world, get_preset
+from hogsa_loader.system import available_cores, can_fork, run_forked
+from hogsa_loader.view import ViewConfig, run_view
 
 __all__ = ["DemoConfig", "run_demo", "build_bundle_stages", "demo_photographs", "unbatch"]
 
@@ -177,8 +162,6 @@ class _Stages:
 
 def demo_photographs(out: PathLike) -> Path:
     """Copy scikit-image's bundled colour photographs (:data:`DEMO_PHOTOS`) into ``out``."""
-    import skimage.data
-
     src = Path(skimage.data.__file__).parent
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -220,10 +203,6 @@ def _worker_init(_: int) -> None:
 
 def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
     """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle."""
-    from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.synthetic.world import generate_world, get_preset
-
     if cfg.data is not None:
         data = Path(os.path.abspath(cfg.data))
         k_world = _key("data", str(data), cfg.seed)  # (the seed also drives every training stage below)
@@ -333,9 +312,6 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
     process, on all threads); else one after the other in list order. Cached stages are
     reported and skipped in the parent. On an error the other stage processes are stopped
     and the error is raised."""
-    from hogsa_loader.render.gaussians import warm_up_compositor
-    from hogsa_loader.system import available_cores, can_fork, run_forked
-
     global _NODES, _SAY, _OUT, _CHILD_CFG
     _check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
@@ -368,6 +344,28 @@ def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
                         log: Optional[Callable[[str], None]] = print) -> tuple[Path, Path, dict[str, float]]:
     """Build (or reuse) the demo's stages up to the bundle: world, HOGS runs, ContactNet,
     pose bank, SRM, bundle — each cached in ``out`` by its settings.
+
+    Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a key of its
+    settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
+    second run only streams)::
+
+        world       OUT/world/                the `demo` world (hogsa world --preset demo)
+        hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
+        contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
+        bank        OUT/runs/pose_bank         POM pose bank of the training subjects
+        srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
+                    OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
+                                               or labels are removed after each SRM build)
+        bundle      OUT/bundle                 the bundle the loader reads
+        stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
+                                               through a DataLoader; samples.png, batch.npz,
+                                               demo.json, throughput on stdout
+
+    Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
+    the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
+    core and more than one stage to build, each starts on a forked process as soon as the stages
+    it needs are done (one torch thread each, no progress bars; a stage that is the only one
+    able to run builds in the demo's own process, on all threads).
 
     Returns:
         ``(data_root, bundle_folder, stage_seconds)``.
@@ -412,8 +410,6 @@ def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) 
 
 def _orbit(out: Path, bundle: Path, data: Path, cfg: DemoConfig, say: Callable[[str], None]) -> dict[str, Any] | None:
     """The 360° orbit (with and without SRM) of the first pair's model in ``out/view/``."""
-    from hogsa_loader.view import ViewConfig, run_view
-
     if cfg.orbit_views <= 0:
         return None
     sid, obj = cfg.pairs[0]
@@ -426,40 +422,20 @@ def _orbit(out: Path, bundle: Path, data: Path, cfg: DemoConfig, say: Callable[[
     return {"png": orbit["png"], "video": orbit.get("video"), "pose": orbit["pose"], "seconds": rec["seconds"]["total"]}
 
 
-def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
-    """Build (or reuse) everything, stream synthetic samples, write the pictures.
-
-    Args:
-        out: demo folder (created).
-        config: :class:`DemoConfig`.
-        log: line printer (None: silent).
-
-    Returns:
-        the ``demo.json`` record: stage seconds, reused stages, throughput, dropped counts,
-        output paths.
-    """
-    import cv2
-    from torch.utils.data import DataLoader
-
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.loader import HOGSADataset, MixedLoader
-    from hogsa_loader.loader.viz import sample_grid
-
-    say = log or (lambda s: None)
-    t_start = time.perf_counter()
-    out = Path(os.path.abspath(out))
-    out.mkdir(parents=True, exist_ok=True)
-    stages = _Stages(out, say)
-    data, bundle = _build(config, out, stages, say)
-
-    bg: dict[str, Any] = {}
+def _background_options(config: DemoConfig, out: Path) -> dict[str, Any]:
+    """The loader's background options: COCO when given, else an image folder (default: the demo photographs)."""
     if config.coco_root or config.coco_ann:
-        bg = dict(coco_root=config.coco_root, coco_ann=config.coco_ann)
-    else:
-        bg = dict(background_folder=config.backgrounds or demo_photographs(out / "backgrounds"))
-    ds = HOGSADataset(bundle, data, poses="bank", srm=True, device="cpu", batch_size=config.render_batch,
-                      seed=config.seed, num_samples=config.samples, **bg)
-    say(f"[stream] {config.samples} synthetic samples, models {ds.keys}, {config.num_workers} workers")
+        return dict(coco_root=config.coco_root, coco_ann=config.coco_ann)
+    return dict(background_folder=config.backgrounds or demo_photographs(out / "backgrounds"))
+
+
+def _demo_dataset(bundle: Path, data: Path, bg: dict[str, Any], **options: Any) -> HOGSADataset:
+    """A CPU :class:`HOGSADataset` with the bundle's SRM, backgrounds ``bg`` and loader ``options``."""
+    return HOGSADataset(bundle, data, with_options(LoaderConfig(), **bg, srm=True, device="cpu", **options))
+
+
+def _stream(ds: HOGSADataset, config: DemoConfig, say: Callable[[str], None]) -> tuple[list[Any], dict[str, Any]]:
+    """Stream ``ds`` through a DataLoader; the samples (one by one) and the throughput record."""
     loader = DataLoader(ds, batch_size=config.batch_size, num_workers=config.num_workers,
                         worker_init_fn=_worker_init if config.num_workers else None)
     t0 = time.perf_counter()
@@ -478,32 +454,85 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
     ips_steady = steady / (t_end - t_first) if t_first is not None and steady > 0 and t_end > t_first else None
     say(f"[stream] {n} samples kept of {config.samples} in {t_end - t0:.1f} s: {ips:.2f} img/s end to end"
         + (f", {ips_steady:.2f} img/s after the first batch" if ips_steady else ""))
+    rec = {"samples_requested": config.samples, "samples_kept": n, "dropped": config.samples - n,
+           "seconds": round(t_end - t0, 2), "images_per_s": round(ips, 2),
+           "images_per_s_after_first_batch": None if ips_steady is None else round(ips_steady, 2),
+           "num_workers": config.num_workers, "batch_size": config.batch_size}  # fmt: skip
+    return syn, rec
+
+
+def _grid_rows(syn: list[Any], real: list[Any], bundle: Path, data: Path, bg: dict[str, Any],
+               config: DemoConfig) -> list[tuple[str, list[Any]]]:
+    """Rows of the sample sheet: streamed samples, perturbed annotated grasps, real samples."""
+    n = len(syn)
+    pick = np.linspace(0, n - 1, min(n, config.grid_cols)).round().astype(int) if n else []
+    rows = [("synthetic: POM pose bank + SRM + photo background (samples spread over the stream)",
+             [syn[int(i)] for i in pick])]
+    if config.grid_rows > 1:  # annotated grasps, lightly perturbed, for comparison
+        per = _demo_dataset(bundle, data, bg, poses="perturb", batch_size=config.grid_cols, seed=config.seed + 2,
+                            num_samples=config.grid_cols * (config.grid_rows - 1))
+        more = [per.to_sample(f) for g in range(per.num_batches or 0) for f in per.frames(g) if f is not None]
+        for r in range(config.grid_rows - 1):
+            rows.append((f"synthetic: perturbed annotated grasps + SRM + photo background, row {r + 1}",
+                         more[r * config.grid_cols:(r + 1) * config.grid_cols]))
+    return [r for r in rows if r[1]] + [("real (ARCTIC-format world, same augmentation)", real)]
+
+
+def _write_grids(out: Path, rows: list[tuple[str, list[Any]]], ds: HOGSADataset) -> Path:
+    """``samples.png`` (2D labels drawn) and ``samples_clean.png`` (pixels only)."""
+    grid_path = out / "samples.png"
+    grid = sample_grid(rows, ds.cfg, cell=ds.cfg.img_res)
+    cv2.imwrite(str(grid_path), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
+    clean = sample_grid(rows, ds.cfg, cell=ds.cfg.img_res, labels=False)  # the same samples, pixels only
+    cv2.imwrite(str(out / "samples_clean.png"), cv2.cvtColor(clean, cv2.COLOR_RGB2BGR))
+    return grid_path
+
+
+def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
+    """Build (or reuse) everything, stream synthetic samples, write the pictures.
+
+    ``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
+    of perturbed annotated grasps, each with its 2D labels (right hand red, left hand blue,
+    object keypoints yellow), above a row of real samples of the same world;
+    ``samples_clean.png``: the same without labels.
+    ``batch.npz``: one mixed batch (``MixedLoader``, half synthetic) flattened to
+    ``inputs/<key>``, ``targets/<key>``, ``meta_info/<key>`` arrays.
+
+    Backgrounds: ``coco_root``/``coco_ann`` or ``backgrounds`` (an image folder) when given,
+    else the colour photographs shipped inside scikit-image's wheel (astronaut, cat, coffee,
+    rocket, motorcycle) — real photographs without any download.
+
+    Args:
+        out: demo folder (created).
+        config: :class:`DemoConfig`.
+        log: line printer (None: silent).
+
+    Returns:
+        the ``demo.json`` record: stage seconds, reused stages, throughput, dropped counts,
+        output paths.
+    """
+    say = log or (lambda s: None)
+    t_start = time.perf_counter()
+    out = Path(os.path.abspath(out))
+    out.mkdir(parents=True, exist_ok=True)
+    stages = _Stages(out, say)
+    data, bundle = _build(config, out, stages, say)
+
+    bg = _background_options(config, out)
+    ds = _demo_dataset(bundle, data, bg, poses="bank", batch_size=config.render_batch, seed=config.seed,
+                       num_samples=config.samples)
+    say(f"[stream] {config.samples} synthetic samples, models {ds.keys}, {config.num_workers} workers")
+    syn, stream = _stream(ds, config, say)
 
     real_ds = ArcticDataset(data, split="p1_train", seed=config.seed)
     rng = np.random.default_rng(config.seed)
     real_idx = rng.choice(len(real_ds), size=min(config.grid_cols, len(real_ds)), replace=False)
     real = [real_ds[int(i)] for i in real_idx]
-    pick = np.linspace(0, n - 1, min(n, config.grid_cols)).round().astype(int) if n else []
-    rows = [("synthetic: POM pose bank + SRM + photo background (samples spread over the stream)",
-             [syn[int(i)] for i in pick])]
-    if config.grid_rows > 1:  # annotated grasps, lightly perturbed, for comparison
-        per = HOGSADataset(bundle, data, poses="perturb", srm=True, device="cpu", batch_size=config.grid_cols,
-                           seed=config.seed + 2, num_samples=config.grid_cols * (config.grid_rows - 1), **bg)
-        more = [per.to_sample(f) for g in range(per.num_batches or 0) for f in per.frames(g) if f is not None]
-        for r in range(config.grid_rows - 1):
-            rows.append((f"synthetic: perturbed annotated grasps + SRM + photo background, row {r + 1}",
-                         more[r * config.grid_cols:(r + 1) * config.grid_cols]))
-    rows = [r for r in rows if r[1]] + [("real (ARCTIC-format world, same augmentation)", real)]
-    grid = sample_grid(rows, ds.cfg, cell=ds.cfg.img_res)
-    grid_path = out / "samples.png"
-    cv2.imwrite(str(grid_path), cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
-    clean = sample_grid(rows, ds.cfg, cell=ds.cfg.img_res, labels=False)  # the same samples, pixels only
-    cv2.imwrite(str(out / "samples_clean.png"), cv2.cvtColor(clean, cv2.COLOR_RGB2BGR))
+    grid_path = _write_grids(out, _grid_rows(syn, real, bundle, data, bg, config), ds)
 
     real_loader = DataLoader(real_ds, batch_size=config.batch_size, shuffle=True,
                              generator=torch.Generator().manual_seed(config.seed))
-    syn_single = HOGSADataset(bundle, data, poses="bank", srm=True, device="cpu", batch_size=config.render_batch,
-                              seed=config.seed + 1, **bg)
+    syn_single = _demo_dataset(bundle, data, bg, poses="bank", batch_size=config.render_batch, seed=config.seed + 1)
     mixed = next(iter(MixedLoader(real_loader, syn_single, ratio=0.5)))
     npz_path = out / "batch.npz"
     np.savez_compressed(npz_path, **_flatten_batch(mixed))
@@ -513,17 +542,13 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
         "config": {k: v for k, v in asdict(config).items() if k != "progress"},
         "stage_seconds": {k: round(v, 1) for k, v in stages.seconds.items()},
         "reused_stages": stages.reused,
-        "stream": {"samples_requested": config.samples, "samples_kept": n, "dropped": config.samples - n,
-                   "seconds": round(t_end - t0, 2), "images_per_s": round(ips, 2),
-                   "images_per_s_after_first_batch": None if ips_steady is None else round(ips_steady, 2),
-                   "num_workers": config.num_workers, "batch_size": config.batch_size, "models": [list(k) for k in ds.keys],
-                   "backgrounds": str(bg)},
+        "stream": {**stream, "models": [list(k) for k in ds.keys], "backgrounds": str(bg)},
         "outputs": {"grid": str(grid_path), "grid_clean": str(out / "samples_clean.png"), "batch": str(npz_path),
                     "bundle": str(bundle), "data": str(data), "orbit": orbit},
         "total_seconds": round(time.perf_counter() - t_start, 1),
     }  # fmt: skip
     (out / "demo.json").write_text(json.dumps(record, indent=1))
     say(f"[demo] samples.png: {grid_path}\n[demo] batch.npz:   {npz_path}\n"
-        f"[demo] total {record['total_seconds']:.0f} s; synthetic loader {ips:.2f} img/s on "
+        f"[demo] total {record['total_seconds']:.0f} s; synthetic loader {stream['images_per_s']:.2f} img/s on "
         f"{config.num_workers} CPU worker(s)")
     return record

@@ -22,7 +22,7 @@ from hogsa_loader.compose import ProceduralBackgrounds
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset, parse_imgname
 from hogsa_loader.datasets.augment import ArcticConfig
-from hogsa_loader.loader import HOGSADataset, MixedLoader, is_synthetic
+from hogsa_loader.loader import HOGSADataset, MixedLoader, is_synthetic, with_options
 
 RES = 64
 CFG = ArcticConfig(img_res=RES)
@@ -45,7 +45,7 @@ def batches(tiny_world, untrained_bundle):
     """A real batch of 4 and a mixed batch (2 real + 2 synthetic) of the tiny world."""
     real = DataLoader(ArcticDataset(tiny_world, "p1_train", seed=0, config=CFG), batch_size=4, shuffle=True,
                       generator=torch.Generator().manual_seed(0))
-    syn = HOGSADataset(untrained_bundle, tiny_world, config=CFG, batch_size=4, num_samples=8, seed=1,
+    syn = HOGSADataset(untrained_bundle, tiny_world, with_options(arctic=CFG, batch_size=4, num_samples=8, seed=1),
                        backgrounds=ProceduralBackgrounds())
     return next(iter(real)), next(iter(MixedLoader(real, syn, 0.5)))
 

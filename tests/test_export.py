@@ -372,25 +372,27 @@ def test_gaps_from_dropped_samples_and_dataset_adapter(tmp_path):
 
 def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     """``hogsa export`` wiring (rank/world from the environment, resume) on a stand-in dataset."""
-    import sys
     import types
 
+    from hogsa_loader.cli import main as cli_main
     from hogsa_loader.cli.main import main
+    from hogsa_loader.loader.config import export_info
 
     made = []
 
     class StandIn:
-        def __init__(self, bundle, data, **kw):
-            self.batch_size = kw["batch_size"]
+        def __init__(self, bundle, data, config):
+            self.batch_size = config.run.batch_size
             self.render_size = 48
-            self.kw = kw
+            self.kw = {**export_info(config), "num_samples": config.run.num_samples,
+                       "exclude_person": config.backgrounds.exclude_person, "srm_tta": config.refinement.srm_tta}
             self.stats = types.SimpleNamespace(as_dict=lambda: {"num_dropped": 0})
             made.append(self)
 
         def frames(self, g):
             return [make_frame(i) for i in range(g * self.batch_size, (g + 1) * self.batch_size)]
 
-    monkeypatch.setitem(sys.modules, "hogsa_loader.loader.dataset", types.SimpleNamespace(HOGSADataset=StandIn))
+    monkeypatch.setattr(cli_main, "HOGSADataset", StandIn)
     out = tmp_path / "cli"
     (tmp_path / "B").mkdir()  # (folders, as the command checks before any work)
     (tmp_path / "D").mkdir()

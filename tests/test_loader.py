@@ -23,11 +23,13 @@ from hogsa_loader.errors import AssetError
 from hogsa_loader.loader import (
     CameraConfig,
     HOGSADataset,
+    LoaderConfig,
     MixedLoader,
     SampleChecks,
     is_synthetic,
     num_synthetic,
     parse_synthetic_imgname,
+    with_options,
 )
 from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
@@ -53,11 +55,18 @@ def bundle_dir(untrained_bundle) -> Path:
     return untrained_bundle
 
 
-def _dataset(bundle_dir, world, **kw) -> HOGSADataset:
+def _config(**kw) -> LoaderConfig:
+    """The tests' loader config: ``CFG`` samples and the options ``kw`` by name."""
+    return with_options(LoaderConfig(), arctic=CFG, **kw)
+
+
+def _dataset(bundle_dir, world, *, backgrounds=None, poses=None, **kw) -> HOGSADataset:
     kw.setdefault("batch_size", 4)
     kw.setdefault("num_samples", 4)
-    kw.setdefault("backgrounds", ProceduralBackgrounds())
-    return HOGSADataset(bundle_dir, world, config=CFG, **kw)
+    if isinstance(poses, str):  # a registered name: a config setting; else a pose-source object
+        kw["poses"], poses = poses, None
+    return HOGSADataset(bundle_dir, world, _config(**kw), poses=poses,
+                        backgrounds=backgrounds if backgrounds is not None else ProceduralBackgrounds())
 
 
 @pytest.fixture(scope="module")
@@ -299,21 +308,21 @@ def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_
     from hogsa_loader.compose import FolderBackgrounds
 
     with pytest.raises(AssetError, match="nope"):
-        HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=tmp_path / "nope")
+        HOGSADataset(bundle_dir, tiny_world, _config(coco_root=tmp_path / "nope"))
     (tmp_path / "bg").mkdir()
     cv2.imwrite(str(tmp_path / "bg" / "a.png"), np.full((40, 50, 3), 90, np.uint8))
-    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", num_samples=2)
+    ds = HOGSADataset(bundle_dir, tiny_world, _config(background_folder=tmp_path / "bg", num_samples=2))
     assert isinstance(ds.backgrounds, FolderBackgrounds) and ds.backgrounds.paths == [tmp_path / "bg" / "a.png"]
     assert pickle.loads(pickle.dumps(ds)).backgrounds.paths == ds.backgrounds.paths
     with pytest.raises(ValueError, match="apply to COCO images"):  # not silently ignored
-        HOGSADataset(bundle_dir, tiny_world, config=CFG, background_folder=tmp_path / "bg", exclude_person=True)
+        HOGSADataset(bundle_dir, tiny_world, _config(background_folder=tmp_path / "bg", exclude_person=True))
     # COCO options reach the source: people excluded, explicit image folder
     from test_compose import _write_coco
 
     monkeypatch.setenv("HOGSA_CACHE", str(tmp_path / "cache"))  # (the COCO selection cache, not ~/.cache)
     coco = _write_coco(tmp_path / "coco")
-    ds = HOGSADataset(bundle_dir, tiny_world, config=CFG, coco_root=coco, exclude_person=True,
-                      coco_image_dir=coco / "images" / "train2017")  # fmt: skip
+    ds = HOGSADataset(bundle_dir, tiny_world, _config(coco_root=coco, exclude_person=True,
+                                                       coco_image_dir=coco / "images" / "train2017"))
     assert ds.backgrounds.exclude_person and sorted(ds.backgrounds.image_ids) == [1, 3, 5]  # (2, 4 show people)
 
 
@@ -676,3 +685,34 @@ def test_egocentric_protocol_p2(bundle_dir, tiny_world):
             hits.extend(joints_on_alpha(h.j2d[ok], a.alpha, radius=0))
     assert len(hits) >= 60 and float(np.mean(hits)) >= 0.99
     assert pin.aug_params(3).sc == 1.0  # ARCTIC forces sc = 1 for egocentric samples
+
+
+def test_explicit_objects_refuse_settings_of_their_config_group(bundle_dir, tiny_world):
+    """An explicit backgrounds / poses / refiner object replaces its config group; non-default
+    settings of that group beside it are refused, not silently ignored."""
+    procedural = ProceduralBackgrounds()
+    with pytest.raises(ValueError, match="backgrounds= is given together with non-default config.backgrounds"):
+        HOGSADataset(bundle_dir, tiny_world, _config(background_folder="x"), backgrounds=procedural)
+    with pytest.raises(ValueError, match="refiner= is given together with non-default config.refinement"):
+        HOGSADataset(bundle_dir, tiny_world, _config(srm=True), backgrounds=procedural, refiner=lambda rgb, a: rgb)
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+    with pytest.raises(ValueError, match="poses= is given together with non-default config.poses"):
+        HOGSADataset(bundle_dir, tiny_world, _config(poses="bank"), backgrounds=procedural, poses=inner)
+    with pytest.raises(TypeError, match="unknown loader option"):
+        with_options(sed=1)
+    ds = _dataset(bundle_dir, tiny_world, seed=9, batch_size=3, num_samples=8)
+    plan = ds.plan(2, epoch=4)
+    assert (plan.seed, plan.epoch, plan.key, plan.indices) == (9, 4, ds.batch_key(2, 4), (6, 7))
+
+
+def test_export_info_is_the_config_with_the_first_exports_keys():
+    """The recorded settings of a default config have exactly the keys the first exports
+    recorded (their settings hash is kept); options set away from their defaults are added."""
+    from hogsa_loader.loader.config import export_info
+
+    assert set(export_info(LoaderConfig())) == {"seed", "poses", "srm", "batch_size", "render_size", "coco_root",
+                                                "coco_ann", "background_folder", "categories", "epoch", "interfield"}
+    info = export_info(with_options(exclude_person=True, srm=True, srm_tta=8, cameras=CameraConfig(roll_deg=0.0),
+                                    device="cuda", num_samples=5))
+    assert info["exclude_person"] is True and info["srm_tta"] == 8 and info["cameras"]["roll_deg"] == 0.0
+    assert "device" not in info and "num_samples" not in info

@@ -25,7 +25,11 @@ import sys
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
+import torch
+
+from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError, PathLike, UsageError
+from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
 
 __all__ = [
     "positive_int",
@@ -102,8 +106,6 @@ def unit_float(text: str) -> float:
 
 def torch_device(text: str) -> str:
     """argparse ``type=``: a torch device string this machine has (``cpu``, ``cuda``, ``cuda:N``, ``mps``)."""
-    import torch
-
     try:
         dev = torch.device(text)
     except (RuntimeError, TypeError, ValueError):
@@ -211,8 +213,6 @@ def multiple_of(value: int, base: int, flag: str, base_flag: str) -> None:
 
 def procedural_objects(names: Sequence[str], flag: str = "--objects") -> list[str]:
     """Names of procedural objects: at least one, each known, none repeated."""
-    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
-
     names = list(names)
     if not names:
         raise UsageError(f"{flag}: name at least one object ({', '.join(PROCEDURAL_NAMES)})")
@@ -233,8 +233,6 @@ def data_root_pairs(data: PathLike, pairs: Iterable[tuple[str, str]], flag: str 
     Raises:
         UsageError: not a data root, or a pair without sequences (names them).
     """
-    from hogsa_loader.datasets.arctic import ArcticRoot
-
     input_dir(data, flag)
     try:
         root = ArcticRoot(data)

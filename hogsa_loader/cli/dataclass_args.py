@@ -6,6 +6,13 @@ dataclasses (groups). :func:`add_dataclass_arguments` adds one ``--flag`` per le
 from the field's ``metadata["help"]``, a flag that must be given where
 ``metadata["required"]`` is true); :func:`dataclass_from_args` builds the config back
 from the parsed namespace. An option is therefore added in one place: its field.
+
+More field metadata: ``"type"`` (an argparse converter, or the name of one in
+:mod:`hogsa_loader.cli.checks`), ``"choices"``, ``"name"`` (the
+flag is ``--<name>`` instead of one made from the field path), ``"cli_type"`` (the type
+the flag parses, for a field whose annotation is not a flag type), ``"cli": False`` (no
+flag: the field keeps its default); on a group field, ``"flat": True`` (its flags carry
+no group prefix).
 """
 
 from __future__ import annotations
@@ -14,6 +21,8 @@ import argparse
 import dataclasses
 import typing
 from typing import Any, Optional, TypeVar
+
+from hogsa_loader.cli import checks
 
 __all__ = ["add_dataclass_arguments", "dataclass_from_args", "flag_name"]
 
@@ -38,34 +47,38 @@ def _leaf_type(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
-def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, default: Any) -> None:
-    kind, optional = _leaf_type(tp)
+def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, default: Any,
+              flag_path: tuple[str, ...]) -> None:
+    kind, optional = _leaf_type(f.metadata.get("cli_type", tp))
     helptext = f.metadata.get("help", "")
     choices = f.metadata.get("choices")
+    flag = flag_name((f.metadata["name"],) if "name" in f.metadata else flag_path)
+    convert = f.metadata.get("type")
+    convert = getattr(checks, convert) if isinstance(convert, str) else convert
     if typing.get_origin(kind) is typing.Literal:
         choices, kind = typing.get_args(kind), type(typing.get_args(kind)[0])
     if kind is bool:
-        group.add_argument(flag_name(path), dest=_dest(path), action=argparse.BooleanOptionalAction,
+        group.add_argument(flag, dest=_dest(path), action=argparse.BooleanOptionalAction,
                            default=default, help=f"{helptext} (default: {default})")
         return
     if typing.get_origin(kind) is tuple:
         item = typing.get_args(kind)[0]
-        group.add_argument(flag_name(path), dest=_dest(path), type=item, nargs="+", default=default,
+        group.add_argument(flag, dest=_dest(path), type=convert or item, nargs="+", default=default,
                            metavar=path[-1].upper(),
                            help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})")
         return
-    conv = kind if kind in (int, float, str) else str
+    conv = convert or (kind if kind in (int, float, str) else str)
     if f.metadata.get("required"):  # no default: argparse reports the flag missing
-        group.add_argument(flag_name(path), dest=_dest(path), type=conv, required=True, choices=choices,
+        group.add_argument(flag, dest=_dest(path), type=conv, required=True, choices=choices,
                            metavar=None if choices else path[-1].upper(), help=f"{helptext} (required)")
         return
-    group.add_argument(flag_name(path), dest=_dest(path), type=conv, default=default, choices=choices,
+    group.add_argument(flag, dest=_dest(path), type=conv, default=default, choices=choices,
                        metavar=None if choices else path[-1].upper(),
                        help=f"{helptext} (default: {default}{', optional' if optional else ''})")
 
 
 def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, default: Optional[Any] = None,
-                            prefix: tuple[str, ...] = ()) -> None:
+                            prefix: tuple[str, ...] = (), flag_prefix: Optional[tuple[str, ...]] = None) -> None:
     """Add one flag per leaf field of the dataclass ``cls`` (groups recurse).
 
     Args:
@@ -73,20 +86,23 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, default:
         cls: the config dataclass.
         default: an instance whose values are the flags' defaults (default ``cls()``).
         prefix: field path of ``cls`` inside the root config (flags ``--a-b-field``).
+        flag_prefix: the part of ``prefix`` that names the flags (default all of it).
     """
+    flag_prefix = prefix if flag_prefix is None else flag_prefix
     default = cls() if default is None else default
     hints = typing.get_type_hints(cls)
     group = parser
     if prefix and hasattr(parser, "add_argument_group"):
         group = parser.add_argument_group(" ".join(prefix), (cls.__doc__ or "").strip().splitlines()[0])
     for f in dataclasses.fields(cls):
-        if not f.init:
+        if not f.init or f.metadata.get("cli", True) is False:
             continue
         value = getattr(default, f.name)
         if dataclasses.is_dataclass(hints[f.name]):
-            add_dataclass_arguments(parser, hints[f.name], value, prefix + (f.name,))
+            flags = flag_prefix if f.metadata.get("flat") else flag_prefix + (f.name,)
+            add_dataclass_arguments(parser, hints[f.name], value, prefix + (f.name,), flags)
         else:
-            _add_leaf(group, prefix + (f.name,), f, hints[f.name], value)
+            _add_leaf(group, prefix + (f.name,), f, hints[f.name], value, flag_prefix + (f.name,))
 
 
 def dataclass_from_args(cls: type[T], ns: argparse.Namespace, prefix: tuple[str, ...] = ()) -> T:
@@ -94,7 +110,7 @@ def dataclass_from_args(cls: type[T], ns: argparse.Namespace, prefix: tuple[str,
     hints = typing.get_type_hints(cls)
     kwargs: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
-        if not f.init:
+        if not f.init or f.metadata.get("cli", True) is False:
             continue
         path = prefix + (f.name,)
         if dataclasses.is_dataclass(hints[f.name]):

@@ -27,26 +27,40 @@ see README).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
 from typing import Optional, Sequence
 
+import torch
+from tqdm import tqdm
+
 from hogsa_loader import __version__
 from hogsa_loader.cli import checks
+from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
+from hogsa_loader.compose.plates import PlateConfig, build_plates
+from hogsa_loader.demo import DemoConfig, run_demo
+from hogsa_loader.errors import AssetError, HogsaError
+from hogsa_loader.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
+from hogsa_loader.hands.mano_io import convert_mano_to_npz, write_mano_pickle
+from hogsa_loader.loader.config import LoaderConfig, export_info
+from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.objects import load_object_templates
+from hogsa_loader.render.preview import hand_preview, object_preview, save_sheet
+from hogsa_loader.synthetic.hand import synthetic_hand_pair
+from hogsa_loader.synthetic.objects.procedural import write_procedural_objects
+from hogsa_loader.synthetic.world import generate_world, get_preset
+from hogsa_loader.synthetic.world.annotation_noise import AnnotationNoise, add_annotation_noise
+from hogsa_loader.synthetic.world.h2o_export import export_h2o_world
+from hogsa_loader.view.config import ViewConfig, check_view_config
+from hogsa_loader.view.job import run_view
 
 __all__ = ["main", "build_parser"]
 
 
 def _cmd_assets(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from hogsa_loader.hands.mano_io import write_mano_pickle
-    from hogsa_loader.synthetic.hand import synthetic_hand_pair
-    from hogsa_loader.objects import load_object_templates
-    from hogsa_loader.synthetic.objects.procedural import write_procedural_objects
-
     names = checks.procedural_objects([n for n in args.objects.split(",") if n])
     out = os.path.abspath(checks.output_dir(args.out))
     mano_dir = os.path.join(out, "body_models", "mano")
@@ -63,8 +77,6 @@ def _cmd_assets(args: argparse.Namespace) -> int:
         write_procedural_objects(meta_dir, names=names, seed=args.seed)
         bar.update()
         if not args.no_preview:
-            from hogsa_loader.render.preview import hand_preview, object_preview, save_sheet
-
             bar.set_postfix_str("hand preview")
             save_sheet(os.path.join(mano_dir, "preview.png"), hand_preview(right, left))
             bar.update()
@@ -82,8 +94,6 @@ def _cmd_assets(args: argparse.Namespace) -> int:
 
 
 def _cmd_convert(args: argparse.Namespace) -> int:
-    from hogsa_loader.hands.mano_io import convert_mano_to_npz
-
     checks.input_file(args.src, "SRC")
     checks.output_file(args.dst, "DST", overwrite=args.overwrite, suffix=".npz", source=args.src)
     model = convert_mano_to_npz(args.src, args.dst, side=args.side, overwrite=args.overwrite)
@@ -92,8 +102,6 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_world(args: argparse.Namespace) -> int:
-    from hogsa_loader.synthetic.world import generate_world, get_preset
-
     try:
         preset = get_preset(args.preset)
     except KeyError as exc:
@@ -112,9 +120,6 @@ def _cmd_world(args: argparse.Namespace) -> int:
 
 
 def _cmd_world_noise(args: argparse.Namespace) -> int:
-    from hogsa_loader.errors import AssetError
-    from hogsa_loader.synthetic.world.annotation_noise import AnnotationNoise, add_annotation_noise
-
     checks.input_dir(args.src, "--src")
     checks.output_dir(args.out)
     try:
@@ -138,51 +143,48 @@ def _env_int(name: str, default: int) -> int:
     return int(v) if v not in (None, "") else default
 
 
-def _cmd_export(args: argparse.Namespace) -> int:
-    from hogsa_loader.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
-    from hogsa_loader.loader.dataset import HOGSADataset
+def _export_config(args: argparse.Namespace, world: int) -> LoaderConfig:
+    """The loader config of ``hogsa export`` (``--num`` samples; ``cuda`` = ``cuda:LOCAL_RANK`` under torchrun)."""
+    try:
+        config = dataclass_from_args(LoaderConfig, args)
+    except ValueError as exc:  # combinations the config refuses (e.g. --srm-tta without --srm)
+        raise checks.UsageError(str(exc)) from None
+    device = config.run.device
+    if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
+        device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
+    return dataclasses.replace(config, run=dataclasses.replace(config.run, device=device, num_samples=args.num))
 
+
+def _check_export_paths(args: argparse.Namespace, config: LoaderConfig) -> None:
+    """Inputs exist and the output folder is usable (before the slow dataset)."""
+    checks.input_dir(args.bundle, "--bundle")
+    checks.input_dir(args.data, "--data")
+    bg = config.backgrounds
+    for flag, folder in (("--coco-root", bg.coco_root), ("--background-folder", bg.folder)):
+        if folder is not None:
+            checks.input_dir(folder, flag)
+    if bg.coco_ann is not None:
+        checks.input_file(bg.coco_ann, "--coco-ann")
+    checks.output_dir(args.out)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
     rank = args.rank if args.rank is not None else _env_int("RANK", 0)
     world = args.world_size if args.world_size is not None else _env_int("WORLD_SIZE", 1)
     if not 0 <= rank < world:
         raise checks.UsageError(f"rank {rank} outside world size {world}")
-    checks.multiple_of(args.shard_size, args.batch_size, "--shard-size", "--batch-size")  # (before the slow dataset)
-    checks.input_dir(args.bundle, "--bundle")
-    checks.input_dir(args.data, "--data")
-    for flag, folder in (("--coco-root", args.coco_root), ("--background-folder", args.background_folder)):
-        if folder is not None:
-            checks.input_dir(folder, flag)
-    if args.coco_ann is not None:
-        checks.input_file(args.coco_ann, "--coco-ann")
-    checks.output_dir(args.out)
-    device = args.device
-    if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
-        device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
+    config = _export_config(args, world)
+    checks.multiple_of(args.shard_size, config.run.batch_size, "--shard-size", "--batch-size")
+    _check_export_paths(args, config)
     if args.threads:
-        import torch
-
         torch.set_num_threads(args.threads)
-    ds = HOGSADataset(
-        args.bundle, args.data, coco_root=args.coco_root, coco_ann=args.coco_ann,
-        background_folder=args.background_folder,
-        categories=[c for c in args.categories.split(",") if c] if args.categories else None,
-        exclude_person=args.exclude_person, poses=args.poses, srm=args.srm, srm_tta=args.srm_tta, device=device,
-        batch_size=args.batch_size, seed=args.seed, num_samples=args.num, render_size=args.render_size, interfield=args.interfield,
-    )  # fmt: skip
-    info = {
-        "bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), "seed": args.seed,
-        "poses": args.poses, "srm": args.srm, "batch_size": args.batch_size, "render_size": ds.render_size,
-        "coco_root": args.coco_root, "coco_ann": args.coco_ann, "background_folder": args.background_folder,
-        "categories": args.categories, "world_size": world, "epoch": 0, "interfield": args.interfield,
-    }  # fmt: skip
-    # (recorded only when set, so exports made before these options keep their settings hash)
-    if args.exclude_person:
-        info["exclude_person"] = True
-    if args.srm_tta != 1:
-        info["srm_tta"] = args.srm_tta
+    ds = HOGSADataset(args.bundle, args.data, config)
+    # the config as recorded (options left at their defaults that the first exports lacked are left out)
+    info = {"bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), **export_info(config),
+            "render_size": ds.render_size, "world_size": world}
     say = (lambda m: None) if args.quiet else print
     say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
-        f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {device})")
+        f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {config.run.device})")
     try:
         res = write_shards(
             dataset_frames_for_shard(ds, args.num, args.shard_size), args.out, args.num, args.shard_size,
@@ -200,8 +202,6 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from hogsa_loader.demo import DemoConfig, run_demo
-
     checks.output_dir(args.out)
     for flag, folder in (("--backgrounds", args.backgrounds), ("--coco-root", args.coco_root)):
         if folder is not None:
@@ -213,21 +213,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = DemoConfig(seed=args.seed, data=args.data, samples=args.samples, num_workers=args.workers, backgrounds=args.backgrounds,
                      coco_root=args.coco_root, coco_ann=args.coco_ann, progress=not args.quiet)
     if args.threads:
-        import torch
-
         torch.set_num_threads(args.threads)
     run_demo(args.out, cfg, log=None if args.quiet else print)
     return 0
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from hogsa_loader.cli.dataclass_args import dataclass_from_args
-    from hogsa_loader.view.config import ViewConfig, check_view_config
-    from hogsa_loader.view.job import run_view
-
-    from hogsa_loader.cli import checks
-    from hogsa_loader.errors import HogsaError
-
     cfg = dataclass_from_args(ViewConfig, args)
     try:
         check_view_config(cfg)
@@ -238,9 +229,6 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 
 def _cmd_plates(args: argparse.Namespace) -> int:
-    from hogsa_loader.cli.dataclass_args import dataclass_from_args
-    from hogsa_loader.compose.plates import PlateConfig, build_plates
-
     cfg = dataclass_from_args(PlateConfig, args)
     cfg.check()
     checks.input_dir(cfg.data, "--data")
@@ -253,9 +241,6 @@ def _cmd_plates(args: argparse.Namespace) -> int:
 
 
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
-    from hogsa_loader.errors import HogsaError
-    from hogsa_loader.synthetic.world.h2o_export import export_h2o_world
-
     try:
         w, h = (int(v) for v in args.image_size.split("x"))
         if w <= 0 or h <= 0:
@@ -280,11 +265,8 @@ def _cmd_h2o_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
-    p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
-    sub = p.add_subparsers(dest="command")
-
+def _assets_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa assets`` sub-command."""
     a = sub.add_parser("assets", help="write the synthetic MANO-format hands, procedural objects and previews")
     a.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
     a.add_argument("--objects", default="box,laptop,notebook", help="comma-separated procedural objects")
@@ -293,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.set_defaults(func=_cmd_assets)
 
+
+def _convert_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa convert-mano`` sub-command."""
     c = sub.add_parser("convert-mano", help="convert a MANO .pkl into a chumpy-free .npz")
     c.add_argument("src")
     c.add_argument("dst")
@@ -300,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--overwrite", action="store_true", help="replace an existing DST")
     c.set_defaults(func=_cmd_convert)
 
+
+def _world_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa world`` sub-command."""
     w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
     w.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
     w.add_argument("--preset", default="tiny",
@@ -309,6 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     w.set_defaults(func=_cmd_world)
 
+
+def _world_noise_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa world-noise`` sub-command."""
     n = sub.add_parser("world-noise", help="copy a world with ARCTIC-like fitting error in its hand annotations",
                        description="Write a copy of a world (images, cameras and object poses linked) whose hands' "
                        ".mano.npy carry noise (per-sequence offset + smoothed per-frame jitter); fitting_err holds "
@@ -329,6 +320,9 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--quiet", action="store_true")
     n.set_defaults(func=_cmd_world_noise)
 
+
+def _export_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa export`` sub-command."""
     e = sub.add_parser("export", help="write synthetic frames as WebDataset tar shards (offline mode)",
                        description="Render synthetic frames with a bundle and write them as resumable WebDataset "
                        "tar shards (shard i = samples [i*S, (i+1)*S); complete shards are skipped when re-run). "
@@ -338,21 +332,6 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", required=True, help="output folder of the shards")
     e.add_argument("--num", type=checks.positive_int, required=True, help="number of sample indices (dropped ones leave gaps)")
     e.add_argument("--shard-size", type=checks.positive_int, default=1000, help="samples per shard (a multiple of --batch-size)")
-    e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--device", default="cpu", type=checks.torch_device, help="cpu or cuda (cuda:LOCAL_RANK under torchrun)")
-    e.add_argument("--batch-size", type=checks.positive_int, default=8, help="render batch")
-    e.add_argument("--poses", default="perturb", choices=("perturb", "bank", "online"), help="pose source: perturb, bank, online")
-    e.add_argument("--srm", action=argparse.BooleanOptionalAction, default=False, help="apply the bundle's SRM")
-    e.add_argument("--render-size", type=checks.positive_int, default=None, help="side of the rendered crop (default 1.5 x 224)")
-    e.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
-    e.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
-    e.add_argument("--background-folder", default=None, help="plain image folder for backgrounds")
-    e.add_argument("--categories", default=None, help="comma-separated COCO categories for backgrounds")
-    e.add_argument("--exclude-person", action="store_true", help="no COCO background showing people (unlabelled hands)")
-    e.add_argument("--srm-tta", type=int, choices=(1, 2, 4, 8), default=1,
-                   help="with --srm: test-time augmentation (symmetric copies averaged; 8x the SRM cost at 8)")
-    e.add_argument("--interfield", action="store_true",
-                   help="also store the InterField-SF targets (dist.*/idx.*/object.v_len) of every frame")
     e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")
     e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
     e.add_argument("--overwrite", action="store_true",
@@ -361,8 +340,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--world-size", type=checks.positive_int, default=None, help="default: $WORLD_SIZE or 1")
     e.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads (0 = default)")
     e.add_argument("--quiet", action="store_true", help="no progress bar or messages")
+    add_dataclass_arguments(e, LoaderConfig)  # the loader's options: one flag per LoaderConfig field
     e.set_defaults(func=_cmd_export)
 
+
+def _demo_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa demo`` sub-command."""
     d = sub.add_parser("demo", help="the main job: world, brief HOGS/ContactNet/POM/SRM training, bundle, stream",
                        description="Build (or reuse, cached per stage) the demo world and a small bundle, stream "
                        "synthetic samples through a DataLoader, write samples.png (synthetic next to real, 2D labels "
@@ -380,6 +363,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bars or messages")
     d.set_defaults(func=_cmd_demo)
 
+
+def _h2o_export_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa h2o-export`` sub-command."""
     h = sub.add_parser("h2o-export", help="write one grab sequence of a generated world in the H2O layout",
                        description="Convert a world sequence into an H2O tree (cam0-3 static, cam4 egocentric, MANO and "
                        "obj_pose_rt labels, rgb frames, the object mesh under its H2O name) to try H2O code paths.")
@@ -395,9 +381,9 @@ def build_parser() -> argparse.ArgumentParser:
     h.add_argument("--quiet", action="store_true")
     h.set_defaults(func=_cmd_h2o_export)
 
-    from hogsa_loader.cli.dataclass_args import add_dataclass_arguments
-    from hogsa_loader.view.config import ViewConfig
 
+def _view_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa view`` sub-command."""
     v = sub.add_parser("view", help="360° orbits and pose transfer between subjects, as pictures",
                        description="Render one grasp of a bundle's HOGS model on a full 360° orbit around the "
                        "interaction centre, with and without the SRM (orbit_<sid>.png, orbit_<sid>.gif), and the same "
@@ -406,21 +392,30 @@ def build_parser() -> argparse.ArgumentParser:
     add_dataclass_arguments(v, ViewConfig)
     v.set_defaults(func=_cmd_view)
 
-    from hogsa_loader.compose.plates import PlateConfig
 
+def _plates_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa plates`` sub-command."""
     pl = sub.add_parser("plates", help="clean background plates of the dataset's static cameras, from its own frames",
                         description="Map the cropped frames of each allocentric view back into the full camera "
                         "image, mask out the annotated hands and object, and keep the per-pixel median of the "
                         "background: one PNG per (subject, view) and plates.json, for --background-folder.")
     add_dataclass_arguments(pl, PlateConfig)
     pl.set_defaults(func=_cmd_plates)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``hogsa`` parser with every sub-command."""
+    p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
+    p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
+    sub = p.add_subparsers(dest="command")
+    for add in (_assets_parser, _convert_parser, _world_parser, _world_noise_parser, _export_parser, _demo_parser,
+                _h2o_export_parser, _view_parser, _plates_parser):
+        add(sub)
     checks.one_line_errors(p)
     return p
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from hogsa_loader.errors import HogsaError
-
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

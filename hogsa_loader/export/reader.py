@@ -13,7 +13,7 @@ from ``numpy.random.default_rng([seed, epoch, index, 3])`` — ``index`` is the 
 sample index stored with the frame, ``seed``/``epoch`` default to the frame's own
 (``meta["seed"]``, ``meta["epoch"]``) — which is the augmentation stream of
 :class:`~hogsa_loader.loader.dataset.HOGSADataset`
-(:func:`~hogsa_loader.loader.synth.sample_rng`, stream 3). So by default a sample read
+(:func:`~hogsa_loader.loader.plan.sample_rng`, stream 3). So by default a sample read
 back equals the one the live loader made with the same seed; it does not depend on the
 worker count; and batches collate exactly like real ARCTIC ones.
 
@@ -41,7 +41,6 @@ import tarfile
 from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence, Union
 
-import numpy as np
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
@@ -49,7 +48,8 @@ from hogsa_loader.datasets.augment import ArcticConfig, sample_aug_params
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.export.codec import decode_frame, split_member_name
 from hogsa_loader.loader.frame import SynthFrame
-from hogsa_loader.loader.synth import STREAM_AUG, frame_to_sample
+from hogsa_loader.loader.plan import STREAM_AUG, sample_rng, shard_order
+from hogsa_loader.loader.synth import frame_to_sample
 
 __all__ = [
     "AUG_STREAM",
@@ -221,7 +221,7 @@ def iter_tar_samples(path: PathLike, verify: bool = True) -> Iterator[tuple[str,
         yield key, files
 
 
-#: The augmentation stream of a sample (``hogsa_loader.loader.synth.sample_rng`` stream 3).
+#: The augmentation stream of a sample (``hogsa_loader.loader.plan.sample_rng`` stream 3).
 AUG_STREAM = STREAM_AUG
 
 
@@ -241,7 +241,7 @@ def frame_to_arctic_sample(
     ``frame.egocentric`` and ``frame.dist`` (restored from ``meta``) select the egocentric
     rules of :func:`~hogsa_loader.datasets.sample.make_arctic_sample`.
     """
-    rng = np.random.default_rng([int(seed), int(epoch), int(index), AUG_STREAM])
+    rng = sample_rng(seed, epoch, index, AUG_STREAM)
     aug = sample_aug_params(rng, bool(augment), bool(frame.egocentric), cfg)
     return frame_to_sample(frame, aug, cfg)
 
@@ -315,7 +315,7 @@ class SynthShardDataset(IterableDataset):
     def _order(self) -> list[Path]:
         shards = list(self.shards)
         if self.shuffle_shards:
-            perm = np.random.default_rng([self.seed or 0, self.epoch or 0, 0x5A4D]).permutation(len(shards))
+            perm = shard_order(self.seed or 0, self.epoch or 0, len(shards))
             shards = [shards[i] for i in perm]
         return shards
 

@@ -35,8 +35,11 @@ import math
 import os
 import tarfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Optional
+
+from tqdm import tqdm
 
 from hogsa_loader.errors import PathLike
 from hogsa_loader.export.codec import encode_frame, json_default
@@ -157,7 +160,7 @@ def _add_member(tar: tarfile.TarFile, name: str, data: bytes, digests: dict[str,
 @contextlib.contextmanager
 def _locked(out_dir: Path) -> Iterator[None]:
     try:
-        import fcntl
+        import fcntl  # deferred: POSIX only (without it the index is rebuilt unlocked)
     except ImportError:  # pragma: no cover - non-POSIX
         yield
         return
@@ -246,6 +249,97 @@ def dataset_frames_for_shard(dataset: Any, num: int, shard_size: int) -> Callabl
     return frames_for_shard
 
 
+@dataclass(frozen=True)
+class _Encoding:
+    """How frames are stored: see :func:`~hogsa_loader.export.codec.encode_frame`."""
+
+    image_format: str
+    jpeg_quality: int
+    alpha_bits: int
+    parts: bool
+
+
+def _shards_to_write(out: Path, n: int, num: int, shard_size: int, rank: int, world_size: int, prefix: str,
+                     settings: dict[str, Any], overwrite: bool) -> tuple[list[int], list[int]]:
+    """``(todo, skipped)``: this rank's shards to write and those already complete.
+
+    Raises :class:`ExportMismatchError` on another export's shards unless ``overwrite`` (then
+    shard files beyond this export's last one are removed).
+    """
+    mine = shards_of_rank(n, rank, world_size)
+    state = {s: _shard_state(out, s, prefix, shard_range(s, num, shard_size), settings) for s in mine}
+    stale = [s for s in mine if state[s].startswith("stale")]
+    extra = _extra_shards(out, n, prefix)
+    if (stale or extra) and not overwrite:
+        what = (f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}" if stale else
+                f"{out / shard_name(extra[0], prefix)} lies beyond this export's {n} shard(s) (an export with a larger num?)")
+        raise ExportMismatchError(f"{out}: holds shards of another export: {what}; use another folder or "
+                                  "overwrite=True (hogsa export --overwrite)")  # fmt: skip
+    for x in extra:  # (overwrite) a reader globbing *.tar must not find them
+        _index_path(out, x, prefix).unlink(missing_ok=True)
+        (out / shard_name(x, prefix)).unlink(missing_ok=True)
+    todo = [s for s in mine if state[s] != "complete"]
+    return todo, [s for s in mine if s not in todo]
+
+
+def _write_tar(tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, enc: _Encoding,
+               bar: Optional[Any]) -> tuple[list[str], dict[str, str]]:
+    """Write the frames of ``shard`` (global samples ``rng``) into the tar ``tmp``; its keys and member digests."""
+    keys: list[str] = []
+    digests: dict[str, str] = {}
+    with tarfile.open(tmp, "w", format=tarfile.GNU_FORMAT) as tar:
+        last = last_seen = rng.start - 1
+        for j, frame in enumerate(frames):
+            idx = _frame_index(frame, rng, j, last, shard)
+            last = idx
+            key = sample_key(idx)
+            for member, data in encode_frame(frame, key, index=idx, shard=shard, image_format=enc.image_format,
+                                             jpeg_quality=enc.jpeg_quality, alpha_bits=enc.alpha_bits,
+                                             parts=enc.parts).items():
+                _add_member(tar, member, data, digests)
+            keys.append(key)
+            if bar is not None:  # progress in indices (dropped ones count as done)
+                bar.update(idx - max(last_seen, rng.start - 1))
+                last_seen = idx
+    if bar is not None:
+        bar.update(rng.stop - 1 - max(last_seen, rng.start - 1))
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    return keys, digests
+
+
+def _write_shard(out: Path, shard: int, frames: Iterable[SynthFrame], rng: range, enc: _Encoding, prefix: str,
+                 rank: int, world_size: int, settings: dict[str, Any], bar: Optional[Any]) -> int:
+    """Write one shard under a temporary name, then its index file, then rename it; returns its sample count."""
+    name = shard_name(shard, prefix)
+    for stale in out.glob(f".{name}.tmp.*"):
+        stale.unlink()
+    tmp = out / f".{name}.tmp.{os.getpid()}"
+    t0 = time.perf_counter()
+    try:
+        keys, digests = _write_tar(tmp, frames, rng, shard, enc, bar)
+        rec = {
+            "shard": shard,
+            "file": name,
+            "count": len(keys),
+            "expected": len(rng),
+            "first": rng.start,
+            "last": rng.stop - 1,
+            "keys": keys,
+            "bytes": tmp.stat().st_size,
+            "seconds": round(time.perf_counter() - t0, 3),
+            "rank": rank,
+            "world_size": world_size,
+            "settings": settings,
+            "members_sha256": digests,
+        }
+        _atomic_write_json(_index_path(out, shard, prefix), rec)
+        os.replace(tmp, out / name)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return len(keys)
+
+
 def write_shards(
     frames_for_shard: Callable[[int], Iterable[SynthFrame]],
     out_dir: PathLike,
@@ -297,100 +391,36 @@ def write_shards(
     out.mkdir(parents=True, exist_ok=True)
     n = num_shards(num, shard_size)
     settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
-    mine = shards_of_rank(n, rank, world_size)
-    state = {s: _shard_state(out, s, prefix, shard_range(s, num, shard_size), settings) for s in mine}
-    stale = [s for s in mine if state[s].startswith("stale")]
-    extra = _extra_shards(out, n, prefix)
-    if (stale or extra) and not overwrite:
-        what = (f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}" if stale else
-                f"{out / shard_name(extra[0], prefix)} lies beyond this export's {n} shard(s) (an export with a larger num?)")
-        raise ExportMismatchError(f"{out}: holds shards of another export: {what}; use another folder or "
-                                  "overwrite=True (hogsa export --overwrite)")  # fmt: skip
-    for x in extra:  # (overwrite) a reader globbing *.tar must not find them
-        _index_path(out, x, prefix).unlink(missing_ok=True)
-        (out / shard_name(x, prefix)).unlink(missing_ok=True)
-    todo = [s for s in mine if state[s] != "complete"]
-    skipped = [s for s in mine if s not in todo]
-    total = sum(len(shard_range(s, num, shard_size)) for s in todo)
-    bar = None
-    if progress and rank == 0:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, desc=f"hogsa export (rank {rank}/{world_size})", unit="img",
-                   dynamic_ncols=True)
+    todo, skipped = _shards_to_write(out, n, num, shard_size, rank, world_size, prefix, settings, overwrite)
+    enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
+    bar = tqdm(total=sum(len(shard_range(s, num, shard_size)) for s in todo), unit="img", dynamic_ncols=True,
+               desc=f"hogsa export (rank {rank}/{world_size})") if progress and rank == 0 else None
     t_all = time.perf_counter()
-    written_samples = 0
-    bar_postfix = {"dropped": 0}
-    tmp: Optional[Path] = None
+    written_samples, dropped = 0, 0
     failed = True
     try:
         for s in todo:
-            name = shard_name(s, prefix)
-            for stale in out.glob(f".{name}.tmp.*"):
-                stale.unlink()
             rng = shard_range(s, num, shard_size)
-            tmp = out / f".{name}.tmp.{os.getpid()}"
-            t0 = time.perf_counter()
-            keys: list[str] = []
-            digests: dict[str, str] = {}
-            with tarfile.open(tmp, "w", format=tarfile.GNU_FORMAT) as tar:
-                last = last_seen = rng.start - 1
-                for j, frame in enumerate(frames_for_shard(s)):
-                    idx = _frame_index(frame, rng, j, last, s)
-                    last = idx
-                    key = sample_key(idx)
-                    for member, data in encode_frame(frame, key, index=idx, shard=s, image_format=image_format,
-                                                     jpeg_quality=jpeg_quality, alpha_bits=alpha_bits,
-                                                     parts=parts).items():
-                        _add_member(tar, member, data, digests)
-                    keys.append(key)
-                    if bar is not None:  # progress in indices (dropped ones count as done)
-                        bar.update(idx - max(last_seen, rng.start - 1))
-                        last_seen = idx
+            count = _write_shard(out, s, frames_for_shard(s), rng, enc, prefix, rank, world_size, settings, bar)
+            written_samples += count
             if bar is not None:
-                bar.update(rng.stop - 1 - max(last_seen, rng.start - 1))
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            rec = {
-                "shard": s,
-                "file": name,
-                "count": len(keys),
-                "expected": len(rng),
-                "first": rng.start,
-                "last": rng.stop - 1,
-                "keys": keys,
-                "bytes": tmp.stat().st_size,
-                "seconds": round(time.perf_counter() - t0, 3),
-                "rank": rank,
-                "world_size": world_size,
-                "settings": settings,
-                "members_sha256": digests,
-            }
-            _atomic_write_json(_index_path(out, s, prefix), rec)
-            os.replace(tmp, out / name)
-            tmp = None
-            written_samples += len(keys)
-            if bar is not None:
-                bar_postfix["dropped"] += len(rng) - len(keys)
-                bar.set_postfix(bar_postfix)
+                dropped += len(rng) - count
+                bar.set_postfix({"dropped": dropped})
         failed = False
     finally:
         if bar is not None:
             bar.close()
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
         # also after an interruption: index.json always describes what is on disk
         index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
         if failed and not index["shards"] and world_size == 1:  # nothing of this export exists
-            (out / INDEX_NAME).unlink(missing_ok=True)
-            (out / ".index.lock").unlink(missing_ok=True)
-            if created and not any(out.iterdir()):
-                out.rmdir()
-    return {
-        "written": todo,
-        "skipped": skipped,
-        "samples": written_samples,
-        "seconds": time.perf_counter() - t_all,
-        "index": str(out / INDEX_NAME),
-        "complete": index["complete"],
-    }
+            _remove_empty_export(out, created)
+    return {"written": todo, "skipped": skipped, "samples": written_samples, "seconds": time.perf_counter() - t_all,
+            "index": str(out / INDEX_NAME), "complete": index["complete"]}
+
+
+def _remove_empty_export(out: Path, created: bool) -> None:
+    """Remove the index and lock of an export that wrote nothing (and its folder, when it made it)."""
+    (out / INDEX_NAME).unlink(missing_ok=True)
+    (out / ".index.lock").unlink(missing_ok=True)
+    if created and not any(out.iterdir()):
+        out.rmdir()

@@ -19,8 +19,12 @@ from typing import Any, Optional, Union
 from torch.utils.data import DataLoader
 
 from hogsa_loader.bundle import Bundle
+from hogsa_loader.datasets.arctic import protocol_views
 from hogsa_loader.errors import PathLike
+from hogsa_loader.loader.config import LoaderConfig, with_options
 from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.loader.poses import PoseSource
+from hogsa_loader.loader.synth import Refiner
 from hogsa_loader.loader.mixing import MixedLoader, MixMode
 
 __all__ = ["wrap_train_loader"]
@@ -43,8 +47,6 @@ def _loader_protocol(dataset: Any) -> Optional[str]:
     """``"p1"`` / ``"p2"`` of the real dataset's setup (``.setup`` of
     :class:`~hogsa_loader.datasets.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
     ``p1a`` / ``p2a`` are the same views), or None when it does not say."""
-    from hogsa_loader.datasets.arctic import protocol_views
-
     setup = getattr(dataset, "setup", None) or getattr(getattr(dataset, "args", None), "setup", None)
     if setup is None:
         return None
@@ -55,6 +57,16 @@ def _loader_protocol(dataset: Any) -> Optional[str]:
     return "p2" if views == protocol_views("p2") else "p1"
 
 
+def _real_options(real_ds: Any, config: LoaderConfig, options: dict[str, Any]) -> dict[str, Any]:
+    """``protocol``, ``arctic`` (the sample config) and ``interfield`` of the real dataset,
+    for those the caller left at their defaults (in ``config`` and ``options``)."""
+    found = {"protocol": _loader_protocol(real_ds), "arctic": getattr(real_ds, "cfg", None),
+             "interfield": getattr(real_ds, "interfield", None)}
+    default = LoaderConfig().sample
+    return {name: value for name, value in found.items()
+            if value is not None and name not in options and getattr(config.sample, name) == getattr(default, name)}
+
+
 def wrap_train_loader(
     train_loader: DataLoader,
     bundle: Union[PathLike, Bundle],
@@ -62,11 +74,13 @@ def wrap_train_loader(
     *,
     data_root: Optional[PathLike] = None,
     num_workers: int = 0,
-    device: str = "cpu",
-    seed: int = 0,
     drop_last: bool = True,
     mode: MixMode = "replace",
-    **dataset_kwargs: Any,
+    config: Optional[LoaderConfig] = None,
+    backgrounds: Any = None,
+    poses: Optional[PoseSource] = None,
+    refiner: Optional[Refiner] = None,
+    **options: Any,
 ) -> MixedLoader:
     """Mix synthetic HOGSA samples into an ARCTIC train loader.
 
@@ -81,20 +95,22 @@ def wrap_train_loader(
             :class:`~hogsa_loader.datasets.ArcticDataset`).
         num_workers: DataLoader workers of the synthetic stream (CPU rendering only;
             keep 0 with ``device="cuda"`` — workers must not touch CUDA).
-        device: rendering device.
-        seed: synthetic stream seed.
         drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader` (``"replace"`` only;
             with ``"add"`` the train loader's own ``drop_last`` applies).
         mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
             their share is about ``ratio``); see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
-        **dataset_kwargs: more :class:`~hogsa_loader.loader.dataset.HOGSADataset`
-            arguments (``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...);
-            ``protocol``, ``config`` and ``interfield`` default to the real dataset's (so
-            both halves of a batch have the same keys; the protocol is read from
-            ``.setup`` or, for ARCTIC's own dataset, ``.args.setup``, through ``Subset``
-            wrappers; ``p1a``/``p2a`` count as ``p1``/``p2``). Pass ``protocol=`` when the
-            real dataset says neither (the default is then ``p1``, allocentric).
+        config: the synthetic stream's :class:`~hogsa_loader.loader.config.LoaderConfig`.
+        backgrounds, poses, refiner: explicit objects, as for
+            :class:`~hogsa_loader.loader.dataset.HOGSADataset`.
+        **options: loader options by name, applied to ``config``
+            (:func:`~hogsa_loader.loader.config.with_options`: ``device``, ``seed``,
+            ``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...). ``protocol``,
+            ``arctic`` (the sample config) and ``interfield`` default to the real dataset's (so
+            both halves of a batch have the same keys; the protocol is read from ``.setup``
+            or, for ARCTIC's own dataset, ``.args.setup``, through ``Subset`` wrappers;
+            ``p1a``/``p2a`` count as ``p1``/``p2``). Pass ``protocol=`` when the real
+            dataset says neither (the default is then ``p1``, allocentric).
 
     Returns:
         a :class:`~hogsa_loader.loader.mixing.MixedLoader`.
@@ -103,18 +119,12 @@ def wrap_train_loader(
     root = data_root if data_root is not None else _root_of(real_ds)
     if root is None:
         raise ValueError("data_root is needed (the train loader's dataset does not say where its data is)")
-    if "protocol" not in dataset_kwargs:
-        protocol = _loader_protocol(real_ds)
-        if protocol is not None:
-            dataset_kwargs["protocol"] = protocol
-    if hasattr(real_ds, "cfg"):
-        dataset_kwargs.setdefault("config", real_ds.cfg)  # type: ignore[union-attr]
-    if hasattr(real_ds, "interfield"):
-        dataset_kwargs.setdefault("interfield", real_ds.interfield)  # type: ignore[union-attr]
-    syn = HOGSADataset(bundle, root, device=device, seed=seed, **dataset_kwargs)
+    config = LoaderConfig() if config is None else config
+    config = with_options(config, **_real_options(real_ds, config, options), **options)
+    syn = HOGSADataset(bundle, root, config, backgrounds=backgrounds, poses=poses, refiner=refiner)
     source: Any = syn
     if num_workers > 0:
-        if device.startswith("cuda"):
+        if syn.device.startswith("cuda"):
             raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
         source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
     return MixedLoader(train_loader, source, ratio, drop_last=drop_last, mode=mode)

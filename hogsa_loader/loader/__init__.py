@@ -1,5 +1,7 @@
 """The synthetic loader: HOGS renders turned into ArcticNet-SF samples.
 
+* :mod:`~hogsa_loader.loader.config` — :class:`LoaderConfig`, every setting of the loader, in groups;
+* :mod:`~hogsa_loader.loader.plan` — the random streams and :class:`BatchPlan` (one render batch);
 * :mod:`~hogsa_loader.loader.frame` — :class:`SynthFrame`, a composited crop + labels;
 * :mod:`~hogsa_loader.loader.cameras` — novel / dataset cameras (:class:`CameraSampler`);
 * :mod:`~hogsa_loader.loader.poses` — pluggable pose sources (``"perturb"``, registry);
@@ -13,13 +15,23 @@
 
 from hogsa_loader.loader.bank_poses import BankPoses
 from hogsa_loader.loader.cameras import CameraConfig, CameraSampler
+from hogsa_loader.loader.config import (
+    BackgroundConfig,
+    LoaderConfig,
+    PoseConfig,
+    RefinementConfig,
+    RunConfig,
+    SampleChecks,
+    SampleConfig,
+    with_options,
+)
 from hogsa_loader.loader.dataset import HOGSADataset, shard_info
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.mixing import MixedLoader, num_synthetic
 from hogsa_loader.loader.online_poses import OnlinePoses
+from hogsa_loader.loader.plan import BatchPlan
 from hogsa_loader.loader.poses import PoseBatch, PoseContext, PoseSource, register_pose_source
 from hogsa_loader.loader.synth import (
-    SampleChecks,
     SynthPipeline,
     SynthStats,
     frame_to_sample,
@@ -28,16 +40,23 @@ from hogsa_loader.loader.synth import (
 )
 
 __all__ = [
+    "BackgroundConfig",
     "BankPoses",
+    "BatchPlan",
     "CameraConfig",
     "CameraSampler",
     "HOGSADataset",
+    "LoaderConfig",
     "MixedLoader",
     "OnlinePoses",
     "PoseBatch",
+    "PoseConfig",
     "PoseContext",
     "PoseSource",
+    "RefinementConfig",
+    "RunConfig",
     "SampleChecks",
+    "SampleConfig",
     "SynthFrame",
     "SynthPipeline",
     "SynthStats",
@@ -47,4 +66,5 @@ __all__ = [
     "parse_synthetic_imgname",
     "register_pose_source",
     "shard_info",
+    "with_options",
 ]

@@ -17,6 +17,7 @@ import torch
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.loader.poses import PoseBatch, PoseContext, register_pose_source
+from hogsa_loader.pom.bank import load_pose_bank
 
 __all__ = ["BankPoses"]
 
@@ -39,8 +40,6 @@ class BankPoses:
     name = "bank"
 
     def __init__(self, context: PoseContext, banks: Optional[Sequence[Any]] = None, accepted_only: bool = True) -> None:
-        from hogsa_loader.pom.bank import load_pose_bank
-
         if banks is None:
             entries = getattr(context.bundle, "pose_banks", {}) or {}
             banks = [e.path for e in entries.values()]

@@ -30,6 +30,13 @@ import torch
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.loader.poses import PoseBatch, PoseContext, register_pose_source, split_sequences
+from hogsa_loader.pom.contactnet import load_contactnet
+from hogsa_loader.pom.hands import hand_infos
+from hogsa_loader.pom.objects import ObjectSet
+from hogsa_loader.pom.optimize import POMConfig, optimise_grasps
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION, perturb
+from hogsa_loader.pom.pipeline import contact_frames
+from hogsa_loader.pom.state import GraspState
 
 __all__ = ["OnlinePoses"]
 
@@ -62,13 +69,6 @@ class OnlinePoses:
         perturb_scale: float = 1.0,
         contact_threshold: float = 0.005,
     ) -> None:
-        from hogsa_loader.pom.contactnet import load_contactnet
-        from hogsa_loader.pom.hands import hand_infos
-        from hogsa_loader.pom.objects import ObjectSet
-        from hogsa_loader.pom.optimize import POMConfig
-        from hogsa_loader.pom.perturb import KEEP_ARTICULATION
-        from hogsa_loader.pom.pipeline import contact_frames
-
         if contactnet is None:
             entry = getattr(context.bundle, "contactnet", None)
             if entry is None:
@@ -117,10 +117,6 @@ class OnlinePoses:
 
     def optimize(self, key: tuple[str, str], batch: PoseBatch) -> PoseBatch:
         """Perturb each sample with its own seed, then optimise the batch together."""
-        from hogsa_loader.pom.optimize import optimise_grasps
-        from hogsa_loader.pom.perturb import perturb
-        from hogsa_loader.pom.state import GraspState
-
         fr = self.frames[key]
         rows = [int(p["row"]) for p in batch.provenance]
         ref = fr.state.select(rows)

@@ -199,10 +199,10 @@ POSE_SOURCES: dict[str, PoseFactory] = {"perturb": PerturbPoses}
 
 
 def register_pose_source(name: str, factory: PoseFactory) -> None:
-    """Make ``HOGSADataset(poses=name)`` use ``factory(context, **pose_options)``.
+    """Make the loader setting ``PoseConfig(kind=name)`` use ``factory(context, **options)``.
 
     Args:
-        name: the ``poses`` string (e.g. ``"bank"``, ``"online"``).
+        name: the pose-source name (e.g. ``"bank"``, ``"online"``).
         factory: callable ``(PoseContext, **options) -> PoseSource``.
     """
     POSE_SOURCES[str(name)] = factory

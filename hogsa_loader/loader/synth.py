@@ -1,30 +1,23 @@
-"""The synthetic pipeline: poses → crop → one batched render → refine → composite → samples.
+"""The synthetic pipeline: one render batch of one HOGS model → SynthFrames.
 
-:class:`SynthPipeline` makes B :class:`~hogsa_loader.loader.frame.SynthFrame` s of one
-(subject, object) HOGS model at a time:
+:class:`SynthPipeline` renders a :class:`~hogsa_loader.loader.plan.BatchPlan` (seed,
+epoch, model, sample indices) through named stages, each a method:
 
-1. **pose** — the pose source gives B poses (world frame); the MANO layers and the
-   object layer give the labels' 3D points (joints, object keypoints/box corners/vertices)
-   exactly as ARCTIC's processing does; the camera sampler gives B cameras around the
-   interaction centre; the ARCTIC crop box is computed from the projected object vertices
-   (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`) and the validity flags
-   from the full-image projections (:func:`~hogsa_loader.datasets.conventions.validity_flags`).
-2. **pom** — the pose source's optional ``optimize`` step (samples it marks
-   ``provenance["dropped"] = reason`` are dropped and counted under that reason).
-3. **render** — ONE :meth:`HogsModel.render` call for the batch, directly into the crop:
-   an ``S × S`` image laid out like ARCTIC's cropped images (the box enlarged 1.5×), with
-   ``render_intrinsics(cropped_intrinsics(K, box, S))`` so that pixel i shows label
-   coordinate i.
-4. **srm** — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
-   (B, S, S, 1)).
-5. **composite** — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`).
-6. **targets** — sanity checks (dropped samples are counted by reason in
-   :class:`SynthStats`), then :func:`frame_to_sample` = ARCTIC's augmentation and target
-   construction through :func:`~hogsa_loader.datasets.sample.make_arctic_sample`, the very
-   function real samples go through.
+1. ``poses`` — the pose source's B poses (world frame), its optional POM ``optimize``
+   step, and the labels' 3D points from the MANO and object layers;
+2. ``views`` — cameras, the ARCTIC crop box and validity flags; samples behind the camera
+   or with NaN poses are dropped here, before rendering;
+3. ``render`` — ONE :meth:`HogsModel.render` call straight into the ``S × S`` crop (laid
+   out like ARCTIC's cropped images), lens distortion resampled where the view has one;
+4. ``refine`` — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
+   (B, S, S, 1));
+5. ``composite`` — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`);
+6. ``labels`` and ``checks`` — the camera-frame labels of each sample, then the sanity
+   checks (dropped samples are counted by reason in :class:`SynthStats`) and the frame.
 
-Every random draw of sample ``i`` comes from generators seeded by ``(seed, epoch, i)``
-(:func:`sample_rng`), so a sample can be regenerated from its seed and index alone.
+:func:`frame_to_sample` then applies ARCTIC's augmentation and target construction through
+:func:`~hogsa_loader.datasets.sample.make_arctic_sample`, the function real samples go
+through. Every random draw comes from the streams of :mod:`~hogsa_loader.loader.plan`.
 """
 
 from __future__ import annotations
@@ -32,7 +25,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Mapping, Optional, Sequence
+from typing import Any, Callable, Iterator, Mapping, Optional
 
 import numpy as np
 import torch
@@ -43,8 +36,11 @@ from hogsa_loader.datasets.augment import ArcticConfig, AugParams
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, CROPPED_SIZE, EGO_IMAGE_SCALE
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
+from hogsa_loader.compose import composite
 from hogsa_loader.loader.cameras import CameraSampler
+from hogsa_loader.loader.config import SampleChecks
 from hogsa_loader.loader.frame import SynthFrame
+from hogsa_loader.loader.plan import STREAM_AUG, BatchPlan, sample_rng
 from hogsa_loader.loader.poses import PoseBatch, PoseSource
 from hogsa_loader.loader.views import ViewGeometry, allocentric_views, apply_warp, egocentric_views
 
@@ -55,6 +51,8 @@ __all__ = [
     "SynthStats",
     "SynthPipeline",
     "Refiner",
+    "BatchPlan",
+    "STREAM_AUG",
     "frame_to_sample",
     "source_scale",
     "sample_rng",
@@ -68,22 +66,12 @@ __all__ = [
 STAGES: tuple[str, ...] = ("pose", "pom", "render", "srm", "composite", "targets")
 #: Reasons a sample is dropped (keys of :attr:`SynthStats.dropped`).
 DROP_REASONS: tuple[str, ...] = ("nan", "behind_camera", "empty_alpha", "out_of_crop", "label_pixel_mismatch", "pom")
-#: Random streams of one sample (the second entry of its seed sequence).
-_STREAM_POSE, _STREAM_CAMERA, _STREAM_BACKGROUND, STREAM_AUG = 0, 1, 2, 3
 #: Prefix of synthetic ``meta_info["imgname"]`` values.
 SYNTH_PREFIX = "./hogsa_synth/"
 
 Refiner = Callable[[Tensor, Tensor], Tensor]
-
-
-def sample_rng(seed: int, epoch: int, index: int, stream: int) -> np.random.Generator:
-    """The numpy generator of one random stream of sample ``index``.
-
-    Args:
-        seed: the loader's seed; epoch: its epoch; index: global sample index;
-        stream: 0 pose, 1 camera, 2 background, 3 augmentation.
-    """
-    return np.random.default_rng([int(seed), int(epoch), int(index), int(stream)])
+#: The default drop rules.
+DEFAULT_CHECKS = SampleChecks()
 
 
 def synthetic_imgname(subject: str, obj: str, seed: int, epoch: int, view: int, index: int) -> str:
@@ -111,32 +99,6 @@ def parse_synthetic_imgname(imgname: str) -> dict[str, Any]:
     seed, _, epoch = tag[1:].partition("e")
     return {"subject": sid, "object": obj, "seed": int(seed), "epoch": int(epoch), "view": int(view),
             "index": int(fname.split(".")[0])}
-
-
-@dataclass(frozen=True)
-class SampleChecks:
-    """When a synthetic sample is dropped.
-
-    Attributes:
-        min_alpha_pixels: fewer crop pixels with alpha > 0.5 → ``empty_alpha`` (the object's
-            own part alpha is held to the same minimum).
-        hands: ``"any"`` drops a sample when any hand is invalid (out of the crop per
-            ARCTIC's validity flags), ``"both"`` only when both are, ``"none"`` never;
-            an invalid object (``is_valid`` = 0) is always dropped → ``out_of_crop``.
-        min_on_alpha: a valid hand (or the object) whose in-crop 2D keypoints lie on the
-            rendered alpha less often than this → ``label_pixel_mismatch``.
-        near_m: any joint / object vertex closer than this to the camera plane →
-            ``behind_camera``.
-    """
-
-    min_alpha_pixels: int = 64
-    hands: str = "any"
-    min_on_alpha: float = 0.8
-    near_m: float = 0.05
-
-    def __post_init__(self) -> None:
-        if self.hands not in ("any", "both", "none"):
-            raise ValueError(f"SampleChecks.hands must be 'any', 'both' or 'none', got {self.hands!r}")
 
 
 @dataclass
@@ -274,6 +236,38 @@ def _finite(*arrays: Any) -> bool:
     return all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
 
 
+@dataclass
+class _Posed:
+    """Output of the ``poses`` stage: the pose batch, world-frame label points (float64
+    ``joints.right|left`` (B,21,3), ``kp3d`` (B,32,3), ``bbox3d`` (B,16,3), ``verts``
+    (B,V,3)) and the posed hand vertices ``{side: (B, Vh, 3)}``."""
+
+    batch: PoseBatch
+    geo: dict[str, np.ndarray]
+    hand_verts: dict[str, Tensor]
+
+
+@dataclass
+class _Viewed:
+    """Output of the ``views`` stage: the view geometry, the hands' camera-frame global
+    orientations ``{side: (B, 3)}`` and the positions of the samples to render."""
+
+    vg: ViewGeometry
+    rot_cam: dict[str, np.ndarray]
+    keep: list[int]
+
+
+@dataclass
+class _Pixels:
+    """Output of the ``composite`` stage, for the kept samples (b = len(keep)): images
+    (b, Ho, Wo, 3) uint8, alpha (b, Ho, Wo), part alpha (b, Ho, Wo, 3), finite rgb (b,)."""
+
+    images: np.ndarray
+    alpha: np.ndarray
+    parts: np.ndarray
+    rgb_finite: np.ndarray
+
+
 class SynthPipeline:
     """Synthetic frames of the bundle's HOGS models (see module docstring).
 
@@ -291,7 +285,6 @@ class SynthPipeline:
         checks: :class:`SampleChecks`.
         stats: counters to update (a new :class:`SynthStats` by default).
         backend: renderer backend (``"auto"``, ``"torch"``, ``"gsplat"``).
-        seed, epoch: the seed sequence prefix of every sample's generators.
         interfield: optional :class:`~hogsa_loader.datasets.interfield.InterFieldTargets`;
             its targets are attached to every kept frame (``SynthFrame.extra_targets``).
         protocol: ``"p1"`` (allocentric; ``cameras`` maps subject → CameraSampler) or
@@ -310,11 +303,9 @@ class SynthPipeline:
         render_size: int,
         device: torch.device | str = "cpu",
         refiner: Optional[Refiner] = None,
-        checks: SampleChecks = SampleChecks(),
+        checks: SampleChecks = DEFAULT_CHECKS,
         stats: Optional[SynthStats] = None,
         backend: str = "auto",
-        seed: int = 0,
-        epoch: int = 0,
         interfield: Optional[Any] = None,
         protocol: str = "p1",
         ego_distortion: bool = True,
@@ -337,8 +328,6 @@ class SynthPipeline:
         self.stats = stats if stats is not None else SynthStats()
         self.backend = backend
         self.last_backend: Optional[str] = None  # the renderer "auto" resolved to, at the last render
-        self.seed = int(seed)
-        self.epoch = int(epoch)
         self.layers = root.mano_layers(torch.float64)
         self.object_layer = root.object_layer()
         self.kp_bottom = {n: np.asarray(t.kp_bottom, dtype=np.float32)
@@ -352,7 +341,50 @@ class SynthPipeline:
             self._models[key] = self._model_fn(key)
         return self._models[key]
 
-    # ------------------------------------------------------------------ geometry
+    def _drop(self, reason: str) -> None:
+        self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
+
+    # ------------------------------------------------------------------ main entry
+    def frames(self, plan: BatchPlan) -> list[Optional[SynthFrame]]:
+        """Render the samples of ``plan`` (one model, one batch).
+
+        Returns:
+            one entry per index of ``plan.indices``: the :class:`SynthFrame`, or None when
+            the sample was dropped (the reason is counted in :attr:`stats`).
+        """
+        B = len(plan.indices)
+        results: list[Optional[SynthFrame]] = [None] * B
+        if B == 0:
+            return results
+        self.stats.batches += 1
+        self.stats.attempted += B
+        posed = self._poses(plan)
+        viewed = self._views(plan, posed)
+        if viewed.keep:
+            rgb, alpha, part_alpha = self._render(plan, posed, viewed)
+            rgb = self._refine(rgb, alpha)
+            pixels = self._composite(plan, viewed, rgb, alpha, part_alpha)
+            with self.stats.timed("targets"):
+                for j, b in enumerate(viewed.keep):
+                    results[b] = self._frame(plan, b, posed, viewed, pixels, j)
+                self._interfield(plan, posed, results)
+        self.stats.kept += sum(r is not None for r in results)
+        return results
+
+    # ------------------------------------------------------------------ stages
+    def _poses(self, plan: BatchPlan) -> _Posed:
+        """Stage ``poses``: B poses of the pose source (and its POM step), posed label points."""
+        st = self.stats
+        with st.timed("pose"):
+            batch = self.pose_source.sample(plan.key, plan.rngs("pose"))
+        optimize = getattr(self.pose_source, "optimize", None)
+        if optimize is not None:
+            with st.timed("pom", self.device):
+                batch = optimize(plan.key, batch)
+        with st.timed("pose"):
+            geo, hand_verts = self._geometry(plan.key, batch)
+        return _Posed(batch, geo, hand_verts)
+
     def _geometry(self, key: tuple[str, str], batch: PoseBatch) -> tuple[dict[str, np.ndarray], dict[str, Tensor]]:
         """World-frame label points: joints (B,21,3) per hand, kp3d (B,32,3), bbox3d (B,16,3),
         object vertices (B,V,3), float64; and the hand vertices ``{side: (B, Vh, 3)}`` (kept
@@ -374,45 +406,18 @@ class SynthPipeline:
         out["verts"] = res["v"].double().numpy()
         return out, hand_verts
 
-    def _drop(self, reason: str) -> None:
-        self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
-
-    # ------------------------------------------------------------------ main entry
-    def frames(self, key: tuple[str, str], indices: Sequence[int]) -> list[Optional[SynthFrame]]:
-        """Render the samples ``indices`` of model ``key`` in one batch.
-
-        Args:
-            key: ``(subject, object)`` of a HOGS model.
-            indices: global sample indices (each fixes its own random streams).
-
-        Returns:
-            one entry per index: the :class:`SynthFrame`, or None when the sample was
-            dropped (the reason is counted in :attr:`stats`).
-        """
-        indices = [int(i) for i in indices]
-        B = len(indices)
-        S = self.render_size
-        st = self.stats
-        results: list[Optional[SynthFrame]] = [None] * B
-        if B == 0:
-            return results
-        st.batches += 1
-        st.attempted += B
-        sid, obj = key
-        with st.timed("pose"):
-            batch = self.pose_source.sample(key, [sample_rng(self.seed, self.epoch, i, _STREAM_POSE) for i in indices])
-        optimize = getattr(self.pose_source, "optimize", None)
-        if optimize is not None:
-            with st.timed("pom", self.device):
-                batch = optimize(key, batch)
-        with st.timed("pose"):
-            geo, hand_verts = self._geometry(key, batch)
-            cam_rngs = [sample_rng(self.seed, self.epoch, i, _STREAM_CAMERA) for i in indices]
+    def _views(self, plan: BatchPlan, posed: _Posed) -> _Viewed:
+        """Stage ``views``: cameras and crops; drops NaN poses, samples behind the camera and
+        those the pose source marked ``provenance["dropped"]``."""
+        batch, B, S = posed.batch, len(plan.indices), self.render_size
+        with self.stats.timed("pose"):
+            cam_rngs = plan.rngs("camera")
+            cams = self.cameras[plan.key[0]]
             if self.protocol == "p2":
                 prov = batch.provenance or [{}] * B
-                vg = egocentric_views(self.cameras[sid], geo, prov, cam_rngs, S, self.ego_distortion)
+                vg = egocentric_views(cams, posed.geo, prov, cam_rngs, S, self.ego_distortion)
             else:
-                vg = allocentric_views(self.cameras[sid], geo, cam_rngs, S)
+                vg = allocentric_views(cams, posed.geo, cam_rngs, S)
             R_w2c = torch.as_tensor(vg.world2cam[:, :3, :3])
             rot_cam = {side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
                        for side in ("right", "left")}
@@ -420,7 +425,6 @@ class SynthPipeline:
             finite = np.isfinite(min_z)  # (a NaN pose would otherwise fail the depth test as "behind")
             front = finite & (min_z > self.checks.near_m)
         pose_drop = [p.get("dropped") for p in batch.provenance] if batch.provenance else [None] * B
-        keep = [b for b in range(B) if front[b] and not pose_drop[b]]
         for b in range(B):
             if pose_drop[b]:
                 self._drop(str(pose_drop[b]))
@@ -428,90 +432,92 @@ class SynthPipeline:
                 self._drop("nan")
             elif not front[b]:
                 self._drop("behind_camera")
-        if not keep:
-            return results
-        model = self.model(key)
-        dev = self.device
-        (Hr, Wr), (Ho, Wo) = vg.render_hw, vg.out_hw
-        with st.timed("render", dev):
+        return _Viewed(vg, rot_cam, [b for b in range(B) if front[b] and not pose_drop[b]])
+
+    def _render(self, plan: BatchPlan, posed: _Posed, viewed: _Viewed) -> tuple[Tensor, Tensor, Tensor]:
+        """Stage ``render``: one render call for the kept samples (b of them).
+
+        Returns:
+            rgb (b, Ho, Wo, 3) premultiplied on black, alpha (b, Ho, Wo, 1), part alpha
+            (b, Ho, Wo, 3), distortion applied where the view has one.
+        """
+        model, dev, vg, keep = self.model(plan.key), self.device, viewed.vg, viewed.keep
+        Hr, Wr = vg.render_hw
+        with self.stats.timed("render", dev):
             dtype = next(model.parameters()).dtype
-            poses = {k: v[keep].to(device=dev, dtype=dtype) for k, v in batch.poses.items()}
+            poses = {k: v[keep].to(device=dev, dtype=dtype) for k, v in posed.batch.poses.items()}
             viewmats = torch.as_tensor(vg.world2cam[keep], dtype=dtype, device=dev)[:, None]
             Ks = torch.as_tensor(vg.K_render[keep], dtype=dtype, device=dev)[:, None]
             with torch.no_grad():
                 out = model.render(poses, viewmats, Ks, Wr, Hr, render_mode="RGB", backend=self.backend)
             self.last_backend = str(out.meta.get("backend", self.backend))
-            rgb = out.rgb[:, 0]  # (b, Hr, Wr, 3) premultiplied on black
-            alpha = out.alpha[:, 0]  # (b, Hr, Wr, 1)
-            part_alpha = out.part_alpha[:, 0]  # (b, Hr, Wr, 3)
+            rgb, alpha, part_alpha = out.rgb[:, 0], out.alpha[:, 0], out.part_alpha[:, 0]
             if vg.warp is not None:  # lens distortion: resample the undistorted render
                 warped = apply_warp(torch.cat([rgb, alpha, part_alpha], -1), vg.warp[keep])
                 rgb, alpha, part_alpha = warped[..., :3], warped[..., 3:4], warped[..., 4:]
-        if self.refiner is not None:
-            with st.timed("srm", dev):
-                with torch.no_grad():
-                    rgb = self.refiner(rgb, alpha)
-        with st.timed("composite", dev):
-            from hogsa_loader.compose import composite
+        return rgb, alpha, part_alpha
 
+    def _refine(self, rgb: Tensor, alpha: Tensor) -> Tensor:
+        """Stage ``refine``: the refiner (SRM) on rgb (b, H, W, 3) given alpha (b, H, W, 1)."""
+        if self.refiner is None:
+            return rgb
+        with self.stats.timed("srm", self.device):
+            with torch.no_grad():
+                return self.refiner(rgb, alpha)
+
+    def _composite(self, plan: BatchPlan, viewed: _Viewed, rgb: Tensor, alpha: Tensor, part_alpha: Tensor) -> _Pixels:
+        """Stage ``composite``: each kept sample over its background (stream ``background``)."""
+        dev, (Ho, Wo) = self.device, viewed.vg.out_hw
+        with self.stats.timed("composite", dev):
             bgs = []
-            for b in keep:
-                g = torch.Generator().manual_seed(
-                    int(sample_rng(self.seed, self.epoch, indices[b], _STREAM_BACKGROUND).integers(2**62)))
+            for b in viewed.keep:
+                g = torch.Generator().manual_seed(int(plan.rng(b, "background").integers(2**62)))
                 bgs.append(self.backgrounds.sample(1, Ho, Wo, g))
             bg = torch.cat(bgs, 0).to(device=dev, dtype=rgb.dtype)
             img = composite(rgb, alpha, bg, clamp=True)
-            images = (img * 255.0).round_().to(torch.uint8).cpu().numpy()
-            alpha_np = alpha[..., 0].float().cpu().numpy()
-            parts_np = part_alpha.float().cpu().numpy()
-            rgb_finite = torch.isfinite(rgb.reshape(len(keep), -1)).all(1).cpu().numpy()
-        with st.timed("targets"):
-            for j, b in enumerate(keep):
-                results[b] = self._frame(key, indices[b], b, batch, vg, rot_cam, images[j], alpha_np[j], parts_np[j],
-                                         bool(rgb_finite[j]))
-            kept = [b for b in keep if results[b] is not None]
-            if self.interfield is not None and kept:
-                n_o = int(self.object_layer.v_len[self.object_layer.indices([obj])][0])
-                for b in kept:  # the meshes posed above: no second MANO / object pass
-                    results[b].extra_targets = self.interfield.from_vertices(  # type: ignore[union-attr]
-                        hand_verts["right"][b], hand_verts["left"][b], geo["verts"][b, :n_o])
-        st.kept += sum(r is not None for r in results)
-        return results
+            return _Pixels(
+                images=(img * 255.0).round_().to(torch.uint8).cpu().numpy(),
+                alpha=alpha[..., 0].float().cpu().numpy(),
+                parts=part_alpha.float().cpu().numpy(),
+                rgb_finite=torch.isfinite(rgb.reshape(len(viewed.keep), -1)).all(1).cpu().numpy(),
+            )
 
-    def _frame(self, key, index, b, batch, vg: ViewGeometry, rot_cam, image, alpha, part_alpha,
-               rgb_finite) -> Optional[SynthFrame]:
-        sid, obj = key
-        is_valid, right_valid, left_valid = (float(f[b]) for f in vg.flags)
-        P = batch.poses
-        cam, lab = vg.cam, vg.label2d
+    def _labels(self, plan: BatchPlan, b: int, posed: _Posed,
+                viewed: _Viewed) -> tuple[HandLabels, HandLabels, ObjectLabels]:
+        """Stage ``labels``: the camera-frame hand and object labels of sample ``b``."""
+        is_valid, right_valid, left_valid = (float(f[b]) for f in viewed.vg.flags)
+        P, cam, lab = posed.batch.poses, viewed.vg.cam, viewed.vg.label2d
 
         def hand(side: str, valid: float) -> HandLabels:
             return HandLabels(
-                pose48=np.concatenate([rot_cam[side][b], P[f"{side}_pose"][b].numpy()]).astype(np.float32),
+                pose48=np.concatenate([viewed.rot_cam[side][b], P[f"{side}_pose"][b].numpy()]).astype(np.float32),
                 betas=P[f"{side}_betas"][b].numpy().astype(np.float32),
                 j3d_full=cam[f"joints.{side}"][b].astype(np.float32),
                 j2d=lab[f"joints.{side}"][b],
                 valid=valid,
             )
 
-        right, left = hand("right", right_valid), hand("left", left_valid)
+        obj = plan.key[1]
         objl = ObjectLabels(
             name=obj, radian=float(P["obj_arti"][b].reshape(-1)[0]),
             kp3d_full=cam["kp3d"][b].astype(np.float32), bbox3d_full=cam["bbox3d"][b].astype(np.float32),
             kp2d=lab["kp3d"][b], bbox2d=lab["bbox3d"][b], valid=is_valid, kp_bottom_cano=self.kp_bottom[obj],
         )  # fmt: skip
+        return hand("right", right_valid), hand("left", left_valid), objl
+
+    def _check(self, b: int, vg: ViewGeometry, labels: tuple[HandLabels, HandLabels, ObjectLabels],
+               alpha: np.ndarray, part_alpha: np.ndarray, rgb_finite: bool) -> Optional[str]:
+        """Stage ``checks``: the drop reason of sample ``b`` (None: kept); alpha (S, S), part alpha (S, S, 3)."""
+        right, left, objl = labels
         if not rgb_finite or not _finite(right.pose48, left.pose48, right.j2d, left.j2d, right.j3d_full,
                                          left.j3d_full, objl.kp2d, objl.bbox2d, objl.kp3d_full, objl.radian):
-            self._drop("nan")
-            return None
+            return "nan"
         c = self.checks
         if int((alpha > 0.5).sum()) < c.min_alpha_pixels or int((part_alpha[..., 2] > 0.5).sum()) < c.min_alpha_pixels:
-            self._drop("empty_alpha")
-            return None
-        n_bad_hands = int(right_valid == 0) + int(left_valid == 0)
-        if is_valid == 0 or (c.hands == "any" and n_bad_hands) or (c.hands == "both" and n_bad_hands == 2):
-            self._drop("out_of_crop")
-            return None
+            return "empty_alpha"
+        n_bad_hands = int(right.valid == 0) + int(left.valid == 0)
+        if objl.valid == 0 or (c.hands == "any" and n_bad_hands) or (c.hands == "both" and n_bad_hands == 2):
+            return "out_of_crop"
         x0, y0, x1, y1 = vg.check_box
 
         def on_alpha(pts: np.ndarray) -> Optional[float]:
@@ -520,31 +526,49 @@ class SynthPipeline:
                 return None
             return float(joints_on_alpha(pts[inside], alpha).mean())
 
-        for side, h in (("right", right), ("left", left)):
-            if h.valid:
-                frac = on_alpha(vg.pix2d[f"joints.{side}"][b])
-                if frac is not None and frac < c.min_on_alpha:
-                    self._drop("label_pixel_mismatch")
-                    return None
-        frac = on_alpha(vg.pix2d["kp3d"][b])
-        if frac is not None and frac < c.min_on_alpha:
-            self._drop("label_pixel_mismatch")
+        points = [vg.pix2d[f"joints.{side}"][b] for side, h in (("right", right), ("left", left)) if h.valid]
+        for pts in [*points, vg.pix2d["kp3d"][b]]:
+            frac = on_alpha(pts)
+            if frac is not None and frac < c.min_on_alpha:
+                return "label_pixel_mismatch"
+        return None
+
+    def _frame(self, plan: BatchPlan, b: int, posed: _Posed, viewed: _Viewed, pixels: _Pixels,
+               j: int) -> Optional[SynthFrame]:
+        """Labels, checks and the :class:`SynthFrame` of sample ``b`` (``j``-th kept one); None: dropped."""
+        vg = viewed.vg
+        labels = self._labels(plan, b, posed, viewed)
+        reason = self._check(b, vg, labels, pixels.alpha[j], pixels.parts[j], bool(pixels.rgb_finite[j]))
+        if reason is not None:
+            self._drop(reason)
             return None
-        view = int(vg.view[b])
+        (sid, obj), index, view = plan.key, plan.indices[b], int(vg.view[b])
+        batch = posed.batch
         # the pose source's provenance first: the sample's own identity keys always win
         meta = {
             **(batch.provenance[b] if batch.provenance else {}), **self.source_sizes,
-            "seed": self.seed, "epoch": self.epoch, "index": int(index), "subject": sid, "object": obj,
+            "seed": plan.seed, "epoch": plan.epoch, "index": int(index), "subject": sid, "object": obj,
             "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
         }  # fmt: skip
         if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
             meta["dist"] = [float(x) for x in vg.dist[b]]  # type: ignore[index]
+        right, left, objl = labels
         return SynthFrame(
-            image=image, alpha=alpha.astype(np.float32), part_alpha=part_alpha.astype(np.float32),
+            image=pixels.images[j], alpha=pixels.alpha[j].astype(np.float32),
+            part_alpha=pixels.parts[j].astype(np.float32),
             bbox=np.asarray(vg.box_img[b], dtype=np.float64), K_full=np.asarray(vg.K_full[b], dtype=np.float64),
             image_size=(int(vg.image_size[b, 0]), int(vg.image_size[b, 1])), right=right, left=left, obj=objl,
-            imgname=synthetic_imgname(sid, obj, self.seed, self.epoch, view, index), meta=meta,
+            imgname=synthetic_imgname(sid, obj, plan.seed, plan.epoch, view, index), meta=meta,
             egocentric=vg.egocentric, dist=None if vg.dist is None else np.asarray(vg.dist[b], dtype=np.float64),
         )  # fmt: skip
 
+    def _interfield(self, plan: BatchPlan, posed: _Posed, results: list[Optional[SynthFrame]]) -> None:
+        """The InterField-SF targets of the kept frames, from the meshes posed in ``poses``."""
+        kept = [b for b, r in enumerate(results) if r is not None]
+        if self.interfield is None or not kept:
+            return
+        n_o = int(self.object_layer.v_len[self.object_layer.indices([plan.key[1]])][0])
+        for b in kept:
+            results[b].extra_targets = self.interfield.from_vertices(  # type: ignore[union-attr]
+                posed.hand_verts["right"][b], posed.hand_verts["left"][b], posed.geo["verts"][b, :n_o])
