@@ -303,7 +303,8 @@ def test_gradcheck_rgb_parts_depth():
 
     def fn(m, q, s, o, c):
         out = render_gaussians(m[None], q[None], s[None], o[None], c[None], torch.eye(4, dtype=torch.float64)[None, None],
-                               K[None, None], 8, 8, _settings(num_parts=2, tile_size=4), backgrounds=bg, part_ids=part_ids)  # fmt: skip
+                               K[None, None], 8, 8, _settings(num_parts=2, tile_size=4),
+                               backgrounds=bg, part_ids=part_ids)  # fmt: skip
         return out.rgb, out.alpha, out.depth, out.part_alpha
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
@@ -485,7 +486,8 @@ def test_empty_scene_gives_background(n):
     cols = torch.rand(1, n, 3)
     bg = torch.tensor([[[0.2, 0.5, 0.7]]])
     out = render_gaussians(means, quats, scales, opac, cols, torch.eye(4)[None, None], K[None, None], 20, 17,
-                           _settings(num_parts=2), backgrounds=bg, part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
+                           _settings(num_parts=2), backgrounds=bg,
+                           part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
     assert out.rgb.shape == (1, 1, 17, 20, 3)
     assert torch.equal(out.rgb, bg[:, :, None, None, :].expand(1, 1, 17, 20, 3))
     assert out.alpha.eq(0).all() and out.depth.eq(0).all() and out.part_alpha.eq(0).all()
@@ -554,8 +556,10 @@ def test_compositor_choice_is_checked():
     with pytest.raises(ValueError, match="compositor must be"):
         render_gaussians(*args, _settings(compositor="cuda"))
     with pytest.raises(ValueError, match="float32 or float64"):
-        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args), _settings(compositor="numba"))
-    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args), _settings(compositor="auto"))
+        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args),
+                         _settings(compositor="numba"))
+    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args),
+                            _settings(compositor="auto"))
     assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor
     # opacities above 1 reach beyond the radius, where the kernels do not look: the PyTorch path
     big = (means[None], quats[None], scales[None] * 4, (opac[None] * 3).clamp(min=1.5), cols[None],

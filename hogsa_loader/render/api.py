@@ -67,89 +67,97 @@ def render(
 ) -> RenderOutput:
     """Rasterize 3D Gaussians into B x C images (gsplat 1.5.3 ``rasterization`` conventions).
 
-    Batching: B samples (scenes), each with the same number N of Gaussians (pad with
-    zero-opacity Gaussians) and C cameras. The batched layout is below; an unbatched call
-    drops the leading B everywhere (means (N, 3), viewmats (C, 4, 4), ... ) and gets
-    outputs without it (rgb (C, H, W, 3), ...). Every tensor must be on one device, and
-    every floating tensor must have one dtype (float32 or float64; gsplat: float32).
-
-    Conventions: world-to-camera ``viewmats`` in the OpenCV convention (x right, y down,
-    z forward; ``p_cam = R p + t``); pinhole ``Ks`` (skew ignored); pixel (row i, col j)
-    is sampled at ``(j + 0.5, i + 0.5)``; 2D covariance ``J R Sigma R^T J^T + eps2d I``;
-    ``alpha = min(0.999, o exp(-q/2))``, samples with ``alpha < 1/255`` skipped, a pixel
-    stops before its transmittance would reach 1e-4; front-to-back compositing by
-    camera-space z; ``rgb = sum_i c_i alpha_i T_i + T_final * background``.
+    B samples (scenes) of N Gaussians each (pad with zero-opacity Gaussians), seen by C
+    cameras; an unbatched call drops the leading B of every input and output. All tensors
+    share one device and one float dtype (float32 or float64; gsplat: float32).
+    Conventions (details in :mod:`hogsa_loader.render.gaussians`): OpenCV world-to-camera
+    ``viewmats`` (x right, y down, z forward; ``p_cam = R p + t``), pinhole ``Ks`` (skew
+    ignored), pixel (row i, col j) sampled at ``(j + 0.5, i + 0.5)``, 2D covariance
+    ``J R Sigma R^T J^T + eps2d I``, ``alpha = min(0.999, o exp(-q/2))`` (below 1/255
+    skipped; a pixel stops before its transmittance would reach 1e-4), front to back by
+    camera z, ``rgb = sum_i c_i alpha_i T_i + T_final * background``.
 
     Args:
         means: (B, N, 3) world-space Gaussian centres.
         quats: (B, N, 4) rotations as quaternions in **wxyz** order (normalised inside).
         scales: (B, N, 3) per-axis standard deviations, **linear** (not log-scales).
         opacities: (B, N) in [0, 1] (sigmoid already applied); below 1/255 culls.
-        colors: with ``sh_degree=None``, colour features (B, N, D) or per camera
-            (B, C, N, D), any D >= 1, used as given (no offset, no clamp). With
-            ``sh_degree``, SH coefficients (B, N, K, 3) or (B, C, N, K, 3),
-            K >= (sh_degree + 1)^2, gsplat / Inria order (index l^2 + l + m);
-            colour = ``max(SH(mean - camera centre) + 0.5, 0)``.
-        viewmats: (B, C, 4, 4) world-to-camera matrices (OpenCV, ``inv(cam_to_world)``).
-        Ks: (B, C, 3, 3) intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
-            Not differentiable with the gsplat backend.
+        colors: with ``sh_degree=None``, features (B, N, D) or per camera (B, C, N, D),
+            any D >= 1, used as given (no offset, no clamp); with ``sh_degree``, SH
+            coefficients (B, N, K, 3) or (B, C, N, K, 3), K >= (sh_degree + 1)^2, gsplat /
+            Inria order (index l^2 + l + m), colour ``max(SH(mean - camera centre) + 0.5, 0)``.
+        viewmats: (B, C, 4, 4) world-to-camera matrices (``inv(cam_to_world)``).
+        Ks: (B, C, 3, 3) ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` px (no gradient via gsplat).
         width, height: image size W, H in pixels.
-        backgrounds: (B, C, D) colour behind the Gaussians (D = 3 with SH), or None (0).
-            Part and depth channels always have background 0.
-        part_ids: (B, N) integer part index in [0, num_parts), or -1 for none; needed iff
-            ``num_parts > 0``.
+        backgrounds: (B, C, D) colour behind the Gaussians (D = 3 with SH), or None (0);
+            part and depth channels always have background 0.
+        part_ids: (B, N) integer part in [0, num_parts), or -1 for none (iff num_parts > 0).
         backend, sh_degree, near_plane, far_plane, render_mode, num_parts, packed,
-        antialiased, eps2d, debug: the fields of
-            :class:`~hogsa_loader.render.settings.RenderSettings`, built once here.
-        **torch_backend_options: the torch backend's ``RenderSettings`` fields
-            ``tile_size`` (16), ``chunk``, ``tile_batch``, ``checkpoint``, ``compositor``,
-            and ``valid`` ((B, N) bool, False = padding). With the gsplat backend
-            ``tile_size`` is passed on, ``valid`` becomes opacity 0, the speed knobs are
-            ignored. Any other name is a TypeError.
-
-    The first call on CPU tensors sets this process's glibc allocator to keep freed memory
-    (:func:`hogsa_loader.system.keep_allocator_memory`; ``HOGSA_KEEP_MEMORY=0`` opts out).
+        antialiased, eps2d, debug: the :class:`~hogsa_loader.render.settings.RenderSettings`
+            fields of the same names (one settings object is built here for the backend).
+        **torch_backend_options: the ``RenderSettings`` fields ``tile_size`` (16; also
+            used by gsplat), ``chunk``, ``tile_batch``, ``checkpoint`` and ``compositor``
+            (ignored by gsplat), and ``valid`` ((B, N) bool, False = padding; gsplat:
+            opacity 0). Any other name is a TypeError.
 
     Returns:
-        :class:`~hogsa_loader.render.gaussians.RenderOutput`: ``rgb`` (B, C, H, W, D),
-        background included; ``alpha`` (B, C, H, W, 1) = 1 - final transmittance;
-        ``depth`` (B, C, H, W, 1) per ``render_mode`` or None for "RGB"; ``part_alpha``
-        (B, C, H, W, P) = the compositing weights summed per part, or None; ``meta``:
-        ``backend``, ``backend_reason``, ``render_mode``, ``antialiased``, ``batched``,
-        plus the backend's projection results in the batched layout (torch: ``radii``
-        (B, C, N, 2), ``means2d``, ``depths``, ``conics``, ``colors``, ``n_isects``, ...;
-        gsplat: its ``meta`` dict, packed: ``batch_ids``, ``gaussian_ids``, ...).
+        :class:`~hogsa_loader.render.gaussians.RenderOutput`: rgb (B, C, H, W, D),
+        alpha (B, C, H, W, 1), depth (B, C, H, W, 1) per ``render_mode`` (None for "RGB"),
+        part_alpha (B, C, H, W, P) or None; ``meta`` holds ``backend``,
+        ``backend_reason``, ``render_mode``, ``antialiased``, ``batched`` and the backend's
+        own results in the batched layout (torch: see ``RenderOutput``; gsplat: its
+        ``meta`` dict, packed: ``batch_ids``, ``gaussian_ids``, ``radii`` (nnz, 2), ...).
 
     Raises:
-        ValueError: bad shapes or values; TypeError: bad dtypes or unknown options;
-        BackendUnavailableError: ``backend="gsplat"`` cannot run here (CPU tensors, not
-            float32, no CUDA, gsplat missing or its CUDA extension not loadable). The
-            torch backend is always available; "auto" falls back to it.
+        ValueError / TypeError: bad shapes, values, dtypes or options; BackendUnavailableError:
+        ``backend="gsplat"`` cannot run here (CPU tensors, not float32, no CUDA, gsplat or
+        its CUDA extension missing; "auto" falls back to "torch").
+    """
+    settings = _settings(torch_backend_options, backend=backend, sh_degree=sh_degree, near_plane=near_plane,
+                         far_plane=far_plane, eps2d=eps2d, render_mode=render_mode, num_parts=num_parts,
+                         packed=packed, antialiased=antialiased, debug=debug)  # fmt: skip
+    x = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
+                  backgrounds=backgrounds, part_ids=part_ids, valid=torch_backend_options.get("valid"))  # fmt: skip
+    out = _run_backend(x, width, height, settings)
+    return out if x.batched else _unbatched(out)
+
+
+def _settings(torch_backend_options: dict[str, Any], **fields: Any) -> RenderSettings:
+    """The one :class:`RenderSettings` of a :func:`render` call.
+
+    Raises:
+        TypeError: an option outside :data:`TORCH_BACKEND_OPTIONS`.
     """
     unknown = sorted(set(torch_backend_options) - set(TORCH_BACKEND_OPTIONS))
     if unknown:
         raise TypeError(f"render() got unknown option(s) {unknown}; allowed: {list(TORCH_BACKEND_OPTIONS)}")
-    valid = torch_backend_options.pop("valid", None)
-    settings = RenderSettings(
-        backend=backend, sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
-        render_mode=render_mode, num_parts=num_parts, packed=packed, antialiased=antialiased, debug=debug,
-        **torch_backend_options,
-    )  # fmt: skip
-    x = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
-                  backgrounds=backgrounds, part_ids=part_ids, valid=valid)  # fmt: skip
-    chosen, reason = _choose_backend(backend, means.device, means.dtype, settings.tile_size)
+    return RenderSettings(**fields, **{k: v for k, v in torch_backend_options.items() if k != "valid"})
+
+
+def _run_backend(x: _Inputs, width: int, height: int, settings: RenderSettings) -> RenderOutput:
+    """Render validated, batched inputs with the backend ``settings.backend`` picks; the
+    choice is recorded in ``meta`` (with ``render_mode``, ``antialiased``, ``batched``).
+
+    The first torch-backend call on CPU tensors sets this process's glibc allocator to
+    keep freed memory (:func:`hogsa_loader.system.keep_allocator_memory`;
+    ``HOGSA_KEEP_MEMORY=0`` opts out).
+    """
+    chosen, reason = _choose_backend(settings.backend, x.means.device, x.means.dtype, settings.tile_size)
     if chosen == "torch" and x.means.device.type == "cpu":
         keep_allocator_memory()
     run = render_gsplat if chosen == "gsplat" else render_gaussians
     out = run(x.means, x.quats, x.scales, x.opacities, x.colors, x.viewmats, x.Ks, width, height, settings,
               backgrounds=x.backgrounds, part_ids=x.part_ids, valid=x.valid)  # fmt: skip
-    out.meta.update(
-        backend=chosen, backend_reason=reason, render_mode=render_mode, antialiased=antialiased, batched=x.batched
-    )
-    if not x.batched:
-        out.rgb, out.alpha = out.rgb[0], out.alpha[0]
-        out.depth = None if out.depth is None else out.depth[0]
-        out.part_alpha = None if out.part_alpha is None else out.part_alpha[0]
+    out.meta.update(backend=chosen, backend_reason=reason, render_mode=settings.render_mode,
+                    antialiased=settings.antialiased, batched=x.batched)  # fmt: skip
+    return out
+
+
+def _unbatched(out: RenderOutput) -> RenderOutput:
+    """Drop the leading B = 1 of the images (``meta`` stays batched)."""
+    out.rgb, out.alpha = out.rgb[0], out.alpha[0]
+    out.depth = None if out.depth is None else out.depth[0]
+    out.part_alpha = None if out.part_alpha is None else out.part_alpha[0]
     return out
 
 
