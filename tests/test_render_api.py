@@ -20,6 +20,7 @@ import hogsa_loader.render.api as api
 import hogsa_loader.render.gsplat_backend as gsplat_backend
 from hogsa_loader.render import BackendUnavailableError, RenderOutput, antialias_compensation, render
 from hogsa_loader.render.gaussians import render_gaussians
+from hogsa_loader.render.settings import RenderSettings
 
 # --------------------------------------------------------------------------------------
 # scenes
@@ -120,10 +121,9 @@ def _call(s: dict, **kw) -> RenderOutput:
 
 
 def _call_render_gaussians(s: dict, render_depth: bool) -> RenderOutput:
-    return render_gaussians(
-        *_positional(s), sh_degree=s["sh_degree"], part_ids=s.get("part_ids"), num_parts=s.get("num_parts", 0),
-        background=s.get("backgrounds"), render_depth=render_depth,
-    )  # fmt: skip
+    settings = RenderSettings(sh_degree=s["sh_degree"], num_parts=s.get("num_parts", 0),
+                              render_mode="RGB+ED" if render_depth else "RGB")  # fmt: skip
+    return render_gaussians(*_positional(s), settings, backgrounds=s.get("backgrounds"), part_ids=s.get("part_ids"))
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -345,8 +345,9 @@ def test_antialiased_equals_per_camera_renders():
             ref = render_gaussians(
                 s["means"][b : b + 1], s["quats"][b : b + 1], s["scales"][b : b + 1],
                 s["opacities"][b : b + 1] * rho[b : b + 1, c], s["colors"][b : b + 1],
-                s["viewmats"][b : b + 1, c : c + 1], s["Ks"][b : b + 1, c : c + 1], 48, 40, sh_degree=1,
-                part_ids=s["part_ids"][b : b + 1], num_parts=2, background=s["backgrounds"][b : b + 1, c : c + 1],
+                s["viewmats"][b : b + 1, c : c + 1], s["Ks"][b : b + 1, c : c + 1], 48, 40,
+                RenderSettings(sh_degree=1, num_parts=2, render_mode="RGB+ED"),
+                part_ids=s["part_ids"][b : b + 1], backgrounds=s["backgrounds"][b : b + 1, c : c + 1],
             )  # fmt: skip
             for name in ("rgb", "alpha", "depth", "part_alpha"):
                 torch.testing.assert_close(getattr(out, name)[b, c], getattr(ref, name)[0, 0], rtol=1e-5, atol=1e-6)
@@ -434,7 +435,7 @@ def test_torch_backend_options_pass_through():
     valid = torch.ones(1, 200, dtype=torch.bool)
     valid[0, ::3] = False
     out = _call(s, tile_size=8, chunk=5, tile_batch=7, valid=valid)
-    ref = render_gaussians(*_positional(s), tile_size=8, chunk=5, tile_batch=7, valid=valid, render_depth=False)
+    ref = render_gaussians(*_positional(s), RenderSettings(tile_size=8, chunk=5, tile_batch=7), valid=valid)
     assert torch.equal(out.rgb, ref.rgb) and out.meta["tile_size"] == 8
 
 

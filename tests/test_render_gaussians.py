@@ -15,14 +15,15 @@ from hogsa_loader.render.gaussians import (
     sh_colors,
     warm_up_compositor,
 )
+from hogsa_loader.render.settings import RenderSettings
 
 gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
 
 
 @pytest.fixture(autouse=True, params=["torch", "numba"])
 def compositor(request, monkeypatch):
-    """Run the test with ``render_gaussians``' default compositor set to each one."""
-    monkeypatch.setitem(render_gaussians.__kwdefaults__, "compositor", request.param)
+    """Run the test with ``RenderSettings``' default compositor set to each one."""
+    monkeypatch.setitem(RenderSettings.__init__.__kwdefaults__, "compositor", request.param)
     return request.param
 
 
@@ -102,11 +103,16 @@ def _brute_force(means, quats, scales, opac, cols, viewmat, K, W, H, bg):
     return rgb, alpha_img[..., None], (dep / alpha_img.clamp(min=1e-10))[..., None], n_stops
 
 
-def _render1(means, quats, scales, opac, cols, viewmat, K, W, H, **kw):
-    """Single-sample, single-camera wrapper."""
+def _settings(**kw) -> RenderSettings:
+    """Settings with expected depth ("RGB+ED") unless ``render_mode`` says otherwise."""
+    return RenderSettings(**{"render_mode": "RGB+ED", **kw})
+
+
+def _render1(means, quats, scales, opac, cols, viewmat, K, W, H, settings=None, **tensors):
+    """Single-sample, single-camera wrapper; ``tensors``: backgrounds, part_ids, valid."""
     return render_gaussians(
         means[None], quats[None], scales[None], opac[None], cols[None],
-        viewmat[None, None], K[None, None], W, H, **kw,
+        viewmat[None, None], K[None, None], W, H, _settings() if settings is None else settings, **tensors,
     )  # fmt: skip
 
 
@@ -188,7 +194,7 @@ def test_sh_colours_in_render_use_offset_and_view_direction():
     sh = torch.randn(50, 9, 3, generator=g) * 0.6
     view = _look_at((0.2, -0.1, 0.0))
     K = _intrinsics(60.0, 16.0, 16.0)
-    out = _render1(means, quats, scales, opac, sh, view, K, 32, 32, sh_degree=2)
+    out = _render1(means, quats, scales, opac, sh, view, K, 32, 32, _settings(sh_degree=2))
     campos = torch.linalg.inv(view)[:3, 3]
     expect = torch.clamp_min(gsplat_ref._spherical_harmonics(2, means - campos, sh) + 0.5, 0.0)
     torch.testing.assert_close(out.meta["colors"][0, 0], expect, rtol=1e-5, atol=1e-5)
@@ -235,7 +241,7 @@ def test_matches_brute_force(dtype):
     assert n_stops > 50  # the termination rule is exercised
     assert 0.3 < (ref_alpha > 0.5).float().mean() < 0.99
     args = [t.to(dtype) for t in (means, quats, scales, opac, cols, view, K)]
-    out = _render1(*args, W, H, background=bg.to(dtype)[None, None], chunk=16)
+    out = _render1(*args, W, H, _settings(chunk=16), backgrounds=bg.to(dtype)[None, None])
     tol = 1e-5 if dtype == torch.float64 else 1e-4
     torch.testing.assert_close(out.rgb[0, 0].double(), ref_rgb, atol=tol, rtol=0)
     torch.testing.assert_close(out.alpha[0, 0].double(), ref_alpha, atol=tol, rtol=0)
@@ -265,7 +271,7 @@ def test_independent_of_chunking(chunk, tile_batch):
     K = _intrinsics(100.0, 24.0, 20.0)
     view = _look_at((0.05, 0.0, 0.0))
     ref = _render1(means, quats, scales, opac, cols, view, K, 50, 40)
-    out = _render1(means, quats, scales, opac, cols, view, K, 50, 40, chunk=chunk, tile_batch=tile_batch)
+    out = _render1(means, quats, scales, opac, cols, view, K, 50, 40, _settings(chunk=chunk, tile_batch=tile_batch))
     torch.testing.assert_close(out.rgb, ref.rgb, atol=1e-5, rtol=0)  # float32 summation order
     torch.testing.assert_close(out.alpha, ref.alpha, atol=1e-5, rtol=0)
 
@@ -297,7 +303,8 @@ def test_gradcheck_rgb_parts_depth():
 
     def fn(m, q, s, o, c):
         out = render_gaussians(m[None], q[None], s[None], o[None], c[None], torch.eye(4, dtype=torch.float64)[None, None],
-                               K[None, None], 8, 8, background=bg, part_ids=part_ids, num_parts=2, tile_size=4)  # fmt: skip
+                               K[None, None], 8, 8, _settings(num_parts=2, tile_size=4),
+                               backgrounds=bg, part_ids=part_ids)  # fmt: skip
         return out.rgb, out.alpha, out.depth, out.part_alpha
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
@@ -312,7 +319,7 @@ def test_gradcheck_sh():
 
     def fn(m, q, s, o, c):
         out = render_gaussians(m[None], q[None], s[None], o[None], c[None], view[None, None], K[None, None], 8, 8,
-                               sh_degree=2, render_depth=False)  # fmt: skip
+                               RenderSettings(sh_degree=2))  # fmt: skip
         return out.rgb, out.alpha
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, sh)]
@@ -325,7 +332,7 @@ def test_checkpoint_gives_same_gradients():
     grads = []
     for ckpt in (False, True):
         ins = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
-        out = _render1(*ins, torch.eye(4), K, 40, 40, checkpoint=ckpt, tile_batch=2)
+        out = _render1(*ins, torch.eye(4), K, 40, 40, _settings(checkpoint=ckpt, tile_batch=2))
         (out.rgb * torch.linspace(0, 1, 3)).sum().add(out.depth.sum()).backward()
         grads.append([t.grad for t in ins])
     for g0, g1 in zip(*grads):
@@ -394,7 +401,7 @@ def test_background_compositing():
     K = _intrinsics(80.0, 20.0, 20.0)
     bg = torch.tensor([0.3, 0.6, 0.9])
     o0 = _render1(means, quats, scales, opac, cols, torch.eye(4), K, 40, 40)
-    o1 = _render1(means, quats, scales, opac, cols, torch.eye(4), K, 40, 40, background=bg[None, None])
+    o1 = _render1(means, quats, scales, opac, cols, torch.eye(4), K, 40, 40, backgrounds=bg[None, None])
     torch.testing.assert_close(o1.rgb, o0.rgb + (1 - o0.alpha) * bg, atol=1e-6, rtol=0)
     assert 0.05 < (o0.alpha < 0.5).float().mean() < 0.95
     torch.testing.assert_close(o1.alpha, o0.alpha)
@@ -405,7 +412,7 @@ def test_part_alpha_sums_to_alpha():
     K = _intrinsics(80.0, 20.0, 20.0)
     part_ids = torch.randint(0, 3, (1, 300), generator=torch.Generator().manual_seed(0))
     out = render_gaussians(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                           K[None, None], 40, 40, part_ids=part_ids, num_parts=3)  # fmt: skip
+                           K[None, None], 40, 40, _settings(num_parts=3), part_ids=part_ids)  # fmt: skip
     assert out.part_alpha.shape == (1, 1, 40, 40, 3)
     torch.testing.assert_close(out.part_alpha.sum(-1, keepdim=True), out.alpha, atol=2e-6, rtol=0)
     assert (out.part_alpha > 0.1).flatten(0, 3).any(0).all()  # every part visible somewhere
@@ -420,15 +427,15 @@ def test_batching_equals_separate_renders():
     Ks = torch.stack([torch.stack([_intrinsics(60.0 + 5 * c + b, 20.0, 15.0 + b) for c in range(C)]) for b in range(B)])
     bg = torch.rand(B, C, 3, generator=torch.Generator().manual_seed(1))
     part_ids = torch.randint(0, 2, (B, N), generator=torch.Generator().manual_seed(2))
-    out = render_gaussians(means, quats, scales, opac, cols, viewmats, Ks, W, H, background=bg,
-                           part_ids=part_ids, num_parts=2)  # fmt: skip
+    out = render_gaussians(means, quats, scales, opac, cols, viewmats, Ks, W, H, _settings(num_parts=2),
+                           backgrounds=bg, part_ids=part_ids)  # fmt: skip
     assert out.rgb.shape == (B, C, H, W, 3) and out.alpha.shape == (B, C, H, W, 1)
     for b in range(B):
         for c in range(C):
             o = render_gaussians(means[b : b + 1], quats[b : b + 1], scales[b : b + 1], opac[b : b + 1],
                                  cols[b : b + 1], viewmats[b : b + 1, c : c + 1], Ks[b : b + 1, c : c + 1], W, H,
-                                 background=bg[b : b + 1, c : c + 1], part_ids=part_ids[b : b + 1],
-                                 num_parts=2)  # fmt: skip
+                                 _settings(num_parts=2), backgrounds=bg[b : b + 1, c : c + 1],
+                                 part_ids=part_ids[b : b + 1])  # fmt: skip
             # float32: batched matmuls may round differently
             torch.testing.assert_close(out.rgb[b, c], o.rgb[0, 0], atol=2e-5, rtol=0)
             torch.testing.assert_close(out.alpha[b, c], o.alpha[0, 0], atol=2e-5, rtol=0)
@@ -443,7 +450,7 @@ def test_valid_mask_equals_dropping_gaussians():
     K = _intrinsics(80.0, 20.0, 20.0)
     keep = torch.rand(200, generator=torch.Generator().manual_seed(3)) > 0.4
     full = render_gaussians(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                            K[None, None], 40, 40, valid=keep[None])  # fmt: skip
+                            K[None, None], 40, 40, _settings(), valid=keep[None])  # fmt: skip
     sub = _render1(means[keep], quats[keep], scales[keep], opac[keep], cols[keep], torch.eye(4), K, 40, 40)
     zero = _render1(means, quats, scales, torch.where(keep, opac, 0.0), cols, torch.eye(4), K, 40, 40)
     torch.testing.assert_close(full.rgb, sub.rgb, atol=1e-6, rtol=0)
@@ -458,13 +465,13 @@ def test_valid_mask_equals_dropping_gaussians():
 def test_near_far_culling():
     K = _intrinsics(40.0, 16.0, 16.0)
     m, q, s, o, c = _one([0.0, 0.0, 0.005], 0.9, [1.0, 1.0, 1.0], scale=0.001)
-    out = _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, near=0.01)
+    out = _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, _settings(near_plane=0.01))
     assert out.alpha.max() == 0 and out.meta["radii"].max() == 0
-    out = _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, near=0.001)
+    out = _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, _settings(near_plane=0.001))
     assert out.alpha.max() > 0.5
     m, q, s, o, c = _one([0.0, 0.0, 5.0], 0.9, [1.0, 1.0, 1.0], scale=0.2)
-    assert _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, far=4.0).alpha.max() == 0
-    assert _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, far=6.0).alpha.max() > 0.5
+    assert _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, _settings(far_plane=4.0)).alpha.max() == 0
+    assert _render1(m, q, s, o, c, torch.eye(4), K, 32, 32, _settings(far_plane=6.0)).alpha.max() > 0.5
     m, q, s, o, c = _one([0.0, 0.0, -1.0], 0.9, [1.0, 1.0, 1.0], scale=0.2)  # behind the camera
     assert _render1(m, q, s, o, c, torch.eye(4), K, 32, 32).alpha.max() == 0
 
@@ -479,7 +486,8 @@ def test_empty_scene_gives_background(n):
     cols = torch.rand(1, n, 3)
     bg = torch.tensor([[[0.2, 0.5, 0.7]]])
     out = render_gaussians(means, quats, scales, opac, cols, torch.eye(4)[None, None], K[None, None], 20, 17,
-                           background=bg, num_parts=2, part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
+                           _settings(num_parts=2), backgrounds=bg,
+                           part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
     assert out.rgb.shape == (1, 1, 17, 20, 3)
     assert torch.equal(out.rgb, bg[:, :, None, None, :].expand(1, 1, 17, 20, 3))
     assert out.alpha.eq(0).all() and out.depth.eq(0).all() and out.part_alpha.eq(0).all()
@@ -523,8 +531,9 @@ def test_compositors_agree(compositor, dtype, tol):
     results = {}
     for comp in ("torch", "numba"):
         ins = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
-        out = render_gaussians(*ins, viewmats, Ks, kw["W"], kw["H"], background=bg, part_ids=kw["part_ids"],
-                               num_parts=3, valid=kw["valid"], compositor=comp)
+        out = render_gaussians(*ins, viewmats, Ks, kw["W"], kw["H"],
+                               _settings(num_parts=3, compositor=comp), backgrounds=bg, part_ids=kw["part_ids"],
+                               valid=kw["valid"])
         img = torch.cat([out.rgb, out.alpha, out.depth, out.part_alpha], -1)
         (img * wr).sum().backward()
         results[comp] = (img.detach(), [t.grad for t in ins], out.meta["n_isects"])
@@ -545,25 +554,27 @@ def test_compositor_choice_is_checked():
     args = (means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
             _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
     with pytest.raises(ValueError, match="compositor must be"):
-        render_gaussians(*args, compositor="cuda")
+        render_gaussians(*args, _settings(compositor="cuda"))
     with pytest.raises(ValueError, match="float32 or float64"):
-        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args), compositor="numba")
-    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args), compositor="auto")
+        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args),
+                         _settings(compositor="numba"))
+    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args),
+                            _settings(compositor="auto"))
     assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor
     # opacities above 1 reach beyond the radius, where the kernels do not look: the PyTorch path
     big = (means[None], quats[None], scales[None] * 4, (opac[None] * 3).clamp(min=1.5), cols[None],
            *args[5:])  # fmt: skip
     with pytest.raises(ValueError, match="opacity is above 1"):
-        render_gaussians(*big, compositor="numba")
-    torch.testing.assert_close(render_gaussians(*big, compositor="auto").rgb,
-                               render_gaussians(*big, compositor="torch").rgb, rtol=0, atol=0)
+        render_gaussians(*big, _settings(compositor="numba"))
+    torch.testing.assert_close(render_gaussians(*big, _settings(compositor="auto")).rgb,
+                               render_gaussians(*big, _settings(compositor="torch")).rgb, rtol=0, atol=0)
 
 
 def test_second_order_gradients_are_refused_by_the_kernels():
     means, quats, scales, opac, cols = _ball_scene(10, 1)
     m = means[None].clone().requires_grad_(True)
     out = render_gaussians(m, quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                           _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16, compositor="numba")
+                           _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16, _settings(compositor="numba"))
     with pytest.raises(RuntimeError, match="first-order gradients only"):
         torch.autograd.grad(out.rgb.sum(), m, create_graph=True)
 

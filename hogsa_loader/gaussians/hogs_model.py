@@ -25,10 +25,10 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor, nn
 
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, load_part, read_manifest
 from hogsa_loader.gaussians.gaussian_set import GaussianSet, num_sh_bases
-from hogsa_loader.gaussians.parts import GaussianPart
+from hogsa_loader.gaussians.parts import GaussianPart, template_hash
 from hogsa_loader.gaussians.scene import compose, render_scene
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light
 
@@ -113,8 +113,6 @@ class HogsModel(nn.Module):
         manifest = read_manifest(folder / "object")
         obj_name = manifest.get("source", {}).get("object")
         if obj_name is None:  # older manifests: find the template by its hash
-            from hogsa_loader.gaussians.parts import template_hash
-
             want = manifest["template_hash"]
             hits = [n for n, t in object_templates.items() if template_hash(t.verts, t.faces) == want]  # type: ignore[attr-defined]
             obj_name = hits[0] if hits else None
@@ -215,8 +213,6 @@ def _run_shading(folder: Path, object_manifest: Mapping[str, object]) -> Optiona
         return shading
     config = folder / "config.json"
     if config.is_file():
-        from hogsa_loader.errors import read_json
-
         try:
             raw = read_json(config)
         except AssetError:

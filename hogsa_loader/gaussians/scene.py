@@ -16,6 +16,7 @@ from torch import Tensor
 from hogsa_loader.gaussians.gaussian_set import GaussianSet, num_sh_bases
 from hogsa_loader.render.api import render
 from hogsa_loader.render.gaussians import RenderOutput, sh_colors
+from hogsa_loader.render.settings import Backend, RenderMode
 
 __all__ = ["SH_POLICIES", "pad_sh", "compose", "render_scene", "headlight_colors"]
 
@@ -119,8 +120,8 @@ def render_scene(
     num_parts: Optional[int] = None,
     headlight: Optional[float] = None,
     colors: Optional[Tensor] = None,
-    backend: str = "auto",
-    render_mode: str = "RGB+ED",
+    backend: Backend = "auto",
+    render_mode: RenderMode = "RGB+ED",
     **render_kwargs: object,
 ) -> RenderOutput:
     """Render a composed scene with per-part alpha masks.

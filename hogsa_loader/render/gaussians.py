@@ -78,8 +78,8 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any, Literal, Optional
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -90,9 +90,10 @@ from torch import Tensor
 from hogsa_loader.geometry.quaternion import quat_to_matrix
 from hogsa_loader.render import splat_kernels
 from hogsa_loader.render.raster_kernels import pixel_centres, use_kernels
+from hogsa_loader.render.settings import RenderSettings
 
 __all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors",
-           "warm_up_compositor"]
+           "camera_colors", "part_channels", "antialias_compensation", "warm_up_compositor"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # cuda/include/Common.h: ALPHA_THRESHOLD
 ALPHA_MAX = 0.999  # RasterizeToPixels3DGSFwd.cu: min(0.999f, opac * __expf(-sigma))
@@ -113,8 +114,9 @@ class RenderOutput:
     Attributes:
         rgb: (B, C, H, W, D) composited colour (D = 3 for RGB / SH), background included.
         alpha: (B, C, H, W, 1) accumulated opacity ``1 - T_final``.
-        depth: (B, C, H, W, 1) expected camera-space depth ``sum(w z) / max(alpha, 1e-10)``
-            (gsplat "ED"; 0 where alpha is 0), or None when ``render_depth=False``.
+        depth: (B, C, H, W, 1) camera-space depth per ``render_mode``: "RGB+ED", the
+            expected ``sum(w z) / max(alpha, 1e-10)`` (0 where alpha is 0); "RGB+D", the
+            accumulated ``sum(w z)``; None for "RGB".
         part_alpha: (B, C, H, W, num_parts) ``sum(w)`` over the Gaussians of each part, or
             None when ``num_parts == 0``. Sums to ``alpha`` if every Gaussian has a part.
         meta: projection results, gsplat names: ``radii`` (B, C, N, 2) int32 (0 = culled),
@@ -192,17 +194,39 @@ def project_gaussians(
     with torch.no_grad():
         z_in = (z_cam >= near) & (z_cam <= far)
     z = torch.where(z_in, z_cam, torch.ones_like(z_cam))
+    fx, fy = Ks[..., 0, 0, None], Ks[..., 1, 1, None]  # (B, C, 1)
+    cx, cy = Ks[..., 0, 2, None], Ks[..., 1, 2, None]
+    rz = 1.0 / z
+    a, b, d = _projected_covariance(x, y, z, rz, cov_c, Ks, width, height, eps2d)
+    det = a * d - b * b
+    inv_det = 1.0 / torch.where(det > 0, det, torch.ones_like(det))
+    conics = torch.stack([d * inv_det, -b * inv_det, a * inv_det], -1)
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
+    with torch.no_grad():
+        radii = _radii(z, a, d, z_in & (det > 0), means2d, opacities, width, height)
+    return radii, means2d, z_cam, conics
 
+
+def _projected_covariance(
+    x: Tensor, y: Tensor, z: Tensor, rz: Tensor, cov_c: Tensor, Ks: Tensor, width: int, height: int, eps2d: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Entries ``(a, b, d)`` of ``cov2d = J cov_c J^T + eps2d I = [[a, b], [b, d]]``, each (B, C, N).
+
+    Args:
+        x, y, z: (B, C, N) camera-space centres (culled z replaced by 1); rz = 1 / z.
+        cov_c: (B, C, N, 3, 3) camera-space covariances; Ks: (B, C, 3, 3).
+        width, height: image size (px); eps2d: dilation (px^2).
+
+    ``J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]`` with ``tx / z``, ``ty / z``
+    clamped to the image's field of view widened by 0.3 ``tan_fov`` on each side.
+    """
     fx, fy = Ks[..., 0, 0, None], Ks[..., 1, 1, None]  # (B, C, 1)
     cx, cy = Ks[..., 0, 2, None], Ks[..., 1, 2, None]
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
     lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * tan_fovx, cx / fx + 0.3 * tan_fovx
     lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * tan_fovy, cy / fy + 0.3 * tan_fovy
-    rz = 1.0 / z
     tx = z * torch.minimum(torch.maximum(x * rz, -lim_x_neg), lim_x_pos)
     ty = z * torch.minimum(torch.maximum(y * rz, -lim_y_neg), lim_y_pos)
-
-    # cov2d = J cov_c J^T with J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]
     j00, j02 = fx * rz, -fx * tx * rz * rz
     j11, j12 = fy * rz, -fy * ty * rz * rz
     c = cov_c
@@ -214,27 +238,69 @@ def project_gaussians(
         + j02 * j12 * c[..., 2, 2]
     )
     d = j11 * j11 * c[..., 1, 1] + 2 * j11 * j12 * c[..., 1, 2] + j12 * j12 * c[..., 2, 2] + eps2d
-    det = a * d - b * b
-    inv_det = 1.0 / torch.where(det > 0, det, torch.ones_like(det))
-    conics = torch.stack([d * inv_det, -b * inv_det, a * inv_det], -1)
-    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
+    return a, b, d
 
-    with torch.no_grad():
-        ok = z_in & (det > 0)
-        if opacities is None:
-            extent = torch.full_like(z, RADIUS_EXTENT)
-        else:
-            o = opacities.detach()[:, None, :].expand_as(z)
-            ok &= o >= ALPHA_THRESHOLD
-            extent = torch.sqrt(2.0 * torch.log(o.clamp(min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD))
-            extent = extent.clamp(max=RADIUS_EXTENT)
-        rx = torch.ceil(extent * torch.sqrt(a.detach().clamp(min=0)))
-        ry = torch.ceil(extent * torch.sqrt(d.detach().clamp(min=0)))
-        ok &= (rx > 0) | (ry > 0)  # radius_clip = 0
-        mx, my = means2d.detach().unbind(-1)
-        ok &= (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
-        radii = torch.stack([rx, ry], -1).where(ok[..., None], 0.0).to(torch.int32)
-    return radii, means2d, z_cam, conics
+
+def _radii(
+    z: Tensor, a: Tensor, d: Tensor, ok: Tensor, means2d: Tensor, opacities: Tensor | None, width: int, height: int
+) -> Tensor:
+    """Integer pixel radii (B, C, N, 2) int32 of the projected Gaussians, 0 where culled.
+
+    Args:
+        z: (B, C, N) camera z (its dtype is the extent's); a, d: (B, C, N) diagonal of
+            cov2d; ok: (B, C, N) bool, in the depth range with
+            ``det(cov2d) > 0``; means2d: (B, C, N, 2).
+        opacities: (B, N) for the opacity-aware extent (and ``opacity < 1/255`` culls),
+            or None for the extent 3.33.
+        width, height: image size; a Gaussian whose box misses the image is culled.
+    """
+    if opacities is None:
+        extent = torch.full_like(z, RADIUS_EXTENT)
+    else:
+        o = opacities.detach()[:, None, :].expand_as(z)
+        ok = ok & (o >= ALPHA_THRESHOLD)
+        extent = torch.sqrt(2.0 * torch.log(o.clamp(min=ALPHA_THRESHOLD) / ALPHA_THRESHOLD))
+        extent = extent.clamp(max=RADIUS_EXTENT)
+    rx = torch.ceil(extent * torch.sqrt(a.detach().clamp(min=0)))
+    ry = torch.ceil(extent * torch.sqrt(d.detach().clamp(min=0)))
+    ok &= (rx > 0) | (ry > 0)  # radius_clip = 0
+    mx, my = means2d.detach().unbind(-1)
+    ok &= (mx + rx > 0) & (mx - rx < width) & (my + ry > 0) & (my - ry < height)
+    return torch.stack([rx, ry], -1).where(ok[..., None], 0.0).to(torch.int32)
+
+
+def antialias_compensation(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+) -> Tensor:
+    """gsplat's antialiasing factor ``rho = sqrt(max(0, det(cov2d) / det(cov2d + eps2d I)))``.
+
+    Computed from the blurred conic ``Q = (cov2d + eps2d I)^-1`` returned by
+    :func:`project_gaussians` as ``det(I - eps2d Q) = (1 - eps2d A)(1 - eps2d C) -
+    eps2d^2 B^2`` (the same ratio). Differentiable (rho = 0 where the ratio is <= 0).
+
+    Args:
+        means (B, N, 3), quats (B, N, 4) wxyz, scales (B, N, 3) linear,
+        viewmats (B, C, 4, 4), Ks (B, C, 3, 3), width, height, eps2d, near/far planes.
+
+    Returns:
+        (B, C, N) compensation factors in [0, 1].
+    """
+    covars = quat_scale_to_covar(quats, scales)
+    _, _, _, conics = project_gaussians(means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane)
+    a, b, c = conics.unbind(-1)
+    ratio = (1.0 - eps2d * a) * (1.0 - eps2d * c) - (eps2d * eps2d) * b * b
+    ok = ratio > 0  # also False for NaN (degenerate, culled anyway)
+    safe = torch.where(ok, ratio, torch.ones_like(ratio))
+    return torch.where(ok, torch.sqrt(safe), torch.zeros_like(ratio))
 
 
 # --------------------------------------------------------------------------------------
@@ -300,7 +366,7 @@ def sh_colors(sh_degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:
     return (bases[..., None] * coeffs[..., :nb, :]).sum(-2)
 
 
-def _camera_colors(colors: Tensor, sh_degree: int | None, means: Tensor, viewmats: Tensor) -> Tensor:
+def camera_colors(colors: Tensor, sh_degree: int | None, means: Tensor, viewmats: Tensor) -> Tensor:
     """Per-camera colours (B, C, N, D) from plain colours or SH coefficients.
 
     ``colors`` is (B, N, D) / (B, C, N, D) when ``sh_degree`` is None, else (B, N, K, 3) /
@@ -612,6 +678,26 @@ class _CompiledComposite(torch.autograd.Function):
 # --------------------------------------------------------------------------------------
 
 
+class _Layout(NamedTuple):
+    """Sizes of one call: B samples, C cameras, N Gaussians, the W x H image cut into
+    ``tile_w`` x ``tile_h`` tiles of ``tile_size`` px, and the dtype / device of the images."""
+
+    B: int
+    C: int
+    N: int
+    width: int
+    height: int
+    tile_size: int
+    tile_w: int
+    tile_h: int
+    dtype: torch.dtype
+    device: torch.device
+
+    @property
+    def n_tiles(self) -> int:
+        return self.tile_w * self.tile_h
+
+
 def render_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -622,21 +708,11 @@ def render_gaussians(
     Ks: Tensor,
     width: int,
     height: int,
+    settings: RenderSettings | None = None,
     *,
-    sh_degree: int | None = None,
-    near: float = 0.01,
-    far: float = 1e10,
-    background: Tensor | None = None,
-    eps2d: float = 0.3,
-    tile_size: int = 16,
+    backgrounds: Tensor | None = None,
     part_ids: Tensor | None = None,
-    num_parts: int = 0,
-    render_depth: bool = True,
     valid: Tensor | None = None,
-    chunk: int = 32,
-    tile_batch: int = 2048,
-    checkpoint: bool = False,
-    compositor: Literal["auto", "torch", "numba"] = "auto",
 ) -> RenderOutput:
     """Render 3D Gaussians into B x C images with gsplat 1.5.3 conventions (see module doc).
 
@@ -645,39 +721,74 @@ def render_gaussians(
         quats: (B, N, 4) rotations, wxyz, normalised inside (need not be unit).
         scales: (B, N, 3) linear standard deviations (already exp'ed, not log).
         opacities: (B, N) in [0, 1] (already sigmoid'ed). ``< 1/255`` culls the Gaussian.
-        colors: ``sh_degree=None``: (B, N, D) or per camera (B, C, N, D) colours used as
-            given (any D >= 1; D = 3 for RGB). Otherwise SH coefficients (B, N, K, 3) or
-            (B, C, N, K, 3) with K >= (sh_degree + 1)^2; colour = max(SH(dir) + 0.5, 0).
+        colors: with ``settings.sh_degree`` None, (B, N, D) or per camera (B, C, N, D)
+            colours used as given (any D >= 1; D = 3 for RGB); otherwise SH coefficients
+            (B, N, K, 3) or (B, C, N, K, 3), K >= (sh_degree + 1)^2, colour =
+            max(SH(dir) + 0.5, 0).
         viewmats: (B, C, 4, 4) world->camera, OpenCV (x right, y down, z forward).
-        Ks: (B, C, 3, 3) pinhole intrinsics (skew ignored).
+        Ks: (B, C, 3, 3) pinhole intrinsics in pixels (skew ignored).
         width, height: image size W, H in pixels.
-        sh_degree: SH degree 0..4, or None for plain colours.
-        near, far: Gaussians with camera z < near or z > far are culled.
-        background: (B, C, D) colour behind the Gaussians, or None (= 0).
-        eps2d: 2D dilation (px^2) added to the projected covariance.
-        tile_size: tile edge in pixels (16 as in gsplat).
-        part_ids: (B, N) int64 part index in [0, num_parts), or -1 for none; or None.
-        num_parts: number of part channels in ``part_alpha`` (0 = no part output).
-        render_depth: also render expected depth.
+        settings: :class:`~hogsa_loader.render.settings.RenderSettings` (None = the
+            defaults); ``backend``, ``packed`` and ``debug`` are not used here.
+        backgrounds: (B, C, D) colour behind the Gaussians, or None (= 0).
+        part_ids: (B, N) integer part index in [0, num_parts), or -1 for none; needed iff
+            ``settings.num_parts > 0``.
         valid: (B, N) bool; False marks padding Gaussians (culled). Alternatively give
             padding zero opacity.
-        chunk: D, Gaussians composited per step (a speed knob; results do not depend on it).
-        tile_batch: tiles processed together (bounds temporary memory; speed knob).
-        checkpoint: recompute each tile batch in the backward pass
-            (``torch.utils.checkpoint``) instead of keeping its intermediates: with a
-            small ``tile_batch`` (e.g. 64) this bounds backward memory at the cost of a
-            second compositing pass. Results and gradients are unchanged.
-        compositor: ``"torch"``, the vectorised PyTorch compositor (any device and dtype;
-            ``chunk``, ``tile_batch`` and ``checkpoint`` apply to it); ``"numba"``, the
-            compiled CPU kernels (float32 / float64 on the CPU, opacities at most 1, their
-            own backward pass, first-order only; threads as ``torch.get_num_threads()``; same
-            images and gradients within float rounding, small memory); ``"auto"``, the
-            kernels wherever they can run.
 
     Returns:
         :class:`RenderOutput` with rgb (B, C, H, W, D), alpha (B, C, H, W, 1),
         depth (B, C, H, W, 1) or None, part_alpha (B, C, H, W, num_parts) or None, meta.
+        With ``settings.antialiased``, each (sample, camera) pair is rendered as a sample
+        of its own with opacities ``o * rho`` (:func:`antialias_compensation`; C copies of
+        the Gaussians), and ``meta`` also holds ``opacities`` and ``compensations`` (B, C, N).
     """
+    s = RenderSettings() if settings is None else settings
+    _check_shapes(means, quats, scales, opacities, viewmats, Ks, part_ids, s.num_parts)
+    if s.antialiased:
+        return _render_antialiased(means, quats, scales, opacities, colors, viewmats, Ks, width, height, s,
+                                   backgrounds=backgrounds, part_ids=part_ids, valid=valid)  # fmt: skip
+    kernels = _use_compiled_compositor(s.compositor, means, colors, opacities)
+    ts = s.tile_size
+    lay = _Layout(means.shape[0], viewmats.shape[1], means.shape[1], width, height, ts,
+                  (width + ts - 1) // ts, (height + ts - 1) // ts, means.dtype, means.device)  # fmt: skip
+
+    # 1. projection (gsplat: fully_fused_projection with opacities)
+    covars = quat_scale_to_covar(quats, scales)
+    radii, means2d, depths, conics = project_gaussians(
+        means, covars, viewmats, Ks, width, height, s.eps2d, s.near_plane, s.far_plane, opacities
+    )
+    if valid is not None:
+        radii = radii * valid[:, None, :, None].to(radii.dtype)
+    # 2. colours (B, C, N, D) and the other composited channels (I*N, F)
+    cols = camera_colors(colors, s.sh_degree, means, viewmats)
+    feat = _features(cols, depths, part_ids, s, lay)
+    # 3. tiles
+    n_img = lay.B * lay.C
+    flat_ids, _, tile_counts = _intersect_tiles(
+        means2d.detach().reshape(n_img, lay.N, 2), radii.reshape(n_img, lay.N, 2),
+        depths.detach().reshape(n_img, lay.N), ts, lay.tile_w, lay.tile_h,
+    )  # fmt: skip
+    # 4. compositing
+    acc, trans = _composite(means2d, conics, opacities, feat, radii, flat_ids, tile_counts, lay, s, kernels)
+    out = _to_output(acc, trans, cols.shape[-1], backgrounds, s, lay)
+    out.meta = {"radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "colors": cols,
+                "n_isects": int(flat_ids.numel()), "tile_width": lay.tile_w, "tile_height": lay.tile_h,
+                "tile_size": ts}  # fmt: skip
+    return out
+
+
+def _check_shapes(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    part_ids: Tensor | None,
+    num_parts: int,
+) -> None:
+    """The batched layout of :func:`render_gaussians` (no tensor values are read)."""
     B, N = means.shape[:2]
     C = viewmats.shape[1]
     if means.shape != (B, N, 3) or quats.shape != (B, N, 4) or scales.shape != (B, N, 3):
@@ -688,119 +799,213 @@ def render_gaussians(
         raise ValueError("viewmats/Ks must be (B, C, 4, 4)/(B, C, 3, 3)")
     if num_parts > 0 and part_ids is None:
         raise ValueError("num_parts > 0 needs part_ids")
-    dtype, dev = means.dtype, means.device
-    n_img = B * C
+
+
+def _use_compiled_compositor(compositor: str, means: Tensor, colors: Tensor, opacities: Tensor) -> bool:
+    """Whether the compiled CPU kernels composite (see ``RenderSettings.compositor``).
+
+    Raises:
+        ValueError: ``"numba"`` where the kernels cannot run (also: an opacity above 1,
+            whose pixels reach beyond the radius where the kernels look).
+    """
     kernels = use_kernels("compositor", compositor, [means, colors, opacities], differentiable=True)
-    if kernels and opacities.numel() > 0 and bool(opacities.detach().max() > 1.0):
-        # a Gaussian's pixels lie within its radius only for opacities up to 1
+    if kernels and opacities.numel() > 0 and bool(opacities.detach().max() > 1.0):  # CPU tensors only
         if compositor == "numba":
             raise ValueError("compositor='numba' cannot run: an opacity is above 1")
         kernels = False
+    return kernels
 
-    # 1. projection (gsplat: fully_fused_projection with opacities)
-    covars = quat_scale_to_covar(quats, scales)
-    radii, means2d, depths, conics = project_gaussians(
-        means, covars, viewmats, Ks, width, height, eps2d, near, far, opacities
-    )
-    if valid is not None:
-        radii = radii * valid[:, None, :, None].to(radii.dtype)
 
-    # 2. colours (B, C, N, D)
-    cols = _camera_colors(colors, sh_degree, means, viewmats)
-    n_col = cols.shape[-1]
+def part_channels(part_ids: Tensor, num_parts: int, dtype: torch.dtype) -> Tensor:
+    """(..., N) part index in [0, num_parts) or -1 -> (..., N, num_parts) one-hot, zero for -1."""
+    onehot = F.one_hot(part_ids.long().clamp(min=0), num_parts).to(dtype)
+    return onehot * (part_ids >= 0)[..., None].to(dtype)
+
+
+def _features(cols: Tensor, depths: Tensor, part_ids: Tensor | None, s: RenderSettings, lay: _Layout) -> Tensor:
+    """(I*N, F) composited channels: colours cols (B, C, N, D), then camera z depths
+    (B, C, N) unless ``render_mode`` is "RGB", then the ``num_parts`` one-hot part channels."""
     feats = [cols]
-    if render_depth:
+    if s.render_mode != "RGB":
         feats.append(depths[..., None])
-    if num_parts > 0:
+    if s.num_parts > 0:
         assert part_ids is not None
-        onehot = F.one_hot(part_ids.long().clamp(min=0), num_parts).to(dtype)
-        onehot = onehot * (part_ids >= 0)[..., None].to(dtype)  # (B, N, num_parts)
-        feats.append(onehot[:, None].expand(B, C, N, num_parts))
+        onehot = part_channels(part_ids, s.num_parts, lay.dtype)  # (B, N, num_parts)
+        feats.append(onehot[:, None].expand(lay.B, lay.C, lay.N, s.num_parts))
     feat = torch.cat(feats, -1)
-    feat = feat.reshape(n_img * N, feat.shape[-1])  # (I*N, F)
+    return feat.reshape(lay.B * lay.C * lay.N, feat.shape[-1])
 
-    # 3. tiles
-    tile_w = (width + tile_size - 1) // tile_size
-    tile_h = (height + tile_size - 1) // tile_size
-    n_tiles = tile_w * tile_h
-    p = tile_size * tile_size
-    flat_ids, _, tile_counts = _intersect_tiles(
-        means2d.detach().reshape(n_img, N, 2), radii.reshape(n_img, N, 2),
-        depths.detach().reshape(n_img, N), tile_size, tile_w, tile_h,
-    )  # fmt: skip
 
-    # 4. compositing
-    nf = feat.shape[1]
-    acc = torch.zeros(n_img * n_tiles, p, nf, dtype=dtype, device=dev)
-    trans = torch.ones(n_img * n_tiles, p, dtype=dtype, device=dev)
+def _composite(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    feat: Tensor,
+    radii: Tensor,
+    flat_ids: Tensor,
+    tile_counts: Tensor,
+    lay: _Layout,
+    s: RenderSettings,
+    kernels: bool,
+) -> tuple[Tensor, Tensor]:
+    """Composite every tile.
+
+    Args:
+        means2d (B, C, N, 2), conics (B, C, N, 3), opacities (B, N), feat (I*N, F),
+        radii (B, C, N, 2) int32; flat_ids (K,), tile_counts (I * n_tiles,) from
+        :func:`_intersect_tiles`; kernels: use the compiled compositor.
+
+    Returns:
+        acc (I * n_tiles, P, F) = sum_i w_i feat_i (0 for empty tiles) and the final
+        transmittance (I * n_tiles, P).
+    """
+    p, nf = lay.tile_size * lay.tile_size, feat.shape[1]
+    acc = torch.zeros(lay.B * lay.C * lay.n_tiles, p, nf, dtype=lay.dtype, device=lay.device)
+    trans = torch.ones(lay.B * lay.C * lay.n_tiles, p, dtype=lay.dtype, device=lay.device)
     busy = torch.nonzero(tile_counts).squeeze(1)
-    if busy.numel() > 0:
-        # clamp: rows with opacity < 1/255 are culled and never read; without it a zero
-        # opacity (the padding convention) gives log(0) and a NaN opacity gradient
-        log_o = torch.log(opacities.clamp(min=ALPHA_THRESHOLD))[:, None, :].expand(B, C, N).reshape(-1)
-        tile_start = torch.cumsum(tile_counts, 0) - tile_counts
-    if busy.numel() > 0 and kernels:
+    if busy.numel() == 0:
+        return acc, trans
+    # clamp: rows with opacity < 1/255 are culled and never read; without it a zero
+    # opacity (the padding convention) gives log(0) and a NaN opacity gradient
+    log_o = torch.log(opacities.clamp(min=ALPHA_THRESHOLD))[:, None, :].expand(lay.B, lay.C, lay.N).reshape(-1)
+    tile_start = torch.cumsum(tile_counts, 0) - tile_counts
+    if kernels:
         acc_b, trans_b = _CompiledComposite.apply(
             means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat, radii.reshape(-1, 2), flat_ids, busy,
-            tile_start[busy], tile_counts[busy], (tile_size, tile_w, n_tiles, width, height))
-        acc = acc.index_copy(0, busy, acc_b)
-        trans = trans.index_copy(0, busy, trans_b)
-    elif busy.numel() > 0:
-        table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
-        gids = torch.cat([flat_ids, flat_ids.new_full((1,), n_img * N)])
-        basis = _tile_basis(tile_size, dtype, dev)
-        local_tile = busy % n_tiles
-        tx, ty = local_tile % tile_w, local_tile // tile_w
-        origin = (torch.stack([tx, ty], -1) * tile_size).to(dtype) + tile_size / 2.0  # (nb, 2)
-        # padding pixels (outside the image) start "done", as in the CUDA kernel
-        r = torch.arange(tile_size, device=dev)
-        px = tx[:, None, None] * tile_size + r[None, None, :]
-        py = ty[:, None, None] * tile_size + r[None, :, None]
-        outside = ((px >= width) | (py >= height)).reshape(-1, p)
-        # longest lists first so that a batch holds tiles of similar work
-        order = torch.argsort(tile_counts[busy], descending=True, stable=True)
-        accs, ts, ids = [], [], []
-        for grp in order.split(tile_batch):
-            tiles = busy[grp]
-            args = (table, gids, tile_start[tiles], tile_counts[tiles], origin[grp], outside[grp], basis, chunk)
-            if checkpoint and torch.is_grad_enabled() and table.requires_grad:
-                a_g, t_g = torch.utils.checkpoint.checkpoint(_composite_tiles, *args, use_reentrant=False)
-            else:
-                a_g, t_g = _composite_tiles(*args)
-            accs.append(a_g)
-            ts.append(t_g)
-            ids.append(tiles)
-        ids_all = torch.cat(ids)
-        acc = acc.index_copy(0, ids_all, torch.cat(accs))
-        trans = trans.index_copy(0, ids_all, torch.cat(ts))
+            tile_start[busy], tile_counts[busy], (lay.tile_size, lay.tile_w, lay.n_tiles, lay.width, lay.height))
+        return acc.index_copy(0, busy, acc_b), trans.index_copy(0, busy, trans_b)
+    table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
+    ids, acc_b, trans_b = _composite_torch(table, flat_ids, busy, tile_start, tile_counts, lay, s)
+    return acc.index_copy(0, ids, acc_b), trans.index_copy(0, ids, trans_b)
+
+
+def _tile_pixels(busy: Tensor, lay: _Layout) -> tuple[Tensor, Tensor]:
+    """Centres (nb, 2) in pixels of the tiles ``busy`` (nb,) (global tile indices), and
+    their padding pixels outside the image (nb, P) bool, which start "done" as in the
+    CUDA kernel."""
+    ts = lay.tile_size
+    local_tile = busy % lay.n_tiles
+    tx, ty = local_tile % lay.tile_w, local_tile // lay.tile_w
+    origin = (torch.stack([tx, ty], -1) * ts).to(lay.dtype) + ts / 2.0  # (nb, 2)
+    r = torch.arange(ts, device=lay.device)
+    px = tx[:, None, None] * ts + r[None, None, :]
+    py = ty[:, None, None] * ts + r[None, :, None]
+    outside = ((px >= lay.width) | (py >= lay.height)).reshape(-1, ts * ts)
+    return origin, outside
+
+
+def _composite_torch(
+    table: Tensor,
+    flat_ids: Tensor,
+    busy: Tensor,
+    tile_start: Tensor,
+    tile_counts: Tensor,
+    lay: _Layout,
+    s: RenderSettings,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The PyTorch compositor over the busy tiles, ``s.tile_batch`` tiles at a time.
+
+    Args:
+        table: (M + 1, 9 + F) rows of :func:`_gaussian_table`; flat_ids: (K,) sorted
+            intersections; busy: (nb,) tiles with work; tile_start, tile_counts:
+            (I * n_tiles,) offsets / lengths of the tiles' lists.
+
+    Returns:
+        tile indices (nb,) in the order of the results, acc (nb, P, F), trans (nb, P).
+    """
+    gids = torch.cat([flat_ids, flat_ids.new_full((1,), lay.B * lay.C * lay.N)])
+    basis = _tile_basis(lay.tile_size, lay.dtype, lay.device)
+    origin, outside = _tile_pixels(busy, lay)
+    # longest lists first so that a batch holds tiles of similar work
+    order = torch.argsort(tile_counts[busy], descending=True, stable=True)
+    accs, ts, ids = [], [], []
+    for grp in order.split(s.tile_batch):
+        tiles = busy[grp]
+        args = (table, gids, tile_start[tiles], tile_counts[tiles], origin[grp], outside[grp], basis, s.chunk)
+        if s.checkpoint and torch.is_grad_enabled() and table.requires_grad:
+            a_g, t_g = torch.utils.checkpoint.checkpoint(_composite_tiles, *args, use_reentrant=False)
+        else:
+            a_g, t_g = _composite_tiles(*args)
+        accs.append(a_g)
+        ts.append(t_g)
+        ids.append(tiles)
+    return torch.cat(ids), torch.cat(accs), torch.cat(ts)
+
+
+def _to_output(
+    acc: Tensor, trans: Tensor, n_col: int, backgrounds: Tensor | None, s: RenderSettings, lay: _Layout
+) -> RenderOutput:
+    """Images from the per-tile results acc (I * n_tiles, P, F) and trans (I * n_tiles, P);
+    the first ``n_col`` feature channels are colours (meta left empty)."""
 
     def to_image(x: Tensor) -> Tensor:  # (I * n_tiles, P, F) -> (B, C, H, W, F)
-        f = x.shape[-1]
-        x = x.reshape(B, C, tile_h, tile_w, tile_size, tile_size, f).permute(0, 1, 2, 4, 3, 5, 6)
-        return x.reshape(B, C, tile_h * tile_size, tile_w * tile_size, f)[:, :, :height, :width]
+        f, ts = x.shape[-1], lay.tile_size
+        x = x.reshape(lay.B, lay.C, lay.tile_h, lay.tile_w, ts, ts, f).permute(0, 1, 2, 4, 3, 5, 6)
+        return x.reshape(lay.B, lay.C, lay.tile_h * ts, lay.tile_w * ts, f)[:, :, : lay.height, : lay.width]
 
     img = to_image(acc)
     t_final = to_image(trans[..., None])  # (B, C, H, W, 1)
     alpha = 1.0 - t_final
     rgb = img[..., :n_col]
-    if background is not None:
-        rgb = rgb + t_final * background[:, :, None, None, :]
+    if backgrounds is not None:
+        rgb = rgb + t_final * backgrounds[:, :, None, None, :]
     depth = None
-    if render_depth:
+    if s.render_mode != "RGB":
         depth = img[..., n_col : n_col + 1] / alpha.clamp(min=ED_EPS)
-    part_alpha = img[..., nf - num_parts :] if num_parts > 0 else None
-    meta = {
-        "radii": radii,
-        "means2d": means2d,
-        "depths": depths,
-        "conics": conics,
-        "colors": cols,
-        "n_isects": int(flat_ids.numel()),
-        "tile_width": tile_w,
-        "tile_height": tile_h,
-        "tile_size": tile_size,
-    }
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, part_alpha=part_alpha, meta=meta)
+        if s.render_mode == "RGB+D":  # the accumulated sum(w z): ED times the same clamped alpha
+            depth = depth * alpha.clamp(min=ED_EPS)
+    part_alpha = img[..., acc.shape[-1] - s.num_parts :] if s.num_parts > 0 else None
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, part_alpha=part_alpha)
+
+
+def _render_antialiased(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    s: RenderSettings,
+    *,
+    backgrounds: Tensor | None,
+    part_ids: Tensor | None,
+    valid: Tensor | None,
+) -> RenderOutput:
+    """:func:`render_gaussians` with ``s.antialiased``: per-camera opacities o * rho, so each
+    (sample, camera) pair becomes one sample of a B*C-sample, 1-camera call."""
+    B, C = viewmats.shape[:2]
+    N = means.shape[1]
+    rho = antialias_compensation(
+        means, quats, scales, viewmats, Ks, width, height, s.eps2d, s.near_plane, s.far_plane
+    )  # (B, C, N)
+    op_c = opacities[:, None, :] * rho  # (B, C, N)
+
+    def per_gaussian(t: Tensor | None) -> Tensor | None:  # (B, N, ...) -> (B*C, N, ...)
+        return None if t is None else t[:, None].expand(B, C, *t.shape[1:]).reshape(B * C, *t.shape[1:])
+
+    def per_camera(t: Tensor | None) -> Tensor | None:  # (B, C, ...) -> (B*C, 1, ...)
+        return None if t is None else t.reshape(B * C, 1, *t.shape[2:])
+
+    per_cam_colors = colors.dim() == (4 if s.sh_degree is None else 5)
+    out = render_gaussians(
+        per_gaussian(means), per_gaussian(quats), per_gaussian(scales), op_c.reshape(B * C, N),  # type: ignore[arg-type]
+        per_camera(colors) if per_cam_colors else per_gaussian(colors), per_camera(viewmats), per_camera(Ks),  # type: ignore[arg-type]
+        width, height, replace(s, antialiased=False), backgrounds=per_camera(backgrounds),
+        part_ids=per_gaussian(part_ids), valid=per_gaussian(valid),
+    )  # fmt: skip
+
+    def back(t: Tensor | None) -> Tensor | None:  # (B*C, 1, ...) -> (B, C, ...)
+        return None if t is None else t.reshape(B, C, *t.shape[2:])
+
+    meta = {k: back(v) if isinstance(v, Tensor) else v for k, v in out.meta.items()}
+    meta["opacities"] = op_c
+    meta["compensations"] = rho
+    return RenderOutput(
+        rgb=back(out.rgb), alpha=back(out.alpha), depth=back(out.depth), part_alpha=back(out.part_alpha), meta=meta
+    )  # type: ignore[arg-type]
 
 
 def warm_up_compositor() -> None:
@@ -818,5 +1023,5 @@ def _warm_up() -> None:
     K = torch.tensor([[[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]]])
     out = render_gaussians(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),
                            torch.full((1, 1), 0.5), torch.ones(1, 1, 3), torch.eye(4)[None, None], K, 8, 8,
-                           compositor="numba")
+                           RenderSettings(render_mode="RGB+ED", compositor="numba"))
     out.rgb.sum().backward()

@@ -23,8 +23,8 @@ Facts about gsplat 1.5.3 this module relies on (read in ``gsplat/rendering.py`` 
   (``alpha = 1 - T_final``), differentiable through ``render_alphas``.
 * The kernels are float32 only (``data_ptr<float>``), and ``Ks`` gets no gradient.
 * With ``sh_degree`` set, colours go through gsplat's 3-channel SH kernel. When part
-  channels are requested the SH colours are evaluated here first, with the shared
-  :func:`hogsa_loader.render.gaussians.sh_colors` (same convention:
+  channels are requested the SH colours are evaluated here first, with the torch backend's
+  :func:`hogsa_loader.render.gaussians.camera_colors` (same convention:
   ``max(SH(mean - camera centre) + 0.5, 0)``), and the one-hot part channels are
   rendered as extra plain colour features next to them.
 """
@@ -35,11 +35,11 @@ import functools
 from typing import Any, Callable
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from hogsa_loader.errors import HogsaError
-from hogsa_loader.render.gaussians import RenderOutput, sh_colors
+from hogsa_loader.render.gaussians import RenderOutput, camera_colors, part_channels
+from hogsa_loader.render.settings import RenderSettings
 
 __all__ = ["BackendUnavailableError", "MAX_GSPLAT_TILE", "gsplat_unavailable_reason", "render_gsplat"]
 
@@ -58,11 +58,11 @@ def _probe_extension() -> str | None:
     """None when gsplat and its CUDA extension load, else why not (cached: a failed
     import of ``gsplat.cuda._backend`` would otherwise retry the JIT build every call)."""
     try:
-        import gsplat  # noqa: F401
+        import gsplat  # noqa: F401  # deferred: optional CUDA dependency, imported only for CUDA tensors
     except Exception as e:  # ImportError, or anything gsplat's own imports raise
         return f"gsplat is not importable ({type(e).__name__}: {e}); install it with `pip install gsplat==1.5.3`"
     try:
-        from gsplat.cuda._backend import _C
+        from gsplat.cuda._backend import _C  # deferred: importing it may JIT-build the CUDA extension
     except Exception as e:  # the JIT build / load of the extension failed
         msg = str(e).strip().splitlines()[-1][:300] if str(e).strip() else ""
         return f"gsplat's CUDA extension failed to load ({type(e).__name__}: {msg})"
@@ -94,31 +94,19 @@ def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = 
 
 
 def _load_rasterization() -> Callable[..., Any]:
-    from gsplat import rasterization
+    """gsplat's ``rasterization`` function."""
+    from gsplat import rasterization  # deferred: optional CUDA dependency, imported only for CUDA tensors
 
     return rasterization
 
 
 def _gsplat_version() -> str:
     try:
-        import gsplat
+        import gsplat  # deferred: optional CUDA dependency, imported only for CUDA tensors
 
         return str(getattr(gsplat, "__version__", "unknown"))
     except Exception:  # pragma: no cover - only reached after a successful probe
         return "unknown"
-
-
-def _sh_to_camera_rgb(colors: Tensor, sh_degree: int, means: Tensor, viewmats: Tensor) -> Tensor:
-    """SH coefficients (B, N, K, 3) or (B, C, N, K, 3) -> per-camera RGB (B, C, N, 3),
-    ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat's ``rasterization`` convention)."""
-    B, C = viewmats.shape[:2]
-    N = means.shape[1]
-    campos = torch.linalg.inv(viewmats)[..., :3, 3]  # (B, C, 3)
-    dirs = means[:, None, :, :] - campos[:, :, None, :]  # (B, C, N, 3)
-    if colors.dim() == 4:
-        colors = colors[:, None]
-    coeffs = colors.expand(B, C, N, *colors.shape[-2:])
-    return torch.clamp_min(sh_colors(sh_degree, dirs, coeffs) + 0.5, 0.0)
 
 
 def render_gsplat(
@@ -131,51 +119,33 @@ def render_gsplat(
     Ks: Tensor,
     width: int,
     height: int,
+    settings: RenderSettings,
     *,
-    sh_degree: int | None,
-    near_plane: float,
-    far_plane: float,
-    backgrounds: Tensor | None,
-    render_mode: str,
-    part_ids: Tensor | None,
-    num_parts: int,
-    packed: bool,
-    antialiased: bool,
-    eps2d: float,
-    tile_size: int = 16,
+    backgrounds: Tensor | None = None,
+    part_ids: Tensor | None = None,
     valid: Tensor | None = None,
 ) -> RenderOutput:
-    """Render already-validated, batched inputs with gsplat (see :func:`render` for the
-    arguments; shapes here are always batched: means (B, N, 3), viewmats (B, C, 4, 4)).
+    """Render already-validated, batched inputs with gsplat (the arguments of
+    :func:`~hogsa_loader.render.gaussians.render_gaussians`, always batched: means (B, N, 3),
+    viewmats (B, C, 4, 4), ...). ``settings.compositor``, ``chunk``, ``tile_batch`` and
+    ``checkpoint`` are ignored.
 
     ``valid`` (B, N) False is applied as opacity 0, which gsplat culls (< 1/255), the same
     result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
     is gsplat's ``meta`` dict plus ``gsplat_version``.
+
+    Raises:
+        BackendUnavailableError: gsplat cannot run on these tensors or tiles.
     """
-    reason = gsplat_unavailable_reason(means.device, means.dtype, tile_size)
+    s = settings
+    reason = gsplat_unavailable_reason(means.device, means.dtype, s.tile_size)
     if reason is not None:
         raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}")
     rasterization = _load_rasterization()
-
-    B, C = viewmats.shape[:2]
-    N = means.shape[1]
     if valid is not None:
         opacities = opacities * valid.to(opacities.dtype)
-
-    feats = colors
-    n_col = 3 if sh_degree is not None else colors.shape[-1]
-    gs_sh_degree = sh_degree
-    if num_parts > 0:
-        assert part_ids is not None
-        if sh_degree is not None:
-            feats = _sh_to_camera_rgb(colors, sh_degree, means, viewmats)  # (B, C, N, 3)
-            gs_sh_degree = None
-        onehot = F.one_hot(part_ids.long().clamp(min=0), num_parts).to(means.dtype)
-        onehot = onehot * (part_ids >= 0)[..., None].to(means.dtype)  # (B, N, P)
-        if feats.dim() == 4:  # per camera (B, C, N, D)
-            onehot = onehot[:, None].expand(B, C, N, num_parts)
-        feats = torch.cat([feats, onehot], -1)
-
+    feats, gs_sh_degree = _features(colors, means, viewmats, part_ids, s)
+    n_col = 3 if s.sh_degree is not None else colors.shape[-1]
     render_colors, render_alphas, meta = rasterization(
         means.contiguous(),
         quats.contiguous(),
@@ -186,22 +156,43 @@ def render_gsplat(
         Ks.contiguous(),
         width,
         height,
-        near_plane=near_plane,
-        far_plane=far_plane,
-        eps2d=eps2d,
+        near_plane=s.near_plane,
+        far_plane=s.far_plane,
+        eps2d=s.eps2d,
         sh_degree=gs_sh_degree,
-        packed=packed,
-        tile_size=tile_size,
+        packed=s.packed,
+        tile_size=s.tile_size,
         backgrounds=None,  # composited below (gsplat 1.5.3 packed + backgrounds asserts)
-        render_mode=render_mode,
-        rasterize_mode="antialiased" if antialiased else "classic",
+        render_mode=s.render_mode,
+        rasterize_mode="antialiased" if s.antialiased else "classic",
     )
     # render_colors (B, C, H, W, n_col [+ P] [+ 1 depth]), render_alphas (B, C, H, W, 1)
     rgb = render_colors[..., :n_col]
     if backgrounds is not None:
         rgb = rgb + (1.0 - render_alphas) * backgrounds[:, :, None, None, :]
-    part_alpha = render_colors[..., n_col : n_col + num_parts] if num_parts > 0 else None
-    depth = render_colors[..., -1:] if render_mode != "RGB" else None
+    part_alpha = render_colors[..., n_col : n_col + s.num_parts] if s.num_parts > 0 else None
+    depth = render_colors[..., -1:] if s.render_mode != "RGB" else None
     meta = dict(meta)
     meta["gsplat_version"] = _gsplat_version()
     return RenderOutput(rgb=rgb, alpha=render_alphas, depth=depth, part_alpha=part_alpha, meta=meta)
+
+
+def _features(
+    colors: Tensor, means: Tensor, viewmats: Tensor, part_ids: Tensor | None, s: RenderSettings
+) -> tuple[Tensor, int | None]:
+    """The colour features gsplat renders, and the SH degree it evaluates them with.
+
+    Without parts: ``colors`` as given, with ``s.sh_degree``. With ``s.num_parts`` P > 0,
+    the one-hot part channels are appended as plain features, so SH colours are evaluated
+    here first: (B, N, D + P) or (B, C, N, D + P), SH degree None.
+    """
+    if s.num_parts == 0:
+        return colors, s.sh_degree
+    assert part_ids is not None
+    B, C = viewmats.shape[:2]
+    N = means.shape[1]
+    feats = colors if s.sh_degree is None else camera_colors(colors, s.sh_degree, means, viewmats)
+    onehot = part_channels(part_ids, s.num_parts, means.dtype)  # (B, N, P)
+    if feats.dim() == 4:  # per camera (B, C, N, D)
+        onehot = onehot[:, None].expand(B, C, N, s.num_parts)
+    return torch.cat([feats, onehot], -1), None

@@ -50,6 +50,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Sequence
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F_nn
 from torch import Tensor
@@ -1321,9 +1323,6 @@ def save_png(path: str | os.PathLike[str], rgb_or_rgba: Tensor) -> None:
         rgb_or_rgba: (H, W, 3), (H, W, 4) or (H, W); float in [0, 1] (clamped, rounded)
             or uint8.
     """
-    import cv2  # local import: only needed for writing files
-    import numpy as np
-
     img = rgb_or_rgba
     ok = isinstance(img, Tensor) and (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4)))
     if not ok:
@@ -1348,7 +1347,7 @@ def save_png(path: str | os.PathLike[str], rgb_or_rgba: Tensor) -> None:
 
 def _timing_demo(repeats: int = 5) -> None:
     """Render a textured icosphere (20480 faces) at 1000 x 1000 and print the time."""
-    import trimesh
+    import trimesh  # deferred: slow to import, and only this timing demo uses it
 
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     verts = torch.tensor(sphere.vertices, dtype=torch.float32)

@@ -15,6 +15,7 @@ from hogsa_loader.errors import PathLike
 from hogsa_loader.hands.anatomy import named_articulation
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
+from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.render.mesh_raster import (
     Light,
     MeshPart,
@@ -73,8 +74,6 @@ def hand_preview(right: ManoModelData, left: ManoModelData,
 
 def object_preview(templates: Sequence, angles: Sequence[float] = (0.0, 0.3, 0.9), size: int = 224) -> np.ndarray:
     """(len(templates) * size, len(angles) * size, 3) sheet of textured objects opening."""
-    from hogsa_loader.objects.articulated import articulate
-
     rows = []
     for t in templates:
         if t.tex_verts is None:
