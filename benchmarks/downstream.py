@@ -549,7 +549,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
 
     from hogsa_loader.baselines.engine import BodyLayers, evaluate, training_step
     from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
+    from hogsa_loader.io.tensors import write_tensors_and_manifest
 
     folder = run_dir(arm, seed, cfg, out)
     settings = run_settings(arm, seed, cfg, setup)
