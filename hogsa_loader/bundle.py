@@ -81,7 +81,7 @@ MANIFEST_NAME = "manifest.json"
 _PARTS = ("hand_right", "hand_left", "object")
 #: The shared manifest header of a bundle (no tensors file of its own).
 BUNDLE_HEADER = ManifestFormat(BUNDLE_FORMAT, BUNDLE_SCHEMA_VERSION, "a bundle", manifest_file=MANIFEST_NAME)
-#: A run's light folder name and ``{"tensors": file name, "manifest": file name}`` in it.
+#: ``{"tensors": file name, "manifest": file name}`` of a run's light folder (``LIGHT_DIR``).
 _LIGHT_FILES = {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
 
 

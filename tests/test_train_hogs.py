@@ -14,6 +14,7 @@ import torch
 from hogsa_loader.gaussians import load_part
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import project, transform
+from hogsa_loader.errors import AssetError
 from hogsa_loader.train import HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
 
 ROOT = Path(__file__).resolve().parents[1]
