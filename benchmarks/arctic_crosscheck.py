@@ -350,7 +350,7 @@ class _ChumpyFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
 
 def _chumpy_module(name: str) -> types.ModuleType:
-    from hogsa_loader.hands.mano_io import ChumpyStub
+    from hogsa_loader.io.mano_pickle import ChumpyStub
 
     classes: dict[str, type] = {}
 

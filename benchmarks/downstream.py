@@ -80,7 +80,7 @@ from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
-from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
+from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
 from hogsa_loader.loader.mixing import MixMode, MixedLoader
 from hogsa_loader.synthetic.world import get_preset

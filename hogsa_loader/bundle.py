@@ -14,13 +14,13 @@ A bundle is what ``pretrain/build_bundle.py`` writes and what
 Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
 run's ``checkpoints/`` history and caches stay behind.
 
-``manifest.json`` (schema version 2):
+``manifest.json`` (the shared header of :mod:`hogsa_loader.io.tensors`, without tensors):
 
 ================  =========================================================================
 key               value
 ================  =========================================================================
 format            ``"hogsa-bundle"``
-schema_version    2 (version 1 bundles did not copy the runs' learned light: rebuild them)
+schema_version    2
 library_version   ``hogsa_loader.__version__`` of the writer
 dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
                   (``root`` is informational: the loader takes the data root as an argument)
@@ -52,7 +52,17 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Mapping, Optional, Sequence
 
+from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
+from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
+from hogsa_loader.gaussians.parts import template_hash
+from hogsa_loader.gaussians.shading import LIGHT_MANIFEST, LIGHT_TENSORS
+from hogsa_loader.io.atomic import atomic_write_json
+from hogsa_loader.io.tensors import ManifestFormat, check_header
+from hogsa_loader.pom.bank import load_pose_bank
+from hogsa_loader.pom.contactnet import load_contactnet
+from hogsa_loader.srm.io import read_srm_manifest
 
 __all__ = [
     "BUNDLE_FORMAT",
@@ -69,6 +79,10 @@ BUNDLE_FORMAT = "hogsa-bundle"
 BUNDLE_SCHEMA_VERSION = 2
 MANIFEST_NAME = "manifest.json"
 _PARTS = ("hand_right", "hand_left", "object")
+#: The shared manifest header of a bundle (no tensors file of its own).
+BUNDLE_HEADER = ManifestFormat(BUNDLE_FORMAT, BUNDLE_SCHEMA_VERSION, "a bundle", manifest_file=MANIFEST_NAME)
+#: ``{"tensors": file name, "manifest": file name}`` of a run's light folder (``LIGHT_DIR``).
+_LIGHT_FILES = {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
 
 
 # --------------------------------------------------------------------------------------
@@ -154,8 +168,6 @@ class Bundle:
             object_templates: ``{name: ObjectTemplate}`` of the data root.
             device: where to put the parameters.
         """
-        from hogsa_loader.gaussians.hogs_model import HogsModel
-
         if key not in self.hogs:
             raise KeyError(f"bundle {self.path} has no HOGS run for {key}; it has {self.keys}")
         return HogsModel.from_run(self.hogs[key].path, mano_layers, object_templates, device=device).eval()
@@ -193,8 +205,6 @@ def _hash_tree(path: Path) -> dict[str, str]:
 
 
 def _hand_hashes(mano_layers: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    from hogsa_loader.gaussians.parts import template_hash
-
     out = {}
     for side in ("right", "left"):
         data = mano_layers[side].data
@@ -203,8 +213,6 @@ def _hand_hashes(mano_layers: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def _object_hashes(templates: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    from hogsa_loader.gaussians.parts import template_hash
-
     return {
         name: {"template_hash": template_hash(t.verts, t.faces), "num_verts": int(len(t.verts))}
         for name, t in sorted(templates.items())
@@ -219,8 +227,6 @@ def _bundle_error(path: Path, problems: Sequence[str]) -> AssetError:
 
 def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
     """Problems of ``data_root`` against the manifest's hand model and object hashes."""
-    from hogsa_loader.datasets.arctic import ArcticRoot
-
     problems: list[str] = []
     try:
         root = ArcticRoot(data_root)
@@ -270,20 +276,8 @@ def _copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def _light_files() -> tuple[str, dict[str, str]]:
-    """A run's light folder name and ``{"tensors": file name, "manifest": file name}`` in it."""
-    from hogsa_loader.gaussians.hogs_model import LIGHT_DIR
-    from hogsa_loader.gaussians.shading import LIGHT_MANIFEST, LIGHT_TENSORS
-
-    return LIGHT_DIR, {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
-
-
 def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks: Sequence[Path]) -> list[str]:
     """Read the SRM, ContactNet and pose banks as checkpoints; their problems, if any."""
-    from hogsa_loader.pom.bank import load_pose_bank
-    from hogsa_loader.pom.contactnet import load_contactnet
-    from hogsa_loader.srm.io import read_srm_manifest
-
     checks = [("SRM checkpoint", srm, read_srm_manifest), ("ContactNet checkpoint", contactnet, load_contactnet)]
     checks += [("pose bank", b, load_pose_bank) for b in banks]
     problems = []
@@ -328,6 +322,54 @@ def _extra(src: Optional[PathLike], out: Path, rel: str, what: str) -> Optional[
     return {"path": rel, "files": _hash_tree(dst)}
 
 
+def _collect_runs(hogs_runs: Sequence[PathLike], layers: Mapping[str, Any],
+                  templates: Mapping[str, Any]) -> tuple[list[tuple[str, str, Path, int]], list[str]]:
+    """Load every HOGS run against the data root's models: ``[(subject, object, run, num_gaussians)]``
+    and the problems found (unfinished or mismatched runs, two runs of one (subject, object))."""
+    problems: list[str] = []
+    runs: list[tuple[str, str, Path, int]] = []
+    for run in map(Path, hogs_runs):
+        try:
+            model = HogsModel.from_run(run, layers, templates)
+        except AssetError as exc:
+            problems.append(f"HOGS run {run}: {exc}")
+            continue
+        subject = read_manifest(run / "object").get("source", {}).get("subject")
+        if not subject:
+            problems.append(f"HOGS run {run}: its object manifest records no subject")
+            continue
+        runs.append((str(subject), str(model.object_name), run, int(model.num_gaussians)))
+    seen: dict[tuple[str, str], Path] = {}
+    for sid, obj, run, _ in runs:
+        if (sid, obj) in seen:
+            problems.append(f"two HOGS runs for ({sid}, {obj}): {seen[(sid, obj)]} and {run}")
+        seen[(sid, obj)] = run
+    if not runs and not problems:
+        problems.append("no HOGS run given")
+    return runs, problems
+
+
+def _copy_run(run: Path, out: Path, rel: str) -> tuple[dict[str, dict[str, str]], Optional[dict[str, str]]]:
+    """Copy a HOGS run's part checkpoints (and its light) to ``out / rel``: their hashes
+    ``{part: {"template_hash", "tensors_sha256", "manifest_sha256"}}`` and the light's (or None)."""
+    parts = {}
+    for part in _PARTS:
+        _copy(run / part, out / rel / part)
+        man = json.loads((out / rel / part / MANIFEST_FILE).read_text(encoding="utf-8"))
+        parts[part] = {
+            "template_hash": man["template_hash"],
+            "tensors_sha256": _sha256_file(out / rel / part / TENSORS_FILE),
+            "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
+        }
+    light = None
+    if (run / LIGHT_DIR).is_dir():  # the learned light the run's colours were fitted under
+        _copy(run / LIGHT_DIR, out / rel / LIGHT_DIR)
+        light = {f"{k}_sha256": _sha256_file(out / rel / LIGHT_DIR / f) for k, f in _LIGHT_FILES.items()}
+    elif (out / rel / LIGHT_DIR).exists():
+        shutil.rmtree(out / rel / LIGHT_DIR)
+    return parts, light
+
+
 def write_bundle(
     out: PathLike,
     data_root: PathLike,
@@ -361,40 +403,11 @@ def write_bundle(
             the same (subject, object); the SRM, ContactNet or a pose bank is not a readable
             checkpoint; two pose banks have the same name. All problems are listed in one error.
     """
-    import hogsa_loader
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
-    from hogsa_loader.gaussians.hogs_model import HogsModel
-
     out = Path(out)
     root = ArcticRoot(data_root)
     layers = root.mano_layers()
     templates = root.object_templates()
-    hands = _hand_hashes(layers)
-    objects_all = _object_hashes(templates)
-
-    problems: list[str] = []
-    runs: list[tuple[str, str, Path, int]] = []
-    for run in hogs_runs:
-        run = Path(run)
-        try:
-            model = HogsModel.from_run(run, layers, templates)
-        except AssetError as exc:
-            problems.append(f"HOGS run {run}: {exc}")
-            continue
-        src = read_manifest(run / "object").get("source", {})
-        subject, obj = src.get("subject"), model.object_name
-        if not subject:
-            problems.append(f"HOGS run {run}: its object manifest records no subject")
-            continue
-        runs.append((str(subject), str(obj), run, int(model.num_gaussians)))
-    seen: dict[tuple[str, str], Path] = {}
-    for sid, obj, run, _ in runs:
-        if (sid, obj) in seen:
-            problems.append(f"two HOGS runs for ({sid}, {obj}): {seen[(sid, obj)]} and {run}")
-        seen[(sid, obj)] = run
-    if not runs and not problems:
-        problems.append("no HOGS run given")
+    runs, problems = _collect_runs(hogs_runs, layers, templates)
     problems += _check_extras(srm, contactnet, pose_banks)
     if problems:
         raise _bundle_error(out, problems)
@@ -404,49 +417,26 @@ def write_bundle(
     hogs = []
     for sid, obj, run, n in sorted(runs):
         rel = f"hogs/{sid}_{obj}"
-        parts = {}
-        for part in _PARTS:
-            _copy(run / part, out / rel / part)
-            man = json.loads((out / rel / part / MANIFEST_FILE).read_text(encoding="utf-8"))
-            parts[part] = {
-                "template_hash": man["template_hash"],
-                "tensors_sha256": _sha256_file(out / rel / part / TENSORS_FILE),
-                "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
-            }
-        light = None
-        light_dir, light_files = _light_files()
-        if (run / light_dir).is_dir():  # the learned light the run's colours were fitted under
-            _copy(run / light_dir, out / rel / light_dir)
-            light = {f"{k}_sha256": _sha256_file(out / rel / light_dir / f) for k, f in light_files.items()}
-        elif (out / rel / light_dir).exists():
-            shutil.rmtree(out / rel / light_dir)
+        parts, light = _copy_run(run, out, rel)
         hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts, "light": light})
-    used = sorted({obj for _, obj, _, _ in runs})
-    banks = []
-    for bank in pose_banks:
-        name = Path(bank).name
-        rec = _extra(bank, out, "pose_banks", "pose bank")
-        banks.append({"name": name, **rec})  # type: ignore[dict-item]
+    objects_all = _object_hashes(templates)
     manifest = {
-        "format": BUNDLE_FORMAT,
-        "schema_version": BUNDLE_SCHEMA_VERSION,
-        "library_version": hogsa_loader.__version__,
+        **BUNDLE_HEADER.head(),
         "dataset": {
             "name": dataset,
             "root": str(root.data_root),
             "subjects": sorted({sid for sid, _, _, _ in runs}),
             "cropped_size": int(root.world_meta().cropped_size),
         },
-        "hand_model": {"source": str(root.mano_dir), **hands},
-        "objects": {name: objects_all[name] for name in used},
+        "hand_model": {"source": str(root.mano_dir), **_hand_hashes(layers)},
+        "objects": {name: objects_all[name] for name in sorted({obj for _, obj, _, _ in runs})},
         "hogs": hogs,
         "srm": _extra(srm, out, "srm", "SRM checkpoint"),
         "contactnet": _extra(contactnet, out, "contactnet", "ContactNet checkpoint"),
-        "pose_banks": banks,
+        "pose_banks": [{"name": Path(b).name, **_extra(b, out, "pose_banks", "pose bank")}  # type: ignore[dict-item]
+                       for b in pose_banks],
     }
-    tmp = out / f".{MANIFEST_NAME}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, out / MANIFEST_NAME)
+    atomic_write_json(out / MANIFEST_NAME, manifest, indent=1)
     return out
 
 
@@ -495,6 +485,164 @@ def _check_files(base: Path, what: str, rec: Any, problems: list[str]) -> Option
     return ExtraEntry(name=str(rec.get("name", what)), path=path, files=dict(rec["files"]))
 
 
+def _read_bundle_manifest(path: Path) -> dict[str, Any]:
+    """Read ``manifest.json``: shared header, top-level keys of the right JSON types.
+
+    Raises:
+        AssetError: the bundle error listing the problems found.
+    """
+    mpath = path / MANIFEST_NAME
+    if not path.is_dir():
+        raise _bundle_error(path, ["bundle folder is missing"])
+    if not mpath.is_file():
+        raise _bundle_error(path, [f"{MANIFEST_NAME} is missing"])
+    try:
+        manifest = read_json(mpath, allow_nan=False)  # (its writer never emits NaN / Infinity)
+    except AssetError as exc:
+        raise _bundle_error(path, [f"{MANIFEST_NAME}: {exc.problem}"]) from None
+    if not isinstance(manifest, dict):
+        raise _bundle_error(path, [f"{MANIFEST_NAME} must hold a JSON object"])
+    problems: list[str] = []
+    try:
+        check_header(manifest, mpath, BUNDLE_HEADER)
+    except AssetError as exc:
+        problems.append(exc.problem)
+    for key, typ in (("dataset", dict), ("hand_model", dict), ("objects", dict), ("hogs", list), ("pose_banks", list)):
+        if not isinstance(manifest.get(key), typ):
+            problems.append(f"key {key!r} is missing or not a JSON {typ.__name__}")
+    if not problems:
+        bad = [f"hand_model.{s}" for s in ("right", "left") if not isinstance(manifest["hand_model"].get(s, {}), dict)]
+        bad += [f"objects.{k}" for k, v in manifest["objects"].items() if not isinstance(v, dict)]
+        if bad:
+            problems.append(f"entries {bad[:3]} must be JSON objects")
+    if problems:
+        raise _bundle_error(path, problems)
+    return manifest
+
+
+def _check_part(what: str, folder: Path, want_hash: Any, rec_part: Any, verify_hashes: bool,
+                problems: list[str], unlisted: Optional[str] = None) -> bool:
+    """One part checkpoint of a HOGS run: readable, made for ``want_hash`` (``unlisted``: the
+    problem to report instead, when the bundle lists no template for it), files equal to the
+    recorded hashes. Appends problems; False when the checkpoint is missing or unreadable."""
+    if not (folder / MANIFEST_FILE).is_file():
+        problems.append(f"{what}: part checkpoint {folder} is missing")
+        return False
+    try:
+        man = read_manifest(folder)
+    except AssetError as exc:
+        problems.append(f"{what}: {exc}")
+        return False
+    if unlisted is not None:
+        problems.append(unlisted)
+    elif man["template_hash"] != want_hash:
+        problems.append(f"{what}: part {folder.name} was trained on template {man['template_hash'][:16]}..., "
+                        f"the bundle records {str(want_hash)[:16]}...")  # fmt: skip
+    if not isinstance(rec_part, dict) or not rec_part:
+        problems.append(f"{what}: no hashes recorded for part {folder.name}")
+    elif verify_hashes:
+        for fname, hkey in ((TENSORS_FILE, "tensors_sha256"), (MANIFEST_FILE, "manifest_sha256")):
+            f = folder / fname
+            if not f.is_file():
+                problems.append(f"{what}: {f} is missing")
+            elif _sha256_file(f) != rec_part.get(hkey):
+                problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
+    return True
+
+
+def _check_light(what: str, run: Path, rec: Mapping[str, Any], verify_hashes: bool, problems: list[str]) -> bool:
+    """A HOGS run's light entry: null with no light folder, or hashes of its files. Appends
+    problems; False when the entry or a light file is missing."""
+    light = rec.get("light")
+    if "light" not in rec or not (light is None or isinstance(light, dict)):
+        problems.append(f"{what}: 'light' must be null or an object of hashes")
+        return False
+    if light is None:
+        if (run / LIGHT_DIR).exists():
+            problems.append(f"{what}: {run / LIGHT_DIR} is not listed in the bundle manifest")
+        return True
+    ok = True
+    for k, fname in _LIGHT_FILES.items():
+        f = run / LIGHT_DIR / fname
+        if not f.is_file():
+            problems.append(f"{what}: {f} is missing")
+            ok = False
+        elif verify_hashes and _sha256_file(f) != light.get(f"{k}_sha256"):
+            problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
+    return ok
+
+
+def _escaping_files(path: Path, rel: str, run: Path) -> list[str]:
+    """Checkpoint files of a HOGS run that lead out of the bundle (e.g. a part folder that is a
+    symbolic link)."""
+    files = [(p, (MANIFEST_FILE, TENSORS_FILE)) for p in _PARTS] + [(LIGHT_DIR, tuple(_LIGHT_FILES.values()))]
+    return [f"{rel}/{sub}/{f}" for sub, names in files for f in names
+            if (run / sub / f).exists() and _inside(path, f"{rel}/{sub}/{f}") is None]  # fmt: skip
+
+
+def _check_hogs_entry(path: Path, manifest: Mapping[str, Any], i: int, rec: Any, seen: Mapping[tuple[str, str], Any],
+                      verify_hashes: bool, problems: list[str]) -> Optional[HogsEntry]:
+    """``manifest["hogs"][i]``: its record, part checkpoints and light. Appends problems; the
+    entry, or None when it is unusable."""
+    if not isinstance(rec, dict) or not all(isinstance(rec.get(k), str) for k in ("subject", "object", "path")):
+        problems.append(f"hogs[{i}]: entry needs string 'subject', 'object' and 'path'")
+        return None
+    key = (rec["subject"], rec["object"])
+    what = f"HOGS run {key[0]}/{key[1]}"
+    if key in seen:
+        problems.append(f"{what}: listed twice")
+    run = _inside(path, rec["path"])
+    if run is None:
+        problems.append(f"{what}: path {rec['path']!r} is not a relative path inside the bundle")
+        return None
+    n_gauss = rec.get("num_gaussians", 0)
+    if not isinstance(n_gauss, int) or isinstance(n_gauss, bool) or n_gauss < 0:
+        problems.append(f"{what}: num_gaussians must be a non-negative integer, got {n_gauss!r}")
+        return None
+    escaping = _escaping_files(path, rec["path"], run)
+    if escaping:
+        problems.append(f"{what}: {escaping[0]} leads out of the bundle")
+        return None
+    parts = rec.get("parts") if isinstance(rec.get("parts"), dict) else {}
+    hand_hash = {s: manifest["hand_model"].get(s, {}).get("template_hash") for s in ("right", "left")}
+    ok = True
+    for part in _PARTS:
+        unlisted = None
+        if part != "object":
+            want = hand_hash["right" if part == "hand_right" else "left"]
+        elif key[1] in manifest["objects"]:
+            want = manifest["objects"][key[1]].get("template_hash")
+        else:
+            want, unlisted = None, f"{what}: object {key[1]!r} is not listed under 'objects'"
+        ok &= _check_part(what, run / part, want, parts.get(part, {}), verify_hashes, problems, unlisted)
+    ok &= _check_light(what, run, rec, verify_hashes, problems)
+    if not ok:
+        return None
+    light = rec.get("light")
+    return HogsEntry(subject=key[0], object=key[1], path=run, num_gaussians=n_gauss,
+                     parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
+                     light=dict(light) if isinstance(light, dict) else None)  # fmt: skip
+
+
+def _check_extra_entries(path: Path, manifest: Mapping[str, Any], problems: list[str]
+                         ) -> tuple[Optional[ExtraEntry], Optional[ExtraEntry], dict[str, ExtraEntry]]:
+    """The SRM, ContactNet and pose-bank entries: files present with their recorded hashes.
+    Appends problems; ``(srm, contactnet, {name: pose bank})``."""
+    srm = contactnet = None
+    if manifest.get("srm") is not None:
+        srm = _check_files(path, "SRM checkpoint", manifest["srm"], problems)
+    if manifest.get("contactnet") is not None:
+        contactnet = _check_files(path, "ContactNet checkpoint", manifest["contactnet"], problems)
+    banks: dict[str, ExtraEntry] = {}
+    for i, rec in enumerate(manifest["pose_banks"]):
+        e = _check_files(path, f"pose bank {i}", rec, problems)
+        if e is not None and e.name in banks:
+            problems.append(f"pose bank {i}: the name {e.name!r} is used twice")
+        elif e is not None:
+            banks[e.name] = e
+    return srm, contactnet, banks
+
+
 def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_hashes: bool = True) -> Bundle:
     """Read and validate a bundle.
 
@@ -517,131 +665,17 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     Raises:
         AssetError: naming the bundle and listing **every** problem found.
     """
-    from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
-
     path = Path(path)
-    mpath = path / MANIFEST_NAME
-    if not path.is_dir():
-        raise _bundle_error(path, ["bundle folder is missing"])
-    if not mpath.is_file():
-        raise _bundle_error(path, [f"{MANIFEST_NAME} is missing"])
-    try:
-        manifest = read_json(mpath, allow_nan=False)  # (its writer never emits NaN / Infinity)
-    except AssetError as exc:
-        raise _bundle_error(path, [f"{MANIFEST_NAME}: {exc.problem}"]) from None
-    if not isinstance(manifest, dict):
-        raise _bundle_error(path, [f"{MANIFEST_NAME} must hold a JSON object"])
+    manifest = _read_bundle_manifest(path)
     problems: list[str] = []
-    if manifest.get("format") != BUNDLE_FORMAT:
-        problems.append(f"format is {manifest.get('format')!r}, expected {BUNDLE_FORMAT!r}")
-    if manifest.get("schema_version") == 1:
-        problems.append("schema_version is 1: bundles of that version lack the HOGS runs' learned light (their "
-                        "renders are unshaded); rebuild it with pretrain/build_bundle.py")
-    elif manifest.get("schema_version") != BUNDLE_SCHEMA_VERSION:
-        problems.append(f"schema_version is {manifest.get('schema_version')!r}, this reader supports {BUNDLE_SCHEMA_VERSION}")
-    for key, typ in (("dataset", dict), ("hand_model", dict), ("objects", dict), ("hogs", list), ("pose_banks", list)):
-        if not isinstance(manifest.get(key), typ):
-            problems.append(f"key {key!r} is missing or not a JSON {typ.__name__}")
-    if not problems:
-        bad = [f"hand_model.{s}" for s in ("right", "left") if not isinstance(manifest["hand_model"].get(s, {}), dict)]
-        bad += [f"objects.{k}" for k, v in manifest["objects"].items() if not isinstance(v, dict)]
-        if bad:
-            problems.append(f"entries {bad[:3]} must be JSON objects")
-    if problems:
-        raise _bundle_error(path, problems)
-
-    hand_hash = {s: manifest["hand_model"].get(s, {}).get("template_hash") for s in ("right", "left")}
-    light_dir, light_files = _light_files()
     hogs: dict[tuple[str, str], HogsEntry] = {}
     if not manifest["hogs"]:
         problems.append("the bundle lists no HOGS run")
     for i, rec in enumerate(manifest["hogs"]):
-        if not isinstance(rec, dict) or not all(isinstance(rec.get(k), str) for k in ("subject", "object", "path")):
-            problems.append(f"hogs[{i}]: entry needs string 'subject', 'object' and 'path'")
-            continue
-        key = (rec["subject"], rec["object"])
-        what = f"HOGS run {key[0]}/{key[1]}"
-        if key in hogs:
-            problems.append(f"{what}: listed twice")
-        run = _inside(path, rec["path"])
-        if run is None:
-            problems.append(f"{what}: path {rec['path']!r} is not a relative path inside the bundle")
-            continue
-        n_gauss = rec.get("num_gaussians", 0)
-        if not isinstance(n_gauss, int) or isinstance(n_gauss, bool) or n_gauss < 0:
-            problems.append(f"{what}: num_gaussians must be a non-negative integer, got {n_gauss!r}")
-            continue
-        parts = rec.get("parts") if isinstance(rec.get("parts"), dict) else {}
-        ok = True
-        escaping = [f"{rec['path']}/{sub}/{f}" for sub, files in
-                    [(p, (MANIFEST_FILE, TENSORS_FILE)) for p in _PARTS] + [(light_dir, tuple(light_files.values()))]
-                    for f in files if (run / sub / f).exists() and _inside(path, f"{rec['path']}/{sub}/{f}") is None]
-        if escaping:  # e.g. a part folder that is a symbolic link out of the bundle
-            problems.append(f"{what}: {escaping[0]} leads out of the bundle")
-            continue
-        for part in _PARTS:
-            folder = run / part
-            if not (folder / MANIFEST_FILE).is_file():
-                problems.append(f"{what}: part checkpoint {folder} is missing")
-                ok = False
-                continue
-            try:
-                man = read_manifest(folder)
-            except AssetError as exc:
-                problems.append(f"{what}: {exc}")
-                ok = False
-                continue
-            want = hand_hash["right" if part == "hand_right" else "left"] if part != "object" else (
-                manifest["objects"].get(key[1], {}).get("template_hash"))
-            if part == "object" and key[1] not in manifest["objects"]:
-                problems.append(f"{what}: object {key[1]!r} is not listed under 'objects'")
-            elif man["template_hash"] != want:
-                problems.append(
-                    f"{what}: part {part} was trained on template {man['template_hash'][:16]}..., "
-                    f"the bundle records {str(want)[:16]}..."
-                )
-            rec_part = parts.get(part, {})
-            if not isinstance(rec_part, dict) or not rec_part:
-                problems.append(f"{what}: no hashes recorded for part {part}")
-            elif verify_hashes:
-                for fname, hkey in ((TENSORS_FILE, "tensors_sha256"), (MANIFEST_FILE, "manifest_sha256")):
-                    f = folder / fname
-                    if not f.is_file():
-                        problems.append(f"{what}: {f} is missing")
-                    elif _sha256_file(f) != rec_part.get(hkey):
-                        problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
-        light = rec.get("light")
-        if "light" not in rec or not (light is None or isinstance(light, dict)):
-            problems.append(f"{what}: 'light' must be null or an object of hashes")
-            ok = False
-        elif light is None and (run / light_dir).exists():
-            problems.append(f"{what}: {run / light_dir} is not listed in the bundle manifest")
-        elif light is not None:
-            for k, fname in light_files.items():
-                f = run / light_dir / fname
-                if not f.is_file():
-                    problems.append(f"{what}: {f} is missing")
-                    ok = False
-                elif verify_hashes and _sha256_file(f) != light.get(f"{k}_sha256"):
-                    problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
-        if ok:
-            hogs[key] = HogsEntry(
-                subject=key[0], object=key[1], path=run, num_gaussians=n_gauss,
-                parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
-                light=dict(light) if isinstance(light, dict) else None,
-            )
-    srm = contactnet = None
-    if manifest.get("srm") is not None:
-        srm = _check_files(path, "SRM checkpoint", manifest["srm"], problems)
-    if manifest.get("contactnet") is not None:
-        contactnet = _check_files(path, "ContactNet checkpoint", manifest["contactnet"], problems)
-    banks: dict[str, ExtraEntry] = {}
-    for i, rec in enumerate(manifest["pose_banks"]):
-        e = _check_files(path, f"pose bank {i}", rec, problems)
-        if e is not None and e.name in banks:
-            problems.append(f"pose bank {i}: the name {e.name!r} is used twice")
-        elif e is not None:
-            banks[e.name] = e
+        entry = _check_hogs_entry(path, manifest, i, rec, hogs, verify_hashes, problems)
+        if entry is not None:
+            hogs[entry.key] = entry
+    srm, contactnet, banks = _check_extra_entries(path, manifest, problems)
     if not problems:  # files present and unchanged: read them as checkpoints
         problems += _checkpoint_problems(srm.path if srm else None, contactnet.path if contactnet else None,
                                          [b.path for b in banks.values()])  # fmt: skip

@@ -5,7 +5,9 @@ Every error that comes from bad input names the file and says what is wrong with
 
 from __future__ import annotations
 
+import json
 import os
+from pathlib import Path
 from typing import Union
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -47,9 +49,6 @@ def read_json(path: PathLike, allow_nan: bool = True) -> "object":
     ``allow_nan=False`` also refuses ``NaN`` / ``Infinity`` (not JSON values; Python's
     reader accepts them): for this library's own manifests, whose writer never emits them.
     """
-    import json
-    from pathlib import Path
-
     def reject(name: str) -> "object":
         raise ValueError(f"malformed JSON: {name} is not a JSON value")
 

@@ -36,7 +36,7 @@ from typing import Any, Optional, Sequence
 from hogsa_loader.cli import checks
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import UsageError
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.gaussians.hogs_model import HogsModel
 
 HERE = Path(__file__).resolve().parent

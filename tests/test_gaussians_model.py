@@ -456,9 +456,9 @@ def test_object_uv_seam_copies_share_their_offset(box_template, levels):
     assert sphere.weld_group is None
 
 
-def test_checkpoints_from_before_welding_render_as_trained(box_template, tmp_path):
-    """A checkpoint whose config predates ``weld_seams`` was trained with one free offset per
-    vertex: it loads unwelded (its seam copies keep their own offsets); new ones load welded."""
+def test_checkpoints_without_weld_seams_are_refused(box_template, tmp_path):
+    """New checkpoints record ``weld_seams`` and load welded; a pre-1.0 checkpoint whose config
+    lacks it (trained with one free offset per vertex) is refused with a clear error."""
     obj = ObjectGaussians(box_template, k=1, sh_degree=0)
     with torch.no_grad():
         obj.splats.offsets.copy_(1e-3 * torch.randn(obj.splats.offsets.shape, generator=torch.Generator().manual_seed(1)))
@@ -466,15 +466,15 @@ def test_checkpoints_from_before_welding_render_as_trained(box_template, tmp_pat
     assert json.loads((tmp_path / "new" / MANIFEST_FILE).read_text())["config"]["weld_seams"] is True
     new = load_part(tmp_path / "new", box_template)
     assert torch.equal(new.canonical_vertices(), obj.canonical_vertices())
-    # the same file as an older version wrote it (no weld_seams in its config)
+    # the same file without weld_seams in its config
     save_part(obj, tmp_path / "old")
     man = json.loads((tmp_path / "old" / MANIFEST_FILE).read_text())
     del man["config"]["weld_seams"]
     (tmp_path / "old" / MANIFEST_FILE).write_text(json.dumps(man))
-    old = load_part(tmp_path / "old", box_template)
-    assert old.splats.weld_group is None and old.config()["weld_seams"] is False
-    torch.testing.assert_close(old.canonical_vertices(), old.splats.template + obj.splats.offsets, rtol=0, atol=0)
-    assert not torch.allclose(old.canonical_vertices(), new.canonical_vertices())  # the seams differ
+    with pytest.raises(AssetError, match=r"manifest.json: config.weld_seams is missing from the checkpoint.*train"):
+        load_part(tmp_path / "old", box_template)
+    with pytest.raises(AssetError, match=r"config.weld_seams is missing from the checkpoint"):
+        load_state(ObjectGaussians(box_template, k=1, sh_degree=0), tmp_path / "old")
 
 
 # --------------------------------------------------------------------------------------

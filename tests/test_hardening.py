@@ -99,19 +99,26 @@ def test_corrupt_trainer_state_is_refused_on_resume(tiny_world, hogs_run, tmp_pa
     script.HogsTrainer = no_trainer  # every refusal below comes before any data is read
     assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "sha256")
-    # a checkpoint written before the hash was recorded: NaN moments and truncation are still refused
+    # a checkpoint without the hash (pre-1.0) is refused
     del state["tensors_sha256"]
     (folder / "trainer.json").write_text(json.dumps(state))
+    assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
+    _one_line(capsys.readouterr().err, "trainer.json", "tensors_sha256")
+    # NaN moments and truncation are refused even when the hash matches the file
     from safetensors.torch import save
+
+    def put(blob: bytes) -> None:
+        tpath.write_bytes(blob)
+        (folder / "trainer.json").write_text(json.dumps({**state, "tensors_sha256": hashlib.sha256(blob).hexdigest()}))
 
     good = _good_trainer_tensors(hogs_run)
     bad = {k: v.clone() for k, v in good.items()}
     name = next(k for k in bad if k.endswith("exp_avg"))
     bad[name].view(-1)[0] = float("nan")
-    tpath.write_bytes(save(bad))
+    put(save(bad))
     assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "NaN")
-    tpath.write_bytes(save(good)[:100])
+    put(save(good)[:100])
     assert script.main(_hogs_args(tiny_world, run, iters=4) + ["--resume"]) == 1
     _one_line(capsys.readouterr().err, "trainer.safetensors", "not a valid safetensors")
     # malformed bookkeeping files: one-line errors naming them
@@ -271,7 +278,7 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
     import io
 
     from hogsa_loader.hands import mano_io
-    from hogsa_loader.pickle_caps import nested_shape
+    from hogsa_loader.io.pickle_caps import nested_shape
 
     x: list = [0.5]
     for w in (3, 1000, 10_000):
@@ -297,8 +304,8 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
 
 @pytest.mark.parametrize("kind", ["list", "tuple", "dict", "set", "object array", "stub state"])
 def test_element_cap_counts_every_container_and_shared_reference(kind):
-    from hogsa_loader.hands.mano_io import ChumpyStub
-    from hogsa_loader.pickle_caps import check_unpickled
+    from hogsa_loader.io.mano_pickle import ChumpyStub
+    from hogsa_loader.io.pickle_caps import check_unpickled
 
     leaf = list(range(10))
     if kind == "list":
@@ -328,7 +335,7 @@ def test_long_strings_shared_many_times_count_their_bytes(tmp_path):
     import pickle
 
     from hogsa_loader.hands.mano_io import load_mano
-    from hogsa_loader.pickle_caps import check_unpickled
+    from hogsa_loader.io.pickle_caps import check_unpickled
 
     blob = [b"x" * 1_000_000] * 50
     with pytest.raises(AssetError, match="more than"):
@@ -342,7 +349,7 @@ def test_long_strings_shared_many_times_count_their_bytes(tmp_path):
 
 
 def test_depth_cap_and_cycles():
-    from hogsa_loader.pickle_caps import check_unpickled
+    from hogsa_loader.io.pickle_caps import check_unpickled
 
     deep: list = []
     for _ in range(40):
@@ -540,7 +547,7 @@ def test_lambert_run_without_its_light_is_refused(tiny_world, hogs_run, tmp_path
 def test_checkpoint_bytes_are_reproducible(tmp_path):
     from safetensors.torch import save
 
-    from hogsa_loader.gaussians.checkpoint import read_checked_tensors, write_tensors_and_manifest
+    from hogsa_loader.io.tensors import read_checked_tensors, write_tensors_and_manifest
 
     tensors = {"b": torch.arange(6.0).reshape(2, 3), "a": torch.ones(4)}
     meta = {k: f"value {k}" for k in ("format", "schema_version", "kind", "subject", "object", "step")}

@@ -379,12 +379,12 @@ def test_bundle_keeps_the_runs_light(bundle_dir, tiny_world, tmp_path):
     shutil.copytree(run / LIGHT_DIR, tmp_path / "c" / "hogs" / "s01_box" / LIGHT_DIR)
     with pytest.raises(AssetError, match="light is not listed"):
         load_bundle(tmp_path / "c")
-    # version-1 bundles (no light copied) are refused with the reason
+    # pre-1.0 (schema version 1) bundles are refused
     man = json.loads((bundle_dir / "manifest.json").read_text())
     shutil.rmtree(tmp_path / "c")
     shutil.copytree(bundle_dir, tmp_path / "c")
     (tmp_path / "c" / "manifest.json").write_text(json.dumps({**man, "schema_version": 1}))
-    with pytest.raises(AssetError, match="schema_version is 1.*learned light.*rebuild"):
+    with pytest.raises(AssetError, match="(?s)invalid bundle.*unsupported schema_version 1; this reader supports 2"):
         load_bundle(tmp_path / "c")
 
 

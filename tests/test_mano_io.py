@@ -116,7 +116,8 @@ def test_unpickler_allows_only_listed_globals():
 def test_crafted_pickles_cannot_patch_scipy_or_escape_the_error_handling(tmp_path, mano_dir):
     import scipy.sparse as sp
 
-    from hogsa_loader.hands.mano_io import _chumpy_stub, model_from_dict
+    from hogsa_loader.hands.mano_io import model_from_dict
+    from hogsa_loader.io.mano_pickle import _chumpy_stub
 
     original = sp.csc_matrix.toarray
     # BUILD on the allow-listed class object: setattr(csc_matrix, "toarray", codecs.encode)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 
@@ -411,8 +412,13 @@ def test_contactnet_any_topology_and_roundtrip(tmp_path):
     # the manifest's checksum catches a replaced weights file first ...
     with pytest.raises(AssetError, match="contactnet.safetensors.*sha256 does not match manifest.json"):
         load_contactnet(tmp_path / "run")
-    # ... and a manifest without one (written before checksums) still gets the content checks
+    # ... a manifest without one (pre-1.0) is refused ...
     (tmp_path / "run" / "manifest.json").write_text(json.dumps({k: v for k, v in man.items() if k != "tensors_sha256"}))
+    with pytest.raises(AssetError, match="manifest.json.*tensors_sha256"):
+        load_contactnet(tmp_path / "run")
+    # ... and with a matching checksum the content checks still hold
+    sha = hashlib.sha256((tmp_path / "run" / "contactnet.safetensors").read_bytes()).hexdigest()
+    (tmp_path / "run" / "manifest.json").write_text(json.dumps({**man, "tensors_sha256": sha}))
     with pytest.raises(AssetError, match=f"contactnet.safetensors.*{key}"):
         load_contactnet(tmp_path / "run")
     with torch.no_grad():
@@ -548,7 +554,7 @@ def test_pose_bank_roundtrip(scene, tmp_path):
 
 
 def test_pose_bank_bad_files(scene, tmp_path):
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file, save, save_file
 
     _bank(scene, tmp_path)
     d = tmp_path / "bank"
@@ -575,18 +581,25 @@ def test_pose_bank_bad_files(scene, tmp_path):
     save_file(bad, str(t_path))
     man_path.write_text(json.dumps(man))
     expect("poses.safetensors.*sha256 does not match")  # the checksum catches any replaced tensors file
-    # older manifests without a checksum: the content checks below still hold
+    # a manifest without a checksum (pre-1.0) is refused
     man_path.write_text(json.dumps({k: v for k, v in man.items() if k != "tensors_sha256"}))
+    expect("manifest.json.*tensors_sha256")
+
+    def put(blob: bytes) -> None:  # a tensors file with a matching checksum: the content checks still hold
+        t_path.write_bytes(blob)
+        man_path.write_text(json.dumps({**man, "tensors_sha256": hashlib.sha256(blob).hexdigest()}))
+
+    put(t_path.read_bytes())
     expect("right_pose.*shape")
     bad = dict(tensors)
     bad["obj_trans"] = bad["obj_trans"].clone()
     bad["obj_trans"][0, 0] = float("nan")
-    save_file(bad, str(t_path))
+    put(save(bad))
     expect("NaN")
     bad = {k: v for k, v in tensors.items() if k != "left_betas"}
-    save_file(bad, str(t_path))
+    put(save(bad))
     expect("left_betas.*missing")
-    t_path.write_bytes(b"garbage" * 3)
+    put(b"garbage" * 3)
     expect("not a valid safetensors file")
     t_path.unlink()
     expect("missing")

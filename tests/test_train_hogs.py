@@ -14,6 +14,7 @@ import torch
 from hogsa_loader.gaussians import load_part
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import project, transform
+from hogsa_loader.errors import AssetError
 from hogsa_loader.train import HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,9 +135,9 @@ def test_resume_matches_unbroken_run(tiny_world, tmp_path):
         HogsTrainer(_cfg(tiny_world, tmp_path / "cut", iters=8, lr_scale=1.0), progress=False).resume()
 
 
-def test_resume_checkpoint_from_before_seam_welding(tiny_world, tmp_path):
-    """A run checkpointed before ``weld_seams`` existed (no such key in its part configs)
-    resumes unwelded, as it was trained, and keeps saying so in its later checkpoints."""
+def test_resume_checkpoint_without_weld_seams_is_refused(tiny_world, tmp_path):
+    """A pre-1.0 run checkpointed without ``weld_seams`` in its part configs is refused on
+    resuming, with an error naming the part manifest and the missing setting."""
     cut = HogsTrainer(_cfg(tiny_world, tmp_path / "old", iters=3, ckpt_every=3), progress=False)
     cut.train()
     folder = tmp_path / "old" / "checkpoints"
@@ -147,12 +148,8 @@ def test_resume_checkpoint_from_before_seam_welding(tiny_world, tmp_path):
         del man["config"]["weld_seams"]
         man_path.write_text(json.dumps(man))
     resumed = HogsTrainer(_cfg(tiny_world, tmp_path / "old", iters=5, ckpt_every=5), progress=False)
-    assert resumed.parts["object"].splats.weld_group is not None  # (a new run welds the box's seams)
-    assert resumed.resume() and resumed.step == 3
-    assert resumed.parts["object"].splats.weld_group is None and not resumed.parts["object"].weld_seams
-    resumed.train()
-    man = json.loads((tmp_path / "old" / "object" / "manifest.json").read_text())
-    assert man["config"]["weld_seams"] is False
+    with pytest.raises(AssetError, match=r"manifest.json: config.weld_seams is missing from the checkpoint"):
+        resumed.resume()
 
 
 def test_bad_arguments(tiny_world, tmp_path, capsys):

@@ -41,7 +41,7 @@ from hogsa_loader.datasets.conventions import (
     render_intrinsics,
 )
 from hogsa_loader.errors import AssetError, UsageError
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.io.atomic import atomic_write
 
 __all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate", "data_fingerprint"]
 

@@ -5,14 +5,13 @@ A checkpoint is a folder::
     <folder>/gaussians.safetensors   the part's learnable state (``part.splats.state_dict()``)
     <folder>/manifest.json           what the tensors are and what they belong to
 
-Manifest (schema version 1), every key required:
+The manifest is the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: ``format``
+``"hogsa-gaussians"``, ``schema_version`` 1, ``library_version``, ``tensors``,
+``tensors_file``, ``tensors_sha256``) plus these keys, every one required:
 
 ==================  ==================================================================
 key                 value
 ==================  ==================================================================
-format              ``"hogsa-gaussians"``
-schema_version      1
-library_version     ``hogsa_loader.__version__`` of the writer
 part_type           ``"hand_right"``, ``"hand_left"`` or ``"object"``
 variant             ``"games"``, ``"avatars"`` or ``"free"``
 k, sh_degree        Gaussians per face, SH degree
@@ -26,29 +25,21 @@ binding_mesh        how the binding mesh was made (e.g. ``"subdivide_model level
 config              the part's constructor settings (rebuilds it in :func:`load_part`)
 source              ``{"dataset", "subject", "sequence"}`` (strings or null)
 extra               free-form JSON object
-tensors             ``{name: {"shape": [...], "dtype": "float32"}}``
-tensors_file        ``"gaussians.safetensors"``
-tensors_sha256      sha256 of the tensors file (detects a torn or mismatched pair)
 ==================  ==================================================================
 
-Both files are written atomically (temporary file in the same folder, fsync,
-``os.replace``), tensors first and manifest last. Loading validates everything and raises
-:class:`~hogsa_loader.errors.AssetError` naming the offending file and the problem.
+Loading validates everything and raises :class:`~hogsa_loader.errors.AssetError` naming the
+offending file and the problem.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-import uuid
 from pathlib import Path
 from typing import Any, Mapping, Optional, Union
 
 import torch
 from torch import Tensor
 
-from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.gaussians.parts import (
     ALL_VARIANTS,
     PART_TYPES,
@@ -58,6 +49,8 @@ from hogsa_loader.gaussians.parts import (
 )
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
+from hogsa_loader.io.tensors import ManifestFormat, read_tensors, save_checkpoint
+from hogsa_loader.io.tensors import read_manifest as read_checkpoint_manifest
 from hogsa_loader.objects.template import ObjectTemplate
 
 __all__ = [
@@ -65,8 +58,8 @@ __all__ = [
     "SCHEMA_VERSION",
     "MANIFEST_FILE",
     "TENSORS_FILE",
+    "GAUSSIANS_FORMAT",
     "save_part",
-    "canonical_safetensors",
     "read_manifest",
     "load_state",
     "load_part",
@@ -76,11 +69,12 @@ FORMAT = "hogsa-gaussians"
 SCHEMA_VERSION = 1
 MANIFEST_FILE = "manifest.json"
 TENSORS_FILE = "gaussians.safetensors"
+#: The shared checkpoint header of a Gaussian part.
+GAUSSIANS_FORMAT = ManifestFormat(FORMAT, SCHEMA_VERSION, "a Gaussian part checkpoint", TENSORS_FILE,
+                                  manifest_file=MANIFEST_FILE, header_metadata=True)  # fmt: skip
 
+#: The part's own manifest keys and their JSON types.
 _REQUIRED: dict[str, type | tuple[type, ...]] = {
-    "format": str,
-    "schema_version": int,
-    "library_version": str,
     "part_type": str,
     "variant": str,
     "k": int,
@@ -94,123 +88,8 @@ _REQUIRED: dict[str, type | tuple[type, ...]] = {
     "config": dict,
     "source": dict,
     "extra": dict,
-    "tensors": dict,
-    "tensors_file": str,
-    "tensors_sha256": str,
 }
 _SOURCE_KEYS = ("dataset", "subject", "sequence")
-
-
-# --------------------------------------------------------------------------------------
-# Writing
-# --------------------------------------------------------------------------------------
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder + ``os.replace``."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    try:  # make the rename durable (POSIX); not possible everywhere
-        fd = os.open(path.parent, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def canonical_safetensors(blob: bytes) -> bytes:
-    """The same safetensors file with its ``__metadata__`` pairs in sorted key order.
-
-    The safetensors writer emits the metadata pairs in hash-map order, which differs
-    between processes; sorting them makes equal tensors and metadata give equal bytes (and
-    so equal ``tensors_sha256``). Tensor entries and data are left as they are.
-    """
-    n = int.from_bytes(blob[:8], "little")
-    header = json.loads(blob[8 : 8 + n].decode("utf-8"))
-    meta = header.get("__metadata__")
-    if not isinstance(meta, dict) or len(meta) < 2:
-        return blob
-    ordered = {"__metadata__": dict(sorted(meta.items())), **{k: v for k, v in header.items() if k != "__metadata__"}}
-    text = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
-    text += b" " * (max(n, len(text) + (-len(text)) % 8) - len(text))  # space padding, as the writer pads
-    return len(text).to_bytes(8, "little") + text + blob[8 + n :]
-
-
-def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping[str, Tensor], manifest_file: str,
-                               manifest: Mapping[str, Any], indent: Optional[int] = 1,
-                               metadata: Optional[Mapping[str, str]] = None, allow_nan: bool = False) -> Path:
-    """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
-    tensors first. Everything is checked before anything is written: floating tensors must be
-    finite and the manifest strict JSON (no NaN / infinity unless ``allow_nan``), so a refused
-    save leaves an existing checkpoint as it was. The manifest gets ``tensors_sha256`` (sha256
-    of the tensors file), which :func:`read_checked_tensors` verifies. ``metadata``: string
-    pairs stored in the safetensors header, in sorted key order (equal inputs give equal
-    bytes, :func:`canonical_safetensors`).
-
-    Returns:
-        the manifest path.
-
-    Raises:
-        ValueError: non-finite tensors or a manifest value that is not JSON (names the file).
-    """
-    from safetensors.torch import save as st_save
-
-    folder = Path(folder)
-    bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
-    if bad:
-        raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
-    blob = canonical_safetensors(st_save(dict(tensors), metadata=dict(metadata) if metadata else None))
-    try:
-        text = json.dumps({**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent,
-                          allow_nan=allow_nan) + "\n"  # fmt: skip
-    except ValueError as exc:
-        raise ValueError(f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); not saved") from None
-    folder.mkdir(parents=True, exist_ok=True)
-    atomic_write(folder / tensors_file, blob)
-    atomic_write(folder / manifest_file, text.encode("utf-8"))
-    return folder / manifest_file
-
-
-def read_checked_tensors(tpath: Path, manifest: Mapping[str, Any], manifest_path: Path) -> dict[str, Tensor]:
-    """Read the safetensors file of a :func:`write_tensors_and_manifest` pair; its sha256 must
-    equal the manifest's ``tensors_sha256`` when the manifest has one (files written before
-    it was recorded have none and are read as they are).
-
-    Raises:
-        AssetError: missing or unreadable file, checksum mismatch, not safetensors (names the file).
-    """
-    from safetensors.torch import load as st_load
-
-    tpath = Path(tpath)
-    if not tpath.is_file():
-        raise AssetError(tpath, f"tensors file is missing (listed in {manifest_path.name})")
-    try:
-        blob = tpath.read_bytes()
-    except OSError as exc:
-        raise AssetError(tpath, f"cannot read file ({exc})") from exc
-    want = manifest.get("tensors_sha256")
-    if want is not None and hashlib.sha256(blob).hexdigest() != want:
-        raise AssetError(tpath, f"sha256 does not match {manifest_path.name} (torn write or files from different checkpoints)")
-    try:
-        return st_load(blob)
-    except Exception as exc:  # safetensors raises its own error types on corrupt headers
-        raise AssetError(tpath, f"not a valid safetensors file ({exc})") from exc
-
-
-def _dtype_name(dtype: torch.dtype) -> str:
-    return str(dtype).removeprefix("torch.")
 
 
 def save_part(
@@ -237,14 +116,9 @@ def save_part(
     Raises:
         ValueError: NaN or infinite weights or metadata; nothing is written then.
     """
-    import hogsa_loader
-
     folder = Path(folder)
     tensors = {name: t.detach().cpu().contiguous() for name, t in part.splats.state_dict().items()}
-    manifest: dict[str, Any] = {
-        "format": FORMAT,
-        "schema_version": SCHEMA_VERSION,
-        "library_version": hogsa_loader.__version__,
+    fields: dict[str, Any] = {
         "part_type": part.part_type,
         "variant": part.variant,
         "k": part.k,
@@ -257,11 +131,8 @@ def save_part(
         "source": {"dataset": dataset, "subject": subject, "sequence": sequence}
         | ({"object": part.name} if part.part_type == "object" else {}),
         "extra": dict(extra or {}),
-        "tensors": {n: {"shape": list(t.shape), "dtype": _dtype_name(t.dtype)} for n, t in tensors.items()},
-        "tensors_file": TENSORS_FILE,
-    }  # (+ tensors_sha256, added by the writer)
-    write_tensors_and_manifest(folder, TENSORS_FILE, tensors, MANIFEST_FILE, manifest,
-                               metadata={"format": FORMAT, "schema_version": str(SCHEMA_VERSION)})
+    }
+    save_checkpoint(folder, GAUSSIANS_FORMAT, tensors, fields)
     return folder
 
 
@@ -271,26 +142,13 @@ def save_part(
 
 
 def read_manifest(folder: PathLike) -> dict[str, Any]:
-    """Read and validate ``manifest.json`` on its own (types, schema, known values).
+    """Read and validate ``manifest.json`` on its own (shared header, types, known values).
 
     Raises:
         AssetError: naming ``manifest.json`` (or the folder) and the problem.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise AssetError(folder, "checkpoint folder is missing")
-    path = folder / MANIFEST_FILE
-    raw = read_json(path, allow_nan=False)  # (missing, unreadable, malformed, NaN: AssetError naming it)
-    if not isinstance(raw, dict):
-        raise AssetError(path, f"expected a JSON object, got {type(raw).__name__}")
-    if raw.get("format") != FORMAT:
-        raise AssetError(path, f"format is {raw.get('format')!r}, expected {FORMAT!r}")
-    version = raw.get("schema_version")
-    if not isinstance(version, int) or isinstance(version, bool):
-        raise AssetError(path, f"schema_version must be an integer, got {version!r}")
-    if version != SCHEMA_VERSION:
-        newer = " (written by a newer hogsa-loader)" if version > SCHEMA_VERSION else ""
-        raise AssetError(path, f"unsupported schema_version {version}{newer}; this reader supports {SCHEMA_VERSION}")
+    raw = read_checkpoint_manifest(folder, GAUSSIANS_FORMAT)
+    path = Path(folder) / MANIFEST_FILE
     for key, typ in _REQUIRED.items():
         if key not in raw:
             raise AssetError(path, f"required key {key!r} is missing")
@@ -305,17 +163,11 @@ def read_manifest(folder: PathLike) -> dict[str, Any]:
         v = raw["source"].get(key)
         if v is not None and not isinstance(v, str):
             raise AssetError(path, f"source.{key} must be a string or null")
-    if raw["tensors_file"] != TENSORS_FILE:
-        raise AssetError(path, f"tensors_file is {raw['tensors_file']!r}, expected {TENSORS_FILE!r}")
-    for name, entry in raw["tensors"].items():
-        if not (isinstance(entry, dict) and isinstance(entry.get("shape"), list) and isinstance(entry.get("dtype"), str)):
-            raise AssetError(path, f"tensors[{name!r}] must be an object with a 'shape' list and a 'dtype' string, "
-                                   f"got {entry!r}")  # fmt: skip
     return raw
 
 
-def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> None:
-    """Manifest vs the part the caller built from its template."""
+def _check_template(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> None:
+    """The checkpoint's part type and template hash vs the part the caller built."""
     if raw["part_type"] != part.part_type:
         raise AssetError(path, f"checkpoint is for part_type {raw['part_type']!r}, the model is {part.part_type!r}")
     if raw["template_hash"] != part.template_hash:
@@ -329,6 +181,11 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
             f"template hash mismatch: the checkpoint was made for template {raw['template_hash'][:16]}..., "
             f"the given template hashes to {part.template_hash[:16]}...{hint}",
         )
+
+
+def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> None:
+    """Manifest vs the part the caller built from its template: type, template, settings, config."""
+    _check_template(raw, part, path)
     expect = {
         "variant": part.variant,
         "k": part.k,
@@ -339,15 +196,13 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
     }
     for key, val in expect.items():
         if raw[key] != val:
-            hint = ""
-            if part.part_type == "object" and key in ("binding_hash", "num_verts") and "mesh_tex" in str(part.binding_mesh):
-                hint = ("; if the object's mesh_tex.obj has UV seams (several vt per vertex), note that it is now read "
-                        "with seam vertices split (correct UVs), so a part trained on the old reading must be retrained")  # fmt: skip
-            raise AssetError(path, f"{key} is {raw[key]!r} in the checkpoint but {val!r} in the model{hint}")
-    cfg = part.config()
-    saved = {"weld_seams": False, **raw["config"]}  # (older checkpoints: unwelded, see load_part)
+            raise AssetError(path, f"{key} is {raw[key]!r} in the checkpoint but {val!r} in the model")
+    cfg, saved = part.config(), raw["config"]
     for key in sorted(set(cfg) | set(saved)):
         if saved.get(key) != cfg.get(key):
+            if key not in saved:
+                raise AssetError(path, f"config.{key} is missing from the checkpoint (a pre-1.0 checkpoint: train "
+                                       "the part again)")  # fmt: skip
             raise AssetError(
                 path, f"config.{key} is {saved.get(key)!r} in the checkpoint but {cfg.get(key)!r} in the model"
             )
@@ -355,12 +210,8 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
 
 def _read_tensors(folder: Path, raw: Mapping[str, Any], part: GaussianPart) -> dict[str, Tensor]:
     """Read, hash-check and validate the tensors file against the manifest and the part."""
-    mpath = folder / MANIFEST_FILE
     tpath = folder / TENSORS_FILE
-    tensors = read_checked_tensors(tpath, raw, mpath)  # (read_manifest made tensors_sha256 required)
-    listed = raw["tensors"]
-    if set(listed) != set(tensors):
-        raise AssetError(mpath, f"lists tensors {sorted(listed)} but {TENSORS_FILE} holds {sorted(tensors)}")
+    tensors = read_tensors(folder, raw, GAUSSIANS_FORMAT)  # (listed names, shapes, dtypes; finite)
     model_state = part.splats.state_dict()
     missing = sorted(set(model_state) - set(tensors))
     unexpected = sorted(set(tensors) - set(model_state))
@@ -368,15 +219,10 @@ def _read_tensors(folder: Path, raw: Mapping[str, Any], part: GaussianPart) -> d
         raise AssetError(tpath, f"tensor names do not match the model: missing {missing}, unexpected {unexpected}")
     for name, t in tensors.items():
         want = model_state[name]
-        if list(t.shape) != listed[name].get("shape") or _dtype_name(t.dtype) != listed[name].get("dtype"):
-            raise AssetError(tpath, f"tensor {name!r} is {tuple(t.shape)} {t.dtype}, {MANIFEST_FILE} says {listed[name]}")
         if t.shape != want.shape:
             raise AssetError(tpath, f"tensor {name!r} has shape {tuple(t.shape)}, the model needs {tuple(want.shape)}")
         if t.is_floating_point() != want.is_floating_point():
             raise AssetError(tpath, f"tensor {name!r} has dtype {t.dtype}, the model needs {want.dtype}")
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            bad = int((~torch.isfinite(t)).sum())
-            raise AssetError(tpath, f"tensor {name!r} contains {bad} NaN or infinite values")
     if "binding" in tensors:
         b = tensors["binding"]
         n_verts = part.binding_counts()["num_verts"]
@@ -438,7 +284,6 @@ def load_part(
     if expected_part_type is not None and ptype != expected_part_type:
         raise AssetError(mpath, f"checkpoint is for part_type {ptype!r}, expected {expected_part_type!r}")
     cfg = dict(raw["config"])
-    cfg.setdefault("weld_seams", False)  # written before seam welding: per-vertex offsets, as trained
     try:
         if ptype == "object":
             if not isinstance(template, ObjectTemplate):

@@ -14,7 +14,8 @@ Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling ti
 light can be changed (relighting augmentation).
 
 Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
-(format ``hogsa-light``, schema version 1, ``tensors_sha256`` checked on loading when present).
+(the shared checkpoint header of :mod:`hogsa_loader.io.tensors`: format ``hogsa-light``,
+schema version 1, ``tensors_file``, ``tensors_sha256``; plus ``model`` and the light's values).
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.gaussians.gaussian_set import GaussianSet
+from hogsa_loader.io.tensors import ManifestFormat, read_manifest, read_tensors, save_checkpoint
 from hogsa_loader.render.gaussians import sh_colors
 
 __all__ = ["LIGHT_FORMAT", "LIGHT_SCHEMA_VERSION", "LIGHT_TENSORS", "LIGHT_MANIFEST", "DirectionalLight", "save_light", "load_light"]
@@ -36,6 +38,9 @@ LIGHT_FORMAT = "hogsa-light"
 LIGHT_SCHEMA_VERSION = 1
 LIGHT_TENSORS = "light.safetensors"
 LIGHT_MANIFEST = "manifest.json"
+#: The shared checkpoint header of a light (no tensor list, no library version).
+LIGHT_CHECKPOINT = ManifestFormat(LIGHT_FORMAT, LIGHT_SCHEMA_VERSION, "a light checkpoint", LIGHT_TENSORS, specs=None,
+                                  library_version=False, manifest_file=LIGHT_MANIFEST)  # fmt: skip
 
 
 def _inv_softplus(x: float) -> float:
@@ -105,13 +110,9 @@ class DirectionalLight(nn.Module):
 
 def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     """Write ``light.safetensors`` + ``manifest.json`` into ``folder`` (atomically)."""
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
-
     folder = Path(folder)
     tensors = {k: v.detach().cpu().float().contiguous() for k, v in light.state_dict().items()}
-    manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
-                "tensors_file": LIGHT_TENSORS, **light.describe()}  # fmt: skip
-    write_tensors_and_manifest(folder, LIGHT_TENSORS, tensors, LIGHT_MANIFEST, manifest)
+    save_checkpoint(folder, LIGHT_CHECKPOINT, tensors, {"model": "directional", **light.describe()})
     return folder
 
 
@@ -121,26 +122,14 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
     Raises:
         AssetError: missing files, wrong format/schema, or bad tensors (names the file).
     """
-    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
-
     folder = Path(folder)
-    mpath = folder / LIGHT_MANIFEST
-    if not mpath.is_file():
-        raise AssetError(mpath, "light manifest is missing")
-    raw = read_json(mpath, allow_nan=False)
-    if not isinstance(raw, dict) or raw.get("format") != LIGHT_FORMAT:
-        raise AssetError(mpath, f"not a {LIGHT_FORMAT!r} manifest")
-    if raw.get("schema_version") != LIGHT_SCHEMA_VERSION:
-        raise AssetError(mpath, f"schema_version {raw.get('schema_version')!r} is not supported (expected {LIGHT_SCHEMA_VERSION})")
-    tensors = read_checked_tensors(folder / LIGHT_TENSORS, raw, mpath)
+    tensors = read_tensors(folder, read_manifest(folder, LIGHT_CHECKPOINT), LIGHT_CHECKPOINT)  # (finite)
     tpath = folder / LIGHT_TENSORS
     light = into if into is not None else DirectionalLight()
     want = {k: tuple(v.shape) for k, v in light.state_dict().items()}
     have = {k: tuple(v.shape) for k, v in tensors.items()}
     if want != have:
         raise AssetError(tpath, f"light tensors {have} do not match {want}")
-    if not all(torch.isfinite(v).all() for v in tensors.values()):
-        raise AssetError(tpath, "light tensors contain NaN or infinity")
     with torch.no_grad():
         for k, v in light.state_dict().items():
             v.copy_(tensors[k].to(v.dtype))

@@ -4,8 +4,9 @@ A bank is a folder::
 
     BANK/
       poses.safetensors   tensors, first dimension N (one row per entry)
-      manifest.json       schema, schema_version, count, tensor shapes, sources, provenance,
-                          tensors_sha256 (checked on loading when present)
+      manifest.json       the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: schema
+                          ``"hogsa.pose_bank"``, schema_version, tensors, tensor_file,
+                          tensors_sha256) plus count, convention, entries (sources), info
 
 Tensors (float32; the same convention as :class:`~hogsa_loader.datasets.types.SequenceData`:
 ARCTIC world frame, axis-angle, metres, finger pose relative to the MANO mean,
@@ -41,11 +42,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.io.tensors import ManifestFormat, read_manifest, read_tensors, save_checkpoint
 from hogsa_loader.pom.hands import SIDES
 from hogsa_loader.pom.state import GraspState, HandParams
 
-__all__ = ["BANK_SCHEMA", "BANK_VERSION", "PoseBank", "save_pose_bank", "load_pose_bank"]
+__all__ = ["BANK_SCHEMA", "BANK_VERSION", "BANK_FORMAT", "PoseBank", "save_pose_bank", "load_pose_bank"]
 
 BANK_SCHEMA = "hogsa.pose_bank"
 BANK_VERSION = 1
@@ -53,6 +55,10 @@ TENSOR_FILE = "poses.safetensors"
 MANIFEST_FILE = "manifest.json"
 METRIC_KEYS = ("penetration_depth", "intersection", "contact_ratio", "accept")
 _HAND_WIDTH = {"rot": 3, "pose": 45, "trans": 3, "betas": 10}
+#: The shared checkpoint header of a pose bank.
+BANK_FORMAT = ManifestFormat(BANK_SCHEMA, BANK_VERSION, "a pose bank", TENSOR_FILE, name_key="schema",
+                             file_key="tensor_file", specs="shape", library_version=False,
+                             manifest_file=MANIFEST_FILE)  # fmt: skip
 
 
 def _expected_shapes(n: int) -> dict[str, tuple[int, ...]]:
@@ -95,7 +101,8 @@ class PoseBank:
         out["obj_trans"] = self.state.obj_trans
         for k in METRIC_KEYS:
             out[k] = self.metrics[k]
-        return {k: v.detach().to("cpu", torch.float32).clone().contiguous() for k, v in out.items()}  # no shared storage (safetensors refuses it)
+        # clone: no shared storage (safetensors refuses it)
+        return {k: v.detach().to("cpu", torch.float32).clone().contiguous() for k, v in out.items()}
 
 
 def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[str, str, int]],
@@ -111,48 +118,24 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     Returns:
         the manifest path.
     """
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
-
     n = state.batch
     if len(sources) != n:
         raise ValueError(f"{len(sources)} sources for {n} grasps")
     m = {k: torch.as_tensor(np.asarray(metrics[k], dtype=np.float32)).reshape(-1) for k in METRIC_KEYS}
     bank = PoseBank(state, list(sources), m, dict(info or {}))
-    tensors = bank.tensors()
-    manifest = {
-        "schema": BANK_SCHEMA,
-        "schema_version": BANK_VERSION,
+    fields = {
         "count": n,
-        "tensor_file": TENSOR_FILE,
-        "tensors": {k: list(v.shape) for k, v in tensors.items()},
         "convention": "ARCTIC world frame as SequenceData: axis-angle, metres, hand pose relative to "
                       "the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
         "entries": [{"subject": a, "sequence": b, "frame": int(c), "object": state.obj_names[i]}
                     for i, (a, b, c) in enumerate(sources)],
         "info": bank.info,
     }
-    return write_tensors_and_manifest(Path(path), TENSOR_FILE, tensors, MANIFEST_FILE, manifest)
+    return save_checkpoint(path, BANK_FORMAT, bank.tensors(), fields)
 
 
-def load_pose_bank(path: PathLike) -> PoseBank:
-    """Read and validate a bank folder (or its ``manifest.json``).
-
-    Raises:
-        AssetError: missing or malformed manifest / tensor file, unknown schema or version,
-            missing keys, wrong shapes, non-finite values, entries that do not match.
-    """
-    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
-
-    p = Path(path)
-    folder = p.parent if p.is_file() else p
-    mpath = folder / MANIFEST_FILE
-    man = read_json(mpath, allow_nan=False)
-    if not isinstance(man, dict):
-        raise AssetError(mpath, "expected a JSON object")
-    if man.get("schema") != BANK_SCHEMA:
-        raise AssetError(mpath, f"not a pose bank (schema must be {BANK_SCHEMA!r}, got {man.get('schema')!r})")
-    if man.get("schema_version") != BANK_VERSION:
-        raise AssetError(mpath, f"unsupported schema_version {man.get('schema_version')!r} (this reader knows {BANK_VERSION})")
+def _read_entries(man: dict, mpath: Path) -> tuple[list[tuple[str, str, int]], list[str]]:
+    """The manifest's ``count`` and ``entries``: N ``(subject, sequence, frame)`` and N object names."""
     n = man.get("count")
     if not isinstance(n, int) or isinstance(n, bool) or n < 0:
         raise AssetError(mpath, f"'count' must be a non-negative integer, got {n!r}")
@@ -166,17 +149,29 @@ def load_pose_bank(path: PathLike) -> PoseBank:
             raise AssetError(mpath, f"entries[{i}] must have string subject/sequence/object and an int frame")
         sources.append((e["subject"], e["sequence"], e["frame"]))
         names.append(e["object"])
-    tpath = folder / str(man.get("tensor_file", TENSOR_FILE))
-    t = read_checked_tensors(tpath, man, mpath)
-    for key, shape in _expected_shapes(n).items():
+    return sources, names
+
+
+def load_pose_bank(path: PathLike) -> PoseBank:
+    """Read and validate a bank folder (or its ``manifest.json``).
+
+    Raises:
+        AssetError: missing or malformed manifest / tensor file, unknown schema or version,
+            missing keys, wrong shapes, non-finite values, entries that do not match.
+    """
+    p = Path(path)
+    folder = p.parent if p.is_file() else p
+    man = read_manifest(folder, BANK_FORMAT)
+    sources, names = _read_entries(man, folder / MANIFEST_FILE)
+    tpath = folder / TENSOR_FILE
+    t = read_tensors(folder, man, BANK_FORMAT)  # (listed names and shapes; finite)
+    for key, shape in _expected_shapes(len(sources)).items():
         if key not in t:
             raise AssetError(tpath, f"tensor '{key}' is missing")
         if tuple(t[key].shape) != shape:
             raise AssetError(tpath, f"tensor '{key}' has shape {tuple(t[key].shape)}, expected {shape}")
         if not t[key].is_floating_point():
             raise AssetError(tpath, f"tensor '{key}' has dtype {t[key].dtype}, expected floating point")
-        if not bool(torch.isfinite(t[key]).all()):
-            raise AssetError(tpath, f"tensor '{key}' contains NaN or inf")
     f = {k: v.float() for k, v in t.items()}
     hands = {s: HandParams(*(f[f"{s}_{k}"] for k in _HAND_WIDTH)) for s in SIDES}
     state = GraspState(hands, names, f["obj_arti"], f["obj_rot"], f["obj_trans"])

@@ -1,6 +1,6 @@
 """ContactNet: per-object-point contact from an object point cloud and one hand's vertices.
 
-GraspTTA's ContactNet (``algorithms.md`` §A.2) fuses the two PointNet outputs with a
+GraspTTA's ContactNet fuses the two PointNet outputs with a
 ``Conv1d(3778 -> 3000)`` over point indices, which fixes 3000 object points and 778 MANO
 vertices. This variant works for any hand topology and any object point count:
 
@@ -26,7 +26,8 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
-from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.io.tensors import ManifestFormat, read_manifest, read_tensors, save_checkpoint
 
 __all__ = [
     "ContactNetConfig",
@@ -36,6 +37,7 @@ __all__ = [
     "load_contactnet",
     "CONTACTNET_SCHEMA",
     "CONTACTNET_VERSION",
+    "CONTACTNET_FORMAT",
 ]
 
 #: Metres -> network units (decimetres).
@@ -44,6 +46,10 @@ CONTACTNET_SCHEMA = "hogsa.contactnet"
 CONTACTNET_VERSION = 1
 WEIGHTS_FILE = "contactnet.safetensors"
 MANIFEST_FILE = "manifest.json"
+#: The shared checkpoint header of a ContactNet.
+CONTACTNET_FORMAT = ManifestFormat(CONTACTNET_SCHEMA, CONTACTNET_VERSION, "a ContactNet checkpoint", WEIGHTS_FILE,
+                                   name_key="schema", file_key="weights", specs="shape", library_version=False,
+                                   manifest_file=MANIFEST_FILE)  # fmt: skip
 
 
 def contact_map(dist: Tensor) -> Tensor:
@@ -159,21 +165,11 @@ def save_contactnet(model: ContactNet, run_dir: PathLike, extra: Optional[dict] 
     Returns:
         the manifest path.
     """
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
-
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     cfg = asdict(model.config)
     cfg["head"] = list(cfg["head"])
-    manifest = {
-        "schema": CONTACTNET_SCHEMA,
-        "schema_version": CONTACTNET_VERSION,
-        "weights": WEIGHTS_FILE,
-        "config": cfg,
-        "coord_scale": COORD_SCALE,
-        "tensors": {k: list(v.shape) for k, v in tensors.items()},
-    }
-    manifest.update(extra or {})
-    return write_tensors_and_manifest(Path(run_dir), WEIGHTS_FILE, tensors, MANIFEST_FILE, manifest, indent=2)
+    fields = {"config": cfg, "coord_scale": COORD_SCALE, **(extra or {})}
+    return save_checkpoint(run_dir, CONTACTNET_FORMAT, tensors, fields, indent=2)
 
 
 def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> ContactNet:
@@ -182,27 +178,20 @@ def load_contactnet(run_dir: PathLike, device: str | torch.device = "cpu") -> Co
     Raises:
         AssetError: missing/malformed manifest or weights, wrong schema/version, shapes.
     """
-    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
-
     run = Path(run_dir)
     mpath = run / MANIFEST_FILE
-    man = read_json(mpath, allow_nan=False)
-    if not isinstance(man, dict) or man.get("schema") != CONTACTNET_SCHEMA:
-        raise AssetError(mpath, f"not a ContactNet manifest (schema must be {CONTACTNET_SCHEMA!r})")
-    if man.get("schema_version") != CONTACTNET_VERSION:
-        raise AssetError(mpath, f"unsupported schema_version {man.get('schema_version')!r} "
-                                f"(this reader knows {CONTACTNET_VERSION})")
+    man = read_manifest(run, CONTACTNET_FORMAT)
     try:
         cfg = dict(man["config"])
         cfg["head"] = tuple(cfg["head"])
         model = ContactNet(ContactNetConfig(**cfg))
     except (KeyError, TypeError, ValueError) as exc:
         raise AssetError(mpath, f"bad 'config' ({exc})") from None
-    wpath = run / str(man.get("weights", WEIGHTS_FILE))
-    state = read_checked_tensors(wpath, man, mpath)
-    bad = [k for k, v in state.items() if not v.is_floating_point() or not bool(torch.isfinite(v).all())]
+    wpath = run / WEIGHTS_FILE
+    state = read_tensors(run, man, CONTACTNET_FORMAT)  # (listed names and shapes; finite)
+    bad = [k for k, v in state.items() if not v.is_floating_point()]
     if bad:
-        raise AssetError(wpath, f"tensor {bad[0]!r} is not floating point or contains NaN / infinity")
+        raise AssetError(wpath, f"tensor {bad[0]!r} is not floating point")
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:

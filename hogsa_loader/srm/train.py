@@ -62,7 +62,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians.checkpoint import atomic_write
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.train.run_folder import (
     RunExistsError,
     clear_run,

@@ -39,7 +39,8 @@ from torch import Tensor
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
-from hogsa_loader.gaussians.checkpoint import atomic_write, read_manifest
+from hogsa_loader.gaussians.checkpoint import read_manifest
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.errors import AssetError
 from hogsa_loader.train.run_folder import (
     RunExistsError,

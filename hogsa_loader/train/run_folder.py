@@ -22,7 +22,8 @@ from typing import Any, Mapping, Optional, Sequence
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike, UsageError, read_json
-from hogsa_loader.gaussians.checkpoint import atomic_write, read_checked_tensors, write_tensors_and_manifest
+from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.io.tensors import read_checked_tensors, write_tensors_and_manifest
 
 __all__ = [
     "RunExistsError",
@@ -156,8 +157,7 @@ def read_trainer_state(
     """Read and check a checkpoint's trainer state: ``(trainer.json, trainer.safetensors)``.
 
     ``trainer.json`` must hold ``step`` (int), ``history`` and ``evals`` (lists) and
-    ``train_time_s`` (number); the tensors file must match the recorded sha256 (checkpoints
-    written before it was recorded are read as they are), hold the ``required`` tensors
+    ``train_time_s`` (number); the tensors file must match the recorded sha256, hold the ``required`` tensors
     and only finite floating values.
 
     Raises:

@@ -2,24 +2,8 @@
 
 A pickle can reference one container many times (its memo), so a file of a few hundred
 bytes can describe a nested list of 10⁹ numbers that only becomes large when it is turned
-into an array — after which nothing can stop the allocation. :func:`check_unpickled` walks
-the objects an unpickler built, before anything is converted, and counts every element
-once per reference: a container shared by ten parents counts ten times, exactly as often
-as ``np.asarray`` would copy it. Every container type is counted (list, tuple, dict, set,
-frozenset, object arrays, the state of inert stand-in objects, whose stored arrays count
-for a pickled sparse matrix); a numeric array counts its elements, and anything that holds
-bytes (strings, byte strings, numpy scalars, arrays of wide items) counts at least one
-element per 8 bytes, so one long string shared many times is refused like a long list.
-The walk refuses
-
-* more than ``max(max_elements, file size in bytes)`` elements (an element of a file that
-  shares nothing costs at least one byte, so no honest file is refused);
-* nesting deeper than ``max_depth``;
-* cycles (a container inside itself);
-
-with an :class:`~hogsa_loader.errors.AssetError` naming the file. Each distinct object is
-visited once (its count is remembered), so the walk costs time proportional to the file,
-never to the count it refuses.
+into an array. :func:`check_unpickled` counts what an unpickler built before anything is
+converted and refuses it past the caps.
 """
 
 from __future__ import annotations
@@ -53,7 +37,19 @@ def _atom_size(x: Any) -> int:
 def check_unpickled(
     obj: Any, path: PathLike, file_size: int = 0, max_elements: int = MAX_ELEMENTS, max_depth: int = MAX_DEPTH
 ) -> int:
-    """Count the elements ``obj`` expands to; refuse it past the caps (see module docstring).
+    """Count the elements ``obj`` expands to; refuse it past the caps.
+
+    Every element is counted once per reference: a container shared by ten parents counts
+    ten times, exactly as often as ``np.asarray`` would copy it. Every container type is
+    counted (list, tuple, dict, set, frozenset, object arrays, the state of inert stand-in
+    objects, whose stored arrays count for a pickled sparse matrix); a numeric array counts
+    its elements, and anything that holds bytes (strings, byte strings, numpy scalars, arrays
+    of wide items) counts at least one element per 8 bytes, so one long string shared many
+    times is refused like a long list. Refused: more than ``max(max_elements, file_size)``
+    elements (an element of a file that shares nothing costs at least one byte, so no honest
+    file is refused), nesting deeper than ``max_depth``, cycles (a container inside itself).
+    Each distinct object is visited once (its count is remembered), so the walk costs time
+    proportional to the file, never to the count it refuses.
 
     Args:
         obj: what the unpickler returned.

@@ -1,0 +1,81 @@
+"""Atomic file writes: a temporary file in the target's folder, fsync, ``os.replace``.
+
+A reader never sees a half-written file: it finds the old content or the new one. A failed
+write removes its temporary file and leaves the target as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any, Iterator
+
+from hogsa_loader.errors import PathLike
+
+__all__ = ["atomic_open", "atomic_write", "atomic_write_json"]
+
+
+def _temp_name(path: Path) -> Path:
+    """A hidden, unique temporary file next to ``path``."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_open(path: PathLike, mode: str = "wb", encoding: str | None = None) -> Iterator[IO[Any]]:
+    """Open a temporary file that replaces ``path`` when the ``with`` block ends without error.
+
+    Args:
+        path: the file to write; its folder must exist.
+        mode: ``"wb"`` or ``"w"``.
+        encoding: text encoding (text mode only).
+
+    Yields:
+        the open temporary file.
+    """
+    path = Path(path)
+    tmp = _temp_name(path)
+    try:
+        with open(tmp, mode, encoding=encoding) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_folder(path.parent)
+
+
+def atomic_write(path: PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_open`)."""
+    with atomic_open(path) as fh:
+        fh.write(data)
+
+
+def atomic_write_json(path: PathLike, obj: Any, indent: int | None = 1, **dump_kwargs: Any) -> None:
+    """Write ``obj`` as JSON (plus a final newline) to ``path`` atomically.
+
+    Args:
+        path: the file.
+        obj: a JSON-able value.
+        indent: as :func:`json.dumps`.
+        **dump_kwargs: more :func:`json.dumps` arguments (``allow_nan``, ``default``...).
+    """
+    atomic_write(path, (json.dumps(obj, indent=indent, **dump_kwargs) + "\n").encode("utf-8"))
