@@ -478,7 +478,8 @@ def test_member_checksums_catch_flipped_bytes(tmp_path, export_dir):
         list(SynthShardDataset(out))
     with pytest.raises(AssetError, match=r"0000000001\.jpg: sha256 does not match"):
         SynthShardSamples(out)
-    # shards written before the checksums were recorded are read as they are
+    # a shard index without checksums is refused, not read unchecked
     del rec["members_sha256"]
     (out / "synth-000000.index.json").write_text(json.dumps(rec))
-    assert len(list(SynthShardDataset(out))) == NUM
+    with pytest.raises(AssetError, match="records no members_sha256"):
+        list(SynthShardDataset(out))

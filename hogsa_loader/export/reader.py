@@ -153,10 +153,11 @@ def expand_shards(paths: Union[PathLike, Sequence[PathLike]], incomplete: bool =
 
 def member_checksums(shard: PathLike) -> Optional[dict[str, str]]:
     """``{member name: sha256}`` from the shard's own index file (``<name>.index.json``
-    next to it), or None when it has none (shards written before they were recorded).
+    next to it), or None for a tar file without such an index.
 
     Raises:
-        AssetError: the index is malformed, or the shard's size differs from the one it records.
+        AssetError: the index is malformed or records no ``members_sha256``, or the shard's
+            size differs from the one it records.
     """
     shard = Path(shard)
     ipath = shard.with_name(shard.name[: -len(".tar")] + ".index.json") if shard.name.endswith(".tar") else None
@@ -165,7 +166,7 @@ def member_checksums(shard: PathLike) -> Optional[dict[str, str]]:
     rec = read_json(ipath)
     digests = rec.get("members_sha256") if isinstance(rec, dict) else None
     if digests is None:
-        return None
+        raise AssetError(ipath, "the shard index records no members_sha256 (export the frames again)")
     if not isinstance(digests, dict) or not all(isinstance(v, str) for v in digests.values()):
         raise AssetError(ipath, "members_sha256 must map member names to sha256 strings")
     if rec.get("bytes") != shard.stat().st_size:

@@ -6,7 +6,7 @@ Layout of ``out_dir`` for ``num`` samples in shards of ``S``:
   under the keys ``"%010d" % index`` (members: see :mod:`hogsa_loader.export.codec`);
 * ``synth-000000.index.json`` … — per shard: keys, first/last index, count, bytes,
   seconds, writer rank, and ``members_sha256`` (``{member name: sha256}``, checked by the
-  readers; shards written before it was recorded are read unchecked);
+  readers);
 * ``index.json`` — the whole export: parameters, caller's ``info`` and every complete
   shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
   (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.

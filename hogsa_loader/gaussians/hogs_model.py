@@ -28,7 +28,7 @@ from torch import Tensor, nn
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.gaussians.checkpoint import MANIFEST_FILE, load_part, read_manifest
 from hogsa_loader.gaussians.gaussian_set import GaussianSet, num_sh_bases
-from hogsa_loader.gaussians.parts import GaussianPart, template_hash
+from hogsa_loader.gaussians.parts import GaussianPart
 from hogsa_loader.gaussians.scene import compose, render_scene
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light
 
@@ -112,10 +112,6 @@ class HogsModel(nn.Module):
             raise AssetError(folder, f"not a finished HOGS run: missing part checkpoint(s) {missing}")
         manifest = read_manifest(folder / "object")
         obj_name = manifest.get("source", {}).get("object")
-        if obj_name is None:  # older manifests: find the template by its hash
-            want = manifest["template_hash"]
-            hits = [n for n, t in object_templates.items() if template_hash(t.verts, t.faces) == want]  # type: ignore[attr-defined]
-            obj_name = hits[0] if hits else None
         if obj_name is None or obj_name not in object_templates:
             raise AssetError(
                 folder / "object" / MANIFEST_FILE,

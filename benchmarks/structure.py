@@ -1,0 +1,251 @@
+"""The library's structure: folder tree, package import graph, deferred imports, long functions.
+
+Reads the source with :mod:`ast` (nothing is imported) and prints
+
+* the tree of packages with their modules' line counts;
+* the package import graph from module-level imports, and any cycle in it;
+* every import placed inside a function, with the reason written on its line
+  (``# deferred: <reason>``);
+* every function over the line limit;
+* parameter lists that repeat (two functions sharing many parameter names);
+* which production packages import the generated-world package ``hogsa_loader.synthetic``.
+
+``python benchmarks/structure.py [--json OUT]``. The rules the tests enforce live in
+:func:`violations`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import re
+from collections import defaultdict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = "hogsa_loader"
+#: Modules that build generated worlds on purpose: entry points, not library layers.
+ENTRY_POINTS = ("cli", "demo")
+SYNTHETIC = "synthetic"
+MAX_FUNCTION_LINES = 80
+#: Two parameter lists sharing this many names (besides self/cls) count as a repeated list
+#: (numba kernels are left out: they take flat arrays by necessity).
+REPEATED_PARAMS = 10
+_DEFERRED = re.compile(r"#\s*deferred:\s*\S")
+
+
+@dataclass
+class DeferredImport:
+    """An import statement inside a function."""
+
+    where: str
+    names: list[str]
+    reason: Optional[str]
+
+
+@dataclass
+class Structure:
+    """What :func:`scan` finds in the package."""
+
+    modules: dict[str, int] = field(default_factory=dict)  #: module path -> lines
+    edges: dict[str, list[str]] = field(default_factory=dict)  #: package -> packages it imports at module level
+    module_edges: dict[str, list[str]] = field(default_factory=dict)  #: module -> library modules it imports
+    deferred: list[DeferredImport] = field(default_factory=list)
+    long_functions: list[tuple[int, str]] = field(default_factory=list)
+    params: dict[str, list[str]] = field(default_factory=dict)  #: function -> parameter names
+    cycles: list[list[str]] = field(default_factory=list)
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _top_package(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def _imported_modules(node: ast.AST, module: str, is_package: bool) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    assert isinstance(node, ast.ImportFrom)
+    if node.level:
+        base = module.split(".")[: len(module.split(".")) - node.level + int(is_package)]
+        return [".".join(base + ([node.module] if node.module else []))]
+    return [node.module or ""]
+
+
+def _is_compiled_kernel(fn: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """A numba kernel: it takes flat arrays by necessity, so its parameter list is not a design choice."""
+    for dec in fn.decorator_list:
+        target = dec.func if isinstance(dec, ast.Call) else dec
+        name = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", "")
+        if name in ("njit", "jit", "vectorize", "guvectorize", "cfunc", "compile_kernel"):
+            return True
+    return False
+
+
+def _scan_file(path: Path, out: Structure) -> None:
+    module = _module_name(path)
+    lines = path.read_text(encoding="utf-8").splitlines()
+    out.modules[str(path.relative_to(ROOT))] = len(lines)
+    tree = ast.parse("\n".join(lines), filename=str(path))
+    package = _top_package(module)
+    edges = set(out.edges.get(package, []))
+    mod_edges: set[str] = set()
+
+    def visit(node: ast.AST, owner: Optional[str]) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = owner
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                inner = f"{module}.{child.name}" if owner is None else f"{owner}.{child.name}"
+                n = child.end_lineno - child.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    out.long_functions.append((n, f"{path.relative_to(ROOT)}:{child.lineno} {child.name}"))
+                names = [a.arg for a in child.args.posonlyargs + child.args.args + child.args.kwonlyargs]
+                if not _is_compiled_kernel(child):
+                        out.params[f"{path.relative_to(ROOT)}:{child.lineno} {child.name}"] = [
+                        a for a in names if a not in ("self", "cls")
+                    ]
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                names = _imported_modules(child, module, path.name == "__init__.py")
+                lib = [n for n in names if n == PACKAGE or n.startswith(PACKAGE + ".")]
+                if owner is None:
+                    mod_edges.update(lib)
+                    edges.update(_top_package(n) for n in lib if "." in n and _top_package(n) != package)
+                else:
+                    line = " ".join(lines[child.lineno - 1 : child.end_lineno])
+                    m = _DEFERRED.search(line)
+                    reason = line[m.start():].split(":", 1)[1].strip() if m else None
+                    out.deferred.append(DeferredImport(f"{path.relative_to(ROOT)}:{child.lineno}", names, reason))
+            visit(child, inner)
+
+    visit(tree, None)
+    out.edges[package] = sorted(edges)
+    out.module_edges[module] = sorted(mod_edges)
+
+
+def _cycles(edges: dict[str, list[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one node (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, []):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(edges):
+        if v not in index:
+            strong(v)
+    return found
+
+
+def scan(root: Path = ROOT / PACKAGE) -> Structure:
+    """Scan every ``.py`` file under ``root``."""
+    out = Structure()
+    for path in sorted(root.rglob("*.py")):
+        _scan_file(path, out)
+    out.long_functions.sort(reverse=True)
+    out.cycles = _cycles(out.edges)
+    return out
+
+
+def repeated_parameter_lists(s: Structure) -> list[tuple[str, str, int]]:
+    """Pairs of functions sharing at least :data:`REPEATED_PARAMS` parameter names."""
+    items = [(k, set(v)) for k, v in s.params.items() if len(v) >= REPEATED_PARAMS]
+    pairs = []
+    for i, (a, pa) in enumerate(items):
+        for b, pb in items[i + 1:]:
+            n = len(pa & pb)
+            if n >= REPEATED_PARAMS:
+                pairs.append((a, b, n))
+    return pairs
+
+
+def synthetic_importers(s: Structure) -> list[str]:
+    """Library packages (not the entry points) that import the generated-world package."""
+    return sorted(p for p, deps in s.edges.items()
+                  if SYNTHETIC in deps and p not in ENTRY_POINTS + (SYNTHETIC,))
+
+
+def violations(s: Structure) -> dict[str, list[str]]:
+    """The layering rules: each list is empty when the rule holds."""
+    return {
+        "production imports synthetic": synthetic_importers(s),
+        "package cycles": [" <-> ".join(c) for c in s.cycles],
+        "deferred import without a reason": [d.where for d in s.deferred if not d.reason],
+        "pom/srm above gaussians": [p for p in ("pom", "srm") if "gaussians" in s.edges.get(p, [])],
+    }
+
+
+def _tree(s: Structure) -> list[str]:
+    folders: dict[str, list[tuple[str, int]]] = defaultdict(list)
+    for path, n in s.modules.items():
+        folders[str(Path(path).parent)].append((Path(path).name, n))
+    rows = []
+    for folder in sorted(folders):
+        total = sum(n for _, n in folders[folder])
+        rows.append(f"{folder}/  ({len(folders[folder])} modules, {total} lines)")
+    return rows
+
+
+def report(s: Structure) -> str:
+    """The printed report."""
+    out = ["# tree", *_tree(s), "", "# package imports (module level)"]
+    out += [f"{p:14s} -> {', '.join(d) or '-'}" for p, d in sorted(s.edges.items())]
+    out += ["", f"# imports inside functions: {len(s.deferred)}"]
+    out += [f"{d.where}  {', '.join(d.names)}  -- {d.reason or 'NO REASON'}" for d in s.deferred]
+    out += ["", f"# functions over {MAX_FUNCTION_LINES} lines: {len(s.long_functions)}"]
+    out += [f"{n:4d}  {where}" for n, where in s.long_functions]
+    rep = repeated_parameter_lists(s)
+    out += ["", f"# repeated parameter lists (>= {REPEATED_PARAMS} shared names): {len(rep)}"]
+    out += [f"{a} ~ {b} ({n})" for a, b, n in rep]
+    out += ["", "# rules"]
+    for rule, found in violations(s).items():
+        more = f" (+{len(found) - 8} more)" if len(found) > 8 else ""
+        out.append(f"{rule}: {', '.join(found[:8]) + more if found else 'none'}")
+    return "\n".join(out)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    s = scan()
+    print(report(s))
+    if args.json:
+        data = asdict(s)
+        data["repeated_parameter_lists"] = repeated_parameter_lists(s)
+        data["violations"] = violations(s)
+        Path(args.json).write_text(json.dumps(data, indent=1), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,81 @@
+"""Layering rules of the library, read from its source (``benchmarks/structure.py``)."""
+
+from __future__ import annotations
+
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("structure_bench", ROOT / "benchmarks" / "structure.py")
+structure = importlib.util.module_from_spec(_spec)
+sys.modules["structure_bench"] = structure
+_spec.loader.exec_module(structure)
+
+#: Functions allowed over the line limit, with the reason (kept short on purpose).
+LONG_FUNCTIONS_ALLOWED: dict[str, str] = {}
+
+
+@pytest.fixture(scope="module")
+def scanned():
+    return structure.scan()
+
+
+def test_scanner_sees_imports_cycles_and_deferred_reasons(tmp_path, monkeypatch):
+    pkg = tmp_path / "hogsa_loader"
+    (pkg / "a").mkdir(parents=True)
+    (pkg / "b").mkdir()
+    (pkg / "synthetic").mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a" / "__init__.py").write_text("from hogsa_loader.b import x\n")
+    (pkg / "b" / "__init__.py").write_text(
+        "from hogsa_loader.a import y\n"
+        "from hogsa_loader.synthetic import z\n"
+        "def f():\n    import numpy  # deferred: optional\n    import cv2\n"
+        + "".join(f"    v{i} = {i}\n" for i in range(80))
+    )
+    (pkg / "synthetic" / "__init__.py").write_text("")
+    monkeypatch.setattr(structure, "ROOT", tmp_path)
+    s = structure.scan(pkg)
+    v = structure.violations(s)
+    assert v["package cycles"] == ["a <-> b"]
+    assert v["production imports synthetic"] == ["b"]
+    assert v["deferred import without a reason"] == ["hogsa_loader/b/__init__.py:5"]
+    assert [d.reason for d in s.deferred] == ["optional", None]
+    assert [n for n, _ in s.long_functions] == [83]
+
+
+def test_no_production_module_imports_the_generated_world(scanned):
+    assert structure.violations(scanned)["production imports synthetic"] == []
+
+
+def test_no_package_import_cycles(scanned):
+    assert structure.violations(scanned)["package cycles"] == []
+
+
+def test_every_import_inside_a_function_says_why(scanned):
+    assert structure.violations(scanned)["deferred import without a reason"] == []
+    assert len(scanned.deferred) < 30
+
+
+def test_pom_and_srm_do_not_sit_above_gaussians(scanned):
+    assert structure.violations(scanned)["pom/srm above gaussians"] == []
+
+
+def test_no_function_over_the_line_limit(scanned):
+    over = [where for _, where in scanned.long_functions if where.split(" ")[-1] not in LONG_FUNCTIONS_ALLOWED]
+    assert over == []
+
+
+def test_no_parameter_list_repeated(scanned):
+    assert structure.repeated_parameter_lists(scanned) == []
+
+
+def test_dataset_constructor_is_small():
+    from hogsa_loader.loader import HOGSADataset
+
+    params = [p for p in inspect.signature(HOGSADataset.__init__).parameters if p != "self"]
+    assert len(params) <= 8, params
