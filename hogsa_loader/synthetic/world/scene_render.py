@@ -1,6 +1,6 @@
 """Rendering a world's cropped images and masks with the project mesh rasteriser.
 
-ARCTIC's cropped-image conventions (spec §1.9) are produced directly, without rendering
+ARCTIC's cropped images (``cropped_images/``) are produced directly, without rendering
 full-resolution frames:
 
 * allocentric views 1..8: the object-centred box of the projected ``mesh.obj`` vertices
@@ -25,14 +25,21 @@ import numpy as np
 import torch
 
 from hogsa_loader.datasets.conventions import (
+    BBOX_PIXELS_PER_SCALE,
+    CROP_ENLARGE,
+    EGO_IMAGE_SIZE,
     MASK_IDS,
+    allocentric_bbox,
+    cropped_intrinsics,
+    project,
+    render_intrinsics,
+    transform,
     undistort_map,
-    BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, EGO_IMAGE_SIZE, allocentric_bbox, cropped_intrinsics, project, render_intrinsics, transform,
 )
-from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
+from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.synthetic.world.stage import light_for_camera
 
 __all__ = ["HAND_BASE_SKIN", "PosedSequence", "pose_sequence", "crop_boxes", "object_meshes",
