@@ -1,21 +1,4 @@
-"""A learned directional light for HOGS models (optional Lambertian shading).
-
-Hands and objects move under the fixed lights of a capture studio, so one surface point
-looks brighter or darker depending on how it is turned. Plain Gaussian colours are fixed
-to the surface and cannot follow that. :class:`DirectionalLight` adds one directional
-light, shared by every part and fixed in the world frame, learnt with the Gaussians:
-
-``rgb = c_SH(view dir) · (ambient + diffuse · max(0, n · (−d)))``
-
-with ``n`` each Gaussian's shading normal (:meth:`MeshGaussians.shading_normals`, or the
-skinned surface normal of free Gaussians; no gradient flows into the geometry through it), ``d`` the unit direction the light travels,
-and ``c_SH`` the Gaussian's SH colour (+0.5, clamped at 0, as the rasteriser does).
-Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling time the
-light can be changed (relighting augmentation).
-
-Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
-(format ``hogsa-light``, schema version 1, ``tensors_sha256`` checked on loading when present).
-"""
+"""A learned directional light for HOGS models (optional Lambertian shading)."""
 
 from __future__ import annotations
 
@@ -27,6 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.gaussians.checkpoint import read_checked_tensors, write_tensors_and_manifest
 from hogsa_loader.gaussians.gaussian_set import GaussianSet
 from hogsa_loader.render.gaussians import sh_colors
 
@@ -44,6 +28,22 @@ def _inv_softplus(x: float) -> float:
 
 class DirectionalLight(nn.Module):
     """One directional light plus ambient term, in the world frame.
+
+    Hands and objects move under the fixed lights of a capture studio, so one surface point
+    looks brighter or darker depending on how it is turned. Plain Gaussian colours are fixed
+    to the surface and cannot follow that. :class:`DirectionalLight` adds one directional
+    light, shared by every part and fixed in the world frame, learnt with the Gaussians:
+
+    ``rgb = c_SH(view dir) · (ambient + diffuse · max(0, n · (−d)))``
+
+    with ``n`` each Gaussian's shading normal (:meth:`MeshGaussians.shading_normals`, or the
+    skinned surface normal of free Gaussians; no gradient flows into the geometry through it), ``d`` the unit direction the light travels,
+    and ``c_SH`` the Gaussian's SH colour (+0.5, clamped at 0, as the rasteriser does).
+    Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling time the
+    light can be changed (relighting augmentation).
+
+    Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
+    (format ``hogsa-light``, schema version 1, ``tensors_sha256`` checked on loading when present).
 
     Args:
         direction: (3,) direction the light travels (world frame; normalised).
@@ -105,8 +105,6 @@ class DirectionalLight(nn.Module):
 
 def save_light(light: DirectionalLight, folder: PathLike) -> Path:
     """Write ``light.safetensors`` + ``manifest.json`` into ``folder`` (atomically)."""
-    from hogsa_loader.gaussians.checkpoint import write_tensors_and_manifest
-
     folder = Path(folder)
     tensors = {k: v.detach().cpu().float().contiguous() for k, v in light.state_dict().items()}
     manifest = {"format": LIGHT_FORMAT, "schema_version": LIGHT_SCHEMA_VERSION, "model": "directional",
@@ -121,8 +119,6 @@ def load_light(folder: PathLike, into: Optional[DirectionalLight] = None) -> Dir
     Raises:
         AssetError: missing files, wrong format/schema, or bad tensors (names the file).
     """
-    from hogsa_loader.gaussians.checkpoint import read_checked_tensors
-
     folder = Path(folder)
     mpath = folder / LIGHT_MANIFEST
     if not mpath.is_file():

@@ -1,4 +1,4 @@
-"""POM losses (GraspTTA's terms, ``algorithms.md`` §A.5, made topology-free), per sample.
+"""POM losses (GraspTTA's terms, made topology-free), per sample.
 
 All inputs are in the object's canonical frame (metres). Every loss returns a (B,) tensor
 (one value per sample, summed over the two hands by the caller). Scales follow GraspTTA's
