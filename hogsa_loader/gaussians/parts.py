@@ -255,8 +255,8 @@ class GaussianPart(nn.Module):
         return out
 
     def disable_seam_welding(self) -> None:
-        """Give every binding vertex its own offset again (``weld_seams=False``): for
-        continuing a run whose checkpoints predate seam welding, as it was trained."""
+        """Give every binding vertex its own offset (``weld_seams=False``): for continuing a run
+        whose checkpoint was trained without it (``weld_seams`` false or absent in its config)."""
         self.weld_seams = False
         if isinstance(self.splats, MeshGaussians):
             self.splats.weld_group = None
