@@ -1,19 +1,4 @@
-"""ARCTIC-like sequence motion: rest, reach, grasp, manipulate, release, rest.
-
-Time is the frame index t in [0, F-1]. Every phase is interpolated with the minimum-jerk
-profile ``10s^3 - 15s^4 + 6s^5`` (zero velocity and acceleration at both ends), so the
-whole motion is smooth (no jumps) and piecewise-still at phase boundaries.
-
-Object: rests on the table, then during the manipulation window moves through keyframes
-(lift, rotate about its centre, shift; for ``use`` the articulation θ goes 0 -> θmax -> 0)
-and is put down again. Hands: rest palm-down on the table, reach a pre-grasp pose 5 cm off
-the surface with an open hand (an arc through the air), slide in and close the fingers,
-stay rigidly attached to their part (pose fixed in the part frame, which for the top part
-includes R_z(-θ)), then open, back off and return to a rest pose.
-
-Outputs are ARCTIC's raw ``raw_seqs`` parameters: object (F, 7) [θ, axis-angle, mm] and
-per hand rot (F,3) / pose (F,45, relative to the MANO mean) / trans (F,3).
-"""
+"""ARCTIC-like sequence motion: rest, reach, grasp, manipulate, release, rest."""
 
 from __future__ import annotations
 
@@ -312,7 +297,21 @@ def hands_to_params(kit: HandKit, betas: np.ndarray, R: np.ndarray, wrist: np.nd
 
 def build_motion(F: int, obj: str, action: str, template: ObjectTemplate, kits: dict[str, HandKit],
                  betas: np.ndarray, rng: np.random.Generator, grasp_iters: int = 140) -> SequenceMotion:
-    """Generate one sequence (see module docstring).
+    """Generate one sequence: rest, reach, grasp, manipulate, release, rest.
+
+    Time is the frame index t in [0, F-1]. Every phase is interpolated with the minimum-jerk
+    profile ``10s^3 - 15s^4 + 6s^5`` (zero velocity and acceleration at both ends), so the
+    whole motion is smooth (no jumps) and piecewise-still at phase boundaries.
+
+    Object: rests on the table, then during the manipulation window moves through keyframes
+    (lift, rotate about its centre, shift; for ``use`` the articulation θ goes 0 -> θmax -> 0)
+    and is put down again. Hands: rest palm-down on the table, reach a pre-grasp pose 5 cm off
+    the surface with an open hand (an arc through the air), slide in and close the fingers,
+    stay rigidly attached to their part (pose fixed in the part frame, which for the top part
+    includes R_z(-θ)), then open, back off and return to a rest pose.
+
+    Outputs are ARCTIC's raw ``raw_seqs`` parameters: object (F, 7) [θ, axis-angle, mm] and
+    per hand rot (F,3) / pose (F,45, relative to the MANO mean) / trans (F,3).
 
     Args:
         F: number of frames.
