@@ -6,19 +6,6 @@ writes them exactly like ``meta/object_vtemplates/<obj>/`` (see
 box (juice box with a flip lid), laptop, notebook and phone (flip phone), each two
 rounded boxes joined by a hinge; the other seven are assembled from several pieces per
 part in :mod:`hogsa_loader.synthetic.objects.household` and textured by the same atlas code.
-
-Canonical frame (ARCTIC's convention): the hinge is the z axis through the origin
-and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
-``x <= 0`` with the hinge at their ``x = 0`` edge; the bottom part occupies
-``y <= -GAP/2`` and the top part ``y >= +GAP/2`` (a 1 mm gap). For ``θ`` in ``[0, π/2]``
-every top point keeps ``y' = -x sin θ + y cos θ >= 0``, so the top swings up and back
-(opens) without entering the bottom part; ``θ = 0`` is closed.
-
-Faces of each rounded box are named by their outward normal (``"+x"``, ``"-y"``, ...):
-``+x`` is the hinge side, ``-x`` the front, ``+y`` up. Each face is one texture chart;
-the charts are packed in a 1024x1024 atlas painted from real photographs shipped with
-scikit-image (``skimage/data``) plus drawn details (text, keys, stripes), tinted by the
-seed. Output is deterministic: the same seed gives byte-identical files.
 """
 
 from __future__ import annotations
@@ -504,6 +491,19 @@ def _to_uint8(img: Image) -> np.ndarray:
 @dataclass
 class ObjectSpec:
     """Everything needed to build one procedural object.
+
+    Canonical frame (ARCTIC's convention): the hinge is the z axis through the origin
+    and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
+    ``x <= 0`` with the hinge at their ``x = 0`` edge; the bottom part occupies
+    ``y <= -GAP/2`` and the top part ``y >= +GAP/2`` (a 1 mm gap). For ``θ`` in ``[0, π/2]``
+    every top point keeps ``y' = -x sin θ + y cos θ >= 0``, so the top swings up and back
+    (opens) without entering the bottom part; ``θ = 0`` is closed.
+
+    Faces of each rounded box are named by their outward normal (``"+x"``, ``"-y"``, ...):
+    ``+x`` is the hinge side, ``-x`` the front, ``+y`` up. Each face is one texture chart;
+    the charts are packed in a 1024x1024 atlas painted from real photographs shipped with
+    scikit-image (``skimage/data``) plus drawn details (text, keys, stripes), tinted by the
+    seed. Output is deterministic: the same seed gives byte-identical files.
 
     Attributes:
         name: object name (ARCTIC name when it mimics an ARCTIC object).
