@@ -1,22 +1,4 @@
-"""Free (original 3DGS) Gaussians skinned by the transform of their nearest template vertex.
-
-The ablation of HOGS's mesh-bound Gaussians: every Gaussian has its own canonical mean,
-rotation and scale (gsplat's parameterisation: raw quaternion, log scale, opacity logit,
-SH ``sh_dc``/``sh_rest``), bound at initialisation to the nearest vertex of the template
-(for a Gaussian started on a face: the nearest corner of that face; for one started at a
-vertex: that vertex).
-Posing applies that vertex's transform:
-
-    mu' = A_v (mu + d_v) + t_v,     R' = orth(A_v) R,     s' = s
-
-where ``(A_v, t_v)`` maps the vertex's rest position to its posed one (hands: the LBS
-blend ``sum_j w_vj G_j``; objects: the rigid transform of the vertex's part), ``d_v`` is
-the vertex's rest-pose displacement before skinning (hands: shape + pose blend shapes;
-objects: 0) and ``orth`` is :func:`~hogsa_loader.geometry.quaternion.orthonormalize`.
-A Gaussian initialised at a vertex therefore moves exactly like that vertex.
-
-Notation: B samples, V template vertices, N Gaussians, K SH coefficients.
-"""
+"""Free (original 3DGS) Gaussians skinned by the transform of their nearest template vertex."""
 
 from __future__ import annotations
 
@@ -25,6 +7,7 @@ from typing import Optional, Union
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from hogsa_loader.gaussians.gaussian_set import GaussianSet, SplatAppearance
@@ -78,8 +61,6 @@ def surface_samples(faces: Tensor, num_verts: int, init: str = "vertices", k: in
 
 def _knn_scale(points: Tensor, n_neighbours: int = 3) -> Tensor:
     """3DGS initial scale: sqrt of the mean squared distance to the 3 nearest others."""
-    from scipy.spatial import cKDTree
-
     p = points.detach().cpu().double().numpy()
     kk = min(n_neighbours + 1, p.shape[0])
     d, _ = cKDTree(p).query(p, k=kk)
@@ -89,7 +70,24 @@ def _knn_scale(points: Tensor, n_neighbours: int = 3) -> Tensor:
 
 
 class FreeGaussians(SplatAppearance):
-    """Free Gaussians bound to template vertices (see module docstring).
+    """Free Gaussians bound to template vertices.
+
+    The ablation of HOGS's mesh-bound Gaussians: every Gaussian has its own canonical mean,
+    rotation and scale (gsplat's parameterisation: raw quaternion, log scale, opacity logit,
+    SH ``sh_dc``/``sh_rest``), bound at initialisation to the nearest vertex of the template
+    (for a Gaussian started on a face: the nearest corner of that face; for one started at a
+    vertex: that vertex).
+    Posing applies that vertex's transform:
+
+    mu' = A_v (mu + d_v) + t_v,     R' = orth(A_v) R,     s' = s
+
+    where ``(A_v, t_v)`` maps the vertex's rest position to its posed one (hands: the LBS
+    blend ``sum_j w_vj G_j``; objects: the rigid transform of the vertex's part), ``d_v`` is
+    the vertex's rest-pose displacement before skinning (hands: shape + pose blend shapes;
+    objects: 0) and ``orth`` is :func:`~hogsa_loader.geometry.quaternion.orthonormalize`.
+    A Gaussian initialised at a vertex therefore moves exactly like that vertex.
+
+    Notation: B samples, V template vertices, N Gaussians, K SH coefficients.
 
     Learnable parameters (checkpoint names): ``means`` (N, 3) canonical, ``quats`` (N, 4)
     wxyz (normalised when used), ``log_scales`` (N, 3), ``sh_dc`` (N, 1, 3), ``sh_rest``

@@ -1,47 +1,4 @@
-"""Gaussians bound to the triangles of a mesh: GaMeS and GaussianAvatars, one step per function.
-
-Notation: B samples, V vertices, F faces, k Gaussians per face, N = F k Gaussians (laid
-out face-major: Gaussian ``f k + j`` is the j-th Gaussian of face f), K = (d + 1)^2 SH
-coefficients.
-
-Face frame (both variants, recomputed from the posed face every time)
-----------------------------------------------------------------------
-For a triangle (p0, p1, p2): ``e = normalize(p1 - p0)`` (first edge),
-``n = normalize((p1 - p0) x (p2 - p0))`` (normal), ``t = n x e`` (in plane, orthogonal to
-the edge); ``R_f = [e | t | n]`` (columns, a proper rotation); centroid
-``c = (p0 + p1 + p2) / 3``.
-
-GaMeS variant (``variant="games"``, algorithms.md §B.1)
-------------------------------------------------------
-* mean ``mu = a0 p0 + a1 p1 + a2 p2`` with learnable barycentric weights
-  ``a = softmax(logits)`` (positive, sum to 1: the mean stays inside the triangle; GaMeS's
-  FLAME variant uses softmax, its mesh variant ``relu`` + normalise);
-* rotation ``R_f`` shared by the k Gaussians of the face, as a wxyz quaternion;
-* scales ``rho * (sigma_e, sigma_t, 0) + eps`` with ``rho`` a learnable positive factor
-  per Gaussian and ``sigma_e^2 = e^T S e``, ``sigma_t^2 = t^T S t`` the second moments
-  of the triangle (``S = 1/12 sum_i (p_i - c)(p_i - c)^T`` is the covariance of a point
-  uniformly distributed on it), so a Gaussian has the spread of its face along both
-  in-plane axes and is flat (``eps``) along the normal.
-
-  Difference from GaMeS (deliberate; the reference, algorithms.md §B.1, gives GaMeS's
-  formula and marks the paper-vs-code question UNCERTAIN, not this choice): GaMeS takes
-  the in-plane axes from the centroid-to-``p1`` direction and uses half distances
-  ``(|p1 - c| / 2, <p2 - c, r3> / 2)``; here the axes are the first edge and ``n x e`` and
-  the in-plane scales are the triangle's standard deviations along them. Both are exact
-  functions of the face, equivariant under rigid motion and linear in the face size.
-
-GaussianAvatars variant (``variant="avatars"``, algorithms.md §B.2)
-------------------------------------------------------------------
-With the face scale ``k_f = (|p1 - p0| + |t . (p2 - p0)|) / 2`` (mean of the first edge
-length and the height over it):
-``mu = k_f R_f mu_local + c``, ``s = k_f exp(s_local)``, ``q = q_f (x) normalize(q_local)``.
-The local parameters are initialised so that on the canonical mesh the Gaussians equal
-the GaMeS initial ones (GaussianAvatars itself starts with one Gaussian per face at the
-centroid with world scale ``k_f``, which is only sensible with its densification).
-
-Both variants optimise canonical vertex offsets ``(V, 3)`` added to the template before
-posing; :meth:`MeshGaussians.offset_regulariser` is HOGS's L_R.
-"""
+"""Gaussians bound to the triangles of a mesh: GaMeS and GaussianAvatars, one step per function."""
 
 from __future__ import annotations
 
@@ -309,6 +266,47 @@ def _as_tensor(x: ArrayLike, dtype: torch.dtype) -> Tensor:
 
 class MeshGaussians(SplatAppearance):
     """k learnable Gaussians on every face of a template mesh (GaMeS or GaussianAvatars).
+
+    Notation: B samples, V vertices, F faces, k Gaussians per face, N = F k Gaussians (laid
+    out face-major: Gaussian ``f k + j`` is the j-th Gaussian of face f), K = (d + 1)^2 SH
+    coefficients.
+
+    Face frame (both variants, recomputed from the posed face every time)
+    ----------------------------------------------------------------------
+    For a triangle (p0, p1, p2): ``e = normalize(p1 - p0)`` (first edge),
+    ``n = normalize((p1 - p0) x (p2 - p0))`` (normal), ``t = n x e`` (in plane, orthogonal to
+    the edge); ``R_f = [e | t | n]`` (columns, a proper rotation); centroid
+    ``c = (p0 + p1 + p2) / 3``.
+
+    GaMeS variant (``variant="games"``)
+    -----------------------------------
+    * mean ``mu = a0 p0 + a1 p1 + a2 p2`` with learnable barycentric weights
+      ``a = softmax(logits)`` (positive, sum to 1: the mean stays inside the triangle; GaMeS's
+      FLAME variant uses softmax, its mesh variant ``relu`` + normalise);
+    * rotation ``R_f`` shared by the k Gaussians of the face, as a wxyz quaternion;
+    * scales ``rho * (sigma_e, sigma_t, 0) + eps`` with ``rho`` a learnable positive factor
+      per Gaussian and ``sigma_e^2 = e^T S e``, ``sigma_t^2 = t^T S t`` the second moments
+      of the triangle (``S = 1/12 sum_i (p_i - c)(p_i - c)^T`` is the covariance of a point
+      uniformly distributed on it), so a Gaussian has the spread of its face along both
+      in-plane axes and is flat (``eps``) along the normal.
+
+    Difference from GaMeS (deliberate): GaMeS takes
+    the in-plane axes from the centroid-to-``p1`` direction and uses half distances
+    ``(|p1 - c| / 2, <p2 - c, r3> / 2)``; here the axes are the first edge and ``n x e`` and
+    the in-plane scales are the triangle's standard deviations along them. Both are exact
+    functions of the face, equivariant under rigid motion and linear in the face size.
+
+    GaussianAvatars variant (``variant="avatars"``)
+    ----------------------------------------------
+    With the face scale ``k_f = (|p1 - p0| + |t . (p2 - p0)|) / 2`` (mean of the first edge
+    length and the height over it):
+    ``mu = k_f R_f mu_local + c``, ``s = k_f exp(s_local)``, ``q = q_f (x) normalize(q_local)``.
+    The local parameters are initialised so that on the canonical mesh the Gaussians equal
+    the GaMeS initial ones (GaussianAvatars itself starts with one Gaussian per face at the
+    centroid with world scale ``k_f``, which is only sensible with its densification).
+
+    Both variants optimise canonical vertex offsets ``(V, 3)`` added to the template before
+    posing; :meth:`MeshGaussians.offset_regulariser` is HOGS's L_R.
 
     The module stores the canonical template and the learnable state; :meth:`gaussians`
     turns posed vertices (B, V, 3) into a :class:`GaussianSet`. Posing the mesh (LBS,

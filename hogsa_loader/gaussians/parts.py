@@ -9,22 +9,6 @@ Every part wraps one Gaussian model (``variant``):
   transform of their nearest binding-mesh vertex.
 
 and returns a :class:`~hogsa_loader.gaussians.gaussian_set.GaussianSet` for B poses.
-
-Hands. The binding mesh is the model's mesh or its MANO-HD subdivision
-(:func:`~hogsa_loader.hands.manohd.subdivide_model`). Posing is MANO's LBS
-(:mod:`hogsa_loader.hands.lbs`) with the offsets added to ``v_template`` *before* shape
-blend shapes, joint regression, pose correctives and skinning (so the offsets also move
-the regressed joints), exactly like a :class:`~hogsa_loader.hands.mano.MANOLayer` built on
-a model whose ``v_template`` is ``template + offsets``. Initial colours: the model's
-``vertex_colors`` (skin albedo) interpolated at each Gaussian, else a constant skin tone.
-
-Objects. The binding mesh is the textured mesh (``tex_verts``/``tex_faces``, charts not
-welded) when the template has one, optionally midpoint-subdivided
-(:func:`~hogsa_loader.hands.manohd.subdivide_mesh`) for texture detail; the original
-``verts``/``faces`` stay the geometry (hash, :meth:`ObjectGaussians.posed_geometry`).
-The top part (``parts == 0``) articulates by ``R_z(-theta)`` and then every point gets the
-global pose (:func:`~hogsa_loader.objects.articulated.articulate`). Initial colours: the
-texture sampled at each Gaussian's uv (bilinear, OBJ convention), else a constant grey.
 """
 
 from __future__ import annotations
@@ -35,12 +19,13 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from hogsa_loader.gaussians.free import FREE_INITS, FreeGaussians, surface_samples
 from hogsa_loader.gaussians.gaussian_set import GaussianSet
-from hogsa_loader.gaussians.mesh_bound import VARIANTS as MESH_VARIANTS
 from hogsa_loader.gaussians.mesh_bound import DEFAULT_OPACITY, MeshGaussians
+from hogsa_loader.gaussians.mesh_bound import VARIANTS as MESH_VARIANTS
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.geometry.texture import sample_texture
 from hogsa_loader.hands.lbs import skin_template
@@ -270,8 +255,8 @@ class GaussianPart(nn.Module):
         return out
 
     def disable_seam_welding(self) -> None:
-        """Give every binding vertex its own offset again (``weld_seams=False``): for
-        continuing a run whose checkpoints predate seam welding, as it was trained."""
+        """Give every binding vertex its own offset (``weld_seams=False``): for continuing a run
+        whose checkpoint was trained without it (``weld_seams`` false or absent in its config)."""
         self.weld_seams = False
         if isinstance(self.splats, MeshGaussians):
             self.splats.weld_group = None
@@ -298,7 +283,15 @@ class GaussianPart(nn.Module):
 
 
 class HandGaussians(GaussianPart):
-    """Gaussians of one MANO-schema hand (see module docstring).
+    """Gaussians of one MANO-schema hand.
+
+    The binding mesh is the model's mesh or its MANO-HD subdivision
+    (:func:`~hogsa_loader.hands.manohd.subdivide_model`). Posing is MANO's LBS
+    (:mod:`hogsa_loader.hands.lbs`) with the offsets added to ``v_template`` *before* shape
+    blend shapes, joint regression, pose correctives and skinning (so the offsets also move
+    the regressed joints), exactly like a :class:`~hogsa_loader.hands.mano.MANOLayer` built on
+    a model whose ``v_template`` is ``template + offsets``. Initial colours: the model's
+    ``vertex_colors`` (skin albedo) interpolated at each Gaussian, else a constant skin tone.
 
     Args:
         model: a :class:`ManoModelData` or a :class:`MANOLayer` (its settings are kept;
@@ -435,7 +428,15 @@ class HandGaussians(GaussianPart):
 
 
 class ObjectGaussians(GaussianPart):
-    """Gaussians of one ARCTIC-style articulated object (see module docstring).
+    """Gaussians of one ARCTIC-style articulated object.
+
+    The binding mesh is the textured mesh (``tex_verts``/``tex_faces``, charts not
+    welded) when the template has one, optionally midpoint-subdivided
+    (:func:`~hogsa_loader.hands.manohd.subdivide_mesh`) for texture detail; the original
+    ``verts``/``faces`` stay the geometry (hash, :meth:`ObjectGaussians.posed_geometry`).
+    The top part (``parts == 0``) articulates by ``R_z(-theta)`` and then every point gets the
+    global pose (:func:`~hogsa_loader.objects.articulated.articulate`). Initial colours: the
+    texture sampled at each Gaussian's uv (bilinear, OBJ convention), else a constant grey.
 
     Args:
         template: the object template (metres, canonical frame, hinge = z axis).
@@ -489,8 +490,6 @@ class ObjectGaussians(GaussianPart):
             if template.tex_parts is not None:
                 is_top = np.asarray(template.tex_parts) == TOP
             else:
-                from scipy.spatial import cKDTree
-
                 _, nearest = cKDTree(template.verts).query(verts)
                 is_top = template.parts[nearest] == TOP
         else:

@@ -1,22 +1,4 @@
-"""A learned directional light for HOGS models (optional Lambertian shading).
-
-Hands and objects move under the fixed lights of a capture studio, so one surface point
-looks brighter or darker depending on how it is turned. Plain Gaussian colours are fixed
-to the surface and cannot follow that. :class:`DirectionalLight` adds one directional
-light, shared by every part and fixed in the world frame, learnt with the Gaussians:
-
-``rgb = c_SH(view dir) · (ambient + diffuse · max(0, n · (−d)))``
-
-with ``n`` each Gaussian's shading normal (:meth:`MeshGaussians.shading_normals`, or the
-skinned surface normal of free Gaussians; no gradient flows into the geometry through it), ``d`` the unit direction the light travels,
-and ``c_SH`` the Gaussian's SH colour (+0.5, clamped at 0, as the rasteriser does).
-Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling time the
-light can be changed (relighting augmentation).
-
-Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
-(the shared checkpoint header of :mod:`hogsa_loader.io.tensors`: format ``hogsa-light``,
-schema version 1, ``tensors_file``, ``tensors_sha256``; plus ``model`` and the light's values).
-"""
+"""A learned directional light for HOGS models (optional Lambertian shading)."""
 
 from __future__ import annotations
 
@@ -49,6 +31,23 @@ def _inv_softplus(x: float) -> float:
 
 class DirectionalLight(nn.Module):
     """One directional light plus ambient term, in the world frame.
+
+    Hands and objects move under the fixed lights of a capture studio, so one surface point
+    looks brighter or darker depending on how it is turned. Plain Gaussian colours are fixed
+    to the surface and cannot follow that. :class:`DirectionalLight` adds one directional
+    light, shared by every part and fixed in the world frame, learnt with the Gaussians:
+
+    ``rgb = c_SH(view dir) · (ambient + diffuse · max(0, n · (−d)))``
+
+    with ``n`` each Gaussian's shading normal (:meth:`MeshGaussians.shading_normals`, or the
+    skinned surface normal of free Gaussians; no gradient flows into the geometry through it), ``d`` the unit direction the light travels,
+    and ``c_SH`` the Gaussian's SH colour (+0.5, clamped at 0, as the rasteriser does).
+    Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling time the
+    light can be changed (relighting augmentation).
+
+    Checkpoint: ``light/`` inside a run folder, ``light.safetensors`` + ``manifest.json``
+    (the shared checkpoint header of :mod:`hogsa_loader.io.tensors`: format ``hogsa-light``,
+    schema version 1, ``tensors_file``, ``tensors_sha256``; plus ``model`` and the light's values).
 
     Args:
         direction: (3,) direction the light travels (world frame; normalised).

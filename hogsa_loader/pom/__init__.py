@@ -1,4 +1,4 @@
-"""POM — the pose-optimisation module (HOGSA §3.3, GraspTTA-style).
+"""POM — the pose-optimisation module of HOGSA (GraspTTA-style test-time grasp optimisation).
 
 * :mod:`~hogsa_loader.pom.contactnet` — topology-free ContactNet, GraspTTA's contact map,
   safetensors checkpoints;

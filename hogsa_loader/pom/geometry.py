@@ -15,6 +15,7 @@ from typing import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 __all__ = [
@@ -318,8 +319,6 @@ def build_sdf_grid(
     Returns:
         :class:`SDFGrid` (float32).
     """
-    from scipy.spatial import cKDTree
-
     v = np.asarray(verts, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     lo = v.min(0) - pad

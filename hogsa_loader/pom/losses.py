@@ -1,22 +1,9 @@
-"""POM losses (GraspTTA's terms, ``algorithms.md`` §A.5, made topology-free), per sample.
+"""POM losses (GraspTTA's terms, made topology-free), per sample.
 
 All inputs are in the object's canonical frame (metres). Every loss returns a (B,) tensor
 (one value per sample, summed over the two hands by the caller). Scales follow GraspTTA's
 code, normalised to its point counts (3000 object points, 778 hand vertices) so that they
-do not depend on how many points a model or a cloud has:
-
-* :func:`contact_consistency` ``L_C = 0.3 · mean_i (C_hand,i − C_tgt,i)²``
-  (GraspTTA: ``1e-4 · Σ_{3000}``);
-* :func:`hand_centric` ``L_H = 7500 · mean_{i∈M} min_{k∈P} ||o_i − h_k||²`` with M the
-  object points within 2 cm of the hand and P the prior finger-pad/palm vertices
-  (GraspTTA: ``2.5 · 3000 · mean``);
-* :func:`penetration` ``L_P = (778/V) Σ_v (relu(−sdf(h_v))/cm)² + 0.1 (3000/N) Σ_{i inside} (d_i/cm)²``:
-  hand vertices inside the object by the object's SDF grid (sign from ray parity), plus
-  GraspTTA's own term (object points inside the hand by the nearest-vertex normal test).
-  Depths are in centimetres here, not GraspTTA's ``120 · Σ d²`` in metres: with that
-  scale a few millimetres of penetration weigh less than the hand-centric pull, and the
-  optimisation was measured to push hands ~4 mm into the objects;
-* :func:`pose_prior` mild L2 of the articulation and shape to the source grasp.
+do not depend on how many points a model or a cloud has.
 """
 
 from __future__ import annotations
@@ -69,13 +56,18 @@ def hand_contact(obj_points: Tensor, hand_verts: Tensor, idx: Optional[Tensor] =
 
 
 def contact_consistency(c_hand: Tensor, c_target: Tensor) -> Tensor:
-    """``L_C`` (B,): 0.3 · mean squared difference between the two maps (target detached)."""
+    """``L_C`` (B,): 0.3 · mean squared difference between the two maps (target detached);
+    GraspTTA's ``1e-4 · Σ`` over its 3000 points."""
     return 0.3 * (c_hand - c_target.detach()).pow(2).mean(-1)
 
 
 def hand_centric(obj_points: Tensor, hand_verts: Tensor, prior_ids: Tensor, dist: Tensor,
                  near: float = NEAR_DISTANCE, idx: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
     """``L_H`` (B,): pull object points near the hand onto the prior contact vertices.
+
+    ``L_H = 7500 · mean_{i∈M} min_{k∈P} ||o_i − h_k||²`` with M the object points within
+    ``near`` (2 cm) of the hand and P the prior finger-pad/palm vertices (GraspTTA's
+    ``2.5 · 3000 · mean``).
 
     Args:
         obj_points: (B, N, 3); hand_verts: (B, V, 3); prior_ids: (P,) vertex ids;
@@ -126,7 +118,13 @@ def object_in_hand(obj_points: Tensor, hand_verts: Tensor, faces: Tensor, idx: T
 
 def penetration(hand_verts_c: Tensor, obj_points: Tensor, faces: Tensor, idx: Tensor, dist: Tensor,
                 objects: ObjectSet, names: Sequence[str], arti: Tensor) -> tuple[Tensor, Tensor]:
-    """``L_P`` (B,) = :func:`hand_in_object` + :func:`object_in_hand`; also returns the SDF (B, V)."""
+    """``L_P`` (B,) = :func:`hand_in_object` + :func:`object_in_hand`; also returns the SDF (B, V).
+
+    ``L_P = (778/V) Σ_v (relu(−sdf(h_v))/cm)² + 0.1 (3000/N) Σ_{i inside} (d_i/cm)²``. Depths
+    are in centimetres, not GraspTTA's ``120 · Σ d²`` in metres: with that scale a few
+    millimetres of penetration weigh less than the hand-centric pull, and the optimisation
+    was measured to push hands ~4 mm into the objects.
+    """
     l_hand, sdf = hand_in_object(hand_verts_c, objects, names, arti)
     return l_hand + object_in_hand(obj_points, hand_verts_c, faces, idx, dist), sdf
 

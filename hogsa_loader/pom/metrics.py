@@ -1,24 +1,4 @@
-"""Grasp-quality metrics (GraspTTA ``metric/*.py``, ``algorithms.md`` §A.6), bimanual.
-
-Per sample (both hands together):
-
-* ``penetration_depth``: max over the hand vertices that are inside the object — by ray
-  parity against the object's part meshes (GraspTTA's fixed ray) — of their distance to
-  the object surface (m); 0 when none is inside;
-* ``intersection``: the object voxelised at 5 mm (voxel centres inside a part, by parity),
-  number of voxel centres inside each (wrist-capped) hand mesh × pitch³, summed over the
-  hands (m³);
-* ``contact_ratio``: fraction of hand vertices inside or within 5 mm of the surface;
-* ``contact``: per hand, at least one such vertex;
-* ``accept``: GraspTTA's acceptance without its physics test: intersection < 4 cm³ and
-  contact (every hand listed as ``active`` — the hands touching the object in the source
-  frame — must touch; at least one hand must touch). GraspTTA also requires a simulated
-  object displacement < 3 cm (§A.6); no simulator runs here, so that criterion is not
-  applied.
-
-:func:`diversity` is the mean pairwise distance between samples of the both-hand joints
-(42 joints, object canonical frame, mean per-joint Euclidean distance).
-"""
+"""Grasp-quality metrics (those of GraspTTA's ``metric/*.py``), bimanual."""
 
 from __future__ import annotations
 
@@ -46,9 +26,71 @@ ACCEPT_VOLUME = 4e-6
 CANDIDATE_DISTANCE = 0.008
 
 
+def _inside_and_distance(g: object, Rt: Tensor, pts: Tensor, near: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """For (P, 3) canonical points, with only the ``near`` ones tested exactly: inside the object
+    (ray parity against either part's triangles) and distance to its surface (m; inf untested)."""
+    cand = near.nonzero().squeeze(-1)
+    inside = torch.zeros(pts.shape[0], dtype=torch.bool)
+    dist = np.full(pts.shape[0], np.inf)
+    for part in (TOP, BOTTOM):
+        q = pts[cand] @ Rt if part == TOP else pts[cand]
+        inside[cand] |= ray_parity_inside(q, g.tris[part])
+        if len(cand):
+            d, _ = g.trees[part].query(q.numpy(), workers=1)
+            dist[cand.numpy()] = np.minimum(dist[cand.numpy()], d)
+    return inside.numpy(), dist
+
+
+def _intersection_count(g: object, Rt: Tensor, V: Mapping[str, Tensor], infos: Mapping[str, HandInfo]) -> int:
+    """Object voxel centres (per part's voxel grid) inside a (wrist-capped) hand mesh, summed over hands."""
+    count = 0
+    for part in (TOP, BOTTOM):
+        (xs, ys, zs), obj_in = g.vox_grid[part]
+        if not bool(obj_in.any()):
+            continue
+        for s in SIDES:
+            vh = V[s] @ Rt if part == TOP else V[s]  # hand in the part's frame
+            tris = infos[s].capped.triangles(vh).numpy()
+            lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+            kx = (xs >= lo[0]) & (xs <= hi[0])
+            ky = (ys >= lo[1]) & (ys <= hi[1])
+            kz = (zs >= lo[2]) & (zs <= hi[2])
+            if not (kx.any() and ky.any() and kz.any()):
+                continue
+            hand_in = grid_inside(tris, xs[kx], ys[ky], zs[kz])
+            sub = obj_in[np.ix_(kz, ky, kx)].numpy()
+            count += int((hand_in & sub).sum())
+    return count
+
+
+def _canonical_vertices(state: GraspState, infos: Mapping[str, HandInfo]) -> dict[str, Tensor]:
+    """side -> (B, 778, 3) float64 CPU hand vertices in the object canonical frame."""
+    with torch.no_grad():
+        dt = infos["right"].layer.v_template.dtype
+        dev = infos["right"].layer.v_template.device
+        hands = canonical_hands(state.map(lambda t: t.detach().to(dev, dt)), infos)
+        return {s: hands[s].vertices.double().cpu() for s in SIDES}
+
+
 def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
                   active: Optional[Mapping[str, Tensor]] = None) -> dict[str, np.ndarray]:
-    """Per-sample metrics (see module docstring).
+    """Per-sample grasp-quality metrics.
+
+    Per sample (both hands together):
+
+    * ``penetration_depth``: max over the hand vertices that are inside the object — by ray
+      parity against the object's part meshes (GraspTTA's fixed ray) — of their distance to
+      the object surface (m); 0 when none is inside;
+    * ``intersection``: the object voxelised at 5 mm (voxel centres inside a part, by parity),
+      number of voxel centres inside each (wrist-capped) hand mesh × pitch³, summed over the
+      hands (m³);
+    * ``contact_ratio``: fraction of hand vertices inside or within 5 mm of the surface;
+    * ``contact``: per hand, at least one such vertex;
+    * ``accept``: GraspTTA's acceptance without its physics test: intersection < 4 cm³ and
+      contact (every hand listed as ``active`` — the hands touching the object in the source
+      frame — must touch; at least one hand must touch). GraspTTA also requires a simulated
+      object displacement < 3 cm; no simulator runs here, so that criterion is not
+      applied.
 
     Args:
         state: B grasps; infos: hands; objects: geometry.
@@ -60,15 +102,10 @@ def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
         ``contact_ratio``, ``contact_right``, ``contact_left`` (bool), ``accept`` (bool).
     """
     B = state.batch
-    with torch.no_grad():
-        dt = infos["right"].layer.v_template.dtype
-        dev = infos["right"].layer.v_template.device
-        hands = canonical_hands(state.map(lambda t: t.detach().to(dev, dt)), infos)
-        for s in SIDES:
-            hands[s].vertices = hands[s].vertices.double().cpu()
+    verts = _canonical_vertices(state, infos)
     arti = state.obj_arti.detach().double().cpu()
     with torch.no_grad():  # SDF-grid pre-filter: only vertices near or below the surface are tested
-        sdf = {s: objects.sdf(hands[s].vertices.float(), state.obj_names, arti.float()) for s in SIDES}
+        sdf = {s: objects.sdf(verts[s].float(), state.obj_names, arti.float()) for s in SIDES}
     depth = np.zeros(B)
     volume = np.zeros(B)
     ratio = np.zeros(B)
@@ -76,19 +113,9 @@ def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
     for b in range(B):
         g = objects.geometry(state.obj_names[b])
         Rt = articulation_matrix(arti[b: b + 1])[0]  # top-part frame -> canonical
-        V = {s: hands[s].vertices[b] for s in SIDES}
-        pts = torch.cat([V[s] for s in SIDES])
+        V = {s: verts[s][b] for s in SIDES}
         near = torch.cat([sdf[s][b] for s in SIDES]) < CANDIDATE_DISTANCE
-        cand = near.nonzero().squeeze(-1)
-        inside = torch.zeros(pts.shape[0], dtype=torch.bool)
-        dist = np.full(pts.shape[0], np.inf)
-        for part in (TOP, BOTTOM):
-            q = pts[cand] @ Rt if part == TOP else pts[cand]
-            inside[cand] |= ray_parity_inside(q, g.tris[part])
-            if len(cand):
-                d, _ = g.trees[part].query(q.numpy(), workers=1)
-                dist[cand.numpy()] = np.minimum(dist[cand.numpy()], d)
-        ins = inside.numpy()
+        ins, dist = _inside_and_distance(g, Rt, torch.cat([V[s] for s in SIDES]), near)
         depth[b] = float(dist[ins].max()) if ins.any() else 0.0
         touch = ins | (dist <= CONTACT_DISTANCE)
         ratio[b] = float(touch.mean())
@@ -97,30 +124,12 @@ def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
             n = V[s].shape[0]
             contact[s][b] = bool(touch[n0: n0 + n].any())
             n0 += n
-        count = 0
-        for part in (TOP, BOTTOM):
-            (xs, ys, zs), obj_in = g.vox_grid[part]
-            if not bool(obj_in.any()):
-                continue
-            for s in SIDES:
-                vh = V[s] @ Rt if part == TOP else V[s]  # hand in the part's frame
-                tris = infos[s].capped.triangles(vh).numpy()
-                lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
-                kx = (xs >= lo[0]) & (xs <= hi[0])
-                ky = (ys >= lo[1]) & (ys <= hi[1])
-                kz = (zs >= lo[2]) & (zs <= hi[2])
-                if not (kx.any() and ky.any() and kz.any()):
-                    continue
-                hand_in = grid_inside(tris, xs[kx], ys[ky], zs[kz])
-                sub = obj_in[np.ix_(kz, ky, kx)].numpy()
-                count += int((hand_in & sub).sum())
-        volume[b] = count * VOLUME_PITCH ** 3
-    any_contact = contact["right"] | contact["left"]
+        volume[b] = _intersection_count(g, Rt, V, infos) * VOLUME_PITCH ** 3
     need = np.ones(B, dtype=bool)
     if active is not None:
         for s in SIDES:
             need &= ~np.asarray(active[s].cpu()) | contact[s]
-    accept = (volume < ACCEPT_VOLUME) & any_contact & need
+    accept = (volume < ACCEPT_VOLUME) & (contact["right"] | contact["left"]) & need
     return {
         "penetration_depth": depth,
         "intersection": volume,

@@ -9,7 +9,7 @@ For each :class:`~hogsa_loader.objects.template.ObjectTemplate` (built lazily, c
   KD-tree (surface distances), and the 5 mm voxel centres inside each part (intersection
   volume).
 
-Frames (ARCTIC spec §2): world ``p_w = R(ω) p_c + t``; the canonical frame of the base
+Frames (ARCTIC's): world ``p_w = R(ω) p_c + t``; the canonical frame of the base
 (bottom) part is the object frame; a top-part point ``q`` sits at ``p_c = R_z(-θ) q``.
 """
 
@@ -20,6 +20,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
@@ -94,8 +95,6 @@ class ObjectGeometry:
     @classmethod
     def build(cls, template: ObjectTemplate, n_points: int = 2048, sdf_voxel: float = 0.002,
               seed: int = 0) -> "ObjectGeometry":
-        from scipy.spatial import cKDTree
-
         rng = np.random.default_rng(seed)
         pts, fid = sample_surface(template.verts, template.faces, n_points, rng)
         face_part = template.parts[template.faces[:, 0]]

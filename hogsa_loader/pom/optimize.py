@@ -1,28 +1,5 @@
-"""Batched bimanual grasp optimisation (POM): object fixed, both hands optimised.
-
-For B perturbed samples at once (no Python loop over samples; CPU or CUDA):
-
-1. re-grasp initialisation (``snap``, our addition, default on): hands holding the
-   object's top part follow the new articulation angle, hands deep inside are moved out
-   (line search + linearised SDF push), then each hand's rigid motion is fitted so the
-   vertices that touched the object in the source frame touch it again, without
-   penetration, keeping the perturbed rotation unless the contacts need otherwise
-   (:mod:`hogsa_loader.pom.regrasp`). The paper's learning rates (translation 3e-5 over
-   200 Adam steps) cannot move a hand more than ~6 mm, so without it a 6 cm jitter leaves
-   hands floating next to (or inside) the object. Measured on the small world (contact
-   ratio = hand vertices within 5 mm): annotated grasps ~0.07, after a nearest-point snap
-   0.044, after the re-grasp 0.079. ``snap=False`` gives the paper-pure optimisation;
-2. 200 Adam iterations on both hands' global rotation, translation, articulation and shape
-   (learning rates: pose/rotation 5e-4, translation 3e-5, shape 5e-4) of
-   ``Σ_{l,r} 1·L_C + 1·L_H + 17·L_P + w_prior·prior`` (:mod:`hogsa_loader.pom.losses`);
-   ContactNet's target map is re-predicted from the current hand every
-   ``contact_every`` iterations, divided by its maximum and detached (GraspTTA). A hand
-   that did not touch the object in the source frame (``active`` False) gets no L_C / L_H:
-   the normalised map would otherwise pull a free hand onto the object;
-3. samples whose parameters went non-finite, that still penetrate deeper than
-   ``max_depth`` (SDF grid), or whose articulation / shape drifted implausibly far are
-   dropped (``keep`` mask) and counted per reason.
-"""
+"""Batched bimanual grasp optimisation (POM): object fixed, both hands optimised
+(:func:`optimise_grasps`), B samples at once (no Python loop over samples; CPU or CUDA)."""
 
 from __future__ import annotations
 
@@ -64,7 +41,7 @@ class POMConfig:
             every iteration; hands move < 0.1 mm per step).
         final_push: after Adam, the penetration part of the rigid projection once more
             (removes residual penetration; no pull toward the object).
-        snap: re-grasp initialisation before Adam (see module docstring).
+        snap: re-grasp initialisation before Adam (step 1 of :func:`optimise_grasps`).
         snap_steps: iterations of the penetration push; contact_margin: clearance the
             projections aim for (m); contact_distance: source vertices closer than this to
             the object form a hand's contact set (m).
@@ -237,6 +214,104 @@ def snap_hands(state: GraspState, infos: Mapping[str, HandInfo], objects: Object
     return GraspState(hands, list(state.obj_names), state.obj_arti, state.obj_rot, state.obj_trans)
 
 
+def _initialise(start: GraspState, ref: GraspState, active: Mapping[str, Tensor], infos: Mapping[str, HandInfo],
+                objects: ObjectSet, config: POMConfig) -> GraspState:  # fmt: skip
+    """A detached copy of ``start``; with ``config.snap`` re-grasped: hands on the top part carried
+    with it, moved out of the object, then fitted to the active source contacts."""
+    state = start.map(lambda t: t.detach().clone())
+    if not config.snap:
+        return state
+    contacts = source_contacts(ref, infos, objects, config.contact_distance)
+    for s in SIDES:
+        contacts.mask[s] &= active[s].to(contacts.mask[s].device)[:, None]
+        contacts.on_top[s] &= active[s].to(contacts.on_top[s].device)
+    state = carry_with_part(state, ref.obj_arti, contacts, infos)
+    state = snap_hands(state, infos, objects, None, config.snap_steps, config.contact_margin)
+    return regrasp(state, contacts, infos, objects, config.regrasp_steps, config.contact_margin,
+                   rot_weight=config.regrasp_rot_weight)  # fmt: skip
+
+
+class _Objective:
+    """The per-sample POM loss of both hands, with the caches it keeps between iterations
+    (nearest object points, prior-vertex neighbours, ContactNet's target maps)."""
+
+    def __init__(self, state: GraspState, ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
+                 contactnet: Optional[ContactNet], config: POMConfig, obj_pts: Tensor,
+                 active: Mapping[str, Tensor]) -> None:  # fmt: skip
+        device = obj_pts.device
+        self.state, self.ref, self.infos, self.objects, self.config, self.obj_pts = (
+            state, ref, infos, objects, config, obj_pts)  # fmt: skip
+        self.contactnet = contactnet.to(device).eval() if contactnet is not None else None
+        self.faces = {s: infos[s].layer.faces.to(device) for s in SIDES}
+        self.sign = {s: torch.full((state.batch,), infos[s].side_sign, device=device) for s in SIDES}
+        self.act_w = {s: active[s].to(device=device, dtype=obj_pts.dtype) for s in SIDES}  # (B,) contact weights
+        self.target: dict[str, Tensor] = {}
+        self.nn_idx: dict[str, Tensor] = {}
+        self.prior_idx: dict[str, Tensor] = {}
+
+    def add_side(self, total: Tensor, s: str, p: HandParams, it: int) -> Tensor:
+        """``total`` (B,) plus the loss of hand ``s`` at iteration ``it``: L_C and L_H (active hands
+        only), L_P, prior, added term by term."""
+        cfg, obj_pts, infos = self.config, self.obj_pts, self.infos
+        device = obj_pts.device
+        refresh = it % cfg.nn_every == 0
+        on = self.act_w[s]
+        v = _canon_verts(infos[s], p, self.state)
+        c_hand, dist, idx = hand_contact(obj_pts, v, None if refresh else self.nn_idx[s])
+        self.nn_idx[s] = idx
+        if self.contactnet is not None:
+            if it % cfg.contact_every == 0 or s not in self.target:
+                with torch.no_grad():
+                    pred = self.contactnet(obj_pts, v.detach(), infos[s].prior_mask.to(device), self.sign[s])
+                    self.target[s] = pred / pred.max(-1, keepdim=True).values.clamp_min(1e-6)
+            total = total + on * cfg.w_contact * contact_consistency(c_hand, self.target[s])
+        l_h, self.prior_idx[s] = hand_centric(obj_pts, v, infos[s].prior_ids.to(device), dist,
+                                              idx=None if refresh else self.prior_idx[s])  # fmt: skip
+        total = total + on * cfg.w_hand * l_h
+        l_pen, _ = penetration(v, obj_pts, self.faces[s], idx, dist, self.objects, self.state.obj_names,
+                               self.state.obj_arti)  # fmt: skip
+        total = total + cfg.w_pen * l_pen
+        r = self.ref.hands[s]
+        return total + cfg.w_prior * pose_prior(p.pose, r.pose, p.betas, r.betas)
+
+
+def _adam(objective: _Objective, config: POMConfig) -> tuple[dict[str, HandParams], list[float]]:
+    """``config.iters`` Adam steps on both hands' rotation, articulation, translation and shape;
+    the optimised hands and the per-iteration mean loss."""
+    state, B = objective.state, objective.state.batch
+    params = {s: {k: getattr(state.hands[s], k).detach().clone().requires_grad_(True)
+                  for k in ("rot", "pose", "trans", "betas")} for s in SIDES}  # fmt: skip
+    lrs = {"rot": config.lr_rot, "pose": config.lr_pose, "trans": config.lr_trans, "betas": config.lr_shape}
+    opt = torch.optim.Adam([{"params": [params[s][k] for s in SIDES], "lr": lrs[k]} for k in lrs])
+    history: list[float] = []
+    for it in range(config.iters):
+        opt.zero_grad(set_to_none=True)
+        total = torch.zeros(B, dtype=objective.obj_pts.dtype, device=objective.obj_pts.device)
+        for s in SIDES:
+            total = objective.add_side(total, s, HandParams(**params[s]), it)
+        loss = total.sum()
+        history.append(float(loss.detach()) / B)
+        loss.backward()
+        for s in SIDES:  # a sample that went non-finite must not poison the others
+            for t in params[s].values():
+                if t.grad is not None:
+                    t.grad.nan_to_num_(0.0, 0.0, 0.0)
+        opt.step()
+    return {s: HandParams(**{k: t.detach() for k, t in params[s].items()}) for s in SIDES}, history
+
+
+def _final_push(out: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet, config: POMConfig) -> None:
+    """Move the hands of finite samples out of the object (translations only, in place)."""
+    finite = torch.ones(out.batch, dtype=torch.bool, device=out.obj_trans.device)
+    for s in SIDES:
+        for t in out.hands[s].as_dict().values():
+            finite &= torch.isfinite(t).all(-1)
+    pushed = snap_hands(out.map(lambda t: torch.nan_to_num(t, 0.0, 0.0, 0.0)), infos, objects, None,
+                        config.snap_steps, config.contact_margin, escape=False)  # fmt: skip
+    for s in SIDES:  # non-finite samples keep their NaNs (dropped by the plausibility check)
+        out.hands[s].trans = torch.where(finite[:, None], pushed.hands[s].trans, out.hands[s].trans)
+
+
 def optimise_grasps(
     start: GraspState,
     infos: Mapping[str, HandInfo],
@@ -247,7 +322,28 @@ def optimise_grasps(
     active: Optional[Mapping[str, Tensor]] = None,
     generator: Optional[torch.Generator] = None,
 ) -> POMResult:
-    """Optimise B perturbed grasps (object fixed), see module docstring.
+    """Optimise B perturbed grasps (object fixed), in three steps:
+
+    1. re-grasp initialisation (``snap``, our addition, default on): hands holding the
+       object's top part follow the new articulation angle, hands deep inside are moved out
+       (line search + linearised SDF push), then each hand's rigid motion is fitted so the
+       vertices that touched the object in the source frame touch it again, without
+       penetration, keeping the perturbed rotation unless the contacts need otherwise
+       (:mod:`hogsa_loader.pom.regrasp`). The paper's learning rates (translation 3e-5 over
+       200 Adam steps) cannot move a hand more than ~6 mm, so without it a 6 cm jitter leaves
+       hands floating next to (or inside) the object. Measured on the small world (contact
+       ratio = hand vertices within 5 mm): annotated grasps ~0.07, after a nearest-point snap
+       0.044, after the re-grasp 0.079. ``snap=False`` gives the paper-pure optimisation;
+    2. 200 Adam iterations on both hands' global rotation, translation, articulation and shape
+       (learning rates: pose/rotation 5e-4, translation 3e-5, shape 5e-4) of
+       ``Σ_{l,r} 1·L_C + 1·L_H + 17·L_P + w_prior·prior`` (:mod:`hogsa_loader.pom.losses`);
+       ContactNet's target map is re-predicted from the current hand every
+       ``contact_every`` iterations, divided by its maximum and detached (GraspTTA). A hand
+       that did not touch the object in the source frame (``active`` False) gets no L_C / L_H:
+       the normalised map would otherwise pull a free hand onto the object;
+    3. samples whose parameters went non-finite, that still penetrate deeper than
+       ``max_depth`` (SDF grid), or whose articulation / shape drifted implausibly far are
+       dropped (``keep`` mask) and counted per reason.
 
     Args:
         start: perturbed grasps (world frame).
@@ -272,76 +368,15 @@ def optimise_grasps(
     ref = reference if reference is not None else start
     if active is None:
         active = {s: torch.ones(B, dtype=torch.bool, device=device) for s in SIDES}
-    state = start.map(lambda t: t.detach().clone())
-    if config.snap:
-        contacts = source_contacts(ref, infos, objects, config.contact_distance)
-        for s in SIDES:
-            contacts.mask[s] &= active[s].to(contacts.mask[s].device)[:, None]
-            contacts.on_top[s] &= active[s].to(contacts.on_top[s].device)
-        state = carry_with_part(state, ref.obj_arti, contacts, infos)
-        state = snap_hands(state, infos, objects, None, config.snap_steps, config.contact_margin)
-        state = regrasp(state, contacts, infos, objects, config.regrasp_steps, config.contact_margin,
-                        rot_weight=config.regrasp_rot_weight)
+    state = _initialise(start, ref, active, infos, objects, config)
     obj_pts, _ = objects.points(state.obj_names, state.obj_arti, count=min(config.n_obj_points, objects.n_points),
                                 generator=generator)
     obj_pts = obj_pts.to(device, start.obj_trans.dtype)
-
-    params = {s: {k: getattr(state.hands[s], k).detach().clone().requires_grad_(True)
-                  for k in ("rot", "pose", "trans", "betas")} for s in SIDES}
-    lrs = {"rot": config.lr_rot, "pose": config.lr_pose, "trans": config.lr_trans, "betas": config.lr_shape}
-    opt = torch.optim.Adam([{"params": [params[s][k] for s in SIDES], "lr": lrs[k]} for k in lrs])
-    faces = {s: infos[s].layer.faces.to(device) for s in SIDES}
-    sign = {s: torch.full((B,), infos[s].side_sign, device=device) for s in SIDES}
-    target: dict[str, Tensor] = {}
-    nn_idx: dict[str, Tensor] = {}
-    prior_idx: dict[str, Tensor] = {}
-    history: list[float] = []
-    if contactnet is not None:
-        contactnet = contactnet.to(device).eval()
-    act_w = {s: active[s].to(device=device, dtype=obj_pts.dtype) for s in SIDES}  # (B,) contact-term weights
-    for it in range(config.iters):
-        opt.zero_grad(set_to_none=True)
-        total = torch.zeros(B, dtype=obj_pts.dtype, device=device)
-        refresh = it % config.nn_every == 0
-        for s in SIDES:
-            on = act_w[s]
-            p = HandParams(**params[s])
-            v = _canon_verts(infos[s], p, state)
-            c_hand, dist, idx = hand_contact(obj_pts, v, None if refresh else nn_idx[s])
-            nn_idx[s] = idx
-            if contactnet is not None:
-                if it % config.contact_every == 0 or s not in target:
-                    with torch.no_grad():
-                        pred = contactnet(obj_pts, v.detach(), infos[s].prior_mask.to(device), sign[s])
-                        target[s] = pred / pred.max(-1, keepdim=True).values.clamp_min(1e-6)
-                total = total + on * config.w_contact * contact_consistency(c_hand, target[s])
-            l_h, prior_idx[s] = hand_centric(obj_pts, v, infos[s].prior_ids.to(device), dist,
-                                             idx=None if refresh else prior_idx[s])
-            total = total + on * config.w_hand * l_h
-            l_pen, _ = penetration(v, obj_pts, faces[s], idx, dist, objects, state.obj_names, state.obj_arti)
-            total = total + config.w_pen * l_pen
-            r = ref.hands[s]
-            total = total + config.w_prior * pose_prior(p.pose, r.pose, p.betas, r.betas)
-        loss = total.sum()
-        history.append(float(loss.detach()) / B)
-        loss.backward()
-        for s in SIDES:  # a sample that went non-finite must not poison the others
-            for t in params[s].values():
-                if t.grad is not None:
-                    t.grad.nan_to_num_(0.0, 0.0, 0.0)
-        opt.step()
-
-    hands = {s: HandParams(**{k: t.detach() for k, t in params[s].items()}) for s in SIDES}
+    objective = _Objective(state, ref, infos, objects, contactnet, config, obj_pts, active)
+    hands, history = _adam(objective, config)
     out = GraspState(hands, list(state.obj_names), state.obj_arti, state.obj_rot, state.obj_trans)
-    finite = torch.ones(B, dtype=torch.bool, device=device)
-    for s in SIDES:
-        for t in out.hands[s].as_dict().values():
-            finite &= torch.isfinite(t).all(-1)
     if config.final_push:
-        pushed = snap_hands(out.map(lambda t: torch.nan_to_num(t, 0.0, 0.0, 0.0)), infos, objects, None,
-                            config.snap_steps, config.contact_margin, escape=False)
-        for s in SIDES:  # only the translations move; non-finite samples keep their NaNs (dropped below)
-            out.hands[s].trans = torch.where(finite[:, None], pushed.hands[s].trans, out.hands[s].trans)
+        _final_push(out, infos, objects, config)
     keep, dropped = _plausibility(out, ref, infos, objects, config)
     return POMResult(out, keep, dropped, history, time.perf_counter() - t0)
 

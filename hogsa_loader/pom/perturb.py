@@ -1,23 +1,4 @@
-"""The paper's perturbation of an annotated bimanual frame (HOGSA §3.3, supp. §1.2).
-
-For every sample, in this order:
-
-1. each hand's global orientation is rotated by ``R = R_z(γ) R_y(β) R_x(α)`` with each of
-   α, β, γ of magnitude uniform in [0°, 20°] (random sign), applied on the left of the
-   original orientation (world axes), i.e. about the hand's root joint;
-2. each hand root (wrist joint) is moved 5 % of its distance away from the object centre
-   (the centroid of the object's surface samples, original object pose);
-3. each hand and the object get a translation jitter: uniform direction, length uniform in
-   [0, 6 cm];
-4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects), or kept.
-
-The paper's θ draw never gives a closed object (θ = 0), although most annotated frames
-hold one; a model trained on such grasps learns a biased θ. :data:`KEEP_ARTICULATION`
-(the paper's ranges with the annotated θ kept) is what pose banks and online POM use.
-
-All draws come from one seeded :class:`torch.Generator`; :class:`PerturbRecord` returns
-them so tests can check the ranges.
-"""
+"""The paper's perturbation of an annotated bimanual frame (as described by the HOGSA paper and its supplement)."""
 
 from __future__ import annotations
 
@@ -114,7 +95,25 @@ def perturb(
     generator: torch.Generator,
     config: PerturbConfig = PerturbConfig(),
 ) -> tuple[GraspState, PerturbRecord]:
-    """Perturb B grasps as in the paper (see module docstring).
+    """Perturb B grasps as in the HOGSA paper.
+
+    For every sample, in this order:
+
+    1. each hand's global orientation is rotated by ``R = R_z(γ) R_y(β) R_x(α)`` with each of
+       α, β, γ of magnitude uniform in [0°, 20°] (random sign), applied on the left of the
+       original orientation (world axes), i.e. about the hand's root joint;
+    2. each hand root (wrist joint) is moved 5 % of its distance away from the object centre
+       (the centroid of the object's surface samples, original object pose);
+    3. each hand and the object get a translation jitter: uniform direction, length uniform in
+       [0, 6 cm];
+    4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects), or kept.
+
+    The paper's θ draw never gives a closed object (θ = 0), although most annotated frames
+    hold one; a model trained on such grasps learns a biased θ. :data:`KEEP_ARTICULATION`
+    (the paper's ranges with the annotated θ kept) is what pose banks and online POM use.
+
+    All draws come from one seeded :class:`torch.Generator`; :class:`PerturbRecord` returns
+    them so tests can check the ranges.
 
     Args:
         state: original grasps (world frame).

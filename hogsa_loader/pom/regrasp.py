@@ -1,23 +1,4 @@
-"""Re-grasp initialisation: put each perturbed hand back on the object with its own contacts.
-
-Our addition before the paper's 200 Adam steps (``POMConfig.snap``). The paper's learning
-rates (translation 3e-5, rotation/pose 5e-4 over 200 steps) move a hand by at most ~6 mm
-and ~6°, so a hand the perturbation moved 6 cm off (or into) the object would stay there
-and end up a "hand next to an object", not a grasp. Two closed-form steps fix that while
-keeping the perturbation's new relative pose as far as the contacts allow:
-
-1. :func:`carry_with_part`: a hand whose source contacts lie on the object's top part
-   follows the part when the perturbation changes the articulation angle θ (rigid
-   rotation about the hinge: canonical ``A = R(θ_new) R(θ_src)^T``);
-2. :func:`regrasp`: a batched 6-DoF Levenberg–Marquardt fit of each hand's rigid motion
-   (about its contact centroid) so that the hand vertices that touched the object in the
-   source frame (SDF < ``contact_distance``) return to their source distances from the
-   surface, no vertex penetrates, and the rotation the perturbation drew is kept unless the
-   contacts need otherwise (a quadratic rotation prior ``rot_weight``).
-
-All quantities are in the object's canonical frame; the result is converted back to the
-hands' MANO global orientation and translation by :func:`rigid_move_hand`.
-"""
+"""Re-grasp initialisation: put each perturbed hand back on the object with its own contacts."""
 
 from __future__ import annotations
 
@@ -125,10 +106,106 @@ def carry_with_part(state: GraspState, source_arti: Tensor, contacts: SourceCont
     return GraspState(hands, list(state.obj_names), state.obj_arti, state.obj_rot, state.obj_trans)
 
 
+@dataclass
+class _RigidFit:
+    """Cost of moving one hand's canonical vertices ``base`` (B, V, 3) rigidly, for :func:`regrasp`."""
+
+    base: Tensor
+    C: Tensor  # (B, V) bool: source contacts
+    target: Tensor  # (B, V) distances the contacts aim for
+    objects: ObjectSet
+    state: GraspState
+    margin: float
+    pen_weight: float
+    rot_weight: float
+
+    def __post_init__(self) -> None:
+        self.wC = self.C.to(self.base.dtype)
+        self.nC = self.wC.sum(1).clamp_min(1.0)
+
+    def evaluate(self, M: Tensor, t: Tensor, grad: bool) -> tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
+        """cost (B,), residuals r and weights w (B, V), SDF gradient (B, V, 3) or None, vertices."""
+        state = self.state
+        v = (self.base @ M.transpose(-1, -2) + t[:, None]).detach()
+        g = None
+        if grad:
+            v.requires_grad_(True)
+            d = self.objects.sdf(v, state.obj_names, state.obj_arti)
+            (g,) = torch.autograd.grad(d.sum(), v)
+            d, v = d.detach(), v.detach()
+        else:
+            with torch.no_grad():
+                d = self.objects.sdf(v, state.obj_names, state.obj_arti)
+        r = torch.where(self.C, d - self.target, d - self.margin)
+        w = (self.wC + self.pen_weight * (d < self.margin).to(self.base.dtype)) / self.nC[:, None]
+        cost = (w * r * r).sum(1) + self.rot_weight * matrix_to_axis_angle(M).pow(2).sum(-1)
+        return cost, r, w, g, v
+
+    def step(self, Mc: Tensor, tc: Tensor, pivot0: Tensor, lam: Tensor, max_step: float,
+             max_rot_step: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+        """The clamped LM step from ``(Mc, tc)``: the proposed rotation (B, 3, 3) and translation (B, 3)."""
+        dt = self.base.dtype
+        _, r, w, g, v = self.evaluate(Mc, tc, True)
+        pivot = torch.einsum("bij,bj->bi", Mc, pivot0) + tc
+        J = torch.cat([g, torch.cross(v - pivot[:, None], g, dim=-1)], -1)  # (B, V, 6)
+        H = torch.einsum("bv,bvi,bvj->bij", w, J, J)
+        rhs = -torch.einsum("bv,bvi,bv->bi", w, J, r)
+        H[:, 3:, 3:] += self.rot_weight * torch.eye(3, dtype=dt, device=H.device)
+        rhs[:, 3:] -= self.rot_weight * matrix_to_axis_angle(Mc)
+        diag = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-9)
+        Hd = H + torch.diag_embed(lam[:, None] * diag) + 1e-12 * torch.eye(6, dtype=dt, device=H.device)
+        x = torch.linalg.solve(Hd, rhs[..., None])[..., 0]
+        dx, dw = x[:, :3], x[:, 3:]
+        dx = dx * (max_step / dx.norm(dim=-1, keepdim=True).clamp_min(max_step))
+        dw = dw * (max_rot_step / dw.norm(dim=-1, keepdim=True).clamp_min(max_rot_step))
+        Rs = axis_angle_to_matrix(dw)
+        return Rs @ Mc, torch.einsum("bij,bj->bi", Rs, tc - pivot) + pivot + dx
+
+
+def _fit_rigid(fit: _RigidFit, act: Tensor, steps: int, max_step: float,
+               max_rot_step: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """``steps`` LM iterations from the identity; canonical rotation (B, 3, 3) and translation (B, 3).
+    A step is kept only for active samples whose cost went down (else the damping grows)."""
+    base, dt = fit.base, fit.base.dtype
+    B = base.shape[0]
+    pivot0 = (base * fit.wC[..., None]).sum(1) / fit.nC[:, None]
+    Mc = torch.eye(3, dtype=dt, device=base.device).expand(B, 3, 3).clone()
+    tc = torch.zeros(B, 3, dtype=dt, device=base.device)
+    lam = torch.full((B,), 1e-3, dtype=dt, device=base.device)
+    cost = fit.evaluate(Mc, tc, False)[0]
+    for _ in range(steps):
+        M_new, t_new = fit.step(Mc, tc, pivot0, lam, max_step, max_rot_step)
+        cost_new = fit.evaluate(M_new, t_new, False)[0]
+        ok = (cost_new < cost) & act
+        Mc = torch.where(ok[:, None, None], M_new, Mc)
+        tc = torch.where(ok[:, None], t_new, tc)
+        cost = torch.where(ok, cost_new, cost)
+        lam = torch.where(ok, lam / 3.0, lam * 10.0).clamp(1e-6, 1e6)
+    return Mc, tc
+
+
 def regrasp(state: GraspState, contacts: SourceContacts, infos: Mapping[str, HandInfo], objects: ObjectSet,
             steps: int = 20, margin: float = 0.001, pen_weight: float = 10.0, rot_weight: float = 2e-4,
             max_step: float = 0.02, max_rot_step: float = 0.2) -> GraspState:
     """Batched Levenberg–Marquardt fit of each hand's rigid motion to its source contacts.
+
+    Our addition before the paper's 200 Adam steps (``POMConfig.snap``). The paper's learning
+    rates (translation 3e-5, rotation/pose 5e-4 over 200 steps) move a hand by at most ~6 mm
+    and ~6°, so a hand the perturbation moved 6 cm off (or into) the object would stay there
+    and end up a "hand next to an object", not a grasp. Two closed-form steps fix that while
+    keeping the perturbation's new relative pose as far as the contacts allow:
+
+    1. :func:`carry_with_part`: a hand whose source contacts lie on the object's top part
+       follows the part when the perturbation changes the articulation angle θ (rigid
+       rotation about the hinge: canonical ``A = R(θ_new) R(θ_src)^T``);
+    2. :func:`regrasp`: a batched 6-DoF Levenberg–Marquardt fit of each hand's rigid motion
+       (about its contact centroid) so that the hand vertices that touched the object in the
+       source frame (SDF < ``contact_distance``) return to their source distances from the
+       surface, no vertex penetrates, and the rotation the perturbation drew is kept unless the
+       contacts need otherwise (a quadratic rotation prior ``rot_weight``).
+
+    All quantities are in the object's canonical frame; the result is converted back to the
+    hands' MANO global orientation and translation by :func:`rigid_move_hand`.
 
     Per hand, with canonical vertices ``v`` (moved by the current ``(Mc, tc)``), SDF ``d(v)``
     and source distances ``d_src``, the cost is (C = source contact set, |C| its size)
@@ -152,8 +229,6 @@ def regrasp(state: GraspState, contacts: SourceContacts, infos: Mapping[str, Han
         a new state with moved hands.
     """
     hands = dict(state.hands)
-    B = state.batch
-    dt = state.obj_trans.dtype
     for s in SIDES:
         p = state.hands[s]
         C = contacts.mask[s].to(p.trans.device)
@@ -163,54 +238,8 @@ def regrasp(state: GraspState, contacts: SourceContacts, infos: Mapping[str, Han
         with torch.no_grad():
             base = to_canonical(hand_forward(infos[s], p).vertices, state.obj_rot, state.obj_trans)
         target = contacts.sdf[s].to(base).clamp_min(margin)
-        wC = C.to(dt)
-        nC = wC.sum(1).clamp_min(1.0)
-        pivot0 = (base * wC[..., None]).sum(1) / nC[:, None]
-        Mc = torch.eye(3, dtype=dt, device=base.device).expand(B, 3, 3).clone()
-        tc = torch.zeros(B, 3, dtype=dt, device=base.device)
-        lam = torch.full((B,), 1e-3, dtype=dt, device=base.device)
-
-        def evaluate(M: Tensor, t: Tensor, grad: bool) -> tuple[Tensor, Tensor, Tensor, Optional[Tensor], Tensor]:
-            """cost (B,), residuals r and weights w (B, V), SDF gradient (B, V, 3) or None, vertices."""
-            v = (base @ M.transpose(-1, -2) + t[:, None]).detach()
-            g = None
-            if grad:
-                v.requires_grad_(True)
-                d = objects.sdf(v, state.obj_names, state.obj_arti)
-                (g,) = torch.autograd.grad(d.sum(), v)
-                d, v = d.detach(), v.detach()
-            else:
-                with torch.no_grad():
-                    d = objects.sdf(v, state.obj_names, state.obj_arti)
-            r = torch.where(C, d - target, d - margin)
-            w = (wC + pen_weight * (d < margin).to(dt)) / nC[:, None]
-            cost = (w * r * r).sum(1) + rot_weight * matrix_to_axis_angle(M).pow(2).sum(-1)
-            return cost, r, w, g, v
-
-        cost = evaluate(Mc, tc, False)[0]
-        for _ in range(steps):
-            _, r, w, g, v = evaluate(Mc, tc, True)
-            pivot = torch.einsum("bij,bj->bi", Mc, pivot0) + tc
-            J = torch.cat([g, torch.cross(v - pivot[:, None], g, dim=-1)], -1)  # (B, V, 6)
-            H = torch.einsum("bv,bvi,bvj->bij", w, J, J)
-            rhs = -torch.einsum("bv,bvi,bv->bi", w, J, r)
-            H[:, 3:, 3:] += rot_weight * torch.eye(3, dtype=dt, device=H.device)
-            rhs[:, 3:] -= rot_weight * matrix_to_axis_angle(Mc)
-            diag = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-9)
-            Hd = H + torch.diag_embed(lam[:, None] * diag) + 1e-12 * torch.eye(6, dtype=dt, device=H.device)
-            x = torch.linalg.solve(Hd, rhs[..., None])[..., 0]
-            dx, dw = x[:, :3], x[:, 3:]
-            dx = dx * (max_step / dx.norm(dim=-1, keepdim=True).clamp_min(max_step))
-            dw = dw * (max_rot_step / dw.norm(dim=-1, keepdim=True).clamp_min(max_rot_step))
-            Rs = axis_angle_to_matrix(dw)
-            M_new = Rs @ Mc
-            t_new = torch.einsum("bij,bj->bi", Rs, tc - pivot) + pivot + dx
-            cost_new = evaluate(M_new, t_new, False)[0]
-            ok = (cost_new < cost) & act
-            Mc = torch.where(ok[:, None, None], M_new, Mc)
-            tc = torch.where(ok[:, None], t_new, tc)
-            cost = torch.where(ok, cost_new, cost)
-            lam = torch.where(ok, lam / 3.0, lam * 10.0).clamp(1e-6, 1e6)
+        fit = _RigidFit(base, C, target, objects, state, margin, pen_weight, rot_weight)
+        Mc, tc = _fit_rigid(fit, act, steps, max_step, max_rot_step)
         M, c = _canonical_to_world(Mc, tc, state.obj_rot, state.obj_trans)
         moved = rigid_move_hand(infos[s], p, M, c)
         a = act[:, None]

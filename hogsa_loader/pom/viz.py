@@ -11,12 +11,15 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
+import cv2
 import numpy as np
 import torch
 
+from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.state import GraspState, hand_forward
+from hogsa_loader.render.mesh_raster import Light, MeshPart, camera_look_at, intrinsics_from_fov, render_meshes
 
 __all__ = ["tsne", "render_grasps"]
 
@@ -91,11 +94,6 @@ def render_grasps(states: Sequence[GraspState], labels: Sequence[str], infos: Ma
     Returns:
         (rows · size, cols · size, 3) float image in [0, 1].
     """
-    import cv2
-
-    from hogsa_loader.objects.articulated import articulate
-    from hogsa_loader.render.mesh_raster import (Light, MeshPart, camera_look_at, intrinsics_from_fov,
-                                                 render_meshes)
 
     cols = min(max_cols, states[0].batch)
     colors = {"right": (0.86, 0.62, 0.50), "left": (0.55, 0.66, 0.86)}

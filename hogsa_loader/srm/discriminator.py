@@ -1,15 +1,4 @@
-"""Conditional wavelet discriminator (StyleGAN2 / SWAGAN style, algorithms.md §C.3).
-
-Input: ``concat(image, condition)`` — the real or refined image (B, 3, H, W) and the coarse
-render it is conditioned on (B, C_cond, H, W; the SRM uses premultiplied RGB + alpha,
-upsampled to the output size when the SRM upsamples), all in [−1, 1]. The concatenation
-is Haar-transformed (4·(3 + C_cond) channels at H/2), projected by a FromRGB, and
-ConvBlocks halve the resolution down to 4×4, each level also receiving a FromRGB skip of
-the blur-downsampled wavelet image. Then minibatch standard deviation (group ≤ 4, one
-feature), ConvLayer(C+1 → C), EqualLinear(16·C → C, leaky ReLU), EqualLinear(C → 1).
-
-The number of blocks follows ``size`` (the training crop size); H and W must equal it.
-"""
+"""Conditional wavelet discriminator (StyleGAN2 / SWAGAN style)."""
 
 from __future__ import annotations
 
@@ -26,6 +15,16 @@ __all__ = ["ConditionalDiscriminator"]
 
 class ConditionalDiscriminator(nn.Module):
     """D(image, condition) → (B,) logits.
+
+    Input: ``concat(image, condition)`` — the real or refined image (B, 3, H, W) and the coarse
+    render it is conditioned on (B, C_cond, H, W; the SRM uses premultiplied RGB + alpha,
+    upsampled to the output size when the SRM upsamples), all in [−1, 1]. The concatenation
+    is Haar-transformed (4·(3 + C_cond) channels at H/2), projected by a FromRGB, and
+    ConvBlocks halve the resolution down to 4×4, each level also receiving a FromRGB skip of
+    the blur-downsampled wavelet image. Then minibatch standard deviation (group ≤ 4, one
+    feature), ConvLayer(C+1 → C), EqualLinear(16·C → C, leaky ReLU), EqualLinear(C → 1).
+
+    The number of blocks follows ``size`` (the training crop size); H and W must equal it.
 
     Args:
         size: input H = W (power of two, ≥ 16).

@@ -1,22 +1,4 @@
-"""The SRM: a StyleUNet that refines premultiplied splat renders, keeping alpha exact.
-
-Pipeline of :meth:`SRM.forward` (channel-first, differentiable, used in training):
-
-1. un-premultiply the coarse render: ``c = rgb / α`` where ``α > 1/255`` (else 0), clipped
-   to [0, 1];
-2. StyleUNet on ``[2c − 1, 2α − 1]`` (4 channels) predicts a straight colour ``ĉ`` in
-   [−1, 1] (residually, starting from ``c``) at ``scale``× the input size;
-3. premultiply by the rendered alpha (bilinearly upsampled when ``scale = 2``):
-   ``out = α · (ĉ + 1)/2``.
-
-So the refined image is exactly 0 wherever the render's alpha is 0 and compositing with
-the *rendered* alpha (``out + (1 − α)·background``) stays exact. Inputs whose size is not
-a multiple of :attr:`StyleUNet.multiple` are zero-padded (bottom/right) and cropped back.
-
-:meth:`SRM.refine` is the inference entry point on the loader's layout (B, H, W, 3):
-batched, no autograd, deterministic (no noise, the stored style code), fp16/bf16 autocast
-on CUDA, output clipped to [0, 1].
-"""
+"""The SRM: a StyleUNet that refines premultiplied splat renders, keeping alpha exact."""
 
 from __future__ import annotations
 
@@ -56,6 +38,23 @@ def dihedral_inverse(x: Tensor, code: int) -> Tensor:
 
 class SRM(nn.Module):
     """Splat-render refinement module.
+
+    Pipeline of :meth:`SRM.forward` (channel-first, differentiable, used in training):
+
+    1. un-premultiply the coarse render: ``c = rgb / α`` where ``α > 1/255`` (else 0), clipped
+       to [0, 1];
+    2. StyleUNet on ``[2c − 1, 2α − 1]`` (4 channels) predicts a straight colour ``ĉ`` in
+       [−1, 1] (residually, starting from ``c``) at ``scale``× the input size;
+    3. premultiply by the rendered alpha (bilinearly upsampled when ``scale = 2``):
+       ``out = α · (ĉ + 1)/2``.
+
+    So the refined image is exactly 0 wherever the render's alpha is 0 and compositing with
+    the *rendered* alpha (``out + (1 − α)·background``) stays exact. Inputs whose size is not
+    a multiple of :attr:`StyleUNet.multiple` are zero-padded (bottom/right) and cropped back.
+
+    :meth:`SRM.refine` is the inference entry point on the loader's layout (B, H, W, 3):
+    batched, no autograd, deterministic (no noise, the stored style code), fp16/bf16 autocast
+    on CUDA, output clipped to [0, 1].
 
     Args:
         cfg: StyleUNet settings (``in_channels`` must be 4: straight RGB + alpha).

@@ -1,25 +1,6 @@
-"""StyleGAN2 building blocks in pure PyTorch (CPU and CUDA), with Haar wavelets (SWAGAN).
-
-Written from the description in ``shared/reference/algorithms.md`` §C.1 (StyleUNet of
-StyleAvatar); no custom CUDA ops: the [1, 3, 3, 1] blur is a depthwise convolution.
-
-* :class:`EqualConv2d` / :class:`EqualLinear`: weights ~ N(0, 1) scaled by 1/√fan_in at run time.
-* :class:`ModulatedConv2d`: per-sample style ``s`` scales the input channels, then
-  demodulation ``w'' = w·s / √(Σ (w·s)² + 1e-8)``. Implemented as "scale activations,
-  shared convolution, scale outputs" (mathematically identical to the grouped per-sample
-  weight form, faster on CPU, and counted correctly by ``torch.utils.flop_counter``).
-  Upsampling: stride-2 transposed convolution + blur; downsampling: blur + stride-2 conv.
-* :class:`NoiseInjection`: ``x + w·n``, learnable scalar ``w`` initialised to 0.
-* :class:`StyledConv`: modulated conv + noise + bias + leaky ReLU(0.2)·√2.
-* :class:`HaarTransform` / :class:`InverseHaarTransform`: orthonormal 2-D Haar (filters
-  1/√2 per axis): (B, C, H, W) ↔ (B, 4C, H/2, W/2) ordered ``[LL, LH, HL, HH]`` × C.
-* :class:`ToRGB`: 1×1 modulated conv without demodulation (+ bias) to 12 wavelet channels
-  (or 3 plain RGB channels), adding the previous skip brought to this resolution
-  (IWT → blur-upsample ×2 → DWT).
-* :class:`FromRGB`: optional (IWT → blur-downsample ×2 → DWT), then a 1×1 conv to features.
-* :class:`MappingNetwork`: PixelNorm + n × Linear(style→style) with LeakyReLU.
-
-Shapes use B batch, C channels, H×W spatial size; every module is fully convolutional.
+"""StyleGAN2 building blocks in pure PyTorch (CPU and CUDA), with Haar wavelets (SWAGAN): the
+blocks of StyleAvatar's StyleUNet. No custom CUDA ops: the [1, 3, 3, 1] blur is a depthwise
+convolution. Shapes use B batch, C channels, H×W spatial size; every module is fully convolutional.
 """
 
 from __future__ import annotations
@@ -143,6 +124,12 @@ class FusedLeakyReLU(nn.Module):
 
 class ModulatedConv2d(nn.Module):
     """StyleGAN2 modulated convolution.
+
+    A per-sample style ``s`` scales the input channels, then demodulation
+    ``w'' = w·s / √(Σ (w·s)² + 1e-8)``. Implemented as "scale activations, shared convolution,
+    scale outputs" (mathematically identical to the grouped per-sample weight form, faster on
+    CPU, and counted correctly by ``torch.utils.flop_counter``). Upsampling: stride-2 transposed
+    convolution + blur; downsampling: blur + stride-2 conv.
 
     Args:
         in_ch, out_ch, kernel: channels and (odd) kernel size.
@@ -279,7 +266,8 @@ class InverseHaarTransform(nn.Module):
 
 
 class ToRGB(nn.Module):
-    """1×1 modulated conv (no demodulation) + bias to the image channels, plus the skip.
+    """1×1 modulated conv (no demodulation) + bias to the image channels (12 wavelet or 3 RGB),
+    plus the previous skip brought to this resolution (IWT → blur-upsample ×2 → DWT).
 
     Args:
         in_ch: feature channels; style_dim: style size.

@@ -1,28 +1,6 @@
-"""StyleUNet generator (StyleAvatar, algorithms.md §C.2), sized for per-sample use in a loader.
+"""StyleUNet generator (StyleAvatar's), sized for per-sample use in a loader.
 
 Encoder–decoder in the Haar-wavelet domain (the network runs at half the input resolution):
-
-* **Encoder.** The input image (B, C_in, H, W) → DWT (4·C_in, H/2, W/2) → FromRGB → level-0
-  features (``channels[0]``). Each of the ``len(channels) − 1`` levels: ConvBlock (conv +
-  blur/stride-2 conv) to ``channels[i]`` plus a FromRGB skip of the blur-downsampled
-  wavelet image. Every level's feature is kept.
-* **Decoder.** A 3×3 "comb" conv on the deepest feature, then per level (deepest first):
-  U-Net skip (concatenate the encoder feature of that resolution, 3×3 conv 2C → C; not at
-  the deepest level, where the comb conv plays that role), StyledConv ×2 up, StyledConv,
-  ToRGB (wavelet skip accumulation). A last stage at the top wavelet level fuses the
-  level-0 encoder feature and adds a StyledConv + ToRGB without upsampling; with
-  ``scale=2`` one more up stage (StyledConv ×2 up, StyledConv, ToRGB) follows.
-* **Output.** IWT of the 12-channel skip → RGB at ``scale``·H. With ``residual=True`` (this
-  project's default) the net predicts a correction added to the input's first three
-  channels (bilinearly upsampled when ``scale=2``); the ToRGB layers start at a tenth of
-  the usual weight so the untrained net is close to the identity. Values are in the
-  caller's range (the SRM wrapper uses [−1, 1]), no tanh.
-* **Style.** A mapping network turns z ~ N(0, I_style) into the modulation style;
-  :class:`StyleUNet` takes z (or None: the stored inference code ``z_infer``).
-
-Default :class:`StyleUNetConfig`: ``channels=(32, 64, 128, 128, 128)``, style 64, wavelet skips.
-At 256² in → 256² out it costs 5.2 GFLOPs (2.6 GMACs; :func:`count_gflops`).
-Input H and W must be multiples of ``2 ** len(channels)``.
 """
 
 from __future__ import annotations
@@ -33,6 +11,7 @@ from typing import Any, Optional, Sequence
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.utils.flop_counter import FlopCounterMode
 
 from hogsa_loader.srm.stylegan import (
     ConvBlock,
@@ -88,6 +67,28 @@ class StyleUNetConfig:
 
 class StyleUNet(nn.Module):
     """StyleUNet: (B, C_in, H, W) → (B, 3, scale·H, scale·W).
+
+    * **Encoder.** The input image (B, C_in, H, W) → DWT (4·C_in, H/2, W/2) → FromRGB → level-0
+      features (``channels[0]``). Each of the ``len(channels) − 1`` levels: ConvBlock (conv +
+      blur/stride-2 conv) to ``channels[i]`` plus a FromRGB skip of the blur-downsampled
+      wavelet image. Every level's feature is kept.
+    * **Decoder.** A 3×3 "comb" conv on the deepest feature, then per level (deepest first):
+      U-Net skip (concatenate the encoder feature of that resolution, 3×3 conv 2C → C; not at
+      the deepest level, where the comb conv plays that role), StyledConv ×2 up, StyledConv,
+      ToRGB (wavelet skip accumulation). A last stage at the top wavelet level fuses the
+      level-0 encoder feature and adds a StyledConv + ToRGB without upsampling; with
+      ``scale=2`` one more up stage (StyledConv ×2 up, StyledConv, ToRGB) follows.
+    * **Output.** IWT of the 12-channel skip → RGB at ``scale``·H. With ``residual=True`` (this
+      project's default) the net predicts a correction added to the input's first three
+      channels (bilinearly upsampled when ``scale=2``); the ToRGB layers start at a tenth of
+      the usual weight so the untrained net is close to the identity. Values are in the
+      caller's range (the SRM wrapper uses [−1, 1]), no tanh.
+    * **Style.** A mapping network turns z ~ N(0, I_style) into the modulation style;
+      :class:`StyleUNet` takes z (or None: the stored inference code ``z_infer``).
+
+    Default :class:`StyleUNetConfig`: ``channels=(32, 64, 128, 128, 128)``, style 64, wavelet skips.
+    At 256² in → 256² out it costs 5.2 GFLOPs (2.6 GMACs; :func:`count_gflops`).
+    Input H and W must be multiples of ``2 ** len(channels)``.
 
     Args:
         cfg: :class:`StyleUNetConfig`.
@@ -204,8 +205,6 @@ class StyleUNet(nn.Module):
 def count_gflops(model: nn.Module, height: int = 256, width: Optional[int] = None, in_channels: int = 4) -> float:
     """Forward GFLOPs (1 multiply-add = 2 FLOPs) of ``model`` on one (1, C, H, W) input,
     counted by ``torch.utils.flop_counter.FlopCounterMode`` (convolutions, matmuls)."""
-    from torch.utils.flop_counter import FlopCounterMode
-
     width = width or height
     p = next(model.parameters())
     x = torch.zeros(1, in_channels, height, width, device=p.device, dtype=p.dtype)

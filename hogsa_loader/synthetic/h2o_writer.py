@@ -63,6 +63,81 @@ def _write_line(path: Path, values: np.ndarray, precision: Optional[int], check:
     path.write_text(line + "\n", encoding="utf-8")
 
 
+@dataclass
+class _Frames:
+    """The frames of one sequence and how its text files are written."""
+
+    frame_ids: list[int]
+    precision: Optional[int]
+    upper_case: bool
+
+    def folder(self, cdir: Path, modality: str) -> Path:
+        """The (created) folder of ``modality`` in camera folder ``cdir``."""
+        name = MODALITY_FOLDERS[modality][-1] if self.upper_case else modality
+        d = cdir / name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def rows(self, arr: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
+        """``arr`` as float64 (F, *shape); ValueError for another shape."""
+        F = len(self.frame_ids)
+        a = np.asarray(arr, dtype=np.float64)
+        if a.shape != (F, *shape):
+            raise ValueError(f"{what} must have shape {(F, *shape)}, got {a.shape}")
+        return a
+
+    def write(self, d: Path, rows: Sequence[np.ndarray], check: Callable[[str, Path], object]) -> None:
+        """One ``NNNNNN.txt`` line file per frame in ``d``."""
+        for f, r in zip(self.frame_ids, rows):
+            _write_line(d / f"{f:06d}.txt", r, self.precision, check)
+
+
+def _write_labels(fr: _Frames, cdir: Path, rec: H2OCameraRecord) -> None:
+    """The text modalities of one camera: ``cam_pose``, MANO, object pose, and the optional ones."""
+    F = len(fr.frame_ids)
+    pose = np.asarray(rec.cam_pose, dtype=np.float64)
+    pose = np.broadcast_to(pose, (F, 4, 4)) if pose.shape == (4, 4) else fr.rows(pose, (4, 4), "cam_pose")
+    fr.write(fr.folder(cdir, "cam_pose"), [m.reshape(16) for m in pose], parse_h2o_cam_pose)
+    if rec.mano is not None:
+        rows = fr.rows(rec.mano.to_array(), (124,), "mano")
+        fr.write(fr.folder(cdir, "hand_pose_mano"), rows, parse_h2o_hand_pose_mano)
+    if rec.obj_class is not None or rec.obj_transform is not None:
+        if rec.obj_class is None or rec.obj_transform is None:
+            raise ValueError("obj_class and obj_transform go together")
+        cls = fr.rows(rec.obj_class, (), "obj_class")
+        mats = fr.rows(rec.obj_transform, (4, 4), "obj_transform")
+        d = fr.folder(cdir, "obj_pose_rt")
+        fr.write(d, [np.concatenate([[c], m.reshape(16)]) for c, m in zip(cls, mats)], parse_h2o_obj_pose_rt_strict)
+    simple = (
+        ("hand_pose", rec.hand_pose, (128,), parse_h2o_hand_pose),
+        ("obj_pose", rec.obj_pose, (64,), parse_h2o_obj_pose),
+        ("action_label", rec.action_label, (), parse_h2o_action_label),
+        ("verb_label", rec.verb_label, (), parse_h2o_verb_label),
+    )
+    for modality, arr, shape, parser in simple:
+        if arr is None:
+            continue
+        rows = fr.rows(arr, shape, modality)
+        fr.write(fr.folder(cdir, modality), [np.atleast_1d(r) for r in rows], parser)
+
+
+def _write_rgb(fr: _Frames, cdir: Path, rec: H2OCameraRecord) -> None:
+    """``rgb/NNNNNN.png`` of one camera: its images, or flat grey placeholders of the intrinsics' size."""
+    F = len(fr.frame_ids)
+    if rec.rgb is not None and len(rec.rgb) != F:
+        raise ValueError(f"rgb must hold {F} images, got {len(rec.rgb)}")
+    d = fr.folder(cdir, "rgb")
+    for i, f in enumerate(fr.frame_ids):
+        if rec.rgb is not None:
+            img = np.asarray(rec.rgb[i])
+            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+                raise ValueError(f"rgb images must be (H, W, 3) uint8, got {img.shape} {img.dtype}")
+        else:
+            img = np.full((rec.intrinsics.height, rec.intrinsics.width, 3), 128, dtype=np.uint8)
+        if not cv2.imwrite(str(d / f"{f:06d}.png"), np.ascontiguousarray(img[:, :, ::-1])):
+            raise AssetError(d / f"{f:06d}.png", "cannot write image")
+
+
 def write_h2o_sequence(
     root: PathLike,
     subject: str,
@@ -98,72 +173,12 @@ def write_h2o_sequence(
     if F == 0 or len(set(frame_ids)) != F or min(frame_ids) < 0:
         raise ValueError("frame_ids must be distinct non-negative integers (at least one)")
     seq_dir = Path(root) / subject / scene / str(seq)
-
-    def folder(cdir: Path, modality: str) -> Path:
-        name = MODALITY_FOLDERS[modality][-1] if upper_case else modality
-        d = cdir / name
-        d.mkdir(parents=True, exist_ok=True)
-        return d
-
-    def frames_of(arr: np.ndarray, shape: tuple[int, ...], what: str) -> np.ndarray:
-        a = np.asarray(arr, dtype=np.float64)
-        if a.shape != (F, *shape):
-            raise ValueError(f"{what} must have shape {(F, *shape)}, got {a.shape}")
-        return a
-
+    fr = _Frames(frame_ids, precision, upper_case)
     for cam, rec in cameras.items():
         cdir = seq_dir / f"cam{int(cam)}"
         cdir.mkdir(parents=True, exist_ok=True)
-        intr_path = cdir / H2O_CAM_INTRINSICS_FILE
-        _write_line(intr_path, rec.intrinsics.to_array(), precision, parse_h2o_cam_intrinsics)
-
-        pose = np.asarray(rec.cam_pose, dtype=np.float64)
-        pose = np.broadcast_to(pose, (F, 4, 4)) if pose.shape == (4, 4) else frames_of(pose, (4, 4), "cam_pose")
-        d = folder(cdir, "cam_pose")
-        for f, m in zip(frame_ids, pose):
-            _write_line(d / f"{f:06d}.txt", m.reshape(16), precision, parse_h2o_cam_pose)
-
-        if rec.mano is not None:
-            rows = frames_of(rec.mano.to_array(), (124,), "mano")
-            d = folder(cdir, "hand_pose_mano")
-            for f, r in zip(frame_ids, rows):
-                _write_line(d / f"{f:06d}.txt", r, precision, parse_h2o_hand_pose_mano)
-        if rec.obj_class is not None or rec.obj_transform is not None:
-            if rec.obj_class is None or rec.obj_transform is None:
-                raise ValueError("obj_class and obj_transform go together")
-            cls = frames_of(rec.obj_class, (), "obj_class")
-            mats = frames_of(rec.obj_transform, (4, 4), "obj_transform")
-            d = folder(cdir, "obj_pose_rt")
-            for f, c, m in zip(frame_ids, cls, mats):
-                _write_line(
-                    d / f"{f:06d}.txt", np.concatenate([[c], m.reshape(16)]), precision,
-                    parse_h2o_obj_pose_rt_strict,
-                )
-        simple = (
-            ("hand_pose", rec.hand_pose, (128,), parse_h2o_hand_pose),
-            ("obj_pose", rec.obj_pose, (64,), parse_h2o_obj_pose),
-            ("action_label", rec.action_label, (), parse_h2o_action_label),
-            ("verb_label", rec.verb_label, (), parse_h2o_verb_label),
-        )
-        for modality, arr, shape, parser in simple:
-            if arr is None:
-                continue
-            rows = frames_of(arr, shape, modality)
-            d = folder(cdir, modality)
-            for f, r in zip(frame_ids, rows):
-                _write_line(d / f"{f:06d}.txt", np.atleast_1d(r), precision, parser)
-
+        _write_line(cdir / H2O_CAM_INTRINSICS_FILE, rec.intrinsics.to_array(), precision, parse_h2o_cam_intrinsics)
+        _write_labels(fr, cdir, rec)
         if rec.rgb is not None or placeholder_rgb:
-            if rec.rgb is not None and len(rec.rgb) != F:
-                raise ValueError(f"rgb must hold {F} images, got {len(rec.rgb)}")
-            d = folder(cdir, "rgb")
-            for i, f in enumerate(frame_ids):
-                if rec.rgb is not None:
-                    img = np.asarray(rec.rgb[i])
-                    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-                        raise ValueError(f"rgb images must be (H, W, 3) uint8, got {img.shape} {img.dtype}")
-                else:
-                    img = np.full((rec.intrinsics.height, rec.intrinsics.width, 3), 128, dtype=np.uint8)
-                if not cv2.imwrite(str(d / f"{f:06d}.png"), np.ascontiguousarray(img[:, :, ::-1])):
-                    raise AssetError(d / f"{f:06d}.png", "cannot write image")
+            _write_rgb(fr, cdir, rec)
     return seq_dir

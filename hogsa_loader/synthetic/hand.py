@@ -5,32 +5,17 @@ mirrored left hand with everything a MANO file holds (same keys, 16-joint kinema
 identical to MANO's, sparse ``J_regressor``, 10 shape directions, 135 pose correctives,
 ``hands_components``/``hands_mean``/``hands_coeffs``) plus project metadata (fingertips,
 prior-contact vertices, per-vertex skin albedo).
-
-How it is made (right hand, metres; fingers along -x, back of the hand +y, thumb on +z as in
-the MANO right template):
-1. Skeleton: wrist, four fingers with MCP/PIP/DIP + tip, thumb CMC/MCP/IP + tip.
-2. Surface: the zero level set of a signed-distance field (palm slab, knuckle bar, thenar and
-   hypothenar pads, forearm stub, tapered finger tubes with flattened cross-sections) joined
-   with smooth minimum, meshed by marching cubes (open at the wrist cut like MANO), Taubin
-   smoothed.
-3. Skinning: each vertex is owned by the finger or palm primitive nearest to it; along its
-   finger it blends between consecutive joints with a smoothstep around each joint, then the
-   weight field is diffused over the mesh.
-4. Joint regressor: per joint, non-negative convex weights on nearby vertices that reproduce
-   the skeleton joint (regularised NNLS), stored sparse.
-5. Blend shapes: 10 smooth displacement fields (size, finger length, palm width, thickness,
-   ...); pose correctives: knuckle bulges driven by (1 - cos) of flexion.
-6. Pose space: 1554 sampled articulations (curl/spread/opposition families) -> PCA.
-7. Vertex order: the five fingertip vertices are renumbered to MANO's fingertip ids
-   (744, 320, 443, 554, 671), which smplx and ARCTIC append as joints 16..20 by id.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
+import trimesh
+from skimage.measure import marching_cubes
 
 from hogsa_loader.hands.anatomy import (
     FINGER_JOINTS,
@@ -221,9 +206,6 @@ def _field(p: np.ndarray, sk: _Skeleton) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def _mesh_surface(sk: _Skeleton, voxel: float, wrist_cut: float) -> tuple[np.ndarray, np.ndarray]:
-    from skimage.measure import marching_cubes
-    import trimesh
-
     pts = np.concatenate([c for c in sk.chains.values()] + [sk.joints])
     lo = pts.min(0) - 0.03
     hi = pts.max(0) + 0.03
@@ -461,7 +443,26 @@ def _tips(v: np.ndarray, owner: np.ndarray, sk: _Skeleton) -> np.ndarray:
 
 
 def build_synthetic_hand(spec: HandSpec = HandSpec(), seed: int = 0) -> ManoModelData:
-    """Build the synthetic right hand in the MANO schema (deterministic for a spec and seed)."""
+    """Build the synthetic right hand in the MANO schema (deterministic for a spec and seed).
+
+    How it is made (right hand, metres; fingers along -x, back of the hand +y, thumb on +z as in
+    the MANO right template):
+    1. Skeleton: wrist, four fingers with MCP/PIP/DIP + tip, thumb CMC/MCP/IP + tip.
+    2. Surface: the zero level set of a signed-distance field (palm slab, knuckle bar, thenar and
+       hypothenar pads, forearm stub, tapered finger tubes with flattened cross-sections) joined
+       with smooth minimum, meshed by marching cubes (open at the wrist cut like MANO), Taubin
+       smoothed.
+    3. Skinning: each vertex is owned by the finger or palm primitive nearest to it; along its
+       finger it blends between consecutive joints with a smoothstep around each joint, then the
+       weight field is diffused over the mesh.
+    4. Joint regressor: per joint, non-negative convex weights on nearby vertices that reproduce
+       the skeleton joint (regularised NNLS), stored sparse.
+    5. Blend shapes: 10 smooth displacement fields (size, finger length, palm width, thickness,
+       ...); pose correctives: knuckle bulges driven by (1 - cos) of flexion.
+    6. Pose space: 1554 sampled articulations (curl/spread/opposition families) -> PCA.
+    7. Vertex order: the five fingertip vertices are renumbered to MANO's fingertip ids
+       (744, 320, 443, 554, 671), which smplx and ARCTIC append as joints 16..20 by id.
+    """
     sk = _build_skeleton(spec)
     v, f = _mesh_surface(sk, spec.voxel, wrist_cut=sk.joints[0, 0] + 0.017)
     W, owner, arc = _skin_weights(v, f, sk)

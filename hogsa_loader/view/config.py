@@ -5,7 +5,9 @@ the checks that need no file loaded. Importing this module stays cheap (no torch
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,6 +92,23 @@ def parse_item(value: str, flag: str, what: str) -> tuple[str, int]:
     return m.group("name"), idx
 
 
+def _check_writable(out: Path) -> None:
+    """``--out``: a writable folder, or creatable (its nearest existing ancestor a writable folder)."""
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise ViewError(f"--out {out}: exists and is not a folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise ViewError(f"--out {out}: folder is not writable")
+        return
+    anc = out.absolute().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise ViewError(f"--out {out}: cannot be created, {anc} is a file")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise ViewError(f"--out {out}: cannot be created, {anc} is not writable")
+
+
 def check_view_config(cfg: ViewConfig) -> None:
     """Check what can be checked without loading anything (raises :class:`ViewError`)."""
     for name in ("bundle", "data", "subject", "object", "out"):
@@ -101,9 +120,7 @@ def check_view_config(cfg: ViewConfig) -> None:
         raise ViewError(f"--data {cfg.data}: no such folder")
     if Path(cfg.out).exists() and not Path(cfg.out).is_dir():  # type: ignore[arg-type]
         raise ViewError(f"--out {cfg.out} exists and is not a folder")
-    from hogsa_loader.cli.checks import output_dir
-
-    output_dir(cfg.out, "--out")  # type: ignore[arg-type]  # writable (UsageError otherwise)
+    _check_writable(Path(cfg.out))  # type: ignore[arg-type]
     for v in cfg.frame:
         parse_item(v, "--frame", "SEQ:IDX (e.g. box_grab_01:30)")
     for v in cfg.pose_bank:
@@ -133,14 +150,12 @@ def check_view_config(cfg: ViewConfig) -> None:
     if cfg.backgrounds is not None and not Path(cfg.backgrounds).is_dir():
         raise ViewError(f"--backgrounds {cfg.backgrounds}: no such folder")
     if cfg.video == "mp4":
-        import importlib.util
-
         if importlib.util.find_spec("imageio_ffmpeg") is None:
             raise ViewError(
                 "--video mp4 needs the imageio-ffmpeg package (pip install imageio-ffmpeg); use --video gif"
             )
     if cfg.device.startswith("cuda"):
-        import torch
+        import torch  # deferred: importing this module (``hogsa view --help``) stays free of torch
 
         if not torch.cuda.is_available():
             raise ViewError(f"--device {cfg.device}: CUDA is not available")

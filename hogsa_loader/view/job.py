@@ -14,7 +14,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.bundle import load_bundle
+from hogsa_loader.compose import make_backgrounds
+from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError
+from hogsa_loader.objects.articulated import ArticulatedObjectLayer
+from hogsa_loader.objects.template import load_object_templates
+from hogsa_loader.pom.hands import hand_infos
+from hogsa_loader.pom.objects import ObjectSet
+from hogsa_loader.srm import load_srm
 from hogsa_loader.view.config import ViewConfig, ViewError, check_view_config, parse_item
 from hogsa_loader.view.orbit import (
     orbit_azimuth,
@@ -29,6 +37,7 @@ from hogsa_loader.view.orbit import (
 )
 from hogsa_loader.view.pictures import (
     caption,
+    demo_photographs,
     draw_keypoints,
     neutral_background,
     sheet,
@@ -61,9 +70,6 @@ class _Setup:
 
 def _prepare(cfg: ViewConfig) -> _Setup:
     """Load the bundle and the pose sources; every request error is a :class:`ViewError`."""
-    from hogsa_loader.bundle import load_bundle
-    from hogsa_loader.datasets.arctic import ArcticRoot
-
     check_view_config(cfg)
     try:
         bundle = load_bundle(cfg.bundle, data_root=cfg.data)  # type: ignore[arg-type]
@@ -121,9 +127,6 @@ class _Scenes:
         self.cfg, self.su = cfg, su
         self.obj = str(cfg.object)
         self.dev = torch.device(cfg.device)
-        from hogsa_loader.objects.articulated import ArticulatedObjectLayer
-        from hogsa_loader.objects.template import load_object_templates
-
         self.layers = su.root.mano_layers()
         names = sorted({self.obj, *(k[1] for k in su.hands_key.values())})  # the objects of the runs loaded
         self.templates = load_object_templates(su.root.meta_dir, names=names)
@@ -133,8 +136,6 @@ class _Scenes:
         self.scene = {sid: swap_hands(self.model(su.hands_key[sid]), src) for sid in su.subjects}
         self.refiner = None
         if cfg.srm:
-            from hogsa_loader.srm import load_srm
-
             srm = load_srm(su.bundle.srm.path, device=self.dev)
             self.refiner = lambda rgb, alpha: srm.refine(rgb.to(self.dev), alpha.to(self.dev)).float().cpu()
         self.up = np.array([0.0, 0.0, 1.0])  # ARCTIC world frame
@@ -180,7 +181,8 @@ def _orbit(sc: _Scenes, sid: str, vp: ViewPose, state: Any, bg: Tensor, out: Pat
         "radius_m": round(orb.radius, 4), "seconds": {k: round(v, 2) for k, v in orb.seconds.items()},
     }  # fmt: skip
     if cfg.video != "none":
-        frames = [np.concatenate([caption(raw[j], "HOGS")] + ([caption(ref[j], "HOGS + SRM")] if ref is not None else []), 1)
+        frames = [np.concatenate([caption(raw[j], "HOGS")]
+                                 + ([caption(ref[j], "HOGS + SRM")] if ref is not None else []), 1)
                   for j in range(cfg.orbit)]  # fmt: skip
         rec["video"] = str(out / f"orbit_{sid}.{cfg.video}")
         write_video(Path(rec["video"]), frames, cfg.fps)
@@ -204,37 +206,14 @@ def _cells(sc: _Scenes, sid: str, state: Any, bg: Tensor) -> list[np.ndarray]:
     return imgs
 
 
-def run_view(cfg: ViewConfig, log: Callable[[str], None] | None = print) -> dict[str, Any]:
-    """Orbits and pose-transfer pictures of a bundle (see module docstring).
+def _grasps(
+    cfg: ViewConfig, su: _Setup, sc: _Scenes, say: Callable[[str], None]
+) -> tuple[dict[tuple[int, str], Any], list[dict[str, Any]]]:
+    """The grasp of every (pose source i, subject) and the transfer records.
 
-    Writes into ``cfg.out``: ``orbit_<sid>.png`` and ``orbit_<sid>.gif`` (or ``.mp4``) of
-    the first pose source on the shown subject and on every ``transfer_to`` subject,
-    ``transfer.png`` (rows: pose sources, each rendered by HOGS and, with ``cfg.srm``, by
-    HOGS + SRM; columns: the shown subject, then the targets), ``view.json`` (settings,
-    timings, pose sources, the transfer figures of
-    :func:`~hogsa_loader.view.transfer.transfer_report`, outputs).
-
-    Raises:
-        ViewError: a request that cannot be served (before anything is rendered).
-
-    Returns:
-        the ``view.json`` record.
+    A pose source made with a subject's own hands is used as it is; on any other subject it is
+    transferred (:func:`~hogsa_loader.view.transfer.transfer_pose`).
     """
-    from hogsa_loader.pom.hands import hand_infos
-    from hogsa_loader.pom.objects import ObjectSet
-
-    say = log or (lambda s: None)
-    t_start = time.perf_counter()
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    su = _prepare(cfg)
-    out = Path(os.path.abspath(cfg.out))  # type: ignore[arg-type]
-    out.mkdir(parents=True, exist_ok=True)
-    sc = _Scenes(cfg, su)
-    seconds = {"setup": time.perf_counter() - t_start}
-
-    # the grasp of (pose source i, subject): the source itself when it was made with that subject's hands
-    t0 = time.perf_counter()
     grasps: dict[tuple[int, str], Any] = {}
     transfers: list[dict[str, Any]] = []
     if any(vp.subject != sid for vp in su.poses for sid in su.subjects):
@@ -251,13 +230,14 @@ def run_view(cfg: ViewConfig, log: Callable[[str], None] | None = print) -> dict
             rec = transfer_report(tr, infos, objects)[0]
             transfers.append({"pose": vp.label, "from": vp.subject, "to": sid, **rec})
             say(_transfer_line(vp.label, sid, rec))
-    seconds["transfer"] = time.perf_counter() - t0
+    return grasps, transfers
 
+
+def _backgrounds(cfg: ViewConfig, out: Path) -> Callable[[int], Tensor]:
+    """``k`` → the (S, S, 3) background of picture ``k``: neutral, or a photograph drawn with seed
+    ``cfg.seed * 1000 + k``."""
     photo = None
     if cfg.background == "photo":
-        from hogsa_loader.compose import make_backgrounds
-        from hogsa_loader.demo import demo_photographs
-
         photo = make_backgrounds(folder=cfg.backgrounds or demo_photographs(out / "backgrounds"))
 
     def background(k: int) -> Tensor:
@@ -265,15 +245,28 @@ def run_view(cfg: ViewConfig, log: Callable[[str], None] | None = print) -> dict
             return neutral_background(cfg.size)
         return photo.sample(1, cfg.size, cfg.size, torch.Generator().manual_seed(cfg.seed * 1000 + k))[0]
 
-    t0 = time.perf_counter()
+    return background
+
+
+def _orbits(
+    sc: _Scenes, grasps: dict[tuple[int, str], Any], background: Callable[[int], Tensor], out: Path,
+    say: Callable[[str], None],
+) -> dict[str, Any]:  # fmt: skip
+    """The orbit of the first pose source on every subject (none when ``cfg.orbit`` is 0); their records."""
+    cfg, su = sc.cfg, sc.su
     orbits: dict[str, Any] = {}
     for sid in su.subjects if cfg.orbit > 0 else ():
         orbits[sid] = rec = _orbit(sc, sid, su.poses[0], grasps[0, sid], background(0), out)
         srm_s = f" + SRM {rec['seconds']['srm']:.1f} s" if sc.refiner is not None else ""
         say(f"[orbit] {sid}: {cfg.orbit} views in {rec['seconds']['render']:.1f} s{srm_s} -> {rec['png']}")
-    seconds["orbit"] = time.perf_counter() - t0
+    return orbits
 
-    t0 = time.perf_counter()
+
+def _transfer_grid(
+    sc: _Scenes, grasps: dict[tuple[int, str], Any], background: Callable[[int], Tensor], out: Path
+) -> Path:
+    """``transfer.png``: a row per pose source (HOGS, then HOGS + SRM when on), a column per subject."""
+    su = sc.su
     rows = []
     for i, vp in enumerate(su.poses):
         cells = [_cells(sc, sid, grasps[i, sid], background(1 + i * len(su.subjects) + j))
@@ -284,6 +277,43 @@ def run_view(cfg: ViewConfig, log: Callable[[str], None] | None = print) -> dict
             rows.append((f"pose: {vp.label} (HOGS + SRM)", [c[1] for c in cells], caps))
     grid = out / "transfer.png"
     write_png(grid, sheet(rows, cols=len(su.subjects)))
+    return grid
+
+
+def run_view(cfg: ViewConfig, log: Callable[[str], None] | None = print) -> dict[str, Any]:
+    """Orbits and pose-transfer pictures of a bundle.
+
+    Writes into ``cfg.out``: ``orbit_<sid>.png`` and ``orbit_<sid>.gif`` (or ``.mp4``) of
+    the first pose source on the shown subject and on every ``transfer_to`` subject,
+    ``transfer.png`` (rows: pose sources, each rendered by HOGS and, with ``cfg.srm``, by
+    HOGS + SRM; columns: the shown subject, then the targets), ``view.json`` (settings,
+    timings, pose sources, the transfer figures of
+    :func:`~hogsa_loader.view.transfer.transfer_report`, outputs).
+
+    Raises:
+        ViewError: a request that cannot be served (before anything is rendered).
+
+    Returns:
+        the ``view.json`` record.
+    """
+    say = log or (lambda s: None)
+    t_start = time.perf_counter()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    su = _prepare(cfg)
+    out = Path(os.path.abspath(cfg.out))  # type: ignore[arg-type]
+    out.mkdir(parents=True, exist_ok=True)
+    sc = _Scenes(cfg, su)
+    seconds = {"setup": time.perf_counter() - t_start}
+    t0 = time.perf_counter()
+    grasps, transfers = _grasps(cfg, su, sc, say)
+    seconds["transfer"] = time.perf_counter() - t0
+    background = _backgrounds(cfg, out)
+    t0 = time.perf_counter()
+    orbits = _orbits(sc, grasps, background, out, say)
+    seconds["orbit"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    grid = _transfer_grid(sc, grasps, background, out)
     seconds["grid"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_start
 

@@ -20,7 +20,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hogsa_loader.datasets.conventions import render_intrinsics
+from hogsa_loader.gaussians.hogs_model import HogsModel
 from hogsa_loader.loader.cameras import look_at
+from hogsa_loader.render.gaussians import sh_colors
 
 __all__ = [
     "OrbitRender",
@@ -177,8 +180,6 @@ class PartLights(nn.Module):
 
     def forward(self, scene: Any, viewmats: Tensor) -> Tensor:
         """(B, C, N, 3) colours of the (B, N) scene seen from (B, C) cameras."""
-        from hogsa_loader.render.gaussians import sh_colors
-
         campos = torch.linalg.inv(viewmats)[..., :3, 3]
         dirs = scene.means[:, None] - campos[:, :, None, :]
         sh = scene.sh[:, None].expand(-1, viewmats.shape[1], -1, -1, -1)
@@ -196,8 +197,6 @@ def swap_hands(hands: Any, obj: Any) -> Any:
     """A :class:`~hogsa_loader.gaussians.hogs_model.HogsModel` with the hand Gaussians of
     ``hands`` and the object Gaussians of ``obj`` (two HogsModels; parameters shared, not
     copied), each part lit by its own run's light (:class:`PartLights`)."""
-    from hogsa_loader.gaussians.hogs_model import HogsModel
-
     if hands is obj:
         return hands
     parts = {
@@ -240,8 +239,6 @@ def render_views(
         rgb (C, S, S, 3) premultiplied on black, alpha (C, S, S, 1), refined rgb (C, S, S, 3)
         or None; float32, CPU.
     """
-    from hogsa_loader.datasets.conventions import render_intrinsics
-
     p = next(model.parameters())
     dev, dt = p.device, p.dtype
     P = {k: v[:1].to(dev, dt) for k, v in poses.items()}

@@ -2,14 +2,37 @@
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import cv2
+import imageio.v3 as iio
 import numpy as np
+import skimage.data
 import torch
 from torch import Tensor
 
-__all__ = ["caption", "draw_keypoints", "neutral_background", "sheet", "to_uint8", "write_png", "write_video"]
+from hogsa_loader.compose import composite
+from hogsa_loader.errors import PathLike
+from hogsa_loader.loader.viz import draw_skeletons
+from hogsa_loader.render.mesh_raster import save_png
+
+__all__ = [
+    "DEMO_PHOTOS",
+    "caption",
+    "demo_photographs",
+    "draw_keypoints",
+    "neutral_background",
+    "sheet",
+    "to_uint8",
+    "write_png",
+    "write_video",
+]
+
+DEMO_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "motorcycle_left.png",
+               "motorcycle_right.png")
+"""The colour photographs shipped with scikit-image that serve as default photo backgrounds."""
 
 
 def neutral_background(size: int) -> Tensor:
@@ -20,8 +43,6 @@ def neutral_background(size: int) -> Tensor:
 
 def to_uint8(rgb: Tensor, alpha: Tensor, background: Tensor) -> np.ndarray:
     """Premultiplied (N, S, S, 3) over (S, S, 3) or (N, S, S, 3) → (N, S, S, 3) uint8."""
-    from hogsa_loader.compose import composite
-
     img = composite(rgb, alpha, background.expand_as(rgb), clamp=True)
     return (img * 255.0).round().to(torch.uint8).numpy()
 
@@ -33,8 +54,6 @@ def draw_keypoints(image: np.ndarray, kp: Mapping[str, np.ndarray]) -> np.ndarra
         image: (H, W, 3) uint8 RGB; kp: ``joints.right`` / ``joints.left`` (21, 2),
             ``kp3d`` (K, 2) pixel coordinates.
     """
-    from hogsa_loader.loader.viz import draw_skeletons
-
     hands = {s[0]: kp[f"joints.{s}"] for s in ("right", "left") if kp.get(f"joints.{s}") is not None}
     return draw_skeletons(image, hands, kp.get("kp3d"))
 
@@ -49,8 +68,6 @@ def sheet(rows: Sequence[tuple[str, Sequence[np.ndarray], Sequence[str]]], cols:
     Returns:
         (H, W, 3) uint8 RGB.
     """
-    import cv2
-
     cell_h, cell_w = next(im.shape[:2] for _, ims, _ in rows for im in ims)
     title_h, cap_h = 22, 16
     lines = [(r, i0) for r, (_, ims, _) in enumerate(rows) for i0 in range(0, max(1, len(ims)), cols)]
@@ -75,8 +92,6 @@ def sheet(rows: Sequence[tuple[str, Sequence[np.ndarray], Sequence[str]]], cols:
 
 def caption(img: np.ndarray, text: str) -> np.ndarray:
     """A copy of the (H, W, 3) uint8 ``img`` with ``text`` (white, outlined) in its top-left corner."""
-    import cv2
-
     out = np.ascontiguousarray(img.copy())
     cv2.putText(out, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 2, cv2.LINE_AA)
     cv2.putText(out, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
@@ -85,17 +100,24 @@ def caption(img: np.ndarray, text: str) -> np.ndarray:
 
 def write_png(path: Path, img: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 RGB image (OSError when it cannot be written)."""
-    from hogsa_loader.render.mesh_raster import save_png
-
     save_png(path, torch.from_numpy(np.ascontiguousarray(img)))
 
 
 def write_video(path: Path, frames: Sequence[np.ndarray], fps: float) -> None:
     """Write (H, W, 3) uint8 RGB frames as a looping GIF (``.gif``, Pillow through imageio) or
     an H.264 MP4 (``.mp4``, needs the imageio-ffmpeg package)."""
-    import imageio.v3 as iio
-
     if path.suffix == ".gif":
         iio.imwrite(path, np.stack(frames), duration=1000.0 / fps, loop=0)
     else:
         iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", plugin="FFMPEG")
+
+
+def demo_photographs(out: PathLike) -> Path:
+    """Copy scikit-image's bundled colour photographs (:data:`DEMO_PHOTOS`) into ``out``; returns ``out``."""
+    src = Path(skimage.data.__file__).parent
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in DEMO_PHOTOS:
+        if (src / name).is_file() and not (out / name).is_file():
+            shutil.copy2(src / name, out / name)
+    return out

@@ -21,6 +21,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.pom.bank import load_pose_bank
+from hogsa_loader.pom.metrics import grasp_metrics
+from hogsa_loader.pom.objects import to_canonical
+from hogsa_loader.pom.regrasp import regrasp, source_contacts
+from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
 from hogsa_loader.view.config import ViewError
 
 __all__ = [
@@ -75,8 +80,6 @@ def align_wrists(state: Any, betas: Mapping[str, Any], infos: Mapping[str, Any])
         state: :class:`~hogsa_loader.pom.state.GraspState` (B); betas: side → (10,) or
             (B, 10); infos: :func:`~hogsa_loader.pom.hands.hand_infos`.
     """
-    from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
-
     hands = {}
     with torch.no_grad():
         for s in SIDES:
@@ -116,8 +119,6 @@ def transfer_pose(
         infos: hands (:func:`~hogsa_loader.pom.hands.hand_infos` of the data root's layers).
         objects: :class:`~hogsa_loader.pom.objects.ObjectSet`.
     """
-    from hogsa_loader.pom.regrasp import regrasp, source_contacts
-
     contacts = source_contacts(source, infos, objects, contact_distance)
     aligned = align_wrists(source, betas, infos)
     state = regrasp(aligned, contacts, infos, objects, steps=steps) if resolve and steps > 0 else aligned
@@ -126,9 +127,6 @@ def transfer_pose(
 
 def _contact_error(state: Any, t: Transfer, infos: Mapping[str, Any], objects: Any) -> dict[str, np.ndarray]:
     """side → (B,) mean |d − d_src| (m) over the source contact vertices (NaN: no contact)."""
-    from hogsa_loader.pom.objects import to_canonical
-    from hogsa_loader.pom.state import hand_forward
-
     out = {}
     with torch.no_grad():
         for s in SIDES:
@@ -153,8 +151,6 @@ def transfer_report(t: Transfer, infos: Mapping[str, Any], objects: Any) -> list
     Returns:
         B records ``{"source": {...}, "aligned": {...}, "transferred": {...}}``.
     """
-    from hogsa_loader.pom.metrics import grasp_metrics
-
     active = {s: t.contacts.active(s) for s in SIDES}
     stages = {"source": t.source, "aligned": t.aligned, "transferred": t.state}
     recs: list[dict[str, Any]] = [{} for _ in range(t.source.batch)]
@@ -195,8 +191,6 @@ class ViewPose:
 
 
 def _state(poses: Mapping[str, np.ndarray], obj: str) -> Any:
-    from hogsa_loader.pom.state import GraspState, HandParams
-
     def t(x: Any) -> Tensor:
         return torch.as_tensor(np.asarray(x, dtype=np.float32)).reshape(1, -1)
 
@@ -253,8 +247,6 @@ def default_pose(root: Any, subject: str, obj: str) -> ViewPose:
 
 def bank_pose(bundle: Any, name: str, row: int) -> ViewPose:
     """Row ``row`` of the bundle's pose bank ``name``."""
-    from hogsa_loader.pom.bank import load_pose_bank
-
     if name not in bundle.pose_banks:
         raise ViewError(
             f"--pose-bank: the bundle has no pose bank {name!r} (has {', '.join(sorted(bundle.pose_banks)) or 'none'})"

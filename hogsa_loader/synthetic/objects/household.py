@@ -20,6 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from hogsa_loader.objects.template import BOTTOM, TOP
 from hogsa_loader.synthetic.objects.compound import CompoundSpec, Piece, box_piece, disc_profile, lathe
 from hogsa_loader.synthetic.objects.procedural import (
     GAP_MM,
@@ -37,7 +38,6 @@ from hogsa_loader.synthetic.objects.procedural import (
     text,
     text_lines,
 )
-from hogsa_loader.objects.template import BOTTOM, TOP
 
 __all__ = ["HOUSEHOLD_SPECS"]
 

@@ -6,19 +6,6 @@ writes them exactly like ``meta/object_vtemplates/<obj>/`` (see
 box (juice box with a flip lid), laptop, notebook and phone (flip phone), each two
 rounded boxes joined by a hinge; the other seven are assembled from several pieces per
 part in :mod:`hogsa_loader.synthetic.objects.household` and textured by the same atlas code.
-
-Canonical frame (ARCTIC convention, spec §2): the hinge is the z axis through the origin
-and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
-``x <= 0`` with the hinge at their ``x = 0`` edge; the bottom part occupies
-``y <= -GAP/2`` and the top part ``y >= +GAP/2`` (a 1 mm gap). For ``θ`` in ``[0, π/2]``
-every top point keeps ``y' = -x sin θ + y cos θ >= 0``, so the top swings up and back
-(opens) without entering the bottom part; ``θ = 0`` is closed.
-
-Faces of each rounded box are named by their outward normal (``"+x"``, ``"-y"``, ...):
-``+x`` is the hinge side, ``-x`` the front, ``+y`` up. Each face is one texture chart;
-the charts are packed in a 1024x1024 atlas painted from real photographs shipped with
-scikit-image (``skimage/data``) plus drawn details (text, keys, stripes), tinted by the
-seed. Output is deterministic: the same seed gives byte-identical files.
 """
 
 from __future__ import annotations
@@ -32,7 +19,10 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
 
+import cv2
 import numpy as np
+import skimage.data
+import skimage.io
 
 from hogsa_loader.errors import PathLike
 from hogsa_loader.objects.template import (
@@ -261,9 +251,6 @@ def part_boxes(bottom: Slab, top: Slab, gap: float = GAP_MM) -> dict[int, tuple[
 
 @lru_cache(maxsize=None)
 def _photo_cached(name: str) -> np.ndarray:
-    import skimage.data
-    import skimage.io
-
     path = os.path.join(os.path.dirname(skimage.data.__file__), name)
     img = np.asarray(skimage.io.imread(path))
     if img.ndim == 2:
@@ -280,8 +267,6 @@ def photo(name: str) -> Image:
 
 def fit(img: Image, h: int, w: int) -> Image:
     """Centre-crop ``img`` to the aspect of (h, w) and resize (cover)."""
-    import cv2
-
     ih, iw = img.shape[:2]
     scale = max(h / ih, w / iw)
     ch, cw = min(ih, int(round(h / scale))), min(iw, int(round(w / scale)))
@@ -296,8 +281,6 @@ def grain(h: int, w: int, source: str, px_per_texel: float, rng: np.random.Gener
 
     The photo is scaled by ``px_per_texel``, tiled and cropped at a seeded offset.
     """
-    import cv2
-
     src = photo(source).mean(axis=2)
     size = max(8, int(round(src.shape[0] * px_per_texel)))
     src = cv2.resize(src, (size, size), interpolation=cv2.INTER_AREA if px_per_texel < 1 else cv2.INTER_LINEAR)
@@ -311,8 +294,6 @@ def grain(h: int, w: int, source: str, px_per_texel: float, rng: np.random.Gener
 
 def smooth_noise(h: int, w: int, rng: np.random.Generator, cells: int = 6) -> np.ndarray:
     """(h, w) smooth random field in [0, 1] (bicubic upsampled random grid)."""
-    import cv2
-
     gh, gw = max(2, int(round(cells * h / max(h, w))) + 1), max(2, int(round(cells * w / max(h, w))) + 1)
     small = rng.random((gh, gw)).astype(np.float32)
     return np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1)
@@ -320,8 +301,6 @@ def smooth_noise(h: int, w: int, rng: np.random.Generator, cells: int = 6) -> np
 
 def brushed(h: int, w: int, rng: np.random.Generator, horizontal: bool = True) -> np.ndarray:
     """(h, w) brushed-metal streaks in [0, 1]."""
-    import cv2
-
     noise = rng.random((h, w)).astype(np.float32)
     k = max(3, (w if horizontal else h) // 6)
     ksize = (k, 1) if horizontal else (1, k)
@@ -358,8 +337,6 @@ def fill_rect(canvas: Image, rect: Sequence[float], rgb: Sequence[float]) -> Ima
 def text(canvas: Image, words: str, center: Sequence[float], height_px: float,
          rgb: Sequence[float], max_width_px: Optional[float] = None, bold: bool = False) -> Image:
     """Draw ``words`` centred at ``center`` (fractions) with cap height ``height_px``."""
-    import cv2
-
     if height_px < 3:
         return canvas
     font = cv2.FONT_HERSHEY_DUPLEX if bold else cv2.FONT_HERSHEY_SIMPLEX
@@ -381,8 +358,6 @@ def text(canvas: Image, words: str, center: Sequence[float], height_px: float,
 def text_lines(canvas: Image, rect: Sequence[float], rows: int, rgb: Sequence[float],
                rng: np.random.Generator) -> Image:
     """Fake small print: rows of word-like bars inside ``rect`` (fractions)."""
-    import cv2
-
     h, w = canvas.shape[:2]
     x0, y0, x1, y1 = rect[0] * w, rect[1] * h, rect[2] * w, rect[3] * h
     pitch = (y1 - y0) / max(rows, 1)
@@ -418,8 +393,6 @@ def barcode(canvas: Image, rect: Sequence[float], rng: np.random.Generator) -> I
 def circle(canvas: Image, center: Sequence[float], radius_px: float, rgb: Sequence[float],
            thickness: int = -1) -> Image:
     """Filled (or outlined) anti-aliased circle at ``center`` (fractions)."""
-    import cv2
-
     h, w = canvas.shape[:2]
     cv2.circle(canvas, (int(round(center[0] * w)), int(round(center[1] * h))),
                max(1, int(round(radius_px))), tuple(float(c) for c in rgb), thickness, cv2.LINE_AA)
@@ -518,6 +491,19 @@ def _to_uint8(img: Image) -> np.ndarray:
 @dataclass
 class ObjectSpec:
     """Everything needed to build one procedural object.
+
+    Canonical frame (ARCTIC's convention): the hinge is the z axis through the origin
+    and the top part (``parts.json`` value 0) is articulated by ``R_z(-θ)``. Both parts lie in
+    ``x <= 0`` with the hinge at their ``x = 0`` edge; the bottom part occupies
+    ``y <= -GAP/2`` and the top part ``y >= +GAP/2`` (a 1 mm gap). For ``θ`` in ``[0, π/2]``
+    every top point keeps ``y' = -x sin θ + y cos θ >= 0``, so the top swings up and back
+    (opens) without entering the bottom part; ``θ = 0`` is closed.
+
+    Faces of each rounded box are named by their outward normal (``"+x"``, ``"-y"``, ...):
+    ``+x`` is the hinge side, ``-x`` the front, ``+y`` up. Each face is one texture chart;
+    the charts are packed in a 1024x1024 atlas painted from real photographs shipped with
+    scikit-image (``skimage/data``) plus drawn details (text, keys, stripes), tinted by the
+    seed. Output is deterministic: the same seed gives byte-identical files.
 
     Attributes:
         name: object name (ARCTIC name when it mimics an ARCTIC object).
@@ -618,6 +604,30 @@ def _spec_box(rng: np.random.Generator) -> ObjectSpec:
 _KEY_ROWS = ("1234567890-=", "QWERTYUIOP[]", "ASDFGHJKL;'", "ZXCVBNM,./")
 
 
+def _draw_keyboard(img: Image, s: float, shell: tuple) -> None:
+    """Draw a laptop keyboard (19 mm key pitch at ``s`` px/mm: a half-height function row, 4
+    character rows, a space bar) and a touchpad in shell colour ``shell`` onto (H, W, 3) ``img``."""
+    h, w = img.shape[:2]
+    pitch = 19.0 * s
+    key = 0.82 * pitch
+    x_start = 0.5 * w - 7.25 * pitch
+    top = 0.07 * h
+    for c in range(14):
+        x = x_start + c * pitch * 1.036
+        cv2.rectangle(img, (int(x), int(top)), (int(x + key), int(top + 0.5 * key)), (0.08, 0.08, 0.09), -1)
+    for row, chars in enumerate(_KEY_ROWS):
+        y = top + 0.62 * pitch + row * pitch
+        x0 = x_start + 0.3 * row * pitch
+        for c, ch in enumerate(chars):
+            x = x0 + c * pitch
+            cv2.rectangle(img, (int(x), int(y)), (int(x + key), int(y + key)), (0.08, 0.08, 0.09), -1)
+            text(img, ch, ((x + key / 2) / w, (y + key / 2) / h), 0.3 * key, (0.85, 0.85, 0.85))
+    y = top + 0.62 * pitch + 4 * pitch
+    cv2.rectangle(img, (int(x_start + 3 * pitch), int(y)), (int(x_start + 10 * pitch), int(y + key)),
+                  (0.08, 0.08, 0.09), -1)
+    fill_rect(img, (0.33, 0.62, 0.67, 0.95), tuple(min(1.0, 1.08 * c) for c in shell))
+
+
 def _spec_laptop(rng: np.random.Generator) -> ObjectSpec:
     """Laptop: 210 x 16 x 300 mm base with keyboard + 210 x 7 x 300 mm screen."""
     shell_hue = rng.random()
@@ -632,33 +642,11 @@ def _spec_laptop(rng: np.random.Generator) -> ObjectSpec:
         return material(h, w, shell, 0.7 * brushed(h, w, r) + 0.3 * smooth_noise(h, w, r), 0.25)
 
     def keyboard(h: int, w: int, s: float) -> Image:
-        import cv2
-
         img = metal(h, w, s)
-        pitch = 19.0 * s  # 19 mm key pitch
-        key = 0.82 * pitch
-        x_start = 0.5 * w - 7.25 * pitch
-        top = 0.07 * h
-        # function row (half height) + 4 character rows + space row
-        for c in range(14):
-            x = x_start + c * pitch * 1.036
-            cv2.rectangle(img, (int(x), int(top)), (int(x + key), int(top + 0.5 * key)), (0.08, 0.08, 0.09), -1)
-        for row, chars in enumerate(_KEY_ROWS):
-            y = top + 0.62 * pitch + row * pitch
-            x0 = x_start + 0.3 * row * pitch
-            for c, ch in enumerate(chars):
-                x = x0 + c * pitch
-                cv2.rectangle(img, (int(x), int(y)), (int(x + key), int(y + key)), (0.08, 0.08, 0.09), -1)
-                text(img, ch, ((x + key / 2) / w, (y + key / 2) / h), 0.3 * key, (0.85, 0.85, 0.85))
-        y = top + 0.62 * pitch + 4 * pitch
-        cv2.rectangle(img, (int(x_start + 3 * pitch), int(y)), (int(x_start + 10 * pitch), int(y + key)),
-                      (0.08, 0.08, 0.09), -1)
-        fill_rect(img, (0.33, 0.62, 0.67, 0.95), tuple(min(1.0, 1.08 * c) for c in shell))
+        _draw_keyboard(img, s, shell)
         return img
 
     def underside(h: int, w: int, s: float) -> Image:
-        import cv2
-
         img = material(h, w, dark, smooth_noise(h, w, r, 12), 0.3)
         for fx, fy in ((0.08, 0.1), (0.92, 0.1), (0.08, 0.9), (0.92, 0.9)):
             circle(img, (fx, fy), 6 * s, (0.02, 0.02, 0.02))
@@ -721,8 +709,6 @@ def _spec_notebook(rng: np.random.Generator) -> ObjectSpec:
         return img
 
     def ruled(h: int, w: int, s: float) -> Image:
-        import cv2
-
         img = material(h, w, paper, smooth_noise(h, w, r, 10), 0.05)
         for y in np.arange(0.1 * h, h - 2, 7.0 * s):
             cv2.line(img, (0, int(y)), (w, int(y)), (0.55, 0.7, 0.9), 1, cv2.LINE_AA)
@@ -783,8 +769,6 @@ def _spec_phone(rng: np.random.Generator) -> ObjectSpec:
         return material(h, w, shell, smooth_noise(h, w, r, 5) * 0.5 + 0.5 * brushed(h, w, r), 0.2)
 
     def keypad(h: int, w: int, s: float) -> Image:
-        import cv2
-
         img = material(h, w, inner, smooth_noise(h, w, r, 5), 0.2)
         circle(img, (0.5, 0.2), 0.16 * w, (0.75, 0.75, 0.78))
         circle(img, (0.5, 0.2), 0.07 * w, tuple(inner))
@@ -815,7 +799,6 @@ def _spec_phone(rng: np.random.Generator) -> ObjectSpec:
 
     def back(h: int, w: int, s: float) -> Image:
         img = plastic(h, w, s)
-        import cv2
 
         cv2.rectangle(img, (int(0.1 * w), int(0.3 * h)), (int(0.9 * w), int(0.9 * h)), tuple(inner), max(1, int(0.4 * s)))
         text(img, "PHONE", (0.5, 0.6), 0.05 * h, tuple(inner), max_width_px=0.5 * w, bold=True)
@@ -884,8 +867,6 @@ def build_textured(spec: Optional[ObjectSpec], parts: dict[int, PartMesh]) -> di
         dict with ``verts`` (Vt,3) mm, ``faces``, ``uv`` (Vt,2) OBJ convention,
         ``parts`` (Vt,), ``image`` (S,S,3) uint8.
     """
-    import cv2
-
     charts = [(p, k) for p in (TOP, BOTTOM) for k in range(len(parts[p].chart_keys))]
     sizes_mm = [parts[p].chart_size[k] for p, k in charts]
     s, positions, sizes_px = pack_charts(sizes_mm)
@@ -930,8 +911,8 @@ def _spec_and_parts(name: str, rng: np.random.Generator) -> tuple[Optional[Objec
     if name in _SPECS:
         spec = _SPECS[name](rng)
         return spec, build_parts(spec)
-    from hogsa_loader.synthetic.objects.compound import merge_pieces
-    from hogsa_loader.synthetic.objects.household import HOUSEHOLD_SPECS
+    from hogsa_loader.synthetic.objects.compound import merge_pieces  # deferred: compound imports this module
+    from hogsa_loader.synthetic.objects.household import HOUSEHOLD_SPECS  # deferred: household imports this module
 
     compound = HOUSEHOLD_SPECS[name](rng)
     return None, {p: merge_pieces(compound.parts[p]) for p in (TOP, BOTTOM)}

@@ -5,23 +5,6 @@ from. ARCTIC's are not: its MANO parameters are fitted to motion-capture markers
 the imaged hands by a few millimetres (the per-frame ``fitting_err`` field). HOGS trained on
 such labels averages misaligned observations into blur — one of the artefacts the paper's
 SRM is meant to remove. :func:`add_annotation_noise` writes a world that reproduces this:
-
-* images, cameras, object poses and meta are the source world's (symlinked); the part
-  masks are left out, as ARCTIC ships none (HOGS then renders them from the noisy labels);
-* each hand's ``rot``/``trans``/``pose`` get noise: per frame, a fixed per-sequence offset
-  plus a frame-to-frame jitter smoothed over ``smooth`` frames (fitting error is partly
-  systematic, partly per-frame), scaled so that each component has the requested std;
-* ``fitting_err`` becomes the realised mean vertex distance (m) between the written and the
-  imaged hand, so the noise level can be read back from the world itself;
-* object poses stay exact: ARCTIC's crop boxes are computed from them, and the cropped
-  images (the source's) were cut with the exact ones.
-
-The processed ``splits/`` are not copied (they hold the exact labels): they are rebuilt
-from the noisy labels by
-:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits` for the protocols of
-the source's ``splits_json/`` (linked: sequence lists only), so the loader's real-data path
-reads the same noisy labels as HOGS training (``process_splits=False`` skips this; HOGS
-training reads ``raw_seqs`` and needs nothing else).
 """
 
 from __future__ import annotations
@@ -37,7 +20,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+from hogsa_loader.datasets.arctic_processing import write_processed_splits
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins
+from hogsa_loader.synthetic.world.writer import _save_npy
 
 __all__ = ["AnnotationNoise", "perturb_hand", "add_annotation_noise"]
 
@@ -47,6 +34,25 @@ _DATA = Path("arctic_data") / "data"
 @dataclass(frozen=True)
 class AnnotationNoise:
     """Noise std per component (half per-sequence offset, half smoothed per-frame jitter, in variance).
+
+    The world :func:`add_annotation_noise` writes:
+
+    * images, cameras, object poses and meta are the source world's (symlinked); the part
+      masks are left out, as ARCTIC ships none (HOGS then renders them from the noisy labels);
+    * each hand's ``rot``/``trans``/``pose`` get noise: per frame, a fixed per-sequence offset
+      plus a frame-to-frame jitter smoothed over ``smooth`` frames (fitting error is partly
+      systematic, partly per-frame), scaled so that each component has the requested std;
+    * ``fitting_err`` becomes the realised mean vertex distance (m) between the written and the
+      imaged hand, so the noise level can be read back from the world itself;
+    * object poses stay exact: ARCTIC's crop boxes are computed from them, and the cropped
+      images (the source's) were cut with the exact ones.
+
+    The processed ``splits/`` are not copied (they hold the exact labels): they are rebuilt
+    from the noisy labels by
+    :func:`hogsa_loader.datasets.arctic_processing.write_processed_splits` for the protocols of
+    the source's ``splits_json/`` (linked: sequence lists only), so the loader's real-data path
+    reads the same noisy labels as HOGS training (``process_splits=False`` skips this; HOGS
+    training reads ``raw_seqs`` and needs nothing else).
 
     Attributes:
         trans_mm: wrist translation, per axis (mm).
@@ -107,7 +113,7 @@ def _link(src: Path, dst: Path) -> None:
 
 def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = AnnotationNoise(), *,
                          process_splits: bool = True, progress: bool = False) -> dict[str, Any]:
-    """Write the noisy-annotation copy of the world at ``src`` to ``dst`` (see module docstring).
+    """Write the noisy-annotation copy of the world at ``src`` to ``dst`` (see :class:`AnnotationNoise`).
 
     Args:
         src: a world / ARCTIC ``./data`` root (with ``arctic_data/data`` and ``body_models``).
@@ -124,9 +130,6 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
     Raises:
         AssetError: ``src`` is not a world root, or ``dst`` exists.
     """
-    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
-    from hogsa_loader.synthetic.world.writer import _save_npy
-
     src, dst = Path(src), Path(dst)
     data = src / _DATA
     if not (data / "raw_seqs").is_dir():
@@ -163,9 +166,6 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
                 errors[f"{subj.name}/{f.name.removesuffix('.mano.npy')}"] = seq_err
         protocols = sorted(p.stem.removeprefix("protocol_") for p in (data / "splits_json").glob("protocol_*.json"))
         if process_splits and protocols:
-            from hogsa_loader.datasets.arctic_processing import write_processed_splits
-            from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins
-
             written = write_processed_splits(dst, protocols=protocols, splits=("train", "val"), progress=progress)
             add_split_stand_ins(written.values())
     except BaseException:

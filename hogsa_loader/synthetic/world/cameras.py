@@ -1,6 +1,6 @@
 """Cameras of a world: 8 static allocentric cameras per subject and the head-mounted one.
 
-Conventions (spec §1.4, §1.5, §7): OpenCV cameras, ``p_cam = R p_world + T``, K in
+Conventions (ARCTIC's): OpenCV cameras, ``p_cam = R p_world + T``, K in
 full-resolution pixels in OpenCV's convention (pixel i centred on coordinate i, as ARCTIC's
 labels and cv2 crops; images are rendered with ``conventions.render_intrinsics``). View 0 is egocentric (per-frame
 extrinsics, K for a 2800x2000 image, OpenCV rational distortion ``dist8``); views 1..8 are

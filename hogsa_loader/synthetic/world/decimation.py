@@ -1,23 +1,4 @@
-"""Mesh decimation maps of a world: ``meta/mano_decimator_195.npy`` and ``meta/downsamplers.npy``.
-
-Both are ``np.save``-d 0-d object arrays holding a dict (ARCTIC reads them with
-``np.load(path, allow_pickle=True).item()``). Every map is a decimation matrix ``D`` of
-shape (sub-sampled vertices, mesh vertices) whose rows each select one mesh vertex
-(a single 1 per row), so ``D @ verts`` gives the sub-sampled points and every row sums to 1.
-
-``mano_decimator_195.npy``
-    ``{"D_right": (195, V) float32, "D_left": (195, V) float32, "vertex_ids_right": (195,)
-    int64, "vertex_ids_left": (195,) int64}``, V = the hand model's vertex count; the 195
-    vertices are farthest-point samples of each side's rest mesh. Dense, because ARCTIC's
-    ``MANODecimator`` turns every value whose key contains ``"D"`` into a
-    ``torch.FloatTensor`` and batch-multiplies it with the (B, V, 3) MANO vertices.
-``downsamplers.npy``
-    ``{obj: {"D": scipy.sparse.csr_matrix (600, V_obj) float32, "vertex_ids": (600,)
-    int64}}`` for every object template: row i selects the ``mesh.obj`` vertex nearest to
-    sub-sampled point i of ``top_keypoints_300.json`` (rows 0-299) then
-    ``bottom_keypoints_300.json`` (rows 300-599), the order of ``ObjectTensors``' ``v_sub``.
-    Sparse, as a dense (600, V_obj) matrix per object would take megabytes.
-"""
+"""Mesh decimation maps of a world: ``meta/mano_decimator_195.npy`` and ``meta/downsamplers.npy``."""
 
 from __future__ import annotations
 
@@ -25,6 +6,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
 
 from hogsa_loader.errors import PathLike
 from hogsa_loader.objects.template import ObjectTemplate, farthest_point_sampling
@@ -81,9 +64,6 @@ def object_downsamplers(templates: Mapping[str, ObjectTemplate]) -> dict[str, di
     Returns:
         ``{name: {"D": csr_matrix (600, V) float32, "vertex_ids": (600,) int64}}``.
     """
-    from scipy.sparse import csr_matrix
-    from scipy.spatial import cKDTree
-
     out: dict[str, dict[str, Any]] = {}
     for name, t in templates.items():
         sub = np.concatenate([t.sub_top, t.sub_bottom]).astype(np.float64)
@@ -102,6 +82,24 @@ def _save(path: Path, obj: Any) -> None:
 def write_decimation_files(meta_dir: PathLike, models: Mapping[str, Any],
                            templates: Mapping[str, ObjectTemplate]) -> tuple[Path, Path]:
     """Write ``mano_decimator_195.npy`` and ``downsamplers.npy`` into ``meta_dir``.
+
+    Both are ``np.save``-d 0-d object arrays holding a dict (ARCTIC reads them with
+    ``np.load(path, allow_pickle=True).item()``). Every map is a decimation matrix ``D`` of
+    shape (sub-sampled vertices, mesh vertices) whose rows each select one mesh vertex
+    (a single 1 per row), so ``D @ verts`` gives the sub-sampled points and every row sums to 1.
+
+    ``mano_decimator_195.npy``
+        ``{"D_right": (195, V) float32, "D_left": (195, V) float32, "vertex_ids_right": (195,)
+        int64, "vertex_ids_left": (195,) int64}``, V = the hand model's vertex count; the 195
+        vertices are farthest-point samples of each side's rest mesh. Dense, because ARCTIC's
+        ``MANODecimator`` turns every value whose key contains ``"D"`` into a
+        ``torch.FloatTensor`` and batch-multiplies it with the (B, V, 3) MANO vertices.
+    ``downsamplers.npy``
+        ``{obj: {"D": scipy.sparse.csr_matrix (600, V_obj) float32, "vertex_ids": (600,)
+        int64}}`` for every object template: row i selects the ``mesh.obj`` vertex nearest to
+        sub-sampled point i of ``top_keypoints_300.json`` (rows 0-299) then
+        ``bottom_keypoints_300.json`` (rows 300-599), the order of ``ObjectTensors``' ``v_sub``.
+        Sparse, as a dense (600, V_obj) matrix per object would take megabytes.
 
     Returns:
         (decimator path, downsamplers path).

@@ -1,25 +1,12 @@
-"""Grasp synthesis: place a MANO-schema hand on an object part and close it onto the surface.
+"""Grasp synthesis: place a MANO-schema hand on an object part and close it onto the surface
+(:func:`optimise_grasp`).
 
 Every procedural object part is a rounded box (convex), so the object's signed distance is
 the minimum of analytic rounded-box SDFs (:class:`RoundedBox`, fitted to the part's
-``mesh.obj`` vertices, which lie on that surface; the triangle mesh is inscribed, so
-``sdf >= 0`` implies "outside the mesh").
-
-A grasp is found in the frame of the part it attaches to, at articulation θ = 0:
-
-1. Placement from a :class:`GraspSpec`: the palm centre (mean of the palm contact-prior
-   vertices) goes to a point of the part, the palm normal along the spec's direction into
-   the object, the fingers along the spec's finger direction.
-2. Optimisation (Adam, autograd through :class:`~hogsa_loader.hands.mano.MANOLayer`) of a
-   small global correction and per-joint flexion/abduction angles so that the finger pads
-   and palm touch the surface (SDF -> 0), no vertex enters the object (SDF < 0 penalised)
-   or the table, joints stay in range and near the initial curl.
-3. A final push-out along the SDF gradient removes any residual penetration deeper than
-   ``max_depth``.
-
-Conventions: right-handed metres; ``R`` maps the hand's MANO frame to the part frame and
-the hand vertices are ``v = R (v_local - J0) + wrist`` where ``v_local`` is the
-articulated hand with zero global orientation and ``J0`` its wrist joint.
+``mesh.obj`` vertices; the triangle mesh is inscribed, so ``sdf >= 0`` implies "outside the
+mesh"). ``R`` maps the hand's MANO frame to the part frame and the hand vertices are
+``v = R (v_local - J0) + wrist`` (``v_local``: the articulated hand with zero global
+orientation, ``J0`` its wrist joint); right-handed metres.
 """
 
 from __future__ import annotations
@@ -309,10 +296,127 @@ def _angle_init(kit: HandKit, curl: float) -> tuple[np.ndarray, np.ndarray]:
     return flex, abd
 
 
+@dataclass
+class _Placement:
+    """The initial grasp: articulation angles, hand rotation and wrist, float32 tensors."""
+
+    flex0: Tensor  # (15,) flexion angles
+    abd0: Tensor  # (15,) abduction angles
+    R0: Tensor  # (3, 3) hand rotation (MANO frame -> part frame)
+    J0: Tensor  # (3,) wrist joint of the local hand
+    wrist0: Tensor  # (3,) wrist position
+    normal: np.ndarray  # (3,) unit palm-into-object direction
+
+
+def _place(kit: HandKit, b: Tensor, spec: GraspSpec, boxes: dict[int, RoundedBox]) -> _Placement:
+    """Palm centre at the spec's target point, backed off along the palm normal to the surface
+    (``spec.standoff`` outside it), fingers along the spec's finger direction."""
+    dt = b.dtype
+    flex0, abd0 = _angle_init(kit, spec.curl)
+    flex0_t, abd0_t = torch.tensor(flex0, dtype=dt), torch.tensor(abd0, dtype=dt)
+    v_loc, j_loc = kit.local(kit.articulation(flex0_t, abd0_t)[None], b)
+    J0 = j_loc[0, 0].double().numpy()
+    local_fingers = (j_loc[0, 4] - j_loc[0, 0]).double().numpy()
+    R0 = placement_rotation(local_fingers, kit.axes.palm_normal, np.array(spec.fingers), np.array(spec.normal))
+    normal = np.asarray(spec.normal, float) / np.linalg.norm(spec.normal)
+    palm = torch.as_tensor(kit.pads["palm"])
+    pc = v_loc[0, palm].mean(0).double().numpy()
+    target = boxes[spec.part].point(spec.point)
+    wrist0 = target - R0 @ (pc - J0)
+    probe = torch.as_tensor(target[None], dtype=dt)
+    depth = -object_sdf(probe, boxes).item()  # > 0 when the target is inside
+    wrist0 = wrist0 - (depth + spec.standoff) * normal
+    return _Placement(flex0_t, abd0_t, torch.as_tensor(R0, dtype=dt), torch.as_tensor(J0, dtype=dt),
+                      torch.as_tensor(wrist0, dtype=dt), normal)  # fmt: skip
+
+
+class _GraspFit:
+    """The hand posed by (flex, abd, drot, dpos) around a placement, and the object it must
+    touch without entering (also at every opening of ``sweep_angles``)."""
+
+    def __init__(self, kit: HandKit, b: Tensor, spec: GraspSpec, boxes: dict[int, RoundedBox], pl: _Placement,
+                 sweep_angles: tuple[float, ...]) -> None:  # fmt: skip
+        dt = b.dtype
+        self.kit, self.b, self.spec, self.boxes, self.pl = kit, b, spec, boxes, pl
+        self.sweep = [torch.as_tensor(rot_z_matrix(-a), dtype=dt) for a in sweep_angles]
+        self.lo = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[0] for j in range(15)],
+                               dtype=dt)  # fmt: skip
+        self.hi = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[1] for j in range(15)],
+                               dtype=dt)  # fmt: skip
+        self.groups = {g: torch.as_tensor(kit.pads[g]) for g in spec.contacts}
+        self.n_t = torch.as_tensor(pl.normal, dtype=dt)
+
+    def pose(self, flex: Tensor, abd: Tensor, drot: Tensor, dpos: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(V, 3) vertices, (3, 3) rotation and (3,) wrist of the hand."""
+        R = axis_angle_to_matrix(drot) @ self.pl.R0
+        v, _ = self.kit.local(self.kit.articulation(flex, abd)[None], self.b)
+        verts = (v[0] - self.pl.J0) @ R.T + self.pl.wrist0 + dpos
+        return verts, R, self.pl.wrist0 + dpos
+
+    def moving_part(self, v: Tensor, Rs: Tensor) -> Tensor:
+        """SDF of the part that turns relative to the hand, at one opening."""
+        boxes = self.boxes
+        return boxes[BOTTOM].sdf(v @ Rs.T) if self.spec.part == TOP else boxes[TOP].sdf(v @ Rs)
+
+    def field(self, v: Tensor) -> Tensor:
+        """(N,) distance to the object at rest and at every opening."""
+        d = object_sdf(v, self.boxes)
+        for Rs in self.sweep:
+            d = torch.minimum(d, self.moving_part(v, Rs))
+        return d
+
+    def loss(self, flex: Tensor, abd: Tensor, drot: Tensor, dpos: Tensor, tn: Tensor, table_offset: float) -> Tensor:
+        """Penetration (object, turning part, table), contact of the spec's pad groups with the
+        held part, and priors on the angles and the correction."""
+        verts, _, _ = self.pose(flex, abd, drot, dpos)
+        d = object_sdf(verts, self.boxes)
+        loss = 3e3 * torch.relu(-d).pow(2).sum()
+        d_held = self.boxes[self.spec.part].sdf(verts)  # contacts are made with the part that is held
+        for Rs in self.sweep:  # stay out of the part that turns relative to the hand, at every opening
+            loss = loss + 3e3 * torch.relu(-self.moving_part(verts, Rs)).pow(2).sum()
+        height = verts @ tn - table_offset
+        loss = loss + 3e3 * torch.relu(0.003 - height).pow(2).sum()
+        for g, ids in self.groups.items():
+            dg = d_held[ids]
+            k = min(8 if g != "palm" else 40, dg.shape[0])
+            near = torch.topk(dg, k, largest=False).values
+            loss = loss + (near.clamp_min(0.0).pow(2).mean() + 0.2 * dg.clamp_min(0.0).pow(2).mean()) * 5e2
+        loss = loss + 1e-3 * ((flex - self.pl.flex0) ** 2).sum() + 2e-2 * ((abd - self.pl.abd0) ** 2).sum()
+        loss = loss + 1.0 * (torch.relu(flex - self.hi) ** 2 + torch.relu(self.lo - flex) ** 2).sum()
+        dtan = dpos - (dpos @ self.n_t) * self.n_t
+        return loss + 2.0 * (dtan ** 2).sum() + 1e-3 * (drot ** 2).sum()
+
+    @torch.no_grad()
+    def push_out(self, verts: Tensor, wrist: Tensor, max_depth: float) -> tuple[Tensor, Tensor]:
+        """Shift the hand along the SDF gradient of its deepest vertex until the residual
+        penetration is at most ``max_depth`` (20 steps at most)."""
+        for _ in range(20):
+            d = self.field(verts)
+            if -d.min().item() <= max_depth:
+                break
+            with torch.enable_grad():
+                p = verts[d.argmin()].clone().requires_grad_(True)
+                (g,) = torch.autograd.grad(self.field(p[None]).sum(), p)
+            shift = g / g.norm() * (-d.min() - 0.5 * max_depth)
+            verts = verts + shift
+            wrist = wrist + shift
+        return verts, wrist
+
+
 def optimise_grasp(kit: HandKit, betas: np.ndarray, spec: GraspSpec, boxes: dict[int, RoundedBox],
                    table_normal: np.ndarray, table_offset: float, iters: int = 140,
                    max_depth: float = 1e-3, sweep_angles: tuple[float, ...] = ()) -> Grasp:
-    """Find a grasp (see module docstring).
+    """Find a grasp in the frame of the part it attaches to, at articulation θ = 0.
+
+    1. Placement from ``spec`` (:func:`_place`): the palm centre (mean of the palm
+       contact-prior vertices) goes to a point of the part, the palm normal along the spec's
+       direction into the object, the fingers along the spec's finger direction.
+    2. Optimisation (Adam, autograd through the MANO layer; :meth:`_GraspFit.loss`) of a small
+       global correction and per-joint flexion/abduction angles so that the finger pads and
+       palm touch the surface (SDF -> 0), no vertex enters the object (SDF < 0 penalised) or
+       the table, joints stay in range and near the initial curl.
+    3. A final push-out along the SDF gradient (:meth:`_GraspFit.push_out`) removes any
+       residual penetration deeper than ``max_depth``.
 
     Args:
         kit: the hand.
@@ -332,101 +436,32 @@ def optimise_grasp(kit: HandKit, betas: np.ndarray, spec: GraspSpec, boxes: dict
     """
     dt = torch.float32  # float32 optimisation (2x faster); results are returned as float64
     b = torch.as_tensor(np.asarray(betas, np.float64)[None], dtype=dt)
-    flex0, abd0 = _angle_init(kit, spec.curl)
-    flex0_t, abd0_t = torch.tensor(flex0, dtype=dt), torch.tensor(abd0, dtype=dt)
-    v_loc, j_loc = kit.local(kit.articulation(flex0_t, abd0_t)[None], b)
-    J0 = j_loc[0, 0].double().numpy()
-    local_fingers = (j_loc[0, 4] - j_loc[0, 0]).double().numpy()
-    R0 = placement_rotation(local_fingers, kit.axes.palm_normal, np.array(spec.fingers), np.array(spec.normal))
-    normal = np.asarray(spec.normal, float) / np.linalg.norm(spec.normal)
-    palm = torch.as_tensor(kit.pads["palm"])
-    pc = v_loc[0, palm].mean(0).double().numpy()
-    target = boxes[spec.part].point(spec.point)
-    # put the palm centre at the target, then back off along the normal to the surface
-    wrist0 = target - R0 @ (pc - J0)
-    probe = torch.as_tensor(target[None], dtype=dt)
-    depth = -object_sdf(probe, boxes).item()  # > 0 when the target is inside
-    wrist0 = wrist0 - (depth + spec.standoff) * normal
-
-    R0_t = torch.as_tensor(R0, dtype=dt)
-    J0_t = torch.as_tensor(J0, dtype=dt)
-    n_t = torch.as_tensor(normal, dtype=dt)
+    pl = _place(kit, b, spec, boxes)
+    fit = _GraspFit(kit, b, spec, boxes, pl, sweep_angles)
     tn = torch.as_tensor(np.asarray(table_normal, float), dtype=dt)
-    groups = {g: torch.as_tensor(kit.pads[g]) for g in spec.contacts}
-    flex = flex0_t.clone().requires_grad_(True)
-    abd = abd0_t.clone().requires_grad_(True)
+    flex = pl.flex0.clone().requires_grad_(True)
+    abd = pl.abd0.clone().requires_grad_(True)
     drot = torch.zeros(3, dtype=dt, requires_grad=True)
     dpos = torch.zeros(3, dtype=dt, requires_grad=True)
     opt = _Adam([(flex, 0.04), (abd, 0.04), (drot, 0.01), (dpos, 0.002)])
-    lo = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[0] for j in range(15)], dtype=dt)
-    hi = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[1] for j in range(15)], dtype=dt)
-    wrist0_t = torch.as_tensor(wrist0, dtype=dt)
-
-    def pose(flex: Tensor, abd: Tensor, drot: Tensor, dpos: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        R = axis_angle_to_matrix(drot) @ R0_t
-        v, _ = kit.local(kit.articulation(flex, abd)[None], b)
-        verts = (v[0] - J0_t) @ R.T + wrist0_t + dpos
-        return verts, R, wrist0_t + dpos
-
-    sweep = [torch.as_tensor(rot_z_matrix(-a), dtype=dt) for a in sweep_angles]
-
-    def moving_part(v: Tensor, Rs: Tensor) -> Tensor:
-        """SDF of the part that turns relative to the hand, at one opening."""
-        return boxes[BOTTOM].sdf(v @ Rs.T) if spec.part == TOP else boxes[TOP].sdf(v @ Rs)
-
     for _ in range(iters):
         opt.zero_grad()
-        verts, _, _ = pose(flex, abd, drot, dpos)
-        d = object_sdf(verts, boxes)
-        loss = 3e3 * torch.relu(-d).pow(2).sum()
-        d_held = boxes[spec.part].sdf(verts)  # contacts are made with the part that is held
-        for Rs in sweep:  # stay out of the part that turns relative to the hand, at every opening
-            loss = loss + 3e3 * torch.relu(-moving_part(verts, Rs)).pow(2).sum()
-        height = verts @ tn - table_offset
-        loss = loss + 3e3 * torch.relu(0.003 - height).pow(2).sum()
-        for g, ids in groups.items():
-            dg = d_held[ids]
-            k = min(8 if g != "palm" else 40, dg.shape[0])
-            near = torch.topk(dg, k, largest=False).values
-            loss = loss + (near.clamp_min(0.0).pow(2).mean() + 0.2 * dg.clamp_min(0.0).pow(2).mean()) * 5e2
-        loss = loss + 1e-3 * ((flex - flex0_t) ** 2).sum() + 2e-2 * ((abd - abd0_t) ** 2).sum()
-        loss = loss + 1.0 * (torch.relu(flex - hi) ** 2 + torch.relu(lo - flex) ** 2).sum()
-        dtan = dpos - (dpos @ n_t) * n_t
-        loss = loss + 2.0 * (dtan ** 2).sum() + 1e-3 * (drot ** 2).sum()
-        loss.backward()
+        fit.loss(flex, abd, drot, dpos, tn, table_offset).backward()
         opt.step()
-
-    def field(v: Tensor) -> Tensor:
-        d = object_sdf(v, boxes)
-        for Rs in sweep:
-            d = torch.minimum(d, moving_part(v, Rs))
-        return d
-
     with torch.no_grad():
-        flex_c = torch.minimum(torch.maximum(flex, lo), hi)
-        verts, R, wrist = pose(flex_c, abd, drot, dpos)
-        # push out of the object along the SDF gradient until the residual is small
-        for _ in range(20):
-            d = field(verts)
-            if -d.min().item() <= max_depth:
-                break
-            with torch.enable_grad():
-                p = verts[d.argmin()].clone().requires_grad_(True)
-                (g,) = torch.autograd.grad(field(p[None]).sum(), p)
-            shift = g / g.norm() * (-d.min() - 0.5 * max_depth)
-            verts = verts + shift
-            wrist = wrist + shift
-        d = object_sdf(verts, boxes)
+        flex_c = torch.minimum(torch.maximum(flex, fit.lo), fit.hi)
+        verts, R, wrist = fit.pose(flex_c, abd, drot, dpos)
+        verts, wrist = fit.push_out(verts, wrist, max_depth)
         height = verts @ tn - table_offset
         stats = {
-            "max_depth_m": float(max(0.0, -field(verts).min().item())),
+            "max_depth_m": float(max(0.0, -fit.field(verts).min().item())),
             "min_table_clearance_m": float(height.min().item()),
-            "contact_groups": {g: float(boxes[spec.part].sdf(verts[ids]).min().item()) for g, ids in groups.items()},
+            "contact_groups": {g: float(boxes[spec.part].sdf(verts[ids]).min().item())
+                               for g, ids in fit.groups.items()},  # fmt: skip
         }
         art = kit.articulation(flex_c.double(), abd.double()).numpy()
-        open_art = kit.articulation(flex0_t.double() * 0.3 - 0.05, abd0_t.double() * 0.5).numpy()
-        # re-orthonormalise the float32 rotation
-        u, _, vt = np.linalg.svd(R.double().numpy())
+        open_art = kit.articulation(pl.flex0.double() * 0.3 - 0.05, pl.abd0.double() * 0.5).numpy()
+        u, _, vt = np.linalg.svd(R.double().numpy())  # re-orthonormalise the float32 rotation
         rot = u @ vt
     return Grasp(part=spec.part, rot=rot, wrist=wrist.double().numpy(), art=art, open_art=open_art,
-                 normal=normal, stats=stats)
+                 normal=pl.normal, stats=stats)

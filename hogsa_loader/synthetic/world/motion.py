@@ -1,19 +1,4 @@
-"""ARCTIC-like sequence motion: rest, reach, grasp, manipulate, release, rest.
-
-Time is the frame index t in [0, F-1]. Every phase is interpolated with the minimum-jerk
-profile ``10s^3 - 15s^4 + 6s^5`` (zero velocity and acceleration at both ends), so the
-whole motion is smooth (no jumps) and piecewise-still at phase boundaries.
-
-Object: rests on the table, then during the manipulation window moves through keyframes
-(lift, rotate about its centre, shift; for ``use`` the articulation θ goes 0 -> θmax -> 0)
-and is put down again. Hands: rest palm-down on the table, reach a pre-grasp pose 5 cm off
-the surface with an open hand (an arc through the air), slide in and close the fingers,
-stay rigidly attached to their part (pose fixed in the part frame, which for the top part
-includes R_z(-θ)), then open, back off and return to a rest pose.
-
-Outputs are the raw ARCTIC parameters (spec §1.4): object (F, 7) [θ, axis-angle, mm] and
-per hand rot (F,3) / pose (F,45, relative to the MANO mean) / trans (F,3).
-"""
+"""ARCTIC-like sequence motion: rest, reach, grasp, manipulate, release, rest."""
 
 from __future__ import annotations
 
@@ -21,11 +6,20 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter1d, maximum_filter1d
 from scipy.spatial.transform import Rotation
 
 from hogsa_loader.objects.template import TOP, ObjectTemplate
 from hogsa_loader.synthetic.world.grasp import (
-    Grasp, HandKit, RoundedBox, fit_part_boxes, grasp_specs, object_sdf, optimise_grasp, rot_z_matrix,
+    Grasp,
+    HandKit,
+    RoundedBox,
+    fit_part_boxes,
+    grasp_specs,
+    object_sdf,
+    optimise_grasp,
+    placement_rotation,
+    rot_z_matrix,
 )
 from hogsa_loader.synthetic.world.stage import TABLE_Z, WORKSPACE
 
@@ -169,8 +163,6 @@ def _rest_pose(kit: HandKit, betas: np.ndarray, side: str, rng: np.random.Genera
         half_width: the object's half extent along world x at rest, from the workspace
             centre; the hand rests beyond it.
     """
-    from hogsa_loader.synthetic.world.grasp import placement_rotation
-
     sgn = 1.0 if side == "right" else -1.0
     art = kit.mean * rng.uniform(0.7, 0.9)
     art_t = torch.as_tensor(art[None])
@@ -253,8 +245,6 @@ def _depenetrate(kit: HandKit, betas: np.ndarray, R: np.ndarray, W: np.ndarray, 
     Returns:
         (F, 3) corrected wrist positions.
     """
-    from scipy.ndimage import gaussian_filter1d, maximum_filter1d
-
     b = torch.as_tensor(np.repeat(np.asarray(betas, np.float64)[None], len(A), 0))
     v, j = kit.local(torch.as_tensor(A), b)
     local = (v - j[:, :1]).numpy()
@@ -307,7 +297,21 @@ def hands_to_params(kit: HandKit, betas: np.ndarray, R: np.ndarray, wrist: np.nd
 
 def build_motion(F: int, obj: str, action: str, template: ObjectTemplate, kits: dict[str, HandKit],
                  betas: np.ndarray, rng: np.random.Generator, grasp_iters: int = 140) -> SequenceMotion:
-    """Generate one sequence (see module docstring).
+    """Generate one sequence: rest, reach, grasp, manipulate, release, rest.
+
+    Time is the frame index t in [0, F-1]. Every phase is interpolated with the minimum-jerk
+    profile ``10s^3 - 15s^4 + 6s^5`` (zero velocity and acceleration at both ends), so the
+    whole motion is smooth (no jumps) and piecewise-still at phase boundaries.
+
+    Object: rests on the table, then during the manipulation window moves through keyframes
+    (lift, rotate about its centre, shift; for ``use`` the articulation θ goes 0 -> θmax -> 0)
+    and is put down again. Hands: rest palm-down on the table, reach a pre-grasp pose 5 cm off
+    the surface with an open hand (an arc through the air), slide in and close the fingers,
+    stay rigidly attached to their part (pose fixed in the part frame, which for the top part
+    includes R_z(-θ)), then open, back off and return to a rest pose.
+
+    Outputs are ARCTIC's raw ``raw_seqs`` parameters: object (F, 7) [θ, axis-angle, mm] and
+    per hand rot (F,3) / pose (F,45, relative to the MANO mean) / trans (F,3).
 
     Args:
         F: number of frames.

@@ -16,6 +16,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
+from hogsa_loader.synthetic.world.grasp import GRASP_DESIGNS
+
 __all__ = ["SequencePlan", "SubjectPlan", "WorldPreset", "PRESETS", "get_preset"]
 
 ACTIONS = ("grab", "use")
@@ -42,7 +45,6 @@ class SequencePlan:
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
             raise ValueError(f"action must be one of {ACTIONS}, got {self.action!r}")
-        from hogsa_loader.synthetic.world.grasp import GRASP_DESIGNS
 
         if (self.object, self.action) not in GRASP_DESIGNS:
             raise ValueError(f"({self.object!r}, {self.action!r}) has no designed grasp; choose from {GRASP_DESIGNS}")
@@ -121,8 +123,6 @@ class WorldPreset:
     @property
     def ego_size(self) -> tuple[int, int]:
         """(width, height) of the egocentric cropped images."""
-        from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
-
         return (int(round(EGO_IMAGE_SIZE[0] * self.ego_image_scale)),
                 int(round(EGO_IMAGE_SIZE[1] * self.ego_image_scale)))
 

@@ -16,10 +16,20 @@ import cv2
 import numpy as np
 import torch
 
+from hogsa_loader.datasets.arctic import read_npy
 from hogsa_loader.datasets.conventions import (
-    HAND_BONES, allocentric_bbox, distort_points, full_to_cropped, project, transform,
+    HAND_BONES,
+    allocentric_bbox,
+    distort_points,
+    full_to_cropped,
+    project,
+    transform,
 )
 from hogsa_loader.errors import PathLike
+from hogsa_loader.hands.mano import MANOLayer
+from hogsa_loader.hands.mano_io import load_mano
+from hogsa_loader.objects.articulated import articulate
+from hogsa_loader.objects.template import load_object_template
 
 __all__ = ["HAND_BONES", "project_annotations", "write_world_preview"]
 
@@ -30,10 +40,6 @@ class _World:
     """Files of a generated world, loaded once."""
 
     def __init__(self, root: Path) -> None:
-        from hogsa_loader.hands.mano import MANOLayer
-        from hogsa_loader.hands.mano_io import load_mano
-        from hogsa_loader.objects.template import load_object_template
-
         self.root = root
         self.data = root / "arctic_data" / "data"
         self.meta = json.loads((self.data / "meta" / "hogsa_world.json").read_text())
@@ -51,8 +57,6 @@ class _World:
         return self._templates[name]
 
     def raw(self, sid: str, seq: str) -> tuple[dict, np.ndarray, dict]:
-        from hogsa_loader.datasets.arctic import read_npy  # restricted unpickler: never runs file code
-
         base = self.data / "raw_seqs" / sid
         return (read_npy(base / f"{seq}.mano.npy"), np.asarray(read_npy(base / f"{seq}.object.npy")),
                 read_npy(base / f"{seq}.egocam.dist.npy"))
@@ -64,8 +68,6 @@ def project_annotations(world: "_World", sid: str, seq: str, frames: list[int], 
     Returns:
         dict ``right``/``left`` (n, 21, 2), ``kp_top``/``kp_bottom`` (n, 16, 2).
     """
-    from hogsa_loader.objects.articulated import articulate
-
     mano, obj, ego = world.raw(sid, seq)
     idx = np.asarray(frames)
     pts = {}

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-
-from hogsa_loader.synthetic.world.grasp import RoundedBox, object_sdf, rot_z_matrix as rot_z
 from scipy.spatial.transform import Rotation
+
+from hogsa_loader.synthetic.world.grasp import RoundedBox, object_sdf
+from hogsa_loader.synthetic.world.grasp import rot_z_matrix as rot_z
 
 __all__ = ["CONTACT_THRESHOLD", "hand_object_distances", "sequence_quality"]
 
-#: ARCTIC's contact threshold (3 mm, spec §4).
+#: ARCTIC's contact threshold: a hand vertex within 3 mm of the object is in contact.
 CONTACT_THRESHOLD = 0.003
 
 

@@ -1,20 +1,4 @@
-"""Rendering a world's cropped images and masks with the project mesh rasteriser.
-
-ARCTIC's cropped-image conventions (spec §1.9) are produced directly, without rendering
-full-resolution frames:
-
-* allocentric views 1..8: the object-centred box of the projected ``mesh.obj`` vertices
-  (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`), enlarged 1.5x, rendered at
-  ``size x size`` with :func:`~hogsa_loader.datasets.conventions.cropped_intrinsics`. The
-  static table/room is rendered once per camera at (a fraction of) full resolution and
-  warped into each crop; hands and object are rasterised over it. Crop pixels outside the
-  full-resolution image are black (as ``cv2.warpAffine`` padding makes them in ARCTIC).
-* egocentric view 0: the whole 2800x2000 frame scaled by the ego scale, rendered
-  undistorted (with a margin) and then warped through the lens distortion
-  (:func:`~hogsa_loader.datasets.conventions.undistort_map` + ``cv2.remap``).
-
-Masks use ``MASK_IDS`` and share the geometry of their image.
-"""
+"""Rendering a world's cropped images and masks with the project mesh rasteriser."""
 
 from __future__ import annotations
 
@@ -25,14 +9,21 @@ import numpy as np
 import torch
 
 from hogsa_loader.datasets.conventions import (
+    BBOX_PIXELS_PER_SCALE,
+    CROP_ENLARGE,
+    EGO_IMAGE_SIZE,
     MASK_IDS,
+    allocentric_bbox,
+    cropped_intrinsics,
+    project,
+    render_intrinsics,
+    transform,
     undistort_map,
-    BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, EGO_IMAGE_SIZE, allocentric_bbox, cropped_intrinsics, project, render_intrinsics, transform,
 )
-from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
+from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.synthetic.world.stage import light_for_camera
 
 __all__ = ["HAND_BASE_SKIN", "PosedSequence", "pose_sequence", "crop_boxes", "object_meshes",
@@ -133,6 +124,21 @@ def foreground(posed: PosedSequence, i: int, hand_faces: dict, hand_colors: dict
 
 class SubjectRenderer:
     """Renders the frames of one subject's sequences (cameras, skin and stage fixed).
+
+    ARCTIC's cropped images (``cropped_images/``) are produced directly, without rendering
+    full-resolution frames:
+
+    * allocentric views 1..8: the object-centred box of the projected ``mesh.obj`` vertices
+      (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`), enlarged 1.5x, rendered at
+      ``size x size`` with :func:`~hogsa_loader.datasets.conventions.cropped_intrinsics`. The
+      static table/room is rendered once per camera at (a fraction of) full resolution and
+      warped into each crop; hands and object are rasterised over it. Crop pixels outside the
+      full-resolution image are black (as ``cv2.warpAffine`` padding makes them in ARCTIC).
+    * egocentric view 0: the whole 2800x2000 frame scaled by the ego scale, rendered
+      undistorted (with a margin) and then warped through the lens distortion
+      (:func:`~hogsa_loader.datasets.conventions.undistort_map` + ``cv2.remap``).
+
+    Masks use ``MASK_IDS`` and share the geometry of their image.
 
     Args:
         rig: the subject's :class:`~hogsa_loader.synthetic.world.cameras.AlloRig`.

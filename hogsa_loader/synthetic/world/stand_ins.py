@@ -6,16 +6,6 @@ SMPL-X fields, so a world writes them with ARCTIC's keys and shapes, filled with
 naming ``smplx`` (src/arctic/split.py ``sanity_check_annot``), and its dataset and training
 code never read these keys (src/datasets/arctic_dataset.py reads the MANO, object and
 camera keys only).
-
-* ``raw_seqs/<sid>/<seq>.smplx.npy``: ``{transl (F,3), global_orient (F,3), body_pose
-  (F,63), jaw_pose (F,3), leye_pose (F,3), reye_pose (F,3), left_hand_pose (F,45),
-  right_hand_pose (F,45)}``, all NaN.
-* ``splits/<p>_<split>.npy``: per sequence ``cam_coord["joints.smplx"]`` (F,10,127,3),
-  ``2d["joints.smplx"]`` (F,10,127,2) and ``params["smplx_<name>"]`` for every raw key
-  above, all NaN.
-
-Not written at all: the SMPL-X model files and the subjects' SMPL-X template meshes (see
-:data:`NOT_PROVIDED`); :func:`record` lists both in ``meta/hogsa_world.json``.
 """
 
 from __future__ import annotations
@@ -26,6 +16,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from hogsa_loader.datasets.arctic import read_npy
 from hogsa_loader.errors import AssetError, PathLike
 
 __all__ = [
@@ -95,8 +86,6 @@ def add_split_stand_ins(paths: Iterable[PathLike]) -> None:
 
     Files that already hold every key are left untouched.
     """
-    from hogsa_loader.datasets.arctic import read_npy
-
     for path in map(Path, paths):
         data = read_npy(path)
         if not isinstance(data, dict) or not isinstance(data.get("data_dict"), dict):
@@ -110,7 +99,18 @@ def add_split_stand_ins(paths: Iterable[PathLike]) -> None:
 
 
 def record() -> dict[str, list[dict[str, Any]]]:
-    """The ``stand_ins`` and ``not_provided`` fields of ``meta/hogsa_world.json``."""
+    """The ``stand_ins`` and ``not_provided`` fields of ``meta/hogsa_world.json``.
+
+    * ``raw_seqs/<sid>/<seq>.smplx.npy``: ``{transl (F,3), global_orient (F,3), body_pose
+      (F,63), jaw_pose (F,3), leye_pose (F,3), reye_pose (F,3), left_hand_pose (F,45),
+      right_hand_pose (F,45)}``, all NaN.
+    * ``splits/<p>_<split>.npy``: per sequence ``cam_coord["joints.smplx"]`` (F,10,127,3),
+      ``2d["joints.smplx"]`` (F,10,127,2) and ``params["smplx_<name>"]`` for every raw key
+      above, all NaN.
+
+    Not written at all: the SMPL-X model files and the subjects' SMPL-X template meshes (see
+    :data:`NOT_PROVIDED`); :func:`record` lists both in ``meta/hogsa_world.json``.
+    """
     raw_keys = list(SMPLX_PARAMS)
     return {
         "stand_ins": [

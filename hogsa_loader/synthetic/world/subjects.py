@@ -1,7 +1,7 @@
 """Per-subject identity: hand shape (MANO betas), skin tone, gender, image-index offset.
 
 Every subject draws from its own random stream ``(seed, crc32(sid))`` so adding a subject
-to a preset does not change the others. Genders follow ARCTIC's subjects (spec §1.2).
+to a preset does not change the others. Genders follow ARCTIC's subjects (:data:`ARCTIC_GENDERS`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["Subject", "ARCTIC_GENDERS", "SKIN_TONES", "make_subject", "subject_rng"]
 
-#: Gender of ARCTIC's subjects (src/arctic/split.py comments, spec §1.2).
+#: Gender of ARCTIC's subjects (comments of ARCTIC's ``src/arctic/split.py``).
 ARCTIC_GENDERS: dict[str, str] = {
     "s01": "female", "s02": "female", "s03": "male", "s04": "male", "s05": "female",
     "s06": "male", "s07": "male", "s08": "female", "s09": "female", "s10": "male",

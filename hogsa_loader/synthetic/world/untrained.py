@@ -10,7 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
+from hogsa_loader.bundle import write_bundle
+from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import PathLike
+from hogsa_loader.gaussians.checkpoint import save_part
+from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
 
 __all__ = ["write_untrained_bundle"]
 
@@ -35,11 +39,6 @@ def write_untrained_bundle(
     Returns:
         the bundle folder.
     """
-    from hogsa_loader.bundle import write_bundle
-    from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
-
     root = ArcticRoot(data_root)
     layers, templates = root.mano_layers(), root.object_templates()
     run = Path(out) / "runs" / f"{subject}_{obj}"

@@ -1,29 +1,4 @@
-"""``generate_world``: write a complete ARCTIC-format world (spec §1) with rendered images.
-
-Layout written under ``out`` (which plays ARCTIC's ``./data``)::
-
-    body_models/mano/MANO_{RIGHT,LEFT}.pkl          the synthetic MANO-schema hands
-    arctic_data/data/meta/misc.json                 per-subject cameras, sizes, ioi_offset, gender
-    arctic_data/data/meta/object_meta.json, object_vtemplates/<obj>/...   all 11 ARCTIC objects
-    arctic_data/data/meta/mano_decimator_195.npy, downsamplers.npy        decimation maps
-    arctic_data/data/meta/hogsa_world.json          generator record (sizes, mask ids, stand-ins, timings)
-    arctic_data/data/raw_seqs/<sid>/<seq>.{mano,object,egocam.dist,smplx}.npy
-    arctic_data/data/splits_json/protocol_p{1,2}.json
-    arctic_data/data/cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg
-    arctic_data/data/masks/<sid>/<seq>/<view>/<frame:05d>.png
-    arctic_data/data/splits/<p>_<split>.npy         (ARCTIC processing, from the files above)
-    world_preview.png
-
-Determinism: everything derives from ``seed`` through named random streams, arrays are
-written with ``np.save``, JSON with sorted keys, images with fixed OpenCV settings, so the
-same seed gives byte-identical files (``hogsa_world.json`` differs only in ``timings``).
-Every world holds the templates of all 11 ARCTIC objects (ARCTIC's ``ObjectTensors``
-opens them all); sequences use the preset's objects. The subjects have no body: SMPL-X
-fields are NaN stand-ins and the SMPL-X model files are absent
-(:mod:`hogsa_loader.synthetic.world.stand_ins`, listed in ``hogsa_world.json``).
-The rendering consumes the parameters exactly as stored (float32 raw arrays, JSON
-cameras), so images and annotations agree.
-"""
+"""``generate_world``: write a complete ARCTIC-format world with rendered images."""
 
 from __future__ import annotations
 
@@ -39,12 +14,37 @@ from typing import TYPE_CHECKING, Callable, Optional
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from hogsa_loader.datasets.arctic_processing import write_processed_splits
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE, MASK_IDS
 from hogsa_loader.errors import PathLike
+from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
+from hogsa_loader.objects.template import load_object_template, read_object_meta
 from hogsa_loader.render import raster_kernels
-from hogsa_loader.system import available_cores, can_fork
+from hogsa_loader.render.mesh_raster import warm_up_kernels
+from hogsa_loader.synthetic.hand import GENERATOR_VERSION, synthetic_hand_pair
+from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
+from hogsa_loader.synthetic.world.cameras import AlloRig, allocentric_rig, ego_calibration, ego_trajectory
+from hogsa_loader.synthetic.world.decimation import write_decimation_files
+from hogsa_loader.synthetic.world.grasp import HandKit, fit_part_boxes
+from hogsa_loader.synthetic.world.motion import build_motion
 from hogsa_loader.synthetic.world.presets import SequencePlan, WorldPreset
+from hogsa_loader.synthetic.world.preview import write_world_preview
+from hogsa_loader.synthetic.world.quality import sequence_quality
+from hogsa_loader.synthetic.world.scene_render import (
+    HAND_BASE_SKIN,
+    SubjectRenderer,
+    crop_boxes,
+    foreground,
+    object_meshes,
+    pose_sequence,
+)
+from hogsa_loader.synthetic.world.stage import build_stage
+from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins, smplx_raw
+from hogsa_loader.synthetic.world.stand_ins import record as stand_in_record
+from hogsa_loader.synthetic.world.subjects import make_subject
+from hogsa_loader.system import available_cores, can_fork, run_forked
 
 if TYPE_CHECKING:
     from hogsa_loader.synthetic.world.subjects import Subject
@@ -128,13 +128,6 @@ def _write_assets(root: Path, preset: WorldPreset, seed: int) -> tuple[dict, dic
         (models side -> ManoModelData, templates of the preset's objects name ->
         ObjectTemplate, stage MeshParts).
     """
-    from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
-    from hogsa_loader.synthetic.hand import synthetic_hand_pair
-    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
-    from hogsa_loader.objects.template import load_object_template, read_object_meta
-    from hogsa_loader.synthetic.world.decimation import write_decimation_files
-    from hogsa_loader.synthetic.world.stage import build_stage
-
     mano_dir = root / "body_models" / "mano"
     meta = root / "arctic_data" / "data" / "meta"
     right, left = synthetic_hand_pair(seed=HAND_MODEL_SEED)
@@ -154,11 +147,6 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
     Returns:
         (subjects, jobs) with the annotations exactly as stored (float32 arrays).
     """
-    from hogsa_loader.synthetic.world.cameras import allocentric_rig, ego_calibration, ego_trajectory
-    from hogsa_loader.synthetic.world.motion import build_motion
-    from hogsa_loader.synthetic.world.stand_ins import smplx_raw
-    from hogsa_loader.synthetic.world.subjects import make_subject
-
     F = preset.num_frames
     misc, subjects, jobs = {}, [], []
     for si, plan in enumerate(preset.subjects):
@@ -201,8 +189,6 @@ PARTIAL_RECORD = ".hogsa_world_partial.json"
 
 def _partial_fingerprint(preset: WorldPreset, seed: int) -> dict:
     """What a partly rendered world must match to be resumed: generators, preset and seed."""
-    from hogsa_loader.synthetic.hand import GENERATOR_VERSION
-
     digest = zlib.crc32(repr(preset).encode("utf-8"))
     return {"generator": GENERATOR, "hand_generator": GENERATOR_VERSION, "preset": preset.name,
             "preset_crc32": int(digest), "seed": int(seed)}
@@ -228,12 +214,6 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
     """Render every frame and view of every job (but the ``(sid, sequence)`` pairs in
     ``finished``, already on disk; ``on_finished("sid/seq")`` after each rendered one), one
     sequence per task on ``workers`` processes; returns per-sequence records with quality."""
-    from tqdm import tqdm
-
-    from hogsa_loader.synthetic.world.cameras import AlloRig
-    from hogsa_loader.synthetic.world.grasp import fit_part_boxes
-    from hogsa_loader.synthetic.world.quality import sequence_quality
-    from hogsa_loader.synthetic.world.scene_render import HAND_BASE_SKIN, crop_boxes, pose_sequence
 
     F, size = preset.num_frames, preset.cropped_size
     misc = json.loads((data / "meta" / "misc.json").read_text())
@@ -308,8 +288,6 @@ class _RenderShared:
 def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderers: dict) -> str:
     """Render one sequence with its subject's renderer (kept in ``renderers``, one subject at
     a time: its stage backgrounds are rendered once); returns ``sid/seq``."""
-    from hogsa_loader.synthetic.world.scene_render import SubjectRenderer
-
     sid = task.job.subject.sid
     renderer = renderers.get(sid)
     if renderer is None:
@@ -355,9 +333,6 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
     ``done`` in the parent for every sequence that finishes
     (:func:`hogsa_loader.system.run_forked`: on an error the others are stopped; a resumed
     run renders their sequences again)."""
-    from hogsa_loader.render.mesh_raster import warm_up_kernels
-    from hogsa_loader.system import run_forked
-
     global _SHARED
     warm_up_kernels()  # the processes inherit the compiled kernels
     counter = multiprocessing.get_context("fork").Value("q", 0)
@@ -376,8 +351,6 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
 def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray,
                      renderer, template, bar) -> None:
     """Write the cropped images and masks of one sequence (all frames, views 0..8)."""
-    from hogsa_loader.synthetic.world.scene_render import foreground, object_meshes
-
     sid, name = job.subject.sid, job.plan.name
     meshes = object_meshes(template)
     dirs = {}
@@ -409,83 +382,36 @@ def _default_workers() -> int:
     return max(1, min(8, available_cores())) if can_fork() else 1
 
 
-def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
-                   process_splits: bool = True, preview: bool = True,
-                   log: Optional[Callable[[str], None]] = None, resume: bool = False,
-                   workers: Optional[int] = None) -> dict:
-    """Generate a world (see module docstring).
+class _Progress:
+    """The partial record ``out/.hogsa_world_partial.json`` of a world being written: its
+    fingerprint and the sequences finished so far."""
 
-    Args:
-        out: output folder (ARCTIC's ``./data``); created.
-        preset: sizes and content.
-        seed: world seed.
-        progress: tqdm progress bars.
-        process_splits: run ARCTIC's processing into ``splits/`` at the end
-            (:func:`hogsa_loader.datasets.arctic_processing.write_processed_splits`).
-        preview: write ``world_preview.png``.
-        log: optional line printer.
-        resume: keep the sequences that an interrupted call on ``out`` with the same preset,
-            seed and generators finished: ``out/.hogsa_world_partial.json`` records them, one
-            by one, while a world is being written (and is removed when it is complete); a
-            recorded sequence is kept when its last image and mask decode. Annotations,
-            splits and the preview are always rewritten. Without it, or when the record is
-            of another world, every sequence is rendered.
-        workers: processes rendering sequences side by side (forked, one torch thread
-            each; the files are the same for any count). Default: one per CPU
-            core available to this process, at most 8, on Linux; 1 elsewhere (forking is
-            not safe there). Each holds a copy of its subject's renderer.
+    def __init__(self, root: Path, preset: WorldPreset, seed: int, resume: bool) -> None:
+        self.path = root / PARTIAL_RECORD
+        fingerprint = _partial_fingerprint(preset, seed)
+        old = _read_json_or_none(self.path) if resume and self.path.is_file() else None
+        done = sorted(old.get("finished", [])) if isinstance(old, dict) and _same_world(old, fingerprint) else []
+        self.recorded = frozenset(done)
+        self.record = {**fingerprint, "finished": done}
+        _write_json_atomic(self.path, self.record)
 
-    Returns:
-        the ``hogsa_world.json`` content.
-    """
-    from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
-    from hogsa_loader.synthetic.world.grasp import HandKit
-    from hogsa_loader.synthetic.world.stand_ins import add_split_stand_ins
-    from hogsa_loader.synthetic.world.stand_ins import record as stand_in_record
+    def mark_finished(self, name: str) -> None:
+        """Record ``sid/seq`` as rendered."""
+        self.record["finished"] = sorted({*self.record["finished"], name})
+        _write_json_atomic(self.path, self.record)
 
-    say = log or (lambda s: None)
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    root = Path(os.path.abspath(out))
-    data = root / "arctic_data" / "data"
+    def keep(self, data: Path, preset: WorldPreset, jobs: list) -> frozenset:
+        """The ``(sid, seq)`` pairs recorded as finished whose files are complete (recorded anew)."""
+        finished = frozenset((j.subject.sid, j.plan.name) for j in jobs
+                             if _sequence_finished(data, preset, j, self.recorded))  # fmt: skip
+        self.record["finished"] = sorted(f"{sid}/{name}" for sid, name in finished)
+        _write_json_atomic(self.path, self.record)
+        return finished
 
-    partial = root / PARTIAL_RECORD
-    fingerprint = _partial_fingerprint(preset, seed)
-    old = _read_json_or_none(partial) if resume and partial.is_file() else None
-    done = sorted(old.get("finished", [])) if isinstance(old, dict) and _same_world(old, fingerprint) else []
-    progress_record = {**fingerprint, "finished": done}
 
-    def mark_finished(name: str) -> None:
-        progress_record["finished"] = sorted({*progress_record["finished"], name})
-        _write_json_atomic(partial, progress_record)
-
-    _write_json_atomic(partial, progress_record)
-
-    t0 = time.perf_counter()
-    models, templates, stage = _write_assets(root, preset, seed)
-    kits = {side: HandKit(m) for side, m in models.items()}
-    timings["assets_s"] = time.perf_counter() - t0
-    say(f"assets written ({timings['assets_s']:.1f} s)")
-
-    t0 = time.perf_counter()
-    subjects, jobs = _write_annotations(data, preset, seed, kits, templates)
-    timings["motion_s"] = time.perf_counter() - t0
-    say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
-
-    recorded = frozenset(done)
-    finished = frozenset((j.subject.sid, j.plan.name) for j in jobs if _sequence_finished(data, preset, j, recorded))
-    progress_record["finished"] = sorted(f"{sid}/{name}" for sid, name in finished)
-    _write_json_atomic(partial, progress_record)
-    if finished:
-        say(f"resuming: {len(finished)} of {len(jobs)} sequences already rendered")
-    t0 = time.perf_counter()
-    if workers is None:
-        workers = _default_workers()
-    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, mark_finished,
-                      workers=workers)
-    timings["render_s"] = time.perf_counter() - t0
-
-    record = {
+def _world_record(preset: WorldPreset, seed: int, subjects: list, records: list[dict]) -> dict:
+    """The ``hogsa_world.json`` content (``timings`` left empty)."""
+    return {
         "schema_version": SCHEMA_VERSION,
         "generator": GENERATOR,
         "preset": preset.name,
@@ -507,22 +433,98 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
         **stand_in_record(),
         "timings": {},
     }
-    _write_json(data / "meta" / WORLD_META, record)  # read by the processing and the preview
+
+
+def _write_extras(root: Path, preset: WorldPreset, preview: bool, process_splits: bool, progress: bool,
+                  timings: dict[str, float]) -> None:  # fmt: skip
+    """``world_preview.png`` and ARCTIC's processed ``splits/`` (each when asked), timed into ``timings``."""
     if preview:
         t0 = time.perf_counter()
-        from hogsa_loader.synthetic.world.preview import write_world_preview
-
         write_world_preview(root, root / "world_preview.png", frames=preset.preview_frames)
         timings["preview_s"] = time.perf_counter() - t0
     if process_splits:
         t0 = time.perf_counter()
-        from hogsa_loader.datasets.arctic_processing import write_processed_splits
-
         written = write_processed_splits(root, protocols=("p1", "p2"), splits=("train", "val"), progress=progress)
         add_split_stand_ins(written.values())
         timings["splits_s"] = time.perf_counter() - t0
+
+
+def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
+                   process_splits: bool = True, preview: bool = True,
+                   log: Optional[Callable[[str], None]] = None, resume: bool = False,
+                   workers: Optional[int] = None) -> dict:
+    """Generate a world: ARCTIC's ``./data`` tree with rendered images.
+
+    Layout written under ``out``::
+
+        body_models/mano/MANO_{RIGHT,LEFT}.pkl          the synthetic MANO-schema hands
+        arctic_data/data/meta/misc.json                 per-subject cameras, sizes, ioi_offset, gender
+        arctic_data/data/meta/object_meta.json, object_vtemplates/<obj>/...   all 11 ARCTIC objects
+        arctic_data/data/meta/mano_decimator_195.npy, downsamplers.npy        decimation maps
+        arctic_data/data/meta/hogsa_world.json          generator record (sizes, mask ids, stand-ins, timings)
+        arctic_data/data/raw_seqs/<sid>/<seq>.{mano,object,egocam.dist,smplx}.npy
+        arctic_data/data/splits_json/protocol_p{1,2}.json
+        arctic_data/data/cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg
+        arctic_data/data/masks/<sid>/<seq>/<view>/<frame:05d>.png
+        arctic_data/data/splits/<p>_<split>.npy         (ARCTIC processing, from the files above)
+        world_preview.png
+
+    The same seed gives byte-identical files (``hogsa_world.json`` differs only in
+    ``timings``): named random streams, ``np.save``, sorted JSON, fixed OpenCV settings. All 11
+    ARCTIC object templates are written (ARCTIC's ``ObjectTensors`` opens them all). SMPL-X
+    fields are NaN stand-ins (:mod:`hogsa_loader.synthetic.world.stand_ins`).
+
+    Args:
+        out: output folder (ARCTIC's ``./data``); created.
+        preset: sizes and content.
+        seed: world seed.
+        progress: tqdm progress bars; log: optional line printer.
+        process_splits: run ARCTIC's processing into ``splits/`` at the end.
+        preview: write ``world_preview.png``.
+        resume: keep the sequences that an interrupted call on ``out`` with the same preset,
+            seed and generators finished (recorded in ``out/.hogsa_world_partial.json`` while
+            a world is written; kept when their last image and mask decode). Annotations,
+            splits and the preview are always rewritten.
+        workers: processes rendering sequences side by side (forked, one torch thread each;
+            the files are the same for any count). Default: one per usable CPU core, at most
+            8, on Linux; 1 elsewhere (forking is not safe there).
+
+    Returns:
+        the ``hogsa_world.json`` content.
+    """
+    say = log or (lambda s: None)
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    root = Path(os.path.abspath(out))
+    data = root / "arctic_data" / "data"
+    partial = _Progress(root, preset, seed, resume)
+
+    t0 = time.perf_counter()
+    models, templates, stage = _write_assets(root, preset, seed)
+    kits = {side: HandKit(m) for side, m in models.items()}
+    timings["assets_s"] = time.perf_counter() - t0
+    say(f"assets written ({timings['assets_s']:.1f} s)")
+
+    t0 = time.perf_counter()
+    subjects, jobs = _write_annotations(data, preset, seed, kits, templates)
+    timings["motion_s"] = time.perf_counter() - t0
+    say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
+
+    finished = partial.keep(data, preset, jobs)
+    if finished:
+        say(f"resuming: {len(finished)} of {len(jobs)} sequences already rendered")
+    t0 = time.perf_counter()
+    if workers is None:
+        workers = _default_workers()
+    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, partial.mark_finished,
+                      workers=workers)
+    timings["render_s"] = time.perf_counter() - t0
+
+    record = _world_record(preset, seed, subjects, records)
+    _write_json(data / "meta" / WORLD_META, record)  # read by the processing and the preview
+    _write_extras(root, preset, preview, process_splits, progress, timings)
     timings["total_s"] = time.perf_counter() - t_start
     record["timings"] = {k: round(v, 2) for k, v in timings.items()}
     _write_json(data / "meta" / WORLD_META, record)
-    partial.unlink()
+    partial.path.unlink()
     return record
