@@ -78,7 +78,8 @@ from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plat
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
-from hogsa_loader.demo import DemoConfig, build_bundle_stages, demo_photographs
+from hogsa_loader.demo import DemoConfig, build_bundle_stages
+from hogsa_loader.view.pictures import demo_photographs
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options

@@ -18,7 +18,6 @@ from typing import Any, Callable, Optional, Sequence
 
 import cv2
 import numpy as np
-import skimage.data
 import torch
 from torch.utils.data import DataLoader
 
@@ -34,12 +33,9 @@ from hogsa_loader.render.gaussians import warm_up_compositor
 from hogsa_loader.synthetic.world import generate_world, get_preset
 from hogsa_loader.system import available_cores, can_fork, run_forked
 from hogsa_loader.view import ViewConfig, run_view
+from hogsa_loader.view.pictures import demo_photographs
 
 __all__ = ["DemoConfig", "run_demo", "build_bundle_stages", "demo_photographs", "unbatch"]
-
-#: Colour photographs in scikit-image's wheel used as demo backgrounds.
-DEMO_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "motorcycle_left.png",
-               "motorcycle_right.png")
 
 
 @dataclass
@@ -158,17 +154,6 @@ class _Stages:
         os.replace(tmp, rec_path)  # atomic: a record is whole or absent
         self.say(f"[{name}] done in {dt:.0f} s")
         return result
-
-
-def demo_photographs(out: PathLike) -> Path:
-    """Copy scikit-image's bundled colour photographs (:data:`DEMO_PHOTOS`) into ``out``."""
-    src = Path(skimage.data.__file__).parent
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for name in DEMO_PHOTOS:
-        if (src / name).is_file() and not (out / name).is_file():
-            shutil.copy2(src / name, out / name)
-    return out
 
 
 def unbatch(batch: Any, i: int) -> Any:
