@@ -38,10 +38,10 @@ __all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "varian
 def save_contactnet_curve(path: Path, hist: dict) -> None:
     """Training loss (contact-weighted BCE, smoothed) and validation BCE (unweighted) / MAE /
     IoU@0.5 against the iteration, as PNG."""
-    import matplotlib  # deferred: optional dependency (plots only)
+    import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # deferred: optional dependency, after the Agg backend is chosen
+    import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     tl = np.asarray(hist["train_loss"])

@@ -1,11 +1,11 @@
 """SRM training: one StyleUNet for every finished HOGS run of a runs folder.
 
-Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``--hogs`` (a folder
+Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``data.hogs`` (a folder
 with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
 its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
 views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
 alpha) at ``image_size / scale`` — by the run itself (``pairs="own"``), by view-fold runs
-under ``--cross-hogs`` that did not see the sample's view (``"cross"``), or both; targets
+under ``data.cross_hogs`` that did not see the sample's view (``"cross"``), or both; targets
 are the ground-truth crops at ``image_size`` with the background masked to black (as HOGS
 training does). Renders are cached under ``RUN/cache/`` or ``cache`` (a folder several SRM
 runs may share: entries are keyed by the HOGS run's weights, the samples with their labels and
@@ -59,6 +59,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.checkpoint import atomic_write
@@ -117,7 +118,7 @@ class SRMTrainer:
 
     def __init__(self, cfg: SRMTrainConfig, *, progress: bool = True, log=None) -> None:
         if cfg.model.scale not in (1, 2):
-            raise ValueError("--scale must be 1 or 2")
+            raise ValueError("--model-scale must be 1 or 2")
         if cfg.data.augment not in AUGMENTS:
             raise ValueError(f"augment must be one of {AUGMENTS}, got {cfg.data.augment!r}")
         if cfg.optim.iters < 0 or cfg.optim.batch_size < 1:
@@ -139,7 +140,7 @@ class SRMTrainer:
         self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
         self.size = self.sets[0].data.image_size
         if any(s.data.image_size != self.size for s in self.sets):
-            raise ValueError("runs have different image sizes; pass --image-size")
+            raise ValueError("runs have different image sizes; pass --data-image-size")
         torch.manual_seed(cfg.run.seed)
         ucfg = StyleUNetConfig(
             channels=list(cfg.model.channels),
@@ -154,7 +155,7 @@ class SRMTrainer:
         crop = cfg.data.crop or self.size
         if crop > self.size or crop % (self.g.net.multiple * cfg.model.scale):
             multiple = self.g.net.multiple * cfg.model.scale
-            raise ValueError(f"--crop {crop} must be <= image size {self.size} and a multiple of {multiple}")
+            raise ValueError(f"--data-crop {crop} must be <= image size {self.size} and a multiple of {multiple}")
         self.crop = crop
         self.perc = perceptual_loss(cfg.loss.vgg_weights).to(self.device)
         self.lambda_perc = (
@@ -357,8 +358,6 @@ class SRMTrainer:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        from tqdm import tqdm
-
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
@@ -584,10 +583,10 @@ class SRMTrainer:
     def write_pngs(self, model: Optional[SRM] = None) -> None:
         """``samples.png`` (held-out: coarse | refined | GT, each cropped to the sample's square
         foreground box and enlarged to the image size, nearest neighbour) and ``curves.png``."""
-        import matplotlib
+        import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
         model = self.g_ema if model is None else model
         rows = []

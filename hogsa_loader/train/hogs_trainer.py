@@ -35,6 +35,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
@@ -59,7 +60,7 @@ from hogsa_loader.train.losses import hogs_loss
 __all__ = ["HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
 
 PART_NAMES = ("hand_right", "hand_left", "object")
-#: Adam learning rates by parameter name (GaMeS table, algorithms.md §B.1; free/avatar
+#: Adam learning rates by parameter name (the GaMeS paper's table; free/avatar
 #: geometry the 3DGS position/rotation/scale rates). Canonical offsets get a tenth of
 #: GaMeS's optional vertex rate: at 1.6e-4 (and more so with ``lr_scale``) Adam's
 #: sign-like first steps inflated the meshes by ~1 mm per step and alpha spilled outside
@@ -103,7 +104,7 @@ class HogsTrainer:
 
     def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
         if cfg.model.gaussians not in ("mesh", "free"):
-            raise ValueError(f"--gaussians must be 'mesh' or 'free', got {cfg.model.gaussians!r}")
+            raise ValueError(f"--model-gaussians must be 'mesh' or 'free', got {cfg.model.gaussians!r}")
         unknown = sorted(set(cfg.optim.lr_overrides) - set(BASE_LRS))
         if unknown:
             raise ValueError(f"lr overrides for unknown parameters {unknown}; known: {sorted(BASE_LRS)}")
@@ -260,8 +261,6 @@ class HogsTrainer:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        from tqdm import tqdm
-
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
@@ -417,10 +416,10 @@ class HogsTrainer:
 
     @torch.no_grad()
     def write_pngs(self) -> None:
-        import matplotlib
+        import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
         rows = []
         pick = self.data.eval[:: max(1, len(self.data.eval) // max(1, self.cfg.run.strip_views))][
