@@ -379,7 +379,8 @@ def load_hogs_data(
     for si, name in enumerate(names):
         seq = root.sequence(subject, name)
         seqs.append(seq)
-        jobs = _sequence_jobs(seq, f"{subject}/{name}", views, frame_stride, (train_views, eval_views), eval_every_frame)
+        split = (train_views, eval_views)
+        jobs = _sequence_jobs(seq, f"{subject}/{name}", views, frame_stride, split, eval_every_frame)
         render = _renders_masks(seq, jobs, masks, f"{subject}/{name}")
         sources.add("render" if render else "files")
         posed = None
@@ -394,8 +395,10 @@ def load_hogs_data(
                     train_views, eval_views, size, crop_size=crop, mask_source="+".join(sorted(sources)))  # fmt: skip
 
 
-def _sequence_jobs(seq: Any, where: str, views: Sequence[int], frame_stride: int,
-                   split_views: tuple[Sequence[int], Sequence[int]], eval_every_frame: int) -> list[tuple[int, int, str]]:
+def _sequence_jobs(
+    seq: Any, where: str, views: Sequence[int], frame_stride: int, split_views: tuple[Sequence[int], Sequence[int]],
+    eval_every_frame: int,
+) -> list[tuple[int, int, str]]:
     """``(view, frame, "train" | "eval")`` of every used image of ``seq`` that exists.
 
     Raises:
@@ -445,6 +448,6 @@ def _view_sample(seq: Any, si: int, v: int, f: int, box: np.ndarray, posed: Any,
     else:
         image = _read_image(ip, size, win)
         native = crop if win is None else win[2]
-        mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f],
-                                full_size=(cam.width, cam.height), supersample=mask_supersample(native, size))  # fmt: skip
+        mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f], full_size=(cam.width, cam.height),
+                                supersample=mask_supersample(native, size))  # fmt: skip
     return ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)
