@@ -49,7 +49,7 @@ class HogsDataConfig:
     object: str = field(default="", metadata=_opt("object name, e.g. box", required=True))
     dataset: Literal["arctic", "h2o"] = field(default="arctic", metadata=_opt("dataset format"))
     sequences: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("sequence names, H2O as scene/seq (default: all with the object)"))
+        default=None, metadata=_opt("sequence names, H2O as scene/seq (unset: all with the object)"))
     mano_dir: Optional[str] = field(default=None, metadata=_opt("H2O: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl"))
     object_mesh_dir: Optional[str] = field(
         default=None, metadata=_opt("H2O: folder of the object meshes (<name>/<name>.obj|.ply)"))
@@ -59,11 +59,11 @@ class HogsDataConfig:
         "train on the whole cropped image (crop) or on a window around the posed hands and object of each "
         "frame (fg: more pixels on them at the same resolution; ARCTIC only)"))
     image_size: Optional[int] = field(
-        default=None, metadata=_opt("training resolution (default: ARCTIC cropped size, H2O 256)", "positive_int"))
+        default=None, metadata=_opt("training resolution (unset: ARCTIC cropped size, H2O 256)", "positive_int"))
     views: Optional[tuple[int, ...]] = field(default=None, metadata=_opt(
-        "camera views used (default: ARCTIC 1-8, H2O 0-3; 4 = H2O ego)", "non_negative_int"))
+        "camera views used (unset: ARCTIC 1-8, H2O 0-3; 4 = H2O ego)", "non_negative_int"))
     eval_views: Optional[tuple[int, ...]] = field(
-        default=None, metadata=_opt("held-out views (default: ARCTIC 8, H2O 3)", "non_negative_int"))
+        default=None, metadata=_opt("held-out views (unset: ARCTIC 8, H2O 3)", "non_negative_int"))
     eval_every_frame: int = field(default=8, metadata=_opt("hold out one frame in N", "positive_int"))
     frame_stride: int = field(default=1, metadata=_opt("use every N-th frame", "positive_int"))
     max_eval: int = field(default=8, metadata=_opt("held-out samples evaluated", "positive_int"))
@@ -82,7 +82,7 @@ class HogsModelConfig:
     sh_degree: int = field(default=3, metadata=_opt("spherical-harmonics degree", choices=range(4)))
     hand_subdivide: int = field(default=0, metadata=_opt("hand mesh subdivision levels", choices=range(3)))
     object_subdivide: Optional[int] = field(
-        default=None, metadata=_opt("0-2 (default: until >= min-object-faces faces)", choices=range(3)))
+        default=None, metadata=_opt("0-2 (unset: until >= min-object-faces faces)", choices=range(3)))
     min_object_faces: int = field(
         default=8000, metadata=_opt("object faces the default subdivision reaches", "positive_int"))
     shading: Literal["lambert", "none"] = field(default="lambert", metadata=_opt(
