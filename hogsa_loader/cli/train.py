@@ -3,9 +3,8 @@
 Each job's flags are derived from its config dataclass (``--group-field``;
 :mod:`hogsa_loader.cli.dataclass_args`), every argument is checked before any data is
 read, and errors are reported as one ``PROG: error: ...`` line (exit status 2 for a usage
-error, 1 otherwise). ``pretrain/*.py`` call the ``*_main`` functions;
-:func:`add_train_commands` adds them as ``hogsa train hogs|srm|contactnet`` and
-``hogsa bundle-bank``.
+error, 1 otherwise). ``pretrain/*.py`` call the ``*_main`` functions, and ``hogsa train
+hogs|srm|contactnet|bank`` runs them (:mod:`hogsa_loader.cli.train_commands`).
 """
 
 from __future__ import annotations
@@ -15,7 +14,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 
@@ -31,8 +30,8 @@ from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.run_folder import check_run_folder, latest_checkpoint, read_trainer_state
 
 __all__ = [
-    "add_train_commands", "build_pose_bank_main", "hogs_parser", "parse_bank_args", "parse_contactnet_args",
-    "parse_hogs_args", "parse_srm_args", "run_hogs", "run_srm", "run_train_command", "srm_parser",
+    "JOBS", "build_pose_bank_main", "hogs_parser", "parse_bank_args", "parse_contactnet_args",
+    "parse_hogs_args", "parse_srm_args", "run_hogs", "run_srm", "srm_parser",
     "train_contactnet_main", "train_hogs_main", "train_srm_main",
 ]
 
@@ -299,31 +298,7 @@ def build_pose_bank_main(argv: Optional[Sequence[str]] = None) -> int:
     return _run_job("build_pose_bank", a, job)
 
 
-# --------------------------------------------------------------------------------------
-# hogsa train ...
-# --------------------------------------------------------------------------------------
-
-#: ``hogsa train NAME``: (help, entry point)
-TRAIN_COMMANDS: dict[str, tuple[str, Callable[[Optional[Sequence[str]]], int]]] = {
-    "hogs": (HOGS_DESCRIPTION, train_hogs_main),
-    "srm": (SRM_DESCRIPTION, train_srm_main),
-    "contactnet": (CONTACTNET_DESCRIPTION, train_contactnet_main),
-    "bank": (BANK_DESCRIPTION, build_pose_bank_main),
+#: entry point of each ``hogsa train`` job
+JOBS: dict[str, Callable[[Optional[Sequence[str]]], int]] = {
+    "hogs": train_hogs_main, "srm": train_srm_main, "contactnet": train_contactnet_main, "bank": build_pose_bank_main,
 }
-
-
-def add_train_commands(subparsers: Any) -> None:
-    """Add ``hogsa train {hogs,srm,contactnet,bank} ...``: the job's own flags follow the job
-    name (``hogsa train hogs --help``); the command's handler (``args.func(args)``) runs it."""
-    t = subparsers.add_parser("train", help="train a HOGS model, the SRM, ContactNet or build a pose bank",
-                              description="Training jobs; each takes the flags of its pretrain/ script.")
-    t.add_argument(
-        "job", choices=sorted(TRAIN_COMMANDS), help="; ".join(f"{k}: {v[0]}" for k, v in TRAIN_COMMANDS.items())
-    )
-    t.add_argument("job_args", nargs=argparse.REMAINDER, help="the job's flags (JOB --help lists them)")
-    t.set_defaults(func=run_train_command)
-
-
-def run_train_command(args: argparse.Namespace) -> int:
-    """Run the ``hogsa train`` job named by ``args.job`` with ``args.job_args``."""
-    return TRAIN_COMMANDS[args.job][1](args.job_args)
