@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Held-out rendering quality of trained HOGS runs: PSNR / SSIM / LPIPS, side by side.
 
-Evaluates one or more runs of ``pretrain/train_hogs.py`` (e.g. ``--gaussians mesh`` and
-``--gaussians free`` of the same subject + object) on the held-out camera views × held-out
+Evaluates one or more runs of ``pretrain/train_hogs.py`` (e.g. ``--model-gaussians mesh`` and
+``--model-gaussians free`` of the same subject + object) on the held-out camera views × held-out
 frames of their own split (read from each run's ``config.json``), inside the foreground
 box as the paper crops (:mod:`hogsa_loader.train.hogs_eval`). With ``--srm RUN`` the first
 run is also scored after SRM refinement (``without_srm`` / ``with_srm``). An SRM whose

@@ -199,6 +199,15 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         stages.run("world", k_world, [world], lambda: {"sequences": len(generate_world(
             world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
 
+    from hogsa_loader.pom.job_config import (
+        BankDataConfig,
+        BankRunConfig,
+        ContactNetDataConfig,
+        ContactNetJobConfig,
+        ContactNetOptimConfig,
+        ContactNetRunConfig,
+        PoseBankConfig,
+    )
     from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
     from hogsa_loader.pom.perturb import KEEP_ARTICULATION
 
@@ -223,8 +232,10 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
 
     def contactnet() -> dict[str, Any]:
         c = child_cfg()
-        m = fit_contactnet(data, cn, iters=c.contactnet_iters, seed=c.seed, val_every=c.contactnet_iters,
-                           progress=c.progress)
+        job = ContactNetJobConfig(data=ContactNetDataConfig(root=str(data)),
+                                  optim=ContactNetOptimConfig(iters=c.contactnet_iters, seed=c.seed),
+                                  run=ContactNetRunConfig(out=str(cn), val_every=c.contactnet_iters))
+        m = fit_contactnet(job, progress=c.progress)
         return {k: m[k] for k in ("val_mae", "val_iou05")}
 
     nodes.append(_StageNode("contactnet", k_cn, [cn], contactnet))
@@ -232,9 +243,11 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, asdict(KEEP_ARTICULATION))  # the start perturbation
+    bank_cfg = PoseBankConfig(data=BankDataConfig(root=str(data), contactnet=str(cn), sequences=tuple(seqs),
+                                                  per_sequence=cfg.bank_per_sequence),
+                              run=BankRunConfig(out=str(bank), seed=cfg.seed))
     nodes.append(_StageNode("bank", k_bank, [bank], lambda: build_pose_bank(
-        data, cn, bank, per_sequence=cfg.bank_per_sequence, sequences=seqs, seed=cfg.seed,
-        progress=child_cfg().progress), needs=("contactnet",)))
+        bank_cfg, progress=child_cfg().progress), needs=("contactnet",)))
     srm = out / "runs" / "srm"
     k_srm = _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment)
     nodes.append(_StageNode("srm", k_srm, [srm], lambda: _train_srm(
@@ -363,26 +376,46 @@ def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
 
 
 def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> dict[str, Any]:
-    from hogsa_loader.train import HogsConfig, HogsTrainer
+    from hogsa_loader.train import (
+        HogsConfig,
+        HogsDataConfig,
+        HogsModelConfig,
+        HogsOptimConfig,
+        HogsRunConfig,
+        HogsTrainer,
+    )
 
     hc = HogsConfig(
-        data=str(data), subject=sid, object=obj, out=str(run), iters=cfg.hogs_iters, image_size=cfg.hogs_image_size,
-        sh_degree=cfg.hogs_sh_degree, sh_warmup=max(1, cfg.hogs_iters // 3), lr_scale=10.0, seed=cfg.seed,
-        eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters, max_eval=4, strip_views=2,
-        frame_stride=cfg.hogs_frame_stride, k=cfg.hogs_k, object_subdivide=cfg.hogs_object_subdivide,
-        window=cfg.hogs_window,
+        data=HogsDataConfig(root=str(data), subject=sid, object=obj, image_size=cfg.hogs_image_size, max_eval=4,
+                            frame_stride=cfg.hogs_frame_stride, window=cfg.hogs_window),
+        model=HogsModelConfig(sh_degree=cfg.hogs_sh_degree, k=cfg.hogs_k, object_subdivide=cfg.hogs_object_subdivide),
+        optim=HogsOptimConfig(iters=cfg.hogs_iters, sh_warmup=max(1, cfg.hogs_iters // 3), lr_scale=10.0),
+        run=HogsRunConfig(out=str(run), seed=cfg.seed, eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters,
+                          strip_views=2),
     )  # fmt: skip
     m = HogsTrainer(hc, progress=cfg.progress).train()
     return {"psnr": m["psnr"], "ssim": m["ssim"], "iters": m["iters"]}
 
 
 def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) -> dict[str, Any]:
-    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+    from hogsa_loader.srm.train import SRMTrainer
+    from hogsa_loader.srm.train_config import (
+        SRMDataConfig,
+        SRMLossConfig,
+        SRMModelConfig,
+        SRMOptimConfig,
+        SRMRunConfig,
+        SRMTrainConfig,
+    )
 
     sc = SRMTrainConfig(
-        data=str(data), hogs=str(hogs), out=str(out), iters=cfg.srm_iters, crop=cfg.srm_crop,
-        channels=[16, 32, 64, 64, 64], lambda_gan=0.0, seed=cfg.seed, eval_every=cfg.srm_iters,
-        ckpt_every=cfg.srm_iters, strip_views=2, augment=cfg.srm_augment, cache=str(cache),
+        data=SRMDataConfig(root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment,
+                           cache=str(cache)),
+        model=SRMModelConfig(channels=(16, 32, 64, 64, 64)),
+        loss=SRMLossConfig(lambda_gan=0.0),
+        optim=SRMOptimConfig(iters=cfg.srm_iters),
+        run=SRMRunConfig(out=str(out), seed=cfg.seed, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters,
+                         strip_views=2),
     )  # fmt: skip
     trainer = SRMTrainer(sc, progress=cfg.progress, log=lambda s: None)
     m = trainer.train()

@@ -14,11 +14,13 @@ be spread over processes as a job array:
 
 Examples::
 
-    python pretrain/train_all_hogs.py --data ./hogsa_world/arctic_data/data --out runs --split train -- --iters 2000
-    python pretrain/train_all_hogs.py --data ARCTIC/data --out runs --gpus 0,1,2,3 --sequences-like grab_01,use_01 -- --device cuda
+    python pretrain/train_all_hogs.py --data ./hogsa_world/arctic_data/data --out runs --split train -- \
+        --optim-iters 2000
+    python pretrain/train_all_hogs.py --data ARCTIC/data --out runs --gpus 0,1,2,3 --sequences-like grab_01,use_01 -- \
+        --run-device cuda
 
-Arguments after ``--`` go to ``train_hogs.py`` unchanged (``--data``, ``--subject``,
-``--object``, ``--out``, ``--sequences`` and ``--resume`` are set here). At the end
+Arguments after ``--`` go to ``train_hogs.py`` unchanged (``--data-root``, ``--data-dataset``,
+``--data-subject``, ``--data-object``, ``--run-out``, ``--data-sequences`` and ``--resume`` are set here). At the end
 ``RUNS_DIR/summary.json`` lists every finished run's held-out PSNR/SSIM.
 """
 
@@ -51,8 +53,8 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root, or an H2O root with --dataset h2o")
     p.add_argument("--dataset", default="arctic", choices=["arctic", "h2o"],
-                   help="h2o: pairs are (subject, object class) of every sequence; pass --mano-dir and "
-                        "--object-mesh-dir to train_hogs.py after --")  # fmt: skip
+                   help="h2o: pairs are (subject, object class) of every sequence; pass --data-mano-dir and "
+                        "--data-object-mesh-dir to train_hogs.py after --")  # fmt: skip
     p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per subject_object)")
     p.add_argument("--protocol", default="p1")
     p.add_argument("--split", default="all", choices=["all", "train", "val", "test"],
@@ -211,8 +213,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"  {run.name}: {'resuming' if resume else 'training'} on {seqs}")
         if a.dry_run:
             continue
-        args = ["--data", a.data, "--dataset", a.dataset, "--subject", sid, "--object", obj, "--out", str(run),
-                "--sequences", ",".join(seqs)]  # fmt: skip
+        args = ["--data-root", a.data, "--data-dataset", a.dataset, "--data-subject", sid, "--data-object", obj,
+                "--run-out", str(run), "--data-sequences", *seqs]  # fmt: skip
         code = train_one(args + (["--resume"] if resume else []) + rest)
         if code:
             failed.append(run.name)

@@ -24,40 +24,87 @@ TABLE: list[tuple[str, list[str], str, tuple[str, ...]]] = [
     ("world-noise", ["--src", "{W}", "--out", "o"], "--rot-deg", ("nan", "inf")),
     ("world-noise", ["--src", "{W}", "--out", "o"], "--pose-rad", ("nan", "inf")),
     ("world-noise", ["--src", "{W}", "--out", "o"], "--smooth", ("0", "nan")),
-    ("export", ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8", "--shard-size", "8"], "--num",
-     ("0", "-1", "nan")),
+    (
+        "export",
+        ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8", "--shard-size", "8"],
+        "--num",
+        ("0", "-1", "nan"),
+    ),
     ("export", ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8"], "--shard-size", ("0", "12")),
     ("export", ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8"], "--render-size", ("0", "nan")),
     ("export", ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8"], "--device", ("potato",)),
     ("export", ["--bundle", "{B}", "--data", "{W}", "--out", "o", "--num", "8"], "--world-size", ("0",)),
     ("demo", ["--out", "o"], "--samples", ("0", "nan")),
     ("demo", ["--out", "o"], "--workers", ("-1",)),
-    ("view", ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--orbit",
-     ("-2", "nan")),
-    ("view", ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--distance",
-     ("0", "nan")),
-    ("view", ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--size",
-     ("0",)),
-    ("h2o-export", ["--world", "{W}", "--out", "o", "--subject", "s01", "--sequence", "box_grab_01"], "--image-size",
-     ("0", "nan")),
+    (
+        "view",
+        ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"],
+        "--orbit",
+        ("-2", "nan"),
+    ),
+    (
+        "view",
+        ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"],
+        "--distance",
+        ("0", "nan"),
+    ),
+    (
+        "view",
+        ["--bundle", "{B}", "--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"],
+        "--size",
+        ("0",),
+    ),
+    (
+        "h2o-export",
+        ["--world", "{W}", "--out", "o", "--subject", "s01", "--sequence", "box_grab_01"],
+        "--image-size",
+        ("0", "nan"),
+    ),
     ("plates", ["--data", "{W}", "--out", "o"], "--width", ("0", "nan")),
     ("plates", ["--data", "{W}", "--out", "o"], "--min-coverage", ("nan", "2")),
     ("plates", ["--data", "{W}", "--out", "o"], "--views", ("0", "9")),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-index", ("-1", "nan", "3")),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-size", ("0",)),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--gpus", ("-1", "nan", "0,0", "²")),
-    ("train_contactnet", ["--data", "{W}", "--out", "o"], "--iters", ("-1", "nan")),
-    ("train_contactnet", ["--data", "{W}", "--out", "o"], "--lr", ("nan", "0")),
-    ("build_pose_bank", ["--data", "{W}", "--contactnet", "{B}/contactnet", "--out", "o"], "--per-sequence",
-     ("0",)),
-    ("build_pose_bank", ["--data", "{W}", "--contactnet", "{B}/contactnet", "--out", "o"], "--device", ("potato",)),
-    ("train_hogs", ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--lr-scale",
-     ("nan", "0")),
-    ("train_hogs", ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--lambda-ssim",
-     ("nan", "inf")),
-    ("train_hogs", ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--views", ("0", "9")),
-    ("train_srm", ["--data", "{W}", "--hogs", "{B}/hogs", "--out", "o"], "--ema-decay", ("nan", "2")),
-    ("train_srm", ["--data", "{W}", "--hogs", "{B}/hogs", "--out", "o"], "--batch-size", ("0",)),
+    ("train_contactnet", ["--data-root", "{W}", "--run-out", "o"], "--optim-iters", ("-1", "nan")),
+    ("train_contactnet", ["--data-root", "{W}", "--run-out", "o"], "--optim-lr", ("nan", "0")),
+    (
+        "build_pose_bank",
+        ["--data-root", "{W}", "--data-contactnet", "{B}/contactnet", "--run-out", "o"],
+        "--data-per-sequence",
+        ("0",),
+    ),
+    (
+        "build_pose_bank",
+        ["--data-root", "{W}", "--data-contactnet", "{B}/contactnet", "--run-out", "o"],
+        "--run-device",
+        ("potato",),
+    ),
+    (
+        "train_hogs",
+        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
+        "--optim-lr-scale",
+        ("nan", "0"),
+    ),
+    (
+        "train_hogs",
+        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
+        "--loss-lambda-ssim",
+        ("nan", "inf"),
+    ),
+    (
+        "train_hogs",
+        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
+        "--data-views",
+        ("0", "9"),
+    ),
+    (
+        "train_srm",
+        ["--data-root", "{W}", "--data-hogs", "{B}/hogs", "--run-out", "o"],
+        "--optim-ema-decay",
+        ("nan", "2"),
+    ),
+    ("train_srm", ["--data-root", "{W}", "--data-hogs", "{B}/hogs", "--run-out", "o"], "--optim-batch-size", ("0",)),
 ]
 CASES = [(cmd, base, flag, v) for cmd, base, flag, vals in TABLE for v in vals]
 
@@ -92,8 +139,10 @@ def test_pose_bank_articulation_range_is_checked(lo_hi, tmp_path, monkeypatch) -
     monkeypatch.chdir(tmp_path)
     err = io.StringIO()
     with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as exc:
-        _script_main("build_pose_bank")(["--data", "w", "--contactnet", "c", "--out", "o", "--arti-range", *lo_hi])
-    assert exc.value.code != 0 and "--arti-range" in err.getvalue() and "Traceback" not in err.getvalue()
+        _script_main("build_pose_bank")(
+            ["--data-root", "w", "--data-contactnet", "c", "--run-out", "o", "--pom-arti-range", *lo_hi]
+        )
+    assert exc.value.code != 0 and "--pom-arti-range" in err.getvalue() and "Traceback" not in err.getvalue()
     assert not any(tmp_path.iterdir())
 
 

@@ -218,10 +218,11 @@ def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
     mano = str(Path(tiny_world) / "body_models" / "mano")
     h2o = dict(dataset="h2o", data=str(out), mano_dir=mano, object_mesh_dir=str(out / "object"),
                subject="subject1", object="book")  # fmt: skip
-    cfg = HogsConfig(**h2o, out=str(tmp_path / "run"), iters=24, image_size=64, max_eval=3, eval_every=0,
-                     ckpt_every=12, lr_scale=10.0, k=1, sh_degree=1, sh_warmup=0, strip_views=2)  # fmt: skip
+    cfg = HogsConfig.from_json(dict(**h2o, out=str(tmp_path / "run"), iters=24, image_size=64, max_eval=3,
+                                    eval_every=0, ckpt_every=12, lr_scale=10.0, k=1, sh_degree=1, sh_warmup=0,
+                                    strip_views=2))  # fmt: skip
     tr = HogsTrainer(cfg, progress=False)
-    assert tr.cfg.views == [0, 1, 2, 3] and tr.cfg.eval_views == [3]
+    assert tr.cfg.data.views == (0, 1, 2, 3) and tr.cfg.data.eval_views == (3,)
     fixed = tr.data.train[:: max(1, len(tr.data.train) // 4)][:4]
 
     p0 = tr.photometric_loss(fixed)
@@ -256,9 +257,20 @@ def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
     assert [v["view"] for v in q["per_view"]] == [3] and q["runs"][0]["dataset"] == "h2o"
 
     cli = _script("pretrain/train_hogs.py")
-    args = ["--dataset", "h2o", "--data", str(out), "--subject", "subject1", "--object", "book", "--out", str(tmp_path / "x")]
+    args = [
+        "--data-dataset",
+        "h2o",
+        "--data-root",
+        str(out),
+        "--data-subject",
+        "subject1",
+        "--data-object",
+        "book",
+        "--run-out",
+        str(tmp_path / "x"),
+    ]
     assert cli.main(args) == 2 and "needs --mano-dir and --object-mesh-dir" in capsys.readouterr().err
-    assert cli.main(args + ["--mano-dir", mano, "--object-mesh-dir", str(tmp_path)]) == 2
+    assert cli.main(args + ["--data-mano-dir", mano, "--data-object-mesh-dir", str(tmp_path)]) == 2
     assert "no mesh for H2O object 'book'; tried book/book.obj, book/book.ply" in capsys.readouterr().err
 
 

@@ -39,10 +39,10 @@ def _one_line(err: str, *needles: str) -> None:
 
 
 def _hogs_args(world: Path, out: Path, iters: int = 2) -> list[str]:
-    return ["--data", str(world), "--subject", "s01", "--object", "box", "--out", str(out), "--image-size", "32",
-            "--frame-stride", "8", "--eval-every-frame", "2", "--max-eval", "1", "--eval-every", "0",
-            "--ckpt-every", "1", "--k", "1", "--sh-degree", "0", "--sh-warmup", "0", "--strip-views", "1",
-            "--iters", str(iters), "--quiet"]  # fmt: skip
+    return ["--data-root", str(world), "--data-subject", "s01", "--data-object", "box", "--run-out", str(out),
+            "--data-image-size", "32", "--data-frame-stride", "8", "--data-eval-every-frame", "2", "--data-max-eval",
+            "1", "--run-eval-every", "0", "--run-ckpt-every", "1", "--model-k", "1", "--model-sh-degree", "0",
+            "--optim-sh-warmup", "0", "--run-strip-views", "1", "--optim-iters", str(iters), "--quiet"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +146,7 @@ def test_moved_run_folder_resumes(tiny_world, hogs_run, tmp_path):
     cfg = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3))
     tr = HogsTrainer(cfg, progress=False)
     assert tr.resume() and tr.step == 2
-    cfg_other = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3) + ["--seed", "5"])
+    cfg_other = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3) + ["--run-seed", "5"])
     with pytest.raises(ValueError, match="seed"):  # other settings still have to match
         HogsTrainer(cfg_other, progress=False).resume()
 
@@ -501,9 +501,9 @@ def test_assets_unknown_object_refused_before_writing(tmp_path, capsys):
 
 def test_train_hogs_checks_numbers_first(tiny_world, tmp_path, capsys):
     train = _script("train_hogs")
-    for flag, value, needle in (("--image-size", "-64", "must be > 0"), ("--image-size", "0", "must be > 0"),
-                                ("--iters", "-1", "must be >= 0"), ("--device", "potato", "not a device"),
-                                ("--sh-degree", "7", "invalid choice")):  # fmt: skip
+    for flag, value, needle in (("--data-image-size", "-64", "must be > 0"), ("--data-image-size", "0", "must be > 0"),
+                                ("--optim-iters", "-1", "must be >= 0"), ("--run-device", "potato", "not a device"),
+                                ("--model-sh-degree", "7", "invalid choice")):  # fmt: skip
         args = _hogs_args(tiny_world, tmp_path / "r")
         if flag in args:
             args[args.index(flag) + 1] = value
@@ -514,12 +514,12 @@ def test_train_hogs_checks_numbers_first(tiny_world, tmp_path, capsys):
             train.main(args)
         assert exc.value.code == 2
         _one_line(capsys.readouterr().err, f"argument {flag}", needle)
-    assert train.main(_hogs_args(tiny_world, tmp_path / "afile") + ["--data", str(tmp_path / "none")]) == 2
+    assert train.main(_hogs_args(tiny_world, tmp_path / "afile") + ["--data-root", str(tmp_path / "none")]) == 2
     _one_line(capsys.readouterr().err, "train_hogs: error: --data", "no such folder")
     from hogsa_loader.train import HogsTrainer
 
     cfg = train.parse_args(_hogs_args(tiny_world, tmp_path / "r"))
-    cfg.image_size = 0  # the library refuses it too
+    cfg.data.image_size = 0  # the library refuses it too
     with pytest.raises(ValueError, match="image_size must be >= 1"):
         HogsTrainer(cfg, progress=False)
     assert not (tmp_path / "r").exists()
@@ -575,11 +575,12 @@ def test_pretrain_scripts_check_first(tiny_world, untrained_bundle, tmp_path, ca
     _one_line(capsys.readouterr().err, "build_bundle: error:", "already holds a bundle", "--overwrite")
     assert (untrained_bundle / "manifest.json").read_bytes() == before
     for name, argv, flag in (
-        ("train_contactnet", ["--data", str(tiny_world), "--out", str(tmp_path / "cn"), "--points", "0"], "--points"),
-        ("build_pose_bank", ["--data", str(tiny_world), "--contactnet", str(tmp_path), "--out", str(tmp_path / "b"),
-                             "--device", "potato"], "--device"),
-        ("train_srm", ["--data", str(tiny_world), "--hogs", str(tmp_path), "--out", str(tmp_path / "s"),
-                       "--batch-size", "0"], "--batch-size"),
+        ("train_contactnet", ["--data-root", str(tiny_world), "--run-out", str(tmp_path / "cn"), "--optim-points", "0"],
+         "--optim-points"),
+        ("build_pose_bank", ["--data-root", str(tiny_world), "--data-contactnet", str(tmp_path), "--run-out",
+                             str(tmp_path / "b"), "--run-device", "potato"], "--run-device"),
+        ("train_srm", ["--data-root", str(tiny_world), "--data-hogs", str(tmp_path), "--run-out", str(tmp_path / "s"),
+                       "--optim-batch-size", "0"], "--optim-batch-size"),
     ):  # fmt: skip
         with pytest.raises(SystemExit) as exc:
             _script(name).main(argv)

@@ -154,7 +154,7 @@ def _cfg(data, out, **kw) -> HogsConfig:
                 eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0, k=1, sh_degree=1,
                 sh_warmup=0, strip_views=2)  # fmt: skip
     base.update(kw)
-    return HogsConfig(**base)
+    return HogsConfig.from_json(base)
 
 
 def test_training_with_rendered_masks(tiny_world, tmp_path):

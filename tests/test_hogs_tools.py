@@ -26,9 +26,9 @@ def _module(path: Path, name: str):
     return mod
 
 
-FAST = ["--image-size", "64", "--frame-stride", "4", "--eval-every-frame", "2", "--max-eval", "3",
-        "--eval-every", "0", "--ckpt-every", "0", "--lr-scale", "10", "--k", "1", "--sh-degree", "1",
-        "--sh-warmup", "0", "--quiet"]  # fmt: skip
+FAST = ["--data-image-size", "64", "--data-frame-stride", "4", "--data-eval-every-frame", "2", "--data-max-eval", "3",
+        "--run-eval-every", "0", "--run-ckpt-every", "0", "--optim-lr-scale", "10", "--model-k", "1",
+        "--model-sh-degree", "1", "--optim-sh-warmup", "0", "--quiet"]  # fmt: skip
 
 
 def _cfg(world, out, **kw) -> HogsConfig:
@@ -36,7 +36,7 @@ def _cfg(world, out, **kw) -> HogsConfig:
                 frame_stride=4, eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0,
                 k=1, sh_degree=1, sh_warmup=0, strip_views=2)  # fmt: skip
     base.update(kw)
-    return HogsConfig(**base)
+    return HogsConfig.from_json(base)
 
 
 @pytest.fixture(scope="module")
@@ -127,11 +127,11 @@ def test_train_all_hogs_selection_array_and_skip(tiny_world, tmp_path, capsys, m
 
     out = tmp_path / "runs"
     sel = ["--data", str(tiny_world), "--out", str(out), "--subjects", "s01", "--objects", "box"]
-    assert ta.main(sel + ["--", "--iters", "2", *FAST]) == 0
+    assert ta.main(sel + ["--", "--optim-iters", "2", *FAST]) == 0
     assert HogsModel.is_run(out / "s01_box") and (out / "s01_box" / "metrics.json").is_file()
     stamp = (out / "s01_box" / "metrics.json").stat().st_mtime_ns
     capsys.readouterr()
-    assert ta.main(sel + ["--", "--iters", "2", *FAST]) == 0
+    assert ta.main(sel + ["--", "--optim-iters", "2", *FAST]) == 0
     assert "s01_box: finished, skipped" in capsys.readouterr().out
     assert (out / "s01_box" / "metrics.json").stat().st_mtime_ns == stamp
     summary = json.loads((out / "summary.json").read_text())

@@ -493,23 +493,31 @@ def test_tiny_world_frames_to_bank(tiny_world, tmp_path):
 def test_pose_bank_keeps_the_annotated_articulation(tiny_world, tmp_path):
     """The bank's start perturbation keeps each frame's annotated θ unless a range is asked for."""
     from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.job_config import BankDataConfig, BankPOMConfig, BankRunConfig, PoseBankConfig
     from hogsa_loader.pom.jobs import build_pose_bank
-    from hogsa_loader.pom.perturb import PerturbConfig
 
     torch.manual_seed(0)
     save_contactnet(ContactNet().eval(), tmp_path / "cn", {})
     root = ArcticRoot(tiny_world)
     seq = root.sequences()[0]
-    kw = dict(per_sequence=3, sequences=[seq], iters=1, keep_rejected=True, progress=False)
-    build_pose_bank(tiny_world, tmp_path / "cn", tmp_path / "keep", **kw)
+
+    def cfg(out, arti_range=None) -> PoseBankConfig:
+        return PoseBankConfig(
+            data=BankDataConfig(
+                root=str(tiny_world), contactnet=str(tmp_path / "cn"), sequences=(seq,), per_sequence=3
+            ),
+            pom=BankPOMConfig(iters=1, keep_rejected=True, arti_range=arti_range),
+            run=BankRunConfig(out=str(tmp_path / out)),
+        )
+
+    build_pose_bank(cfg("keep"), progress=False)
     bank = load_pose_bank(tmp_path / "keep")
     sid, name = seq.split("/")
     annotated = root.sequence(sid, name).object.arti
     expect = [annotated[f] for _, _, f in bank.sources]
     np.testing.assert_allclose(bank.state.obj_arti.numpy(), expect, atol=1e-6)
     assert json.loads((tmp_path / "keep" / "manifest.json").read_text())["info"]["perturbation"]["arti_range"] is None
-    build_pose_bank(tiny_world, tmp_path / "cn", tmp_path / "paper", perturbation=PerturbConfig(arti_range=(0.3, 0.4)),
-                    **kw)
+    build_pose_bank(cfg("paper", arti_range=(0.3, 0.4)), progress=False)
     drawn = load_pose_bank(tmp_path / "paper").state.obj_arti
     assert bool(((drawn >= 0.3) & (drawn <= 0.4)).all())
 

@@ -248,9 +248,10 @@ def hogs_runs(tiny_world, tmp_path_factory):
     from hogsa_loader.train import HogsConfig, HogsTrainer
 
     runs = tmp_path_factory.mktemp("hogs_runs")
-    cfg = HogsConfig(data=str(tiny_world), subject="s01", object="box", out=str(runs / "s01_box"), iters=3, image_size=64,
-                     frame_stride=8, eval_every_frame=2, max_eval=2, eval_every=0, ckpt_every=0, lr_scale=10.0,
-                     k=1, sh_degree=0, sh_warmup=0, strip_views=1)  # fmt: skip
+    cfg = HogsConfig.from_json(dict(data=str(tiny_world), subject="s01", object="box", out=str(runs / "s01_box"),
+                                    iters=3, image_size=64, frame_stride=8, eval_every_frame=2, max_eval=2,
+                                    eval_every=0, ckpt_every=0, lr_scale=10.0, k=1, sh_degree=0, sh_warmup=0,
+                                    strip_views=1))  # fmt: skip
     HogsTrainer(cfg, progress=False).train()
     (runs / "unfinished").mkdir()  # skipped: no part manifests
     return runs
@@ -263,7 +264,8 @@ def folds(tiny_world, tmp_path_factory):
 
     folds = tmp_path_factory.mktemp("folds")
     for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
-        HogsTrainer(HogsConfig(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world), **_FOLD_COMMON),
+        HogsTrainer(HogsConfig.from_json(dict(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world),
+                                              **_FOLD_COMMON)),
                     progress=False).train()
     return folds
 
@@ -275,9 +277,9 @@ def srm_cache(tmp_path_factory):
 
 
 def _args(world, runs, out, iters):
-    return ["--data", str(world), "--hogs", str(runs), "--out", str(out), "--iters", str(iters), "--batch-size", "2",
-            "--crop", "32", "--channels", "8,16,16", "--eval-every", "0", "--ckpt-every", "2", "--strip-views", "1",
-            "--quiet"]  # fmt: skip
+    return ["--data-root", str(world), "--data-hogs", str(runs), "--run-out", str(out), "--optim-iters", str(iters),
+            "--optim-batch-size", "2", "--data-crop", "32", "--model-channels", "8", "16", "16", "--run-eval-every",
+            "0", "--run-ckpt-every", "2", "--run-strip-views", "1", "--quiet"]  # fmt: skip
 
 
 def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
@@ -333,8 +335,8 @@ def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     with pytest.raises(AssetError, match="view-fold runs"):
         load_pairs(tiny_world, run, srm_cache, mode="cross", folds=[])
     leak = tmp_path / "leak"
-    HogsTrainer(HogsConfig(out=str(leak), views=[1, 2, 3, 8], **{**_FOLD_COMMON, "data": str(tiny_world),
-                                                                "eval_views": [3]}), progress=False).train()
+    HogsTrainer(HogsConfig.from_json({**_FOLD_COMMON, "out": str(leak), "views": [1, 2, 3, 8], "data": str(tiny_world),
+                                       "eval_views": [3]}), progress=False).train()
     with pytest.raises(AssetError, match="held-out view"):
         fold_runs(run, find_runs(folds) + find_runs(leak))
 
@@ -432,8 +434,19 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
     """With --val-views the saved model is the EMA generator of the best validation step,
     chosen without the held-out views, and resuming keeps the choice exactly."""
     cli = _cli()
-    extra = ["--cross-hogs", str(folds), "--val-views", "2,5", "--eval-every", "1", "--lr", "0.02",
-             "--cache", str(srm_cache)]
+    extra = [
+        "--data-cross-hogs",
+        str(folds),
+        "--data-val-views",
+        "2",
+        "5",
+        "--run-eval-every",
+        "1",
+        "--optim-lr",
+        "0.02",
+        "--data-cache",
+        str(srm_cache),
+    ]
     with pytest.warns(SubstituteWarning):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "a", 6) + extra) == 0
     out = tmp_path / "a"
@@ -452,7 +465,7 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
     # the saved weights score exactly the recorded validation PSNR (they are that step's EMA)
     from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
 
-    cfg = SRMTrainConfig(**json.loads((out / "config.json").read_text()))
+    cfg = SRMTrainConfig.from_json(json.loads((out / "config.json").read_text()))
     tr = SRMTrainer(cfg, progress=False)
     assert tr.validate(srm)["with_srm"]["psnr"] == pytest.approx(vals[best], abs=1e-9)
     assert m["with_srm"]["psnr"] == pytest.approx(tr.evaluate(srm)["with_srm"]["psnr"], abs=1e-9)
@@ -531,8 +544,10 @@ def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs,
     assert torch.equal(dihedral(x, 1), x.flip(-1)) and torch.equal(dihedral(x, 2), torch.rot90(x, 1, (-2, -1)))
     base = dict(data=str(tiny_world), hogs=str(hogs_runs), batch_size=6, crop=32, channels=[8, 16, 16], lambda_gan=0.0,
                 cache=str(srm_cache))
-    plain = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "p"), augment="none", **base), progress=False, log=lambda m: None)
-    aug = SRMTrainer(SRMTrainConfig(out=str(tmp_path / "a"), augment="d4", **base), progress=False, log=lambda m: None)
+    plain = SRMTrainer(SRMTrainConfig.from_json(dict(out=str(tmp_path / "p"), augment="none", **base)), progress=False,
+                       log=lambda m: None)
+    aug = SRMTrainer(SRMTrainConfig.from_json(dict(out=str(tmp_path / "a"), augment="d4", **base)), progress=False,
+                     log=lambda m: None)
     moved = 0
     for _ in range(3):  # same windows (same seed); the augmented ones are one symmetry of them, shared by all three
         p, a = plain.batch(), aug.batch()
@@ -543,7 +558,7 @@ def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs,
             moved += 0 not in codes
     assert moved > 0
     with pytest.raises(ValueError, match="augment"):
-        SRMTrainer(SRMTrainConfig(out=str(tmp_path / "x"), augment="rot45", **base), progress=False)
+        SRMTrainer(SRMTrainConfig.from_json(dict(out=str(tmp_path / "x"), augment="rot45", **base)), progress=False)
 
 
 def test_discriminator_real_is_reachable_by_the_generator(tiny_world, hogs_runs, srm_cache, tmp_path):
@@ -551,8 +566,9 @@ def test_discriminator_real_is_reachable_by_the_generator(tiny_world, hogs_runs,
     (output c · alpha) cannot match, and the GT itself wherever it can."""
     from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
 
-    tr = SRMTrainer(SRMTrainConfig(data=str(tiny_world), hogs=str(hogs_runs), out=str(tmp_path / "d"), batch_size=6,
-                                   crop=0, channels=[8, 16, 16], cache=str(srm_cache)), progress=False, log=lambda m: None)
+    tr = SRMTrainer(SRMTrainConfig.from_json(dict(data=str(tiny_world), hogs=str(hogs_runs), out=str(tmp_path / "d"),
+                                                 batch_size=6, crop=0, channels=[8, 16, 16], cache=str(srm_cache))),
+                    progress=False, log=lambda m: None)
     rgb, alpha, gt = tr.batch()
     assert float(gt.amax()) > 0.2
     for a in (alpha, 0.5 * alpha, torch.zeros_like(alpha)):  # the last two: GT silhouette beyond the render

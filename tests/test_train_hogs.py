@@ -32,7 +32,7 @@ def _cfg(world, out, **kw) -> HogsConfig:
                 frame_stride=4, eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0,
                 k=1, sh_degree=1, sh_warmup=0, strip_views=2)  # fmt: skip
     base.update(kw)
-    return HogsConfig(**base)
+    return HogsConfig.from_json(base)
 
 
 def _photo(trainer: HogsTrainer, samples) -> float:
@@ -113,12 +113,11 @@ def test_resume_matches_unbroken_run(tiny_world, tmp_path):
     full = HogsTrainer(_cfg(tiny_world, tmp_path / "full", iters=6, ckpt_every=3), progress=False)
     full.train()
     cli = _cli()
-    args = ["--data", str(tiny_world), "--subject", "s01", "--object", "box", "--out", str(tmp_path / "cut"),
-            "--image-size", "64", "--frame-stride", "4", "--eval-every-frame", "2", "--max-eval", "3",
-            "--eval-every", "0", "--ckpt-every", "3", "--lr-scale", "10", "--k", "1", "--sh-degree", "1",
-            "--sh-warmup", "0",
-            "--quiet"]  # fmt: skip
-    assert cli.main(args + ["--iters", "3"]) == 0  # the "killed" run: its last checkpoint is step 3
+    args = ["--data-root", str(tiny_world), "--data-subject", "s01", "--data-object", "box", "--run-out",
+            str(tmp_path / "cut"), "--data-image-size", "64", "--data-frame-stride", "4", "--data-eval-every-frame",
+            "2", "--data-max-eval", "3", "--run-eval-every", "0", "--run-ckpt-every", "3", "--optim-lr-scale", "10",
+            "--model-k", "1", "--model-sh-degree", "1", "--optim-sh-warmup", "0", "--quiet"]  # fmt: skip
+    assert cli.main(args + ["--optim-iters", "3"]) == 0  # the "killed" run: its last checkpoint is step 3
     assert json.loads((tmp_path / "cut" / "checkpoints" / "latest.json").read_text())["step"] == 3
     resumed = HogsTrainer(_cfg(tiny_world, tmp_path / "cut", iters=6, ckpt_every=3), progress=False)
     assert resumed.resume() and resumed.step == 3
@@ -161,7 +160,18 @@ def test_bad_arguments(tiny_world, tmp_path, capsys):
         HogsTrainer(_cfg(tiny_world, tmp_path / "r", sequences=["box_grab_07"]), progress=False)
     with pytest.raises(ValueError, match="eval views"):
         HogsTrainer(_cfg(tiny_world, tmp_path / "r", eval_views=[0]), progress=False)
-    rc = _cli().main(["--data", str(tiny_world), "--subject", "s01", "--object", "mug", "--out", str(tmp_path / "r")])
+    rc = _cli().main(
+        [
+            "--data-root",
+            str(tiny_world),
+            "--data-subject",
+            "s01",
+            "--data-object",
+            "mug",
+            "--run-out",
+            str(tmp_path / "r"),
+        ]
+    )
     assert rc == 2 and "unknown object 'mug'" in capsys.readouterr().err
     mask = torch.zeros(1, 9, 9, dtype=torch.bool)
     mask[0, 4, 4] = True
@@ -176,14 +186,16 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     import sys
     import time
 
-    args = ["--data", str(tiny_world), "--subject", "s01", "--object", "box", "--image-size", "64",
-            "--frame-stride", "4", "--eval-every-frame", "2", "--max-eval", "3", "--eval-every", "0",
-            "--ckpt-every", "2", "--lr-scale", "10", "--k", "1", "--sh-degree", "1", "--sh-warmup", "0",
-            "--iters", "14", "--quiet"]  # fmt: skip
+    args = ["--data-root", str(tiny_world), "--data-subject", "s01", "--data-object", "box", "--data-image-size", "64",
+            "--data-frame-stride", "4", "--data-eval-every-frame", "2", "--data-max-eval", "3", "--run-eval-every", "0",
+            "--run-ckpt-every", "2", "--optim-lr-scale", "10", "--model-k", "1", "--model-sh-degree", "1",
+            "--optim-sh-warmup", "0", "--optim-iters", "14", "--quiet"]  # fmt: skip
     cut = tmp_path / "cut"
     # the same intra-op thread count as this process: CPU float sums are reproducible per thread count
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
-    proc = subprocess.Popen([sys.executable, str(ROOT / "pretrain" / "train_hogs.py"), *args, "--out", str(cut)], env=env)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "pretrain" / "train_hogs.py"), *args, "--run-out", str(cut)], env=env
+    )
     latest = cut / "checkpoints" / "latest.json"
     deadline = time.monotonic() + 120
     while not latest.exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -193,8 +205,8 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     proc.wait()
     step = json.loads(latest.read_text())["step"]
     assert 2 <= step <= 14
-    assert _cli().main(args + ["--out", str(cut), "--resume"]) == 0
-    assert _cli().main(args + ["--out", str(tmp_path / "full")]) == 0
+    assert _cli().main(args + ["--run-out", str(cut), "--resume"]) == 0
+    assert _cli().main(args + ["--run-out", str(tmp_path / "full")]) == 0
     a = json.loads((tmp_path / "full" / "metrics.json").read_text())
     b = json.loads((cut / "metrics.json").read_text())
     assert b["iters"] == 14 and a["psnr"] == b["psnr"] and a["ssim"] == b["ssim"]

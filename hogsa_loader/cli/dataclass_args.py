@@ -122,3 +122,32 @@ def dataclass_from_args(cls: type[T], ns: argparse.Namespace, prefix: tuple[str,
             value = tuple(value)
         kwargs[f.name] = value
     return cls(**kwargs)  # type: ignore[call-arg]
+
+
+def apply_field_checks(parser: argparse.ArgumentParser, cls: type, prefix: tuple[str, ...] = ()) -> None:
+    """Give the flags :func:`add_dataclass_arguments` added for ``cls`` their field's converter.
+
+    A field's ``metadata["check"]`` names a validator of :mod:`hogsa_loader.cli.checks`
+    (``"positive_int"``), ``metadata["type"]`` is a converter itself; ``metadata["nargs"]``
+    makes the flag take several values (the field gets the list of converted values).
+    """
+    from hogsa_loader.cli import checks  # deferred: this file's import block belongs to its other functions
+
+    actions = {a.dest: a for a in parser._actions}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        path = prefix + (f.name,)
+        if dataclasses.is_dataclass(hints[f.name]):
+            apply_field_checks(parser, hints[f.name], path)
+            continue
+        action = actions.get(_dest(path))
+        if action is None:
+            continue
+        if "check" in f.metadata:
+            action.type = getattr(checks, f.metadata["check"])
+        if "type" in f.metadata:
+            action.type = f.metadata["type"]
+        if "nargs" in f.metadata:
+            action.nargs = f.metadata["nargs"]

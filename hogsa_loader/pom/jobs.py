@@ -1,7 +1,9 @@
 """POM's two offline jobs as functions: fit a ContactNet, build a pose bank.
 
-``pretrain/train_contactnet.py`` and ``pretrain/build_pose_bank.py`` are thin command lines
-over these; ``hogsa demo`` calls them directly.
+``pretrain/train_contactnet.py`` and ``pretrain/build_pose_bank.py`` (``hogsa train
+contactnet`` / ``hogsa train bank``) are thin command lines over these; ``hogsa demo`` calls
+them directly. Their settings are :class:`~hogsa_loader.pom.job_config.ContactNetJobConfig`
+and :class:`~hogsa_loader.pom.job_config.PoseBankConfig`.
 """
 
 from __future__ import annotations
@@ -11,14 +13,24 @@ import time
 import zlib
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.errors import PathLike
+from hogsa_loader.pom.bank import save_pose_bank
+from hogsa_loader.pom.contactnet import ContactNet, load_contactnet, save_contactnet
+from hogsa_loader.pom.hands import HandInfo, hand_infos
+from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
+from hogsa_loader.pom.metrics import grasp_metrics
+from hogsa_loader.pom.objects import ObjectSet
+from hogsa_loader.pom.optimize import POMConfig
 from hogsa_loader.pom.perturb import KEEP_ARTICULATION, PerturbConfig
+from hogsa_loader.pom.pipeline import augment, contact_frames
+from hogsa_loader.pom.state import GraspState
+from hogsa_loader.pom.train import ContactData, TrainConfig, build_contact_data, evaluate_contactnet, train_contactnet
 
 __all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "variant_seed"]
 
@@ -26,10 +38,10 @@ __all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "varian
 def save_contactnet_curve(path: Path, hist: dict) -> None:
     """Training loss (contact-weighted BCE, smoothed) and validation BCE (unweighted) / MAE /
     IoU@0.5 against the iteration, as PNG."""
-    import matplotlib
+    import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
     tl = np.asarray(hist["train_loss"])
@@ -53,77 +65,43 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
     plt.close(fig)
 
 
-def fit_contactnet(
-    data: PathLike,
-    out: PathLike,
-    *,
-    iters: int = 1500,
-    val_subjects: Optional[Sequence[str]] = None,
-    batch: int = 8,
-    points: int = 512,
-    lr: float = 1e-3,
-    val_every: int = 100,
-    seed: int = 0,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Train ContactNet on the annotated frames of ``data`` with held-out-subject validation.
-
-    Writes ``contactnet.safetensors`` + ``manifest.json``, ``metrics.json``,
-    ``history.json`` and ``curve.png`` into ``out``.
-
-    Args:
-        data: ARCTIC(-format) data root.
-        out: run folder.
-        val_subjects: held-out subjects (default: the last subject).
-        iters, batch, points, lr, val_every, seed: see :class:`~hogsa_loader.pom.train.TrainConfig`.
-        progress: show a progress bar.
-
-    Returns:
-        the metrics written to ``metrics.json`` (``val_mae``, ``val_iou05``, ...).
+def _split_subjects(root: ArcticRoot, val_subjects: Optional[tuple[str, ...]]) -> tuple[list[str], list[str]]:
+    """``(training subjects, held-out subjects)``; held out by default: the last subject.
 
     Raises:
-        ValueError: no training subject is left after ``val_subjects``.
+        ValueError: no training subject is left.
     """
-    from tqdm import tqdm
-
-    from hogsa_loader.pom.contactnet import save_contactnet
-    from hogsa_loader.pom.hands import hand_infos
-    from hogsa_loader.pom.objects import ObjectSet
-    from hogsa_loader.pom.train import TrainConfig, build_contact_data, evaluate_contactnet, train_contactnet
-
-    root = ArcticRoot(data)
     subjects = sorted({s.split("/")[0] for s in root.sequences()})
     val_subj = list(val_subjects) if val_subjects else subjects[-1:]
     train_subj = [s for s in subjects if s not in val_subj]
     if not train_subj:
         raise ValueError(f"no training subject left: subjects {subjects}, held out {val_subj}")
-    infos = hand_infos(root.mano_layers())
-    objects = ObjectSet(root.object_templates(load_texture=False))
-    cfg = TrainConfig(iters=iters, batch=batch, points=points, lr=lr, val_every=val_every, seed=seed)
-    t0 = time.perf_counter()
-    train = build_contact_data(root, train_subj, infos, objects, near=cfg.near)
-    val = build_contact_data(root, val_subj, infos, objects, near=cfg.near) if val_subj else None
-    prep = time.perf_counter() - t0
-    bar = tqdm(total=iters, disable=not progress, desc="contactnet")
+    return train_subj, val_subj
+
+
+def _train_with_bar(train: ContactData, val: Optional[ContactData], infos: dict[str, HandInfo], objects: ObjectSet,
+                    tc: TrainConfig, progress: bool) -> tuple[ContactNet, dict]:
+    """:func:`~hogsa_loader.pom.train.train_contactnet` with a progress bar; ``(model, history)``."""
+    bar = tqdm(total=tc.iters, disable=not progress, desc="contactnet")
 
     def step(it: int, info: dict) -> None:
         bar.update(1)
         bar.set_postfix({k: f"{v:.4f}" for k, v in info.items() if k in ("loss", "mae", "iou05")})
 
-    model, hist = train_contactnet(train, val, infos, objects, cfg, step)
+    model, hist = train_contactnet(train, val, infos, objects, tc, step)
     bar.close()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    final: dict = {}
-    if val is not None and val.size:  # the loop always scores its last step: reuse that, it is the same weights
-        last_scored = hist["val"] and hist["val"][-1][0] == iters
-        final = hist["val"][-1][1] if last_scored else evaluate_contactnet(model, val, infos, objects)
+    return model, hist
+
+
+def _contactnet_metrics(hist: dict, final: dict, subjects: tuple[list[str], list[str]], sizes: tuple[int, int],
+                        iters: int, prep: float) -> dict[str, Any]:
+    """The ``metrics.json`` of a fit: subjects, frame counts, final and initial validation scores, timings."""
     first = hist["val"][0][1] if hist["val"] else {}
-    metrics = {
-        "val_subjects": val_subj,
-        "train_subjects": train_subj,
-        "train_frames": train.size,
-        "val_frames": val.size if val is not None else 0,
+    return {
+        "val_subjects": subjects[1],
+        "train_subjects": subjects[0],
+        "train_frames": sizes[0],
+        "val_frames": sizes[1],
         "iters": iters,
         "val_mae": final.get("mae"),
         "val_iou05": final.get("iou05"),
@@ -136,6 +114,44 @@ def fit_contactnet(
         "prep_seconds": prep,
         "threads": torch.get_num_threads(),
     }
+
+
+def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[str, Any]:
+    """Train ContactNet on the annotated frames of ``cfg.data.root`` with held-out-subject validation.
+
+    Writes ``contactnet.safetensors`` + ``manifest.json``, ``metrics.json``,
+    ``history.json`` and ``curve.png`` into ``cfg.run.out``.
+
+    Args:
+        cfg: data root and held-out subjects, optimiser settings (see
+            :class:`~hogsa_loader.pom.train.TrainConfig`), run folder and validation cadence.
+        progress: show a progress bar.
+
+    Returns:
+        the metrics written to ``metrics.json`` (``val_mae``, ``val_iou05``, ...).
+
+    Raises:
+        ValueError: no training subject is left after ``val_subjects``.
+    """
+    o = cfg.optim
+    root = ArcticRoot(cfg.data.root)
+    train_subj, val_subj = _split_subjects(root, cfg.data.val_subjects)
+    infos = hand_infos(root.mano_layers())
+    objects = ObjectSet(root.object_templates(load_texture=False))
+    tc = TrainConfig(iters=o.iters, batch=o.batch, points=o.points, lr=o.lr, val_every=cfg.run.val_every, seed=o.seed)
+    t0 = time.perf_counter()
+    train = build_contact_data(root, train_subj, infos, objects, near=tc.near)
+    val = build_contact_data(root, val_subj, infos, objects, near=tc.near) if val_subj else None
+    prep = time.perf_counter() - t0
+    model, hist = _train_with_bar(train, val, infos, objects, tc, progress)
+    out = Path(cfg.run.out)
+    out.mkdir(parents=True, exist_ok=True)
+    final: dict = {}
+    if val is not None and val.size:  # the loop always scores its last step: reuse that, it is the same weights
+        last_scored = hist["val"] and hist["val"][-1][0] == o.iters
+        final = hist["val"][-1][1] if last_scored else evaluate_contactnet(model, val, infos, objects)
+    metrics = _contactnet_metrics(hist, final, (train_subj, val_subj), (train.size, val.size if val is not None else 0),
+                                  o.iters, prep)
     training = {k: metrics[k] for k in ("val_subjects", "train_subjects", "iters", "val_mae", "val_iou05")}
     save_contactnet(model, out, {"training": training, "data": str(root.data_root)})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -154,37 +170,75 @@ def variant_seed(seed: int, sequence: str, variant: int) -> int:
     return int(np.random.SeedSequence([int(seed), key, int(variant)]).generate_state(1)[0] >> 1)
 
 
-def build_pose_bank(
-    data: PathLike,
-    contactnet: PathLike,
-    out: PathLike,
-    *,
-    per_sequence: int = 16,
-    variants: int = 1,
-    subjects: Optional[Sequence[str]] = None,
-    sequences: Optional[Sequence[str]] = None,
-    iters: int = 200,
-    batch: int = 16,
-    seed: int = 0,
-    keep_rejected: bool = False,
-    perturbation: Optional[PerturbConfig] = None,
-    device: str = "cpu",
-    progress: bool = True,
-) -> dict[str, Any]:
+def _bank_sequences(root: ArcticRoot, cfg: PoseBankConfig) -> list[str]:
+    """The ``"sid/seq"`` ids of ``root`` selected by ``cfg.data.subjects`` / ``sequences``."""
+    seqs = root.sequences()
+    if cfg.data.subjects:
+        seqs = [s for s in seqs if s.split("/")[0] in set(cfg.data.subjects)]
+    if cfg.data.sequences:
+        seqs = [s for s in seqs if s in set(cfg.data.sequences)]
+    return seqs
+
+
+class _BankParts:
+    """What the optimised variants of every sequence add up to: kept grasp states, their
+    sources and metrics, the optimised count and the drop reasons."""
+
+    def __init__(self) -> None:
+        self.states: list[GraspState] = []
+        self.sources: list[tuple[str, str, int]] = []
+        self.metrics: dict[str, list[np.ndarray]] = {
+            k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")}
+        self.dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0, "rejected": 0}
+        self.total = 0
+
+    def add(self, frames: Any, aug: Any, m: dict[str, np.ndarray], keep_rejected: bool) -> None:
+        """Keep the accepted (or, with ``keep_rejected``, all finite) grasps of one variant."""
+        self.total += frames.state.batch
+        for k, c in aug.dropped.items():
+            self.dropped[k] += c
+        ok = aug.keep.numpy()
+        keep = ok & (m["accept"] | keep_rejected)
+        if not keep_rejected:
+            self.dropped["rejected"] += int((ok & ~m["accept"]).sum())
+        idx = torch.as_tensor(keep.nonzero()[0], dtype=torch.long)
+        self.states.append(aug.result.select(idx))
+        self.sources += [frames.sources[int(i)] for i in idx]
+        for k in self.metrics:
+            self.metrics[k].append(m[k][keep].astype("float32"))
+
+
+def _optimise_sequences(root: ArcticRoot, seqs: list[str], net: ContactNet, pom: POMConfig, pert: PerturbConfig,
+                        cfg: PoseBankConfig, progress: bool) -> _BankParts:
+    """Perturb and optimise ``cfg.data.variants`` times the contact frames of every sequence."""
+    infos = hand_infos(root.mano_layers())
+    objects = ObjectSet(root.object_templates(load_texture=False))
+    parts = _BankParts()
+    for seq in tqdm(seqs, disable=not progress, desc="pose bank"):
+        frames = contact_frames(root, [seq], infos, objects, per_sequence=cfg.data.per_sequence)
+        if frames.state.batch == 0:
+            continue
+        for v in range(cfg.data.variants):
+            aug = augment(frames, infos, objects, net, pom, seed=variant_seed(cfg.run.seed, seq, v),
+                          batch=cfg.pom.batch, perturb_config=pert, device=cfg.run.device)
+            m = grasp_metrics(aug.result, infos, objects, frames.active)
+            parts.add(frames, aug, m, cfg.pom.keep_rejected)
+    return parts
+
+
+def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, Any]:
     """Optimise perturbed contact frames of every sequence with POM and save the kept grasps.
 
+    Each (sequence, variant) draws from its own seed derived from ``(cfg.run.seed, sequence
+    id, variant)`` (:func:`variant_seed`). The start perturbation keeps the annotated
+    articulation (:data:`~hogsa_loader.pom.perturb.KEEP_ARTICULATION`: the paper's ranges,
+    annotated θ kept, so the bank's θ follows the data's) unless ``cfg.pom.arti_range`` asks
+    for a uniform draw.
+
     Args:
-        data: ARCTIC(-format) data root; contactnet: ContactNet run folder; out: bank folder.
-        per_sequence: contact frames taken per sequence (evenly spaced).
-        variants: perturbations per frame.
-        subjects: restrict to these subjects (default all).
-        sequences: restrict to these ``"sid/seq"`` ids (default all).
-        iters: POM iterations; batch: samples optimised at once.
-        seed: base seed; each (sequence, variant) draws from its own seed derived from
-            ``(seed, sequence id, variant)`` (:func:`variant_seed`).
-        keep_rejected: also keep grasps that fail acceptance.
-        perturbation: the start perturbation; default :data:`KEEP_ARTICULATION` (the paper's
-            ranges, annotated θ kept, so the bank's θ follows the data's).
+        cfg: data root, ContactNet, selection of sequences and frames; POM settings; bank
+            folder, seed and device.
+        progress: show a progress bar.
 
     Returns:
         a summary (``bank``, ``entries``, ``optimised``, ``dropped`` by reason, ``seconds``).
@@ -192,59 +246,22 @@ def build_pose_bank(
     Raises:
         ValueError: no contact frame was found.
     """
-    from tqdm import tqdm
-
-    from hogsa_loader.pom.bank import save_pose_bank
-    from hogsa_loader.pom.contactnet import load_contactnet
-    from hogsa_loader.pom.hands import hand_infos
-    from hogsa_loader.pom.metrics import grasp_metrics
-    from hogsa_loader.pom.objects import ObjectSet
-    from hogsa_loader.pom.optimize import POMConfig
-    from hogsa_loader.pom.pipeline import augment, contact_frames
-    from hogsa_loader.pom.state import GraspState
-
-    root = ArcticRoot(data)
-    net = load_contactnet(contactnet, device)
-    seqs = root.sequences()
-    if subjects:
-        seqs = [s for s in seqs if s.split("/")[0] in set(subjects)]
-    if sequences:
-        seqs = [s for s in seqs if s in set(sequences)]
-    infos = hand_infos(root.mano_layers())
-    objects = ObjectSet(root.object_templates(load_texture=False))
-    cfg = POMConfig(iters=iters)
-    pert = KEEP_ARTICULATION if perturbation is None else perturbation
-    states, sources = [], []
-    metrics: dict[str, list[np.ndarray]] = {k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")}
-    dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0, "rejected": 0}
-    total, t0 = 0, time.perf_counter()
-    for seq in tqdm(seqs, disable=not progress, desc="pose bank"):
-        frames = contact_frames(root, [seq], infos, objects, per_sequence=per_sequence)
-        if frames.state.batch == 0:
-            continue
-        for v in range(variants):
-            aug = augment(frames, infos, objects, net, cfg, seed=variant_seed(seed, seq, v), batch=batch,
-                          perturb_config=pert, device=device)
-            total += frames.state.batch
-            for k, c in aug.dropped.items():
-                dropped[k] += c
-            m = grasp_metrics(aug.result, infos, objects, frames.active)
-            ok = aug.keep.numpy()
-            keep = ok & (m["accept"] | keep_rejected)
-            if not keep_rejected:
-                dropped["rejected"] += int((ok & ~m["accept"]).sum())
-            idx = torch.as_tensor(keep.nonzero()[0], dtype=torch.long)
-            states.append(aug.result.select(idx))
-            sources += [frames.sources[int(i)] for i in idx]
-            for k in metrics:
-                metrics[k].append(m[k][keep].astype("float32"))
-    if not states:
-        raise ValueError(f"no contact frame found in {root.data_root} (subjects {subjects or 'all'})")
-    state = GraspState.cat(states)
-    info = {"data": str(root.data_root), "contactnet": str(contactnet), "per_sequence": per_sequence,
-            "variants": variants, "seed": seed, "optimised": total, "dropped": dropped,
-            "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__}, "perturbation": asdict(pert),
+    root = ArcticRoot(cfg.data.root)
+    net = load_contactnet(cfg.data.contactnet, cfg.run.device)
+    pom = POMConfig(iters=cfg.pom.iters)
+    pert = KEEP_ARTICULATION if cfg.pom.arti_range is None else PerturbConfig(arti_range=tuple(cfg.pom.arti_range))
+    t0 = time.perf_counter()
+    parts = _optimise_sequences(root, _bank_sequences(root, cfg), net, pom, pert, cfg, progress)
+    if not parts.states:
+        raise ValueError(
+            f"no contact frame found in {root.data_root} (subjects {list(cfg.data.subjects or []) or 'all'})"
+        )
+    state = GraspState.cat(parts.states)
+    info = {"data": str(root.data_root), "contactnet": str(cfg.data.contactnet), "per_sequence": cfg.data.per_sequence,
+            "variants": cfg.data.variants, "seed": cfg.run.seed, "optimised": parts.total, "dropped": parts.dropped,
+            "config": {k: getattr(pom, k) for k in pom.__dataclass_fields__}, "perturbation": asdict(pert),
             "seconds": time.perf_counter() - t0}  # fmt: skip
-    path = save_pose_bank(out, state, sources, {k: np.concatenate(v) for k, v in metrics.items()}, info)
-    return {"bank": str(path.parent), "entries": state.batch, "optimised": total, "dropped": dropped,
+    path = save_pose_bank(cfg.run.out, state, parts.sources, {k: np.concatenate(v) for k, v in parts.metrics.items()},
+                          info)
+    return {"bank": str(path.parent), "entries": state.batch, "optimised": parts.total, "dropped": parts.dropped,
             "seconds": info["seconds"]}

@@ -29,6 +29,7 @@ from typing import Callable, Optional, Union
 
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file
 from torch import Tensor, nn
 
 from hogsa_loader.errors import AssetError, PathLike
@@ -90,8 +91,6 @@ def load_vgg19_features(path: PathLike) -> nn.Sequential:
         raise AssetError(path, "VGG19 weights file is missing")
     try:
         if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
             sd = load_file(str(path))
         else:
             sd = torch.load(str(path), map_location="cpu", weights_only=True)

@@ -37,10 +37,13 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+import hogsa_loader
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians.hogs_model import PART_NAMES, HogsModel
+from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, PART_NAMES, HogsModel
+from hogsa_loader.gaussians.shading import LIGHT_TENSORS
 from hogsa_loader.train.hogs_data import HogsData, ViewSample
 from hogsa_loader.train.hogs_source import HogsSource, load_run_data
 
@@ -73,15 +76,10 @@ RENDER_CACHE_VERSION = 2
 def _run_hash(run: Path) -> str:
     """Hash of a run's weights and part settings, the library version and
     :data:`RENDER_CACHE_VERSION`."""
-    import hogsa_loader
-
     h = hashlib.sha256(f"{hogsa_loader.__version__}/{RENDER_CACHE_VERSION}".encode())
     for name in PART_NAMES:
         m = json.loads((run / name / "manifest.json").read_text())
         h.update(m["tensors_sha256"].encode() + json.dumps(m.get("config"), sort_keys=True).encode())
-    from hogsa_loader.gaussians.hogs_model import LIGHT_DIR
-    from hogsa_loader.gaussians.shading import LIGHT_TENSORS
-
     light = run / LIGHT_DIR / LIGHT_TENSORS
     if light.is_file():
         h.update(hashlib.sha256(light.read_bytes()).digest())
@@ -207,8 +205,6 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     """``{name}_rgb`` / ``{name}_alpha`` renders of ``run`` for each sample list of ``parts``
     (``train`` lists as uint8, others float32), read from or written to the cache, and the
     cache file."""
-    from safetensors.torch import load_file, save_file
-
     rc = json.loads((run / "config.json").read_text())
     sh = _final_sh(rc)
     key = hashlib.sha256(json.dumps(
@@ -236,6 +232,76 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     return t, path
 
 
+#: (source run name, rgb uint8 (N, h, w, 3), alpha uint8 (N, h, w), rows of ``data.train`` (N,))
+_Chunk = tuple[str, Tensor, Tensor, Tensor]
+
+
+def _check_pair_views(run: Path, rc: dict, data: HogsData, val: set[int], mode: str, folds: Sequence[Path]) -> None:
+    """Refuse validation views that are not (or are all) training views of the run, and a
+    cross/both pair mode without view-fold runs.
+
+    Raises:
+        ValueError: a validation view is not a training view of the run, or they are all.
+        AssetError: ``mode`` needs view folds and there are none.
+    """
+    train_views = {smp.view for smp in data.train}
+    if val - train_views:
+        raise ValueError(f"validation view(s) {sorted(val - train_views)} are not training views of {run.name} "
+                         f"(training views {sorted(train_views)})")  # fmt: skip
+    if val and val >= train_views:
+        raise ValueError(f"validation views {sorted(val)} leave no training view of {run.name}")
+    if mode != "own" and not folds:
+        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
+                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
+
+
+def _fold_chunk(fold: Path, source: HogsSource, data: HogsData, val: set[int], mode: str, lo: int, cache_dir: Path,
+                log: Callable[[str], None], files: list[Path]) -> Optional[_Chunk]:
+    """The renders by view-fold run ``fold`` of the training samples whose view it did not
+    see (with ``mode="own"`` only those of validation views), or None when there are none;
+    the cache file is appended to ``files``."""
+    seen = _trained_views(json.loads((fold / "config.json").read_text()))
+    idx = [i for i, smp in enumerate(data.train) if smp.view not in seen]
+    if mode == "own":  # folds only serve validation here
+        idx = [i for i in idx if data.train[i].view in val]
+    if not idx:
+        return None
+    ft, fold_file = _cached_renders(fold, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
+    files.append(fold_file)
+    return fold.name, ft["train_rgb"], ft["train_alpha"], torch.as_tensor(idx, dtype=torch.long)
+
+
+def _assign_chunks(chunks: Sequence[_Chunk], run_name: str, data: HogsData, val: set[int], mode: str,
+                   has_folds: bool) -> tuple[tuple[list, list, list], tuple[list, list, list], dict[str, int]]:
+    """Split every source's renders into training and validation pairs.
+
+    A source supplies training pairs unless ``mode`` excludes it (``own``: no fold pairs,
+    ``cross``: no own pairs); validation pairs come from the folds when there are folds.
+
+    Returns:
+        ``((rgbs, alphas, rows), (val rgbs, val alphas, val rows), {source: training pairs})``,
+        lists of tensors per source.
+    """
+    val_from_folds = has_folds and bool(val)  # validation inputs: fold renders when there are folds
+    rgbs, alphas, rows, vrgb, valpha, vrows, sources = [], [], [], [], [], [], {}
+    for name, rgb, alpha, idx in chunks:
+        is_fold = name != run_name
+        trains = mode != ("own" if is_fold else "cross")  # this source supplies training pairs
+        is_val = torch.as_tensor([data.train[int(i)].view in val for i in idx], dtype=torch.bool)
+        keep = ~is_val if trains else torch.zeros_like(is_val)
+        use_val = is_val if is_fold == val_from_folds else torch.zeros_like(is_val)
+        if keep.any():
+            rgbs.append(rgb[keep])
+            alphas.append(alpha[keep])
+            rows.append(idx[keep])
+            sources[name] = int(keep.sum())
+        if use_val.any():
+            vrgb.append(rgb[use_val])
+            valpha.append(alpha[use_val])
+            vrows.append(idx[use_val])
+    return (rgbs, alphas, rows), (vrgb, valpha, vrows), sources
+
+
 def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Optional[int] = None, scale: int = 1,
                mode: str = "own", folds: Sequence[Path] = (), log: Callable[[str], None] = print,
                val_views: Sequence[int] = ()) -> PairSet:
@@ -261,15 +327,7 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
     if size % scale:
         raise ValueError(f"image size {size} is not divisible by scale {scale}")
     val = {int(v) for v in val_views}
-    train_views = {smp.view for smp in data.train}
-    if val - train_views:
-        raise ValueError(f"validation view(s) {sorted(val - train_views)} are not training views of {run.name} "
-                         f"(training views {sorted(train_views)})")  # fmt: skip
-    if val and val >= train_views:
-        raise ValueError(f"validation views {sorted(val)} leave no training view of {run.name}")
-    if mode != "own" and not folds:
-        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
-                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
+    _check_pair_views(run, rc, data, val, mode, folds)
     lo = size // scale
     own_train = mode != "cross" or (bool(val) and not folds)  # the run's own training renders are used
     own_parts: dict[str, Sequence[ViewSample]] = {"eval": data.eval}
@@ -277,37 +335,15 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
         own_parts["train"] = data.train
     t, own_file = _cached_renders(run, source, data, own_parts, lo, cache_dir, log)
     files = [own_file]
-    # (rgb uint8, alpha uint8, data.train rows) per source, split into training and validation
-    chunks: list[tuple[str, Tensor, Tensor, Tensor]] = []
+    chunks: list[_Chunk] = []
     if own_train:
         chunks.append((run.name, t["train_rgb"], t["train_alpha"], torch.arange(len(data.train))))
     for f in folds if mode != "own" or val else ():
-        seen = _trained_views(json.loads((f / "config.json").read_text()))
-        idx = [i for i, smp in enumerate(data.train) if smp.view not in seen]
-        if mode == "own":  # folds only serve validation here
-            idx = [i for i in idx if data.train[i].view in val]
-        if not idx:
-            continue
-        ft, fold_file = _cached_renders(f, source, data, {"train": [data.train[i] for i in idx]}, lo, cache_dir, log)
-        files.append(fold_file)
-        chunks.append((f.name, ft["train_rgb"], ft["train_alpha"], torch.as_tensor(idx, dtype=torch.long)))
-    val_from_folds = bool(folds) and bool(val)  # validation inputs: fold renders when there are folds
-    rgbs, alphas, rows, vrgb, valpha, vrows, sources = [], [], [], [], [], [], {}
-    for name, rgb, alpha, idx in chunks:
-        is_fold = name != run.name
-        trains = mode != ("own" if is_fold else "cross")  # this source supplies training pairs
-        is_val = torch.as_tensor([data.train[int(i)].view in val for i in idx], dtype=torch.bool)
-        keep = ~is_val if trains else torch.zeros_like(is_val)
-        use_val = is_val if is_fold == val_from_folds else torch.zeros_like(is_val)
-        if keep.any():
-            rgbs.append(rgb[keep])
-            alphas.append(alpha[keep])
-            rows.append(idx[keep])
-            sources[name] = int(keep.sum())
-        if use_val.any():
-            vrgb.append(rgb[use_val])
-            valpha.append(alpha[use_val])
-            vrows.append(idx[use_val])
+        chunk = _fold_chunk(f, source, data, val, mode, lo, cache_dir, log, files)
+        if chunk is not None:
+            chunks.append(chunk)
+    (rgbs, alphas, rows), (vrgb, valpha, vrows), sources = _assign_chunks(chunks, run.name, data, val, mode,
+                                                                          bool(folds))  # fmt: skip
     if val and not vrows:
         raise AssetError(run, f"no view fold left out validation view(s) {sorted(val)}: every fold saw them")
     if mode != "own" and sum(sources.get(f.name, 0) for f in folds) == 0:

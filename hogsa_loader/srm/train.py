@@ -1,11 +1,11 @@
 """SRM training: one StyleUNet for every finished HOGS run of a runs folder.
 
-Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``--hogs`` (a folder
+Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``data.hogs`` (a folder
 with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
 its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
 views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
 alpha) at ``image_size / scale`` — by the run itself (``pairs="own"``), by view-fold runs
-under ``--cross-hogs`` that did not see the sample's view (``"cross"``), or both; targets
+under ``data.cross_hogs`` that did not see the sample's view (``"cross"``), or both; targets
 are the ground-truth crops at ``image_size`` with the background masked to black (as HOGS
 training does). Renders are cached under ``RUN/cache/`` or ``cache`` (a folder several SRM
 runs may share: entries are keyed by the HOGS run's weights, the samples with their labels and
@@ -52,7 +52,6 @@ import copy
 import json
 import sys
 import time
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -60,6 +59,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.io.atomic import atomic_write
@@ -67,7 +67,6 @@ from hogsa_loader.train.run_folder import (
     RunExistsError,
     clear_run,
     commit_checkpoint,
-    config_defaults,
     has_checkpoints,
     latest_checkpoint,
     read_trainer_state,
@@ -79,52 +78,13 @@ from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_non
 from hogsa_loader.srm.model import SRM, dihedral
 from hogsa_loader.srm.pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
+from hogsa_loader.srm.train_config import SRMTrainConfig
 from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
 from hogsa_loader.train.losses import box_of, psnr, ssim_map
 
 __all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet", "AUGMENTS", "dihedral"]
 
 AUGMENTS = ("none", "flip", "d4")
-
-
-@dataclass
-class SRMTrainConfig:
-    data: str
-    hogs: str
-    out: str
-    iters: int = 4000
-    batch_size: int = 4
-    image_size: Optional[int] = None  # output / GT resolution (default: the runs' image size)
-    crop: int = 128  # training window at the output resolution (0: full images)
-    scale: int = 1
-    channels: list[int] = field(default_factory=lambda: [32, 64, 128, 128, 128])
-    style_dim: int = 64
-    wavelet: bool = True
-    lr: float = 0.002
-    lambda_l1: float = 5.0
-    lambda_perc: Optional[float] = None  # None: 0.03 with VGG, 1.0 with the substitute
-    lambda_gan: float = 1.0
-    r1_gamma: float = 10.0
-    r1_every: int = 16
-    ema_decay: float = 0.999
-    vgg_weights: Optional[str] = None
-    device: str = "cpu"
-    seed: int = 0
-    eval_every: int = 500
-    ckpt_every: int = 500
-    strip_views: int = 4
-    runs: Optional[list[str]] = None  # run folder names to use (default: all finished)
-    pairs: str = "own"  # where training inputs come from: own | cross | both (srm.pairs)
-    cross_hogs: Optional[str] = None  # folder of view-fold HOGS runs (pairs cross/both)
-    val_views: Optional[list[int]] = None  # training views kept out for model selection (best checkpoint)
-    max_val: int = 32  # validation samples per run (evenly spaced)
-    augment: str = "d4"  # none | flip (horizontal) | d4 (flips and 90° turns), same on input and target
-    cache: Optional[str] = None  # coarse-render cache folder, shareable between SRM runs (default: OUT/cache)
-
-    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views", "cache")
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 def _gt(samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor]:
@@ -157,55 +117,64 @@ class SRMTrainer:
     """Builds the data (all runs) and networks; :meth:`train` runs the loop."""
 
     def __init__(self, cfg: SRMTrainConfig, *, progress: bool = True, log=None) -> None:
-        if cfg.scale not in (1, 2):
-            raise ValueError("--scale must be 1 or 2")
-        if cfg.augment not in AUGMENTS:
-            raise ValueError(f"augment must be one of {AUGMENTS}, got {cfg.augment!r}")
-        if cfg.iters < 0 or cfg.batch_size < 1:
+        if cfg.model.scale not in (1, 2):
+            raise ValueError("--model-scale must be 1 or 2")
+        if cfg.data.augment not in AUGMENTS:
+            raise ValueError(f"augment must be one of {AUGMENTS}, got {cfg.data.augment!r}")
+        if cfg.optim.iters < 0 or cfg.optim.batch_size < 1:
             raise ValueError("iters must be >= 0 and batch_size >= 1")
         self.cfg = cfg
         self.progress = progress
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
-        self.device = torch.device(cfg.device)
-        self.out = Path(cfg.out)
+        self.device = torch.device(cfg.run.device)
+        self.out = Path(cfg.run.out)
         t0 = time.perf_counter()
-        if cfg.pairs not in PAIR_MODES:
-            raise ValueError(f"pairs must be one of {PAIR_MODES}, got {cfg.pairs!r}")
-        self.runs = find_runs(cfg.hogs, cfg.runs)
-        cands = find_runs(cfg.cross_hogs) if cfg.cross_hogs else []
-        cache = Path(cfg.cache) if cfg.cache else self.out / "cache"
-        self.sets = [load_pairs(cfg.data, r, cache, cfg.image_size, cfg.scale, cfg.pairs,
-                                fold_runs(r, cands), self.log, cfg.val_views or ()) for r in self.runs]  # fmt: skip
+        if cfg.data.pairs not in PAIR_MODES:
+            raise ValueError(f"pairs must be one of {PAIR_MODES}, got {cfg.data.pairs!r}")
+        self.runs = find_runs(cfg.data.hogs, cfg.data.runs)
+        cands = find_runs(cfg.data.cross_hogs) if cfg.data.cross_hogs else []
+        cache = Path(cfg.data.cache) if cfg.data.cache else self.out / "cache"
+        d = cfg.data
+        self.sets = [load_pairs(d.root, r, cache, d.image_size, cfg.model.scale, d.pairs, fold_runs(r, cands), self.log,
+                                d.val_views or ()) for r in self.runs]  # fmt: skip
         self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
         self.size = self.sets[0].data.image_size
         if any(s.data.image_size != self.size for s in self.sets):
-            raise ValueError("runs have different image sizes; pass --image-size")
-        torch.manual_seed(cfg.seed)
-        ucfg = StyleUNetConfig(channels=list(cfg.channels), style_dim=cfg.style_dim, scale=cfg.scale, wavelet=cfg.wavelet)
+            raise ValueError("runs have different image sizes; pass --data-image-size")
+        torch.manual_seed(cfg.run.seed)
+        ucfg = StyleUNetConfig(
+            channels=list(cfg.model.channels),
+            style_dim=cfg.model.style_dim,
+            scale=cfg.model.scale,
+            wavelet=cfg.model.wavelet,
+        )
         self.g = SRM(ucfg).to(self.device)
         self.g_ema = copy.deepcopy(self.g).eval()
         for p in self.g_ema.parameters():
             p.requires_grad_(False)
-        crop = cfg.crop or self.size
-        if crop > self.size or crop % (self.g.net.multiple * cfg.scale):
-            raise ValueError(f"--crop {crop} must be <= image size {self.size} and a multiple of {self.g.net.multiple * cfg.scale}")
+        crop = cfg.data.crop or self.size
+        if crop > self.size or crop % (self.g.net.multiple * cfg.model.scale):
+            multiple = self.g.net.multiple * cfg.model.scale
+            raise ValueError(f"--data-crop {crop} must be <= image size {self.size} and a multiple of {multiple}")
         self.crop = crop
-        self.perc = perceptual_loss(cfg.vgg_weights).to(self.device)
-        self.lambda_perc = cfg.lambda_perc if cfg.lambda_perc is not None else PERCEPTUAL_DEFAULT_WEIGHT[self.perc.kind]
-        self.use_gan = cfg.lambda_gan > 0
-        rg, rd = 4 / 5, cfg.r1_every / (cfg.r1_every + 1)
-        self.opt_g = torch.optim.Adam(self.g.parameters(), lr=cfg.lr * rg, betas=(0.0, 0.99**rg))
+        self.perc = perceptual_loss(cfg.loss.vgg_weights).to(self.device)
+        self.lambda_perc = (
+            cfg.loss.lambda_perc if cfg.loss.lambda_perc is not None else PERCEPTUAL_DEFAULT_WEIGHT[self.perc.kind]
+        )
+        self.use_gan = cfg.loss.lambda_gan > 0
+        rg, rd = 4 / 5, cfg.loss.r1_every / (cfg.loss.r1_every + 1)
+        self.opt_g = torch.optim.Adam(self.g.parameters(), lr=cfg.optim.lr * rg, betas=(0.0, 0.99**rg))
         self.d: Optional[ConditionalDiscriminator] = None
         self.opt_d: Optional[torch.optim.Adam] = None
         if self.use_gan:
             self.d = ConditionalDiscriminator(crop, cond_channels=4).to(self.device)
-            self.opt_d = torch.optim.Adam(self.d.parameters(), lr=cfg.lr * rd, betas=(0.0, 0.99**rd))
-        self.gen = torch.Generator().manual_seed(cfg.seed)
+            self.opt_d = torch.optim.Adam(self.d.parameters(), lr=cfg.optim.lr * rd, betas=(0.0, 0.99**rd))
+        self.gen = torch.Generator().manual_seed(cfg.run.seed)
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.evals: list[dict[str, Any]] = []
         self._train_time = 0.0
-        self.use_val = bool(cfg.val_views)
+        self.use_val = bool(cfg.data.val_views)
         #: best validation score so far {"step", "psnr", "ssim"} and that EMA generator's weights
         self.best: Optional[dict[str, Any]] = None
         self.best_state: Optional[dict[str, Tensor]] = None
@@ -217,11 +186,11 @@ class SRMTrainer:
     # ------------------------------------------------------------------ batches
     def batch(self) -> tuple[Tensor, Tensor, Tensor]:
         """Random training batch: coarse rgb (B,3,h,w), alpha (B,1,h,w), GT (B,3,H,W), crops."""
-        cfg, s = self.cfg, self.cfg.scale
-        idx = torch.randint(len(self.index), (cfg.batch_size,), generator=self.gen).tolist()
+        cfg, s = self.cfg, self.cfg.model.scale
+        idx = torch.randint(len(self.index), (cfg.optim.batch_size,), generator=self.gen).tolist()
         c_lo = self.crop // s
         lo = self.size // s
-        offs = torch.randint(lo - c_lo + 1, (cfg.batch_size, 2), generator=self.gen).tolist()
+        offs = torch.randint(lo - c_lo + 1, (cfg.optim.batch_size, 2), generator=self.gen).tolist()
         rgbs, alphas, gts = [], [], []
         for (si, i), (y, x) in zip((self.index[j] for j in idx), offs):
             ps = self.sets[si]
@@ -235,9 +204,9 @@ class SRMTrainer:
         rgb = (torch.stack(rgbs).float() / 255.0).permute(0, 3, 1, 2)
         alpha = (torch.stack(alphas).float() / 255.0)[:, None]
         gt = torch.stack(gts).permute(0, 3, 1, 2)
-        if cfg.augment != "none":
-            n = 2 if cfg.augment == "flip" else 8
-            codes = torch.randint(n, (cfg.batch_size,), generator=self.gen).tolist()
+        if cfg.data.augment != "none":
+            n = 2 if cfg.data.augment == "flip" else 8
+            codes = torch.randint(n, (cfg.optim.batch_size,), generator=self.gen).tolist()
             rgb, alpha, gt = (torch.stack([dihedral(t[b], c) for b, c in enumerate(codes)]) for t in (rgb, alpha, gt))
         return rgb.to(dev), alpha.to(dev), gt.to(dev)
 
@@ -251,8 +220,8 @@ class SRMTrainer:
     def condition(self, rgb: Tensor, alpha: Tensor) -> Tensor:
         """D's condition (B, 4, H, W) in [−1, 1]: coarse premultiplied rgb + alpha at output size."""
         c = torch.cat([rgb, alpha], 1)
-        if self.cfg.scale != 1:
-            c = F.interpolate(c, scale_factor=float(self.cfg.scale), mode="bilinear", align_corners=False)
+        if self.cfg.model.scale != 1:
+            c = F.interpolate(c, scale_factor=float(self.cfg.model.scale), mode="bilinear", align_corners=False)
         return c * 2.0 - 1.0
 
     # ------------------------------------------------------------------ training
@@ -263,7 +232,7 @@ class SRMTrainer:
         real_d = self.discriminator_real(gt, alpha) * 2.0 - 1.0
         cond = self.condition(rgb, alpha)
         terms: dict[str, float] = {}
-        z = torch.randn(cfg.batch_size, cfg.style_dim, device=self.device)
+        z = torch.randn(cfg.optim.batch_size, cfg.model.style_dim, device=self.device)
         if self.use_gan:
             assert self.d is not None and self.opt_d is not None
             self.d.requires_grad_(True)
@@ -274,22 +243,22 @@ class SRMTrainer:
             d_loss.backward()
             self.opt_d.step()
             terms["d"] = float(d_loss.detach())
-            if cfg.r1_every > 0 and self.step % cfg.r1_every == 0:
+            if cfg.loss.r1_every > 0 and self.step % cfg.loss.r1_every == 0:
                 r1, real_logits = r1_penalty(lambda x: self.d(x, cond), real_d)  # type: ignore[misc]
                 self.opt_d.zero_grad(set_to_none=True)
-                (cfg.r1_gamma / 2 * r1 * cfg.r1_every + 0 * real_logits[0]).backward()
+                (cfg.loss.r1_gamma / 2 * r1 * cfg.loss.r1_every + 0 * real_logits[0]).backward()
                 self.opt_d.step()
                 terms["r1"] = float(r1.detach())
             self.d.requires_grad_(False)
-        z = torch.randn(cfg.batch_size, cfg.style_dim, device=self.device)
+        z = torch.randn(cfg.optim.batch_size, cfg.model.style_dim, device=self.device)
         fake = self.g(rgb, alpha, z) * 2.0 - 1.0
         l1 = l1_loss(fake, real)
         perc = self.perc(fake, real)
-        loss = cfg.lambda_l1 * l1 + self.lambda_perc * perc
+        loss = cfg.loss.lambda_l1 * l1 + self.lambda_perc * perc
         terms.update(l1=float(l1.detach()), perc=float(perc.detach()))
         if self.use_gan:
             gan = g_nonsaturating(self.d(fake, cond))  # type: ignore[misc]
-            loss = loss + cfg.lambda_gan * gan
+            loss = loss + cfg.loss.lambda_gan * gan
             terms["gan"] = float(gan.detach())
         self.opt_g.zero_grad(set_to_none=True)
         loss.backward()
@@ -303,7 +272,7 @@ class SRMTrainer:
     @torch.no_grad()
     def _update_ema(self) -> None:
         # ramp: short runs would otherwise evaluate a mostly-untrained EMA
-        decay = min(self.cfg.ema_decay, (1 + self.step) / (10 + self.step))
+        decay = min(self.cfg.optim.ema_decay, (1 + self.step) / (10 + self.step))
         for pe, p in zip(self.g_ema.parameters(), self.g.parameters()):
             pe.lerp_(p, 1.0 - decay)
         for be, b in zip(self.g_ema.buffers(), self.g.buffers()):
@@ -318,8 +287,9 @@ class SRMTrainer:
         region = dilate_mask(mask, ps.margin_px)[0]
         ref = model.refine(rgb.to(self.device), alpha.to(self.device)).cpu()
         coarse = rgb.cpu()
-        if self.cfg.scale != 1:
-            coarse = F.interpolate(coarse.permute(0, 3, 1, 2), scale_factor=float(self.cfg.scale), mode="bilinear",
+        scale = float(self.cfg.model.scale)
+        if scale != 1:
+            coarse = F.interpolate(coarse.permute(0, 3, 1, 2), scale_factor=scale, mode="bilinear",
                                    align_corners=False).permute(0, 2, 3, 1).clamp(0, 1)  # fmt: skip
         y0, y1, x0, x1 = box_of(region)
         g = gt[:, y0:y1, x0:x1]
@@ -338,7 +308,7 @@ class SRMTrainer:
         rows = []
         for ps in self.sets:
             n = len(ps.val_rows)
-            for j in np.unique(np.linspace(0, n - 1, min(n, self.cfg.max_val)).round().astype(int)) if n else []:
+            for j in np.unique(np.linspace(0, n - 1, min(n, self.cfg.data.max_val)).round().astype(int)) if n else []:
                 smp = ps.data.train[int(ps.val_rows[j])]
                 rgb, a = ps.val_rgb[j : j + 1].float() / 255.0, ps.val_alpha[j : j + 1].float() / 255.0
                 rows.append(self._score(ps, smp, rgb, a, model))
@@ -382,14 +352,12 @@ class SRMTrainer:
         return out
 
     def train(self, overwrite: bool = False) -> dict[str, Any]:
-        """Train to ``cfg.iters`` steps (from the current step), evaluating and checkpointing.
+        """Train to ``cfg.optim.iters`` steps (from the current step), evaluating and checkpointing.
 
         Args:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        from tqdm import tqdm
-
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
@@ -400,21 +368,21 @@ class SRMTrainer:
         _write_json(self.out / "config.json", cfg.to_json())
         if self.step == 0 and not self.evals:
             self.evals.append(self._eval_point(self.evaluate()))
-        bar = tqdm(total=cfg.iters, initial=self.step, disable=not self.progress, desc="srm", dynamic_ncols=True)
-        while self.step < cfg.iters:
+        bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="srm", dynamic_ncols=True)
+        while self.step < cfg.optim.iters:
             t0 = time.perf_counter()
             terms = self.train_step()
             self._train_time += time.perf_counter() - t0
             self.history.append(terms)
             bar.update(1)
             bar.set_postfix(l1=f"{terms['l1']:.4f}", perc=f"{terms['perc']:.4f}", gan=f"{terms.get('gan', 0):.3f}")
-            if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iters:
+            if cfg.run.eval_every > 0 and self.step % cfg.run.eval_every == 0 and self.step < cfg.optim.iters:
                 ev = self.evaluate()
                 self.evals.append(self._eval_point(ev))
                 val = f", validation {self.evals[-1]['val_with_srm']:.2f} dB" if self.use_val else ""
                 bar.write(f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} dB, "
                           f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}{val}")  # fmt: skip
-            if cfg.ckpt_every > 0 and self.step % cfg.ckpt_every == 0 and self.step < cfg.iters:
+            if cfg.run.ckpt_every > 0 and self.step % cfg.run.ckpt_every == 0 and self.step < cfg.optim.iters:
                 self.save_checkpoint()
         bar.close()
         last = self.evaluate()
@@ -473,7 +441,7 @@ class SRMTrainer:
         if final is not None:
             d["held_out"] = {k: final[k] for k in ("without_srm", "with_srm")}
         if self.best is not None:
-            d["selection"] = {"val_views": list(self.cfg.val_views or []), "best": self.best}
+            d["selection"] = {"val_views": list(self.cfg.data.val_views or []), "best": self.best}
         return d
 
     def save_checkpoint(self) -> Path:
@@ -510,7 +478,7 @@ class SRMTrainer:
             AssetError: a malformed, torn or corrupt checkpoint file (named), including
                 optimiser or discriminator state that does not fit the networks.
         """
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE, config_defaults(SRMTrainConfig))
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE, SRMTrainConfig.defaults())
         if folder is None:
             return False
         state, tensors = read_trainer_state(folder)
@@ -566,20 +534,42 @@ class SRMTrainer:
             "region": "foreground box (bbox of the part mask dilated by the HOGS margin); GT background black",
             "iters": self.step,
             "selected_step": int(self.best["step"]) if self.best is not None else self.step,
-            "selection": ({"rule": "best validation PSNR with SRM (EMA generator, every eval_every steps)",
-                           "val_views": list(self.cfg.val_views or []), "best": self.best,
-                           "last_step": {k: (last or final)[k] for k in ("without_srm", "with_srm", "delta_psnr", "delta_ssim")}}
-                          if self.use_val else None),
+            "selection": (
+                {
+                    "rule": "best validation PSNR with SRM (EMA generator, every eval_every steps)",
+                    "val_views": list(self.cfg.data.val_views or []),
+                    "best": self.best,
+                    "last_step": {
+                        k: (last or final)[k] for k in ("without_srm", "with_srm", "delta_psnr", "delta_ssim")
+                    },
+                }
+                if self.use_val
+                else None
+            ),
             "evals": self.evals,
-            "runs": [{"name": s.name, "subject": s.data.subject, "object": s.data.object_name,
-                      "num_train_images": len(s.data.train), "num_eval_images": len(s.data.eval),
-                      "train_views": list(s.data.train_views), "eval_views": list(s.data.eval_views),
-                      "pair_sources": s.sources} for s in self.sets],  # fmt: skip
+            "runs": [
+                {
+                    "name": s.name,
+                    "subject": s.data.subject,
+                    "object": s.data.object_name,
+                    "num_train_images": len(s.data.train),
+                    "num_eval_images": len(s.data.eval),
+                    "train_views": list(s.data.train_views),
+                    "eval_views": list(s.data.eval_views),
+                    "pair_sources": s.sources,
+                }
+                for s in self.sets
+            ],  # fmt: skip
             "image_size": self.size,
             "crop": self.crop,
-            "scale": self.cfg.scale,
+            "scale": self.cfg.model.scale,
             "perceptual": {"kind": self.perc.kind, "weight": self.lambda_perc},
-            "losses": {"l1": self.cfg.lambda_l1, "gan": self.cfg.lambda_gan, "r1_gamma": self.cfg.r1_gamma, "r1_every": self.cfg.r1_every},
+            "losses": {
+                "l1": self.cfg.loss.lambda_l1,
+                "gan": self.cfg.loss.lambda_gan,
+                "r1_gamma": self.cfg.loss.r1_gamma,
+                "r1_every": self.cfg.loss.r1_every,
+            },
             "gflops_256": self.gflops,
             "num_params": sum(p.numel() for p in self.g.parameters()),
             "device": str(self.device),
@@ -593,22 +583,22 @@ class SRMTrainer:
     def write_pngs(self, model: Optional[SRM] = None) -> None:
         """``samples.png`` (held-out: coarse | refined | GT, each cropped to the sample's square
         foreground box and enlarged to the image size, nearest neighbour) and ``curves.png``."""
-        import matplotlib
+        import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
         model = self.g_ema if model is None else model
         rows = []
         items = [(ps, k) for ps in self.sets for k in range(len(ps.data.eval))]
-        pick = items[:: max(1, len(items) // max(1, self.cfg.strip_views))][: self.cfg.strip_views]
+        pick = items[:: max(1, len(items) // max(1, self.cfg.run.strip_views))][: self.cfg.run.strip_views]
         S = self.size
         for ps, k in pick:
             gt, mask = _gt([ps.data.eval[k]])
             rgb = ps.eval_rgb[k : k + 1].to(self.device)
             ref = model.refine(rgb, ps.eval_alpha[k : k + 1].to(self.device)).cpu()
             coarse = rgb.cpu()
-            if self.cfg.scale != 1:
+            if self.cfg.model.scale != 1:
                 coarse = F.interpolate(coarse.permute(0, 3, 1, 2), size=(S, S), mode="nearest").permute(0, 2, 3, 1)
             y0, y1, x0, x1 = box_of(dilate_mask(mask, ps.margin_px)[0])
             side = max(y1 - y0, x1 - x0)  # square box around the foreground, enlarged to S (nearest)
@@ -636,7 +626,7 @@ class SRMTrainer:
         ax[1].plot([e["step"] for e in ev], [e["with_srm"] - e["without_srm"] for e in ev], "o-", label="held-out")
         if self.use_val:
             ax[1].plot([e["step"] for e in ev], [e["val_with_srm"] - e["val_without_srm"] for e in ev], "s-",
-                       label=f"validation (views {list(self.cfg.val_views or [])})")  # fmt: skip
+                       label=f"validation (views {list(self.cfg.data.val_views or [])})")  # fmt: skip
             if self.best is not None:
                 ax[1].axvline(self.best["step"], color="k", lw=0.6, label=f"selected (step {self.best['step']})")
         ax[1].set_xlabel("step")

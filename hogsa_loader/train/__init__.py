@@ -3,11 +3,42 @@
 from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask, load_hogs_data, select_sequences
 from hogsa_loader.train.hogs_data_h2o import load_h2o_hogs_data
 from hogsa_loader.train.hogs_source import HogsSource, load_run_data, open_hogs_source
-from hogsa_loader.train.hogs_trainer import BASE_LRS, PART_NAMES, HogsConfig, HogsTrainer
+from hogsa_loader.train.hogs_config import (
+    HogsConfig,
+    HogsDataConfig,
+    HogsLossConfig,
+    HogsModelConfig,
+    HogsOptimConfig,
+    HogsRunConfig,
+)
+from hogsa_loader.train.hogs_trainer import BASE_LRS, PART_NAMES, HogsTrainer
 from hogsa_loader.train.losses import alpha_outside, box_of, hogs_loss, masked_l1, masked_ssim, psnr, ssim_map
 
 __all__ = [
-    "BASE_LRS", "MASK_MODES", "PART_NAMES", "HogsConfig", "HogsData", "HogsSource", "HogsTrainer", "ViewSample",
-    "alpha_outside", "box_of", "dilate_mask", "hogs_loss", "load_h2o_hogs_data", "load_hogs_data", "load_run_data",
-    "masked_l1", "masked_ssim", "open_hogs_source", "psnr", "select_sequences", "ssim_map",
+    "BASE_LRS",
+    "MASK_MODES",
+    "PART_NAMES",
+    "HogsConfig",
+    "HogsData",
+    "HogsDataConfig",
+    "HogsLossConfig",
+    "HogsModelConfig",
+    "HogsOptimConfig",
+    "HogsRunConfig",
+    "HogsSource",
+    "HogsTrainer",
+    "ViewSample",
+    "alpha_outside",
+    "box_of",
+    "dilate_mask",
+    "hogs_loss",
+    "load_h2o_hogs_data",
+    "load_hogs_data",
+    "load_run_data",
+    "masked_l1",
+    "masked_ssim",
+    "open_hogs_source",
+    "psnr",
+    "select_sequences",
+    "ssim_map",
 ]

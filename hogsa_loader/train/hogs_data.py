@@ -36,7 +36,7 @@ loader with the same split rules (:mod:`hogsa_loader.train.hogs_data_h2o`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -354,23 +354,13 @@ def load_hogs_data(
         raise ValueError(f"{exc} (ARCTIC: allocentric views only)") from None
     crop = root.world_meta().cropped_size
     size = int(image_size or crop)
-    scale = np.diag([size / crop, size / crop, 1.0])
     seqs, train, held, sources = [], [], [], set()
     for si, name in enumerate(names):
         seq = root.sequence(subject, name)
         seqs.append(seq)
-        frames = list(range(0, seq.num_frames, max(1, frame_stride)))
-        jobs = [(v, f, role) for v in views for i, f in enumerate(frames)
-                if (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None]  # fmt: skip
-        missing = sorted({v for v, _, _ in jobs if v not in seq.image_paths})
-        if missing:
-            raise ValueError(f"{subject}/{name}: views {missing} have no cropped images")
-        jobs = [(v, f, role) for v, f, role in jobs if seq.image_paths[v][f] is not None]
-        have_masks = all(v in seq.mask_paths and seq.mask_paths[v][f] is not None for v, f, _ in jobs)
-        if masks == "files" and not have_masks:
-            raise ValueError(f"{subject}/{name}: some used images have no mask file (masks='files'; "
-                             "use masks='render' or 'auto' to render them from the annotations)")  # fmt: skip
-        render = masks == "render" or not have_masks
+        split = (train_views, eval_views)
+        jobs = _sequence_jobs(seq, f"{subject}/{name}", views, frame_stride, split, eval_every_frame)
+        render = _renders_masks(seq, jobs, masks, f"{subject}/{name}")
         sources.add("render" if render else "files")
         posed = None
         if render or window == "fg":
@@ -378,23 +368,65 @@ def load_hogs_data(
             posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), root.mano_layers(), template)
         boxes = crop_boxes(root, seq, views)
         for v, f, role in jobs:
-            cam = seq.cameras[v]
-            K_crop = render_intrinsics(cropped_intrinsics(cam.K[f], boxes[v][f], crop))
-            win = None
-            Ks = scale @ K_crop
-            if window == "fg":
-                win = foreground_window(posed, f, cam.world2cam[f], K_crop, crop, size, window_margin)
-                x0, y0, side = win
-                Ks = np.diag([size / side, size / side, 1.0]) @ np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ K_crop
-            ip = seq.image_paths[v][f]
-            if not render:
-                image, mask = _read_foreground(ip, seq.mask_paths[v][f], size, win)
-            else:
-                image = _read_image(ip, size, win)
-                native = crop if win is None else win[2]
-                mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f],
-                                        full_size=(cam.width, cam.height), supersample=mask_supersample(native, size))  # fmt: skip
-            s = ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)
+            s = _view_sample(seq, si, v, f, boxes[v][f], posed, render, crop, size, window, window_margin)
             (held if role == "eval" else train).append(s)
     return HogsData(subject, object_name, seqs, *split_samples(train, held, max_eval, f"{subject}/{object_name}"),
                     train_views, eval_views, size, crop_size=crop, mask_source="+".join(sorted(sources)))  # fmt: skip
+
+
+def _sequence_jobs(
+    seq: Any, where: str, views: Sequence[int], frame_stride: int, split_views: tuple[Sequence[int], Sequence[int]],
+    eval_every_frame: int,
+) -> list[tuple[int, int, str]]:
+    """``(view, frame, "train" | "eval")`` of every used image of ``seq`` that exists.
+
+    Raises:
+        ValueError: a used view has no cropped images.
+    """
+    train_views, eval_views = split_views
+    frames = list(range(0, seq.num_frames, max(1, frame_stride)))
+    jobs = [(v, f, role) for v in views for i, f in enumerate(frames)
+            if (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None]  # fmt: skip
+    missing = sorted({v for v, _, _ in jobs if v not in seq.image_paths})
+    if missing:
+        raise ValueError(f"{where}: views {missing} have no cropped images")
+    return [(v, f, role) for v, f, role in jobs if seq.image_paths[v][f] is not None]
+
+
+def _renders_masks(seq: Any, jobs: Sequence[tuple[int, int, str]], masks: str, where: str) -> bool:
+    """Whether the part masks of ``jobs`` are rendered (``masks="render"``, or no mask file
+    for some image with ``"auto"``) rather than read.
+
+    Raises:
+        ValueError: ``masks="files"`` and some used image has no mask file.
+    """
+    have_masks = all(v in seq.mask_paths and seq.mask_paths[v][f] is not None for v, f, _ in jobs)
+    if masks == "files" and not have_masks:
+        raise ValueError(f"{where}: some used images have no mask file (masks='files'; "
+                         "use masks='render' or 'auto' to render them from the annotations)")  # fmt: skip
+    return masks == "render" or not have_masks
+
+
+def _view_sample(seq: Any, si: int, v: int, f: int, box: np.ndarray, posed: Any, render: bool, crop: int,
+                 size: int, window: str, window_margin: float) -> ViewSample:
+    """One (frame ``f``, view ``v``) sample of sequence number ``si`` at ``size`` px: the
+    cropped image (or the ``fg`` window of it around the posed meshes), its part mask (read,
+    or with ``render`` rendered from the posed meshes) and the camera (``Ks``: intrinsics of
+    the training image; ``box``: the view's crop box of the frame)."""
+    cam = seq.cameras[v]
+    K_crop = render_intrinsics(cropped_intrinsics(cam.K[f], box, crop))
+    win = None
+    Ks = np.diag([size / crop, size / crop, 1.0]) @ K_crop
+    if window == "fg":
+        win = foreground_window(posed, f, cam.world2cam[f], K_crop, crop, size, window_margin)
+        x0, y0, side = win
+        Ks = np.diag([size / side, size / side, 1.0]) @ np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]]) @ K_crop
+    ip = seq.image_paths[v][f]
+    if not render:
+        image, mask = _read_foreground(ip, seq.mask_paths[v][f], size, win)
+    else:
+        image = _read_image(ip, size, win)
+        native = crop if win is None else win[2]
+        mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f], full_size=(cam.width, cam.height),
+                                supersample=mask_supersample(native, size))  # fmt: skip
+    return ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)

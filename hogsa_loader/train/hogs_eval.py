@@ -134,8 +134,8 @@ def load_lpips(device: torch.device | str = "cpu") -> tuple[Optional[LpipsFn], s
         ``(fn, note)``: ``fn`` is None when LPIPS is unavailable; ``note`` says why.
     """
     try:
-        import lpips  # type: ignore[import-not-found]
-        import torchvision  # type: ignore[import-not-found]  # noqa: F401
+        import lpips  # type: ignore[import-not-found]  # deferred: optional dependency
+        import torchvision  # type: ignore[import-not-found]  # noqa: F401  # deferred: optional dependency
     except ImportError as exc:
         return None, f"LPIPS not computed: package {exc.name!r} is not installed (pip install lpips torchvision)"
     hub = Path(torch.hub.get_dir()) / "checkpoints"

@@ -24,8 +24,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional, Sequence
 
+from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import ALLO_VIEWS
+from hogsa_loader.datasets.h2o import H2ORoot
 from hogsa_loader.errors import PathLike
+from hogsa_loader.hands.mano import MANOLayer
+from hogsa_loader.hands.mano_io import load_mano
+from hogsa_loader.objects.h2o_meshes import h2o_class_name, h2o_mesh_provenance, load_h2o_object
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_data import HogsData, load_hogs_data
 from hogsa_loader.train.hogs_data_h2o import H2O_EVAL_VIEWS, H2O_VIEWS, load_h2o_hogs_data
@@ -94,9 +99,6 @@ class HogsSource:
 
 def mano_layers_from_dir(mano_dir: PathLike) -> dict:
     """``{"right", "left"}`` MANOLayers (``flat_hand_mean=False``) of ``MANO_RIGHT/LEFT`` in a folder."""
-    from hogsa_loader.hands.mano import MANOLayer
-    from hogsa_loader.hands.mano_io import load_mano
-
     return {side: MANOLayer(load_mano(mano_dir, side=side), flat_hand_mean=False).eval() for side in ("right", "left")}
 
 
@@ -118,8 +120,6 @@ def open_hogs_source(
     if dataset not in DATASETS:
         raise ValueError(f"dataset must be one of {DATASETS}, got {dataset!r}")
     if dataset == "arctic":
-        from hogsa_loader.datasets.arctic import ArcticRoot
-
         if mano_dir is not None or object_mesh_dir is not None:
             raise ValueError("--mano-dir / --object-mesh-dir are H2O options; an ARCTIC root has "
                              "body_models/mano and meta/object_vtemplates")  # fmt: skip
@@ -127,9 +127,6 @@ def open_hogs_source(
         templates = root.object_templates()
         prov = {"template": str(root.meta_dir / "object_vtemplates" / object_name)} if object_name in templates else {}
         return HogsSource("arctic", root, root.mano_layers(), templates, prov)
-    from hogsa_loader.datasets.h2o import H2ORoot
-    from hogsa_loader.objects.h2o_meshes import h2o_class_name, h2o_mesh_provenance, load_h2o_object
-
     missing = [opt for opt, val in (("--mano-dir", mano_dir), ("--object-mesh-dir", object_mesh_dir)) if val is None]
     if missing:
         raise ValueError(f"dataset 'h2o' needs {' and '.join(missing)} (H2O ships no MANO models or object meshes)")

@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
@@ -46,21 +47,21 @@ from hogsa_loader.train.run_folder import (
     RunExistsError,
     clear_run,
     commit_checkpoint,
-    config_defaults,
     has_checkpoints,
     latest_checkpoint,
     read_trainer_state,
     save_trainer_state,
 )
 from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
+from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
 from hogsa_loader.train.losses import hogs_loss
 
-__all__ = ["HogsConfig", "HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
+__all__ = ["HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
 
 PART_NAMES = ("hand_right", "hand_left", "object")
-#: Adam learning rates by parameter name (GaMeS table, algorithms.md §B.1; free/avatar
+#: Adam learning rates by parameter name (the GaMeS paper's table; free/avatar
 #: geometry the 3DGS position/rotation/scale rates). Canonical offsets get a tenth of
 #: GaMeS's optional vertex rate: at 1.6e-4 (and more so with ``lr_scale``) Adam's
 #: sign-like first steps inflated the meshes by ~1 mm per step and alpha spilled outside
@@ -91,54 +92,8 @@ SHADINGS = ("none", "lambert")
 POSITION_PARAMS = ("offsets", "means", "local_means")
 
 
-@dataclass
-class HogsConfig:
-    data: str
-    subject: str
-    object: str
-    out: str
-    dataset: str = "arctic"  # arctic | h2o
-    sequences: Optional[list[str]] = None  # ARCTIC names, H2O "scene/seq"
-    mano_dir: Optional[str] = None  # H2O: folder with MANO_RIGHT/LEFT.pkl
-    object_mesh_dir: Optional[str] = None  # H2O: folder of the object meshes
-    masks: str = "auto"  # auto (files if present, else rendered) | files | render
-    window: str = "crop"  # crop (whole cropped image) | fg (window around hands + object)
-    iters: int = 2000
-    gaussians: str = "mesh"  # mesh (GaMeS) | free
-    device: str = "cpu"
-    seed: int = 0
-    batch_size: int = 1
-    image_size: Optional[int] = None
-    views: Optional[list[int]] = None  # camera views used; None: ARCTIC 1..8, H2O 0..3 (set when training starts)
-    eval_views: Optional[list[int]] = None  # held out; None: ARCTIC [8], H2O [3] (set when training starts)
-    eval_every_frame: int = 8
-    frame_stride: int = 1
-    max_eval: int = 8
-    eval_every: int = 500
-    ckpt_every: int = 500
-    k: int = 2
-    sh_degree: int = 3
-    sh_warmup: int = 1000
-    hand_subdivide: int = 0
-    object_subdivide: Optional[int] = None  # None: subdivide until >= min_object_faces
-    min_object_faces: int = 8000
-    margin: int = 4  # px of the cropped image (ARCTIC cropped size; H2O: of a 256-px crop)
-    lambda_ssim: float = 0.2
-    lambda_r: float = 0.5
-    lambda_alpha: float = 1.0
-    lambda_alpha_in: float = 1.0  # (1 - alpha) inside the mask eroded by 1 px: opaque silhouettes (losses.py)
-    lr_scale: float = 1.0
-    lr_overrides: dict[str, float] = field(default_factory=dict)  # parameter name -> learning rate
-    opacity_warmup: int = 0  # opacities stay frozen for this many steps while colours settle
-    shading: str = "lambert"  # lambert (a learned directional light, gaussians/shading.py) | none
-    strip_views: int = 4
-    max_minutes: Optional[float] = None  # stop (and finish the run) after this much training time
-
-    # settings that may differ between a run and its resumption
-    RESUMABLE = ("iters", "eval_every", "ckpt_every", "device", "strip_views", "max_minutes")
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+def _list(x: Optional[Sequence[Any]]) -> Optional[list[Any]]:
+    return None if x is None else list(x)
 
 
 def _t(x: np.ndarray, device: torch.device) -> Tensor:
@@ -149,54 +104,56 @@ class HogsTrainer:
     """Builds the parts and data of one (subject, object) and trains them."""
 
     def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
-        if cfg.gaussians not in ("mesh", "free"):
-            raise ValueError(f"--gaussians must be 'mesh' or 'free', got {cfg.gaussians!r}")
-        unknown = sorted(set(cfg.lr_overrides) - set(BASE_LRS))
+        if cfg.model.gaussians not in ("mesh", "free"):
+            raise ValueError(f"--model-gaussians must be 'mesh' or 'free', got {cfg.model.gaussians!r}")
+        unknown = sorted(set(cfg.optim.lr_overrides) - set(BASE_LRS))
         if unknown:
             raise ValueError(f"lr overrides for unknown parameters {unknown}; known: {sorted(BASE_LRS)}")
-        if cfg.shading not in SHADINGS:
-            raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.shading!r}")
-        if cfg.iters < 0 or cfg.batch_size < 1:
+        if cfg.model.shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.model.shading!r}")
+        if cfg.optim.iters < 0 or cfg.optim.batch_size < 1:
             raise ValueError("iters must be >= 0 and batch_size >= 1")
-        if cfg.image_size is not None and cfg.image_size < 1:
-            raise ValueError(f"image_size must be >= 1 (or None: the dataset's crop size), got {cfg.image_size}")
-        if cfg.masks not in MASK_MODES:
-            raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.masks!r}")
+        if cfg.data.image_size is not None and cfg.data.image_size < 1:
+            raise ValueError(f"image_size must be >= 1 (or None: the dataset's crop size), got {cfg.data.image_size}")
+        if cfg.data.masks not in MASK_MODES:
+            raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.data.masks!r}")
         t0 = time.perf_counter()
-        self.source = open_hogs_source(cfg.dataset, cfg.data, cfg.object, mano_dir=cfg.mano_dir,
-                                       object_mesh_dir=cfg.object_mesh_dir)  # fmt: skip
+        self.source = open_hogs_source(cfg.data.dataset, cfg.data.root, cfg.data.object, mano_dir=cfg.data.mano_dir,
+                                       object_mesh_dir=cfg.data.object_mesh_dir)  # fmt: skip
         # the dataset's default views are written into config.json (what render_quality rebuilds)
-        cfg = replace(cfg, views=list(cfg.views or self.source.views), eval_views=list(cfg.eval_views or self.source.eval_views))
+        cfg = replace(cfg, data=replace(cfg.data, views=tuple(cfg.data.views or self.source.views),
+                                        eval_views=tuple(cfg.data.eval_views or self.source.eval_views)))
         self.cfg = cfg
         self.progress = progress
-        self.device = torch.device(cfg.device)
-        self.out = Path(cfg.out)
+        self.device = torch.device(cfg.run.device)
+        self.out = Path(cfg.run.out)
         self.root = self.source.root
         self.data: HogsData = self.source.load(
-            cfg.subject, cfg.object, sequences=cfg.sequences, views=cfg.views, eval_views=cfg.eval_views,
-            eval_every_frame=cfg.eval_every_frame, frame_stride=cfg.frame_stride, image_size=cfg.image_size,
-            max_eval=cfg.max_eval, masks=cfg.masks, window=cfg.window,
+            cfg.data.subject, cfg.data.object, sequences=_list(cfg.data.sequences), views=list(cfg.data.views),
+            eval_views=list(cfg.data.eval_views), eval_every_frame=cfg.data.eval_every_frame,
+            frame_stride=cfg.data.frame_stride, image_size=cfg.data.image_size, max_eval=cfg.data.max_eval,
+            masks=cfg.data.masks, window=cfg.data.window,
         )  # fmt: skip
         self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
-        torch.manual_seed(cfg.seed)
-        variant = "games" if cfg.gaussians == "mesh" else "free"
+        torch.manual_seed(cfg.run.seed)
+        variant = "games" if cfg.model.gaussians == "mesh" else "free"
         layers = self.source.mano_layers
-        template = self.source.object_templates[cfg.object]
-        levels = cfg.object_subdivide
+        template = self.source.object_templates[cfg.data.object]
+        levels = cfg.model.object_subdivide
         if levels is None:
             faces = (template.tex_faces if template.has_texture else template.faces).shape[0]
             levels = 0
-            while faces * 4**levels < cfg.min_object_faces and levels < 2:
+            while faces * 4**levels < cfg.model.min_object_faces and levels < 2:
                 levels += 1
-        common = dict(variant=variant, k=cfg.k, sh_degree=cfg.sh_degree)
+        common = dict(variant=variant, k=cfg.model.k, sh_degree=cfg.model.sh_degree)
         self.model = HogsModel(
-            HandGaussians(layers["right"], subdivide_levels=cfg.hand_subdivide, **common),
-            HandGaussians(layers["left"], subdivide_levels=cfg.hand_subdivide, **common),
+            HandGaussians(layers["right"], subdivide_levels=cfg.model.hand_subdivide, **common),
+            HandGaussians(layers["left"], subdivide_levels=cfg.model.hand_subdivide, **common),
             ObjectGaussians(template, subdivide_levels=levels, **common),
             source=self._source(),
         ).to(self.device)
         self.parts = self.model.parts
-        if cfg.shading == "lambert":
+        if cfg.model.shading == "lambert":
             self.model.light = DirectionalLight(direction=self._mean_view_direction()).to(self.device)
         groups = []
         for pname, part in self.parts.items():
@@ -204,15 +161,15 @@ class HogsTrainer:
                 lr = BASE_LRS.get(name)
                 if lr is None:
                     raise KeyError(f"no learning rate for parameter {name!r}")
-                scale = 1.0 if name in POSITION_PARAMS else cfg.lr_scale
-                lr = cfg.lr_overrides.get(name, lr * scale)
+                scale = 1.0 if name in POSITION_PARAMS else cfg.optim.lr_scale
+                lr = cfg.optim.lr_overrides.get(name, lr * scale)
                 groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"{pname}.{name}"})
         if self.model.light is not None:
             for name, p in self.model.light.named_parameters():
-                lr = cfg.lr_overrides.get(name, BASE_LRS[name])
+                lr = cfg.optim.lr_overrides.get(name, BASE_LRS[name])
                 groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"light.{name}"})
         self.optimizer = torch.optim.Adam(groups, eps=1e-15)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.gen = torch.Generator().manual_seed(cfg.run.seed)
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.evals: list[dict[str, Any]] = []
@@ -222,9 +179,9 @@ class HogsTrainer:
     # ------------------------------------------------------------------ rendering
     def active_sh_degree(self, step: Optional[int] = None) -> int:
         step = self.step if step is None else step
-        if self.cfg.sh_warmup <= 0:
-            return self.cfg.sh_degree
-        return min(self.cfg.sh_degree, step // self.cfg.sh_warmup)
+        if self.cfg.optim.sh_warmup <= 0:
+            return self.cfg.model.sh_degree
+        return min(self.cfg.model.sh_degree, step // self.cfg.optim.sh_warmup)
 
     def render(self, samples: Sequence[ViewSample], sh_degree: Optional[int] = None) -> tuple[Tensor, Tensor]:
         """Render samples: rgb (B, H, W, 3) on black, alpha (B, H, W)."""
@@ -257,29 +214,29 @@ class HogsTrainer:
         """The photometric term of the loss on ``samples`` (no gradient; e.g. a fixed probe set)."""
         gt, _, region = self.targets(samples)
         rgb, alpha = self.render(samples)
-        return hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.lambda_ssim)[1]["photo"]
+        return hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.loss.lambda_ssim)[1]["photo"]
 
     @property
     def margin_px(self) -> int:
-        """``cfg.margin`` (cropped-image pixels) at the training resolution."""
-        return int(round(self.cfg.margin * self.data.image_size / self.data.crop_size))
+        """``cfg.loss.margin`` (cropped-image pixels) at the training resolution."""
+        return int(round(self.cfg.loss.margin * self.data.image_size / self.data.crop_size))
 
     # ------------------------------------------------------------------ training
     def l_r(self) -> Tensor:
         return sum(part.offset_regulariser() for part in self.parts.values()) / len(self.parts)
 
     def train_step(self) -> dict[str, float]:
-        idx = torch.randint(len(self.data.train), (self.cfg.batch_size,), generator=self.gen).tolist()
+        idx = torch.randint(len(self.data.train), (self.cfg.optim.batch_size,), generator=self.gen).tolist()
         samples = [self.data.train[i] for i in idx]
         gt, mask, region = self.targets(samples)
         rgb, alpha = self.render(samples)
         inside = ~dilate_mask(~mask, 1)  # eroded by 1 px: partly covered edge pixels are left free
-        loss, terms = hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.lambda_ssim,
-                                lambda_r=self.cfg.lambda_r, lambda_alpha=self.cfg.lambda_alpha, inside=inside,
-                                lambda_alpha_in=self.cfg.lambda_alpha_in)  # fmt: skip
+        loss, terms = hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.loss.lambda_ssim,
+                                lambda_r=self.cfg.loss.lambda_r, lambda_alpha=self.cfg.loss.lambda_alpha, inside=inside,
+                                lambda_alpha_in=self.cfg.loss.lambda_alpha_in)  # fmt: skip
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        frozen = self.step < self.cfg.opacity_warmup
+        frozen = self.step < self.cfg.optim.opacity_warmup
         for group in self.optimizer.param_groups:
             if group["name"].endswith(".opacity_logits"):
                 group["lr"] = 0.0 if frozen else group["base_lr"]
@@ -299,14 +256,12 @@ class HogsTrainer:
         return {"step": self.step, **ev}
 
     def train(self, overwrite: bool = False) -> dict[str, Any]:
-        """Train up to ``cfg.iters`` steps (from the current step), evaluating and checkpointing.
+        """Train up to ``cfg.optim.iters`` steps (from the current step), evaluating and checkpointing.
 
         Args:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        from tqdm import tqdm
-
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
@@ -317,10 +272,10 @@ class HogsTrainer:
         _write_json(self.out / "config.json", cfg.to_json())
         if self.step == 0 and not self.evals:
             self.evals.append(_summary(self.evaluate()))
-        bar = tqdm(total=cfg.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
-        while self.step < cfg.iters:
-            if cfg.max_minutes is not None and self._train_time >= 60.0 * cfg.max_minutes:
-                bar.write(f"time budget of {cfg.max_minutes} min reached at step {self.step}")
+        bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
+        while self.step < cfg.optim.iters:
+            if cfg.run.max_minutes is not None and self._train_time >= 60.0 * cfg.run.max_minutes:
+                bar.write(f"time budget of {cfg.run.max_minutes} min reached at step {self.step}")
                 break
             t0 = time.perf_counter()
             terms = self.train_step()
@@ -328,11 +283,11 @@ class HogsTrainer:
             self.history.append(terms)
             bar.update(1)
             bar.set_postfix(loss=f"{terms['loss']:.4f}", l1=f"{terms['l1']:.4f}")
-            if cfg.eval_every > 0 and self.step % cfg.eval_every == 0 and self.step < cfg.iters:
+            if cfg.run.eval_every > 0 and self.step % cfg.run.eval_every == 0 and self.step < cfg.optim.iters:
                 ev = self.evaluate()
                 self.evals.append(_summary(ev))
                 bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB SSIM {ev['ssim']:.4f}")
-            if cfg.ckpt_every > 0 and self.step % cfg.ckpt_every == 0 and self.step < cfg.iters:
+            if cfg.run.ckpt_every > 0 and self.step % cfg.run.ckpt_every == 0 and self.step < cfg.optim.iters:
                 self.save_checkpoint()
         bar.close()
         final = self.evaluate()
@@ -346,12 +301,12 @@ class HogsTrainer:
 
     # ------------------------------------------------------------------ checkpoints
     def _source(self) -> dict[str, str]:
-        return {"dataset": self.cfg.dataset, "subject": self.cfg.subject,
+        return {"dataset": self.cfg.data.dataset, "subject": self.cfg.data.subject,
                 "sequence": ",".join(s.name for s in self.data.sequences)}  # fmt: skip
 
     def _save_parts(self, folder: Path) -> None:
         for name, part in self.parts.items():
-            extra: dict[str, Any] = {"step": self.step, "shading": self.cfg.shading}
+            extra: dict[str, Any] = {"step": self.step, "shading": self.cfg.model.shading}
             if name == "object" and self.source.object_provenance:
                 extra["object_mesh"] = self.source.object_provenance
             save_part(part, folder / name, **self._source(), extra=extra)
@@ -388,7 +343,7 @@ class HogsTrainer:
             AssetError: a malformed, torn or corrupt checkpoint file (named), including
                 optimiser moments that do not fit the model.
         """
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE, config_defaults(HogsConfig))
+        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE, HogsConfig.defaults())
         if folder is None:
             return False
         state, tensors = read_trainer_state(folder)
@@ -436,21 +391,21 @@ class HogsTrainer:
             "per_sample": final["per_sample"],
             "alpha_outside": final["alpha_outside"],
             "region": "foreground box (bbox of the part mask dilated by margin px); GT background masked to black",
-            "dataset": self.cfg.dataset,
+            "dataset": self.cfg.data.dataset,
             "masks": self.data.mask_source,
             "iters": self.step,
             "initial": self.evals[0] if self.evals else None,
             "evals": self.evals,
-            "subject": self.cfg.subject,
-            "object": self.cfg.object,
+            "subject": self.cfg.data.subject,
+            "object": self.cfg.data.object,
             "sequences": [s.name for s in self.data.sequences],
             "train_views": list(self.data.train_views),
             "eval_views": list(self.data.eval_views),
             "num_train_images": len(self.data.train),
             "num_eval_images": len(self.data.eval),
             "image_size": self.data.image_size,
-            "gaussians": self.cfg.gaussians,
-            "shading": self.cfg.shading,
+            "gaussians": self.cfg.model.gaussians,
+            "shading": self.cfg.model.shading,
             "light": self.model.light.describe() if self.model.light is not None else None,
             "num_gaussians": {k: p.num_gaussians for k, p in self.parts.items()},
             "binding_mesh": {k: p.binding_mesh for k, p in self.parts.items()},
@@ -462,13 +417,15 @@ class HogsTrainer:
 
     @torch.no_grad()
     def write_pngs(self) -> None:
-        import matplotlib
+        import matplotlib  # deferred: start-up cost, only the PNG writers need it
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # deferred: after the Agg backend is chosen
 
         rows = []
-        pick = self.data.eval[:: max(1, len(self.data.eval) // max(1, self.cfg.strip_views))][: self.cfg.strip_views]
+        pick = self.data.eval[:: max(1, len(self.data.eval) // max(1, self.cfg.run.strip_views))][
+            : self.cfg.run.strip_views
+        ]
         for s in pick:
             gt, _, _ = self.targets([s])
             rgb, _ = self.render([s])

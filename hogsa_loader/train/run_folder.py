@@ -13,12 +13,14 @@ run would otherwise delete the old checkpoints at its first save.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
+import torch
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike, UsageError, read_json
@@ -163,8 +165,6 @@ def read_trainer_state(
     Raises:
         AssetError: naming the file and the problem.
     """
-    import torch
-
     spath, tpath = folder / TRAINER_STATE, folder / TRAINER_TENSORS
     state = read_json(spath)
     if not isinstance(state, dict):
@@ -186,8 +186,6 @@ def read_trainer_state(
 
 def config_defaults(cls: type) -> dict[str, Any]:
     """``{field: default}`` of a config dataclass (fields with a default or default factory)."""
-    import dataclasses
-
     out: dict[str, Any] = {}
     for f in dataclasses.fields(cls):
         if f.default is not dataclasses.MISSING:

@@ -1,0 +1,128 @@
+"""Settings of POM's offline jobs: fitting a ContactNet and building a pose bank.
+
+Grouped dataclasses whose field ``metadata`` carries the command-line help, ``required``
+and the name of the :mod:`hogsa_loader.cli.checks` validator (``check``);
+``pretrain/train_contactnet.py`` and ``pretrain/build_pose_bank.py`` derive their flags
+from them.
+"""
+
+# ruff: noqa: UP045  (Optional[...] fields: hogsa_loader.cli.dataclass_args reads typing.Optional)
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+__all__ = [
+    "BankDataConfig", "BankPOMConfig", "BankRunConfig", "ContactNetDataConfig", "ContactNetJobConfig",
+    "ContactNetOptimConfig", "ContactNetRunConfig", "PoseBankConfig",
+]
+
+
+def _opt(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
+    """Field metadata: help text, validator name and any further keys."""
+    return {"help": help, **({"check": check} if check else {}), **extra}
+
+
+def _tuple(value: Any) -> Any:
+    """A list as a tuple; None and tuples unchanged."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+# --------------------------------------------------------------------------------------
+# ContactNet
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class ContactNetDataConfig:
+    """The annotated frames and the held-out subjects."""
+
+    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
+    val_subjects: Optional[tuple[str, ...]] = field(
+        default=None, metadata=_opt("held-out subjects (unset: the last one)"))
+
+    def __post_init__(self) -> None:
+        self.val_subjects = _tuple(self.val_subjects)
+
+
+@dataclass
+class ContactNetOptimConfig:
+    """Steps, batch, sampled object points, learning rate and seed."""
+
+    iters: int = field(default=1500, metadata=_opt("training steps", "non_negative_int"))
+    batch: int = field(default=8, metadata=_opt("frames per step", "positive_int"))
+    points: int = field(default=512, metadata=_opt("object points per training sample", "positive_int"))
+    lr: float = field(default=1e-3, metadata=_opt("Adam learning rate", "positive_float"))
+    seed: int = field(default=0, metadata=_opt("random seed"))
+
+
+@dataclass
+class ContactNetRunConfig:
+    """Run folder and validation cadence."""
+
+    out: str = field(default="", metadata=_opt("run folder", required=True))
+    val_every: int = field(default=100, metadata=_opt("validate every N steps", "positive_int"))
+
+
+@dataclass
+class ContactNetJobConfig:
+    """All settings of one ContactNet fit (:func:`~hogsa_loader.pom.jobs.fit_contactnet`)."""
+
+    data: ContactNetDataConfig = field(default_factory=ContactNetDataConfig)
+    optim: ContactNetOptimConfig = field(default_factory=ContactNetOptimConfig)
+    run: ContactNetRunConfig = field(default_factory=ContactNetRunConfig)
+
+
+# --------------------------------------------------------------------------------------
+# pose bank
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class BankDataConfig:
+    """The dataset, the ContactNet and which sequences and frames are optimised."""
+
+    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
+    contactnet: str = field(default="", metadata=_opt("ContactNet run folder", required=True))
+    subjects: Optional[tuple[str, ...]] = field(default=None, metadata=_opt("subjects (unset: all)"))
+    sequences: Optional[tuple[str, ...]] = field(
+        default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all)"))
+    per_sequence: int = field(default=16, metadata=_opt("contact frames per sequence (evenly spaced)", "positive_int"))
+    variants: int = field(default=1, metadata=_opt("perturbations per frame", "positive_int"))
+
+    def __post_init__(self) -> None:
+        self.subjects, self.sequences = _tuple(self.subjects), _tuple(self.sequences)
+
+
+@dataclass
+class BankPOMConfig:
+    """The start perturbation, the POM optimisation and which grasps are kept."""
+
+    iters: int = field(default=200, metadata=_opt("POM iterations", "non_negative_int"))
+    batch: int = field(default=16, metadata=_opt("grasps optimised at once", "positive_int"))
+    arti_range: Optional[tuple[float, ...]] = field(default=None, metadata=_opt(
+        "draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314 0.628) instead of keeping the "
+        "annotated angle", nargs=2))
+    keep_rejected: bool = field(default=False, metadata=_opt("also keep grasps that fail acceptance"))
+
+    def __post_init__(self) -> None:
+        self.arti_range = _tuple(self.arti_range)
+
+
+@dataclass
+class BankRunConfig:
+    """Bank folder, seed and device."""
+
+    out: str = field(default="", metadata=_opt("bank folder", required=True))
+    seed: int = field(default=0, metadata=_opt(
+        "base seed; each (sequence, variant) draws from a seed derived from it (variant_seed)"))
+    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device"))
+
+
+@dataclass
+class PoseBankConfig:
+    """All settings of one pose-bank build (:func:`~hogsa_loader.pom.jobs.build_pose_bank`)."""
+
+    data: BankDataConfig = field(default_factory=BankDataConfig)
+    pom: BankPOMConfig = field(default_factory=BankPOMConfig)
+    run: BankRunConfig = field(default_factory=BankRunConfig)
