@@ -40,6 +40,7 @@ from tqdm import tqdm
 from hogsa_loader import __version__
 from hogsa_loader.cli import checks
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
+from hogsa_loader.cli.train_commands import add_train_commands
 from hogsa_loader.compose.plates import PlateConfig, build_plates
 from hogsa_loader.demo import DemoConfig, run_demo
 from hogsa_loader.errors import AssetError, HogsaError
@@ -409,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
     sub = p.add_subparsers(dest="command")
     for add in (_assets_parser, _convert_parser, _world_parser, _world_noise_parser, _export_parser, _demo_parser,
-                _h2o_export_parser, _view_parser, _plates_parser):
+                _h2o_export_parser, _view_parser, _plates_parser, add_train_commands):
         add(sub)
     checks.one_line_errors(p)
     return p

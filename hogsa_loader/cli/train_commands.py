@@ -1,13 +1,14 @@
 """``hogsa train hogs|srm|contactnet|bank FLAGS``: the training jobs of :mod:`hogsa_loader.cli.train`.
 
-This module stays light (no torch), so adding the command costs ``hogsa`` no start-up time;
-the job's flags follow its name and are parsed by the job itself (``hogsa train hogs --help``).
+The job's flags follow its name and are parsed by the job itself (``hogsa train hogs --help``).
 """
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
+
+from hogsa_loader.cli.train import JOBS
 
 __all__ = ["TRAIN_JOBS", "add_train_commands", "run_train_command"]
 
@@ -32,6 +33,4 @@ def add_train_commands(subparsers: Any) -> None:
 
 def run_train_command(args: argparse.Namespace) -> int:
     """Run the ``hogsa train`` job ``args.job`` with ``args.job_args``; its exit status."""
-    from hogsa_loader.cli.train import JOBS  # deferred: start-up cost of hogsa (the jobs import torch)
-
     return JOBS[args.job](args.job_args)
