@@ -29,9 +29,37 @@ from hogsa_loader.loader.config import LoaderConfig, with_options
 from hogsa_loader.loader.dataset import HOGSADataset
 from hogsa_loader.loader.mixing import MixedLoader
 from hogsa_loader.loader.viz import sample_grid
+from hogsa_loader.pom.job_config import (
+    BankDataConfig,
+    BankRunConfig,
+    ContactNetDataConfig,
+    ContactNetJobConfig,
+    ContactNetOptimConfig,
+    ContactNetRunConfig,
+    PoseBankConfig,
+)
+from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION
 from hogsa_loader.render.gaussians import warm_up_compositor
 from hogsa_loader.synthetic.world import generate_world, get_preset
 from hogsa_loader.system import available_cores, can_fork, run_forked
+from hogsa_loader.train import (
+    HogsConfig,
+    HogsDataConfig,
+    HogsModelConfig,
+    HogsOptimConfig,
+    HogsRunConfig,
+    HogsTrainer,
+)
+from hogsa_loader.train.srm_config import (
+    SRMDataConfig,
+    SRMLossConfig,
+    SRMModelConfig,
+    SRMOptimConfig,
+    SRMRunConfig,
+    SRMTrainConfig,
+)
+from hogsa_loader.train.srm_trainer import SRMTrainer
 from hogsa_loader.view import ViewConfig, run_view
 from hogsa_loader.view.pictures import demo_photographs
 
@@ -199,17 +227,6 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         stages.run("world", k_world, [world], lambda: {"sequences": len(generate_world(
             world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
 
-    from hogsa_loader.pom.job_config import (
-        BankDataConfig,
-        BankRunConfig,
-        ContactNetDataConfig,
-        ContactNetJobConfig,
-        ContactNetOptimConfig,
-        ContactNetRunConfig,
-        PoseBankConfig,
-    )
-    from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
-    from hogsa_loader.pom.perturb import KEEP_ARTICULATION
 
     def child_cfg() -> DemoConfig:
         return _CHILD_CFG or cfg
@@ -376,14 +393,6 @@ def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
 
 
 def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> dict[str, Any]:
-    from hogsa_loader.train import (
-        HogsConfig,
-        HogsDataConfig,
-        HogsModelConfig,
-        HogsOptimConfig,
-        HogsRunConfig,
-        HogsTrainer,
-    )
 
     hc = HogsConfig(
         data=HogsDataConfig(root=str(data), subject=sid, object=obj, image_size=cfg.hogs_image_size, max_eval=4,
@@ -398,15 +407,6 @@ def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> d
 
 
 def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) -> dict[str, Any]:
-    from hogsa_loader.srm.train import SRMTrainer
-    from hogsa_loader.srm.train_config import (
-        SRMDataConfig,
-        SRMLossConfig,
-        SRMModelConfig,
-        SRMOptimConfig,
-        SRMRunConfig,
-        SRMTrainConfig,
-    )
 
     sc = SRMTrainConfig(
         data=SRMDataConfig(root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment,

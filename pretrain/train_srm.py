@@ -19,7 +19,7 @@ keeps those training views out and saves the checkpoint that scores best on them
 stopping without looking at the held-out views). A folder holding checkpoints is refused
 unless ``--resume`` or ``--overwrite`` (start again from step 0) is given; every argument is
 checked before the runs are read. The flags are those of
-:class:`hogsa_loader.srm.train.SRMTrainConfig` (``--help``); same as ``hogsa train srm``.
+:class:`hogsa_loader.train.srm_trainer.SRMTrainConfig` (``--help``); same as ``hogsa train srm``.
 """
 
 import sys

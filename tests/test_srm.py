@@ -310,7 +310,7 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
 def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     """View folds render the training samples whose view they never saw; leaks are refused."""
     from hogsa_loader.errors import AssetError
-    from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
+    from hogsa_loader.train.srm_pairs import find_runs, fold_runs, load_pairs
     from hogsa_loader.train import HogsConfig, HogsTrainer
 
     run = hogs_runs / "s01_box"
@@ -351,7 +351,7 @@ def test_render_cache_key_follows_labels_cameras_and_body_model(tiny_world, hogs
     other cameras or another MANO file: each of them changes the key."""
     import dataclasses
 
-    from hogsa_loader.srm.pairs import _inputs_hash
+    from hogsa_loader.train.srm_pairs import _inputs_hash
     from hogsa_loader.train.hogs_source import load_run_data
 
     source, data = load_run_data(json.loads((hogs_runs / "s01_box" / "config.json").read_text()), data=tiny_world)
@@ -378,7 +378,7 @@ def test_render_cache_key_follows_weights_settings_and_code(hogs_runs, tmp_path,
     changes how the same weights render), the learned light and the render-code version."""
     import shutil
 
-    from hogsa_loader.srm import pairs
+    from hogsa_loader.train import srm_pairs as pairs
 
     run = tmp_path / "run"
     shutil.copytree(hogs_runs / "s01_box", run)
@@ -404,7 +404,7 @@ def test_render_cache_key_follows_weights_settings_and_code(hogs_runs, tmp_path,
 
 def test_validation_views_split(tiny_world, hogs_runs, folds, srm_cache):
     """Validation views leave training entirely; their inputs come from the fold that never saw them."""
-    from hogsa_loader.srm.pairs import find_runs, fold_runs, load_pairs
+    from hogsa_loader.train.srm_pairs import find_runs, fold_runs, load_pairs
 
     run = hogs_runs / "s01_box"
     found = fold_runs(run, find_runs(folds))
@@ -463,7 +463,7 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
     assert read_srm_manifest(out)["extra"]["step"] == best
     _check_recorded_targets_and_render_quality_refusal(tiny_world, hogs_runs / "s01_box", out, tmp_path)
     # the saved weights score exactly the recorded validation PSNR (they are that step's EMA)
-    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+    from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
     cfg = SRMTrainConfig.from_json(json.loads((out / "config.json").read_text()))
     tr = SRMTrainer(cfg, progress=False)
@@ -536,7 +536,7 @@ def _check_recorded_targets_and_render_quality_refusal(world, run, srm_dir, tmp_
 
 def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs, srm_cache, tmp_path):
     from hogsa_loader.srm.model import dihedral
-    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+    from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
     x = torch.arange(16.0).reshape(1, 4, 4)
     outs = [dihedral(x, c) for c in range(8)]
@@ -564,7 +564,7 @@ def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs,
 def test_discriminator_real_is_reachable_by_the_generator(tiny_world, hogs_runs, srm_cache, tmp_path):
     """D's real images are the GT clipped to the rendered alpha: no outline the generator
     (output c · alpha) cannot match, and the GT itself wherever it can."""
-    from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+    from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
     tr = SRMTrainer(SRMTrainConfig.from_json(dict(data=str(tiny_world), hogs=str(hogs_runs), out=str(tmp_path / "d"),
                                                  batch_size=6, crop=0, channels=[8, 16, 16], cache=str(srm_cache))),

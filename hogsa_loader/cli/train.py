@@ -25,7 +25,7 @@ from hogsa_loader.errors import AssetError, HogsaError, UsageError
 from hogsa_loader.objects.h2o_meshes import find_h2o_mesh
 from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
 from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
-from hogsa_loader.srm.train import SRMTrainConfig, SRMTrainer
+from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.run_folder import check_run_folder, latest_checkpoint, read_trainer_state
 
@@ -150,7 +150,7 @@ SRM_DESCRIPTION = "Train the SRM (StyleUNet refinement of HOGS renders) on every
 
 
 def srm_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
-    """The flags of one SRM run (:class:`~hogsa_loader.srm.train.SRMTrainConfig`, run flags, ``--threads``)."""
+    """The flags of one SRM run (:class:`~hogsa_loader.train.srm_trainer.SRMTrainConfig`, run flags, ``--threads``)."""
     p = p or argparse.ArgumentParser(prog="train_srm", description=SRM_DESCRIPTION)
     p.add_argument("--threads", type=checks.positive_int, default=None, help="torch CPU threads (default: torch's)")
     return _config_parser(p, SRMTrainConfig)
@@ -210,7 +210,7 @@ def run_srm(cfg: SRMTrainConfig, *, resume: bool = False, overwrite: bool = Fals
 
 
 def parse_srm_args(argv: Optional[Sequence[str]] = None) -> tuple[SRMTrainConfig, argparse.Namespace]:
-    """The :class:`~hogsa_loader.srm.train.SRMTrainConfig` of a ``train_srm`` command line and
+    """The :class:`~hogsa_loader.train.srm_trainer.SRMTrainConfig` of a ``train_srm`` command line and
     the parsed namespace (``resume``, ``overwrite``, ``quiet``, ``threads``)."""
     a = srm_parser().parse_args(argv)
     return dataclass_from_args(SRMTrainConfig, a), a

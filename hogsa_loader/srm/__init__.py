@@ -6,7 +6,7 @@
 * :mod:`~hogsa_loader.srm.losses` — L1, VGG19 (or Laplacian-pyramid substitute), GAN, R1;
 * :mod:`~hogsa_loader.srm.model` — :class:`SRM` with ``refine(rgb, alpha)``;
 * :mod:`~hogsa_loader.srm.io` — :func:`save_srm` / :func:`load_srm`;
-* :mod:`~hogsa_loader.srm.train` — the trainer behind ``pretrain/train_srm.py``.
+* the trainer behind ``pretrain/train_srm.py`` is :mod:`hogsa_loader.train.srm_trainer`.
 
 Typical use::
 

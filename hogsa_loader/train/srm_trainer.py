@@ -1,6 +1,6 @@
 """SRM training: one StyleUNet for every finished HOGS run of a runs folder.
 
-Data (:mod:`hogsa_loader.srm.pairs`). Every finished HOGS run under ``data.hogs`` (a folder
+Data (:mod:`hogsa_loader.train.srm_pairs`). Every finished HOGS run under ``data.hogs`` (a folder
 with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
 its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
 views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
@@ -76,9 +76,9 @@ from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
 from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
 from hogsa_loader.srm.model import SRM, dihedral
-from hogsa_loader.srm.pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
+from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
-from hogsa_loader.srm.train_config import SRMTrainConfig
+from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
 from hogsa_loader.train.losses import box_of, psnr, ssim_map
 
