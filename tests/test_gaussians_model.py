@@ -41,7 +41,7 @@ from hogsa_loader.objects import ObjectTemplate
 from hogsa_loader.objects.articulated import articulation_matrix
 from hogsa_loader.render.gaussians import render_gaussians
 from hogsa_loader.render.mesh_raster import camera_look_at
-from hogsa_loader.render.settings import RenderSettings
+from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
 D64 = torch.float64
 
@@ -281,7 +281,7 @@ def test_gradients_reach_every_parameter_through_the_renderer(variant):
     vm, K = _head_on_camera(0.4, 60.0, 32)
     Q = axis_angle_to_matrix(torch.tensor([0.4, 0.5, 0.0]))
     gs = m((m.canonical_vertices() @ Q.T)[None])
-    out = render_gaussians(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, vm, K, 32, 32,
+    out = render_gaussians(SplatInputs(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, vm, K, 32, 32),
                            RenderSettings(sh_degree=1, render_mode="RGB+ED"))
     w = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(0))
     ((out.rgb * w).sum() + out.depth.sum()).backward()
@@ -562,7 +562,7 @@ def test_compose_pads_sh_keeps_part_ids_and_broadcasts():
     # zero padding does not change the rendered colours
     vm = torch.eye(4)[None, None].expand(2, 1, 4, 4)
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])[None, None].expand(2, 1, 3, 3)
-    alone = render_gaussians(a.means, a.quats, a.scales, a.opacities, a.sh, vm, K, 32, 32,
+    alone = render_gaussians(SplatInputs(a.means, a.quats, a.scales, a.opacities, a.sh, vm, K, 32, 32),
                              RenderSettings(sh_degree=0, render_mode="RGB+ED"))
     padded = render_scene(compose([a, _toy_set(2, 0, 2, 1, 3)]), vm, K, 32, 32)
     assert torch.allclose(alone.rgb, padded.rgb, atol=1e-6)

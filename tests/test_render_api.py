@@ -20,7 +20,7 @@ import hogsa_loader.render.api as api
 import hogsa_loader.render.gsplat_backend as gsplat_backend
 from hogsa_loader.render import BackendUnavailableError, RenderOutput, antialias_compensation, render
 from hogsa_loader.render.gaussians import render_gaussians
-from hogsa_loader.render.settings import RenderSettings
+from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
 # --------------------------------------------------------------------------------------
 # scenes
@@ -123,7 +123,8 @@ def _call(s: dict, **kw) -> RenderOutput:
 def _call_render_gaussians(s: dict, render_depth: bool) -> RenderOutput:
     settings = RenderSettings(sh_degree=s["sh_degree"], num_parts=s.get("num_parts", 0),
                               render_mode="RGB+ED" if render_depth else "RGB")  # fmt: skip
-    return render_gaussians(*_positional(s), settings, backgrounds=s.get("backgrounds"), part_ids=s.get("part_ids"))
+    x = SplatInputs(*_positional(s), backgrounds=s.get("backgrounds"), part_ids=s.get("part_ids"))
+    return render_gaussians(x, settings)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -308,7 +309,7 @@ def test_zero_opacity_padding_gives_finite_gradients_in_render_gaussians():
 def test_antialias_compensation_matches_gsplat_reference():
     ref = pytest.importorskip("gsplat.cuda._torch_impl")
     s = ball_scene(B=2, C=3, N=400, dtype=torch.float64)
-    rho = antialias_compensation(s["means"], s["quats"], s["scales"], s["viewmats"], s["Ks"], 48, 40, eps2d=0.3)
+    rho = antialias_compensation(SplatInputs(*_positional(s)), RenderSettings(eps2d=0.3))
     covars, _ = ref._quat_scale_to_covar_preci(s["quats"], s["scales"], compute_preci=False)
     radii, _, _, _, comp = ref._fully_fused_projection(
         s["means"], covars, s["viewmats"], s["Ks"], 48, 40, eps2d=0.3, calc_compensations=True
@@ -339,16 +340,16 @@ def test_antialiased_single_gaussian_centre_alpha():
 def test_antialiased_equals_per_camera_renders():
     s = ball_scene(B=2, C=2, N=200, num_parts=2, background=True, sh_degree=1)
     out = _call(s, antialiased=True, render_mode="RGB+ED")
-    rho = antialias_compensation(s["means"], s["quats"], s["scales"], s["viewmats"], s["Ks"], 48, 40)
+    rho = antialias_compensation(SplatInputs(*_positional(s)))
     for b in range(2):
         for c in range(2):
-            ref = render_gaussians(
+            x = SplatInputs(
                 s["means"][b : b + 1], s["quats"][b : b + 1], s["scales"][b : b + 1],
                 s["opacities"][b : b + 1] * rho[b : b + 1, c], s["colors"][b : b + 1],
                 s["viewmats"][b : b + 1, c : c + 1], s["Ks"][b : b + 1, c : c + 1], 48, 40,
-                RenderSettings(sh_degree=1, num_parts=2, render_mode="RGB+ED"),
                 part_ids=s["part_ids"][b : b + 1], backgrounds=s["backgrounds"][b : b + 1, c : c + 1],
             )  # fmt: skip
+            ref = render_gaussians(x, RenderSettings(sh_degree=1, num_parts=2, render_mode="RGB+ED"))
             for name in ("rgb", "alpha", "depth", "part_alpha"):
                 torch.testing.assert_close(getattr(out, name)[b, c], getattr(ref, name)[0, 0], rtol=1e-5, atol=1e-6)
     classic = _call(s, render_mode="RGB+ED")
@@ -435,7 +436,8 @@ def test_torch_backend_options_pass_through():
     valid = torch.ones(1, 200, dtype=torch.bool)
     valid[0, ::3] = False
     out = _call(s, tile_size=8, chunk=5, tile_batch=7, valid=valid)
-    ref = render_gaussians(*_positional(s), RenderSettings(tile_size=8, chunk=5, tile_batch=7), valid=valid)
+    x = SplatInputs(*_positional(s), valid=valid)
+    ref = render_gaussians(x, RenderSettings(tile_size=8, chunk=5, tile_batch=7))
     assert torch.equal(out.rgb, ref.rgb) and out.meta["tile_size"] == 8
 
 

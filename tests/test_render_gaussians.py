@@ -15,7 +15,7 @@ from hogsa_loader.render.gaussians import (
     sh_colors,
     warm_up_compositor,
 )
-from hogsa_loader.render.settings import RenderSettings
+from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
 gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
 
@@ -110,10 +110,9 @@ def _settings(**kw) -> RenderSettings:
 
 def _render1(means, quats, scales, opac, cols, viewmat, K, W, H, settings=None, **tensors):
     """Single-sample, single-camera wrapper; ``tensors``: backgrounds, part_ids, valid."""
-    return render_gaussians(
-        means[None], quats[None], scales[None], opac[None], cols[None],
-        viewmat[None, None], K[None, None], W, H, _settings() if settings is None else settings, **tensors,
-    )  # fmt: skip
+    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None],
+                    viewmat[None, None], K[None, None], W, H, **tensors)  # fmt: skip
+    return render_gaussians(x, _settings() if settings is None else settings)
 
 
 # --------------------------------------------------------------------------------------
@@ -302,9 +301,9 @@ def test_gradcheck_rgb_parts_depth():
     part_ids = torch.tensor([[0, 1, 1, -1]])
 
     def fn(m, q, s, o, c):
-        out = render_gaussians(m[None], q[None], s[None], o[None], c[None], torch.eye(4, dtype=torch.float64)[None, None],
-                               K[None, None], 8, 8, _settings(num_parts=2, tile_size=4),
-                               backgrounds=bg, part_ids=part_ids)  # fmt: skip
+        x = SplatInputs(m[None], q[None], s[None], o[None], c[None], torch.eye(4, dtype=torch.float64)[None, None],
+                        K[None, None], 8, 8, backgrounds=bg, part_ids=part_ids)  # fmt: skip
+        out = render_gaussians(x, _settings(num_parts=2, tile_size=4))
         return out.rgb, out.alpha, out.depth, out.part_alpha
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
@@ -318,8 +317,8 @@ def test_gradcheck_sh():
     view = _look_at((0.1, -0.05, 0.0), (0.0, 0.0, 1.0), torch.float64)
 
     def fn(m, q, s, o, c):
-        out = render_gaussians(m[None], q[None], s[None], o[None], c[None], view[None, None], K[None, None], 8, 8,
-                               RenderSettings(sh_degree=2))  # fmt: skip
+        x = SplatInputs(m[None], q[None], s[None], o[None], c[None], view[None, None], K[None, None], 8, 8)
+        out = render_gaussians(x, RenderSettings(sh_degree=2))
         return out.rgb, out.alpha
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, sh)]
@@ -411,8 +410,9 @@ def test_part_alpha_sums_to_alpha():
     means, quats, scales, opac, cols = _ball_scene(300, 5)
     K = _intrinsics(80.0, 20.0, 20.0)
     part_ids = torch.randint(0, 3, (1, 300), generator=torch.Generator().manual_seed(0))
-    out = render_gaussians(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                           K[None, None], 40, 40, _settings(num_parts=3), part_ids=part_ids)  # fmt: skip
+    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+                    K[None, None], 40, 40, part_ids=part_ids)  # fmt: skip
+    out = render_gaussians(x, _settings(num_parts=3))
     assert out.part_alpha.shape == (1, 1, 40, 40, 3)
     torch.testing.assert_close(out.part_alpha.sum(-1, keepdim=True), out.alpha, atol=2e-6, rtol=0)
     assert (out.part_alpha > 0.1).flatten(0, 3).any(0).all()  # every part visible somewhere
@@ -427,15 +427,15 @@ def test_batching_equals_separate_renders():
     Ks = torch.stack([torch.stack([_intrinsics(60.0 + 5 * c + b, 20.0, 15.0 + b) for c in range(C)]) for b in range(B)])
     bg = torch.rand(B, C, 3, generator=torch.Generator().manual_seed(1))
     part_ids = torch.randint(0, 2, (B, N), generator=torch.Generator().manual_seed(2))
-    out = render_gaussians(means, quats, scales, opac, cols, viewmats, Ks, W, H, _settings(num_parts=2),
-                           backgrounds=bg, part_ids=part_ids)  # fmt: skip
+    out = render_gaussians(SplatInputs(means, quats, scales, opac, cols, viewmats, Ks, W, H,
+                                       backgrounds=bg, part_ids=part_ids), _settings(num_parts=2))  # fmt: skip
     assert out.rgb.shape == (B, C, H, W, 3) and out.alpha.shape == (B, C, H, W, 1)
     for b in range(B):
         for c in range(C):
-            o = render_gaussians(means[b : b + 1], quats[b : b + 1], scales[b : b + 1], opac[b : b + 1],
-                                 cols[b : b + 1], viewmats[b : b + 1, c : c + 1], Ks[b : b + 1, c : c + 1], W, H,
-                                 _settings(num_parts=2), backgrounds=bg[b : b + 1, c : c + 1],
-                                 part_ids=part_ids[b : b + 1])  # fmt: skip
+            x = SplatInputs(means[b : b + 1], quats[b : b + 1], scales[b : b + 1], opac[b : b + 1],
+                            cols[b : b + 1], viewmats[b : b + 1, c : c + 1], Ks[b : b + 1, c : c + 1], W, H,
+                            backgrounds=bg[b : b + 1, c : c + 1], part_ids=part_ids[b : b + 1])  # fmt: skip
+            o = render_gaussians(x, _settings(num_parts=2))
             # float32: batched matmuls may round differently
             torch.testing.assert_close(out.rgb[b, c], o.rgb[0, 0], atol=2e-5, rtol=0)
             torch.testing.assert_close(out.alpha[b, c], o.alpha[0, 0], atol=2e-5, rtol=0)
@@ -449,8 +449,9 @@ def test_valid_mask_equals_dropping_gaussians():
     means, quats, scales, opac, cols = _ball_scene(200, 8)
     K = _intrinsics(80.0, 20.0, 20.0)
     keep = torch.rand(200, generator=torch.Generator().manual_seed(3)) > 0.4
-    full = render_gaussians(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                            K[None, None], 40, 40, _settings(), valid=keep[None])  # fmt: skip
+    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+                    K[None, None], 40, 40, valid=keep[None])  # fmt: skip
+    full = render_gaussians(x, _settings())
     sub = _render1(means[keep], quats[keep], scales[keep], opac[keep], cols[keep], torch.eye(4), K, 40, 40)
     zero = _render1(means, quats, scales, torch.where(keep, opac, 0.0), cols, torch.eye(4), K, 40, 40)
     torch.testing.assert_close(full.rgb, sub.rgb, atol=1e-6, rtol=0)
@@ -485,9 +486,9 @@ def test_empty_scene_gives_background(n):
     opac = torch.zeros(1, n)  # zero opacity: culled
     cols = torch.rand(1, n, 3)
     bg = torch.tensor([[[0.2, 0.5, 0.7]]])
-    out = render_gaussians(means, quats, scales, opac, cols, torch.eye(4)[None, None], K[None, None], 20, 17,
-                           _settings(num_parts=2), backgrounds=bg,
-                           part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
+    x = SplatInputs(means, quats, scales, opac, cols, torch.eye(4)[None, None], K[None, None], 20, 17,
+                    backgrounds=bg, part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
+    out = render_gaussians(x, _settings(num_parts=2))
     assert out.rgb.shape == (1, 1, 17, 20, 3)
     assert torch.equal(out.rgb, bg[:, :, None, None, :].expand(1, 1, 17, 20, 3))
     assert out.alpha.eq(0).all() and out.depth.eq(0).all() and out.part_alpha.eq(0).all()
@@ -531,9 +532,9 @@ def test_compositors_agree(compositor, dtype, tol):
     results = {}
     for comp in ("torch", "numba"):
         ins = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
-        out = render_gaussians(*ins, viewmats, Ks, kw["W"], kw["H"],
-                               _settings(num_parts=3, compositor=comp), backgrounds=bg, part_ids=kw["part_ids"],
-                               valid=kw["valid"])
+        x = SplatInputs(*ins, viewmats, Ks, kw["W"], kw["H"], backgrounds=bg, part_ids=kw["part_ids"],
+                        valid=kw["valid"])
+        out = render_gaussians(x, _settings(num_parts=3, compositor=comp))
         img = torch.cat([out.rgb, out.alpha, out.depth, out.part_alpha], -1)
         (img * wr).sum().backward()
         results[comp] = (img.detach(), [t.grad for t in ins], out.meta["n_isects"])
@@ -551,30 +552,30 @@ def test_compositors_agree(compositor, dtype, tol):
 
 def test_compositor_choice_is_checked():
     means, quats, scales, opac, cols = _ball_scene(10, 1)
-    args = (means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-            _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
+    args = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+                       _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
     with pytest.raises(ValueError, match="compositor must be"):
-        render_gaussians(*args, _settings(compositor="cuda"))
+        render_gaussians(args, _settings(compositor="cuda"))
     with pytest.raises(ValueError, match="float32 or float64"):
-        render_gaussians(*(a.half() if isinstance(a, torch.Tensor) else a for a in args),
+        render_gaussians(SplatInputs(*(a.half() if isinstance(a, torch.Tensor) else a for a in args)),
                          _settings(compositor="numba"))
-    half = render_gaussians(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args),
+    half = render_gaussians(SplatInputs(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args)),
                             _settings(compositor="auto"))
     assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor
     # opacities above 1 reach beyond the radius, where the kernels do not look: the PyTorch path
-    big = (means[None], quats[None], scales[None] * 4, (opac[None] * 3).clamp(min=1.5), cols[None],
-           *args[5:])  # fmt: skip
+    big = args._replace(scales=scales[None] * 4, opacities=(opac[None] * 3).clamp(min=1.5))
     with pytest.raises(ValueError, match="opacity is above 1"):
-        render_gaussians(*big, _settings(compositor="numba"))
-    torch.testing.assert_close(render_gaussians(*big, _settings(compositor="auto")).rgb,
-                               render_gaussians(*big, _settings(compositor="torch")).rgb, rtol=0, atol=0)
+        render_gaussians(big, _settings(compositor="numba"))
+    torch.testing.assert_close(render_gaussians(big, _settings(compositor="auto")).rgb,
+                               render_gaussians(big, _settings(compositor="torch")).rgb, rtol=0, atol=0)
 
 
 def test_second_order_gradients_are_refused_by_the_kernels():
     means, quats, scales, opac, cols = _ball_scene(10, 1)
     m = means[None].clone().requires_grad_(True)
-    out = render_gaussians(m, quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                           _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16, _settings(compositor="numba"))
+    x = SplatInputs(m, quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
+                    _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
+    out = render_gaussians(x, _settings(compositor="numba"))
     with pytest.raises(RuntimeError, match="first-order gradients only"):
         torch.autograd.grad(out.rgb.sum(), m, create_graph=True)
 

@@ -9,8 +9,8 @@
   loads, otherwise ``"torch"``. The choice is in ``RenderOutput.meta["backend"]`` (and
   why, in ``meta["backend_reason"]``).
 
-Both backends take ``(means, quats, scales, opacities, colors, viewmats, Ks, width,
-height, settings, *, backgrounds, part_ids, valid)`` with one
+Both backends take one :class:`~hogsa_loader.render.settings.SplatInputs` (the tensors
+and the image size, batched) and one
 :class:`~hogsa_loader.render.settings.RenderSettings`, follow gsplat 1.5.3's conventions
 (listed in the docstring of :mod:`hogsa_loader.render.gaussians`), and agree up to
 float32 rounding.
@@ -29,7 +29,7 @@ from hogsa_loader.render.gsplat_backend import (
     gsplat_unavailable_reason,
     render_gsplat,
 )
-from hogsa_loader.render.settings import BACKENDS, RENDER_MODES, Backend, RenderMode, RenderSettings
+from hogsa_loader.render.settings import BACKENDS, RENDER_MODES, Backend, RenderMode, RenderSettings, SplatInputs
 from hogsa_loader.system import keep_allocator_memory
 
 __all__ = ["render", "antialias_compensation", "BackendUnavailableError", "BACKENDS", "RENDER_MODES"]
@@ -116,10 +116,10 @@ def render(
     settings = _settings(torch_backend_options, backend=backend, sh_degree=sh_degree, near_plane=near_plane,
                          far_plane=far_plane, eps2d=eps2d, render_mode=render_mode, num_parts=num_parts,
                          packed=packed, antialiased=antialiased, debug=debug)  # fmt: skip
-    x = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, settings,
-                  backgrounds=backgrounds, part_ids=part_ids, valid=torch_backend_options.get("valid"))  # fmt: skip
-    out = _run_backend(x, width, height, settings)
-    return out if x.batched else _unbatched(out)
+    inputs = SplatInputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, part_ids,
+                         torch_backend_options.get("valid"))  # fmt: skip
+    x, batched = _validate(inputs, settings)
+    return _run_backend(x, settings, batched)
 
 
 def _settings(torch_backend_options: dict[str, Any], **fields: Any) -> RenderSettings:
@@ -134,9 +134,10 @@ def _settings(torch_backend_options: dict[str, Any], **fields: Any) -> RenderSet
     return RenderSettings(**fields, **{k: v for k, v in torch_backend_options.items() if k != "valid"})
 
 
-def _run_backend(x: _Inputs, width: int, height: int, settings: RenderSettings) -> RenderOutput:
+def _run_backend(x: SplatInputs, settings: RenderSettings, batched: bool) -> RenderOutput:
     """Render validated, batched inputs with the backend ``settings.backend`` picks; the
-    choice is recorded in ``meta`` (with ``render_mode``, ``antialiased``, ``batched``).
+    choice is recorded in ``meta`` (with ``render_mode``, ``antialiased``, ``batched``:
+    whether the caller's inputs came batched; if not, the images lose their B = 1).
 
     The first torch-backend call on CPU tensors sets this process's glibc allocator to
     keep freed memory (:func:`hogsa_loader.system.keep_allocator_memory`;
@@ -146,11 +147,10 @@ def _run_backend(x: _Inputs, width: int, height: int, settings: RenderSettings) 
     if chosen == "torch" and x.means.device.type == "cpu":
         keep_allocator_memory()
     run = render_gsplat if chosen == "gsplat" else render_gaussians
-    out = run(x.means, x.quats, x.scales, x.opacities, x.colors, x.viewmats, x.Ks, width, height, settings,
-              backgrounds=x.backgrounds, part_ids=x.part_ids, valid=x.valid)  # fmt: skip
+    out = run(x, settings)
     out.meta.update(backend=chosen, backend_reason=reason, render_mode=settings.render_mode,
-                    antialiased=settings.antialiased, batched=x.batched)  # fmt: skip
-    return out
+                    antialiased=settings.antialiased, batched=batched)  # fmt: skip
+    return out if batched else _unbatched(out)
 
 
 def _unbatched(out: RenderOutput) -> RenderOutput:
@@ -185,22 +185,6 @@ def _choose_backend(backend: str, device: torch.device, dtype: torch.dtype, tile
 # --------------------------------------------------------------------------------------
 
 
-class _Inputs(NamedTuple):
-    """Validated tensors in the batched layout (``batched``: whether they came so)."""
-
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    colors: Tensor
-    viewmats: Tensor
-    Ks: Tensor
-    backgrounds: Tensor | None
-    part_ids: Tensor | None
-    valid: Tensor | None
-    batched: bool
-
-
 class _Dims(NamedTuple):
     """Sizes read from the inputs: ``lead`` is (B,) for batched inputs, else (); ``pre`` the
     start of the shapes in error messages."""
@@ -221,47 +205,27 @@ def _need(name: str, t: Tensor, shape: tuple[int, ...], text: str, dims: _Dims) 
         raise ValueError(f"{name} must be {dims.pre}{text} = {shape}, got {_shape(t)}")
 
 
-def _validate(
-    means: Any,
-    quats: Any,
-    scales: Any,
-    opacities: Any,
-    colors: Any,
-    viewmats: Any,
-    Ks: Any,
-    width: Any,
-    height: Any,
-    settings: RenderSettings,
-    *,
-    backgrounds: Any,
-    part_ids: Any,
-    valid: Any,
-) -> _Inputs:
-    """Check every tensor argument of :func:`render` against the others and ``settings``;
-    return them in the batched layout."""
-    named = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-                 viewmats=viewmats, Ks=Ks)  # fmt: skip
-    if backgrounds is not None:
-        named["backgrounds"] = backgrounds
+def _validate(x: SplatInputs, settings: RenderSettings) -> tuple[SplatInputs, bool]:
+    """Check every field of the inputs of :func:`render` (still unchecked, of any type)
+    against the others and ``settings``; return them in the batched layout, and whether
+    they came so."""
+    named = dict(means=x.means, quats=x.quats, scales=x.scales, opacities=x.opacities, colors=x.colors,
+                 viewmats=x.viewmats, Ks=x.Ks)  # fmt: skip
+    if x.backgrounds is not None:
+        named["backgrounds"] = x.backgrounds
     _check_types(named)
-    dims = _check_geometry(means, quats, scales, opacities, viewmats, Ks)
-    n_col = _check_colors(colors, settings.sh_degree, dims)
-    if backgrounds is not None:
-        _need("backgrounds", backgrounds, dims.lead + (dims.C, n_col), "C, D)", dims)
-    for name, v in (("width", width), ("height", height)):
+    dims = _check_geometry(x)
+    n_col = _check_colors(x.colors, settings.sh_degree, dims)
+    if x.backgrounds is not None:
+        _need("backgrounds", x.backgrounds, dims.lead + (dims.C, n_col), "C, D)", dims)
+    for name, v in (("width", x.width), ("height", x.height)):
         if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
             raise ValueError(f"{name} must be a positive int, got {v!r}")
-    _check_part_ids(part_ids, settings, means.device, dims)
-    if valid is not None:
-        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
-            raise TypeError("valid must be a bool tensor")
-        if valid.device != means.device:
-            raise ValueError(f"valid is on device '{valid.device}' but means is on '{means.device}'")
-        _need("valid", valid, dims.lead + (dims.N,), "N)", dims)
-    tensors = (means, quats, scales, opacities, colors, viewmats, Ks, backgrounds, part_ids, valid)
+    _check_part_ids(x.part_ids, settings, x.means.device, dims)
+    _check_valid(x.valid, x.means.device, dims)
     if dims.lead:
-        return _Inputs(*tensors, batched=True)
-    return _Inputs(*(None if t is None else t[None] for t in tensors), batched=False)
+        return x, True
+    return SplatInputs(*(t[None] if isinstance(t, Tensor) else t for t in x)), False  # B = 1
 
 
 def _check_types(named: dict[str, Any]) -> None:
@@ -282,10 +246,9 @@ def _check_types(named: dict[str, Any]) -> None:
             raise ValueError(f"{name} is on device '{t.device}' but means is on '{device}'; all inputs need one device")
 
 
-def _check_geometry(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor
-) -> _Dims:
+def _check_geometry(x: SplatInputs) -> _Dims:
     """Shapes of the Gaussians and cameras, batched (leading B) or not."""
+    means, quats, scales, opacities, viewmats, Ks = x.means, x.quats, x.scales, x.opacities, x.viewmats, x.Ks
     batched = means.dim() == 3
     B = means.shape[0] if batched else 1
     lead = (B,) if batched else ()
@@ -350,3 +313,14 @@ def _check_part_ids(part_ids: Any, settings: RenderSettings, device: torch.devic
         lo, hi = int(part_ids.min()), int(part_ids.max())
         if lo < -1 or hi >= num_parts:
             raise ValueError(f"part_ids must lie in [-1, {num_parts}), got values in [{lo}, {hi}]")
+
+
+def _check_valid(valid: Any, device: torch.device, dims: _Dims) -> None:
+    """``valid`` is None or a bool (B, N) tensor on ``device``."""
+    if valid is None:
+        return
+    if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+        raise TypeError("valid must be a bool tensor")
+    if valid.device != device:
+        raise ValueError(f"valid is on device '{valid.device}' but means is on '{device}'")
+    _need("valid", valid, dims.lead + (dims.N,), "N)", dims)

@@ -90,7 +90,7 @@ from torch import Tensor
 from hogsa_loader.geometry.quaternion import quat_to_matrix
 from hogsa_loader.render import splat_kernels
 from hogsa_loader.render.raster_kernels import pixel_centres, use_kernels
-from hogsa_loader.render.settings import RenderSettings
+from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
 __all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors",
            "camera_colors", "part_channels", "antialias_compensation", "warm_up_compositor"]
@@ -269,18 +269,7 @@ def _radii(
     return torch.stack([rx, ry], -1).where(ok[..., None], 0.0).to(torch.int32)
 
 
-def antialias_compensation(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    eps2d: float = 0.3,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
-) -> Tensor:
+def antialias_compensation(inputs: SplatInputs, settings: RenderSettings | None = None) -> Tensor:
     """gsplat's antialiasing factor ``rho = sqrt(max(0, det(cov2d) / det(cov2d + eps2d I)))``.
 
     Computed from the blurred conic ``Q = (cov2d + eps2d I)^-1`` returned by
@@ -288,14 +277,20 @@ def antialias_compensation(
     eps2d^2 B^2`` (the same ratio). Differentiable (rho = 0 where the ratio is <= 0).
 
     Args:
-        means (B, N, 3), quats (B, N, 4) wxyz, scales (B, N, 3) linear,
-        viewmats (B, C, 4, 4), Ks (B, C, 3, 3), width, height, eps2d, near/far planes.
+        inputs: batched :class:`~hogsa_loader.render.settings.SplatInputs`; means (B, N, 3),
+            quats (B, N, 4), scales (B, N, 3), viewmats (B, C, 4, 4), Ks (B, C, 3, 3),
+            width and height are used (no opacity culling).
+        settings: ``eps2d``, ``near_plane`` and ``far_plane`` are used (None = the defaults).
 
     Returns:
         (B, C, N) compensation factors in [0, 1].
     """
-    covars = quat_scale_to_covar(quats, scales)
-    _, _, _, conics = project_gaussians(means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane)
+    x, s = inputs, RenderSettings() if settings is None else settings
+    eps2d = s.eps2d
+    covars = quat_scale_to_covar(x.quats, x.scales)
+    _, _, _, conics = project_gaussians(
+        x.means, covars, x.viewmats, x.Ks, x.width, x.height, eps2d, s.near_plane, s.far_plane
+    )
     a, b, c = conics.unbind(-1)
     ratio = (1.0 - eps2d * a) * (1.0 - eps2d * c) - (eps2d * eps2d) * b * b
     ok = ratio > 0  # also False for NaN (degenerate, culled anyway)
@@ -698,43 +693,20 @@ class _Layout(NamedTuple):
         return self.tile_w * self.tile_h
 
 
-def render_gaussians(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    settings: RenderSettings | None = None,
-    *,
-    backgrounds: Tensor | None = None,
-    part_ids: Tensor | None = None,
-    valid: Tensor | None = None,
-) -> RenderOutput:
+def render_gaussians(inputs: SplatInputs, settings: RenderSettings | None = None) -> RenderOutput:
     """Render 3D Gaussians into B x C images with gsplat 1.5.3 conventions (see module doc).
 
     Args:
-        means: (B, N, 3) world-space centres (metres).
-        quats: (B, N, 4) rotations, wxyz, normalised inside (need not be unit).
-        scales: (B, N, 3) linear standard deviations (already exp'ed, not log).
-        opacities: (B, N) in [0, 1] (already sigmoid'ed). ``< 1/255`` culls the Gaussian.
-        colors: with ``settings.sh_degree`` None, (B, N, D) or per camera (B, C, N, D)
-            colours used as given (any D >= 1; D = 3 for RGB); otherwise SH coefficients
-            (B, N, K, 3) or (B, C, N, K, 3), K >= (sh_degree + 1)^2, colour =
-            max(SH(dir) + 0.5, 0).
-        viewmats: (B, C, 4, 4) world->camera, OpenCV (x right, y down, z forward).
-        Ks: (B, C, 3, 3) pinhole intrinsics in pixels (skew ignored).
-        width, height: image size W, H in pixels.
+        inputs: :class:`~hogsa_loader.render.settings.SplatInputs` in the batched layout:
+            means (B, N, 3), quats (B, N, 4) wxyz (need not be unit), scales (B, N, 3)
+            linear, opacities (B, N) (``< 1/255`` culls), colors (B, N, D) or (B, C, N, D),
+            or with ``settings.sh_degree`` SH coefficients (B, N, K, 3) or (B, C, N, K, 3)
+            (colour = max(SH(dir) + 0.5, 0)), viewmats (B, C, 4, 4) world->camera OpenCV,
+            Ks (B, C, 3, 3) (skew ignored), width, height, backgrounds (B, C, D) or None
+            (= 0), part_ids (B, N) (needed iff ``settings.num_parts > 0``), valid (B, N)
+            bool or None (padding may instead get zero opacity).
         settings: :class:`~hogsa_loader.render.settings.RenderSettings` (None = the
             defaults); ``backend``, ``packed`` and ``debug`` are not used here.
-        backgrounds: (B, C, D) colour behind the Gaussians, or None (= 0).
-        part_ids: (B, N) integer part index in [0, num_parts), or -1 for none; needed iff
-            ``settings.num_parts > 0``.
-        valid: (B, N) bool; False marks padding Gaussians (culled). Alternatively give
-            padding zero opacity.
 
     Returns:
         :class:`RenderOutput` with rgb (B, C, H, W, D), alpha (B, C, H, W, 1),
@@ -744,10 +716,10 @@ def render_gaussians(
         the Gaussians), and ``meta`` also holds ``opacities`` and ``compensations`` (B, C, N).
     """
     s = RenderSettings() if settings is None else settings
-    _check_shapes(means, quats, scales, opacities, viewmats, Ks, part_ids, s.num_parts)
+    _check_shapes(inputs, s.num_parts)
     if s.antialiased:
-        return _render_antialiased(means, quats, scales, opacities, colors, viewmats, Ks, width, height, s,
-                                   backgrounds=backgrounds, part_ids=part_ids, valid=valid)  # fmt: skip
+        return _render_antialiased(inputs, s)
+    means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, part_ids, valid = inputs
     kernels = _use_compiled_compositor(s.compositor, means, colors, opacities)
     ts = s.tile_size
     lay = _Layout(means.shape[0], viewmats.shape[1], means.shape[1], width, height, ts,
@@ -778,17 +750,9 @@ def render_gaussians(
     return out
 
 
-def _check_shapes(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    part_ids: Tensor | None,
-    num_parts: int,
-) -> None:
+def _check_shapes(x: SplatInputs, num_parts: int) -> None:
     """The batched layout of :func:`render_gaussians` (no tensor values are read)."""
+    means, quats, scales, opacities, viewmats, Ks = x.means, x.quats, x.scales, x.opacities, x.viewmats, x.Ks
     B, N = means.shape[:2]
     C = viewmats.shape[1]
     if means.shape != (B, N, 3) or quats.shape != (B, N, 4) or scales.shape != (B, N, 3):
@@ -797,7 +761,7 @@ def _check_shapes(
         raise ValueError(f"opacities must be (B, N) = {(B, N)}, got {tuple(opacities.shape)}")
     if viewmats.shape != (B, C, 4, 4) or Ks.shape != (B, C, 3, 3):
         raise ValueError("viewmats/Ks must be (B, C, 4, 4)/(B, C, 3, 3)")
-    if num_parts > 0 and part_ids is None:
+    if num_parts > 0 and x.part_ids is None:
         raise ValueError("num_parts > 0 needs part_ids")
 
 
@@ -958,30 +922,13 @@ def _to_output(
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, part_alpha=part_alpha)
 
 
-def _render_antialiased(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    s: RenderSettings,
-    *,
-    backgrounds: Tensor | None,
-    part_ids: Tensor | None,
-    valid: Tensor | None,
-) -> RenderOutput:
+def _render_antialiased(x: SplatInputs, s: RenderSettings) -> RenderOutput:
     """:func:`render_gaussians` with ``s.antialiased``: per-camera opacities o * rho, so each
     (sample, camera) pair becomes one sample of a B*C-sample, 1-camera call."""
-    B, C = viewmats.shape[:2]
-    N = means.shape[1]
-    rho = antialias_compensation(
-        means, quats, scales, viewmats, Ks, width, height, s.eps2d, s.near_plane, s.far_plane
-    )  # (B, C, N)
-    op_c = opacities[:, None, :] * rho  # (B, C, N)
+    B, C = x.viewmats.shape[:2]
+    N = x.means.shape[1]
+    rho = antialias_compensation(x, s)  # (B, C, N)
+    op_c = x.opacities[:, None, :] * rho  # (B, C, N)
 
     def per_gaussian(t: Tensor | None) -> Tensor | None:  # (B, N, ...) -> (B*C, N, ...)
         return None if t is None else t[:, None].expand(B, C, *t.shape[1:]).reshape(B * C, *t.shape[1:])
@@ -989,13 +936,14 @@ def _render_antialiased(
     def per_camera(t: Tensor | None) -> Tensor | None:  # (B, C, ...) -> (B*C, 1, ...)
         return None if t is None else t.reshape(B * C, 1, *t.shape[2:])
 
-    per_cam_colors = colors.dim() == (4 if s.sh_degree is None else 5)
-    out = render_gaussians(
-        per_gaussian(means), per_gaussian(quats), per_gaussian(scales), op_c.reshape(B * C, N),  # type: ignore[arg-type]
-        per_camera(colors) if per_cam_colors else per_gaussian(colors), per_camera(viewmats), per_camera(Ks),  # type: ignore[arg-type]
-        width, height, replace(s, antialiased=False), backgrounds=per_camera(backgrounds),
-        part_ids=per_gaussian(part_ids), valid=per_gaussian(valid),
+    per_cam_colors = x.colors.dim() == (4 if s.sh_degree is None else 5)
+    flat = SplatInputs(
+        per_gaussian(x.means), per_gaussian(x.quats), per_gaussian(x.scales), op_c.reshape(B * C, N),  # type: ignore[arg-type]
+        per_camera(x.colors) if per_cam_colors else per_gaussian(x.colors), per_camera(x.viewmats),  # type: ignore[arg-type]
+        per_camera(x.Ks), x.width, x.height, backgrounds=per_camera(x.backgrounds),  # type: ignore[arg-type]
+        part_ids=per_gaussian(x.part_ids), valid=per_gaussian(x.valid),
     )  # fmt: skip
+    out = render_gaussians(flat, replace(s, antialiased=False))
 
     def back(t: Tensor | None) -> Tensor | None:  # (B*C, 1, ...) -> (B, C, ...)
         return None if t is None else t.reshape(B, C, *t.shape[2:])
@@ -1021,7 +969,7 @@ def warm_up_compositor() -> None:
 def _warm_up() -> None:
     means = torch.tensor([[[0.0, 0.0, 1.0]]], requires_grad=True)
     K = torch.tensor([[[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]]])
-    out = render_gaussians(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),
-                           torch.full((1, 1), 0.5), torch.ones(1, 1, 3), torch.eye(4)[None, None], K, 8, 8,
-                           RenderSettings(render_mode="RGB+ED", compositor="numba"))
+    x = SplatInputs(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),
+                    torch.full((1, 1), 0.5), torch.ones(1, 1, 3), torch.eye(4)[None, None], K, 8, 8)  # fmt: skip
+    out = render_gaussians(x, RenderSettings(render_mode="RGB+ED", compositor="numba"))
     out.rgb.sum().backward()

@@ -39,7 +39,7 @@ from torch import Tensor
 
 from hogsa_loader.errors import HogsaError
 from hogsa_loader.render.gaussians import RenderOutput, camera_colors, part_channels
-from hogsa_loader.render.settings import RenderSettings
+from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
 __all__ = ["BackendUnavailableError", "MAX_GSPLAT_TILE", "gsplat_unavailable_reason", "render_gsplat"]
 
@@ -109,26 +109,11 @@ def _gsplat_version() -> str:
         return "unknown"
 
 
-def render_gsplat(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    settings: RenderSettings,
-    *,
-    backgrounds: Tensor | None = None,
-    part_ids: Tensor | None = None,
-    valid: Tensor | None = None,
-) -> RenderOutput:
-    """Render already-validated, batched inputs with gsplat (the arguments of
-    :func:`~hogsa_loader.render.gaussians.render_gaussians`, always batched: means (B, N, 3),
-    viewmats (B, C, 4, 4), ...). ``settings.compositor``, ``chunk``, ``tile_batch`` and
-    ``checkpoint`` are ignored.
+def render_gsplat(inputs: SplatInputs, settings: RenderSettings) -> RenderOutput:
+    """Render already-validated inputs with gsplat (the arguments of
+    :func:`~hogsa_loader.render.gaussians.render_gaussians`: ``inputs`` in the batched
+    layout, means (B, N, 3), viewmats (B, C, 4, 4), ...). ``settings.compositor``, ``chunk``,
+    ``tile_batch`` and ``checkpoint`` are ignored.
 
     ``valid`` (B, N) False is applied as opacity 0, which gsplat culls (< 1/255), the same
     result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
@@ -137,25 +122,26 @@ def render_gsplat(
     Raises:
         BackendUnavailableError: gsplat cannot run on these tensors or tiles.
     """
-    s = settings
-    reason = gsplat_unavailable_reason(means.device, means.dtype, s.tile_size)
+    x, s = inputs, settings
+    reason = gsplat_unavailable_reason(x.means.device, x.means.dtype, s.tile_size)
     if reason is not None:
         raise BackendUnavailableError(f"backend='gsplat' cannot run: {reason}")
     rasterization = _load_rasterization()
-    if valid is not None:
-        opacities = opacities * valid.to(opacities.dtype)
-    feats, gs_sh_degree = _features(colors, means, viewmats, part_ids, s)
-    n_col = 3 if s.sh_degree is not None else colors.shape[-1]
+    opacities = x.opacities
+    if x.valid is not None:
+        opacities = opacities * x.valid.to(opacities.dtype)
+    feats, gs_sh_degree = _features(x, s)
+    n_col = 3 if s.sh_degree is not None else x.colors.shape[-1]
     render_colors, render_alphas, meta = rasterization(
-        means.contiguous(),
-        quats.contiguous(),
-        scales.contiguous(),
+        x.means.contiguous(),
+        x.quats.contiguous(),
+        x.scales.contiguous(),
         opacities.contiguous(),
         feats.contiguous(),
-        viewmats.contiguous(),
-        Ks.contiguous(),
-        width,
-        height,
+        x.viewmats.contiguous(),
+        x.Ks.contiguous(),
+        x.width,
+        x.height,
         near_plane=s.near_plane,
         far_plane=s.far_plane,
         eps2d=s.eps2d,
@@ -168,8 +154,8 @@ def render_gsplat(
     )
     # render_colors (B, C, H, W, n_col [+ P] [+ 1 depth]), render_alphas (B, C, H, W, 1)
     rgb = render_colors[..., :n_col]
-    if backgrounds is not None:
-        rgb = rgb + (1.0 - render_alphas) * backgrounds[:, :, None, None, :]
+    if x.backgrounds is not None:
+        rgb = rgb + (1.0 - render_alphas) * x.backgrounds[:, :, None, None, :]
     part_alpha = render_colors[..., n_col : n_col + s.num_parts] if s.num_parts > 0 else None
     depth = render_colors[..., -1:] if s.render_mode != "RGB" else None
     meta = dict(meta)
@@ -177,22 +163,20 @@ def render_gsplat(
     return RenderOutput(rgb=rgb, alpha=render_alphas, depth=depth, part_alpha=part_alpha, meta=meta)
 
 
-def _features(
-    colors: Tensor, means: Tensor, viewmats: Tensor, part_ids: Tensor | None, s: RenderSettings
-) -> tuple[Tensor, int | None]:
+def _features(x: SplatInputs, s: RenderSettings) -> tuple[Tensor, int | None]:
     """The colour features gsplat renders, and the SH degree it evaluates them with.
 
-    Without parts: ``colors`` as given, with ``s.sh_degree``. With ``s.num_parts`` P > 0,
+    Without parts: ``x.colors`` as given, with ``s.sh_degree``. With ``s.num_parts`` P > 0,
     the one-hot part channels are appended as plain features, so SH colours are evaluated
     here first: (B, N, D + P) or (B, C, N, D + P), SH degree None.
     """
     if s.num_parts == 0:
-        return colors, s.sh_degree
-    assert part_ids is not None
-    B, C = viewmats.shape[:2]
-    N = means.shape[1]
-    feats = colors if s.sh_degree is None else camera_colors(colors, s.sh_degree, means, viewmats)
-    onehot = part_channels(part_ids, s.num_parts, means.dtype)  # (B, N, P)
+        return x.colors, s.sh_degree
+    assert x.part_ids is not None
+    B, C = x.viewmats.shape[:2]
+    N = x.means.shape[1]
+    feats = x.colors if s.sh_degree is None else camera_colors(x.colors, s.sh_degree, x.means, x.viewmats)
+    onehot = part_channels(x.part_ids, s.num_parts, x.means.dtype)  # (B, N, P)
     if feats.dim() == 4:  # per camera (B, C, N, D)
         onehot = onehot[:, None].expand(B, C, N, s.num_parts)
     return torch.cat([feats, onehot], -1), None

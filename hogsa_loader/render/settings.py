@@ -1,12 +1,16 @@
-"""The settings of one Gaussian-splatting call, shared by :func:`hogsa_loader.render.render`
-and its backends (everything that is not a tensor or the image size)."""
+"""The two arguments of one Gaussian-splatting call, shared by :func:`hogsa_loader.render.render`
+and its backends: :class:`SplatInputs` (the tensors and the image size) and
+:class:`RenderSettings` (everything else)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal, NamedTuple, get_args
 
-__all__ = ["RenderSettings", "Backend", "RenderMode", "Compositor", "BACKENDS", "RENDER_MODES", "COMPOSITORS"]
+from torch import Tensor
+
+__all__ = ["SplatInputs", "RenderSettings", "Backend", "RenderMode", "Compositor", "BACKENDS", "RENDER_MODES",
+           "COMPOSITORS"]
 
 Backend = Literal["auto", "torch", "gsplat"]
 RenderMode = Literal["RGB", "RGB+ED", "RGB+D"]
@@ -14,6 +18,45 @@ Compositor = Literal["auto", "torch", "numba"]
 BACKENDS: tuple[str, ...] = get_args(Backend)
 RENDER_MODES: tuple[str, ...] = get_args(RenderMode)
 COMPOSITORS: tuple[str, ...] = get_args(Compositor)
+
+
+class SplatInputs(NamedTuple):
+    """What one call renders: B samples of N Gaussians each (pad with ``valid`` False or
+    zero opacity), seen by C cameras, into W x H images.
+
+    The shapes are the batched layout the backends take; :func:`~hogsa_loader.render.render`
+    also takes every tensor without its leading B (one sample). All float tensors share one
+    device and one dtype.
+
+    Attributes:
+        means: (B, N, 3) world-space centres.
+        quats: (B, N, 4) rotations as quaternions in wxyz order (normalised by the renderer).
+        scales: (B, N, 3) per-axis standard deviations, linear (not log-scales).
+        opacities: (B, N) in [0, 1] (sigmoid already applied); below 1/255 culls.
+        colors: with ``RenderSettings.sh_degree`` None, features (B, N, D) or per camera
+            (B, C, N, D), any D >= 1, used as given; otherwise SH coefficients (B, N, K, 3)
+            or (B, C, N, K, 3) with K >= (sh_degree + 1)^2 (D = 3).
+        viewmats: (B, C, 4, 4) world-to-camera matrices, OpenCV (x right, y down, z forward).
+        Ks: (B, C, 3, 3) pinhole intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
+        width, height: image size W, H in pixels.
+        backgrounds: (B, C, D) colour behind the Gaussians, or None (0).
+        part_ids: (B, N) integer part in [0, num_parts), or -1 for none; given iff
+            ``RenderSettings.num_parts > 0``.
+        valid: (B, N) bool, False marks padding Gaussians (culled), or None (all valid).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    viewmats: Tensor
+    Ks: Tensor
+    width: int
+    height: int
+    backgrounds: Tensor | None = None
+    part_ids: Tensor | None = None
+    valid: Tensor | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
