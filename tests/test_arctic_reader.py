@@ -730,7 +730,7 @@ def _flags_oracle(out, sizes):
             y0, y1 = np.maximum(cy - 100 * s, 1), np.minimum(cy + 100 * s, H)
         x0, x1, y0, y1 = (np.broadcast_to(a, (F,))[:, None] for a in (x0, x1, y0, y1))
 
-        def inside(p):
+        def inside(p, x0=x0, x1=x1, y0=y0, y1=y1):
             return (p[..., 0] >= x0) & (p[..., 0] <= x1) & (p[..., 1] >= y0) & (p[..., 1] <= y1)
 
         c = out["2d"]["verts.object"][:, v].astype(np.float64).mean(axis=1, keepdims=True)

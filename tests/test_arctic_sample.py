@@ -304,7 +304,7 @@ def _dot_errors(scene: Scene, aug: AugParams) -> list[float]:
     T = hmr_transform_matrix(scene.bbox[:2], sc * scene.bbox[2], aug.rot, 224)
     exact = [T[:2, :2] @ p + T[:2, 2] for p, _ in scene.dots]
     labels = []
-    for side, key in (("right", "mano.j2d.norm.r"), ("left", "mano.j2d.norm.l")):
+    for key in ("mano.j2d.norm.r", "mano.j2d.norm.l"):
         lab = unnormalize_kp2d(targets[key].numpy(), 224)
         labels += [lab[j] for j in DOT_JOINTS]
     lab = unnormalize_kp2d(targets["object.kp2d.norm"].numpy(), 224)

@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 
 from hogsa_loader import __version__
 from hogsa_loader.cli.main import main

@@ -195,7 +195,7 @@ def test_raw_seq_files_follow_arctic(world):
 def test_misc_json_structure(world):
     assert set(world.misc) == {s["sid"] for s in world.meta["subjects"]}
     offsets = []
-    for sid, m in world.misc.items():
+    for m in world.misc.values():
         assert set(m) >= {"world2cam", "intris_mat", "image_size", "ioi_offset", "gender"}
         w2c = np.asarray(m["world2cam"])
         K = np.asarray(m["intris_mat"])
@@ -293,7 +293,7 @@ def test_decimation_files_have_arctic_structure(world):
     meta = world.data / "meta"
     dec = np.load(meta / "mano_decimator_195.npy", allow_pickle=True).item()
     assert sorted(k for k in dec if "D" in k) == ["D_left", "D_right"]
-    for side, is_right in (("right", True), ("left", False)):
+    for side in ("right", "left"):
         D, ids = dec[f"D_{side}"], dec[f"vertex_ids_{side}"]
         V = world.layers[side].num_verts
         assert D.shape == (195, V) and D.dtype == np.float32 and len(set(ids.tolist())) == 195

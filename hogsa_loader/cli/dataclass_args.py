@@ -22,6 +22,7 @@ import dataclasses
 import typing
 from typing import Any, Optional, TypeVar
 
+
 from hogsa_loader.cli import checks
 
 __all__ = ["add_dataclass_arguments", "dataclass_from_args", "flag_name"]
@@ -131,8 +132,6 @@ def apply_field_checks(parser: argparse.ArgumentParser, cls: type, prefix: tuple
     (``"positive_int"``), ``metadata["type"]`` is a converter itself; ``metadata["nargs"]``
     makes the flag take several values (the field gets the list of converted values).
     """
-    from hogsa_loader.cli import checks  # deferred: this file's import block belongs to its other functions
-
     actions = {a.dest: a for a in parser._actions}
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):

@@ -435,7 +435,7 @@ class ArcticRoot:
                 if key not in entry:
                     raise AssetError(path, f"subject {sid} has no '{key}'")
 
-            def mats(key: str, count: int, rows: int, cols: int, what: str) -> np.ndarray:
+            def mats(key: str, count: int, rows: int, cols: int, what: str, entry=entry, sid=sid) -> np.ndarray:
                 val = entry[key]
                 if not isinstance(val, list):
                     raise AssetError(path, f"subject {sid}: '{key}' must be a list of {count} {what}")

@@ -244,7 +244,6 @@ def h2o_mano_to_track(
     """
     m = _as_hand_model(model)
     valid = np.asarray(hand.valid, dtype=bool)
-    F = valid.shape[0]
     betas = np.median(hand.betas[valid], axis=0) if valid.any() else np.zeros(10)
     rot, trans = change_mano_frame(hand.pose[:, :3], hand.trans, hand.betas, transform, m, out_betas=betas)
     pose = hand.pose[:, 3:] - m.hands_mean

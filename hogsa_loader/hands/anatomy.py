@@ -195,7 +195,7 @@ def derive_contact_prior(model: ManoModelData, pad_cos: float = 0.35) -> dict[st
     dom = model.weights.argmax(1)
     out: dict[str, np.ndarray] = {}
     across = unit_rows(J[7] - J[1])
-    for name, (j1, j2, j3) in FINGER_JOINTS.items():
+    for name, (_j1, j2, j3) in FINGER_JOINTS.items():
         if name == "thumb":
             facing = unit_rows(0.6 * axes.palm_normal + 0.8 * across)
         else:

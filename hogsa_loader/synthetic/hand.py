@@ -422,7 +422,7 @@ def _albedo(v: np.ndarray, f: np.ndarray, W: np.ndarray, sk: _Skeleton, skin: np
         d = np.linalg.norm(v - sk.joints[j], axis=1)
         col *= 1.0 - 0.06 * np.exp(-(d / 0.006) ** 2)[:, None]
     # nails: dorsal side near each fingertip
-    for name, tip in sk.tips.items():
+    for tip in sk.tips.values():
         d = np.linalg.norm(v - tip, axis=1)
         dorsal = n @ (-axes.palm_normal)
         nail = (d < 0.012) & (dorsal > 0.55)

@@ -326,7 +326,7 @@ class HogsTrainer:
         folder.mkdir(parents=True, exist_ok=True)
         self._save_parts(folder)
         tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
-        for i, group in enumerate(self.optimizer.param_groups):
+        for group in self.optimizer.param_groups:
             st = self.optimizer.state.get(group["params"][0], {})
             for key, val in st.items():
                 tensors[f"adam.{group['name']}.{key}"] = torch.as_tensor(val).detach().cpu().contiguous()
