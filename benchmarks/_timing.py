@@ -89,7 +89,14 @@ def time_render(
     else:
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         memory = "ru_maxrss (process peak RSS)"
-    return {"fwd_ms": fwd_ms, "fwd_bwd_ms": fwd_bwd_ms, "peak_mb": peak_mb,
-            "base_mb": base_mb if device == "cpu" else None, "memory": memory,
-            "fwd_faults": faults["fwd"], "fwd_bwd_faults": faults["fwd_bwd"],
-            "fwd_warmup_faults": warm["fwd"], "fwd_bwd_warmup_faults": warm["fwd_bwd"]}
+    return {
+        "fwd_ms": fwd_ms,
+        "fwd_bwd_ms": fwd_bwd_ms,
+        "peak_mb": peak_mb,
+        "base_mb": base_mb if device == "cpu" else None,
+        "memory": memory,
+        "fwd_faults": faults["fwd"],
+        "fwd_bwd_faults": faults["fwd_bwd"],
+        "fwd_warmup_faults": warm["fwd"],
+        "fwd_bwd_warmup_faults": warm["fwd_bwd"],
+    }

@@ -125,12 +125,26 @@ ARCTIC_SUBDIR = "arctic_data/data"
 
 #: ``common/object_tensors.py`` ``OBJECTS`` (read from the checkout when it is given).
 ARCTIC_OBJECTS_FALLBACK = (
-    "capsulemachine", "box", "ketchup", "laptop", "microwave", "mixer", "notebook",
-    "espressomachine", "waffleiron", "scissors", "phone",
-)  # fmt: skip
+    "capsulemachine",
+    "box",
+    "ketchup",
+    "laptop",
+    "microwave",
+    "mixer",
+    "notebook",
+    "espressomachine",
+    "waffleiron",
+    "scissors",
+    "phone",
+)
 #: Files of one object template opened by ``common/object_tensors.py`` ``construct_obj``.
-OBJECT_TEMPLATE_FILES = ("mesh.obj", "parts.json", "object_params.json", "top_keypoints_300.json",
-                         "bottom_keypoints_300.json")
+OBJECT_TEMPLATE_FILES = (
+    "mesh.obj",
+    "parts.json",
+    "object_params.json",
+    "top_keypoints_300.json",
+    "bottom_keypoints_300.json",
+)
 #: ``misc.json`` fields per subject read by ARCTIC (dataset, processing, SMPL-X).
 MISC_FIELDS = ("world2cam", "intris_mat", "image_size", "ioi_offset", "gender")
 #: ``scripts_data/build_splits.py`` default ``--request_keys``.
@@ -140,8 +154,11 @@ REQUEST_KEYS = ("cam_coord", "2d", "bbox", "params")
 PIP_PACKAGES: dict[str, tuple[str, tuple[str, ...], str]] = {
     "loguru": ("loguru", CHECKS, "ARCTIC's logger (imported by most modules)"),
     "easydict": ("easydict", CHECKS, "common/object_tensors.py, src/parsers/parser.py"),
-    "pytorch_lightning": ("pytorch_lightning", ("train",),
-                          "common/abstract_pl.py: ArcticSFWrapper is a LightningModule"),
+    "pytorch_lightning": (
+        "pytorch_lightning",
+        ("train",),
+        "common/abstract_pl.py: ArcticSFWrapper is a LightningModule",
+    ),
 }
 
 #: Modules that get a stub when they do not import: name -> (what is replaced, why).
@@ -210,7 +227,6 @@ class Notes:
             self.patches.append({"what": what, "how": how, "why": why})
 
 
-
 def _ordered_union(groups: Any) -> list[str]:
     """The keys of several mappings, each once, in order of first appearance."""
     return list(dict.fromkeys(k for g in groups for k in g))
@@ -229,8 +245,11 @@ def plan_packages(importable: Mapping[str, bool], checks: Sequence[str]) -> tupl
         not import.
     """
     stubs = [m for m in STUB_REASONS if not importable.get(m, False)]
-    pip_missing = [pip for mod, (pip, needed_by, _) in PIP_PACKAGES.items()
-                   if not importable.get(mod, False) and any(c in needed_by for c in checks)]
+    pip_missing = [
+        pip
+        for mod, (pip, needed_by, _) in PIP_PACKAGES.items()
+        if not importable.get(mod, False) and any(c in needed_by for c in checks)
+    ]
     return stubs, pip_missing
 
 
@@ -305,14 +324,22 @@ def make_pytorch3d_stub() -> dict[str, types.ModuleType]:
             knn = torch.gather(p2[:, None].expand(n, p1n, p2n, 3), 2, idx[..., None].expand(n, p1n, K, 3))
         return KNN(dists, idx, knn)
 
-    funcs = dict(axis_angle_to_matrix=axis_angle_to_matrix, matrix_to_axis_angle=matrix_to_axis_angle,
-                 rotation_6d_to_matrix=rotation_6d_to_matrix, matrix_to_rotation_6d=matrix_to_rotation_6d)
+    funcs = dict(
+        axis_angle_to_matrix=axis_angle_to_matrix,
+        matrix_to_axis_angle=matrix_to_axis_angle,
+        rotation_6d_to_matrix=rotation_6d_to_matrix,
+        matrix_to_rotation_6d=matrix_to_rotation_6d,
+    )
     rc = _module("pytorch3d.transforms.rotation_conversions", "stub (arctic_crosscheck)", **funcs)
     tr = _module("pytorch3d.transforms", "stub (arctic_crosscheck)", rotation_conversions=rc, **funcs)
     ops = _module("pytorch3d.ops", "stub (arctic_crosscheck)", knn_points=knn_points)
     root = _module("pytorch3d", "stub (arctic_crosscheck)", transforms=tr, ops=ops)
-    return {"pytorch3d": root, "pytorch3d.transforms": tr, "pytorch3d.transforms.rotation_conversions": rc,
-            "pytorch3d.ops": ops}
+    return {
+        "pytorch3d": root,
+        "pytorch3d.transforms": tr,
+        "pytorch3d.transforms.rotation_conversions": rc,
+        "pytorch3d.ops": ops,
+    }
 
 
 def make_torchvision_stub() -> dict[str, types.ModuleType]:
@@ -330,8 +357,10 @@ def make_torchvision_stub() -> dict[str, types.ModuleType]:
             return tensor.clone().sub_(mean).div_(std)
 
     tf = _module("torchvision.transforms", "stub (arctic_crosscheck)", Normalize=Normalize)
-    return {"torchvision": _module("torchvision", "stub (arctic_crosscheck)", transforms=tf),
-            "torchvision.transforms": tf}
+    return {
+        "torchvision": _module("torchvision", "stub (arctic_crosscheck)", transforms=tf),
+        "torchvision.transforms": tf,
+    }
 
 
 class _ChumpyFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
@@ -363,17 +392,22 @@ def _chumpy_module(name: str) -> types.ModuleType:
 
     def make(cls_name: str) -> type:
         if cls_name not in classes:
-            classes[cls_name] = type(cls_name, (ChumpyStub,), {
-                "chumpy_name": f"{name}.{cls_name}",
-                "__array__": lambda self, dtype=None, copy=None: (_array(self) if dtype is None
-                                                                  else _array(self).astype(dtype)),
-                "__getitem__": lambda self, key: _array(self)[key],
-                "__len__": lambda self: len(_array(self)),
-                "shape": property(lambda self: _array(self).shape),
-                "ndim": property(lambda self: _array(self).ndim),
-                "dtype": property(lambda self: _array(self).dtype),
-                "r": property(_array),
-            })
+            classes[cls_name] = type(
+                cls_name,
+                (ChumpyStub,),
+                {
+                    "chumpy_name": f"{name}.{cls_name}",
+                    "__array__": lambda self, dtype=None, copy=None: (
+                        _array(self) if dtype is None else _array(self).astype(dtype)
+                    ),
+                    "__getitem__": lambda self, key: _array(self)[key],
+                    "__len__": lambda self: len(_array(self)),
+                    "shape": property(lambda self: _array(self).shape),
+                    "ndim": property(lambda self: _array(self).ndim),
+                    "dtype": property(lambda self: _array(self).dtype),
+                    "r": property(_array),
+                },
+            )
         return classes[cls_name]
 
     mod = types.ModuleType(name, "stub (arctic_crosscheck): pickled chumpy objects as arrays")
@@ -413,8 +447,11 @@ def make_comet_stub() -> dict[str, types.ModuleType]:
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             raise RuntimeError("comet_ml is stubbed by arctic_crosscheck: no experiment can be created")
 
-    return {"comet_ml": _module("comet_ml", "stub (arctic_crosscheck)", Experiment=_NoExperiment,
-                                ExistingExperiment=_NoExperiment)}
+    return {
+        "comet_ml": _module(
+            "comet_ml", "stub (arctic_crosscheck)", Experiment=_NoExperiment, ExistingExperiment=_NoExperiment
+        )
+    }
 
 
 STUB_FACTORIES: dict[str, Callable[[], dict[str, types.ModuleType]]] = {
@@ -454,9 +491,13 @@ def arctic_loss_keys(arctic_src: Path) -> list[str]:
     return keys
 
 
-def required_files(data_root: Path, objects: Sequence[str], splits: Sequence[str] = SPLITS,
-                   image_names: Optional[Mapping[str, Sequence[str]]] = None,
-                   require_smplx: bool = False) -> list[dict[str, Any]]:
+def required_files(
+    data_root: Path,
+    objects: Sequence[str],
+    splits: Sequence[str] = SPLITS,
+    image_names: Optional[Mapping[str, Sequence[str]]] = None,
+    require_smplx: bool = False,
+) -> list[dict[str, Any]]:
     """Every file ARCTIC's code opens for the three checks, with whether the world has it.
 
     Args:
@@ -477,22 +518,38 @@ def required_files(data_root: Path, objects: Sequence[str], splits: Sequence[str
     arctic = f"{ARCTIC_SUBDIR}"
     out: list[dict[str, Any]] = []
 
-    def add(rel: str, needed_by: Sequence[str], why: str, soft: bool = False, exists: Optional[bool] = None,
-            **extra: Any) -> None:
-        out.append({"path": rel, "needed_by": list(needed_by), "why": why,
-                    "exists": (root / rel).exists() if exists is None else bool(exists), "soft": soft, **extra})
+    def add(
+        rel: str, needed_by: Sequence[str], why: str, soft: bool = False, exists: Optional[bool] = None, **extra: Any
+    ) -> None:
+        out.append(
+            {
+                "path": rel,
+                "needed_by": list(needed_by),
+                "why": why,
+                "exists": (root / rel).exists() if exists is None else bool(exists),
+                "soft": soft,
+                **extra,
+            }
+        )
 
     add(f"{arctic}/meta/misc.json", CHECKS, "cameras, image sizes, ioi_offset, gender (dataset, processing)")
     add(f"{arctic}/meta/object_meta.json", CHECKS, "object diameters (common/object_tensors.py)")
     for obj in objects:
         for fname in OBJECT_TEMPLATE_FILES:
-            add(f"{arctic}/meta/object_vtemplates/{obj}/{fname}", CHECKS,
+            add(
+                f"{arctic}/meta/object_vtemplates/{obj}/{fname}",
+                CHECKS,
                 "ObjectTensors loads all of ARCTIC's OBJECTS (common/object_tensors.py)",
-                group=f"{arctic}/meta/object_vtemplates/<object>/<file>", member=f"{obj}/{fname}")
+                group=f"{arctic}/meta/object_vtemplates/<object>/<file>",
+                member=f"{obj}/{fname}",
+            )
     for name in sorted(set(splits) | {"p1_train"}):
         needed = (["dataset"] if name in splits else []) + (["train"] if name == "p1_train" else [])
-        add(f"{arctic}/splits/{name}.npy", needed,
-            "ARCTIC's ArcticDataset reads the world's split; the train check's real samples come from p1_train")
+        add(
+            f"{arctic}/splits/{name}.npy",
+            needed,
+            "ARCTIC's ArcticDataset reads the world's split; the train check's real samples come from p1_train",
+        )
     add(f"{arctic}/meta/downsamplers.npy", ("train",), "object_sampler (src/models/generic/wrapper.py __init__)")
     add(f"{arctic}/meta/mano_decimator_195.npy", ("train",), "MANODecimator (common/body_models.py), every forward")
     for side in ("RIGHT", "LEFT"):
@@ -508,8 +565,13 @@ def required_files(data_root: Path, objects: Sequence[str], splits: Sequence[str
     for sid in sorted(misc):
         for key in MISC_FIELDS:
             if key not in misc[sid]:
-                add(f"{arctic}/meta/misc.json [{sid}].{key}", CHECKS, "field read by ARCTIC's code",
-                    exists=False, field=key)
+                add(
+                    f"{arctic}/meta/misc.json [{sid}].{key}",
+                    CHECKS,
+                    "field read by ARCTIC's code",
+                    exists=False,
+                    field=key,
+                )
 
     raw = root / arctic / "raw_seqs"
     subjects = set()
@@ -517,30 +579,47 @@ def required_files(data_root: Path, objects: Sequence[str], splits: Sequence[str
         sid, seq = mano_p.parent.name, mano_p.name[: -len(".mano.npy")]
         subjects.add(sid)
         for kind in ("object", "egocam.dist", "smplx"):
-            add(f"{arctic}/raw_seqs/{sid}/{seq}.{kind}.npy", ("processing",),
+            add(
+                f"{arctic}/raw_seqs/{sid}/{seq}.{kind}.npy",
+                ("processing",),
                 "src/arctic/preprocess_dataset.py construct_loader",
-                group=f"{arctic}/raw_seqs/<sid>/<seq>.{kind}.npy", member=f"{sid}/{seq}")
+                group=f"{arctic}/raw_seqs/<sid>/<seq>.{kind}.npy",
+                member=f"{sid}/{seq}",
+            )
     if not subjects and raw.is_dir() is False:
         add(f"{arctic}/raw_seqs", ("processing",), "raw sequences (scripts_data/process_seqs.py)")
     genders = {"neutral"} | {str(misc[s].get("gender")) for s in subjects if s in misc and "gender" in misc[s]}
     standin = "; missing: the SMPL-X layer is replaced by a NaN stand-in (see --require-smplx)"
     for gender in sorted(genders):
-        add(f"body_models/smplx/SMPLX_{gender.upper()}.npz", ("processing",),
+        add(
+            f"body_models/smplx/SMPLX_{gender.upper()}.npz",
+            ("processing",),
             "SMPL-X layer (common/body_models.py construct_layers / build_subject_smplx)" + standin,
-            soft=not require_smplx)
+            soft=not require_smplx,
+        )
     for sid in sorted(subjects):
-        add(f"{arctic}/meta/subject_vtemplates/{sid}.obj", ("processing",),
-            "build_subject_smplx v_template" + standin, soft=not require_smplx,
-            group=f"{arctic}/meta/subject_vtemplates/<sid>.obj", member=sid)
+        add(
+            f"{arctic}/meta/subject_vtemplates/{sid}.obj",
+            ("processing",),
+            "build_subject_smplx v_template" + standin,
+            soft=not require_smplx,
+            group=f"{arctic}/meta/subject_vtemplates/<sid>.obj",
+            member=sid,
+        )
     for protocol in sorted({s.split("_")[0] for s in splits}):
         add(f"{arctic}/splits_json/protocol_{protocol}.json", ("processing",), "src/arctic/split.py get_selected_seqs")
 
     for split, names in (image_names or {}).items():
         missing = [n for n in names if not (root / cropped_image_rel(n)).is_file()]
         if missing:
-            add(f"{cropped_image_rel(missing[0])} (+{len(missing) - 1} more of {len(names)} in {split})",
-                ("dataset", "train"), "cropped image of a split entry (ARCTIC reads a zero image instead)",
-                soft=True, exists=False, count=len(missing))
+            add(
+                f"{cropped_image_rel(missing[0])} (+{len(missing) - 1} more of {len(names)} in {split})",
+                ("dataset", "train"),
+                "cropped image of a split entry (ARCTIC reads a zero image instead)",
+                soft=True,
+                exists=False,
+                count=len(missing),
+            )
     return out
 
 
@@ -550,7 +629,7 @@ def cropped_image_rel(imgname: str) -> str:
     name = name.replace("/arctic_data/", "/data/arctic_data/data/").replace("/data/data/", "/data/")
     for prefix in ("./data/", "data/"):
         if name.startswith(prefix):
-            return name[len(prefix):]
+            return name[len(prefix) :]
     return name
 
 
@@ -604,8 +683,16 @@ def compare_values(arctic: Any, ours: Any) -> dict[str, Any]:
     values by ``==``; numbers: max_abs 0 with NaNs at the same places).
     """
     da, do = describe(arctic), describe(ours)
-    out: dict[str, Any] = {"arctic": da, "ours": do, "same_type": da == do, "numeric": False, "max_abs": None,
-                           "mean_abs": None, "nan_match": True, "equal": False}
+    out: dict[str, Any] = {
+        "arctic": da,
+        "ours": do,
+        "same_type": da == do,
+        "numeric": False,
+        "max_abs": None,
+        "mean_abs": None,
+        "nan_match": True,
+        "equal": False,
+    }
     a, b = _as_float_array(arctic), _as_float_array(ours)
     if a is None or b is None:
         try:
@@ -627,8 +714,11 @@ def compare_values(arctic: Any, ours: Any) -> dict[str, Any]:
     return out
 
 
-def compare_samples(arctic: Sequence[Mapping[str, Any]], ours: Sequence[Mapping[str, Any]],
-                    groups: Sequence[str] = ("inputs", "targets", "meta_info")) -> dict[str, Any]:
+def compare_samples(
+    arctic: Sequence[Mapping[str, Any]],
+    ours: Sequence[Mapping[str, Any]],
+    groups: Sequence[str] = ("inputs", "targets", "meta_info"),
+) -> dict[str, Any]:
     """Compare one ``(inputs, targets, meta_info)`` item of each dataset.
 
     Returns ``{"keys": {group: {"arctic_only", "ours_only", "same_order"}}, "fields":
@@ -638,8 +728,11 @@ def compare_samples(arctic: Sequence[Mapping[str, Any]], ours: Sequence[Mapping[
     fields: dict[str, Any] = {}
     for group, a, o in zip(groups, arctic, ours):
         ka, ko = list(a), list(o)
-        keys[group] = {"arctic_only": [k for k in ka if k not in o], "ours_only": [k for k in ko if k not in a],
-                       "same_order": ka == ko}
+        keys[group] = {
+            "arctic_only": [k for k in ka if k not in o],
+            "ours_only": [k for k in ko if k not in a],
+            "same_order": ka == ko,
+        }
         for k in ka:
             if k in o:
                 fields[f"{group}.{k}"] = compare_values(a[k], o[k])
@@ -664,14 +757,18 @@ def dataset_tolerance(name: str, img_tol: float = DEFAULT_IMG_TOL, flip_px: Opti
         return {"max_abs": img_tol, "mean_abs": img_tol / 10, "rule": "image noise"}
     if "2d.norm" in name:
         if flip_px is not None:
-            return {"max_abs": flip_px * (1 + 1e-6), "max_fraction": FLIP_FRACTION,
-                    "rule": "exact but one-pixel truncation flips (labels computed in a rescaled frame)"}
+            return {
+                "max_abs": flip_px * (1 + 1e-6),
+                "max_fraction": FLIP_FRACTION,
+                "rule": "exact but one-pixel truncation flips (labels computed in a rescaled frame)",
+            }
         return {"max_abs": 0.0, "rule": "exact (2D label)"}
     return {"max_abs": NUMBER_TOL, "rule": "float round-off"}
 
 
-def aggregate_fields(per_item: Sequence[Mapping[str, Any]], img_tol: float = DEFAULT_IMG_TOL,
-                     flip_px: Optional[float] = None) -> dict[str, Any]:
+def aggregate_fields(
+    per_item: Sequence[Mapping[str, Any]], img_tol: float = DEFAULT_IMG_TOL, flip_px: Optional[float] = None
+) -> dict[str, Any]:
     """Fold the field comparisons of several items and judge each field by its tolerance.
 
     A field passes when its type/dtype/shape agree on every item and: numbers — every item
@@ -681,9 +778,22 @@ def aggregate_fields(per_item: Sequence[Mapping[str, Any]], img_tol: float = DEF
     out: dict[str, Any] = {}
     for item in per_item:
         for name, c in item["fields"].items():
-            agg = out.setdefault(name, {"arctic": c["arctic"], "ours": c["ours"], "same_type": True, "numeric": True,
-                                        "max_abs": 0.0, "mean_abs": 0.0, "nan_match": True, "equal": True,
-                                        "items": 0, "num_diff": 0, "size": 0})
+            agg = out.setdefault(
+                name,
+                {
+                    "arctic": c["arctic"],
+                    "ours": c["ours"],
+                    "same_type": True,
+                    "numeric": True,
+                    "max_abs": 0.0,
+                    "mean_abs": 0.0,
+                    "nan_match": True,
+                    "equal": True,
+                    "items": 0,
+                    "num_diff": 0,
+                    "size": 0,
+                },
+            )
             agg["items"] += 1
             agg["num_diff"] += int(c.get("num_diff", 0))
             agg["size"] += int(c.get("size", 0))
@@ -703,9 +813,13 @@ def aggregate_fields(per_item: Sequence[Mapping[str, Any]], img_tol: float = DEF
             agg["max_abs"] = agg["mean_abs"] = None
             ok = agg["equal"]
         else:
-            ok = (agg["max_abs"] is not None and agg["nan_match"] and agg["max_abs"] <= tol["max_abs"]
-                  and agg["mean_abs"] <= tol.get("mean_abs", math.inf)
-                  and agg["num_diff"] <= tol.get("max_fraction", 1.0) * max(agg["size"], 1))
+            ok = (
+                agg["max_abs"] is not None
+                and agg["nan_match"]
+                and agg["max_abs"] <= tol["max_abs"]
+                and agg["mean_abs"] <= tol.get("mean_abs", math.inf)
+                and agg["num_diff"] <= tol.get("max_fraction", 1.0) * max(agg["size"], 1)
+            )
         agg["ok"] = bool(ok and agg["same_type"])
     return out
 
@@ -755,9 +869,13 @@ def compare_split_data(arctic: Mapping[str, Any], ours: Mapping[str, Any]) -> di
     """
     ia, io = [str(n) for n in arctic["imgnames"]], [str(n) for n in ours["imgnames"]]
     da, do = arctic["data_dict"], ours["data_dict"]
-    out: dict[str, Any] = {"imgnames_equal": ia == io, "num_images": [len(ia), len(io)],
-                           "sequences_equal": sorted(da) == sorted(do), "sequences": sorted(set(da) | set(do)),
-                           "keys": {}}
+    out: dict[str, Any] = {
+        "imgnames_equal": ia == io,
+        "num_images": [len(ia), len(io)],
+        "sequences_equal": sorted(da) == sorted(do),
+        "sequences": sorted(set(da) | set(do)),
+        "keys": {},
+    }
     if ia != io:
         sa, so = set(ia), set(io)
         out["imgnames_arctic_only"] = sorted(sa - so)[:5]
@@ -774,8 +892,17 @@ def compare_split_data(arctic: Mapping[str, Any], ours: Mapping[str, Any]) -> di
             for key, va, vo in items:
                 name = f"{group}/{key}" if key else group
                 kind = split_key_kind(group, key)
-                e = out["keys"].setdefault(name, {"kind": kind, "tolerance": SPLIT_TOL[kind], "max_abs": 0.0,
-                                                  "arctic": None, "ours": None, "ok": True})
+                e = out["keys"].setdefault(
+                    name,
+                    {
+                        "kind": kind,
+                        "tolerance": SPLIT_TOL[kind],
+                        "max_abs": 0.0,
+                        "arctic": None,
+                        "ours": None,
+                        "ok": True,
+                    },
+                )
                 if va is None or vo is None:
                     e["only"] = "arctic" if vo is None else "ours"
                     e["expected"] = e["only"] == "arctic" and expected_arctic_only(group, key)
@@ -816,8 +943,10 @@ def _mano21_class(base: type) -> type:
     """smplx ``MANO`` that returns ARCTIC's 21 joints (16 + the 5 fingertip vertices)."""
 
     class MANO21(base):  # type: ignore[misc, valid-type]
-        __doc__ = ("smplx MANO + vertex_joint_selector (arctic_crosscheck): the joints ARCTIC gets after "
-                   "uncommenting 'joints = self.vertex_joint_selector(vertices, joints)' in smplx")
+        __doc__ = (
+            "smplx MANO + vertex_joint_selector (arctic_crosscheck): the joints ARCTIC gets after "
+            "uncommenting 'joints = self.vertex_joint_selector(vertices, joints)' in smplx"
+        )
 
         def forward(self, *args: Any, **kwargs: Any) -> Any:
             out = super().forward(*args, **kwargs)
@@ -909,8 +1038,15 @@ class ImageGeometry:
 class ArcticSession:
     """ARCTIC's code importable from a work folder that mirrors its repository root."""
 
-    def __init__(self, arctic_src: Path, data_root: Path, workdir: Path, notes: Notes, stubs: Sequence[str],
-                 resnet_weights: Optional[Path] = None) -> None:
+    def __init__(
+        self,
+        arctic_src: Path,
+        data_root: Path,
+        workdir: Path,
+        notes: Notes,
+        stubs: Sequence[str],
+        resnet_weights: Optional[Path] = None,
+    ) -> None:
         self.arctic_src = Path(arctic_src).resolve()
         self.data_root = Path(data_root).resolve()
         self.workdir = Path(workdir)
@@ -980,7 +1116,8 @@ class ArcticSession:
                 "common.body_models.MANO (used by build_mano_aa) is a subclass whose forward appends "
                 "smplx's own vertex_joint_selector (the 5 fingertip vertices) when smplx returns 16 joints",
                 "ARCTIC's docs/setup.md asks to uncomment 'joints = self.vertex_joint_selector(vertices, "
-                "joints)' in the installed smplx/body_models.py; the installed package is not modified")
+                "joints)' in the installed smplx/body_models.py; the installed package is not modified",
+            )
         res = sys.modules.get("src.nets.backbone.resnet")
         if res is not None and not self._patched.get("resnet"):
             weights = self.resnet_weights
@@ -998,7 +1135,8 @@ class ArcticSession:
                 "ResNet ImageNet weights",
                 "src.nets.backbone.resnet.load_state_dict_from_url returns "
                 + (f"the state dict of {weights}" if weights else "{} (random initialisation)"),
-                "ArcticSF builds resnet50(pretrained=True), which downloads weights; nothing is downloaded here")
+                "ArcticSF builds resnet50(pretrained=True), which downloads weights; nothing is downloaded here",
+            )
         wrapper = sys.modules.get("src.models.generic.wrapper")
         if wrapper is not None and not self._patched.get("renderer"):
             wrapper.Renderer = _NoRenderer
@@ -1007,7 +1145,8 @@ class ArcticSession:
                 "visualisation Renderer",
                 "src.models.generic.wrapper.Renderer is a no-op class",
                 "GenericWrapper.__init__ opens a pyrender OffscreenRenderer (needs EGL); used only to draw "
-                "visualisations, never in forward/loss")
+                "visualisations, never in forward/loss",
+            )
 
     @contextlib.contextmanager
     def cuda_as_cpu(self) -> Iterator[None]:
@@ -1023,7 +1162,8 @@ class ArcticSession:
             "Tensor.cuda() on a machine without CUDA",
             "torch.Tensor.cuda returns the tensor unchanged while ARCTIC's code runs",
             "src/arctic/processing.py (transform_mano_rot_cam) and src/callbacks/process/process_generic.py "
-            "call .cuda() unconditionally")
+            "call .cuda() unconditionally",
+        )
         try:
             yield
         finally:
@@ -1076,7 +1216,9 @@ class ArcticSession:
                     stats["images"] += 1
             return img, ok
 
-        def rgb_processing(is_train: Any, rgb_img: Any, center: Any, bbox_dim: Any, augm_dict: Any, img_res: Any) -> Any:
+        def rgb_processing(
+            is_train: Any, rgb_img: Any, center: Any, bbox_dim: Any, augm_dict: Any, img_res: Any
+        ) -> Any:
             if mode == "map" and current.get("ok"):
                 k = geometry.factor(current["name"])
                 center, bbox_dim = [center[0] * k, center[1] * k], bbox_dim * k
@@ -1085,19 +1227,27 @@ class ArcticSession:
             return orig_rgb(is_train, rgb_img, center, bbox_dim, augm_dict, img_res)
 
         ad.read_img, du.rgb_processing = read_img, rgb_processing
-        ego_part = "" if geometry.ego_scale == geometry.arctic_ego_scale else (
-            f", egocentric x{geometry.ego_scale:g}/{geometry.arctic_ego_scale:g}")
-        how = {"map": "common.data_utils.rgb_processing gets ARCTIC's crop centre and side scaled into the file's "
-                      f"pixels (allocentric x{geometry.cropped_size}/{geometry.arctic_cropped}{ego_part}); labels "
-                      "untouched",
-               "upsample": "src.datasets.arctic_dataset.read_img upsamples the files (bicubic) to "
-                           f"{geometry.arctic_cropped}x{geometry.arctic_cropped} (allocentric)"
-                           + ("" if not ego_part else f" and x{geometry.arctic_ego_scale:g} of the frame (egocentric)")}
+        ego_part = (
+            ""
+            if geometry.ego_scale == geometry.arctic_ego_scale
+            else (f", egocentric x{geometry.ego_scale:g}/{geometry.arctic_ego_scale:g}")
+        )
+        how = {
+            "map": "common.data_utils.rgb_processing gets ARCTIC's crop centre and side scaled into the file's "
+            f"pixels (allocentric x{geometry.cropped_size}/{geometry.arctic_cropped}{ego_part}); labels "
+            "untouched",
+            "upsample": "src.datasets.arctic_dataset.read_img upsamples the files (bicubic) to "
+            f"{geometry.arctic_cropped}x{geometry.arctic_cropped} (allocentric)"
+            + ("" if not ego_part else f" and x{geometry.arctic_ego_scale:g} of the frame (egocentric)"),
+        }
         if mode in how:
             self.notes.patch(
-                f"image sizes ARCTIC assumes ({mode})", how[mode],
-                f"ARCTIC hard-codes {geometry.arctic_cropped}-px allocentric crops (dataset_utils.transform_2d_for_speedup)"
-                f"; this world's crops are {geometry.cropped_size} px (meta/hogsa_world.json); --image-mode")
+                f"image sizes ARCTIC assumes ({mode})",
+                how[mode],
+                f"ARCTIC hard-codes {geometry.arctic_cropped}-px allocentric crops "
+                "(dataset_utils.transform_2d_for_speedup)"
+                f"; this world's crops are {geometry.cropped_size} px (meta/hogsa_world.json); --image-mode",
+            )
         try:
             yield stats
         finally:
@@ -1126,7 +1276,9 @@ class ArcticSession:
             "common.body_models.build_smplx / build_subject_smplx return a layer giving NaN joints (B,127,3) "
             "(and one NaN vertex; vertices are not exported)",
             "the world ships no SMPL-X model or subject template (licensed, see meta/hogsa_world.json); only "
-            "joints.smplx depends on it, which the world's splits hold as NaN stand-ins; --require-smplx turns this off")
+            "joints.smplx depends on it, which the world's splits hold as NaN stand-ins; --require-smplx turns this "
+            "off",
+        )
         try:
             yield
         finally:
@@ -1136,8 +1288,7 @@ class ArcticSession:
         """ARCTIC's own ``construct_args()`` for ArcticNet-SF on ``setup``."""
         parser = self.module("src.parsers.parser")
         argv = sys.argv
-        sys.argv = ["train.py", "--method", "arctic_sf", "--setup", setup, "--trainsplit", "train",
-                    "--valsplit", "val"]
+        sys.argv = ["train.py", "--method", "arctic_sf", "--setup", setup, "--trainsplit", "train", "--valsplit", "val"]
         try:
             args = parser.construct_args()
         finally:
@@ -1162,15 +1313,30 @@ def _pick_indices(n: int, k: int) -> list[int]:
 def our_config(args: Any) -> Any:
     from hogsa_loader.datasets.augment import ArcticConfig
 
-    return ArcticConfig(img_res=int(args.img_res), focal_length=float(args.focal_length),
-                        rot_factor=float(args.rot_factor), noise_factor=float(args.noise_factor),
-                        scale_factor=float(args.scale_factor), flip_prob=float(args.flip_prob),
-                        img_norm_mean=tuple(args.img_norm_mean), img_norm_std=tuple(args.img_norm_std),
-                        window_size=int(args.window_size), use_gt_k=bool(args.use_gt_k))
+    return ArcticConfig(
+        img_res=int(args.img_res),
+        focal_length=float(args.focal_length),
+        rot_factor=float(args.rot_factor),
+        noise_factor=float(args.noise_factor),
+        scale_factor=float(args.scale_factor),
+        flip_prob=float(args.flip_prob),
+        img_norm_mean=tuple(args.img_norm_mean),
+        img_norm_std=tuple(args.img_norm_std),
+        window_size=int(args.window_size),
+        use_gt_k=bool(args.use_gt_k),
+    )
 
 
-def run_dataset_check(sess: ArcticSession, data_root: Path, splits: Sequence[str], items: int, seed: int,
-                      img_tol: float, image_mode: str, log: Callable[[str], None]) -> dict[str, Any]:
+def run_dataset_check(
+    sess: ArcticSession,
+    data_root: Path,
+    splits: Sequence[str],
+    items: int,
+    seed: int,
+    img_tol: float,
+    image_mode: str,
+    log: Callable[[str], None],
+) -> dict[str, Any]:
     from hogsa_loader.datasets.arctic import ArcticRoot
 
     root = ArcticRoot(data_root)
@@ -1181,46 +1347,69 @@ def run_dataset_check(sess: ArcticSession, data_root: Path, splits: Sequence[str
     # egocentric images): set it to the world's, as a user of such data would
     ego_setting = None if world_ego == parser_ego else world_ego
     if ego_setting is not None:
-        sess.notes.patch("ARCTIC setting ego_image_scale",
-                         f"args.ego_image_scale = {world_ego:g} (the world's, meta/hogsa_world.json) instead of the "
-                         f"parser's {parser_ego:g}", "a setting of ARCTIC's (src/parsers/parser.py), which scales the "
-                         "egocentric labels and box to the egocentric image files")
+        sess.notes.patch(
+            "ARCTIC setting ego_image_scale",
+            f"args.ego_image_scale = {world_ego:g} (the world's, meta/hogsa_world.json) instead of the "
+            f"parser's {parser_ego:g}",
+            "a setting of ARCTIC's (src/parsers/parser.py), which scales the "
+            "egocentric labels and box to the egocentric image files",
+        )
     geometry = ImageGeometry(
-        cropped_size=int(meta.cropped_size), ego_scale=world_ego,
+        cropped_size=int(meta.cropped_size),
+        ego_scale=world_ego,
         ego_full_sizes={sid: tuple(int(v) for v in root.subject_misc(sid).image_size[0]) for sid in root.subjects()},
-        arctic_ego_scale=world_ego)
+        arctic_ego_scale=world_ego,
+    )
     if geometry.arctic_sized:
         ctx: Any = contextlib.nullcontext({"mode": "none", "images": 0, "sizes": {}})
     else:
         ctx = sess.world_sized_images(image_mode, geometry)
     with ctx as stats:
-        result = _dataset_runs(sess, data_root, splits, items, seed, img_tol,
-                               None if geometry.arctic_sized else geometry, ego_setting, log)
-    result["world_image_sizes"] = {"cropped_size": geometry.cropped_size, "ego_image_scale": world_ego,
-                                   "arctic_cropped_size": geometry.arctic_cropped,
-                                   "arctic_parser_ego_image_scale": parser_ego}
+        result = _dataset_runs(
+            sess, data_root, splits, items, seed, img_tol, None if geometry.arctic_sized else geometry, ego_setting, log
+        )
+    result["world_image_sizes"] = {
+        "cropped_size": geometry.cropped_size,
+        "ego_image_scale": world_ego,
+        "arctic_cropped_size": geometry.arctic_cropped,
+        "arctic_parser_ego_image_scale": parser_ego,
+    }
     result["arctic_ego_image_scale_used"] = world_ego
     result["image_adaptation"] = stats
     if ego_setting is not None:
-        result["notes"].append(f"ARCTIC ran with args.ego_image_scale = {world_ego:g} (the world's egocentric image "
-                               f"scale; its parser sets {parser_ego:g} for ARCTIC's released images)")
+        result["notes"].append(
+            f"ARCTIC ran with args.ego_image_scale = {world_ego:g} (the world's egocentric image "
+            f"scale; its parser sets {parser_ego:g} for ARCTIC's released images)"
+        )
     if not geometry.arctic_sized:
         result["notes"].append(
             f"the world's allocentric crops are {geometry.cropped_size} px but ARCTIC's code hard-codes "
-            f"{geometry.arctic_cropped} px (src/datasets/dataset_utils.py, common/data_utils.py transform_kp2d): ARCTIC "
+            f"{geometry.arctic_cropped} px (src/datasets/dataset_utils.py, common/data_utils.py transform_kp2d): "
+            "ARCTIC "
             "computes those labels and the crop box in a 1000-px frame. 2D labels may then differ by one-pixel "
-            f"truncation flips (allowed on <= {FLIP_FRACTION:.1%} of the coordinates); --image-mode {image_mode}: " + {
+            f"truncation flips (allowed on <= {FLIP_FRACTION:.1%} of the coordinates); --image-mode {image_mode}: "
+            + {
                 "map": "ARCTIC's image processing ran on the file with its crop box scaled into the file's pixels",
                 "upsample": "ARCTIC read the files upsampled to 1000 px, so inputs.img differs by resampling "
-                            "(and by the blur: ours blurs the small file with ARCTIC's 5-px kernel)",
-                "raw": "ARCTIC cropped the small files with its own geometry (the wrong region)"}[image_mode]
-            + "; meta_info.center is compared in the file's pixels (ARCTIC's value times the same factor)")
+                "(and by the blur: ours blurs the small file with ARCTIC's 5-px kernel)",
+                "raw": "ARCTIC cropped the small files with its own geometry (the wrong region)",
+            }[image_mode]
+            + "; meta_info.center is compared in the file's pixels (ARCTIC's value times the same factor)"
+        )
     return result
 
 
-def _dataset_runs(sess: ArcticSession, data_root: Path, splits: Sequence[str], items: int, seed: int,
-                  img_tol: float, geometry: Optional[ImageGeometry], ego_setting: Optional[float],
-                  log: Callable[[str], None]) -> dict[str, Any]:
+def _dataset_runs(
+    sess: ArcticSession,
+    data_root: Path,
+    splits: Sequence[str],
+    items: int,
+    seed: int,
+    img_tol: float,
+    geometry: Optional[ImageGeometry],
+    ego_setting: Optional[float],
+    log: Callable[[str], None],
+) -> dict[str, Any]:
     from hogsa_loader.datasets.arctic_dataset import ArcticDataset as OurDataset
     from hogsa_loader.datasets.conventions import EGO_VIEW
 
@@ -1236,11 +1425,22 @@ def _dataset_runs(sess: ArcticSession, data_root: Path, splits: Sequence[str], i
         modes = ("aug", "noaug") if split.endswith("train") else ("noaug",)
         for mode in modes:
             aug = mode == "aug"
-            ours = OurDataset(data_root, split=name, augment=aug, seed=seed, use_gt_k=bool(args.use_gt_k),
-                              speedup=bool(args.speedup), config=our_config(args))
-            run: dict[str, Any] = {"split": name, "augment": aug,
-                                   "imgnames_equal": [str(n) for n in theirs.imgnames] == list(ours.imgnames),
-                                   "num_images": [len(theirs.imgnames), len(ours.imgnames)], "items": []}
+            ours = OurDataset(
+                data_root,
+                split=name,
+                augment=aug,
+                seed=seed,
+                use_gt_k=bool(args.use_gt_k),
+                speedup=bool(args.speedup),
+                config=our_config(args),
+            )
+            run: dict[str, Any] = {
+                "split": name,
+                "augment": aug,
+                "imgnames_equal": [str(n) for n in theirs.imgnames] == list(ours.imgnames),
+                "num_images": [len(theirs.imgnames), len(ours.imgnames)],
+                "items": [],
+            }
             theirs.aug_data = aug
             # ARCTIC caches the first egocentric patch K it computes; ours takes the first
             # egocentric image in split order: prime ARCTIC's cache with that image
@@ -1265,30 +1465,50 @@ def _dataset_runs(sess: ArcticSession, data_root: Path, splits: Sequence[str], i
                     a[2]["center"] = (a[2]["center"] * np.float32(geometry.factor(str(imgname)))).astype(np.float32)
                 c = compare_samples(a, b)
                 per_item.append(c)
-                run["items"].append({"index": idx, "imgname": str(imgname), "random_draws": draws,
-                                     "rot": [float(a[2]["rot_angle"]), float(b[2]["rot_angle"])]})
+                run["items"].append(
+                    {
+                        "index": idx,
+                        "imgname": str(imgname),
+                        "random_draws": draws,
+                        "rot": [float(a[2]["rot_angle"]), float(b[2]["rot_angle"])],
+                    }
+                )
                 for group, k in c["keys"].items():
                     cur = keys_report.setdefault(group, {"arctic_only": set(), "ours_only": set(), "same_order": True})
                     cur["arctic_only"] |= set(k["arctic_only"])
                     cur["ours_only"] |= set(k["ours_only"])
                     cur["same_order"] &= k["same_order"]
-            run["keys"] = {g: {"arctic_only": sorted(v["arctic_only"]), "ours_only": sorted(v["ours_only"]),
-                               "same_order": v["same_order"]} for g, v in keys_report.items()}
-            run["keys_equal"] = all(not v["arctic_only"] and not v["ours_only"] and v["same_order"]
-                                    for v in run["keys"].values())
+            run["keys"] = {
+                g: {
+                    "arctic_only": sorted(v["arctic_only"]),
+                    "ours_only": sorted(v["ours_only"]),
+                    "same_order": v["same_order"],
+                }
+                for g, v in keys_report.items()
+            }
+            run["keys_equal"] = all(
+                not v["arctic_only"] and not v["ours_only"] and v["same_order"] for v in run["keys"].values()
+            )
             rescaled = geometry is not None and any(geometry.factor(i["imgname"]) != 1.0 for i in run["items"])
             run["labels_rescaled"] = rescaled
             run["fields"] = aggregate_fields(per_item, img_tol, 2.0 / float(args.img_res) if rescaled else None)
-            run["ok"] = bool(run["imgnames_equal"] and run["keys_equal"] and per_item
-                             and all(f["ok"] for f in run["fields"].values()))
+            run["ok"] = bool(
+                run["imgnames_equal"]
+                and run["keys_equal"]
+                and per_item
+                and all(f["ok"] for f in run["fields"].values())
+            )
             result["runs"][name + ({"aug": " aug", "noaug": " noaug"}[mode] if len(modes) > 1 else "")] = run
-            log(f"  dataset {name} ({'augmented' if aug else 'no augmentation'}): {len(per_item)} items, "
-                f"{'ok' if run['ok'] else 'DIFFERENT'} ({time.time() - t0:.1f}s)")
+            log(
+                f"  dataset {name} ({'augmented' if aug else 'no augmentation'}): {len(per_item)} items, "
+                f"{'ok' if run['ok'] else 'DIFFERENT'} ({time.time() - t0:.1f}s)"
+            )
     result["ok"] = bool(result["runs"]) and all(r["ok"] for r in result["runs"].values())
     result["notes"].append(
         "augmented runs: ARCTIC's augm_params runs unchanged, its np.random.uniform/randn calls are answered "
         "by our dataset's per-item generator numpy.random.default_rng([seed, epoch, index]) in the same order "
-        "(flip draw, 3 colour factors, rotation, scale, rotation-off draw), so both get identical augmentation")
+        "(flip draw, 3 colour factors, rotation, scale, rotation-off draw), so both get identical augmentation"
+    )
     return result
 
 
@@ -1318,8 +1538,16 @@ def untrained_bundle(data_root: Path, out: Path, sid: str, obj: str) -> Path:
     return write_untrained_bundle(data_root, out, sid, obj)
 
 
-def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bundle: Optional[Path], batch: int,
-                    ratio: float, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
+def run_train_check(
+    sess: ArcticSession,
+    data_root: Path,
+    arctic_src: Path,
+    bundle: Optional[Path],
+    batch: int,
+    ratio: float,
+    seed: int,
+    log: Callable[[str], None],
+) -> dict[str, Any]:
     import torch
     from torch.utils.data import DataLoader
 
@@ -1339,8 +1567,15 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
         wrapper = wrapper_mod.ArcticSFWrapper(args)
     log(f"  train: ArcticSFWrapper built ({time.time() - t0:.1f}s)")
 
-    real = OurDataset(data_root, split="p1_train", augment=True, seed=seed, use_gt_k=bool(args.use_gt_k),
-                      speedup=bool(args.speedup), config=our_config(args))
+    real = OurDataset(
+        data_root,
+        split="p1_train",
+        augment=True,
+        seed=seed,
+        use_gt_k=bool(args.use_gt_k),
+        speedup=bool(args.speedup),
+        config=our_config(args),
+    )
     if bundle is None:
         root = ArcticRoot(data_root)
         sid, seq = str(real.imgnames[0]).split("/")[-4:-2]
@@ -1348,17 +1583,29 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
         t1 = time.time()
         bundle = untrained_bundle(data_root, sess.workdir / "hogsa_bundle", sid, obj)
         result["bundle"] = {"path": str(bundle), "trained": False, "subject": sid, "object": obj}
-        result["notes"].append(f"no --bundle: synthetic samples from an untrained bundle for ({sid}, {obj}) "
-                               "(Gaussians initialised from the world's MANO and object template), 'perturb' poses, "
-                               f"procedural backgrounds ({time.time() - t1:.1f}s to build)")
+        result["notes"].append(
+            f"no --bundle: synthetic samples from an untrained bundle for ({sid}, {obj}) "
+            "(Gaussians initialised from the world's MANO and object template), 'perturb' poses, "
+            f"procedural backgrounds ({time.time() - t1:.1f}s to build)"
+        )
         del root
     else:
         result["bundle"] = {"path": str(bundle), "trained": True}
     n_syn = int(math.floor(ratio * batch + 0.5))
-    synth = HOGSADataset(bundle, data_root, with_options(poses="perturb", batch_size=max(1, n_syn),
-                                                        num_samples=max(1, n_syn) * 4, seed=seed, protocol="p1",
-                                                        split="train", arctic=our_config(args)),
-                         backgrounds=ProceduralBackgrounds())
+    synth = HOGSADataset(
+        bundle,
+        data_root,
+        with_options(
+            poses="perturb",
+            batch_size=max(1, n_syn),
+            num_samples=max(1, n_syn) * 4,
+            seed=seed,
+            protocol="p1",
+            split="train",
+            arctic=our_config(args),
+        ),
+        backgrounds=ProceduralBackgrounds(),
+    )
     gen = torch.Generator().manual_seed(seed)
     mixed = MixedLoader(DataLoader(real, batch_size=batch, shuffle=True, generator=gen), synth, ratio=ratio)
     t1 = time.time()
@@ -1366,8 +1613,13 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
     names = list(meta_info["imgname"])
     syn_idx = [i for i, n in enumerate(names) if is_synthetic(n)]
     real_idx = [i for i, n in enumerate(names) if not is_synthetic(n)]
-    result["batch"] = {"size": len(names), "real": len(real_idx), "synthetic": len(syn_idx), "imgnames": names,
-                       "seconds": time.time() - t1}
+    result["batch"] = {
+        "size": len(names),
+        "real": len(real_idx),
+        "synthetic": len(syn_idx),
+        "imgnames": names,
+        "seconds": time.time() - t1,
+    }
     log(f"  train: mixed batch of {len(real_idx)} real + {len(syn_idx)} synthetic ({time.time() - t1:.1f}s)")
 
     expected = arctic_loss_keys(arctic_src)
@@ -1415,8 +1667,15 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
             o = wrapper.forward(*sub, "train")["loss"]
             halves[label] = {k: float(v.detach().reshape(-1)[0]) for k, v in o.items()}
     result["halves"] = halves
-    result["ok"] = bool(not result["missing_keys"] and not result["nonfinite_keys"] and grads_finite
-                        and math.isfinite(grad_norm) and changed > 0 and syn_idx and real_idx)
+    result["ok"] = bool(
+        not result["missing_keys"]
+        and not result["nonfinite_keys"]
+        and grads_finite
+        and math.isfinite(grad_norm)
+        and changed > 0
+        and syn_idx
+        and real_idx
+    )
     return result
 
 
@@ -1425,8 +1684,9 @@ def run_train_check(sess: ArcticSession, data_root: Path, arctic_src: Path, bund
 # ----------------------------------------------------------------------------------------
 
 
-def run_processing_check(sess: ArcticSession, data_root: Path, smplx_standin: bool,
-                         log: Callable[[str], None]) -> dict[str, Any]:
+def run_processing_check(
+    sess: ArcticSession, data_root: Path, smplx_standin: bool, log: Callable[[str], None]
+) -> dict[str, Any]:
     import torch
 
     from hogsa_loader.datasets.arctic import ArcticRoot
@@ -1434,16 +1694,23 @@ def run_processing_check(sess: ArcticSession, data_root: Path, smplx_standin: bo
     root = ArcticRoot(data_root)
     result: dict[str, Any] = {"sequences": {}, "splits": {}, "notes": [], "smplx_standin": smplx_standin}
     if smplx_standin:
-        result["notes"].append("SMPL-X models/templates missing: ARCTIC's SMPL-X layer returned NaN (joints.smplx "
-                               "compares NaN with the world's NaN stand-ins)")
-    with sess.cuda_as_cpu(), (sess.smplx_standin() if smplx_standin else contextlib.nullcontext()):
+        result["notes"].append(
+            "SMPL-X models/templates missing: ARCTIC's SMPL-X layer returned NaN (joints.smplx "
+            "compares NaN with the world's NaN stand-ins)"
+        )
+    with sess.cuda_as_cpu(), sess.smplx_standin() if smplx_standin else contextlib.nullcontext():
         bm = sess.module("common.body_models")
         ot = sess.module("common.object_tensors")
         proc = sess.module("src.arctic.processing")
         split_mod = sess.module("src.arctic.split")
         misc = json.loads((root.meta_dir / "misc.json").read_text())
-        statcams = {sub: {"world2cam": torch.FloatTensor(np.array(misc[sub]["world2cam"])),
-                          "intris_mat": torch.FloatTensor(np.array(misc[sub]["intris_mat"]))} for sub in misc}
+        statcams = {
+            sub: {
+                "world2cam": torch.FloatTensor(np.array(misc[sub]["world2cam"])),
+                "intris_mat": torch.FloatTensor(np.array(misc[sub]["intris_mat"])),
+            }
+            for sub in misc
+        }
         t0 = time.time()
         layers = bm.construct_layers("cpu")
         object_tensor = ot.ObjectTensors()
@@ -1459,10 +1726,12 @@ def run_processing_check(sess: ArcticSession, data_root: Path, smplx_standin: bo
                 proc.process_seq([mano_p, "cpu", statcams, layers, _NullBar()], export_verts=False)
                 result["sequences"][key] = {"ok": True, "seconds": time.time() - t1}
             except Exception as exc:  # reported per sequence, as process_seqs.py logs and goes on
-                result["sequences"][key] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                                            "traceback": traceback.format_exc(limit=6)}
-            log(f"  processing: {key} {'ok' if result['sequences'][key]['ok'] else 'FAILED'} "
-                f"({time.time() - t1:.1f}s)")
+                result["sequences"][key] = {
+                    "ok": False,
+                    "error": f"{type(exc).__name__}: {exc}",
+                    "traceback": traceback.format_exc(limit=6),
+                }
+            log(f"  processing: {key} {'ok' if result['sequences'][key]['ok'] else 'FAILED'} ({time.time() - t1:.1f}s)")
         for protocol in ("p1", "p2"):
             for split in ("train", "val", "test"):
                 ours_p = root.arctic_dir / "splits" / f"{protocol}_{split}.npy"
@@ -1473,27 +1742,37 @@ def run_processing_check(sess: ArcticSession, data_root: Path, smplx_standin: bo
                     split_mod.build_split(protocol, split, list(REQUEST_KEYS), "./outputs/processed/seqs")
                     theirs = np.load(f"./outputs/splits/{name}.npy", allow_pickle=True).item()
                 except Exception as exc:
-                    result["splits"][name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                                              "traceback": traceback.format_exc(limit=6)}
+                    result["splits"][name] = {
+                        "ok": False,
+                        "error": f"{type(exc).__name__}: {exc}",
+                        "traceback": traceback.format_exc(limit=6),
+                    }
                     continue
                 if not ours_p.is_file():
                     result["splits"][name] = {"ok": False, "error": f"the world has no {ours_p.name}"}
                     continue
                 ours = np.load(ours_p, allow_pickle=True).item()
                 cmp = compare_split_data(theirs, ours)
-                cmp["ok"] = bool(cmp["imgnames_equal"] and cmp["sequences_equal"]
-                                 and all(k["ok"] for k in cmp["keys"].values()))
+                cmp["ok"] = bool(
+                    cmp["imgnames_equal"] and cmp["sequences_equal"] and all(k["ok"] for k in cmp["keys"].values())
+                )
                 result["splits"][name] = cmp
                 log(f"  processing: split {name} {'ok' if cmp['ok'] else 'DIFFERENT'}")
     meta = root.world_meta()
     ego = tuple(int(v) for v in getattr(meta, "ego_image_size", (2800, 2000)))
     result["world"] = {"ego_image_size": list(ego)}
     if ego != (2800, 2000):
-        result["notes"].append(f"the world's egocentric images are {ego[0]}x{ego[1]}; ARCTIC's processing "
-                               "hard-codes 2800x2000 for the ego box and ego validity region (forward_define_bbox, "
-                               "forward_valid), so bbox view 0 and the view-0 flags differ by design")
-    result["ok"] = bool(result["sequences"]) and all(s["ok"] for s in result["sequences"].values()) \
-        and bool(result["splits"]) and all(s["ok"] for s in result["splits"].values())
+        result["notes"].append(
+            f"the world's egocentric images are {ego[0]}x{ego[1]}; ARCTIC's processing "
+            "hard-codes 2800x2000 for the ego box and ego validity region (forward_define_bbox, "
+            "forward_valid), so bbox view 0 and the view-0 flags differ by design"
+        )
+    result["ok"] = (
+        bool(result["sequences"])
+        and all(s["ok"] for s in result["sequences"].values())
+        and bool(result["splits"])
+        and all(s["ok"] for s in result["splits"].values())
+    )
     return result
 
 
@@ -1535,7 +1814,9 @@ def _type_str(d: Optional[Mapping[str, Any]]) -> str:
 def format_notes(notes: Notes, pip_missing: Sequence[str]) -> str:
     parts = ["Stubs (modules ARCTIC imports that do not import here; injected through sys.modules):"]
     if notes.stubs:
-        parts.append(table(["module", "replaces", "why"], [[s["module"], s["replaces"], s["why"]] for s in notes.stubs]))
+        parts.append(
+            table(["module", "replaces", "why"], [[s["module"], s["replaces"], s["why"]] for s in notes.stubs])
+        )
     else:
         parts.append("  (none)")
     parts.append("\nRun-time patches (the installed packages and the ARCTIC checkout are not modified):")
@@ -1574,8 +1855,11 @@ def group_missing(entries: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
                 objs.setdefault(o, []).append(f)
             whole = [o for o, fs in objs.items() if len(fs) == len(OBJECT_TEMPLATE_FILES)]
             part = [f"{o} ({', '.join(fs)})" for o, fs in objs.items() if len(fs) != len(OBJECT_TEMPLATE_FILES)]
-            r["detail"] = (f"{len(whole)} objects entirely: {', '.join(whole)}" if whole else "") + \
-                ("; " if whole and part else "") + ("; ".join(part))
+            r["detail"] = (
+                (f"{len(whole)} objects entirely: {', '.join(whole)}" if whole else "")
+                + ("; " if whole and part else "")
+                + ("; ".join(part))
+            )
         else:
             r["detail"] = f"{len(members)}: {', '.join(members[:6])}" + (" ..." if len(members) > 6 else "")
     return rows
@@ -1586,8 +1870,10 @@ def format_missing(entries: Sequence[Mapping[str, Any]]) -> str:
     head = f"Missing files (ARCTIC's code opens them; the world lacks them): {len(missing)}"
     if not missing:
         return head + "\n  (none)"
-    rows = [[r["path"], r.get("detail", ""), ",".join(r["needed_by"]), ("soft: " if r["soft"] else "") + r["why"]]
-            for r in group_missing(entries)]
+    rows = [
+        [r["path"], r.get("detail", ""), ",".join(r["needed_by"]), ("soft: " if r["soft"] else "") + r["why"]]
+        for r in group_missing(entries)
+    ]
     return head + "\n" + table(["path (relative to ./data)", "which", "needed by", "what for"], rows)
 
 
@@ -1595,22 +1881,40 @@ def format_dataset(res: Mapping[str, Any]) -> str:
     runs = res.get("runs", {})
     if not runs:
         return "  (no run)"
-    lines = [table(["run", "images arctic/ours", "names equal", "items (rotated)", "keys equal", "ok"],
-                   [[n, f"{r['num_images'][0]}/{r['num_images'][1]}", str(r["imgnames_equal"]),
-                     f"{len(r['items'])} ({sum(1 for i in r['items'] if i['rot'][0] != 0)})",
-                     str(r["keys_equal"]), "PASS" if r["ok"] else "FAIL"] for n, r in runs.items()])]
+    lines = [
+        table(
+            ["run", "images arctic/ours", "names equal", "items (rotated)", "keys equal", "ok"],
+            [
+                [
+                    n,
+                    f"{r['num_images'][0]}/{r['num_images'][1]}",
+                    str(r["imgnames_equal"]),
+                    f"{len(r['items'])} ({sum(1 for i in r['items'] if i['rot'][0] != 0)})",
+                    str(r["keys_equal"]),
+                    "PASS" if r["ok"] else "FAIL",
+                ]
+                for n, r in runs.items()
+            ],
+        )
+    ]
     for n, r in runs.items():
         for g, k in r["keys"].items():
             if k["arctic_only"] or k["ours_only"] or not k["same_order"]:
-                lines.append(f"  {n} {g}: ARCTIC only {k['arctic_only']}, ours only {k['ours_only']}, "
-                             f"same order {k['same_order']}")
+                lines.append(
+                    f"  {n} {g}: ARCTIC only {k['arctic_only']}, ours only {k['ours_only']}, "
+                    f"same order {k['same_order']}"
+                )
     names = _ordered_union(r["fields"] for r in runs.values())
     rows = []
     for f in names:
         first = next(r["fields"][f] for r in runs.values() if f in r["fields"])
         same = all(r["fields"][f]["same_type"] for r in runs.values() if f in r["fields"])
-        row = [f, _type_str(first["ours"]) if same else f"ours {_type_str(first['ours'])} / ARCTIC "
-               f"{_type_str(first['arctic'])}"]
+        row = [
+            f,
+            _type_str(first["ours"])
+            if same
+            else f"ours {_type_str(first['ours'])} / ARCTIC {_type_str(first['arctic'])}",
+        ]
         for r in runs.values():
             c = r["fields"].get(f)
             if c is None:
@@ -1642,26 +1946,40 @@ def format_train(res: Mapping[str, Any]) -> str:
         return "  (no result)"
     halves = res.get("halves", {})
     keys = list(res["expected_keys"]) + [k for k in res["losses"] if k not in res["expected_keys"]]
-    rows = [[k, _fmt(res["losses"].get(k)), _fmt(halves.get("real", {}).get(k)),
-             _fmt(halves.get("synthetic", {}).get(k)),
-             "missing" if k not in res["losses"] else ("NON-FINITE" if not math.isfinite(res["losses"][k]) else "ok")]
-            for k in keys]
+    rows = [
+        [
+            k,
+            _fmt(res["losses"].get(k)),
+            _fmt(halves.get("real", {}).get(k)),
+            _fmt(halves.get("synthetic", {}).get(k)),
+            "missing" if k not in res["losses"] else ("NON-FINITE" if not math.isfinite(res["losses"][k]) else "ok"),
+        ]
+        for k in keys
+    ]
     b = res["batch"]
-    lines = [f"batch: {b['size']} samples = {b['real']} real (our ArcticDataset p1_train) + {b['synthetic']} "
-             f"synthetic (HOGSADataset, bundle {res['bundle']['path']}, trained={res['bundle']['trained']})",
-             table(["loss key", "mixed batch", "real half", "synthetic half", "status"], rows),
-             f"gradients finite: {res['grads_finite']}, grad norm {_fmt(res['grad_norm'])}, parameters changed by "
-             f"the step: {res['params_changed'][0]}/{res['params_changed'][1]} ({len(res['params_without_grad'])} get no "
-             f"gradient: {_short_list(res['params_without_grad'])}); optimiser: {res['optimizer']}"]
+    lines = [
+        f"batch: {b['size']} samples = {b['real']} real (our ArcticDataset p1_train) + {b['synthetic']} "
+        f"synthetic (HOGSADataset, bundle {res['bundle']['path']}, trained={res['bundle']['trained']})",
+        table(["loss key", "mixed batch", "real half", "synthetic half", "status"], rows),
+        f"gradients finite: {res['grads_finite']}, grad norm {_fmt(res['grad_norm'])}, parameters changed by "
+        f"the step: {res['params_changed'][0]}/{res['params_changed'][1]} ({len(res['params_without_grad'])} get no "
+        f"gradient: {_short_list(res['params_without_grad'])}); optimiser: {res['optimizer']}",
+    ]
     if res["zero_keys"]:
         lines.append(f"losses exactly 0 on this batch (no valid target of that kind): {res['zero_keys']}")
     return "\n".join(lines)
 
 
 def format_processing(res: Mapping[str, Any]) -> str:
-    lines = [table(["sequence", "ARCTIC process_seq", "seconds"],
-                   [[k, "ok" if v["ok"] else "FAILED: " + v["error"], _fmt(v.get("seconds"))]
-                    for k, v in res.get("sequences", {}).items()])]
+    lines = [
+        table(
+            ["sequence", "ARCTIC process_seq", "seconds"],
+            [
+                [k, "ok" if v["ok"] else "FAILED: " + v["error"], _fmt(v.get("seconds"))]
+                for k, v in res.get("sequences", {}).items()
+            ],
+        )
+    ]
     splits = res.get("splits", {})
     good = {n: s for n, s in splits.items() if "keys" in s}
     for n, s in splits.items():
@@ -1669,9 +1987,21 @@ def format_processing(res: Mapping[str, Any]) -> str:
             lines.append(f"  {n}: {s.get('error')}")
     if good:
         lines.append("")
-        lines.append(table(["split", "images arctic/ours", "names equal", "sequences equal", "ok"],
-                           [[n, f"{s['num_images'][0]}/{s['num_images'][1]}", str(s["imgnames_equal"]),
-                             str(s["sequences_equal"]), "PASS" if s["ok"] else "FAIL"] for n, s in good.items()]))
+        lines.append(
+            table(
+                ["split", "images arctic/ours", "names equal", "sequences equal", "ok"],
+                [
+                    [
+                        n,
+                        f"{s['num_images'][0]}/{s['num_images'][1]}",
+                        str(s["imgnames_equal"]),
+                        str(s["sequences_equal"]),
+                        "PASS" if s["ok"] else "FAIL",
+                    ]
+                    for n, s in good.items()
+                ],
+            )
+        )
         keys = _ordered_union(s["keys"] for s in good.values())
         rows = []
         for k in keys:
@@ -1713,11 +2043,16 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=4, help="train check: batch size")
     p.add_argument("--synthetic-ratio", type=float, default=0.5, help="train check: synthetic share of the batch")
     p.add_argument("--resnet-weights", default=None, help="train check: local torchvision resnet50 state dict")
-    p.add_argument("--image-mode", choices=("map", "upsample", "raw"), default="map",
-                   help="dataset check, worlds whose images are not ARCTIC's sizes: map ARCTIC's crop box into the "
-                        "file's pixels (default), upsample the files to ARCTIC's sizes, or adapt nothing")
-    p.add_argument("--require-smplx", action="store_true",
-                   help="processing check: require the SMPL-X models (no NaN stand-in)")
+    p.add_argument(
+        "--image-mode",
+        choices=("map", "upsample", "raw"),
+        default="map",
+        help="dataset check, worlds whose images are not ARCTIC's sizes: map ARCTIC's crop box into the "
+        "file's pixels (default), upsample the files to ARCTIC's sizes, or adapt nothing",
+    )
+    p.add_argument(
+        "--require-smplx", action="store_true", help="processing check: require the SMPL-X models (no NaN stand-in)"
+    )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads")
     p.add_argument("--workdir", default=None, help="work folder (default: a temporary folder, removed)")
@@ -1805,23 +2140,31 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     importable = {name: module_imports(name) for name in list(PIP_PACKAGES) + list(STUB_REASONS)}
     stubs, pip_missing = plan_packages(importable, checks)
     if pip_missing:
-        print(f"error: ARCTIC's code needs packages that are not installed: pip install {' '.join(pip_missing)}",
-              file=sys.stderr)
+        print(
+            f"error: ARCTIC's code needs packages that are not installed: pip install {' '.join(pip_missing)}",
+            file=sys.stderr,
+        )
         return 2
 
     objects = arctic_objects(src)
     entries = required_files(data, objects, splits, _split_imgnames(data, splits), require_smplx=ns.require_smplx)
     notes = Notes()
-    report: dict[str, Any] = {"arctic_src": str(src), "arctic_commit": _arctic_commit(src), "data": str(data),
-                              "versions": _versions(), "checks": {}, "missing_files": [e for e in entries
-                                                                                         if not e["exists"]]}
+    report: dict[str, Any] = {
+        "arctic_src": str(src),
+        "arctic_commit": _arctic_commit(src),
+        "data": str(data),
+        "versions": _versions(),
+        "checks": {},
+        "missing_files": [e for e in entries if not e["exists"]],
+    }
     workdir = Path(ns.workdir) if ns.workdir else Path(tempfile.mkdtemp(prefix="arctic_crosscheck_"))
     log(f"ARCTIC cross-check: ARCTIC code {src} (commit {report['arctic_commit'] or 'unknown'}), world {data}")
     log(f"work folder {workdir} (data -> {data}; src, common -> {src})")
     status: dict[str, str] = {}
     try:
-        with ArcticSession(src, data, workdir, notes, stubs,
-                           Path(ns.resnet_weights) if ns.resnet_weights else None) as sess:
+        with ArcticSession(
+            src, data, workdir, notes, stubs, Path(ns.resnet_weights) if ns.resnet_weights else None
+        ) as sess:
             for check in checks:
                 blocked = blocking_missing(entries, check)
                 if blocked:
@@ -1833,18 +2176,33 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 t0 = time.time()
                 try:
                     if check == "dataset":
-                        res = run_dataset_check(sess, data, splits, ns.items, ns.seed, ns.img_tol,
-                                                ns.image_mode, log)
+                        res = run_dataset_check(sess, data, splits, ns.items, ns.seed, ns.img_tol, ns.image_mode, log)
                     elif check == "train":
-                        res = run_train_check(sess, data, src, Path(ns.bundle) if ns.bundle else None, ns.batch,
-                                              ns.synthetic_ratio, ns.seed, log)
+                        res = run_train_check(
+                            sess,
+                            data,
+                            src,
+                            Path(ns.bundle) if ns.bundle else None,
+                            ns.batch,
+                            ns.synthetic_ratio,
+                            ns.seed,
+                            log,
+                        )
                     else:
-                        standin = any(not e["exists"] and e["path"].startswith("body_models/smplx/") or
-                                      not e["exists"] and "subject_vtemplates" in e["path"] for e in entries)
+                        standin = any(
+                            not e["exists"]
+                            and e["path"].startswith("body_models/smplx/")
+                            or not e["exists"]
+                            and "subject_vtemplates" in e["path"]
+                            for e in entries
+                        )
                         res = run_processing_check(sess, data, standin, log)
                 except Exception as exc:
-                    res = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                           "traceback": traceback.format_exc(limit=12)}
+                    res = {
+                        "ok": False,
+                        "error": f"{type(exc).__name__}: {exc}",
+                        "traceback": traceback.format_exc(limit=12),
+                    }
                     log(f"{check}: ERROR {type(exc).__name__}: {exc}")
                 res["seconds"] = time.time() - t0
                 report["checks"][check] = res
@@ -1860,17 +2218,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(format_notes(notes, pip_missing))
     print()
     print(format_missing(entries))
-    titles = {"dataset": "Check 1 - ARCTIC's ArcticDataset vs hogsa_loader ArcticDataset",
-              "train": "Check 2 - one ArcticNet-SF training step (ARCTIC's wrapper and compute_loss) on a mixed batch",
-              "processing": "Check 3 - ARCTIC's process_seq + build_split vs the world's splits/*.npy"}
+    titles = {
+        "dataset": "Check 1 - ARCTIC's ArcticDataset vs hogsa_loader ArcticDataset",
+        "train": "Check 2 - one ArcticNet-SF training step (ARCTIC's wrapper and compute_loss) on a mixed batch",
+        "processing": "Check 3 - ARCTIC's process_seq + build_split vs the world's splits/*.npy",
+    }
     fmt = {"dataset": format_dataset, "train": format_train, "processing": format_processing}
     for check in checks:
         res = report["checks"].get(check, {})
         print(f"\n{titles[check]}: {status.get(check, '?')}")
         if res.get("skipped"):
             rows = group_missing([e for e in entries if e["path"] in set(res["missing"])])
-            print(f"  {len(res['missing'])} required files missing (see 'Missing files'): "
-                  + "; ".join(r["path"] + (f" [{r['detail']}]" if r.get("detail") else "") for r in rows))
+            print(
+                f"  {len(res['missing'])} required files missing (see 'Missing files'): "
+                + "; ".join(r["path"] + (f" [{r['detail']}]" if r.get("detail") else "") for r in rows)
+            )
             continue
         if "error" in res:
             print(f"  {res['error']}\n" + "\n".join("    " + ln for ln in res["traceback"].splitlines()[-8:]))

@@ -83,8 +83,19 @@ def make_scene(n: int, width: int, device: str) -> dict[str, Any]:
 def _render(s: dict[str, Any], backend: str, **kw: Any):
     from hogsa_loader.render import render
 
-    return render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmats"], s["Ks"],
-                  s["width"], s["width"], backend=backend, **kw)  # fmt: skip
+    return render(
+        s["means"],
+        s["quats"],
+        s["scales"],
+        s["opacities"],
+        s["colors"],
+        s["viewmats"],
+        s["Ks"],
+        s["width"],
+        s["width"],
+        backend=backend,
+        **kw,
+    )
 
 
 def run_row(backend: str, device: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int) -> dict[str, Any]:
@@ -178,16 +189,29 @@ def main() -> None:
     rows = []
     for backend, dev in backends:
         for w in a.size:
-            r = _child(["--row", f"{backend},{dev},{a.n},{w}", "--warmup", str(a.warmup),
-                        "--repeats-fwd", str(a.repeats_fwd), "--repeats-bwd", str(a.repeats_bwd)])  # fmt: skip
+            r = _child(
+                [
+                    "--row",
+                    f"{backend},{dev},{a.n},{w}",
+                    "--warmup",
+                    str(a.warmup),
+                    "--repeats-fwd",
+                    str(a.repeats_fwd),
+                    "--repeats-bwd",
+                    str(a.repeats_bwd),
+                ]
+            )
             if isinstance(r, str):
                 print(f"{backend} N={a.n} {w}x{w}: {r}")
                 skipped.append({"backend": backend, "N": a.n, "width": w, "reason": r})
                 continue
             rows.append(r)
-            print(f"{r['backend']:7s} {r['device']:24s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
-                  f"fwd {r['fwd_ms']:9.2f} ms  fwd+bwd {r['fwd_bwd_ms']:9.2f} ms  peak {r['peak_mb']:8.1f} MB "
-                  f"(base {r['base_mb']}) alpha_mean {r['alpha_mean']}", flush=True)  # fmt: skip
+            print(
+                f"{r['backend']:7s} {r['device']:24s} N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                f"fwd {r['fwd_ms']:9.2f} ms  fwd+bwd {r['fwd_bwd_ms']:9.2f} ms  peak {r['peak_mb']:8.1f} MB "
+                f"(base {r['base_mb']}) alpha_mean {r['alpha_mean']}",
+                flush=True,
+            )
 
     psnr: dict[str, Any] | None = None
     psnr_reason = None

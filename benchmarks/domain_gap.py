@@ -86,8 +86,15 @@ def export_drops(downstream: Path, variant: str) -> dict[str, Any]:
     if not rec.is_file():
         return {}
     exp = json.loads(rec.read_text()).get("exports", {}).get(variant, {})
-    return {"requested": exp.get("settings", {}).get("frames"), "written": exp.get("samples"),
-            **(exp.get("dropped") or {})} if exp else {}
+    return (
+        {
+            "requested": exp.get("settings", {}).get("frames"),
+            "written": exp.get("samples"),
+            **(exp.get("dropped") or {}),
+        }
+        if exp
+        else {}
+    )
 
 
 def world_root(downstream: Path) -> Path:
@@ -146,8 +153,9 @@ class PatchClassifier(nn.Module):
         return self.head(self.features(x).mean((2, 3)))[:, 0]
 
 
-def classifier_accuracy(a: tuple[torch.Tensor, torch.Tensor], b: tuple[torch.Tensor, torch.Tensor],
-                        cfg: GapConfig) -> dict[str, float]:
+def classifier_accuracy(
+    a: tuple[torch.Tensor, torch.Tensor], b: tuple[torch.Tensor, torch.Tensor], cfg: GapConfig
+) -> dict[str, float]:
     """Held-out accuracy of a :class:`PatchClassifier` separating source ``a`` (train, test) from ``b``."""
     g = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -171,8 +179,14 @@ def classifier_accuracy(a: tuple[torch.Tensor, torch.Tensor], b: tuple[torch.Ten
         pa = torch.cat([net(x) for x in a[1].split(64)])
         pb = torch.cat([net(x) for x in b[1].split(64)])
     correct = int((pa < 0).sum()) + int((pb > 0).sum())
-    return {"accuracy": correct / (len(pa) + len(pb)), "test_a": len(pa), "test_b": len(pb),
-            "train_a": len(a[0]), "train_b": len(b[0]), "final_loss": float(loss)}
+    return {
+        "accuracy": correct / (len(pa) + len(pb)),
+        "test_a": len(pa),
+        "test_b": len(pb),
+        "train_a": len(a[0]),
+        "train_b": len(b[0]),
+        "final_loss": float(loss),
+    }
 
 
 def to_uint8(imgs: torch.Tensor) -> np.ndarray:
@@ -208,8 +222,11 @@ def articulated_joints(targets: Sequence[dict[str, Any]], mano_r: nn.Module, man
     zero global rotation and zero shape (left hands mirrored onto the right: x → −x)."""
     out = []
     for side, layer in (("r", mano_r), ("l", mano_l)):
-        poses = [np.asarray(t[f"mano.pose.{side}"], dtype=np.float32)[3:] for t in targets
-                 if float(t["right_valid" if side == "r" else "left_valid"]) > 0.5]
+        poses = [
+            np.asarray(t[f"mano.pose.{side}"], dtype=np.float32)[3:]
+            for t in targets
+            if float(t["right_valid" if side == "r" else "left_valid"]) > 0.5
+        ]
         if not poses:
             continue
         with torch.no_grad():
@@ -249,12 +266,16 @@ def unique_poses(targets: Sequence[dict[str, Any]], imgnames: Sequence[str]) -> 
 
 
 def markdown(rec: dict[str, Any]) -> str:
-    lines = ["# Domain gap and pose coverage of the downstream data", "",
-             f"World `{rec['world']}`; patches {rec['config']['img_res']}² without augmentation; "
-             f"classifier: {rec['config']['per_class']} training and {rec['config']['test_per_class']} held-out "
-             f"patches per class, {rec['config']['steps']} steps.", "",
-             "| real training vs | classifier accuracy | sharpness | saturation | brightness |",
-             "|---|---|---|---|---|"]
+    lines = [
+        "# Domain gap and pose coverage of the downstream data",
+        "",
+        f"World `{rec['world']}`; patches {rec['config']['img_res']}² without augmentation; "
+        f"classifier: {rec['config']['per_class']} training and {rec['config']['test_per_class']} held-out "
+        f"patches per class, {rec['config']['steps']} steps.",
+        "",
+        "| real training vs | classifier accuracy | sharpness | saturation | brightness |",
+        "|---|---|---|---|---|",
+    ]
     st = rec["statistics"]
 
     def stats(name: str) -> str:
@@ -264,17 +285,25 @@ def markdown(rec: dict[str, Any]) -> str:
     lines.append(f"| (itself) | — | {stats('real_train')} |")
     for name, acc in rec["classifier"].items():
         lines.append(f"| {name} | {100 * acc['accuracy']:.1f} % | {stats(name)} |")
-    lines += ["", "Nearest articulated hand of each validation hand (root-relative joint error, mm; "
-              "zero global rotation, zero shape):", "",
-              "| pose set | hands | mean | median | 90th percentile |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "Nearest articulated hand of each validation hand (root-relative joint error, mm; "
+        "zero global rotation, zero shape):",
+        "",
+        "| pose set | hands | mean | median | 90th percentile |",
+        "|---|---|---|---|---|",
+    ]
     for name, c in rec["coverage"].items():
         lines.append(f"| {name} | {c['hands']} | {c['mean_mm']:.1f} | {c['median_mm']:.1f} | {c['p90_mm']:.1f} |")
     lines += ["", "| set | object articulation (rad): min | median | max |", "|---|---|---|---|"]
     for name, a in rec["articulation"].items():
         lines.append(f"| {name} | {a['min']:.3f} | {a['median']:.3f} | {a['max']:.3f} |")
     if rec.get("dropped"):
-        lines += ["", "Synthetic samples dropped at export (by reason): "
-                  + "; ".join(f"{v}: {d}" for v, d in rec["dropped"].items())]
+        lines += [
+            "",
+            "Synthetic samples dropped at export (by reason): "
+            + "; ".join(f"{v}: {d}" for v, d in rec["dropped"].items()),
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -354,8 +383,12 @@ def run(cfg: GapConfig) -> dict[str, Any]:
 
     def cover(name: str, bank: np.ndarray) -> None:
         e = nearest_joint_error(j_va, bank) * 1000.0
-        coverage[name] = {"hands": int(len(bank)), "mean_mm": float(np.mean(e)), "median_mm": float(np.median(e)),
-                          "p90_mm": float(np.percentile(e, 90))}
+        coverage[name] = {
+            "hands": int(len(bank)),
+            "mean_mm": float(np.mean(e)),
+            "median_mm": float(np.median(e)),
+            "p90_mm": float(np.percentile(e, 90)),
+        }
 
     def arti(name: str, ts: Sequence[dict[str, Any]]) -> None:
         r = np.array([float(t["object.radian"]) for t in ts])
@@ -372,9 +405,17 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         cover(f"real_train + synthetic_{v}", np.concatenate([j_tr, j_syn]))
         arti(f"synthetic_{v}", ts)
     coverage["(validation hands)"] = {"hands": int(len(j_va)), "mean_mm": 0.0, "median_mm": 0.0, "p90_mm": 0.0}
-    rec = {"config": asdict(cfg), "world": str(root), "exports": exports, "classifier": classifier,
-           "statistics": stats, "coverage": coverage, "articulation": articulation, "dropped": dropped,
-           "seconds": round(time.perf_counter() - t0, 1)}
+    rec = {
+        "config": asdict(cfg),
+        "world": str(root),
+        "exports": exports,
+        "classifier": classifier,
+        "statistics": stats,
+        "coverage": coverage,
+        "articulation": articulation,
+        "dropped": dropped,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
     (out / "domain_gap.json").write_text(json.dumps(rec, indent=1) + "\n")
     (out / "domain_gap.md").write_text(markdown(rec))
     picture(sources, out / "domain_gap.png")

@@ -4,8 +4,8 @@ One command reproduces the shape of the HOGSA paper's Table 1 and ablation on an
 ARCTIC-format world: ArcticNet-SF is trained on the world's ``p1_train`` real loader alone
 and on real + HOGSA samples (:class:`~hogsa_loader.loader.mixing.MixedLoader`, the
 machinery of ``wrap_train_loader``) with the same steps, batch size (real batches with
-``--synthetic-mix add``), optimiser, augmentation and seed, and every model is evaluated on the held-out subject (``p1_val``)
-with ARCTIC's metrics.
+``--synthetic-mix add``), optimiser, augmentation and seed, and every model is evaluated on
+the held-out subject (``p1_val``) with ARCTIC's metrics.
 
 Arms (``--arms``):
 
@@ -79,13 +79,13 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages
-from hogsa_loader.view.pictures import demo_photographs
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
-from hogsa_loader.loader.mixing import MixMode, MixedLoader
+from hogsa_loader.loader.mixing import MixedLoader, MixMode
 from hogsa_loader.synthetic.world import get_preset
 from hogsa_loader.system import available_cores
+from hogsa_loader.view.pictures import demo_photographs
 
 ARMS = ("real", "hogsa", "hogsa_no_pom", "hogsa_no_srm", "hogsa_free", "real_low", "hogsa_low")
 #: arm → (real share of p1_train, synthetic variant or None)
@@ -134,15 +134,22 @@ class SyntheticSettings:
 
     frames: int = field(default=1536, metadata={"help": "synthetic frames per variant"})
     share: float = field(default=0.5, metadata={"help": "synthetic share of each mixed batch"})
-    mix: MixMode = field(default="replace", metadata={
-        "help": "replace: synthetic samples take their share of each batch of --train-batch-size; add: every "
-                "real batch kept whole (the real arm's batches), synthetic samples appended (larger batches)"})
+    mix: MixMode = field(
+        default="replace",
+        metadata={
+            "help": "replace: synthetic samples take their share of each batch of --train-batch-size; add: every "
+            "real batch kept whole (the real arm's batches), synthetic samples appended (larger batches)"
+        },
+    )
     render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
     seed: int = field(default=1000, metadata={"help": "seed of the exported frames"})
     backgrounds: Literal["plates", "photos"] = field(
         default="plates",
-        metadata={"help": "plates: the world's own studio, cleaned of hands and objects (hogsa plates) from the "
-                  "training subjects' frames; photos: scikit-image's colour photographs (a COCO stand-in)"})
+        metadata={
+            "help": "plates: the world's own studio, cleaned of hands and objects (hogsa plates) from the "
+            "training subjects' frames; photos: scikit-image's colour photographs (a COCO stand-in)"
+        },
+    )
 
 
 @dataclass
@@ -152,9 +159,13 @@ class ModelSettings:
     backbone: Literal["resnet18", "resnet50"] = field(default="resnet18", metadata={"help": "image backbone"})
     img_res: int = field(default=96, metadata={"help": "patch side in pixels (ARCTIC: 224)"})
     weights: Optional[str] = field(default=None, metadata={"help": "local backbone weights (.pth/.safetensors)"})
-    camera_prior: int = field(default=256, metadata={
-        "help": "start the cameras at the mean target camera of this many real training frames of the arm "
-                "(HMR's mean-parameter start; 0: random start)"})
+    camera_prior: int = field(
+        default=256,
+        metadata={
+            "help": "start the cameras at the mean target camera of this many real training frames of the arm "
+            "(HMR's mean-parameter start; 0: random start)"
+        },
+    )
 
 
 @dataclass
@@ -162,8 +173,10 @@ class TrainSettings:
     """Optimisation (the same for every arm)."""
 
     steps: int = field(default=200, metadata={"help": "optimisation steps per run"})
-    batch_size: int = field(default=32, metadata={
-        "help": "samples per step (real + synthetic; the real ones only with --synthetic-mix add)"})
+    batch_size: int = field(
+        default=32,
+        metadata={"help": "samples per step (real + synthetic; the real ones only with --synthetic-mix add)"},
+    )
     lr: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
     grad_clip: float = field(default=150.0, metadata={"help": "gradient-norm clip (ARCTIC: 150)"})
     workers: int = field(default=1, metadata={"help": "DataLoader workers per loader"})
@@ -181,9 +194,13 @@ class DownstreamConfig:
     low_data: float = field(default=0.25, metadata={"help": "real share of the low-data arms"})
     device: str = field(default="cpu", metadata={"help": "cpu or cuda"})
     threads: int = field(default=0, metadata={"help": "torch CPU threads (0: all available cores)"})
-    report_only: bool = field(default=False, metadata={
-        "help": "tables and figures of the finished runs only (partial results): no export, no training; needs "
-                "a finished setup"})
+    report_only: bool = field(
+        default=False,
+        metadata={
+            "help": "tables and figures of the finished runs only (partial results): no export, no training; needs "
+            "a finished setup"
+        },
+    )
     setup: SetupSettings = field(default_factory=SetupSettings)
     synthetic: SyntheticSettings = field(default_factory=SyntheticSettings)
     model: ModelSettings = field(default_factory=ModelSettings)
@@ -193,24 +210,33 @@ class DownstreamConfig:
 def quick_config(cfg: DownstreamConfig) -> DownstreamConfig:
     """``--quick``: the tiny world, one seed, a few steps — the whole pipeline in minutes."""
     return replace(
-        cfg, seeds=(0,),
-        setup=replace(cfg.setup, preset="tiny", hogs_iters=40, hogs_image_size=64, srm_iters=20,
-                      contactnet_iters=10, bank_per_sequence=2),
+        cfg,
+        seeds=(0,),
+        setup=replace(
+            cfg.setup,
+            preset="tiny",
+            hogs_iters=40,
+            hogs_image_size=64,
+            srm_iters=20,
+            contactnet_iters=10,
+            bank_per_sequence=2,
+        ),
         synthetic=replace(cfg.synthetic, frames=32),
         model=replace(cfg.model, backbone="resnet18", img_res=64),
         train=replace(cfg.train, steps=6, batch_size=8, workers=1, evals=2, eval_stride=8),
-    )  # fmt: skip
+    )
 
 
 def gpu_config(cfg: DownstreamConfig) -> DownstreamConfig:
     """Defaults with ``--device cuda``: ARCTIC's network settings (ResNet-50 at 224², batch 64)."""
     return replace(
-        cfg, device="cuda",
+        cfg,
+        device="cuda",
         setup=replace(cfg.setup, hogs_iters=3000, hogs_image_size=256, srm_iters=3000),
         synthetic=replace(cfg.synthetic, frames=20000),
         model=replace(cfg.model, backbone="resnet50", img_res=224),
         train=replace(cfg.train, steps=3000, batch_size=64, lr=1e-4, workers=6, evals=10, eval_stride=2),
-    )  # fmt: skip
+    )
 
 
 def validate(cfg: DownstreamConfig) -> None:
@@ -228,9 +254,11 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.train.workers >= 0 and cfg.threads >= 0, "--train-workers and --threads must be >= 0"),
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
-        ((cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
-         "--setup-bundle needs --setup-data"),
-    ]  # fmt: skip
+        (
+            (cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
+            "--setup-bundle needs --setup-data",
+        ),
+    ]
     for ok, msg in checks:
         if not ok:
             raise SystemExit(f"downstream: error: {msg}")
@@ -272,8 +300,12 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
     if cfg.setup.bundle is not None:
         data = Path(cfg.setup.data).resolve()
-        return {"data": data, "bundle": Path(cfg.setup.bundle).resolve(),
-                "backgrounds": background_folder(cfg, data, out), "stage_seconds": {}}
+        return {
+            "data": data,
+            "bundle": Path(cfg.setup.bundle).resolve(),
+            "backgrounds": background_folder(cfg, data, out),
+            "stage_seconds": {},
+        }
     s = cfg.setup
     if s.data is None:
         preset = get_preset(s.preset)
@@ -281,13 +313,25 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     else:
         pairs = train_pairs(Path(s.data))
     pairs = list(dict.fromkeys(pairs))
-    demo = DemoConfig(preset=s.preset, data=s.data, pairs=tuple(pairs), hogs_iters=s.hogs_iters,
-                      hogs_image_size=s.hogs_image_size, srm_iters=s.srm_iters,
-                      contactnet_iters=s.contactnet_iters, bank_per_sequence=s.bank_per_sequence)
+    demo = DemoConfig(
+        preset=s.preset,
+        data=s.data,
+        pairs=tuple(pairs),
+        hogs_iters=s.hogs_iters,
+        hogs_image_size=s.hogs_image_size,
+        srm_iters=s.srm_iters,
+        contactnet_iters=s.contactnet_iters,
+        bank_per_sequence=s.bank_per_sequence,
+    )
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
     data, bundle = Path(data).resolve(), Path(bundle).resolve()  # one name per setup, also through links
-    return {"data": data, "bundle": bundle, "backgrounds": background_folder(cfg, data, out), "stage_seconds": seconds,
-            "pairs": pairs}
+    return {
+        "data": data,
+        "bundle": bundle,
+        "backgrounds": background_folder(cfg, data, out),
+        "stage_seconds": seconds,
+        "pairs": pairs,
+    }
 
 
 def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
@@ -300,8 +344,7 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
     wanted = json.loads(json.dumps(asdict(plates)))  # as stored (tuples become lists)
     # where the plates live is not what they are: an OUT that reaches the setup through another path reuses them
     saved = old.get("settings") if isinstance(old.get("settings"), dict) else {}
-    same = {k: v for k, v in saved.items() if k != "out"} == {
-        k: v for k, v in wanted.items() if k != "out"}
+    same = {k: v for k, v in saved.items() if k != "out"} == {k: v for k, v in wanted.items() if k != "out"}
     if not same or old.get("data_fingerprint") != data_fingerprint(ArcticRoot(data)):
         _say(f"[setup] background plates of {data} -> {plates.out}")
         build_plates(plates, log=lambda m: _say(f"[plates] {m}"))
@@ -330,6 +373,7 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
     * ``"all"``: also the pose banks -- variants that draw from the bank;
     * ``"free"``: the data and the free-3DGS bundle -- the free variant.
     """
+
     def digest(f: Path, drop: tuple[str, ...] = ()) -> Optional[str]:
         if not f.is_file():
             return None
@@ -342,12 +386,20 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
     no_bank = {k: v for k, v in s.items() if k not in ("bank_per_sequence", "free_bundle")}
-    return {"world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
-            "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
-            "all": _key([s, world, digest(manifest),
-                         digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")]),
-            "free": _key([{"data": s["data"], "preset": s["preset"], "free_bundle": s["free_bundle"]}, world,
-                          digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")])}
+    return {
+        "world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
+        "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
+        "all": _key(
+            [s, world, digest(manifest), digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")]
+        ),
+        "free": _key(
+            [
+                {"data": s["data"], "preset": s["preset"], "free_bundle": s["free_bundle"]},
+                world,
+                digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json"),
+            ]
+        ),
+    }
 
 
 def reads(arm_or_variant: Optional[str]) -> str:
@@ -371,8 +423,14 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
 
 def export_dir(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Path:
     """Folder of a variant's export, named by everything its frames depend on."""
-    key = _key([variant_options(variant, cfg, setup), setup["fingerprints"][reads(variant)],
-                synthetic_key(cfg, frames_only=True), cfg.model.img_res])
+    key = _key(
+        [
+            variant_options(variant, cfg, setup),
+            setup["fingerprints"][reads(variant)],
+            synthetic_key(cfg, frames_only=True),
+            cfg.model.img_res,
+        ]
+    )
     return out / "synthetic" / f"{variant}-{key[:10]}"
 
 
@@ -382,20 +440,46 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
     assert opts is not None
     s = cfg.synthetic
     shard = s.render_batch * max(1, 256 // s.render_batch)
-    config = with_options(background_folder=setup["backgrounds"], poses=opts["poses"],
-                          pose_options=opts.get("pose_options") or {}, srm=opts["srm"], device=cfg.device,
-                          batch_size=s.render_batch, seed=s.seed, num_samples=s.frames, split="train",
-                          arctic=ArcticConfig(img_res=cfg.model.img_res))
+    config = with_options(
+        background_folder=setup["backgrounds"],
+        poses=opts["poses"],
+        pose_options=opts.get("pose_options") or {},
+        srm=opts["srm"],
+        device=cfg.device,
+        batch_size=s.render_batch,
+        seed=s.seed,
+        num_samples=s.frames,
+        split="train",
+        arctic=ArcticConfig(img_res=cfg.model.img_res),
+    )
     ds = HOGSADataset(opts["bundle"], setup["data"], config)
-    info = {"variant": variant, **opts, "data": str(setup["data"]), "seed": s.seed, "img_res": cfg.model.img_res,
-            "setup": setup["fingerprints"][reads(variant)]}
+    info = {
+        "variant": variant,
+        **opts,
+        "data": str(setup["data"]),
+        "seed": s.seed,
+        "img_res": cfg.model.img_res,
+        "setup": setup["fingerprints"][reads(variant)],
+    }
     t0 = time.perf_counter()
-    rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), export_dir(variant, cfg, setup, out), s.frames,
-                       shard, info=info, progress=True)
+    rec = write_shards(
+        dataset_frames_for_shard(ds, s.frames, shard),
+        export_dir(variant, cfg, setup, out),
+        s.frames,
+        shard,
+        info=info,
+        progress=True,
+    )
     stats = ds.total_stats()
-    return {"variant": variant, "samples": rec["samples"], "seconds": round(time.perf_counter() - t0, 1),
-            "written": len(rec["written"]), "skipped": len(rec["skipped"]), "dropped": dict(stats.dropped),
-            "settings": info}
+    return {
+        "variant": variant,
+        "samples": rec["samples"],
+        "seconds": round(time.perf_counter() - t0, 1),
+        "written": len(rec["written"]),
+        "skipped": len(rec["skipped"]),
+        "dropped": dict(stats.dropped),
+        "settings": info,
+    }
 
 
 # ----------------------------------------------------------------------------- one run
@@ -405,11 +489,18 @@ def _single_thread(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def _loader(ds: Any, batch_size: Optional[int], seed: int, workers: int, drop_last: bool = True,
-            shuffle: bool = True) -> DataLoader:
-    return DataLoader(ds, batch_size=batch_size, shuffle=shuffle, drop_last=drop_last if batch_size else False,
-                      num_workers=workers, worker_init_fn=_single_thread if workers else None,
-                      generator=torch.Generator().manual_seed(seed))
+def _loader(
+    ds: Any, batch_size: Optional[int], seed: int, workers: int, drop_last: bool = True, shuffle: bool = True
+) -> DataLoader:
+    return DataLoader(
+        ds,
+        batch_size=batch_size,
+        shuffle=shuffle,
+        drop_last=drop_last if batch_size else False,
+        num_workers=workers,
+        worker_init_fn=_single_thread if workers else None,
+        generator=torch.Generator().manual_seed(seed),
+    )
 
 
 def _synthetic_stream(ds: Any, seed: int, workers: int) -> Iterator[Any]:
@@ -441,8 +532,9 @@ def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, A
     while True:
         real.set_epoch(epoch)
         loader = _loader(real_part, cfg.train.batch_size, seed * 1000 + epoch, cfg.train.workers)
-        source: Any = loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share,
-                                                             mode=cfg.synthetic.mix)
+        source: Any = (
+            loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share, mode=cfg.synthetic.mix)
+        )
         n = 0
         for batch in source:
             n += 1
@@ -453,8 +545,9 @@ def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, A
 
 
 def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
-    model = ArcticNetSF(cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects,
-                        focal_length=1000.0, img_res=cfg.model.img_res)
+    model = ArcticNetSF(
+        cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=cfg.model.img_res
+    )
     if cfg.model.weights:
         load_backbone_weights(model.backbone, cfg.model.weights)
     return model
@@ -463,27 +556,36 @@ def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
 def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers: Any) -> dict[str, torch.Tensor]:
     """Mean target camera of ``cfg.model.camera_prior`` real training frames of the arm (a fixed
     draw, unaugmented: the same for every seed, and for the real and HOGSA arms of one real share)."""
-    real = ArcticDataset(setup["data"], split="p1_train", seed=0, augment=False,
-                         config=ArcticConfig(img_res=cfg.model.img_res))
+    real = ArcticDataset(
+        setup["data"], split="p1_train", seed=0, augment=False, config=ArcticConfig(img_res=cfg.model.img_res)
+    )
     pool = list(range(len(real))) if ARM_SPECS[arm][0] == "all" else low_data_indices(len(real), cfg.low_data)
-    pick = np.random.default_rng(7).permutation(len(pool))[:cfg.model.camera_prior]
-    loader = _loader(Subset(real, [pool[i] for i in sorted(pick)]), cfg.train.batch_size, 0, cfg.train.workers,
-                     drop_last=False, shuffle=False)
+    pick = np.random.default_rng(7).permutation(len(pool))[: cfg.model.camera_prior]
+    loader = _loader(
+        Subset(real, [pool[i] for i in sorted(pick)]),
+        cfg.train.batch_size,
+        0,
+        cfg.train.workers,
+        drop_last=False,
+        shuffle=False,
+    )
     return mean_cameras(loader, layers, cfg.model.img_res, cfg.device)
 
 
 def val_dataset(cfg: DownstreamConfig, setup: dict[str, Any]) -> tuple[Any, list[int]]:
     """The held-out subject's frames (``p1_val``, no augmentation) and their temporal order."""
-    val = ArcticDataset(setup["data"], split="p1_val", seed=0, augment=False,
-                        config=ArcticConfig(img_res=cfg.model.img_res))
+    val = ArcticDataset(
+        setup["data"], split="p1_val", seed=0, augment=False, config=ArcticConfig(img_res=cfg.model.img_res)
+    )
     return val, temporal_order(val.imgnames)
 
 
 def val_batches(cfg: DownstreamConfig, val: tuple[Any, list[int]], stride: int) -> tuple[DataLoader, int]:
     """Every ``stride``-th frame of :func:`val_dataset` in temporal order."""
     order = val[1][::stride]
-    return _loader(Subset(val[0], order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False,
-                   shuffle=False), len(order)
+    return _loader(
+        Subset(val[0], order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False, shuffle=False
+    ), len(order)
 
 
 def eval_steps(cfg: DownstreamConfig) -> list[int]:
@@ -504,12 +606,19 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
     """What a run's result depends on (its cache key)."""
     _, variant = ARM_SPECS[arm]
     syn = synthetic_key(cfg) if variant else None
-    return {"version": RESULT_VERSION, "arm": arm, "seed": seed, "data": str(setup["data"]),
-            "setup": setup["fingerprints"][reads(arm)],
-            "bundle": str(setup["bundle"]) if variant else None,
-            "variant": variant and variant_options(variant, cfg, setup),
-            "synthetic": syn, "model": model_key(cfg), "train": asdict(cfg.train),
-            "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None}
+    return {
+        "version": RESULT_VERSION,
+        "arm": arm,
+        "seed": seed,
+        "data": str(setup["data"]),
+        "setup": setup["fingerprints"][reads(arm)],
+        "bundle": str(setup["bundle"]) if variant else None,
+        "variant": variant and variant_options(variant, cfg, setup),
+        "synthetic": syn,
+        "model": model_key(cfg),
+        "train": asdict(cfg.train),
+        "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None,
+    }
 
 
 def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
@@ -519,8 +628,9 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     return out / "runs" / (f"{arm}+add" if add else arm) / f"seed{seed}"
 
 
-def finished_run(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any],
-                 out: Path) -> Optional[dict[str, Any]]:
+def finished_run(
+    arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path
+) -> Optional[dict[str, Any]]:
     """The saved result of (arm, seed) when it was run with the current settings, else None."""
     res_path = run_dir(arm, seed, cfg, out) / "result.json"
     if not res_path.is_file():
@@ -547,8 +657,10 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     if cfg.model.camera_prior > 0:
         prior = camera_prior(arm, cfg, setup, layers)
         model.init_cameras(prior)
-        _say(f"[{arm} seed {seed}] camera prior (s, tx, ty): "
-             + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items()))
+        _say(
+            f"[{arm} seed {seed}] camera prior (s, tx, ty): "
+            + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items())
+        )
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     batches = train_batches(arm, seed, cfg, setup, out)
     val = val_dataset(cfg, setup)
@@ -564,8 +676,14 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         except FloatingPointError as exc:  # recorded as diverged; the other runs go on
             bar.close()
             _say(f"[{arm} seed {seed}] diverged at step {step}: {exc}")
-            result = {"key": key, "settings": settings, "diverged": step, "summary": {m: None for m in METRICS},
-                      "curve": curve, "val_frames": 0}
+            result = {
+                "key": key,
+                "settings": settings,
+                "diverged": step,
+                "summary": {m: None for m in METRICS},
+                "curve": curve,
+                "val_frames": 0,
+            }
             _atomic_json(res_path, result)
             return result
         losses.append(rec["loss"])
@@ -581,17 +699,28 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
             curve.append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})
             if last:
                 final = ev
-            bar.write(f"[{arm} seed {seed}] step {step}: MPJPE_h {ev['summary'].get('mpjpe/ra/h', float('nan')):.2f} mm,"
-                      f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)")
+            bar.write(
+                f"[{arm} seed {seed}] step {step}: MPJPE_h {ev['summary'].get('mpjpe/ra/h', float('nan')):.2f} mm,"
+                f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)"
+            )
     bar.close()
     state = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
-    write_tensors_and_manifest(folder, "model.safetensors", state, "model.json",
-                               {"kind": "arcticnet_sf", "settings": settings})
-    result = {"key": key, "settings": settings, "summary": {k: _num(v) for k, v in final["summary"].items()},
-              "val_frames": final["frames"], "curve": curve, "loss_first": losses[0], "loss_last": losses[-1],
-              "loss_curve": [float(np.mean(losses[i:i + 10])) for i in range(0, len(losses), 10)],
-              "loss_terms_last": {k: float(np.mean([t.get(k, np.nan) for t in terms[-20:]])) for k in terms[-1]},
-              "train_seconds": round(time.perf_counter() - t0 - t_eval, 1), "eval_seconds": round(t_eval, 1)}
+    write_tensors_and_manifest(
+        folder, "model.safetensors", state, "model.json", {"kind": "arcticnet_sf", "settings": settings}
+    )
+    result = {
+        "key": key,
+        "settings": settings,
+        "summary": {k: _num(v) for k, v in final["summary"].items()},
+        "val_frames": final["frames"],
+        "curve": curve,
+        "loss_first": losses[0],
+        "loss_last": losses[-1],
+        "loss_curve": [float(np.mean(losses[i : i + 10])) for i in range(0, len(losses), 10)],
+        "loss_terms_last": {k: float(np.mean([t.get(k, np.nan) for t in terms[-20:]])) for k in terms[-1]},
+        "train_seconds": round(time.perf_counter() - t0 - t_eval, 1),
+        "eval_seconds": round(t_eval, 1),
+    }
     _atomic_json(res_path, result)
     return result
 
@@ -612,8 +741,11 @@ def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
         for m in METRICS:
             vals = [r["summary"].get(m) for r in by_seed.values()]
             vals = [v for v in vals if v is not None]
-            rows[m] = {"mean": float(np.mean(vals)) if vals else None,
-                       "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "n": len(vals)}
+            rows[m] = {
+                "mean": float(np.mean(vals)) if vals else None,
+                "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
+                "n": len(vals),
+            }
         agg[arm] = rows
     paired: dict[str, Any] = {}
     for arm, by_seed in results.items():
@@ -622,12 +754,19 @@ def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
             continue
         diffs = {}
         for m in ("mpjpe/ra/h", "cdev/ho"):
-            d = {s: r["summary"][m] - results[ref][s]["summary"][m] for s, r in by_seed.items()
-                 if s in results[ref] and r["summary"].get(m) is not None
-                 and results[ref][s]["summary"].get(m) is not None}
+            d = {
+                s: r["summary"][m] - results[ref][s]["summary"][m]
+                for s, r in by_seed.items()
+                if s in results[ref]
+                and r["summary"].get(m) is not None
+                and results[ref][s]["summary"].get(m) is not None
+            }
             v = list(d.values())
-            diffs[m] = {"per_seed": d, "mean": float(np.mean(v)) if v else None,
-                        "std": float(np.std(v, ddof=1)) if len(v) > 1 else None}
+            diffs[m] = {
+                "per_seed": d,
+                "mean": float(np.mean(v)) if v else None,
+                "std": float(np.std(v, ddof=1)) if len(v) > 1 else None,
+            }
         paired[f"{arm} - {ref}"] = diffs
     return {"arms": agg, "paired": paired}
 
@@ -642,9 +781,15 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
     """The Table 1 / ablation / low-data tables and the paired differences."""
     head = "| method | " + " | ".join(METRICS[m][0] + (" ↓" if METRICS[m][1] else " ↑") for m in METRICS) + " |"
     sep = "|" + "---|" * (len(METRICS) + 1)
-    names = {"real": "ArcticNet-SF (real)", "hogsa": "ArcticNet-SF + HOGSA", "hogsa_no_pom": "+ HOGSA w/o POM",
-             "hogsa_no_srm": "+ HOGSA w/o SRM", "hogsa_free": "+ HOGSA, free 3DGS",
-             "real_low": f"real {cfg.low_data:.0%}", "hogsa_low": f"real {cfg.low_data:.0%} + HOGSA"}
+    names = {
+        "real": "ArcticNet-SF (real)",
+        "hogsa": "ArcticNet-SF + HOGSA",
+        "hogsa_no_pom": "+ HOGSA w/o POM",
+        "hogsa_no_srm": "+ HOGSA w/o SRM",
+        "hogsa_free": "+ HOGSA, free 3DGS",
+        "real_low": f"real {cfg.low_data:.0%}",
+        "hogsa_low": f"real {cfg.low_data:.0%} + HOGSA",
+    }
 
     def table(arms: list[str]) -> list[str]:
         rows = [head, sep]
@@ -657,23 +802,37 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
 
     done = {a: agg["arms"][a]["mpjpe/ra/h"]["n"] for a in agg["arms"]}
     finished = ", ".join(f"{a}: {n}" for a, n in done.items())
-    lines = [f"Seeds {list(cfg.seeds)} ({finished} finished), mean ± std; "
-             f"{cfg.model.backbone} at {cfg.model.img_res}², "
-             f"{cfg.train.steps} steps of {cfg.train.batch_size}"
-             f"{' real + synthetic appended' if cfg.synthetic.mix == 'add' else ''}, "
-             f"synthetic share {cfg.synthetic.share}, "
-             f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.", "",
-             "**Table 1** (p1, held-out subject)", ""] + table(["real", "hogsa"])
+    lines = [
+        f"Seeds {list(cfg.seeds)} ({finished} finished), mean ± std; "
+        f"{cfg.model.backbone} at {cfg.model.img_res}², "
+        f"{cfg.train.steps} steps of {cfg.train.batch_size}"
+        f"{' real + synthetic appended' if cfg.synthetic.mix == 'add' else ''}, "
+        f"synthetic share {cfg.synthetic.share}, "
+        f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.",
+        "",
+        "**Table 1** (p1, held-out subject)",
+        "",
+    ] + table(["real", "hogsa"])
     lines += ["", "**Ablation**", ""] + table(["hogsa_no_srm", "hogsa_no_pom", "hogsa_free", "hogsa"])
-    lines += ["", f"**Low data** ({cfg.low_data:.0%} of the real training frames)", ""] + table(["real_low", "hogsa_low"])
-    lines += ["", "**Paired difference per seed** (negative = HOGSA better)", "",
-              "| pair | ΔMPJPE_h (mm) per seed | mean ± std | ΔCDev_ho (mm) per seed | mean ± std |", "|---|---|---|---|---|"]
+    lines += ["", f"**Low data** ({cfg.low_data:.0%} of the real training frames)", ""] + table(
+        ["real_low", "hogsa_low"]
+    )
+    lines += [
+        "",
+        "**Paired difference per seed** (negative = HOGSA better)",
+        "",
+        "| pair | ΔMPJPE_h (mm) per seed | mean ± std | ΔCDev_ho (mm) per seed | mean ± std |",
+        "|---|---|---|---|---|",
+    ]
     for pair, d in agg["paired"].items():
         cells = []
         for m in ("mpjpe/ra/h", "cdev/ho"):
             per = ", ".join(f"{v:+.2f}" for v in d[m]["per_seed"].values())
-            ms = "n/a" if d[m]["mean"] is None else f"{d[m]['mean']:+.2f}" + (
-                f" ± {d[m]['std']:.2f}" if d[m]["std"] is not None else "")
+            ms = (
+                "n/a"
+                if d[m]["mean"] is None
+                else f"{d[m]['mean']:+.2f}" + (f" ± {d[m]['std']:.2f}" if d[m]["std"] is not None else "")
+            )
             cells += [per or "n/a", ms]
         lines.append(f"| {pair} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -701,9 +860,20 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
             mean = np.nanmean(vals, 0)
             ax.plot(steps, mean, "-o", color=colors[i % len(colors)], label=arm, ms=3)
             if len(curves) > 1:
-                ax.fill_between(steps, np.nanmin(vals, 0), np.nanmax(vals, 0), color=colors[i % len(colors)], alpha=0.15)
-        shown = np.array([p.get(m) for a in arms for r in results[a].values() if not r.get("diverged")
-                          for p in r["curve"] if p.get(m) is not None], float)
+                ax.fill_between(
+                    steps, np.nanmin(vals, 0), np.nanmax(vals, 0), color=colors[i % len(colors)], alpha=0.15
+                )
+        shown = np.array(
+            [
+                p.get(m)
+                for a in arms
+                for r in results[a].values()
+                if not r.get("diverged")
+                for p in r["curve"]
+                if p.get(m) is not None
+            ],
+            float,
+        )
         shown = shown[np.isfinite(shown) & (shown > 0)]
         if shown.size and shown.max() / shown.min() > 50:  # outliers (e.g. a far object) dominate
             ax.set_yscale("log")
@@ -720,8 +890,10 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
                 continue
             ax.bar(i, np.mean(vals), color=colors[i % len(colors)], alpha=0.6)
             ax.scatter([i] * len(vals), vals, color="k", s=12, zorder=3)
-        tops = [np.nanmax([v for v in (r["summary"].get(m) for r in results[a].values()) if v is not None] or [np.nan])
-                for a in arms]
+        tops = [
+            np.nanmax([v for v in (r["summary"].get(m) for r in results[a].values()) if v is not None] or [np.nan])
+            for a in arms
+        ]
         if np.nanmin(tops) > 0 and np.nanmax(tops) / np.nanmin(tops) > 50:  # e.g. a diverged arm
             ax.set_yscale("log")
         ax.set_xticks(range(len(arms)))
@@ -752,8 +924,10 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     previous = json.loads((out / "downstream.json").read_text()) if (out / "downstream.json").is_file() else {}
     if cfg.report_only and cfg.setup.bundle is None and not (out / "setup" / "stages" / "bundle.json").is_file():
-        raise SystemExit(f"downstream: error: --report-only needs a finished setup in {out / 'setup'} "
-                         "(or --setup-data/--setup-bundle); nothing has been built yet")
+        raise SystemExit(
+            f"downstream: error: --report-only needs a finished setup in {out / 'setup'} "
+            "(or --setup-data/--setup-bundle); nothing has been built yet"
+        )
     setup = build_setup(cfg, out)
     setup["fingerprints"] = setup_fingerprints(cfg, setup)
     skipped: dict[str, str] = {}
@@ -780,11 +954,16 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
             results.setdefault(arm, {})[seed] = run_arm(arm, seed, cfg, setup, out)
     agg = aggregate(results)
     machine = machine_description(cfg)
-    record = {"config": asdict(cfg), "machine": machine, "setup": {k: str(v) if isinstance(v, Path) else v
-                                                                   for k, v in setup.items()},
-              "exports": exports, "skipped": skipped,
-              "results": {a: {str(s): r for s, r in rs.items()} for a, rs in results.items()},
-              "aggregate": agg, "total_seconds": round(time.perf_counter() - t0, 1)}
+    record = {
+        "config": asdict(cfg),
+        "machine": machine,
+        "setup": {k: str(v) if isinstance(v, Path) else v for k, v in setup.items()},
+        "exports": exports,
+        "skipped": skipped,
+        "results": {a: {str(s): r for s, r in rs.items()} for a, rs in results.items()},
+        "aggregate": agg,
+        "total_seconds": round(time.perf_counter() - t0, 1),
+    }
     _atomic_json(out / "downstream.json", record)
     (out / "downstream.md").write_text(markdown(agg, cfg, machine, skipped))
     plot(results, agg, out / "downstream.png")
@@ -803,9 +982,14 @@ def main(argv: Optional[list[str]] = None) -> int:
         base = gpu_config(base)
     if early.quick:
         base = quick_config(base)
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true",
-                   help="defaults for the tiny world: one seed, a few steps (minutes); other flags still apply")
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="defaults for the tiny world: one seed, a few steps (minutes); other flags still apply",
+    )
     add_dataclass_arguments(p, DownstreamConfig, base)
     cfg = dataclass_from_args(DownstreamConfig, p.parse_args(argv))
     run(cfg)

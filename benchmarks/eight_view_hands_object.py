@@ -34,9 +34,9 @@ from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, compose, rend
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
 from hogsa_loader.hands import ManoModelData, named_articulation
 from hogsa_loader.hands.anatomy import derive_joint_axes, rest_joints
+from hogsa_loader.render.mesh_raster import camera_look_at, intrinsics_from_fov, save_png
 from hogsa_loader.synthetic.hand import synthetic_hand_pair
 from hogsa_loader.synthetic.objects.procedural import make_object
-from hogsa_loader.render.mesh_raster import camera_look_at, intrinsics_from_fov, save_png
 
 BACKGROUND = (0.93, 0.93, 0.95)
 PART_COLOURS = np.array([[0.85, 0.25, 0.2], [0.2, 0.45, 0.9], [0.95, 0.8, 0.2]])
@@ -50,8 +50,9 @@ def _frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([a, b, np.cross(a, b)], 1)
 
 
-def palm_placement(model: ManoModelData, palm_target: np.ndarray, palm_dir: np.ndarray,
-                   finger_dir: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+def palm_placement(
+    model: ManoModelData, palm_target: np.ndarray, palm_dir: np.ndarray, finger_dir: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor]:
     """MANO global_orient and transl putting the palm surface at ``palm_target``.
 
     The palm's outward normal is turned to ``palm_dir`` and the wrist -> middle-MCP
@@ -71,16 +72,20 @@ def palm_placement(model: ManoModelData, palm_target: np.ndarray, palm_dir: np.n
     return matrix_to_axis_angle(rot).float()[None], torch.tensor(transl, dtype=torch.float32)[None]
 
 
-def ring_cameras(n: int, target: np.ndarray, dist: float, elevation_deg: float,
-                 size: int, fov_deg: float) -> tuple[torch.Tensor, torch.Tensor]:
+def ring_cameras(
+    n: int, target: np.ndarray, dist: float, elevation_deg: float, size: int, fov_deg: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(1, n, 4, 4) world->camera and (1, n, 3, 3) intrinsics on a ring around +y."""
     el = math.radians(elevation_deg)
     views = []
     for i in range(n):
         az = 2 * math.pi * i / n
         eye = target + dist * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
-        views.append(camera_look_at(torch.tensor(eye, dtype=torch.float32), torch.tensor(target, dtype=torch.float32),
-                                    (0.0, 1.0, 0.0)))
+        views.append(
+            camera_look_at(
+                torch.tensor(eye, dtype=torch.float32), torch.tensor(target, dtype=torch.float32), (0.0, 1.0, 0.0)
+            )
+        )
     K = intrinsics_from_fov(fov_deg, size, size)
     return torch.stack(views)[None], K.expand(1, n, 3, 3).contiguous()
 
@@ -102,8 +107,9 @@ def main() -> None:
     ap.add_argument("--object-levels", type=int, default=1, help="textured-mesh subdivision levels")
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--angle", type=float, default=0.5, help="object articulation (rad)")
-    ap.add_argument("--headlight", type=float, default=0.45,
-                    help="ambient fraction of a camera light (negative: plain SH colours)")
+    ap.add_argument(
+        "--headlight", type=float, default=0.45, help="ambient fraction of a camera light (negative: plain SH colours)"
+    )
     ap.add_argument("--masks", action="store_true", help="add a row of per-part masks")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3, help="warm renders timed after the first (cold) one")
@@ -149,8 +155,16 @@ def main() -> None:
     for _ in range(1 + max(0, args.repeats)):
         t0 = time.perf_counter()
         with torch.no_grad():
-            out = render_scene(scene, viewmats, Ks, args.size, args.size, num_parts=3, backgrounds=bg,
-                               headlight=None if args.headlight < 0 else args.headlight)
+            out = render_scene(
+                scene,
+                viewmats,
+                Ks,
+                args.size,
+                args.size,
+                num_parts=3,
+                backgrounds=bg,
+                headlight=None if args.headlight < 0 else args.headlight,
+            )
         times.append(time.perf_counter() - t0)
     t_render = times[0]
     t_warm = statistics.median(times[1:]) if len(times) > 1 else None
@@ -168,14 +182,31 @@ def main() -> None:
     print(f"gaussians: object {n[0]}, right {n[1]}, left {n[2]}, total {sum(n)}")
     print(f"object {args.object}: binding {obj.binding_mesh}; hands: {hands[0].binding_mesh}")
     warm = f", warm {t_warm:.2f}s (median of {len(times) - 1})" if t_warm is not None else ""
-    print(f"assets {t_assets:.2f}s  build {t_build:.2f}s  pose+compose {t_pose:.3f}s  "
-          f"render 8x{args.size}^2 cold {t_render:.2f}s{warm}")
+    print(
+        f"assets {t_assets:.2f}s  build {t_build:.2f}s  pose+compose {t_pose:.3f}s  "
+        f"render 8x{args.size}^2 cold {t_render:.2f}s{warm}"
+    )
     if args.json:
-        fig = {"benchmark": "eight_view_hands_object", "device": f"cpu ({platform.processor() or platform.machine()})",
-               "torch": torch.__version__, "threads": args.threads, "size": args.size, "views": 8,
-               "object": args.object, "variant": args.variant, "k": args.k, "num_gaussians": dict(zip(("object", "right", "left"), n)),
-               "seconds": {"assets": t_assets, "build": t_build, "pose_compose": t_pose, "render_cold": t_render,
-                           "render_warm_median": t_warm, "render_all": times}}  # fmt: skip
+        fig = {
+            "benchmark": "eight_view_hands_object",
+            "device": f"cpu ({platform.processor() or platform.machine()})",
+            "torch": torch.__version__,
+            "threads": args.threads,
+            "size": args.size,
+            "views": 8,
+            "object": args.object,
+            "variant": args.variant,
+            "k": args.k,
+            "num_gaussians": dict(zip(("object", "right", "left"), n)),
+            "seconds": {
+                "assets": t_assets,
+                "build": t_build,
+                "pose_compose": t_pose,
+                "render_cold": t_render,
+                "render_warm_median": t_warm,
+                "render_all": times,
+            },
+        }
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(fig, indent=1, allow_nan=False) + "\n")
     print(f"wrote {args.out} ({grid.shape[1]}x{grid.shape[0]})")

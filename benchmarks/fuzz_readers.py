@@ -53,11 +53,14 @@ from hogsa_loader.errors import AssetError
 
 #: Random JSON documents (the values a hostile manifest may hold).
 JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**70), 2**70)
-    | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=6),
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**70), 2**70)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=6),
     lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=4), children, max_size=4),
     max_leaves=10,
-)  # fmt: skip
+)
 
 
 # --------------------------------------------------------------------------------------
@@ -91,10 +94,10 @@ def mutate_bytes(draw: Callable, raw: bytes) -> bytes:
         return bytes(b[:i] + draw(st.binary(min_size=1, max_size=32)) + b[i:])
     if mode == "zero":
         n = draw(st.integers(1, 64))
-        b[i:i + n] = bytes(len(b[i:i + n]))
+        b[i : i + n] = bytes(len(b[i : i + n]))
         return bytes(b)
     n = draw(st.integers(1, 64))
-    return bytes(b[:i + n] + b[i:])
+    return bytes(b[: i + n] + b[i:])
 
 
 def random_array(draw: Callable) -> Any:
@@ -236,9 +239,32 @@ def build_resources(scratch: Path, world: Optional[Path] = None, log: Callable[[
         write_untrained_bundle(world, bundle)
     if not (shards / "index.json").is_file():
         log(f"[fuzz] 4-frame export -> {shards}")
-        assert hogsa(["export", "--bundle", str(bundle / "bundle"), "--data", str(world), "--out", str(shards),
-                      "--num", "4", "--shard-size", "2", "--batch-size", "2", "--poses", "perturb", "--no-srm",
-                      "--render-size", "96", "--quiet"]) == 0
+        assert (
+            hogsa(
+                [
+                    "export",
+                    "--bundle",
+                    str(bundle / "bundle"),
+                    "--data",
+                    str(world),
+                    "--out",
+                    str(shards),
+                    "--num",
+                    "4",
+                    "--shard-size",
+                    "2",
+                    "--batch-size",
+                    "2",
+                    "--poses",
+                    "perturb",
+                    "--no-srm",
+                    "--render-size",
+                    "96",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
     return Resources(world, bundle / "bundle", shards, scratch / "cases")
 
 
@@ -395,7 +421,8 @@ def _prepare_h2o(res: Resources) -> dict[str, Any]:
 
 
 _TOKENS = st.one_of(
-    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-(10**30), 10**30).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**30), 10**30).map(str),
     st.sampled_from(["nan", "-inf", "Infinity", "1_0", "0x1f", "1,2", "1e999", "--1", ".", "e5", "١", ""]),
     st.text(max_size=6),
 )
@@ -522,17 +549,20 @@ def _case_shards(draw: Callable, ctx: dict[str, Any]) -> None:
         pass
 
 
-TARGETS: dict[str, Target] = {t.name: t for t in [
-    Target("mano_pickle", _prepare_mano, _case_mano),
-    Target("arctic_raw", _prepare_arctic, _case_arctic_raw),
-    Target("arctic_misc", _prepare_arctic, _case_arctic_misc),
-    Target("arctic_split", _prepare_arctic, _case_arctic_split),
-    Target("h2o_text", _prepare_h2o, _case_h2o),
-    Target("bundle", _prepare_bundle, _case_bundle),
-    Target("part_checkpoint", _prepare_part, _case_part),
-    Target("run_folder", _prepare_run, _case_run),
-    Target("shard", _prepare_shards, _case_shards),
-]}  # fmt: skip
+TARGETS: dict[str, Target] = {
+    t.name: t
+    for t in [
+        Target("mano_pickle", _prepare_mano, _case_mano),
+        Target("arctic_raw", _prepare_arctic, _case_arctic_raw),
+        Target("arctic_misc", _prepare_arctic, _case_arctic_misc),
+        Target("arctic_split", _prepare_arctic, _case_arctic_split),
+        Target("h2o_text", _prepare_h2o, _case_h2o),
+        Target("bundle", _prepare_bundle, _case_bundle),
+        Target("part_checkpoint", _prepare_part, _case_part),
+        Target("run_folder", _prepare_run, _case_run),
+        Target("shard", _prepare_shards, _case_shards),
+    ]
+}
 
 
 # --------------------------------------------------------------------------------------
@@ -556,12 +586,19 @@ class Tally:
 
     def summary(self) -> dict[str, Any]:
         t = np.asarray(self.seconds or [0.0])
-        return {"cases": self.cases, "accepted": self.accepted, "refused": self.refused,
-                "failed": len(self.failures), "failures": self.failures[:20],
-                "refusals": dict(sorted(self.refusals.items(), key=lambda kv: -kv[1])[:15]),
-                "slowest_case": self.slowest[1],
-                "median_s": float(np.median(t)), "worst_s": float(t.max()), "worst_peak_mib": self.peak_bytes / 2**20,
-                "rss_growth_mib": self.rss_growth_bytes / 2**20}
+        return {
+            "cases": self.cases,
+            "accepted": self.accepted,
+            "refused": self.refused,
+            "failed": len(self.failures),
+            "failures": self.failures[:20],
+            "refusals": dict(sorted(self.refusals.items(), key=lambda kv: -kv[1])[:15]),
+            "slowest_case": self.slowest[1],
+            "median_s": float(np.median(t)),
+            "worst_s": float(t.max()),
+            "worst_peak_mib": self.peak_bytes / 2**20,
+            "rss_growth_mib": self.rss_growth_bytes / 2**20,
+        }
 
 
 def _reason(exc: BaseException) -> str:
@@ -623,18 +660,26 @@ def fuzz(target: Target, res: Resources, cases: int, seed: int = 0, trace_memory
 
 
 def markdown(results: dict[str, dict[str, Any]], machine: str) -> str:
-    lines = [f"Reader fuzz ({machine})", "",
-             "| reader | cases | accepted | refused (AssetError) | failed | median ms | worst ms | worst traced MiB "
-             "| peak RSS growth MiB |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Reader fuzz ({machine})",
+        "",
+        "| reader | cases | accepted | refused (AssetError) | failed | median ms | worst ms | worst traced MiB "
+        "| peak RSS growth MiB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in results.items():
-        lines.append(f"| {name} | {r['cases']} | {r['accepted']} | {r['refused']} | {r['failed']} | "
-                     f"{1e3 * r['median_s']:.1f} | {1e3 * r['worst_s']:.0f} | {r['worst_peak_mib']:.1f} | "
-                     f"{r['rss_growth_mib']:.1f} |")
-    lines += ["", "Worst traced: the largest ``tracemalloc`` peak of one case, which counts memory reserved "
-              "but never touched (a corrupt pickle length makes CPython's unpickler reserve that many bytes "
-              "before it finds the data missing). Peak RSS growth: how much the process's resident peak "
-              "rose over all cases of the reader (after the readers before it)."]
+        lines.append(
+            f"| {name} | {r['cases']} | {r['accepted']} | {r['refused']} | {r['failed']} | "
+            f"{1e3 * r['median_s']:.1f} | {1e3 * r['worst_s']:.0f} | {r['worst_peak_mib']:.1f} | "
+            f"{r['rss_growth_mib']:.1f} |"
+        )
+    lines += [
+        "",
+        "Worst traced: the largest ``tracemalloc`` peak of one case, which counts memory reserved "
+        "but never touched (a corrupt pickle length makes CPython's unpickler reserve that many bytes "
+        "before it finds the data missing). Peak RSS growth: how much the process's resident peak "
+        "rose over all cases of the reader (after the readers before it).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -665,8 +710,11 @@ def main(argv: Optional[list[str]] = None) -> int:
         r = fuzz(TARGETS[name], res, args.cases, args.seed).summary()
         r["seconds"] = round(time.perf_counter() - t0, 1)
         results[name] = r
-        print(f"[fuzz] {name}: {r['accepted']} accepted, {r['refused']} refused, {r['failed']} failed; "
-              f"worst {1e3 * r['worst_s']:.0f} ms ({r['slowest_case']}), {r['worst_peak_mib']:.1f} MiB", flush=True)
+        print(
+            f"[fuzz] {name}: {r['accepted']} accepted, {r['refused']} refused, {r['failed']} failed; "
+            f"worst {1e3 * r['worst_s']:.0f} ms ({r['slowest_case']}), {r['worst_peak_mib']:.1f} MiB",
+            flush=True,
+        )
         for f in r["failures"][:5]:
             print(f"    {f}", flush=True)
         (out / "fuzz.json").write_text(json.dumps({"machine": machine, "results": results}, indent=1))

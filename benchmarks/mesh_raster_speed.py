@@ -104,16 +104,26 @@ def main(argv: list[str] | None = None) -> int:
             row[f"{backend}_ms"] = 1e3 * _time(call, args.repeats)
         a, b = outs["torch"], outs["numba"]
         row["covered"] = float((a.part_id > 0).float().mean())
-        row["equal_part_id_alpha_depth"] = bool(torch.equal(a.part_id, b.part_id) and torch.equal(a.alpha, b.alpha)
-                                                and torch.equal(a.depth, b.depth))
+        row["equal_part_id_alpha_depth"] = bool(
+            torch.equal(a.part_id, b.part_id) and torch.equal(a.alpha, b.alpha) and torch.equal(a.depth, b.depth)
+        )
         row["rgb_max_abs_diff"] = float((a.rgb - b.rgb).abs().max())
         row["speedup"] = row["torch_ms"] / row["numba_ms"]
         rows.append(row)
-        print(f"{kind:6s} {W}x{H} {row['faces']} faces, {row['covered']:.0%} covered: torch {row['torch_ms']:.0f} ms, "
-              f"numba {row['numba_ms']:.0f} ms ({row['speedup']:.1f}x); equal {row['equal_part_id_alpha_depth']}, "
-              f"rgb max diff {row['rgb_max_abs_diff']:.1e}", flush=True)
-    out = {"rows": rows, "repeats": args.repeats, "torch": torch.__version__, "threads": torch.get_num_threads(),
-           "machine": platform.processor() or platform.machine(), "python": sys.version.split()[0]}
+        print(
+            f"{kind:6s} {W}x{H} {row['faces']} faces, {row['covered']:.0%} covered: torch {row['torch_ms']:.0f} ms, "
+            f"numba {row['numba_ms']:.0f} ms ({row['speedup']:.1f}x); equal {row['equal_part_id_alpha_depth']}, "
+            f"rgb max diff {row['rgb_max_abs_diff']:.1e}",
+            flush=True,
+        )
+    out = {
+        "rows": rows,
+        "repeats": args.repeats,
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "machine": platform.processor() or platform.machine(),
+        "python": sys.version.split()[0],
+    }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(out, indent=1) + "\n")
     ok = all(r["equal_part_id_alpha_depth"] and r["rgb_max_abs_diff"] < 1e-5 for r in rows)

@@ -92,8 +92,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         subjects = args.subjects.split(",")
     else:
         man = read_json(Path(args.contactnet) / "manifest.json")
-        subjects = list(man.get("training", {}).get("val_subjects") or []) or \
-            sorted({s.split("/")[0] for s in root.sequences()})
+        subjects = list(man.get("training", {}).get("val_subjects") or []) or sorted(
+            {s.split("/")[0] for s in root.sequences()}
+        )
     seqs = [s for s in root.sequences() if s.split("/")[0] in subjects]
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
@@ -140,14 +141,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=2))
     if not args.no_figures:
-        tsne_png(path.with_name(path.stem + "_tsne.png"), both_hand_joints(frames.state, infos),
-                 both_hand_joints(aug.result.select(aug.keep), infos))
+        tsne_png(
+            path.with_name(path.stem + "_tsne.png"),
+            both_hand_joints(frames.state, infos),
+            both_hand_joints(aug.result.select(aug.keep), infos),
+        )
         from hogsa_loader.pom.viz import render_grasps
         from hogsa_loader.render.mesh_raster import save_png
 
         pick = torch.linspace(0, N - 1, min(6, N)).round().long()
-        sheet = render_grasps([frames.state.select(pick), aug.start.select(pick), aug.result.select(pick)],
-                              ["original", "perturbed", "optimised"], infos, objects)
+        sheet = render_grasps(
+            [frames.state.select(pick), aug.start.select(pick), aug.result.select(pick)],
+            ["original", "perturbed", "optimised"],
+            infos,
+            objects,
+        )
         save_png(path.with_name(path.stem + "_grasps.png"), torch.from_numpy(sheet))
     print(json.dumps(out, indent=2))
     return 0

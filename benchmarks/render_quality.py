@@ -45,7 +45,9 @@ from hogsa_loader.train.hogs_source import HogsSource, load_run_data
 
 def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--data", default=None, help="dataset root the runs were trained on (default: the runs' config.json)")
+    p.add_argument(
+        "--data", default=None, help="dataset root the runs were trained on (default: the runs' config.json)"
+    )
     p.add_argument("--dataset", default=None, choices=["arctic", "h2o"], help="check that the runs are of this dataset")
     p.add_argument("--mano-dir", default=None, help="H2O: MANO folder (default: the run's)")
     p.add_argument("--object-mesh-dir", default=None, help="H2O: object mesh folder (default: the run's)")
@@ -53,10 +55,18 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
     p.add_argument("--srm", default=None, help="SRM run folder: also score the first run after refinement")
-    p.add_argument("--srm-tta", type=int, default=1, choices=[1, 2, 4, 8],
-                   help="SRM test-time augmentation: symmetric copies averaged (SRM.refine(tta=...))")
-    p.add_argument("--allow-seen-views", action="store_true",
-                   help="score an SRM even on views it was trained or selected on (the figure is then not held-out)")
+    p.add_argument(
+        "--srm-tta",
+        type=int,
+        default=1,
+        choices=[1, 2, 4, 8],
+        help="SRM test-time augmentation: symmetric copies averaged (SRM.refine(tta=...))",
+    )
+    p.add_argument(
+        "--allow-seen-views",
+        action="store_true",
+        help="score an SRM even on views it was trained or selected on (the figure is then not held-out)",
+    )
     p.add_argument("--max-eval", type=int, default=64, help="at most this many held-out images (evenly spaced)")
     p.add_argument("--png-rows", type=int, default=4)
     p.add_argument("--device", default="cpu")
@@ -111,7 +121,14 @@ def write_png(path: Path, columns: list[list[tuple[torch.Tensor, torch.Tensor]]]
     ax.axis("off")
     w = img.shape[1] / (len(labels))
     for j, lab in enumerate(labels):
-        fig.text((j + 0.5) * w / img.shape[1], 1 - 0.15 / (img.shape[0] / 100 + 0.3), lab, ha="center", va="center", fontsize=10)
+        fig.text(
+            (j + 0.5) * w / img.shape[1],
+            1 - 0.15 / (img.shape[0] / 100 + 0.3),
+            lab,
+            ha="center",
+            va="center",
+            fontsize=10,
+        )
     fig.savefig(path)
     plt.close(fig)
 
@@ -125,15 +142,21 @@ def check_srm_views(a: argparse.Namespace, data: HogsData) -> str:
     seen = seen_views(manifest, data.subject, data.object_name)
     if seen is None:
         note = "unchecked: the SRM manifest does not record its training views"
-        print(f"render_quality: WARNING {a.srm}: {note}; the with-SRM figure is held-out only if it "
-              f"never saw views {list(data.eval_views)} of {data.subject}/{data.object_name}", file=sys.stderr)  # fmt: skip
+        print(
+            f"render_quality: WARNING {a.srm}: {note}; the with-SRM figure is held-out only if it "
+            f"never saw views {list(data.eval_views)} of {data.subject}/{data.object_name}",
+            file=sys.stderr,
+        )
         return note
     both = sorted(seen & {int(v) for v in data.eval_views})
     if not both:
         return f"held-out: the SRM saw views {sorted(seen)} of {data.subject}/{data.object_name}, none scored here"
-    msg = f"the SRM {a.srm} was trained or selected on view(s) {both} of {data.subject}/{data.object_name}, which are scored here"
+    pair = f"{data.subject}/{data.object_name}"
+    msg = f"the SRM {a.srm} was trained or selected on view(s) {both} of {pair}, which are scored here"
     if not a.allow_seen_views:
-        raise SystemExit(f"render_quality: {msg}; its figure would not be held-out (pass --allow-seen-views to score anyway)")
+        raise SystemExit(
+            f"render_quality: {msg}; its figure would not be held-out (pass --allow-seen-views to score anyway)"
+        )
     print(f"render_quality: WARNING {msg}", file=sys.stderr)
     return f"not held-out: {msg}"
 
@@ -151,20 +174,41 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         model = HogsModel.from_run(run, source.mano_layers, source.object_templates, device=device).eval()
         m = margin_px(cfg, data)
         t0 = time.perf_counter()
-        ev = evaluate_samples(render_fn(model, data, device), data.eval, [s.name for s in data.sequences], m,
-                              lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
+        ev = evaluate_samples(
+            render_fn(model, data, device),
+            data.eval,
+            [s.name for s in data.sequences],
+            m,
+            lpips_fn=lpips_fn,
+            device=device,
+            keep=keep,
+        )
         dt = time.perf_counter() - t0
         label = cfg.get("gaussians", "mesh")
-        runs.append({"label": label, "run": str(run), "dataset": source.dataset, "subject": cfg["subject"], "object": cfg["object"],
-                     "iters": cfg.get("iters"), "image_size": data.image_size, "num_gaussians": model.num_gaussians,
-                     "eval_views": list(data.eval_views), "s_per_image": dt / max(1, len(data.eval)),
-                     **summary(ev), "per_sample": ev["per_sample"]})  # fmt: skip
+        runs.append(
+            {
+                "label": label,
+                "run": str(run),
+                "dataset": source.dataset,
+                "subject": cfg["subject"],
+                "object": cfg["object"],
+                "iters": cfg.get("iters"),
+                "image_size": data.image_size,
+                "num_gaussians": model.num_gaussians,
+                "eval_views": list(data.eval_views),
+                "s_per_image": dt / max(1, len(data.eval)),
+                **summary(ev),
+                "per_sample": ev["per_sample"],
+            }
+        )
         columns.append(ev.get("images", []))
         labels.append(label)
         if first is None:
             first = (model, data, m)
-        print(f"{label:5s} {run}: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  LPIPS {ev['lpips']}  "
-              f"({ev['num_samples']} held-out images, views {list(data.eval_views)})")  # fmt: skip
+        print(
+            f"{label:5s} {run}: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  LPIPS {ev['lpips']}  "
+            f"({ev['num_samples']} held-out images, views {list(data.eval_views)})"
+        )
     out: dict[str, Any] = {
         **{k: runs[0][k] for k in ("psnr", "ssim", "lpips", "per_view")},
         "lpips_note": lpips_note,
@@ -180,12 +224,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         srm = load_srm(a.srm, device=device)
         seen_note = check_srm_views(a, data)
         if srm.scale != 1:  # its output would be scored against boxes of the input size
-            raise SystemExit(f"render_quality: {a.srm} is a scale-{srm.scale} SRM; only scale-1 SRMs (same-size "
-                             "refinement, what the loader uses) can be scored here")  # fmt: skip
+            raise SystemExit(
+                f"render_quality: {a.srm} is a scale-{srm.scale} SRM; only scale-1 SRMs (same-size "
+                "refinement, what the loader uses) can be scored here"
+            )
         names = [s.name for s in data.sequences]
-        ev = evaluate_samples(render_fn(model, data, device), data.eval, names, m,
-                              refine=lambda rgb, alpha: srm.refine(rgb, alpha, tta=a.srm_tta),
-                              lpips_fn=lpips_fn, device=device, keep=keep)  # fmt: skip
+        ev = evaluate_samples(
+            render_fn(model, data, device),
+            data.eval,
+            names,
+            m,
+            refine=lambda rgb, alpha: srm.refine(rgb, alpha, tta=a.srm_tta),
+            lpips_fn=lpips_fn,
+            device=device,
+            keep=keep,
+        )
         out["without_srm"] = summary({**runs[0], "alpha_outside": runs[0]["alpha_outside"]})
         out["with_srm"] = summary(ev)
         out["srm"] = str(a.srm)
@@ -193,7 +246,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         out["srm_views_check"] = seen_note
         columns.append(ev.get("images", []))
         labels.append("SRM")
-        print(f"with SRM: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  (without: {runs[0]['psnr']:.2f} / {runs[0]['ssim']:.4f})")
+        print(
+            f"with SRM: PSNR {ev['psnr']:.2f} dB  SSIM {ev['ssim']:.4f}  (without: {runs[0]['psnr']:.2f} / "
+            f"{runs[0]['ssim']:.4f})"
+        )
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(out, indent=1, allow_nan=False) + "\n")
     if a.png:

@@ -58,8 +58,9 @@ from _timing import bench_threads, time_render
 CONFIGS = [(50_000, 224), (50_000, 512), (150_000, 224), (150_000, 512)]
 QUICK_CONFIGS = [(50_000, 224)]
 MALLOCS = ("default", "glibc", "tcmalloc")
-TCMALLOC_PATHS = tuple(f"/usr/{d}/libtcmalloc_minimal.so.4"
-                       for d in ("lib/x86_64-linux-gnu", "lib/aarch64-linux-gnu", "lib64", "lib"))
+TCMALLOC_PATHS = tuple(
+    f"/usr/{d}/libtcmalloc_minimal.so.4" for d in ("lib/x86_64-linux-gnu", "lib/aarch64-linux-gnu", "lib64", "lib")
+)
 
 
 def malloc_env(name: str, tcmalloc: str | None) -> dict[str, str]:
@@ -70,8 +71,10 @@ def malloc_env(name: str, tcmalloc: str | None) -> dict[str, str]:
     elif name == "tcmalloc":
         path = tcmalloc or next((p for p in TCMALLOC_PATHS if os.path.isfile(p)), None)
         if path is None or not os.path.isfile(path):
-            raise SystemExit(f"render_speed: tcmalloc not found (looked in {list(TCMALLOC_PATHS)}); "
-                             "install libtcmalloc-minimal4 or pass --tcmalloc PATH")
+            raise SystemExit(
+                f"render_speed: tcmalloc not found (looked in {list(TCMALLOC_PATHS)}); "
+                "install libtcmalloc-minimal4 or pass --tcmalloc PATH"
+            )
         env["LD_PRELOAD"] = path
     return env
 
@@ -110,8 +113,21 @@ def _render_fn(backend: str, compositor: str) -> Callable[[dict[str, Any]], torc
     opts = {"compositor": compositor} if backend == "torch" else {}
 
     def fn(s: dict[str, Any]) -> torch.Tensor:
-        out = render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"], s["viewmats"], s["Ks"],
-                     s["width"], s["width"], backend=backend, render_mode="RGB", packed=False, **opts)  # fmt: skip
+        out = render(
+            s["means"],
+            s["quats"],
+            s["scales"],
+            s["opacities"],
+            s["colors"],
+            s["viewmats"],
+            s["Ks"],
+            s["width"],
+            s["width"],
+            backend=backend,
+            render_mode="RGB",
+            packed=False,
+            **opts,
+        )
         return out.rgb
 
     return fn
@@ -121,12 +137,16 @@ def _compositor_used(compositor: str, s: dict[str, Any]) -> str:
     """The compositor ``render_gaussians`` runs for ``compositor`` on this scene."""
     from hogsa_loader.render.raster_kernels import use_kernels
 
-    return "numba" if use_kernels("compositor", compositor, [s["means"], s["colors"], s["opacities"]],
-                                  differentiable=True) else "torch"
+    return (
+        "numba"
+        if use_kernels("compositor", compositor, [s["means"], s["colors"], s["opacities"]], differentiable=True)
+        else "torch"
+    )
 
 
-def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int,
-            compositor: str = "auto") -> dict[str, Any]:
+def run_row(
+    backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd: int, compositor: str = "auto"
+) -> dict[str, Any]:
     from hogsa_loader.system import allocator_status
 
     device = "cuda" if backend == "gsplat" else "cpu"
@@ -139,8 +159,18 @@ def run_row(backend: str, n: int, width: int, warmup: int, rep_fwd: int, rep_bwd
         if backend == "torch":
             from hogsa_loader.render import render
 
-            n_isects = render(s["means"], s["quats"], s["scales"], s["opacities"], s["colors"],
-                              s["viewmats"], s["Ks"], width, width, backend="torch").meta["n_isects"]  # fmt: skip
+            n_isects = render(
+                s["means"],
+                s["quats"],
+                s["scales"],
+                s["opacities"],
+                s["colors"],
+                s["viewmats"],
+                s["Ks"],
+                width,
+                width,
+                backend="torch",
+            ).meta["n_isects"]
     return {
         "backend": backend,
         "compositor": _compositor_used(compositor, s) if backend == "torch" else None,
@@ -173,8 +203,16 @@ def merge_rounds(rs: list[dict[str, Any]]) -> dict[str, Any]:
         out[k] = round(statistics.fmean(r[k] for r in rs), 1)
     out["peak_mb"] = max(r["peak_mb"] for r in rs)
     out["base_mb"] = max(r["base_mb"] for r in rs) if rs[0]["base_mb"] is not None else None
-    keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults",
-            "peak_mb", "base_mb")
+    keys = (
+        "fwd_ms",
+        "fwd_bwd_ms",
+        "fwd_faults",
+        "fwd_bwd_faults",
+        "fwd_warmup_faults",
+        "fwd_bwd_warmup_faults",
+        "peak_mb",
+        "base_mb",
+    )
     out["rounds"] = [{k: r[k] for k in keys} for r in rs]
     return out
 
@@ -185,38 +223,63 @@ def print_ratios(rows: list[dict[str, Any]], mallocs: list[str]) -> None:
     for r in rows:
         if r["allocator"] == ref_name:
             continue
-        ref = next((q for q in rows if q["allocator"] == ref_name and (q["backend"], q["compositor"], q["N"],
-                    q["width"]) == (r["backend"], r["compositor"], r["N"], r["width"])), None)  # fmt: skip
+        ref = next(
+            (
+                q
+                for q in rows
+                if q["allocator"] == ref_name
+                and (q["backend"], q["compositor"], q["N"], q["width"])
+                == (r["backend"], r["compositor"], r["N"], r["width"])
+            ),
+            None,
+        )
         if ref is None:
             continue
         keys = ("fwd_ms", "fwd_bwd_ms", "fwd_faults", "fwd_bwd_faults", "fwd_warmup_faults", "fwd_bwd_warmup_faults")
         ratio = {k: r[k] / ref[k] if ref[k] else float("nan") for k in keys}
         r[f"vs_{ref_name}"] = {k: None if v != v else round(v, 3) for k, v in ratio.items()}  # no ratio to 0
-        print(f"{r['backend']} ({r['compositor']}) N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
-              f"fwd time {ratio['fwd_ms']:.2f}x, "
-              f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "
-              f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x; warm-up faults fwd {ratio['fwd_warmup_faults']:.2f}x, "
-              f"fwd+bwd {ratio['fwd_bwd_warmup_faults']:.2f}x", flush=True)
+        print(
+            f"{r['backend']} ({r['compositor']}) N={r['N']} {r['width']}: {r['allocator']} / {ref_name}: "
+            f"fwd time {ratio['fwd_ms']:.2f}x, "
+            f"fwd faults {ratio['fwd_faults']:.2f}x, fwd+bwd time {ratio['fwd_bwd_ms']:.2f}x, "
+            f"fwd+bwd faults {ratio['fwd_bwd_faults']:.2f}x; warm-up faults fwd {ratio['fwd_warmup_faults']:.2f}x, "
+            f"fwd+bwd {ratio['fwd_bwd_warmup_faults']:.2f}x",
+            flush=True,
+        )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", required=False, help="write the rows to this file")
     ap.add_argument("--backend", default="torch", choices=["torch", "gsplat", "all"])
-    ap.add_argument("--quick", action="store_true",
-                    help="50k @ 224 only, fewer repeats (1, 3, 2; with several --malloc 10, 100, 40) unless the "
-                         "repeat flags are given")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="50k @ 224 only, fewer repeats (1, 3, 2; with several --malloc 10, 100, 40) unless the "
+        "repeat flags are given",
+    )
     ap.add_argument("--warmup", type=int, default=None, help="default 2 (quick 1; 10 with several --malloc)")
     ap.add_argument("--repeats-fwd", type=int, default=None, help="default 7 (quick 3; 100 with several --malloc)")
     ap.add_argument("--repeats-bwd", type=int, default=None, help="default 5 (quick 2; 40 with several --malloc)")
-    ap.add_argument("--malloc", default="default",
-                    help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}")
+    ap.add_argument(
+        "--malloc",
+        default="default",
+        help=f"comma-separated allocators, each row run once per allocator: {', '.join(MALLOCS)}",
+    )
     ap.add_argument("--tcmalloc", help="path of libtcmalloc_minimal (default: looked up in the library folders)")
-    ap.add_argument("--compositor", default="auto", choices=["auto", "torch", "numba", "both"],
-                    help="the torch backend's compositor (render_gaussians); both: a row for each of torch, numba")
-    ap.add_argument("--rounds", type=int, default=None,
-                    help="rounds over the rows, allocators interleaved; median time, mean faults (default 1; "
-                         "3 with several --malloc)")
+    ap.add_argument(
+        "--compositor",
+        default="auto",
+        choices=["auto", "torch", "numba", "both"],
+        help="the torch backend's compositor (render_gaussians); both: a row for each of torch, numba",
+    )
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=None,
+        help="rounds over the rows, allocators interleaved; median time, mean faults (default 1; "
+        "3 with several --malloc)",
+    )
     ap.add_argument("--row", help=argparse.SUPPRESS)  # internal: backend,N,width,compositor in a child
     a = ap.parse_args()
     mallocs = [m.strip() for m in a.malloc.split(",") if m.strip()]
@@ -238,8 +301,10 @@ def main() -> None:
     configs = QUICK_CONFIGS if a.quick else CONFIGS
     # fault counts need a long window (they come in bursts; see the module docstring)
     defaults = (10, 100, 40) if len(mallocs) > 1 else (1, 3, 2) if a.quick else (2, 7, 5)
-    reps = tuple(given if given is not None else default for given, default in
-                 zip((a.warmup, a.repeats_fwd, a.repeats_bwd), defaults, strict=True))
+    reps = tuple(
+        given if given is not None else default
+        for given, default in zip((a.warmup, a.repeats_fwd, a.repeats_bwd), defaults, strict=True)
+    )
     envs = {m: malloc_env(m, a.tcmalloc) for m in mallocs}
     compositors = ["torch", "numba"] if a.compositor == "both" else [a.compositor]
     runs = [(b, c) for b in backends for c in (compositors if b == "torch" else ["auto"])]
@@ -249,19 +314,32 @@ def main() -> None:
         for backend, comp in runs:
             for n, w in configs:
                 for m in mallocs:
-                    cmd = [sys.executable, os.path.abspath(__file__), "--row", f"{backend},{n},{w},{comp}",
-                           "--warmup", str(reps[0]), "--repeats-fwd", str(reps[1]), "--repeats-bwd", str(reps[2])]
+                    cmd = [
+                        sys.executable,
+                        os.path.abspath(__file__),
+                        "--row",
+                        f"{backend},{n},{w},{comp}",
+                        "--warmup",
+                        str(reps[0]),
+                        "--repeats-fwd",
+                        str(reps[1]),
+                        "--repeats-bwd",
+                        str(reps[2]),
+                    ]
                     res = subprocess.run(cmd, capture_output=True, text=True, env=envs[m])
                     if res.returncode != 0:
                         print(f"{backend} ({comp}) N={n} {w}x{w} [{m}]: failed\n{res.stderr[-2000:]}")
                         continue
                     r = {"allocator": m, **json.loads(res.stdout.strip().splitlines()[-1])}
                     runs_by_key.setdefault((m, backend, comp, n, w), []).append(r)
-                    print(f"[round {rnd + 1}/{rounds}] {r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} "
-                          f"N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
-                          f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
-                          f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
-                          f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]", flush=True)
+                    print(
+                        f"[round {rnd + 1}/{rounds}] {r['backend']:7s} {str(r['compositor']):6s} {r['device']:22s} "
+                        f"N={r['N']:>7d} {r['width']:>4d}x{r['height']:<4d} "
+                        f"fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  peak {r['peak_mb']:7.1f} MB "
+                        f"(base {r['base_mb']}) isects {r['n_isects']} faults/call fwd {r['fwd_faults']:.0f} "
+                        f"fwd+bwd {r['fwd_bwd_faults']:.0f} [{m}: {r['malloc']}]",
+                        flush=True,
+                    )
     rows = [merge_rounds(rs) for rs in runs_by_key.values()]
     if len(mallocs) > 1:
         print_ratios(rows, mallocs)

@@ -71,7 +71,7 @@ def child_pids(pid: int) -> list[int]:
                 stat = fh.read()
         except OSError:
             continue
-        fields = stat[stat.rfind(")") + 2:].split()
+        fields = stat[stat.rfind(")") + 2 :].split()
         if len(fields) > 1 and int(fields[1]) == pid:
             out.append(int(entry.name))
     return sorted(out)
@@ -94,8 +94,15 @@ class RssSampler(threading.Thread):
         kids = child_pids(me)
         self.worker_pids.update(kids)
         workers = [rss_bytes(p) or 0 for p in kids]
-        self.rows.append({"t": time.perf_counter() - self._t0, "samples": self.progress[0],
-                          "main": rss_bytes(me) or 0, "workers": int(sum(workers)), "n_workers": len(kids)})
+        self.rows.append(
+            {
+                "t": time.perf_counter() - self._t0,
+                "samples": self.progress[0],
+                "main": rss_bytes(me) or 0,
+                "workers": int(sum(workers)),
+                "n_workers": len(kids),
+            }
+        )
 
     def run(self) -> None:
         while not self._halt.wait(self.period):
@@ -116,11 +123,16 @@ def flatness(rows: list[dict[str, Any]], total: int) -> dict[str, Any]:
     y = np.array([r["main"] + r["workers"] for r in after], dtype=float)
     slope, intercept = np.polyfit(x, y, 1) if np.ptp(x) > 0 else (0.0, float(y.mean()))
     mean = float(y.mean())
-    return {"points": len(after), "mean_mib": mean / 2**20, "min_mib": float(y.min()) / 2**20,
-            "max_mib": float(y.max()) / 2**20, "spread": float(np.ptp(y)) / mean,
-            "slope_mib_per_1000": float(slope) * 1000 / 2**20,
-            "drift_over_run": float(slope) * float(np.ptp(x)) / mean,
-            "flat": bool(np.ptp(y) / mean <= FLAT_TOLERANCE)}
+    return {
+        "points": len(after),
+        "mean_mib": mean / 2**20,
+        "min_mib": float(y.min()) / 2**20,
+        "max_mib": float(y.max()) / 2**20,
+        "spread": float(np.ptp(y)) / mean,
+        "slope_mib_per_1000": float(slope) * 1000 / 2**20,
+        "drift_over_run": float(slope) * float(np.ptp(x)) / mean,
+        "flat": bool(np.ptp(y) / mean <= FLAT_TOLERANCE),
+    }
 
 
 def plot(rows: list[dict[str, Any]], total: int, path: Path, title: str) -> None:
@@ -181,10 +193,15 @@ def main(argv: Optional[list[str]] = None) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     data, bundle = setup(out, args.data, args.bundle)
-    real = DataLoader(ArcticDataset(data, "p1_train", seed=args.seed), batch_size=args.batch_size, shuffle=True,
-                      generator=torch.Generator().manual_seed(args.seed))
-    mixed = wrap_train_loader(real, bundle, ratio=0.5, num_workers=args.workers, seed=args.seed,
-                              render_size=args.render_size, batch_size=8)
+    real = DataLoader(
+        ArcticDataset(data, "p1_train", seed=args.seed),
+        batch_size=args.batch_size,
+        shuffle=True,
+        generator=torch.Generator().manual_seed(args.seed),
+    )
+    mixed = wrap_train_loader(
+        real, bundle, ratio=0.5, num_workers=args.workers, seed=args.seed, render_size=args.render_size, batch_size=8
+    )
     syn_ds = mixed.synthetic.dataset  # the HOGSADataset behind the workers' DataLoader
     progress = [0]
     sampler = RssSampler(args.period, progress)
@@ -214,21 +231,37 @@ def main(argv: Optional[list[str]] = None) -> int:
     stats = syn_ds.total_stats()
     workers_seen = sorted(sampler.worker_pids)
     fit = flatness(sampler.rows, args.samples)
-    record = {"settings": vars(args), "data": str(data), "bundle": str(bundle), "seconds": round(seconds, 1),
-              "synthetic_samples": progress[0], "real_samples": real_seen,
-              "samples_per_s": progress[0] / seconds if seconds else None, "error": error,
-              "attempted": stats.attempted, "kept": stats.kept, "dropped": stats.dropped,
-              "num_dropped": stats.num_dropped, "worker_pids": workers_seen,
-              "workers_replaced": max(0, len(workers_seen) - args.workers),
-              "fit_after_warmup": fit, "rss": sampler.rows}
+    record = {
+        "settings": vars(args),
+        "data": str(data),
+        "bundle": str(bundle),
+        "seconds": round(seconds, 1),
+        "synthetic_samples": progress[0],
+        "real_samples": real_seen,
+        "samples_per_s": progress[0] / seconds if seconds else None,
+        "error": error,
+        "attempted": stats.attempted,
+        "kept": stats.kept,
+        "dropped": stats.dropped,
+        "num_dropped": stats.num_dropped,
+        "worker_pids": workers_seen,
+        "workers_replaced": max(0, len(workers_seen) - args.workers),
+        "fit_after_warmup": fit,
+        "rss": sampler.rows,
+    }
     (out / "soak.json").write_text(json.dumps(record, indent=1))
-    title = (f"{progress[0]} synthetic samples, {args.workers} workers, {seconds / 60:.0f} min; after warm-up: "
-             f"spread {100 * fit.get('spread', float('nan')):.1f} %, slope {fit.get('slope_mib_per_1000', 0):.2f} "
-             "MiB/1000 samples")
+    title = (
+        f"{progress[0]} synthetic samples, {args.workers} workers, {seconds / 60:.0f} min; after warm-up: "
+        f"spread {100 * fit.get('spread', float('nan')):.1f} %, slope {fit.get('slope_mib_per_1000', 0):.2f} "
+        "MiB/1000 samples"
+    )
     plot(sampler.rows, args.samples, out / "soak.png", title)
     print(f"[soak] {title}", flush=True)
-    print(f"[soak] attempted {stats.attempted}, kept {stats.kept}, dropped {stats.num_dropped} "
-          f"({ {k: v for k, v in stats.dropped.items() if v} }), worker pids {workers_seen}, error {error}", flush=True)
+    print(
+        f"[soak] attempted {stats.attempted}, kept {stats.kept}, dropped {stats.num_dropped} "
+        f"({ {k: v for k, v in stats.dropped.items() if v} }), worker pids {workers_seen}, error {error}",
+        flush=True,
+    )
     print(f"[soak] {out / 'soak.json'}, {out / 'soak.png'}", flush=True)
     if "flat" not in fit:
         print(f"[soak] too short to judge the memory: {fit['points']} RSS samples after warm-up", flush=True)

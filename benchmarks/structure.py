@@ -110,7 +110,7 @@ def _scan_file(path: Path, out: Structure) -> None:
                     out.long_functions.append((n, f"{path.relative_to(ROOT)}:{child.lineno} {child.name}"))
                 names = [a.arg for a in child.args.posonlyargs + child.args.args + child.args.kwonlyargs]
                 if not _is_compiled_kernel(child):
-                        out.params[f"{path.relative_to(ROOT)}:{child.lineno} {child.name}"] = [
+                    out.params[f"{path.relative_to(ROOT)}:{child.lineno} {child.name}"] = [
                         a for a in names if a not in ("self", "cls")
                     ]
             if isinstance(child, (ast.Import, ast.ImportFrom)):
@@ -122,7 +122,7 @@ def _scan_file(path: Path, out: Structure) -> None:
                 else:
                     line = " ".join(lines[child.lineno - 1 : child.end_lineno])
                     m = _DEFERRED.search(line)
-                    reason = line[m.start():].split(":", 1)[1].strip() if m else None
+                    reason = line[m.start() :].split(":", 1)[1].strip() if m else None
                     out.deferred.append(DeferredImport(f"{path.relative_to(ROOT)}:{child.lineno}", names, reason))
             visit(child, inner)
 
@@ -181,7 +181,7 @@ def repeated_parameter_lists(s: Structure) -> list[tuple[str, str, int]]:
     items = [(k, set(v)) for k, v in s.params.items() if len(v) >= REPEATED_PARAMS]
     pairs = []
     for i, (a, pa) in enumerate(items):
-        for b, pb in items[i + 1:]:
+        for b, pb in items[i + 1 :]:
             n = len(pa & pb)
             if n >= REPEATED_PARAMS:
                 pairs.append((a, b, n))
@@ -190,8 +190,7 @@ def repeated_parameter_lists(s: Structure) -> list[tuple[str, str, int]]:
 
 def synthetic_importers(s: Structure) -> list[str]:
     """Library packages (not the entry points) that import the generated-world package."""
-    return sorted(p for p, deps in s.edges.items()
-                  if SYNTHETIC in deps and p not in ENTRY_POINTS + (SYNTHETIC,))
+    return sorted(p for p, deps in s.edges.items() if SYNTHETIC in deps and p not in ENTRY_POINTS + (SYNTHETIC,))
 
 
 def violations(s: Structure) -> dict[str, list[str]]:

@@ -139,8 +139,13 @@ def timed_iteration(
         elapsed = time.perf_counter() - start
         if elapsed >= seconds:
             break
-    return {"images": n_img, "batches": n_batch, "seconds": round(elapsed, 3), "warmup_seconds": round(warm_s, 3),
-            "images_per_s": (n_img / elapsed) if elapsed > 0 else None}
+    return {
+        "images": n_img,
+        "batches": n_batch,
+        "seconds": round(elapsed, 3),
+        "warmup_seconds": round(warm_s, 3),
+        "images_per_s": (n_img / elapsed) if elapsed > 0 else None,
+    }
 
 
 def stage_report(stats: Any) -> dict[str, Any]:
@@ -148,16 +153,28 @@ def stage_report(stats: Any) -> dict[str, Any]:
     secs = {k: float(stats.seconds.get(k, 0.0)) for k in STAGES}
     total = sum(secs.values())
     kept = max(1, int(stats.kept))
-    return {k: {"seconds": round(v, 4), "ms_per_image": round(1000.0 * v / kept, 3),
-                "fraction": round(v / total, 4) if total > 0 else 0.0} for k, v in secs.items()}
+    return {
+        k: {
+            "seconds": round(v, 4),
+            "ms_per_image": round(1000.0 * v / kept, 3),
+            "fraction": round(v / total, 4) if total > 0 else 0.0,
+        }
+        for k, v in secs.items()
+    }
 
 
 # --------------------------------------------------------------------------------------
 
 
 def make_synth(args: argparse.Namespace, device: str):
-    kw: dict[str, Any] = dict(coco_root=args.coco_root, coco_ann=args.coco_ann, srm=args.srm, device=device,
-                              batch_size=args.render_batch or args.batch_size, seed=args.seed)
+    kw: dict[str, Any] = dict(
+        coco_root=args.coco_root,
+        coco_ann=args.coco_ann,
+        srm=args.srm,
+        device=device,
+        batch_size=args.render_batch or args.batch_size,
+        seed=args.seed,
+    )
     if args.background_folder:
         kw["background_folder"] = args.background_folder
     if args.poses:
@@ -176,8 +193,13 @@ def bench_synthetic(args: argparse.Namespace, device: str) -> dict[str, Any]:
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     sync = (lambda: torch.cuda.synchronize()) if cuda else None
-    loader = DataLoader(ds, batch_size=args.batch_size, num_workers=workers,
-                        persistent_workers=False, worker_init_fn=_worker_init if workers else None)
+    loader = DataLoader(
+        ds,
+        batch_size=args.batch_size,
+        num_workers=workers,
+        persistent_workers=False,
+        worker_init_fn=_worker_init if workers else None,
+    )
     at_warm: dict[str, Any] = {}
 
     def on_warm() -> None:
@@ -223,8 +245,14 @@ def bench_real(args: argparse.Namespace) -> dict[str, Any]:
     root = args.real_data or args.data
     ds = ArcticDataset(root, split=args.real_split, seed=args.seed)
     g = torch.Generator().manual_seed(args.seed)
-    loader = DataLoader(ds, batch_size=args.batch_size, shuffle=True, generator=g, num_workers=args.num_workers,
-                        worker_init_fn=_worker_init if args.num_workers else None)
+    loader = DataLoader(
+        ds,
+        batch_size=args.batch_size,
+        shuffle=True,
+        generator=g,
+        num_workers=args.num_workers,
+        worker_init_fn=_worker_init if args.num_workers else None,
+    )
     res = timed_iteration(loader, args.real_seconds or args.seconds, warmup_batches(args.warmup, args.num_workers))
     # single-process breakdown: read + JPEG decode vs blur/warp/augment/targets
     n = min(len(ds), args.real_profile_items)
@@ -238,14 +266,23 @@ def bench_real(args: argparse.Namespace) -> dict[str, Any]:
         t2 = time.perf_counter()
         t_read += t1 - t0
         t_total += t2 - t1
-    stages = {"read_decode": round(1000 * t_read / max(n, 1), 3),
-              "blur_crop_augment_targets": round(1000 * (t_total - t_read) / max(n, 1), 3),
-              "total_single_process": round(1000 * t_total / max(n, 1), 3)}
+    stages = {
+        "read_decode": round(1000 * t_read / max(n, 1), 3),
+        "blur_crop_augment_targets": round(1000 * (t_total - t_read) / max(n, 1), 3),
+        "total_single_process": round(1000 * t_total / max(n, 1), 3),
+    }
     img = ds._read_image(ds.image_path(ds.imgnames[idx[0]])) if n else None
-    return {"timed": res, "data_root": str(Path(root).resolve()), "split": args.real_split, "num_images": len(ds),
-            "num_workers": args.num_workers, "source_image_shape": None if img is None else list(img.shape),
-            "stages_ms_per_image": stages, "profile_items": n,
-            "missing_images_in_profile": len(set(ds.missing_image_paths))}  # (workers' counts stay in the workers)
+    return {
+        "timed": res,
+        "data_root": str(Path(root).resolve()),
+        "split": args.real_split,
+        "num_images": len(ds),
+        "num_workers": args.num_workers,
+        "source_image_shape": None if img is None else list(img.shape),
+        "stages_ms_per_image": stages,
+        "profile_items": n,
+        "missing_images_in_profile": len(set(ds.missing_image_paths)),
+    }  # (workers' counts stay in the workers)
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -208,7 +208,10 @@ def _hand_hashes(mano_layers: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     out = {}
     for side in ("right", "left"):
         data = mano_layers[side].data
-        out[side] = {"template_hash": template_hash(data.v_template, data.faces), "num_verts": int(len(data.v_template))}
+        out[side] = {
+            "template_hash": template_hash(data.v_template, data.faces),
+            "num_verts": int(len(data.v_template)),
+        }
     return out
 
 
@@ -238,12 +241,15 @@ def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
         want = manifest.get("hand_model", {}).get(side, {}).get("template_hash")
         if want != hands[side]["template_hash"]:
             problems.append(
-                f"hand model ({side}) of the data root {root.mano_dir} hashes to {hands[side]['template_hash'][:16]}..., "
+                f"hand model ({side}) of the data root {root.mano_dir} hashes to "
+                f"{hands[side]['template_hash'][:16]}..., "
                 f"the bundle was built with {str(want)[:16]}..."
             )
     for name, rec in manifest.get("objects", {}).items():
         if name not in objects:
-            problems.append(f"object template {name!r} used by the bundle is missing from the data root {root.meta_dir}")
+            problems.append(
+                f"object template {name!r} used by the bundle is missing from the data root {root.meta_dir}"
+            )
         elif objects[name]["template_hash"] != rec.get("template_hash"):
             problems.append(
                 f"object template {name!r} of the data root hashes to {objects[name]['template_hash'][:16]}..., "
@@ -297,7 +303,9 @@ def _checkpoint_problems(srm: Optional[Path], contactnet: Optional[Path], banks:
 def _check_extras(srm: Optional[PathLike], contactnet: Optional[PathLike], pose_banks: Sequence[PathLike]) -> list[str]:
     """Problems of the optional checkpoints given to :func:`write_bundle` (before copying)."""
     problems = []
-    for what, p in [("SRM checkpoint", srm), ("ContactNet checkpoint", contactnet)] + [("pose bank", b) for b in pose_banks]:
+    for what, p in [("SRM checkpoint", srm), ("ContactNet checkpoint", contactnet)] + [
+        ("pose bank", b) for b in pose_banks
+    ]:
         if p is not None and not Path(p).exists():
             problems.append(f"{what} {p} is missing")
     if problems:
@@ -305,9 +313,12 @@ def _check_extras(srm: Optional[PathLike], contactnet: Optional[PathLike], pose_
     names = [Path(b).name for b in pose_banks]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        problems.append(f"pose banks must have distinct folder names (they are copied to pose_banks/<name>): {dup} repeated")
-    return problems + _checkpoint_problems(Path(srm) if srm else None, Path(contactnet) if contactnet else None,
-                                           [Path(b) for b in pose_banks])  # fmt: skip
+        problems.append(
+            f"pose banks must have distinct folder names (they are copied to pose_banks/<name>): {dup} repeated"
+        )
+    return problems + _checkpoint_problems(
+        Path(srm) if srm else None, Path(contactnet) if contactnet else None, [Path(b) for b in pose_banks]
+    )
 
 
 def _extra(src: Optional[PathLike], out: Path, rel: str, what: str) -> Optional[dict[str, Any]]:
@@ -322,8 +333,9 @@ def _extra(src: Optional[PathLike], out: Path, rel: str, what: str) -> Optional[
     return {"path": rel, "files": _hash_tree(dst)}
 
 
-def _collect_runs(hogs_runs: Sequence[PathLike], layers: Mapping[str, Any],
-                  templates: Mapping[str, Any]) -> tuple[list[tuple[str, str, Path, int]], list[str]]:
+def _collect_runs(
+    hogs_runs: Sequence[PathLike], layers: Mapping[str, Any], templates: Mapping[str, Any]
+) -> tuple[list[tuple[str, str, Path, int]], list[str]]:
     """Load every HOGS run against the data root's models: ``[(subject, object, run, num_gaussians)]``
     and the problems found (unfinished or mismatched runs, two runs of one (subject, object))."""
     problems: list[str] = []
@@ -433,8 +445,10 @@ def write_bundle(
         "hogs": hogs,
         "srm": _extra(srm, out, "srm", "SRM checkpoint"),
         "contactnet": _extra(contactnet, out, "contactnet", "ContactNet checkpoint"),
-        "pose_banks": [{"name": Path(b).name, **_extra(b, out, "pose_banks", "pose bank")}  # type: ignore[dict-item]
-                       for b in pose_banks],
+        "pose_banks": [
+            {"name": Path(b).name, **_extra(b, out, "pose_banks", "pose bank")}  # type: ignore[dict-item]
+            for b in pose_banks
+        ],
     }
     atomic_write_json(out / MANIFEST_NAME, manifest, indent=1)
     return out
@@ -520,8 +534,15 @@ def _read_bundle_manifest(path: Path) -> dict[str, Any]:
     return manifest
 
 
-def _check_part(what: str, folder: Path, want_hash: Any, rec_part: Any, verify_hashes: bool,
-                problems: list[str], unlisted: Optional[str] = None) -> bool:
+def _check_part(
+    what: str,
+    folder: Path,
+    want_hash: Any,
+    rec_part: Any,
+    verify_hashes: bool,
+    problems: list[str],
+    unlisted: Optional[str] = None,
+) -> bool:
     """One part checkpoint of a HOGS run: readable, made for ``want_hash`` (``unlisted``: the
     problem to report instead, when the bundle lists no template for it), files equal to the
     recorded hashes. Appends problems; False when the checkpoint is missing or unreadable."""
@@ -536,8 +557,10 @@ def _check_part(what: str, folder: Path, want_hash: Any, rec_part: Any, verify_h
     if unlisted is not None:
         problems.append(unlisted)
     elif man["template_hash"] != want_hash:
-        problems.append(f"{what}: part {folder.name} was trained on template {man['template_hash'][:16]}..., "
-                        f"the bundle records {str(want_hash)[:16]}...")  # fmt: skip
+        problems.append(
+            f"{what}: part {folder.name} was trained on template {man['template_hash'][:16]}..., "
+            f"the bundle records {str(want_hash)[:16]}..."
+        )
     if not isinstance(rec_part, dict) or not rec_part:
         problems.append(f"{what}: no hashes recorded for part {folder.name}")
     elif verify_hashes:
@@ -576,12 +599,23 @@ def _escaping_files(path: Path, rel: str, run: Path) -> list[str]:
     """Checkpoint files of a HOGS run that lead out of the bundle (e.g. a part folder that is a
     symbolic link)."""
     files = [(p, (MANIFEST_FILE, TENSORS_FILE)) for p in _PARTS] + [(LIGHT_DIR, tuple(_LIGHT_FILES.values()))]
-    return [f"{rel}/{sub}/{f}" for sub, names in files for f in names
-            if (run / sub / f).exists() and _inside(path, f"{rel}/{sub}/{f}") is None]  # fmt: skip
+    return [
+        f"{rel}/{sub}/{f}"
+        for sub, names in files
+        for f in names
+        if (run / sub / f).exists() and _inside(path, f"{rel}/{sub}/{f}") is None
+    ]
 
 
-def _check_hogs_entry(path: Path, manifest: Mapping[str, Any], i: int, rec: Any, seen: Mapping[tuple[str, str], Any],
-                      verify_hashes: bool, problems: list[str]) -> Optional[HogsEntry]:
+def _check_hogs_entry(
+    path: Path,
+    manifest: Mapping[str, Any],
+    i: int,
+    rec: Any,
+    seen: Mapping[tuple[str, str], Any],
+    verify_hashes: bool,
+    problems: list[str],
+) -> Optional[HogsEntry]:
     """``manifest["hogs"][i]``: its record, part checkpoints and light. Appends problems; the
     entry, or None when it is unusable."""
     if not isinstance(rec, dict) or not all(isinstance(rec.get(k), str) for k in ("subject", "object", "path")):
@@ -619,13 +653,19 @@ def _check_hogs_entry(path: Path, manifest: Mapping[str, Any], i: int, rec: Any,
     if not ok:
         return None
     light = rec.get("light")
-    return HogsEntry(subject=key[0], object=key[1], path=run, num_gaussians=n_gauss,
-                     parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
-                     light=dict(light) if isinstance(light, dict) else None)  # fmt: skip
+    return HogsEntry(
+        subject=key[0],
+        object=key[1],
+        path=run,
+        num_gaussians=n_gauss,
+        parts={p: dict(v) for p, v in parts.items() if isinstance(v, dict)},
+        light=dict(light) if isinstance(light, dict) else None,
+    )
 
 
-def _check_extra_entries(path: Path, manifest: Mapping[str, Any], problems: list[str]
-                         ) -> tuple[Optional[ExtraEntry], Optional[ExtraEntry], dict[str, ExtraEntry]]:
+def _check_extra_entries(
+    path: Path, manifest: Mapping[str, Any], problems: list[str]
+) -> tuple[Optional[ExtraEntry], Optional[ExtraEntry], dict[str, ExtraEntry]]:
     """The SRM, ContactNet and pose-bank entries: files present with their recorded hashes.
     Appends problems; ``(srm, contactnet, {name: pose bank})``."""
     srm = contactnet = None
@@ -677,8 +717,9 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
             hogs[entry.key] = entry
     srm, contactnet, banks = _check_extra_entries(path, manifest, problems)
     if not problems:  # files present and unchanged: read them as checkpoints
-        problems += _checkpoint_problems(srm.path if srm else None, contactnet.path if contactnet else None,
-                                         [b.path for b in banks.values()])  # fmt: skip
+        problems += _checkpoint_problems(
+            srm.path if srm else None, contactnet.path if contactnet else None, [b.path for b in banks.values()]
+        )
     if data_root is not None:
         problems.extend(_check_root(manifest, data_root))
     if problems:

@@ -43,14 +43,7 @@ from hogsa_loader.pom.perturb import KEEP_ARTICULATION
 from hogsa_loader.render.gaussians import warm_up_compositor
 from hogsa_loader.synthetic.world import generate_world, get_preset
 from hogsa_loader.system import available_cores, can_fork, run_forked
-from hogsa_loader.train import (
-    HogsConfig,
-    HogsDataConfig,
-    HogsModelConfig,
-    HogsOptimConfig,
-    HogsRunConfig,
-    HogsTrainer,
-)
+from hogsa_loader.train import HogsConfig, HogsDataConfig, HogsModelConfig, HogsOptimConfig, HogsRunConfig, HogsTrainer
 from hogsa_loader.train.srm_config import (
     SRMDataConfig,
     SRMLossConfig,
@@ -111,7 +104,9 @@ class DemoConfig:
     bank_per_sequence: int = 6
     srm_iters: int = 400
     srm_crop: int = 64
-    srm_augment: str = "none"  # 400 steps on the small world: +0.24 dB without, +0.06 dB with d4 (d4 pays off only in long runs)
+    srm_augment: str = (
+        "none"  # 400 steps on the small world: +0.24 dB without, +0.06 dB with d4 (d4 pays off only in long runs)
+    )
     samples: int = 64
     batch_size: int = 8
     num_workers: int = 2
@@ -192,7 +187,11 @@ def unbatch(batch: Any, i: int) -> Any:
         return {k: unbatch(v, i) for k, v in batch.items()}
     if isinstance(batch, (list, tuple)):
         if batch and isinstance(batch[0], (torch.Tensor, dict, list, tuple)):
-            return type(batch)(unbatch(v, i) for v in batch) if isinstance(batch, tuple) else [unbatch(v, i) for v in batch]
+            return (
+                type(batch)(unbatch(v, i) for v in batch)
+                if isinstance(batch, tuple)
+                else [unbatch(v, i) for v in batch]
+            )
         return batch[i]
     raise TypeError(f"cannot unbatch a {type(batch).__name__}")
 
@@ -224,9 +223,19 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         data = world / "arctic_data" / "data"
         preset = get_preset(cfg.preset)
         k_world = _key("world", cfg.preset, cfg.seed)
-        stages.run("world", k_world, [world], lambda: {"sequences": len(generate_world(
-            world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"])}, resumable=True)
-
+        stages.run(
+            "world",
+            k_world,
+            [world],
+            lambda: {
+                "sequences": len(
+                    generate_world(world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)[
+                        "sequences"
+                    ]
+                )
+            },
+            resumable=True,
+        )
 
     def child_cfg() -> DemoConfig:
         return _CHILD_CFG or cfg
@@ -238,20 +247,39 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     for sid, obj in cfg.pairs:
         run = out / "runs" / "hogs" / f"{sid}_{obj}"
         runs.append(run)
-        k = _key("hogs", k_world, sid, obj, cfg.hogs_iters, cfg.hogs_image_size, cfg.hogs_sh_degree,
-                 cfg.hogs_frame_stride, cfg.hogs_k, cfg.hogs_object_subdivide, cfg.hogs_window)
+        k = _key(
+            "hogs",
+            k_world,
+            sid,
+            obj,
+            cfg.hogs_iters,
+            cfg.hogs_image_size,
+            cfg.hogs_sh_degree,
+            cfg.hogs_frame_stride,
+            cfg.hogs_k,
+            cfg.hogs_object_subdivide,
+            cfg.hogs_window,
+        )
         k_hogs.append(k)
-        nodes.append(_StageNode(f"hogs/{sid}_{obj}", k, [run],
-                                lambda sid=sid, obj=obj, run=run: _train_hogs(child_cfg(), data, sid, obj, run)))
+        nodes.append(
+            _StageNode(
+                f"hogs/{sid}_{obj}",
+                k,
+                [run],
+                lambda sid=sid, obj=obj, run=run: _train_hogs(child_cfg(), data, sid, obj, run),
+            )
+        )
 
     cn = out / "runs" / "contactnet"
     k_cn = _key("contactnet", k_world, cfg.contactnet_iters)
 
     def contactnet() -> dict[str, Any]:
         c = child_cfg()
-        job = ContactNetJobConfig(data=ContactNetDataConfig(root=str(data)),
-                                  optim=ContactNetOptimConfig(iters=c.contactnet_iters, seed=c.seed),
-                                  run=ContactNetRunConfig(out=str(cn), val_every=c.contactnet_iters))
+        job = ContactNetJobConfig(
+            data=ContactNetDataConfig(root=str(data)),
+            optim=ContactNetOptimConfig(iters=c.contactnet_iters, seed=c.seed),
+            run=ContactNetRunConfig(out=str(cn), val_every=c.contactnet_iters),
+        )
         m = fit_contactnet(job, progress=c.progress)
         return {k: m[k] for k in ("val_mae", "val_iou05")}
 
@@ -260,22 +288,42 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, asdict(KEEP_ARTICULATION))  # the start perturbation
-    bank_cfg = PoseBankConfig(data=BankDataConfig(root=str(data), contactnet=str(cn), sequences=tuple(seqs),
-                                                  per_sequence=cfg.bank_per_sequence),
-                              run=BankRunConfig(out=str(bank), seed=cfg.seed))
-    nodes.append(_StageNode("bank", k_bank, [bank], lambda: build_pose_bank(
-        bank_cfg, progress=child_cfg().progress), needs=("contactnet",)))
+    bank_cfg = PoseBankConfig(
+        data=BankDataConfig(
+            root=str(data), contactnet=str(cn), sequences=tuple(seqs), per_sequence=cfg.bank_per_sequence
+        ),
+        run=BankRunConfig(out=str(bank), seed=cfg.seed),
+    )
+    nodes.append(
+        _StageNode(
+            "bank",
+            k_bank,
+            [bank],
+            lambda: build_pose_bank(bank_cfg, progress=child_cfg().progress),
+            needs=("contactnet",),
+        )
+    )
     srm = out / "runs" / "srm"
     k_srm = _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment)
-    nodes.append(_StageNode("srm", k_srm, [srm], lambda: _train_srm(
-        child_cfg(), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
-        needs=tuple(n.name for n in nodes if n.name.startswith("hogs/"))))
+    nodes.append(
+        _StageNode(
+            "srm",
+            k_srm,
+            [srm],
+            lambda: _train_srm(child_cfg(), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
+            needs=tuple(n.name for n in nodes if n.name.startswith("hogs/")),
+        )
+    )
     _run_stage_graph(stages, nodes, cfg, say)
 
     bundle = out / "bundle"
     k_bundle = _key("bundle", k_hogs, k_cn, k_bank, k_srm, BUNDLE_SCHEMA_VERSION)
-    stages.run("bundle", k_bundle, [bundle], lambda: str(write_bundle(
-        bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])))
+    stages.run(
+        "bundle",
+        k_bundle,
+        [bundle],
+        lambda: str(write_bundle(bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])),
+    )
     return data, bundle
 
 
@@ -355,8 +403,9 @@ def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, 
         _NODES, _CHILD_CFG = [], None  # (a stage built in this process set the stage settings here)
 
 
-def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
-                        log: Optional[Callable[[str], None]] = print) -> tuple[Path, Path, dict[str, float]]:
+def build_bundle_stages(
+    out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print
+) -> tuple[Path, Path, dict[str, float]]:
     """Build (or reuse) the demo's stages up to the bundle: world, HOGS runs, ContactNet,
     pose bank, SRM, bundle — each cached in ``out`` by its settings.
 
@@ -395,13 +444,21 @@ def build_bundle_stages(out: PathLike, config: DemoConfig = DemoConfig(),
 def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> dict[str, Any]:
 
     hc = HogsConfig(
-        data=HogsDataConfig(root=str(data), subject=sid, object=obj, image_size=cfg.hogs_image_size, max_eval=4,
-                            frame_stride=cfg.hogs_frame_stride, window=cfg.hogs_window),
+        data=HogsDataConfig(
+            root=str(data),
+            subject=sid,
+            object=obj,
+            image_size=cfg.hogs_image_size,
+            max_eval=4,
+            frame_stride=cfg.hogs_frame_stride,
+            window=cfg.hogs_window,
+        ),
         model=HogsModelConfig(sh_degree=cfg.hogs_sh_degree, k=cfg.hogs_k, object_subdivide=cfg.hogs_object_subdivide),
         optim=HogsOptimConfig(iters=cfg.hogs_iters, sh_warmup=max(1, cfg.hogs_iters // 3), lr_scale=10.0),
-        run=HogsRunConfig(out=str(run), seed=cfg.seed, eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters,
-                          strip_views=2),
-    )  # fmt: skip
+        run=HogsRunConfig(
+            out=str(run), seed=cfg.seed, eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters, strip_views=2
+        ),
+    )
     m = HogsTrainer(hc, progress=cfg.progress).train()
     return {"psnr": m["psnr"], "ssim": m["ssim"], "iters": m["iters"]}
 
@@ -409,14 +466,16 @@ def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> d
 def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) -> dict[str, Any]:
 
     sc = SRMTrainConfig(
-        data=SRMDataConfig(root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment,
-                           cache=str(cache)),
+        data=SRMDataConfig(
+            root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment, cache=str(cache)
+        ),
         model=SRMModelConfig(channels=(16, 32, 64, 64, 64)),
         loss=SRMLossConfig(lambda_gan=0.0),
         optim=SRMOptimConfig(iters=cfg.srm_iters),
-        run=SRMRunConfig(out=str(out), seed=cfg.seed, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters,
-                         strip_views=2),
-    )  # fmt: skip
+        run=SRMRunConfig(
+            out=str(out), seed=cfg.seed, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters, strip_views=2
+        ),
+    )
     trainer = SRMTrainer(sc, progress=cfg.progress, log=lambda s: None)
     m = trainer.train()
     used = {f.resolve() for ps in trainer.sets for f in ps.cache_files}
@@ -431,12 +490,22 @@ def _orbit(out: Path, bundle: Path, data: Path, cfg: DemoConfig, say: Callable[[
     if cfg.orbit_views <= 0:
         return None
     sid, obj = cfg.pairs[0]
-    vc = ViewConfig(bundle=str(bundle), data=str(data), subject=sid, object=obj, out=str(out / "view"),
-                    orbit=cfg.orbit_views, size=cfg.orbit_size, quiet=True)  # fmt: skip
+    vc = ViewConfig(
+        bundle=str(bundle),
+        data=str(data),
+        subject=sid,
+        object=obj,
+        out=str(out / "view"),
+        orbit=cfg.orbit_views,
+        size=cfg.orbit_size,
+        quiet=True,
+    )
     rec = run_view(vc, log=None)
     orbit = rec["orbits"][sid]
-    say(f"[view] 360° orbit of {sid}/{obj} ({cfg.orbit_views} views, with and without SRM) in "
-        f"{rec['seconds']['total']:.1f} s: {orbit['png']}")  # fmt: skip
+    say(
+        f"[view] 360° orbit of {sid}/{obj} ({cfg.orbit_views} views, with and without SRM) in "
+        f"{rec['seconds']['total']:.1f} s: {orbit['png']}"
+    )
     return {"png": orbit["png"], "video": orbit.get("video"), "pose": orbit["pose"], "seconds": rec["seconds"]["total"]}
 
 
@@ -454,8 +523,12 @@ def _demo_dataset(bundle: Path, data: Path, bg: dict[str, Any], **options: Any) 
 
 def _stream(ds: HOGSADataset, config: DemoConfig, say: Callable[[str], None]) -> tuple[list[Any], dict[str, Any]]:
     """Stream ``ds`` through a DataLoader; the samples (one by one) and the throughput record."""
-    loader = DataLoader(ds, batch_size=config.batch_size, num_workers=config.num_workers,
-                        worker_init_fn=_worker_init if config.num_workers else None)
+    loader = DataLoader(
+        ds,
+        batch_size=config.batch_size,
+        num_workers=config.num_workers,
+        worker_init_fn=_worker_init if config.num_workers else None,
+    )
     t0 = time.perf_counter()
     t_first: Optional[float] = None
     syn: list[Any] = []
@@ -470,29 +543,53 @@ def _stream(ds: HOGSADataset, config: DemoConfig, say: Callable[[str], None]) ->
     steady = n - (len(first_batch[2]["imgname"]) if first_batch is not None else 0)
     ips = n / (t_end - t0) if n else 0.0
     ips_steady = steady / (t_end - t_first) if t_first is not None and steady > 0 and t_end > t_first else None
-    say(f"[stream] {n} samples kept of {config.samples} in {t_end - t0:.1f} s: {ips:.2f} img/s end to end"
-        + (f", {ips_steady:.2f} img/s after the first batch" if ips_steady else ""))
-    rec = {"samples_requested": config.samples, "samples_kept": n, "dropped": config.samples - n,
-           "seconds": round(t_end - t0, 2), "images_per_s": round(ips, 2),
-           "images_per_s_after_first_batch": None if ips_steady is None else round(ips_steady, 2),
-           "num_workers": config.num_workers, "batch_size": config.batch_size}  # fmt: skip
+    say(
+        f"[stream] {n} samples kept of {config.samples} in {t_end - t0:.1f} s: {ips:.2f} img/s end to end"
+        + (f", {ips_steady:.2f} img/s after the first batch" if ips_steady else "")
+    )
+    rec = {
+        "samples_requested": config.samples,
+        "samples_kept": n,
+        "dropped": config.samples - n,
+        "seconds": round(t_end - t0, 2),
+        "images_per_s": round(ips, 2),
+        "images_per_s_after_first_batch": None if ips_steady is None else round(ips_steady, 2),
+        "num_workers": config.num_workers,
+        "batch_size": config.batch_size,
+    }
     return syn, rec
 
 
-def _grid_rows(syn: list[Any], real: list[Any], bundle: Path, data: Path, bg: dict[str, Any],
-               config: DemoConfig) -> list[tuple[str, list[Any]]]:
+def _grid_rows(
+    syn: list[Any], real: list[Any], bundle: Path, data: Path, bg: dict[str, Any], config: DemoConfig
+) -> list[tuple[str, list[Any]]]:
     """Rows of the sample sheet: streamed samples, perturbed annotated grasps, real samples."""
     n = len(syn)
     pick = np.linspace(0, n - 1, min(n, config.grid_cols)).round().astype(int) if n else []
-    rows = [("synthetic: POM pose bank + SRM + photo background (samples spread over the stream)",
-             [syn[int(i)] for i in pick])]
+    rows = [
+        (
+            "synthetic: POM pose bank + SRM + photo background (samples spread over the stream)",
+            [syn[int(i)] for i in pick],
+        )
+    ]
     if config.grid_rows > 1:  # annotated grasps, lightly perturbed, for comparison
-        per = _demo_dataset(bundle, data, bg, poses="perturb", batch_size=config.grid_cols, seed=config.seed + 2,
-                            num_samples=config.grid_cols * (config.grid_rows - 1))
+        per = _demo_dataset(
+            bundle,
+            data,
+            bg,
+            poses="perturb",
+            batch_size=config.grid_cols,
+            seed=config.seed + 2,
+            num_samples=config.grid_cols * (config.grid_rows - 1),
+        )
         more = [per.to_sample(f) for g in range(per.num_batches or 0) for f in per.frames(g) if f is not None]
         for r in range(config.grid_rows - 1):
-            rows.append((f"synthetic: perturbed annotated grasps + SRM + photo background, row {r + 1}",
-                         more[r * config.grid_cols:(r + 1) * config.grid_cols]))
+            rows.append(
+                (
+                    f"synthetic: perturbed annotated grasps + SRM + photo background, row {r + 1}",
+                    more[r * config.grid_cols : (r + 1) * config.grid_cols],
+                )
+            )
     return [r for r in rows if r[1]] + [("real (ARCTIC-format world, same augmentation)", real)]
 
 
@@ -506,7 +603,9 @@ def _write_grids(out: Path, rows: list[tuple[str, list[Any]]], ds: HOGSADataset)
     return grid_path
 
 
-def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
+def run_demo(
+    out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print
+) -> dict[str, Any]:
     """Build (or reuse) everything, stream synthetic samples, write the pictures.
 
     ``samples.png``: a row of streamed synthetic samples (pose bank), rows of synthetic samples
@@ -537,8 +636,9 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
     data, bundle = _build(config, out, stages, say)
 
     bg = _background_options(config, out)
-    ds = _demo_dataset(bundle, data, bg, poses="bank", batch_size=config.render_batch, seed=config.seed,
-                       num_samples=config.samples)
+    ds = _demo_dataset(
+        bundle, data, bg, poses="bank", batch_size=config.render_batch, seed=config.seed, num_samples=config.samples
+    )
     say(f"[stream] {config.samples} synthetic samples, models {ds.keys}, {config.num_workers} workers")
     syn, stream = _stream(ds, config, say)
 
@@ -548,8 +648,9 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
     real = [real_ds[int(i)] for i in real_idx]
     grid_path = _write_grids(out, _grid_rows(syn, real, bundle, data, bg, config), ds)
 
-    real_loader = DataLoader(real_ds, batch_size=config.batch_size, shuffle=True,
-                             generator=torch.Generator().manual_seed(config.seed))
+    real_loader = DataLoader(
+        real_ds, batch_size=config.batch_size, shuffle=True, generator=torch.Generator().manual_seed(config.seed)
+    )
     syn_single = _demo_dataset(bundle, data, bg, poses="bank", batch_size=config.render_batch, seed=config.seed + 1)
     mixed = next(iter(MixedLoader(real_loader, syn_single, ratio=0.5)))
     npz_path = out / "batch.npz"
@@ -561,12 +662,20 @@ def run_demo(out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Cal
         "stage_seconds": {k: round(v, 1) for k, v in stages.seconds.items()},
         "reused_stages": stages.reused,
         "stream": {**stream, "models": [list(k) for k in ds.keys], "backgrounds": str(bg)},
-        "outputs": {"grid": str(grid_path), "grid_clean": str(out / "samples_clean.png"), "batch": str(npz_path),
-                    "bundle": str(bundle), "data": str(data), "orbit": orbit},
+        "outputs": {
+            "grid": str(grid_path),
+            "grid_clean": str(out / "samples_clean.png"),
+            "batch": str(npz_path),
+            "bundle": str(bundle),
+            "data": str(data),
+            "orbit": orbit,
+        },
         "total_seconds": round(time.perf_counter() - t_start, 1),
-    }  # fmt: skip
+    }
     (out / "demo.json").write_text(json.dumps(record, indent=1))
-    say(f"[demo] samples.png: {grid_path}\n[demo] batch.npz:   {npz_path}\n"
+    say(
+        f"[demo] samples.png: {grid_path}\n[demo] batch.npz:   {npz_path}\n"
         f"[demo] total {record['total_seconds']:.0f} s; synthetic loader {stream['images_per_s']:.2f} img/s on "
-        f"{config.num_workers} CPU worker(s)")
+        f"{config.num_workers} CPU worker(s)"
+    )
     return record

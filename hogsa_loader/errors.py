@@ -49,6 +49,7 @@ def read_json(path: PathLike, allow_nan: bool = True) -> "object":
     ``allow_nan=False`` also refuses ``NaN`` / ``Infinity`` (not JSON values; Python's
     reader accepts them): for this library's own manifests, whose writer never emits them.
     """
+
     def reject(name: str) -> "object":
         raise ValueError(f"malformed JSON: {name} is not a JSON value")
 

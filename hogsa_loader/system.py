@@ -11,8 +11,7 @@ import threading
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Optional, Sequence
 
-__all__ = ["available_cores", "can_fork", "run_forked", "keep_allocator_memory", "allocator_status",
-           "KEEP_MEMORY_ENV"]
+__all__ = ["available_cores", "can_fork", "run_forked", "keep_allocator_memory", "allocator_status", "KEEP_MEMORY_ENV"]
 
 #: Set to ``0`` to leave the C allocator as the process found it.
 KEEP_MEMORY_ENV = "HOGSA_KEEP_MEMORY"
@@ -49,9 +48,15 @@ def can_fork() -> bool:
     return sys.platform.startswith("linux")
 
 
-def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers: int,
-               on_result: Callable[[int, Any], None], initializer: Optional[Callable[..., None]] = None,
-               initargs: tuple = (), poll: Optional[Callable[[], None]] = None) -> None:
+def run_forked(
+    fn: Callable[[int], Any],
+    needs: Sequence[Sequence[int]],
+    workers: int,
+    on_result: Callable[[int, Any], None],
+    initializer: Optional[Callable[..., None]] = None,
+    initargs: tuple = (),
+    poll: Optional[Callable[[], None]] = None,
+) -> None:
     """Run ``fn(i)`` for every task ``i`` on ``workers`` forked processes, each once the tasks
     in ``needs[i]`` are done. ``fn`` and what it reads are inherited through fork, so they
     need not pickle; results must. ``on_result(i, result)`` runs in the caller as each task
@@ -74,8 +79,12 @@ def run_forked(fn: Callable[[int], Any], needs: Sequence[Sequence[int]], workers
     for i, deps in enumerate(needs):
         if any(not 0 <= d < i for d in deps):
             raise ValueError(f"task {i} needs {list(deps)}: only tasks listed before it")
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=_forked_init,
-                               initargs=(initializer, initargs))
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("fork"),
+        initializer=_forked_init,
+        initargs=(initializer, initargs),
+    )
     error: Optional[BaseException] = None
     caller_ready = False
     try:

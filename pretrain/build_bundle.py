@@ -44,7 +44,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--out", required=True, help="bundle folder to write")
     p.add_argument("--srm", default=None, help="SRM checkpoint folder (a train_srm.py run)")
     p.add_argument("--contactnet", default=None, help="ContactNet checkpoint folder")
-    p.add_argument("--pose-bank", action="append", default=[], help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names")
+    p.add_argument(
+        "--pose-bank",
+        action="append",
+        default=[],
+        help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names",
+    )
     p.add_argument("--dataset", default="arctic")
     p.add_argument("--overwrite", action="store_true", help="replace the bundle already in --out")
     checks.one_line_errors(p)
@@ -59,15 +64,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if not runs:
             raise UsageError(f"--hogs {args.hogs}: no finished HOGS run under it")
         out = write_bundle(
-            args.out, args.data, runs, srm=args.srm, contactnet=args.contactnet,
-            pose_banks=args.pose_bank, dataset=args.dataset,
-        )  # fmt: skip
+            args.out,
+            args.data,
+            runs,
+            srm=args.srm,
+            contactnet=args.contactnet,
+            pose_banks=args.pose_bank,
+            dataset=args.dataset,
+        )
         bundle = load_bundle(out, data_root=args.data)
     except (HogsaError, OSError) as exc:
         return checks.report("build_bundle", exc)
-    print(f"bundle {out}: {len(bundle.hogs)} HOGS run(s) {bundle.keys}"
-          f"{', SRM' if bundle.srm else ''}{', ContactNet' if bundle.contactnet else ''}"
-          f"{f', {len(bundle.pose_banks)} pose bank(s)' if bundle.pose_banks else ''}")
+    print(
+        f"bundle {out}: {len(bundle.hogs)} HOGS run(s) {bundle.keys}"
+        f"{', SRM' if bundle.srm else ''}{', ContactNet' if bundle.contactnet else ''}"
+        f"{f', {len(bundle.pose_banks)} pose bank(s)' if bundle.pose_banks else ''}"
+    )
     return 0
 
 

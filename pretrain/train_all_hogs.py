@@ -38,8 +38,8 @@ from typing import Any, Optional, Sequence
 from hogsa_loader.cli import checks
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import UsageError
-from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.gaussians.hogs_model import HogsModel
+from hogsa_loader.io.atomic import atomic_write
 
 HERE = Path(__file__).resolve().parent
 
@@ -52,19 +52,34 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
         argv, rest = argv[:i], argv[i + 1 :]
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root, or an H2O root with --dataset h2o")
-    p.add_argument("--dataset", default="arctic", choices=["arctic", "h2o"],
-                   help="h2o: pairs are (subject, object class) of every sequence; pass --data-mano-dir and "
-                        "--data-object-mesh-dir to train_hogs.py after --")  # fmt: skip
+    p.add_argument(
+        "--dataset",
+        default="arctic",
+        choices=["arctic", "h2o"],
+        help="h2o: pairs are (subject, object class) of every sequence; pass --data-mano-dir and "
+        "--data-object-mesh-dir to train_hogs.py after --",
+    )
     p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per subject_object)")
     p.add_argument("--protocol", default="p1")
-    p.add_argument("--split", default="all", choices=["all", "train", "val", "test"],
-                   help="only subjects/sequences of this split of the protocol (default: every sequence)")  # fmt: skip
+    p.add_argument(
+        "--split",
+        default="all",
+        choices=["all", "train", "val", "test"],
+        help="only subjects/sequences of this split of the protocol (default: every sequence)",
+    )
     p.add_argument("--subjects", default=None, help="comma-separated subject filter")
     p.add_argument("--objects", default=None, help="comma-separated object filter")
-    p.add_argument("--sequences-like", default=None,
-                   help="comma-separated sequence suffixes to train on, e.g. grab_01,use_01 (the paper's choice)")  # fmt: skip
-    p.add_argument("--array-index", type=checks.non_negative_int, default=None, help="this process's slot (default: "
-                   "$SLURM_ARRAY_TASK_ID or $RANK or 0)")
+    p.add_argument(
+        "--sequences-like",
+        default=None,
+        help="comma-separated sequence suffixes to train on, e.g. grab_01,use_01 (the paper's choice)",
+    )
+    p.add_argument(
+        "--array-index",
+        type=checks.non_negative_int,
+        default=None,
+        help="this process's slot (default: $SLURM_ARRAY_TASK_ID or $RANK or 0)",
+    )
     p.add_argument("--array-size", type=checks.positive_int, default=None, help="processes in the job array")
     p.add_argument("--gpus", default=None, type=_gpu_ids, help="comma-separated GPU ids: one child process per GPU")
     p.add_argument("--dry-run", action="store_true", help="list this process's pairs and exit")
@@ -161,9 +176,18 @@ def write_summary(out: Path) -> dict[str, Any]:
     for run in sorted(p for p in out.iterdir() if p.is_dir()):
         if is_finished(run):
             m = json.loads((run / "metrics.json").read_text())
-            rows.append({"run": run.name, "subject": m.get("subject"), "object": m.get("object"),
-                         "sequences": m.get("sequences"), "iters": m.get("iters"), "psnr": m.get("psnr"),
-                         "ssim": m.get("ssim"), "train_s": m.get("timings", {}).get("train_s")})  # fmt: skip
+            rows.append(
+                {
+                    "run": run.name,
+                    "subject": m.get("subject"),
+                    "object": m.get("object"),
+                    "sequences": m.get("sequences"),
+                    "iters": m.get("iters"),
+                    "psnr": m.get("psnr"),
+                    "ssim": m.get("ssim"),
+                    "train_s": m.get("timings", {}).get("train_s"),
+                }
+            )
     summary = {"runs": rows, "num_finished": len(rows)}
     atomic_write(out / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
     return summary
@@ -180,8 +204,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 base += [flag, val]
         procs = []
         for k, gpu in enumerate(gpus):
-            cmd = [sys.executable, str(HERE / "train_all_hogs.py"), *base, "--array-index", str(k),
-                   "--array-size", str(len(gpus)), *(["--dry-run"] if a.dry_run else []), "--", *rest]  # fmt: skip
+            cmd = [
+                sys.executable,
+                str(HERE / "train_all_hogs.py"),
+                *base,
+                "--array-index",
+                str(k),
+                "--array-size",
+                str(len(gpus)),
+                *(["--dry-run"] if a.dry_run else []),
+                "--",
+                *rest,
+            ]
             procs.append(subprocess.Popen(cmd, env={**os.environ, "CUDA_VISIBLE_DEVICES": gpu}))
         codes = [p.wait() for p in procs]
         out.mkdir(parents=True, exist_ok=True)
@@ -213,14 +247,28 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"  {run.name}: {'resuming' if resume else 'training'} on {seqs}")
         if a.dry_run:
             continue
-        args = ["--data-root", a.data, "--data-dataset", a.dataset, "--data-subject", sid, "--data-object", obj,
-                "--run-out", str(run), "--data-sequences", *seqs]  # fmt: skip
+        args = [
+            "--data-root",
+            a.data,
+            "--data-dataset",
+            a.dataset,
+            "--data-subject",
+            sid,
+            "--data-object",
+            obj,
+            "--run-out",
+            str(run),
+            "--data-sequences",
+            *seqs,
+        ]
         code = train_one(args + (["--resume"] if resume else []) + rest)
         if code:
             failed.append(run.name)
     out.mkdir(parents=True, exist_ok=True)
     summary = write_summary(out)
-    print(f"train_all_hogs: {summary['num_finished']} finished runs in {out}" + (f"; failed: {failed}" if failed else ""))
+    print(
+        f"train_all_hogs: {summary['num_finished']} finished runs in {out}" + (f"; failed: {failed}" if failed else "")
+    )
     return 1 if failed else 0
 
 

@@ -83,7 +83,9 @@ def tiny_world(tmp_path_factory) -> Path:
     if given:
         meta = Path(given) / "arctic_data" / "data" / "meta" / "hogsa_world.json"
         info = json.loads(meta.read_text())
-        assert (info["preset"], info["seed"]) == ("tiny", 0), f"HOGSA_TEST_WORLD must be a tiny seed-0 world, got {info}"
+        assert (info["preset"], info["seed"]) == ("tiny", 0), (
+            f"HOGSA_TEST_WORLD must be a tiny seed-0 world, got {info}"
+        )
         return Path(given)
     out = tmp_path_factory.mktemp("tiny_world")
     assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0

@@ -49,10 +49,12 @@ DECIDE = "import json; from hogsa_loader.system import keep_allocator_memory as 
 
 
 def _child(code: str = CHILD, **env: str) -> dict:
-    base = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "HOGSA_KEEP_MEMORY", "GLIBC_TUNABLES")
-            and not k.startswith("MALLOC_")}  # fmt: skip
-    res = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True,
-                         timeout=300)  # fmt: skip
+    base = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("LD_PRELOAD", "HOGSA_KEEP_MEMORY", "GLIBC_TUNABLES") and not k.startswith("MALLOC_")
+    }
+    res = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
 

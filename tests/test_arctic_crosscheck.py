@@ -23,7 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def xc():
-    spec = importlib.util.spec_from_file_location("arctic_crosscheck_bench", ROOT / "benchmarks" / "arctic_crosscheck.py")
+    spec = importlib.util.spec_from_file_location(
+        "arctic_crosscheck_bench", ROOT / "benchmarks" / "arctic_crosscheck.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up while the class is built
     try:
@@ -77,8 +79,16 @@ def test_compare_and_judge_fields(xc):
 
 
 def test_package_plan_and_stub_listing(xc):
-    importable = {"loguru": True, "easydict": True, "pytorch_lightning": False, "pytorch3d": False,
-                  "torchvision": True, "chumpy": False, "pyrender": False, "comet_ml": True}
+    importable = {
+        "loguru": True,
+        "easydict": True,
+        "pytorch_lightning": False,
+        "pytorch3d": False,
+        "torchvision": True,
+        "chumpy": False,
+        "pyrender": False,
+        "comet_ml": True,
+    }
     stubs, pip_missing = xc.plan_packages(importable, ["dataset", "processing"])
     assert stubs == ["pytorch3d", "chumpy", "pyrender"] and pip_missing == []
     assert xc.plan_packages(importable, ["train"])[1] == ["pytorch_lightning"]
@@ -147,8 +157,9 @@ def test_chumpy_stub_reads_pickled_state(xc):
 def test_missing_files_listing(xc, tmp_path):
     arctic = tmp_path / "arctic_data" / "data"
     (arctic / "meta").mkdir(parents=True)
-    (arctic / "meta" / "misc.json").write_text(json.dumps({"s01": {"world2cam": [], "intris_mat": [],
-                                                                   "image_size": [], "ioi_offset": 0}}))
+    (arctic / "meta" / "misc.json").write_text(
+        json.dumps({"s01": {"world2cam": [], "intris_mat": [], "image_size": [], "ioi_offset": 0}})
+    )
     (arctic / "meta" / "object_meta.json").write_text("{}")
     for f in xc.OBJECT_TEMPLATE_FILES:
         (arctic / "meta" / "object_vtemplates" / "box").mkdir(parents=True, exist_ok=True)
@@ -168,15 +179,25 @@ def test_missing_files_listing(xc, tmp_path):
     entries = xc.required_files(tmp_path, ["box", "phone"], ["p1_train", "p1_val"], names)
     missing = {e["path"] for e in entries if not e["exists"]}
     base = "arctic_data/data"
-    for must in (f"{base}/meta/downsamplers.npy", f"{base}/meta/mano_decimator_195.npy",
-                 f"{base}/meta/object_vtemplates/phone/mesh.obj", f"{base}/splits/p1_val.npy",
-                 f"{base}/raw_seqs/s01/box_use_01.smplx.npy", "body_models/smplx/SMPLX_NEUTRAL.npz",
-                 f"{base}/meta/subject_vtemplates/s01.obj", f"{base}/splits_json/protocol_p1.json",
-                 f"{base}/meta/misc.json [s01].gender"):
+    for must in (
+        f"{base}/meta/downsamplers.npy",
+        f"{base}/meta/mano_decimator_195.npy",
+        f"{base}/meta/object_vtemplates/phone/mesh.obj",
+        f"{base}/splits/p1_val.npy",
+        f"{base}/raw_seqs/s01/box_use_01.smplx.npy",
+        "body_models/smplx/SMPLX_NEUTRAL.npz",
+        f"{base}/meta/subject_vtemplates/s01.obj",
+        f"{base}/splits_json/protocol_p1.json",
+        f"{base}/meta/misc.json [s01].gender",
+    ):
         assert must in missing, must
-    for present in (f"{base}/meta/misc.json", f"{base}/meta/object_vtemplates/box/mesh.obj",
-                    f"{base}/splits/p1_train.npy", "body_models/mano/MANO_RIGHT.pkl",
-                    f"{base}/raw_seqs/s01/box_use_01.object.npy"):
+    for present in (
+        f"{base}/meta/misc.json",
+        f"{base}/meta/object_vtemplates/box/mesh.obj",
+        f"{base}/splits/p1_train.npy",
+        "body_models/mano/MANO_RIGHT.pkl",
+        f"{base}/raw_seqs/s01/box_use_01.object.npy",
+    ):
         assert present not in missing, present
     images = [e for e in entries if "count" in e]
     assert len(images) == 1 and images[0]["soft"] and images[0]["count"] == 1 and "00011.jpg" in images[0]["path"]
@@ -213,9 +234,17 @@ def test_compare_split_data(xc):
         cam = {"rot_r_cam": aa, "is_valid": flag, "joints.right": np.zeros((2, 10, 21, 3), np.float32)}
         if extra_smplx:
             cam["joints.smplx"] = np.zeros((2, 10, 127, 3), np.float32)
-        return {"imgnames": ["a", "b"], "data_dict": {"s01/box_use_01": {
-            "cam_coord": cam, "2d": {"kp3d": np.ones((2, 10, 32, 2), np.float32)},
-            "bbox": np.ones((2, 9, 3), np.float32), "params": {"obj_arti": np.zeros(2, np.float32)}}}}
+        return {
+            "imgnames": ["a", "b"],
+            "data_dict": {
+                "s01/box_use_01": {
+                    "cam_coord": cam,
+                    "2d": {"kp3d": np.ones((2, 10, 32, 2), np.float32)},
+                    "bbox": np.ones((2, 9, 3), np.float32),
+                    "params": {"obj_arti": np.zeros(2, np.float32)},
+                }
+            },
+        }
 
     v = np.array([np.pi - 1e-7, 0.0, 0.0])
     aa_a = np.tile(v, (2, 9, 1)).astype(np.float32)

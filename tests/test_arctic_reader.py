@@ -23,22 +23,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from hogsa_loader.datasets.arctic import ArcticRoot, WorldMeta, read_npy
-from hogsa_loader.datasets.arctic_processing import (
-    build_split,
-    process_sequence,
-    write_processed_splits,
-)
+from hogsa_loader.datasets.arctic_processing import build_split, process_sequence, write_processed_splits
 from hogsa_loader.errors import AssetError, UnsafePickleError
 
 F64 = torch.float64
 
 # sequences of the fixture world: "sid/seq" -> number of frames
-SEQS = {
-    "s01/box_grab_01": 34,
-    "s01/laptop_use_02": 30,
-    "s02/notebook_use_01": 32,
-    "s05/box_use_01": 30,
-}
+SEQS = {"s01/box_grab_01": 34, "s01/laptop_use_02": 30, "s02/notebook_use_01": 32, "s05/box_use_01": 30}
 IOI = {"s01": 2, "s02": 0, "s05": 1}
 EGO_SIZE = (2800, 2000)
 
@@ -73,7 +64,13 @@ def make_misc(rng: np.random.Generator, sids) -> dict:
             w2c.append(look_at(C, np.zeros(3)).tolist())
             W, H = (2800, 2000) if v != 4 else (2000, 2800)
             f = 2200.0 + 40 * v
-            Ks.append([[f, 0.0, W / 2 + rng.uniform(-20, 20)], [0.0, f * 1.001, H / 2 + rng.uniform(-20, 20)], [0.0, 0.0, 1.0]])
+            Ks.append(
+                [
+                    [f, 0.0, W / 2 + rng.uniform(-20, 20)],
+                    [0.0, f * 1.001, H / 2 + rng.uniform(-20, 20)],
+                    [0.0, 0.0, 1.0],
+                ]
+            )
             sizes.append([W, H])
         misc[sid] = {
             "world2cam": w2c,
@@ -194,15 +191,22 @@ def processed(root):
 @pytest.fixture(scope="session")
 def processed_verts(root):
     """export_verts processing of s01/box_grab_01."""
-    return process_sequence(root.sequence("s01", "box_grab_01"), root.mano_layers(), root.object_layer(),
-                            export_verts=True)
+    return process_sequence(
+        root.sequence("s01", "box_grab_01"), root.mano_layers(), root.object_layer(), export_verts=True
+    )
 
 
 def sub_sequence(seq, idx):
     """The frames ``idx`` of a SequenceData (deep copy)."""
     s = copy.deepcopy(seq)
     for h in (s.right, s.left):
-        h.rot, h.pose, h.trans, h.valid, h.fitting_err = h.rot[idx], h.pose[idx], h.trans[idx], h.valid[idx], h.fitting_err[idx]
+        h.rot, h.pose, h.trans, h.valid, h.fitting_err = (
+            h.rot[idx],
+            h.pose[idx],
+            h.trans[idx],
+            h.valid[idx],
+            h.fitting_err[idx],
+        )
     o = s.object
     o.arti, o.rot, o.trans, o.valid = o.arti[idx], o.rot[idx], o.trans[idx], o.valid[idx]
     for c in s.cameras.values():
@@ -338,8 +342,14 @@ def test_world_meta(tmp_path):
     assert (wm.cropped_size, wm.ego_image_scale, wm.ego_image_size) == (1000, 0.3, (2800, 2000))
     assert wm.arctic_sized and r.require_arctic_sizes() == wm
     path = r.meta_dir / "hogsa_world.json"
-    doc = {"schema_version": 1, "cropped_size": 512, "ego_image_scale": 0.25, "ego_image_size": [1400, 1000],
-           "mask_ids": {"background": 0, "right": 1, "left": 2, "object": 3}, "generator": "test"}
+    doc = {
+        "schema_version": 1,
+        "cropped_size": 512,
+        "ego_image_scale": 0.25,
+        "ego_image_size": [1400, 1000],
+        "mask_ids": {"background": 0, "right": 1, "left": 2, "object": 3},
+        "generator": "test",
+    }
     path.write_text(json.dumps(doc))
     wm = ArcticRoot(r.data_root).world_meta()
     assert wm.present and wm.schema_version == 1 and wm.cropped_size == 512
@@ -397,10 +407,23 @@ def test_processed_keys_shapes_dtypes(processed, processed_verts, root):
     V = root.mano_layers()["right"].num_verts
     Vo = root.object_templates()["box"].verts.shape[0]
     assert set(out) == {"world_coord", "cam_coord", "2d", "bbox", "params"}
-    pts = {"joints.right": 21, "joints.left": 21, "kp3d": 32, "bbox3d": 16,
-           "verts.right": V, "verts.left": V, "verts.object": Vo}
-    assert set(out["cam_coord"]) == set(pts) | {"rot_r_cam", "rot_l_cam", "obj_rot_cam", "is_valid",
-                                                "left_valid", "right_valid"}
+    pts = {
+        "joints.right": 21,
+        "joints.left": 21,
+        "kp3d": 32,
+        "bbox3d": 16,
+        "verts.right": V,
+        "verts.left": V,
+        "verts.object": Vo,
+    }
+    assert set(out["cam_coord"]) == set(pts) | {
+        "rot_r_cam",
+        "rot_l_cam",
+        "obj_rot_cam",
+        "is_valid",
+        "left_valid",
+        "right_valid",
+    }
     assert set(out["2d"]) == set(pts)
     assert set(out["world_coord"]) == set(pts) | {"rot_r", "rot_l", "obj_rot"}
     for k, n in pts.items():
@@ -413,10 +436,24 @@ def test_processed_keys_shapes_dtypes(processed, processed_verts, root):
         assert out["cam_coord"][k].shape == (F, 9) and out["cam_coord"][k].dtype == np.int64
         assert set(np.unique(out["cam_coord"][k])) <= {0, 1}
     assert out["bbox"].shape == (F, 9, 3) and out["bbox"].dtype == np.float32
-    shapes = {"rot_r": (F, 3), "pose_r": (F, 45), "trans_r": (F, 3), "shape_r": (F, 10), "fitting_err_r": (F,),
-              "rot_l": (F, 3), "pose_l": (F, 45), "trans_l": (F, 3), "shape_l": (F, 10), "fitting_err_l": (F,),
-              "obj_arti": (F,), "obj_rot": (F, 3), "obj_trans": (F, 3), "world2ego": (F, 4, 4),
-              "dist": (F, 8), "K_ego": (F, 3, 3)}
+    shapes = {
+        "rot_r": (F, 3),
+        "pose_r": (F, 45),
+        "trans_r": (F, 3),
+        "shape_r": (F, 10),
+        "fitting_err_r": (F,),
+        "rot_l": (F, 3),
+        "pose_l": (F, 45),
+        "trans_l": (F, 3),
+        "shape_l": (F, 10),
+        "fitting_err_l": (F,),
+        "obj_arti": (F,),
+        "obj_rot": (F, 3),
+        "obj_trans": (F, 3),
+        "world2ego": (F, 4, 4),
+        "dist": (F, 8),
+        "K_ego": (F, 3, 3),
+    }
     assert {k: v.shape for k, v in out["params"].items()} == shapes
     assert all(v.dtype == np.float32 for v in out["params"].values())
     assert not any("smplx" in k for g in ("cam_coord", "2d", "world_coord") for k in out[g])
@@ -582,8 +619,15 @@ def _q_from_aa(aa):
 def _q_mul(a, b):
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), -1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        -1,
+    )
 
 
 def _q_apply(q, p):
@@ -607,10 +651,15 @@ def _q_from_matrix(R):
     x = torch.stack([1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], -1)
     qa = torch.zeros_like(x)
     qa[x > 0] = torch.sqrt(x[x > 0])
-    c = torch.stack([torch.stack([qa[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
-                     torch.stack([m21 - m12, qa[..., 1] ** 2, m10 + m01, m02 + m20], -1),
-                     torch.stack([m02 - m20, m10 + m01, qa[..., 2] ** 2, m12 + m21], -1),
-                     torch.stack([m10 - m01, m20 + m02, m21 + m12, qa[..., 3] ** 2], -1)], -2)
+    c = torch.stack(
+        [
+            torch.stack([qa[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
+            torch.stack([m21 - m12, qa[..., 1] ** 2, m10 + m01, m02 + m20], -1),
+            torch.stack([m02 - m20, m10 + m01, qa[..., 2] ** 2, m12 + m21], -1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, qa[..., 3] ** 2], -1),
+        ],
+        -2,
+    )
     c = c / (2.0 * qa[..., None].max(torch.tensor(0.1)))
     return c[torch.nn.functional.one_hot(qa.argmax(-1), 4) > 0.5, :].reshape(R.shape[:-2] + (4,))
 
@@ -630,28 +679,35 @@ def test_world_points_and_rotations_use_arctic_float32_arithmetic(processed_vert
     world = {}
     for side in ("right", "left"):
         h = mano[side]
-        v, j = _smplx_mano_f32(layers[side], f32(h["rot"]), f32(h["pose"]), f32(np.tile(h["shape"], (F, 1))),
-                               f32(h["trans"]))
+        v, j = _smplx_mano_f32(
+            layers[side], f32(h["rot"]), f32(h["pose"]), f32(np.tile(h["shape"], (F, 1))), f32(h["trans"])
+        )
         world[f"joints.{side}"], world[f"verts.{side}"] = j.numpy(), v.numpy()
         # float64 posing rounded to float32 is not ARCTIC's (what this test tells apart)
         l64 = root.mano_layers(F64)[side]
-        j64 = l64(*(torch.as_tensor(h[k], dtype=F64) for k in ("rot", "pose")), torch.as_tensor(
-            np.tile(h["shape"], (F, 1)), dtype=F64), torch.as_tensor(h["trans"], dtype=F64)).joints.float()
+        j64 = l64(
+            *(torch.as_tensor(h[k], dtype=F64) for k in ("rot", "pose")),
+            torch.as_tensor(np.tile(h["shape"], (F, 1)), dtype=F64),
+            torch.as_tensor(h["trans"], dtype=F64),
+        ).joints.float()
         assert not np.array_equal(j64.numpy(), world[f"joints.{side}"])
     # the object, from the template files in mm as ARCTIC's ObjectTensors reads them
     folder = root.meta_dir / "object_vtemplates" / "box"
     params = json.loads((folder / "object_params.json").read_text())
     top = torch.from_numpy(np.array(json.loads((folder / "parts.json").read_text())) == 0)
-    tmpl = {"verts.object": (torch.FloatTensor(trimesh.load(folder / "mesh.obj", process=False).vertices), top),
-            "kp3d": (torch.FloatTensor(params["keypoints_top"] + params["keypoints_bottom"]), torch.arange(32) < 16),
-            "bbox3d": (torch.FloatTensor(params["bbox_top"] + params["bbox_bottom"]), torch.arange(16) < 8)}
+    tmpl = {
+        "verts.object": (torch.FloatTensor(trimesh.load(folder / "mesh.obj", process=False).vertices), top),
+        "kp3d": (torch.FloatTensor(params["keypoints_top"] + params["keypoints_bottom"]), torch.arange(32) < 16),
+        "bbox3d": (torch.FloatTensor(params["bbox_top"] + params["bbox_bottom"]), torch.arange(16) < 8),
+    }
     q_arti = _q_from_aa(torch.tensor([[0.0, 0.0, -1.0]]) * f32(obj[:, :1]))[:, None]
     q_glob = _q_from_aa(f32(obj[:, 1:4]))[:, None]
     t = (f32(obj[:, 4:7]) / 1000)[:, None]
     for key, (mm, is_top) in tmpl.items():
         p = (mm / 1000)[None].expand(F, -1, -1)
-        world[key] = torch.where(is_top[None, :, None], _q_apply(q_glob, _q_apply(q_arti, p)) + t,
-                                 _q_apply(q_glob, p) + t).numpy()
+        world[key] = torch.where(
+            is_top[None, :, None], _q_apply(q_glob, _q_apply(q_arti, p)) + t, _q_apply(q_glob, p) + t
+        ).numpy()
     w2e = np.zeros((F, 4, 4), np.float32)
     w2e[:, :3, :3], w2e[:, :3, 3], w2e[:, 3, 3] = ego["R_k_cam_np"], ego["T_k_cam_np"][..., 0], 1
     for key, ref in world.items():
@@ -661,8 +717,11 @@ def test_world_points_and_rotations_use_arctic_float32_arithmetic(processed_vert
             K = np.broadcast_to(ego["intrinsics"] if v == 0 else np.array(misc["intris_mat"][v - 1]), (F, 3, 3))
             np.testing.assert_array_equal(out["2d"][key][:, v], _arctic_f32_pixels(ref, M, K), err_msg=f"{key} {v}")
     # camera-frame rotations: axis-angle of q(R_world2cam) * q(rot), real part >= 0
-    for key, aa in (("rot_r_cam", mano["right"]["rot"]), ("rot_l_cam", mano["left"]["rot"]),
-                    ("obj_rot_cam", obj[:, 1:4])):
+    for key, aa in (
+        ("rot_r_cam", mano["right"]["rot"]),
+        ("rot_l_cam", mano["left"]["rot"]),
+        ("obj_rot_cam", obj[:, 1:4]),
+    ):
         for v in range(9):
             M = f32(w2e if v == 0 else np.broadcast_to(np.array(misc["world2cam"][v - 1]), (F, 4, 4)))
             q = _q_mul(_q_from_matrix(M[:, :3, :3]), _q_from_aa(f32(aa)))
@@ -1008,9 +1067,14 @@ def test_load_split_errors(tmp_path):
 @pytest.mark.parametrize(
     "edit, message",
     [
-        (lambda q: q["params"].__setitem__("K_ego", q["params"]["K_ego"][0]),
-         ".params.K_ego has shape (3, 3), expected (F, 3, 3)"),  # data_doc.md's unbatched layout
-        (lambda q: q["params"].__setitem__("dist", q["params"]["dist"][0]), ".params.dist has shape (8,), expected (F, 8)"),
+        (
+            lambda q: q["params"].__setitem__("K_ego", q["params"]["K_ego"][0]),
+            ".params.K_ego has shape (3, 3), expected (F, 3, 3)",
+        ),  # data_doc.md's unbatched layout
+        (
+            lambda q: q["params"].__setitem__("dist", q["params"]["dist"][0]),
+            ".params.dist has shape (8,), expected (F, 8)",
+        ),
         (lambda q: q["2d"].pop("kp3d"), ".2d.kp3d is missing"),
         (lambda q: q["cam_coord"].pop("is_valid"), ".cam_coord.is_valid is missing"),
         (lambda q: q.__setitem__("bbox", q["bbox"][..., :2]), ".bbox has shape"),
@@ -1018,8 +1082,14 @@ def test_load_split_errors(tmp_path):
         (lambda q: q["2d"].__setitem__("joints.left", q["2d"]["joints.left"][:-1]), ".2d.joints.left has shape"),
         (lambda q: q["params"]["K_ego"].__setitem__((0, 0, 0), np.nan), ".params.K_ego contains NaN or inf"),
         (lambda q: q["params"]["K_ego"].__setitem__((1, 2), (0.0, 1.0, 1.0)), ".params.K_ego[1] is not a pinhole"),
-        (lambda q: q["cam_coord"]["is_valid"].__setitem__((0, 1), 2), ".cam_coord.is_valid holds values other than 0 and 1"),
-        (lambda q: q["params"].__setitem__("pose_r", q["params"]["pose_r"].astype(object)), ".params.pose_r is a ndarray of object"),
+        (
+            lambda q: q["cam_coord"]["is_valid"].__setitem__((0, 1), 2),
+            ".cam_coord.is_valid holds values other than 0 and 1",
+        ),
+        (
+            lambda q: q["params"].__setitem__("pose_r", q["params"]["pose_r"].astype(object)),
+            ".params.pose_r is a ndarray of object",
+        ),
         (lambda q: q["params"].__setitem__("trans_l", q["params"]["trans_l"][:, :2]), ".params.trans_l has shape"),
     ],
 )
@@ -1052,28 +1122,54 @@ def _edit_mano(key, fn):
 @pytest.mark.parametrize(
     "edit, which, message",
     [
-        (_edit_mano("right.pose", lambda a: a[:, :44]), "mano", "right.pose has shape (30, 44), expected (F, 45) with F = 30"),
-        (_edit_mano("left.trans", lambda a: a[:-1]), "mano", "left.trans has shape (29, 3), expected (F, 3) with F = 30"),
+        (
+            _edit_mano("right.pose", lambda a: a[:, :44]),
+            "mano",
+            "right.pose has shape (30, 44), expected (F, 45) with F = 30",
+        ),
+        (
+            _edit_mano("left.trans", lambda a: a[:-1]),
+            "mano",
+            "left.trans has shape (29, 3), expected (F, 3) with F = 30",
+        ),
         (_edit_mano("left.shape", lambda a: a[:9]), "mano", "left.shape has shape (9,), expected (10,)"),
-        (_edit_mano("right.rot", lambda a: np.where(np.arange(30)[:, None] == 4, np.nan, a)), "mano",
-         "right.rot contains NaN or inf (3 values)"),
-        (_edit_mano("left.fitting_err", lambda a: np.full_like(a, np.inf)), "mano", "left.fitting_err contains NaN or inf"),
+        (
+            _edit_mano("right.rot", lambda a: np.where(np.arange(30)[:, None] == 4, np.nan, a)),
+            "mano",
+            "right.rot contains NaN or inf (3 values)",
+        ),
+        (
+            _edit_mano("left.fitting_err", lambda a: np.full_like(a, np.inf)),
+            "mano",
+            "left.fitting_err contains NaN or inf",
+        ),
         (_edit_mano("right.pose", lambda a: a.astype(np.complex128)), "mano", "right.pose has dtype complex128"),
         (_edit_mano("right.pose", lambda a: a > 0), "mano", "right.pose has dtype bool"),
         (_edit_mano("right.trans", lambda a: np.array(list(a), dtype=object)), "mano", "right.trans has dtype object"),
         (_edit_mano("right.trans", lambda a: "x"), "mano", "right.trans is a str"),
         (lambda m, o, e: ({"right": m["right"]}, o, e), "mano", "'left' is missing or not a dict"),
         (lambda m, o, e: ([m], o, e), "mano", "expected a dict with 'right' and 'left'"),
-        (lambda m, o, e: (m, o[:, :6], e), "object", "object parameters has shape (30, 6), expected (F, 7) with F = 30"),
+        (
+            lambda m, o, e: (m, o[:, :6], e),
+            "object",
+            "object parameters has shape (30, 6), expected (F, 7) with F = 30",
+        ),
         (lambda m, o, e: (m, o[:29], e), "object", "has 29 frames, but box_grab_01.mano.npy has 30"),
         (lambda m, o, e: (m, np.where(o == o[3, 5], np.nan, o), e), "object", "object parameters contains NaN"),
         (lambda m, o, e: (m, o, {k: v for k, v in e.items() if k != "dist8"}), "egocam", "key 'dist8' is missing"),
         (lambda m, o, e: (m, o, dict(e, dist8=e["dist8"][:5])), "egocam", "dist8 has shape (5,), expected (8,)"),
         (lambda m, o, e: (m, o, dict(e, R_k_cam_np=e["R_k_cam_np"][:20])), "egocam", "R_k_cam_np has 20 frames"),
         (lambda m, o, e: (m, o, dict(e, R_k_cam_np=e["R_k_cam_np"] * 2)), "egocam", "R_k_cam_np[0] is not a rotation"),
-        (lambda m, o, e: (m, o, dict(e, intrinsics=np.eye(4))), "egocam", "intrinsics has shape (4, 4), expected (3, 3)"),
-        (lambda m, o, e: (m, o, dict(e, T_k_cam_np=e["T_k_cam_np"][..., 0] * np.nan)), "egocam",
-         "T_k_cam_np contains NaN or inf"),
+        (
+            lambda m, o, e: (m, o, dict(e, intrinsics=np.eye(4))),
+            "egocam",
+            "intrinsics has shape (4, 4), expected (3, 3)",
+        ),
+        (
+            lambda m, o, e: (m, o, dict(e, T_k_cam_np=e["T_k_cam_np"][..., 0] * np.nan)),
+            "egocam",
+            "T_k_cam_np contains NaN or inf",
+        ),
     ],
 )
 def test_raw_errors_name_file_and_problem(tmp_path, edit, which, message):
@@ -1236,8 +1332,12 @@ def _corrupt_array(a, kind: str, draw):
     return a.tobytes()[:16]
 
 
-@settings(max_examples=200, deadline=None, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=200,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(data=st.data())
 def test_fuzz_corrupt_raw_files_raise_only_asset_error(data, fuzz_template):
     which = data.draw(st.sampled_from(["mano", "object", "egocam"]))
@@ -1297,8 +1397,7 @@ def fuzz_template(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fuzz")
     r, w = mini_root(tmp, F=8, seed=11)
     files = list(r.raw_paths("s01", "box_grab_01").values()) + [r.misc_path]
-    return {"root": r.data_root, "raw": w["raw"]["s01/box_grab_01"],
-            "originals": {f: f.read_bytes() for f in files}}
+    return {"root": r.data_root, "raw": w["raw"]["s01/box_grab_01"], "originals": {f: f.read_bytes() for f in files}}
 
 
 def _restore(template) -> ArcticRoot:
@@ -1308,8 +1407,11 @@ def _restore(template) -> ArcticRoot:
 
 
 _JSON = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**70), 2**70)
-    | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=5),
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**70), 2**70)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=5),
     lambda children: st.lists(children, max_size=5) | st.dictionaries(st.text(max_size=4), children, max_size=4),
     max_leaves=12,
 )
@@ -1331,8 +1433,12 @@ def _replace_random_node(doc, draw):
         return
 
 
-@settings(max_examples=150, deadline=None, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=150,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(data=st.data())
 def test_fuzz_corrupt_misc_json_raises_only_asset_error(data, fuzz_template):
     misc_path = fuzz_template["root"] / "arctic_data/data/meta/misc.json"

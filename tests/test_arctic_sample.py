@@ -215,8 +215,7 @@ DOT_JOINTS = (0, 4, 8, 12, 16, 20)
 DOT_KP = (0, 5, 10, 16, 21, 26)
 
 
-def make_scene(egocentric: bool, seed: int = 0, cropped_size: int = 1000,
-               ego_scale: float = 0.3) -> Scene:
+def make_scene(egocentric: bool, seed: int = 0, cropped_size: int = 1000, ego_scale: float = 0.3) -> Scene:
     """A camera, two hands (21 joints), an object (32 keypoints, 16 box corners) and an
     image in the pixels ARCTIC's cropped images use, with coloured dots on keypoints."""
     rng = np.random.default_rng(seed)
@@ -262,11 +261,23 @@ def make_scene(egocentric: bool, seed: int = 0, cropped_size: int = 1000,
     labels = {}
     for side, (aa, j3d) in hands.items():
         pose48 = np.concatenate([aa, rng.normal(0, 0.3, 45)]).astype(np.float32)
-        labels[side] = HandLabels(pose48=pose48, betas=rng.normal(0, 1, 10).astype(np.float32),
-                                  j3d_full=j3d, j2d=to_img(project(j3d, K)), valid=1.0)
-    obj = ObjectLabels(name="box", radian=0.3, kp3d_full=kp3d, bbox3d_full=bb3d,
-                       kp2d=to_img(kp2d_full), bbox2d=to_img(project(bb3d, K)), valid=1.0,
-                       kp_bottom_cano=kp_cano[16:].astype(np.float32))
+        labels[side] = HandLabels(
+            pose48=pose48,
+            betas=rng.normal(0, 1, 10).astype(np.float32),
+            j3d_full=j3d,
+            j2d=to_img(project(j3d, K)),
+            valid=1.0,
+        )
+    obj = ObjectLabels(
+        name="box",
+        radian=0.3,
+        kp3d_full=kp3d,
+        bbox3d_full=bb3d,
+        kp2d=to_img(kp2d_full),
+        bbox2d=to_img(project(bb3d, K)),
+        valid=1.0,
+        kp_bottom_cano=kp_cano[16:].astype(np.float32),
+    )
     img = np.zeros(shape, dtype=np.float32)
     dots = []
     for c, side in enumerate(("right", "left")):
@@ -276,18 +287,42 @@ def make_scene(egocentric: bool, seed: int = 0, cropped_size: int = 1000,
         dots.append((obj.kp2d[k], 2))
     for p, c in dots:
         _blob(img, p, c)
-    return Scene(image=img.round().astype(np.uint8), bbox=bbox, K_full=K, image_size=(W, H),
-                 right=labels["right"], left=labels["left"], obj=obj, egocentric=egocentric,
-                 dist=rng.normal(0, 0.01, 8), local=local, trans=trans, rotm=rotm,
-                 kp_cano=kp_cano, R_obj=R_obj, t_obj=t_obj, dots=dots)
+    return Scene(
+        image=img.round().astype(np.uint8),
+        bbox=bbox,
+        K_full=K,
+        image_size=(W, H),
+        right=labels["right"],
+        left=labels["left"],
+        obj=obj,
+        egocentric=egocentric,
+        dist=rng.normal(0, 0.01, 8),
+        local=local,
+        trans=trans,
+        rotm=rotm,
+        kp_cano=kp_cano,
+        R_obj=R_obj,
+        t_obj=t_obj,
+        dots=dots,
+    )
 
 
 def build(scene: Scene, aug: AugParams, cfg: ArcticConfig = CFG, **kw: Any):
     return make_arctic_sample(
-        image=scene.image, bbox=scene.bbox, K_full=scene.K_full, image_size=scene.image_size,
-        right=scene.right, left=scene.left, obj=scene.obj, egocentric=scene.egocentric,
-        dist=scene.dist, aug=aug, imgname="./data/arctic_data/data/cropped_images/s01/box_use_01/1/00010.jpg",
-        cfg=cfg, **kw)
+        image=scene.image,
+        bbox=scene.bbox,
+        K_full=scene.K_full,
+        image_size=scene.image_size,
+        right=scene.right,
+        left=scene.left,
+        obj=scene.obj,
+        egocentric=scene.egocentric,
+        dist=scene.dist,
+        aug=aug,
+        imgname="./data/arctic_data/data/cropped_images/s01/box_use_01/1/00010.jpg",
+        cfg=cfg,
+        **kw,
+    )
 
 
 def _patch_rgb(img: torch.Tensor) -> np.ndarray:
@@ -318,11 +353,11 @@ def _dot_errors(scene: Scene, aug: AugParams) -> list[float]:
         if not (15 <= p[0] <= img_w - 16 and 15 <= p[1] <= img_h - 16):
             continue  # drawn (partly) outside the source image
         c = np.round(q).astype(int)
-        win = rgb[c[1] - 5:c[1] + 6, c[0] - 5:c[0] + 6]
+        win = rgb[c[1] - 5 : c[1] + 6, c[0] - 5 : c[0] + 6]
         # the dot has the expected colour
         assert win.reshape(-1, 3).sum(0).argmax() == ch
         w = np.clip(win[..., ch], 0, None)
-        ys, xs = np.mgrid[c[1] - 5:c[1] + 6, c[0] - 5:c[0] + 6]
+        ys, xs = np.mgrid[c[1] - 5 : c[1] + 6, c[0] - 5 : c[0] + 6]
         centre = np.array([(w * xs).sum(), (w * ys).sum()]) / w.sum()
         # HMR labels are trunc(exact) + 1: between 0 and 1 px right/below the dot
         d = lab - centre
@@ -352,13 +387,14 @@ def test_sample_keys_shapes_dtypes(ego: bool, train: bool) -> None:
         assert torch.allclose(meta["dist"], torch.as_tensor(scene.dist, dtype=torch.float32))
     else:
         assert torch.isnan(meta["dist"]).all()
-        assert torch.equal(meta["intrinsics"],
-                           torch.tensor([[1000.0, 0, 112], [0, 1000.0, 112], [0, 0, 1]]))
+        assert torch.equal(meta["intrinsics"], torch.tensor([[1000.0, 0, 112], [0, 1000.0, 112], [0, 0, 1]]))
     # concatenations and splits agree
-    assert torch.equal(targets["object.kp2d.norm"],
-                       torch.cat([targets["object.kp2d.norm.t"], targets["object.kp2d.norm.b"]]))
-    assert torch.equal(targets["object.bbox2d.norm"],
-                       torch.cat([targets["object.bbox2d.norm.t"], targets["object.bbox2d.norm.b"]]))
+    assert torch.equal(
+        targets["object.kp2d.norm"], torch.cat([targets["object.kp2d.norm.t"], targets["object.kp2d.norm.b"]])
+    )
+    assert torch.equal(
+        targets["object.bbox2d.norm"], torch.cat([targets["object.bbox2d.norm.t"], targets["object.bbox2d.norm.b"]])
+    )
     # 3D targets are the un-augmented full-image camera frame
     assert np.allclose(targets["mano.j3d.full.r"].numpy(), scene.right.j3d_full, atol=1e-6)
     assert np.allclose(targets["object.kp3d.full.t"].numpy(), scene.obj.kp3d_full[:16], atol=1e-6)
@@ -381,8 +417,7 @@ def test_validity_flags_combine_with_object() -> None:
 
 def test_default_collate_batch_of_four() -> None:
     rng = np.random.default_rng(0)
-    samples = [build(make_scene(i % 2 == 1, seed=i), sample_aug_params(rng, True, i % 2 == 1))
-               for i in range(4)]
+    samples = [build(make_scene(i % 2 == 1, seed=i), sample_aug_params(rng, True, i % 2 == 1)) for i in range(4)]
     batch = default_collate(samples)
     _check_collated_types(batch, 4)
     assert torch.isnan(batch[2]["dist"][0]).all() and not torch.isnan(batch[2]["dist"][1]).any()
@@ -424,9 +459,12 @@ def test_image_normalisation_and_colour_noise() -> None:
     assert np.allclose(centre[..., 1], 255.0, atol=1e-3)  # 300 clipped to 255
     assert np.allclose(centre[..., 2], 100.0, atol=1e-3)
     # ImageNet normalisation is torchvision's float32 (x/255 − mean) / std, bit for bit
-    raw = cv2.warpAffine(cv2.GaussianBlur(img.astype(np.float32), (5, 5), 8.0),
-                         patch_warp_matrix((300.0, 300.0), 200, 0.0, 224), (224, 224),
-                         flags=cv2.INTER_CUBIC)
+    raw = cv2.warpAffine(
+        cv2.GaussianBlur(img.astype(np.float32), (5, 5), 8.0),
+        patch_warp_matrix((300.0, 300.0), 200, 0.0, 224),
+        (224, 224),
+        flags=cv2.INTER_CUBIC,
+    )
     raw = np.clip(raw * aug.pn.astype(np.float32), 0, 255).astype(np.float32)
     ref = torch.from_numpy(raw.transpose(2, 0, 1) / np.float32(255.0))
     ref = ref.sub(torch.tensor(CFG.img_norm_mean)[:, None, None]).div(torch.tensor(CFG.img_norm_std)[:, None, None])
@@ -489,10 +527,12 @@ def test_identity_rotation_labels_are_patch_projection(sc: float) -> None:
         bbox_full = allocentric_bbox(project(scene.obj.kp3d_full, scene.K_full))
         Kc = cropped_intrinsics(scene.K_full, bbox_full, 1000)
         Kp = hmr_transform_matrix(scene.bbox[:2], sc * scene.bbox[2], 0.0, 224) @ Kc
-        for key, pts in (("mano.j2d.norm.r", scene.right.j3d_full),
-                         ("mano.j2d.norm.l", scene.left.j3d_full),
-                         ("object.kp2d.norm", scene.obj.kp3d_full),
-                         ("object.bbox2d.norm", scene.obj.bbox3d_full)):
+        for key, pts in (
+            ("mano.j2d.norm.r", scene.right.j3d_full),
+            ("mano.j2d.norm.l", scene.left.j3d_full),
+            ("object.kp2d.norm", scene.obj.kp3d_full),
+            ("object.bbox2d.norm", scene.obj.bbox3d_full),
+        ):
             u = project(pts, Kp)
             lab = unnormalize_kp2d(t[key].numpy(), 224)
             assert np.allclose(lab, np.trunc(u) + 1, atol=2e-3), key
@@ -510,8 +550,9 @@ def test_ego_gt_k_rule_numbers() -> None:
     # d = sc·max(W, H) = 3500, k = 0.064
     Kp = patch_intrinsics(K, (2800, 2000), 1.25, True)
     assert np.allclose(Kp, [[96.0, 0, 0.064 * 1740], [0, 96.64, 0.064 * 1755], [0, 0, 1]])
-    assert np.array_equal(patch_intrinsics(K, (2800, 2000), 1.2, False),
-                          [[1000.0, 0, 112], [0, 1000.0, 112], [0, 0, 1]])
+    assert np.array_equal(
+        patch_intrinsics(K, (2800, 2000), 1.2, False), [[1000.0, 0, 112], [0, 1000.0, 112], [0, 0, 1]]
+    )
     # the builder forces sc = 1 and GT-K for egocentric samples
     scene = make_scene(True, seed=5)
     _, t, meta = build(scene, AugParams(rot=0.0, sc=1.2, pn=np.ones(3)))
@@ -522,10 +563,8 @@ def test_ego_gt_k_rule_numbers() -> None:
     assert np.all(lab - u > -0.01) and np.all(lab - u < 1.01)
     # use_gt_k for allocentric: the whole-image rule with the aug scale (ARCTIC's quirk)
     scene = make_scene(False, seed=5)
-    _, _, meta = build(scene, AugParams(rot=0.0, sc=1.2, pn=np.ones(3)),
-                       cfg=ArcticConfig(use_gt_k=True))
-    assert np.allclose(meta["intrinsics"].numpy(), patch_intrinsics(scene.K_full, (2800, 2000), 1.2, True),
-                       rtol=1e-6)
+    _, _, meta = build(scene, AugParams(rot=0.0, sc=1.2, pn=np.ones(3)), cfg=ArcticConfig(use_gt_k=True))
+    assert np.allclose(meta["intrinsics"].numpy(), patch_intrinsics(scene.K_full, (2800, 2000), 1.2, True), rtol=1e-6)
 
 
 def test_ego_patch_k_cache_override() -> None:
@@ -692,11 +731,20 @@ def _write_box_template(meta: Path, kp_bottom: np.ndarray, kp_top: np.ndarray) -
     faces = np.array([[i, i + 1, i + 2] for i in range(0, 38)], dtype=np.int64)
     parts = (np.arange(40) >= 20).astype(np.int64)
     t = ObjectTemplate(
-        name="box", verts=verts, faces=faces, parts=parts, kp_top=kp_top, kp_bottom=kp_bottom,
-        bbox_top=bbox_corners(verts[:20]), bbox_bottom=bbox_corners(verts[20:]),
-        mocap_top=np.zeros((0, 3)), mocap_bottom=np.zeros((0, 3)),
-        sub_top=rng.uniform(-0.08, 0.08, (300, 3)), sub_bottom=rng.uniform(-0.08, 0.08, (300, 3)),
-        diameter=0.25)
+        name="box",
+        verts=verts,
+        faces=faces,
+        parts=parts,
+        kp_top=kp_top,
+        kp_bottom=kp_bottom,
+        bbox_top=bbox_corners(verts[:20]),
+        bbox_bottom=bbox_corners(verts[20:]),
+        mocap_top=np.zeros((0, 3)),
+        mocap_bottom=np.zeros((0, 3)),
+        sub_top=rng.uniform(-0.08, 0.08, (300, 3)),
+        sub_bottom=rng.uniform(-0.08, 0.08, (300, 3)),
+        diameter=0.25,
+    )
     write_object_template(t, meta / "object_vtemplates" / "box")
 
 
@@ -711,27 +759,35 @@ def mini_arctic(tmp_path_factory) -> Path:
     kp_cano = rng.uniform(-0.08, 0.08, (32, 3))
     bb_cano = rng.uniform(-0.09, 0.09, (16, 3))
     loc = {s: np.vstack([np.zeros(3), rng.normal(0, 0.035, (20, 3)) + [0, 0, 0.05]]) for s in "rl"}
-    K_allo = [np.array([[2400.0, 0, 1400], [0, 2400, 1000], [0, 0, 1]]),
-              np.array([[2300.0, 0, 1380], [0, 2310, 1010], [0, 0, 1]])]
-    w2c_allo = [_look_at(np.array([0.3, -0.4, -0.9]), np.zeros(3)),
-                _look_at(np.array([-0.5, -0.3, -0.8]), np.zeros(3))]
+    K_allo = [
+        np.array([[2400.0, 0, 1400], [0, 2400, 1000], [0, 0, 1]]),
+        np.array([[2300.0, 0, 1380], [0, 2310, 1010], [0, 0, 1]]),
+    ]
+    w2c_allo = [_look_at(np.array([0.3, -0.4, -0.9]), np.zeros(3)), _look_at(np.array([-0.5, -0.3, -0.8]), np.zeros(3))]
     K_ego = np.array([[1500.0, 0, 1400], [0, 1500, 1000], [0, 0, 1]])
     dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     F, V = MINI_F, 10
-    cam = {k: np.zeros((F, V, n, 3)) for k, n in
-           (("joints.right", 21), ("joints.left", 21), ("kp3d", 32), ("bbox3d", 16))}
-    d2 = {k: np.zeros((F, V, n, 2)) for k, n in
-          (("joints.right", 21), ("joints.left", 21), ("kp3d", 32), ("bbox3d", 16))}
+    cam = {
+        k: np.zeros((F, V, n, 3)) for k, n in (("joints.right", 21), ("joints.left", 21), ("kp3d", 32), ("bbox3d", 16))
+    }
+    d2 = {
+        k: np.zeros((F, V, n, 2)) for k, n in (("joints.right", 21), ("joints.left", 21), ("kp3d", 32), ("bbox3d", 16))
+    }
     for k in ("rot_r_cam", "rot_l_cam", "obj_rot_cam"):
         cam[k] = np.zeros((F, 9, 3))
     for k in ("is_valid", "right_valid", "left_valid"):
         cam[k] = np.zeros((F, 9))
     bbox = np.zeros((F, 9, 3))
-    params = {"pose_r": rng.normal(0, 0.3, (F, 45)), "pose_l": rng.normal(0, 0.3, (F, 45)),
-              "shape_r": np.tile(rng.normal(0, 1, 10), (F, 1)),
-              "shape_l": np.tile(rng.normal(0, 1, 10), (F, 1)),
-              "obj_arti": np.linspace(0, 0.5, F), "dist": np.tile(dist, (F, 1)),
-              "K_ego": np.tile(K_ego, (F, 1, 1)), "world2ego": np.zeros((F, 4, 4))}
+    params = {
+        "pose_r": rng.normal(0, 0.3, (F, 45)),
+        "pose_l": rng.normal(0, 0.3, (F, 45)),
+        "shape_r": np.tile(rng.normal(0, 1, 10), (F, 1)),
+        "shape_l": np.tile(rng.normal(0, 1, 10), (F, 1)),
+        "obj_arti": np.linspace(0, 0.5, F),
+        "dist": np.tile(dist, (F, 1)),
+        "K_ego": np.tile(K_ego, (F, 1, 1)),
+        "world2ego": np.zeros((F, 4, 4)),
+    }
     imgnames = {0: [], 1: []}
     for f in range(F):
         R_o = _aa2mat(np.array([0.1 * f, 0.3, -0.2]))
@@ -764,8 +820,13 @@ def mini_arctic(tmp_path_factory) -> Path:
         for v in range(9):
             bbox[f, v] = ego_bbox() if v == 0 else allocentric_bbox(d2["kp3d"][f, v])
             src = 9 if v == 0 else v
-            iv, rv, lv = validity_flags(d2["kp3d"][f, src], d2["joints.right"][f, src],
-                                        d2["joints.left"][f, src], bbox[f, v], np.array([2800, 2000]))
+            iv, rv, lv = validity_flags(
+                d2["kp3d"][f, src],
+                d2["joints.right"][f, src],
+                d2["joints.left"][f, src],
+                bbox[f, v],
+                np.array([2800, 2000]),
+            )
             cam["is_valid"][f, v], cam["right_valid"][f, v], cam["left_valid"][f, v] = iv, rv, lv
         for v in MINI_VIEWS:
             name = f"./data/arctic_data/data/images/s01/box_grab_01/{v}/{f + MINI_OFFSET:05d}.jpg"
@@ -785,12 +846,21 @@ def mini_arctic(tmp_path_factory) -> Path:
     seq = {"cam_coord": cam, "2d": d2, "bbox": bbox, "params": params}
     (root / "splits").mkdir(parents=True)
     for name, names in (("p1_train", imgnames[1]), ("p1_val", imgnames[1]), ("p2_train", imgnames[0])):
-        np.save(root / "splits" / f"{name}.npy",
-                {"data_dict": {"s01/box_grab_01": seq}, "imgnames": names}, allow_pickle=True)
+        np.save(
+            root / "splits" / f"{name}.npy",
+            {"data_dict": {"s01/box_grab_01": seq}, "imgnames": names},
+            allow_pickle=True,
+        )
     (root / "meta").mkdir(parents=True)
-    misc = {"s01": {"world2cam": [w2c_allo[0].tolist(), w2c_allo[1].tolist()] + [w2c_allo[0].tolist()] * 6,
-                    "intris_mat": [K_allo[0].tolist(), K_allo[1].tolist()] + [K_allo[0].tolist()] * 6,
-                    "image_size": [[2800, 2000]] * 9, "ioi_offset": MINI_OFFSET, "gender": "male"}}
+    misc = {
+        "s01": {
+            "world2cam": [w2c_allo[0].tolist(), w2c_allo[1].tolist()] + [w2c_allo[0].tolist()] * 6,
+            "intris_mat": [K_allo[0].tolist(), K_allo[1].tolist()] + [K_allo[0].tolist()] * 6,
+            "image_size": [[2800, 2000]] * 9,
+            "ioi_offset": MINI_OFFSET,
+            "gender": "male",
+        }
+    }
     (root / "meta" / "misc.json").write_text(json.dumps(misc))
     _write_box_template(root / "meta", kp_cano[16:], kp_cano[:16])
     return data_root
@@ -813,8 +883,13 @@ def test_dataset_arctic_sizes_refuses_other_image_sizes(mini_arctic: Path, tmp_p
 
     assert len(ArcticDataset(mini_arctic, "p1_val", arctic_sizes=True)) == MINI_F * 2  # ARCTIC's sizes
     copy = Path(shutil.copytree(mini_arctic, tmp_path / "data"))
-    doc = {"schema_version": 1, "cropped_size": 256, "ego_image_scale": 0.1, "ego_image_size": [2800, 2000],
-           "mask_ids": {}}
+    doc = {
+        "schema_version": 1,
+        "cropped_size": 256,
+        "ego_image_scale": 0.1,
+        "ego_image_size": [2800, 2000],
+        "mask_ids": {},
+    }
     meta = copy / "arctic_data" / "data" / "meta" / "hogsa_world.json"
     meta.write_text(json.dumps(doc))
     assert ArcticDataset(copy, "p1_val").cropped_size == 256  # the world's own sizes are fine by default
@@ -836,8 +911,9 @@ def test_dataset_basic(mini_arctic: Path) -> None:
     # targets come from the right frame/view: vidx = frame − ioi_offset
     sid, seqn, view, frame = parse_imgname(name)
     seq = ds.data["s01/box_grab_01"]
-    assert np.allclose(s[1]["mano.j3d.full.r"].numpy(),
-                       seq["cam_coord"]["joints.right"][frame - MINI_OFFSET, view], atol=1e-6)
+    assert np.allclose(
+        s[1]["mano.j3d.full.r"].numpy(), seq["cam_coord"]["joints.right"][frame - MINI_OFFSET, view], atol=1e-6
+    )
     assert s[1]["is_valid"] == float(seq["cam_coord"]["is_valid"][frame - MINI_OFFSET, view])
     assert ds.missing_images == 0
 
@@ -854,8 +930,7 @@ def test_dataset_labels_match_image_dots(mini_arctic: Path) -> None:
             for c, key in enumerate(("mano.j2d.norm.r", "mano.j2d.norm.l", "object.kp2d.norm")):
                 lab = unnormalize_kp2d(t[key].numpy(), 224)
                 inside = np.all((lab > 4) & (lab < 220), axis=1)
-                vals = [rgb[int(v) - 1:int(v) + 1, int(u) - 1:int(u) + 1, c].max()
-                        for u, v in lab[inside]]
+                vals = [rgb[int(v) - 1 : int(v) + 1, int(u) - 1 : int(u) + 1, c].max() for u, v in lab[inside]]
                 assert len(vals) > 0
                 # the dot's colour is bright right at (or within 1 px of) the label
                 assert np.mean(np.array(vals) > 40) > 0.9, (split, i, key, vals)
@@ -995,8 +1070,7 @@ def test_world_every_sample_matches_table(tiny_world) -> None:
         for i in range(len(ds)):
             _check_sample_types(ds[i])
         assert ds.missing_images == 0
-        batch = next(iter(DataLoader(ds, batch_size=4, shuffle=True,
-                                     generator=torch.Generator().manual_seed(0))))
+        batch = next(iter(DataLoader(ds, batch_size=4, shuffle=True, generator=torch.Generator().manual_seed(0))))
         _check_collated_types(batch, 4)
 
 
@@ -1005,9 +1079,14 @@ def test_world_projections_land_on_labels(world_sets: dict[str, ArcticDataset]) 
     2D targets up to the HMR truncation (label − exact ∈ [0, 1] px). Allocentric: the patch
     camera is K_full composed with the cropped-image map and the HMR crop (the fixed
     f=1000 meta intrinsics are not a real camera); egocentric: the meta (GT-K) intrinsics."""
-    pairs = (("mano.j2d.norm.r", "mano.j3d.full.r"), ("mano.j2d.norm.l", "mano.j3d.full.l"),
-             ("object.kp2d.norm.t", "object.kp3d.full.t"), ("object.kp2d.norm.b", "object.kp3d.full.b"),
-             ("object.bbox2d.norm.t", "object.bbox3d.full.t"), ("object.bbox2d.norm.b", "object.bbox3d.full.b"))
+    pairs = (
+        ("mano.j2d.norm.r", "mano.j3d.full.r"),
+        ("mano.j2d.norm.l", "mano.j3d.full.l"),
+        ("object.kp2d.norm.t", "object.kp3d.full.t"),
+        ("object.kp2d.norm.b", "object.kp3d.full.b"),
+        ("object.bbox2d.norm.t", "object.bbox3d.full.t"),
+        ("object.bbox2d.norm.b", "object.bbox3d.full.b"),
+    )
     for sp, ds in world_sets.items():
         lo, hi, n = np.inf, -np.inf, 0
         for i in range(len(ds)):
@@ -1018,8 +1097,9 @@ def test_world_projections_land_on_labels(world_sets: dict[str, ArcticDataset]) 
             else:
                 assert np.array_equal(meta["intrinsics"].numpy(), np.array([[1000, 0, 112], [0, 1000, 112], [0, 0, 1]]))
                 b = ds.image_bbox(bbf, view)
-                Kc = cropped_intrinsics(ds.root.subject_misc(parse_imgname(ds.imgnames[i])[0]).intris_mat[view - 1],
-                                        bbf, ds.cropped_size)
+                Kc = cropped_intrinsics(
+                    ds.root.subject_misc(parse_imgname(ds.imgnames[i])[0]).intris_mat[view - 1], bbf, ds.cropped_size
+                )
                 Kp = hmr_transform_matrix(b[:2], b[2], 0.0, 224) @ Kc
             for k2, k3 in pairs:
                 u = project(t[k3].numpy().astype(np.float64), Kp)
@@ -1063,7 +1143,7 @@ def _mask_hits(ds: ArcticDataset, distorted_ego: bool = True) -> dict[str, float
             for j, (u, v) in enumerate(np.round(lab).astype(int)):
                 if not (1 <= u <= 223 and 1 <= v <= 223):
                     continue
-                blk = pm[v - 1:v + 1, u - 1:u + 1]
+                blk = pm[v - 1 : v + 1, u - 1 : u + 1]
                 if j < 16:
                     n += 1
                     own += bool((blk == HAND_IDS[side]).any())

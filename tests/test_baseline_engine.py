@@ -43,10 +43,18 @@ def _model(layers: BodyLayers) -> ArcticNetSF:
 @pytest.fixture(scope="module")
 def batches(tiny_world, untrained_bundle):
     """A real batch of 4 and a mixed batch (2 real + 2 synthetic) of the tiny world."""
-    real = DataLoader(ArcticDataset(tiny_world, "p1_train", seed=0, config=CFG), batch_size=4, shuffle=True,
-                      generator=torch.Generator().manual_seed(0))
-    syn = HOGSADataset(untrained_bundle, tiny_world, with_options(arctic=CFG, batch_size=4, num_samples=8, seed=1),
-                       backgrounds=ProceduralBackgrounds())
+    real = DataLoader(
+        ArcticDataset(tiny_world, "p1_train", seed=0, config=CFG),
+        batch_size=4,
+        shuffle=True,
+        generator=torch.Generator().manual_seed(0),
+    )
+    syn = HOGSADataset(
+        untrained_bundle,
+        tiny_world,
+        with_options(arctic=CFG, batch_size=4, num_samples=8, seed=1),
+        backgrounds=ProceduralBackgrounds(),
+    )
     return next(iter(real)), next(iter(MixedLoader(real, syn, 0.5)))
 
 
@@ -78,15 +86,20 @@ def test_mean_cameras_are_the_mean_over_valid_frames(batches, layers):
     # frame 0 loses its right hand: it must not count in the right prior
     targets = dict(targets, right_valid=targets["right_valid"].clone())
     targets["right_valid"][0] = 0
-    def part(d: dict, i: int) -> dict:
-        return {k: v[i:i + 2] if torch.is_tensor(v) else v for k, v in d.items()}
 
-    halves = [(part(inputs, i), part(targets, i), {k: v[i:i + 2] for k, v in meta.items()}) for i in (0, 2)]
+    def part(d: dict, i: int) -> dict:
+        return {k: v[i : i + 2] if torch.is_tensor(v) else v for k, v in d.items()}
+
+    halves = [(part(inputs, i), part(targets, i), {k: v[i : i + 2] for k, v in meta.items()}) for i in (0, 2)]
     prior = mean_cameras(halves, layers, RES)
-    full, _ = prepare_targets(dict(targets), dict(meta), layers.mano_r, layers.mano_l, layers.objects,
-                              img_res=RES, field="hands")
-    for side, cam, valid in (("r", "mano.cam_t.wp.r", "right_valid"), ("l", "mano.cam_t.wp.l", "left_valid"),
-                             ("o", "object.cam_t.wp", "is_valid")):
+    full, _ = prepare_targets(
+        dict(targets), dict(meta), layers.mano_r, layers.mano_l, layers.objects, img_res=RES, field="hands"
+    )
+    for side, cam, valid in (
+        ("r", "mano.cam_t.wp.r", "right_valid"),
+        ("l", "mano.cam_t.wp.l", "left_valid"),
+        ("o", "object.cam_t.wp", "is_valid"),
+    ):
         ok = full[valid].reshape(-1).bool()
         assert ok.sum() == (3 if side == "r" else 4)
         torch.testing.assert_close(prior[side], full[cam][ok].mean(0), atol=1e-5, rtol=1e-5)
@@ -108,11 +121,13 @@ def test_camera_prior_starts_every_head_at_the_prior(batches, layers):
         after = model(real[0], real[2])
     for side, key in (("r", "mano.cam_t.wp.init.r"), ("l", "mano.cam_t.wp.init.l"), ("o", "object.cam_t.wp.init")):
         assert before[key][:, 0].abs().max() < 0.5 < prior[side][0]
-        torch.testing.assert_close(after[key], prior[side].expand_as(after[key]), atol=0.05 * float(prior[side][0]),
-                                   rtol=0)
+        torch.testing.assert_close(
+            after[key], prior[side].expand_as(after[key]), atol=0.05 * float(prior[side][0]), rtol=0
+        )
     model.train()
-    targets, _ = prepare_targets(dict(real[1]), dict(real[2]), layers.mano_r, layers.mano_l, layers.objects,
-                                 img_res=RES, field="hands")
+    targets, _ = prepare_targets(
+        dict(real[1]), dict(real[2]), layers.mano_r, layers.mano_l, layers.objects, img_res=RES, field="hands"
+    )
     from hogsa_loader.baselines import arcticnet_sf_loss
 
     fresh = _model(layers).train()

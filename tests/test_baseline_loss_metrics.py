@@ -21,12 +21,24 @@ from hogsa_loader.baselines.metrics import (
 F64 = torch.float64
 VH, VMAX, NC = 40, 36, 5  # hand vertices, padded object vertices, contact vertices per hand
 EXPECTED_WEIGHTS = {
-    "loss/mano/cam_t/r": 1.0, "loss/mano/cam_t/l": 1.0, "loss/object/cam_t": 1.0,
-    "loss/mano/kp2d/r": 5.0, "loss/mano/kp3d/r": 5.0, "loss/mano/pose/r": 10.0,
-    "loss/mano/beta/r": 0.001, "loss/mano/kp2d/l": 5.0, "loss/mano/kp3d/l": 5.0,
-    "loss/mano/pose/l": 10.0, "loss/cd": 1.0, "loss/mano/transl/l": 1.0,
-    "loss/mano/beta/l": 0.001, "loss/object/kp2d": 1.0, "loss/object/kp3d": 5.0,
-    "loss/object/radian": 1.0, "loss/object/rot": 1.0, "loss/object/transl": 1.0,
+    "loss/mano/cam_t/r": 1.0,
+    "loss/mano/cam_t/l": 1.0,
+    "loss/object/cam_t": 1.0,
+    "loss/mano/kp2d/r": 5.0,
+    "loss/mano/kp3d/r": 5.0,
+    "loss/mano/pose/r": 10.0,
+    "loss/mano/beta/r": 0.001,
+    "loss/mano/kp2d/l": 5.0,
+    "loss/mano/kp3d/l": 5.0,
+    "loss/mano/pose/l": 10.0,
+    "loss/cd": 1.0,
+    "loss/mano/transl/l": 1.0,
+    "loss/mano/beta/l": 0.001,
+    "loss/object/kp2d": 1.0,
+    "loss/object/kp3d": 5.0,
+    "loss/object/radian": 1.0,
+    "loss/object/rot": 1.0,
+    "loss/object/transl": 1.0,
 }
 
 
@@ -62,12 +74,19 @@ def make_sample(B: int = 4, seed: int = 0, contact_offset: float = 1e-3):
         t[f"mano.j2d.norm.{s}"] = rnd(B, 21, 2) * 0.5
         t[f"mano.cam_t.wp.{s}"] = rnd(B, 3)
         t[f"joints_valid_{s}"] = torch.ones(B, 21, dtype=F64)
-    t.update({
-        "object.kp2d.norm.t": rnd(B, 16, 2), "object.kp2d.norm.b": rnd(B, 16, 2),
-        "object.kp3d.cam": rnd(B, 32, 3) * 0.1, "object.rot": rnd(B, 3), "object.radian": rnd(B) * 0.5,
-        "object.cam_t.wp": rnd(B, 3), "is_valid": torch.ones(B, dtype=F64),
-        "right_valid": torch.ones(B, dtype=F64), "left_valid": torch.ones(B, dtype=F64),
-    })
+    t.update(
+        {
+            "object.kp2d.norm.t": rnd(B, 16, 2),
+            "object.kp2d.norm.b": rnd(B, 16, 2),
+            "object.kp3d.cam": rnd(B, 32, 3) * 0.1,
+            "object.rot": rnd(B, 3),
+            "object.radian": rnd(B) * 0.5,
+            "object.cam_t.wp": rnd(B, 3),
+            "is_valid": torch.ones(B, dtype=F64),
+            "right_valid": torch.ones(B, dtype=F64),
+            "left_valid": torch.ones(B, dtype=F64),
+        }
+    )
     diam = torch.stack([torch.cdist(v[:n], v[:n]).max() for v, n in zip(vo, v_len)])
     meta = {"part_ids": part_ids, "diameter": diam}
     return t, meta, gt_prediction(t)
@@ -132,8 +151,7 @@ def test_loss_terms_match_direct_formulas():
     assert float(out["loss/mano/pose/r"]) == pytest.approx(10.0 * float(pose), rel=1e-9)
     kp2d = ((p["mano.j2d.norm.r"] - t["mano.j2d.norm.r"]) ** 2 * t["joints_valid_r"][..., None]).mean()
     assert float(out["loss/mano/kp2d/r"]) == pytest.approx(5.0 * float(kp2d), rel=1e-9)
-    cam = sum(((p[k] - t["mano.cam_t.wp.r"]) ** 2)[keep].mean() for k in
-              ("mano.cam_t.wp.r", "mano.cam_t.wp.init.r"))
+    cam = sum(((p[k] - t["mano.cam_t.wp.r"]) ** 2)[keep].mean() for k in ("mano.cam_t.wp.r", "mano.cam_t.wp.init.r"))
     assert float(out["loss/mano/cam_t/r"]) == pytest.approx(float(cam), rel=1e-9)
     ra = lambda x: x - x[:, 16:17]  # noqa: E731  object root: first bottom keypoint
     kp3d_o = ((ra(p["object.kp3d.cam"]) - ra(t["object.kp3d.cam"])) ** 2).mean()
@@ -405,8 +423,10 @@ def test_mdev_known_relative_motion():
 
 
 def test_summarize_pools_frames_across_sequences():
-    seqs = [{"mpjpe/ra/h": np.array([1.0, 1.0, 1.0, np.nan]), "mdev/h": np.zeros(0)},
-            {"mpjpe/ra/h": np.array([4.0]), "mdev/h": np.array([2.0, 4.0])}]
+    seqs = [
+        {"mpjpe/ra/h": np.array([1.0, 1.0, 1.0, np.nan]), "mdev/h": np.zeros(0)},
+        {"mpjpe/ra/h": np.array([4.0]), "mdev/h": np.array([2.0, 4.0])},
+    ]
     out = summarize(seqs)
     assert out["mpjpe/ra/h"] == pytest.approx(1.75)  # not the per-sequence mean 2.5
     assert out["mdev/h"] == pytest.approx(3.0)

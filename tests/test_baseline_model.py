@@ -34,16 +34,15 @@ from hogsa_loader.baselines import (
     weak_perspective_to_perspective,
 )
 from hogsa_loader.baselines.arcticnet_sf import ArtiHead, ManoHead, patch_intrinsics_wp, project2d
-from hogsa_loader.datasets.augment import normalize_kp2d
-from hogsa_loader.datasets.augment import ArcticConfig, AugParams, rot_aa
+from hogsa_loader.datasets.augment import ArcticConfig, AugParams, normalize_kp2d, rot_aa
 from hogsa_loader.datasets.interfield import interaction_field
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.errors import AssetError
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.hands.mano import MANOLayer
-from hogsa_loader.synthetic.hand import HandSpec, synthetic_hand_pair
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.objects.template import ObjectTemplate, bbox_corners
+from hogsa_loader.synthetic.hand import HandSpec, synthetic_hand_pair
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -57,8 +56,13 @@ IMAGE_SIZE = (640, 480)
 
 
 def _bn(prefix: str, c: int) -> dict[str, tuple[int, ...]]:
-    return {f"{prefix}.weight": (c,), f"{prefix}.bias": (c,), f"{prefix}.running_mean": (c,),
-            f"{prefix}.running_var": (c,), f"{prefix}.num_batches_tracked": ()}
+    return {
+        f"{prefix}.weight": (c,),
+        f"{prefix}.bias": (c,),
+        f"{prefix}.running_mean": (c,),
+        f"{prefix}.running_var": (c,),
+        f"{prefix}.num_batches_tracked": (),
+    }
 
 
 def torchvision_resnet_shapes(arch: str) -> dict[str, tuple[int, ...]]:
@@ -72,12 +76,25 @@ def torchvision_resnet_shapes(arch: str) -> dict[str, tuple[int, ...]]:
         for b in range(n):
             p = f"layer{s}.{b}"
             if bottleneck:
-                exp.update({f"{p}.conv1.weight": (planes, c_in, 1, 1), **_bn(f"{p}.bn1", planes),
-                            f"{p}.conv2.weight": (planes, planes, 3, 3), **_bn(f"{p}.bn2", planes),
-                            f"{p}.conv3.weight": (c_out, planes, 1, 1), **_bn(f"{p}.bn3", c_out)})
+                exp.update(
+                    {
+                        f"{p}.conv1.weight": (planes, c_in, 1, 1),
+                        **_bn(f"{p}.bn1", planes),
+                        f"{p}.conv2.weight": (planes, planes, 3, 3),
+                        **_bn(f"{p}.bn2", planes),
+                        f"{p}.conv3.weight": (c_out, planes, 1, 1),
+                        **_bn(f"{p}.bn3", c_out),
+                    }
+                )
             else:
-                exp.update({f"{p}.conv1.weight": (planes, c_in, 3, 3), **_bn(f"{p}.bn1", planes),
-                            f"{p}.conv2.weight": (planes, planes, 3, 3), **_bn(f"{p}.bn2", planes)})
+                exp.update(
+                    {
+                        f"{p}.conv1.weight": (planes, c_in, 3, 3),
+                        **_bn(f"{p}.bn1", planes),
+                        f"{p}.conv2.weight": (planes, planes, 3, 3),
+                        **_bn(f"{p}.bn2", planes),
+                    }
+                )
             if b == 0 and (s > 1 or c_in != c_out):
                 exp.update({f"{p}.downsample.0.weight": (c_out, c_in, 1, 1), **_bn(f"{p}.downsample.1", c_out)})
             c_in = c_out
@@ -206,11 +223,20 @@ def _template(name: str, n_verts: int, size: float, seed: int) -> ObjectTemplate
     top, bottom = verts[parts == 0], verts[parts == 1]
     faces = np.array([[i, i + 1, i + 2] for i in range(n_verts - 2)])
     return ObjectTemplate(
-        name=name, verts=verts, faces=faces, parts=parts, kp_top=top[:16], kp_bottom=bottom[:16],
-        bbox_top=bbox_corners(top), bbox_bottom=bbox_corners(bottom),
-        mocap_top=np.zeros((0, 3)), mocap_bottom=np.zeros((0, 3)),
-        sub_top=top[rng.integers(0, len(top), 300)], sub_bottom=bottom[rng.integers(0, len(bottom), 300)],
-        diameter=2 * size)
+        name=name,
+        verts=verts,
+        faces=faces,
+        parts=parts,
+        kp_top=top[:16],
+        kp_bottom=bottom[:16],
+        bbox_top=bbox_corners(top),
+        bbox_bottom=bbox_corners(bottom),
+        mocap_top=np.zeros((0, 3)),
+        mocap_bottom=np.zeros((0, 3)),
+        sub_top=top[rng.integers(0, len(top), 300)],
+        sub_bottom=bottom[rng.integers(0, len(bottom), 300)],
+        diameter=2 * size,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -226,15 +252,22 @@ def _scene(world, i: int) -> dict:
     g = torch.Generator().manual_seed(100 + i)
     name = ("box", "laptop")[i % 2]
     t_o = torch.tensor([[0.02 * i, -0.01, 0.55 + 0.05 * i]])
-    obj = world["objects"](angles=torch.tensor([[0.3 + 0.2 * i]]), global_orient=torch.randn(1, 3, generator=g),
-                           transl=t_o, names=[name])
-    out = {"name": name, "radian": 0.3 + 0.2 * i, "kp3d": obj["kp3d"][0], "bbox3d": obj["bbox3d"][0],
-           "v_o": obj["v"][0, : int(obj["v_len"][0])]}
+    obj = world["objects"](
+        angles=torch.tensor([[0.3 + 0.2 * i]]), global_orient=torch.randn(1, 3, generator=g), transl=t_o, names=[name]
+    )
+    out = {
+        "name": name,
+        "radian": 0.3 + 0.2 * i,
+        "kp3d": obj["kp3d"][0],
+        "bbox3d": obj["bbox3d"][0],
+        "v_o": obj["v"][0, : int(obj["v_len"][0])],
+    }
     for s, dx in (("r", -0.07), ("l", 0.07)):
         pose = torch.cat([torch.randn(1, 3, generator=g), 0.3 * torch.randn(1, 45, generator=g)], 1)
         betas = 0.5 * torch.randn(1, 10, generator=g)
-        m = world["mano"][s](global_orient=pose[:, :3], hand_pose=pose[:, 3:], betas=betas,
-                             transl=t_o + torch.tensor([[dx, 0.02, 0.01]]))
+        m = world["mano"][s](
+            global_orient=pose[:, :3], hand_pose=pose[:, 3:], betas=betas, transl=t_o + torch.tensor([[dx, 0.02, 0.01]])
+        )
         out.update({f"pose.{s}": pose[0], f"betas.{s}": betas[0], f"j3d.{s}": m.joints[0], f"v3d.{s}": m.vertices[0]})
     return {k: (v.numpy().astype(np.float64) if torch.is_tensor(v) else v) for k, v in out.items()}
 
@@ -245,16 +278,42 @@ def _sample(world, scene: dict, aug: AugParams, cfg: ArcticConfig, image: np.nda
     def px(p: np.ndarray) -> np.ndarray:
         return project2d(K, torch.as_tensor(p)[None])[0].numpy()
 
-    hands = {s: HandLabels(pose48=scene[f"pose.{s}"], betas=scene[f"betas.{s}"], j3d_full=scene[f"j3d.{s}"],
-                           j2d=px(scene[f"j3d.{s}"]), valid=1.0) for s in "rl"}
+    hands = {
+        s: HandLabels(
+            pose48=scene[f"pose.{s}"],
+            betas=scene[f"betas.{s}"],
+            j3d_full=scene[f"j3d.{s}"],
+            j2d=px(scene[f"j3d.{s}"]),
+            valid=1.0,
+        )
+        for s in "rl"
+    }
     tpl = next(t for t in world["templates"] if t.name == scene["name"])
-    obj = ObjectLabels(name=scene["name"], radian=scene["radian"], kp3d_full=scene["kp3d"],
-                       bbox3d_full=scene["bbox3d"], kp2d=px(scene["kp3d"]), bbox2d=px(scene["bbox3d"]),
-                       valid=1.0, kp_bottom_cano=tpl.kp_bottom)
+    obj = ObjectLabels(
+        name=scene["name"],
+        radian=scene["radian"],
+        kp3d_full=scene["kp3d"],
+        bbox3d_full=scene["bbox3d"],
+        kp2d=px(scene["kp3d"]),
+        bbox2d=px(scene["bbox3d"]),
+        valid=1.0,
+        kp_bottom_cano=tpl.kp_bottom,
+    )
     box = (IMAGE_SIZE[0] / 2, IMAGE_SIZE[1] / 2, max(IMAGE_SIZE) / 200)  # whole image: GT-K is exact
-    return make_arctic_sample(image, box, K_FULL, IMAGE_SIZE, hands["r"], hands["l"], obj, egocentric=True,
-                              dist=None, aug=aug, imgname=f"s01/{scene['name']}_use_01/0/{scene['name']}.jpg",
-                              cfg=cfg)
+    return make_arctic_sample(
+        image,
+        box,
+        K_FULL,
+        IMAGE_SIZE,
+        hands["r"],
+        hands["l"],
+        obj,
+        egocentric=True,
+        dist=None,
+        aug=aug,
+        imgname=f"s01/{scene['name']}_use_01/0/{scene['name']}.jpg",
+        cfg=cfg,
+    )
 
 
 def _batch(world, n: int, aug: AugParams, img_res: int = 224):
@@ -276,11 +335,46 @@ def _model(world, img_res: int) -> ArcticNetSF:
 # --------------------------------------------------------------------------------------
 
 EXPECTED_KEYS = (
-    [f"mano.{k}.{s}" for s in "rl" for k in ("cam_t.wp", "cam_t", "joints3d", "vertices", "j3d.cam", "v3d.cam",
-                                              "j2d.norm", "beta", "pose", "cam_t.wp.init")]
-    + [f"object.{k}" for k in ("rot", "cam_t.wp", "cam_t", "kp3d", "bbox3d", "bbox3d.cam", "kp3d.cam", "kp2d.norm",
-                                "kp2d.norm.t", "kp2d.norm.b", "bbox2d.norm.t", "bbox2d.norm.b", "radian", "v.cam",
-                                "v_len", "f", "f_len", "parts_ids", "cam_t.wp.init")]
+    [
+        f"mano.{k}.{s}"
+        for s in "rl"
+        for k in (
+            "cam_t.wp",
+            "cam_t",
+            "joints3d",
+            "vertices",
+            "j3d.cam",
+            "v3d.cam",
+            "j2d.norm",
+            "beta",
+            "pose",
+            "cam_t.wp.init",
+        )
+    ]
+    + [
+        f"object.{k}"
+        for k in (
+            "rot",
+            "cam_t.wp",
+            "cam_t",
+            "kp3d",
+            "bbox3d",
+            "bbox3d.cam",
+            "kp3d.cam",
+            "kp2d.norm",
+            "kp2d.norm.t",
+            "kp2d.norm.b",
+            "bbox2d.norm.t",
+            "bbox2d.norm.b",
+            "radian",
+            "v.cam",
+            "v_len",
+            "f",
+            "f_len",
+            "parts_ids",
+            "cam_t.wp.init",
+        )
+    ]
     + ["feat_vec"]
 )
 
@@ -292,12 +386,27 @@ def test_forward_backward_shapes_and_gradients(world) -> None:
     assert list(out) == EXPECTED_KEYS
     V, J = world["mano"]["r"].num_verts, 21
     L = int(world["objects"].v_len.max())  # one box and one laptop: padded to the laptop
-    shapes = {"mano.pose.r": (2, 16, 3, 3), "mano.beta.l": (2, 10), "mano.j3d.cam.r": (2, J, 3),
-              "mano.v3d.cam.l": (2, V, 3), "mano.vertices.r": (2, V, 3), "mano.j2d.norm.r": (2, J, 2),
-              "mano.cam_t.wp.init.l": (2, 3), "mano.cam_t.r": (2, 3), "object.rot": (2, 3),
-              "object.radian": (2, 1), "object.kp3d.cam": (2, 32, 3), "object.kp2d.norm": (2, 32, 2),
-              "object.kp2d.norm.t": (2, 16, 2), "object.bbox3d.cam": (2, 16, 3), "object.bbox2d.norm.b": (2, 8, 2),
-              "object.v.cam": (2, L, 3), "object.v_len": (2,), "object.parts_ids": (2, L), "feat_vec": (2, 512)}
+    shapes = {
+        "mano.pose.r": (2, 16, 3, 3),
+        "mano.beta.l": (2, 10),
+        "mano.j3d.cam.r": (2, J, 3),
+        "mano.v3d.cam.l": (2, V, 3),
+        "mano.vertices.r": (2, V, 3),
+        "mano.j2d.norm.r": (2, J, 2),
+        "mano.cam_t.wp.init.l": (2, 3),
+        "mano.cam_t.r": (2, 3),
+        "object.rot": (2, 3),
+        "object.radian": (2, 1),
+        "object.kp3d.cam": (2, 32, 3),
+        "object.kp2d.norm": (2, 32, 2),
+        "object.kp2d.norm.t": (2, 16, 2),
+        "object.bbox3d.cam": (2, 16, 3),
+        "object.bbox2d.norm.b": (2, 8, 2),
+        "object.v.cam": (2, L, 3),
+        "object.v_len": (2,),
+        "object.parts_ids": (2, L),
+        "feat_vec": (2, 512),
+    }
     for k, shape in shapes.items():
         assert tuple(out[k].shape) == shape, k
     for k, v in out.items():
@@ -309,12 +418,26 @@ def test_forward_backward_shapes_and_gradients(world) -> None:
     f = 0.5 * (meta["intrinsics"][:, 0, 0] + meta["intrinsics"][:, 1, 1])
     torch.testing.assert_close(out["mano.cam_t.r"], weak_perspective_to_perspective(out["mano.cam_t.wp.r"], f, 64))
     torch.testing.assert_close(out["mano.j3d.cam.l"], out["mano.joints3d.l"] + out["mano.cam_t.l"][:, None])
-    loss = sum(out[k].square().mean() for k in ("mano.j2d.norm.r", "mano.v3d.cam.l", "mano.beta.r",
-                                                 "object.kp2d.norm", "object.radian", "object.kp3d.cam"))
+    loss = sum(
+        out[k].square().mean()
+        for k in (
+            "mano.j2d.norm.r",
+            "mano.v3d.cam.l",
+            "mano.beta.r",
+            "object.kp2d.norm",
+            "object.radian",
+            "object.kp3d.cam",
+        )
+    )
     loss.backward()
-    for name in ("backbone.conv1.weight", "backbone.layer4.1.conv2.weight", "head_r.cam_init.0.weight",
-                 "head_l.hmr_layer.decoders.pose_6d.weight", "head_o.hmr_layer.decoders.radian.weight",
-                 "head_o.hmr_layer.refine.0.weight"):
+    for name in (
+        "backbone.conv1.weight",
+        "backbone.layer4.1.conv2.weight",
+        "head_r.cam_init.0.weight",
+        "head_l.hmr_layer.decoders.pose_6d.weight",
+        "head_o.hmr_layer.decoders.radian.weight",
+        "head_o.hmr_layer.refine.0.weight",
+    ):
         grad = dict(model.named_parameters())[name].grad
         assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
     assert not out["feat_vec"].requires_grad
@@ -342,12 +465,12 @@ def test_refine_input_layout_and_initial_state(world) -> None:
     C = 512
     x = seen["head_r"]
     assert x.shape == (2, C + 96 + 10 + 3)
-    assert torch.equal(x[:, C:C + 96], torch.tensor([1.0, 0, 0, 0, 1, 0]).repeat(2, 16))
-    assert torch.equal(x[:, C + 96:C + 106], torch.zeros(2, 10))
-    assert torch.equal(x[:, C + 106:], seen["head_r.cam"])
+    assert torch.equal(x[:, C : C + 96], torch.tensor([1.0, 0, 0, 0, 1, 0]).repeat(2, 16))
+    assert torch.equal(x[:, C + 96 : C + 106], torch.zeros(2, 10))
+    assert torch.equal(x[:, C + 106 :], seen["head_r.cam"])
     x = seen["head_o"]
     assert x.shape == (2, C + 3 + 1 + 3)
-    assert torch.equal(x[:, C:C + 4], torch.zeros(2, 4)) and torch.equal(x[:, C + 4:], seen["head_o.cam"])
+    assert torch.equal(x[:, C : C + 4], torch.zeros(2, 4)) and torch.equal(x[:, C + 4 :], seen["head_o.cam"])
 
 
 # --------------------------------------------------------------------------------------
@@ -382,8 +505,9 @@ def test_prepare_targets_reproduces_dataset_labels(world, prepared) -> None:
     assert (kp2d - targets["object.kp2d.norm"]).abs().max() < 1.5 * px
     kp_full = torch.cat([targets["object.kp3d.full.t"], targets["object.kp3d.full.b"]], 1)
     assert (t["object.kp3d.cam"] - kp_full).norm(dim=-1).max() < 0.01
-    torch.testing.assert_close(t["object.kp3d.cam"] - t["object.kp3d.cam"][:, :1], kp_full - kp_full[:, :1],
-                               atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        t["object.kp3d.cam"] - t["object.kp3d.cam"][:, :1], kp_full - kp_full[:, :1], atol=1e-5, rtol=0
+    )
     assert m["diameter"].tolist() == pytest.approx([0.12, 0.16, 0.12])
     assert m["part_ids"].shape == t["object.v.cam"].shape[:2] and "part_ids" not in meta
     assert t["object.v_len"].tolist() == [300, 420, 300]
@@ -402,8 +526,13 @@ def test_targets_agree_with_the_model_heads(world, prepared) -> None:
         torch.testing.assert_close(out["cam_t"], t[f"mano.cam_t.{s}"], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(out["j3d.cam"], t[f"mano.j3d.cam.{s}"], atol=2e-5, rtol=0)
     arti = ArtiHead(world["objects"], 224)
-    out = arti(targets["object.rot"].view(-1, 3), targets["object.radian"].view(-1, 1), meta["query_names"],
-               t["object.cam_t.wp"], K)
+    out = arti(
+        targets["object.rot"].view(-1, 3),
+        targets["object.radian"].view(-1, 1),
+        meta["query_names"],
+        t["object.cam_t.wp"],
+        K,
+    )
     for k in ("kp3d.cam", "bbox3d.cam", "v.cam"):
         torch.testing.assert_close(out[k], t[f"object.{k}"], atol=2e-5, rtol=0)
 
@@ -454,21 +583,45 @@ def arctic_head_shapes(feat: int, hand: bool) -> dict[str, tuple[int, ...]]:
     """ARCTIC's HandHMR / ObjectHMR parameter names and shapes."""
     specs = {"pose_6d": 96, "cam_t/wp": 3, "shape": 10} if hand else {"rot": 3, "cam_t/wp": 3, "radian": 1}
     n_in = feat + sum(specs.values())
-    out = {"hmr_layer.refine.0.weight": (1024, n_in), "hmr_layer.refine.0.bias": (1024,),
-           "hmr_layer.refine.3.weight": (1024, 1024), "hmr_layer.refine.3.bias": (1024,)}
+    out = {
+        "hmr_layer.refine.0.weight": (1024, n_in),
+        "hmr_layer.refine.0.bias": (1024,),
+        "hmr_layer.refine.3.weight": (1024, 1024),
+        "hmr_layer.refine.3.bias": (1024,),
+    }
     for k, n in specs.items():
         out.update({f"hmr_layer.decoders.{k}.weight": (n, 1024), f"hmr_layer.decoders.{k}.bias": (n,)})
-    out.update({"cam_init.0.weight": (512, feat), "cam_init.0.bias": (512,), "cam_init.2.weight": (512, 512),
-                "cam_init.2.bias": (512,), "cam_init.4.weight": (3, 512), "cam_init.4.bias": (3,)})
+    out.update(
+        {
+            "cam_init.0.weight": (512, feat),
+            "cam_init.0.bias": (512,),
+            "cam_init.2.weight": (512, 512),
+            "cam_init.2.bias": (512,),
+            "cam_init.4.weight": (3, 512),
+            "cam_init.4.bias": (3,),
+        }
+    )
     return out
 
 
 def smplx_mano_shapes(V: int, F: int) -> dict[str, tuple[int, ...]]:
     """State dict of smplx 0.1.28 ``MANO(use_pca=False, flat_hand_mean=False, create_transl=False)``."""
-    return {"betas": (1, 10), "global_orient": (1, 3), "body_pose": (1, 3), "hand_pose": (1, 45),
-            "shapedirs": (V, 3, 10), "faces_tensor": (F, 3), "v_template": (V, 3), "J_regressor": (16, V),
-            "posedirs": (135, 3 * V), "parents": (16,), "lbs_weights": (V, 16), "hand_mean": (45,),
-            "pose_mean": (48,), "vertex_joint_selector.extra_joints_idxs": (5,)}
+    return {
+        "betas": (1, 10),
+        "global_orient": (1, 3),
+        "body_pose": (1, 3),
+        "hand_pose": (1, 45),
+        "shapedirs": (V, 3, 10),
+        "faces_tensor": (F, 3),
+        "v_template": (V, 3),
+        "J_regressor": (16, V),
+        "posedirs": (135, 3 * V),
+        "parents": (16,),
+        "lbs_weights": (V, 16),
+        "hand_mean": (45,),
+        "pose_mean": (48,),
+        "vertex_joint_selector.extra_joints_idxs": (5,),
+    }
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # smplx imports scipy.sparse.csc

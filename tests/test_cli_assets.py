@@ -28,7 +28,13 @@ def test_assets_writes_a_usable_arctic_style_tree(tmp_path):
     assert MANOLayer(mano, side="left")().joints.shape == (1, 21, 3)
     for name in ("box", "laptop"):
         folder = tmp_path / "arctic_data" / "data" / "meta" / "object_vtemplates" / name
-        for f in ("mesh.obj", "parts.json", "object_params.json", "top_keypoints_300.json", "bottom_keypoints_300.json"):
+        for f in (
+            "mesh.obj",
+            "parts.json",
+            "object_params.json",
+            "top_keypoints_300.json",
+            "bottom_keypoints_300.json",
+        ):
             assert (folder / f).is_file(), f
         assert load_object_template(folder).name == name
 

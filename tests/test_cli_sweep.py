@@ -117,8 +117,9 @@ def _script_main(name: str):
 
 
 @pytest.mark.parametrize("cmd,base,flag,value", CASES, ids=[f"{c}{f}={v}" for c, _, f, v in CASES])
-def test_bad_value_is_refused_before_work(cmd, base, flag, value, tiny_world, untrained_bundle, tmp_path,
-                                          monkeypatch) -> None:  # fmt: skip
+def test_bad_value_is_refused_before_work(
+    cmd, base, flag, value, tiny_world, untrained_bundle, tmp_path, monkeypatch
+) -> None:
     monkeypatch.chdir(tmp_path)
     argv = [a.replace("{W}", str(tiny_world)).replace("{B}", str(untrained_bundle)) for a in base] + [flag, value]
     err = io.StringIO()

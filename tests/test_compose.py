@@ -53,12 +53,30 @@ def _write_coco(root: Path, layout: str = "images") -> Path:
         img = np.clip(img.astype(int) + rng.integers(-10, 10, img.shape), 0, 255).astype(np.uint8)
         name = f"{iid:012d}.jpg"
         cv2.imwrite(str(img_dir / name), img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
-        images.append({"license": 1, "file_name": name, "coco_url": "", "height": h, "width": w,
-                       "date_captured": "2013-11-14 17:02:52", "flickr_url": "", "id": iid})
+        images.append(
+            {
+                "license": 1,
+                "file_name": name,
+                "coco_url": "",
+                "height": h,
+                "width": w,
+                "date_captured": "2013-11-14 17:02:52",
+                "flickr_url": "",
+                "id": iid,
+            }
+        )
         for c in cats:
-            anns.append({"segmentation": [[10.0, 10.0, 40.0, 10.0, 40.0, 40.0, 10.0, 40.0]],
-                         "area": 900.0, "iscrowd": 0, "image_id": iid, "bbox": [10.0, 10.0, 30.0, 30.0],
-                         "category_id": cat_id[c], "id": aid})
+            anns.append(
+                {
+                    "segmentation": [[10.0, 10.0, 40.0, 10.0, 40.0, 40.0, 10.0, 40.0]],
+                    "area": 900.0,
+                    "iscrowd": 0,
+                    "image_id": iid,
+                    "bbox": [10.0, 10.0, 30.0, 30.0],
+                    "category_id": cat_id[c],
+                    "id": aid,
+                }
+            )
             aid += 1
     data = {
         "info": {"description": "fake COCO", "version": "1.0", "year": 2017},
@@ -129,8 +147,7 @@ def test_coco_alternative_layout_and_explicit_ann(tmp_path):
     root = _write_coco(tmp_path / "c2", layout="flat")
     src = make_backgrounds(coco_root=root)
     assert src.image_dir == root / "train2017"
-    src2 = make_backgrounds(coco_ann=root / "annotations" / "instances_train2017.json",
-                            image_dir=root / "train2017")
+    src2 = make_backgrounds(coco_ann=root / "annotations" / "instances_train2017.json", image_dir=root / "train2017")
     assert torch.equal(src.sample(3, 8, 8, _gen()), src2.sample(3, 8, 8, _gen()))
 
 
@@ -153,7 +170,8 @@ def test_coco_missing_and_malformed_files(tmp_path, coco_root):
         make_backgrounds(coco_root=bad)
     # annotation fine, image folder absent
     (bad / "annotations" / "instances_train2017.json").write_text(
-        (coco_root / "annotations" / "instances_train2017.json").read_text())
+        (coco_root / "annotations" / "instances_train2017.json").read_text()
+    )
     with pytest.raises(AssetError, match="no COCO image folder"):
         make_backgrounds(coco_root=bad)
     # an unreadable image is skipped with a warning, the draw goes on
@@ -363,8 +381,11 @@ def test_coco_selection_cache_and_pickle(coco_root, tmp_path, monkeypatch):
 
 
 def test_sample_many_matches_sequential(coco_root):
-    sources = [CocoBackgrounds(coco_root), ProceduralBackgrounds(pool_size=5, tile=48),
-               ProceduralBackgrounds(pool_size=0)]
+    sources = [
+        CocoBackgrounds(coco_root),
+        ProceduralBackgrounds(pool_size=5, tile=48),
+        ProceduralBackgrounds(pool_size=0),
+    ]
     for src in sources:
         src.threads = 3
         n = 2 if getattr(src, "pool_size", 1) == 0 else 9

@@ -15,9 +15,23 @@ from hogsa_loader.demo import DemoConfig, run_demo, unbatch
 from hogsa_loader.loader import is_synthetic
 
 CFG = dict(
-    pairs=(("s01", "box"),), hogs_iters=6, hogs_image_size=64, hogs_frame_stride=4, contactnet_iters=10, bank_per_sequence=2,
-    srm_iters=2, srm_crop=32, samples=8, batch_size=4, num_workers=0, render_batch=4, grid_rows=2, grid_cols=4,
-    orbit_views=4, orbit_size=32, progress=False,
+    pairs=(("s01", "box"),),
+    hogs_iters=6,
+    hogs_image_size=64,
+    hogs_frame_stride=4,
+    contactnet_iters=10,
+    bank_per_sequence=2,
+    srm_iters=2,
+    srm_crop=32,
+    samples=8,
+    batch_size=4,
+    num_workers=0,
+    render_batch=4,
+    grid_rows=2,
+    grid_cols=4,
+    orbit_views=4,
+    orbit_size=32,
+    progress=False,
 )
 
 
@@ -82,8 +96,14 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
 def test_unbatch_inverts_default_collate():
     from torch.utils.data import default_collate
 
-    items = [({"img": torch.full((3, 2, 2), float(i))}, {"v": float(i), "j": torch.ones(2) * i},
-              {"name": f"n{i}", "q": ["a", "b"]}) for i in range(3)]
+    items = [
+        (
+            {"img": torch.full((3, 2, 2), float(i))},
+            {"v": float(i), "j": torch.ones(2) * i},
+            {"name": f"n{i}", "q": ["a", "b"]},
+        )
+        for i in range(3)
+    ]
     batch = default_collate(items)
     one = unbatch(batch, 2)
     assert torch.equal(one[0]["img"], items[2][0]["img"])
@@ -122,13 +142,15 @@ def _timed_stage(folder, log, name: str, seconds: float):
 def test_stage_graph_runs_each_stage_after_what_it_needs(tmp_path):
     """Stages start only once the stages they need have ended (side by side on forked
     processes where there are two cores, else in order); a second run reuses all of them."""
-    from hogsa_loader.demo import _run_stage_graph, _Stages, _StageNode
+    from hogsa_loader.demo import _run_stage_graph, _StageNode, _Stages
 
     log = tmp_path / "log.txt"
-    nodes = [_StageNode("a", "ka", [tmp_path / "a"], _timed_stage(tmp_path, log, "a", 0.4)),
-             _StageNode("b", "kb", [tmp_path / "b"], _timed_stage(tmp_path, log, "b", 0.1)),
-             _StageNode("c", "kc", [tmp_path / "c"], _timed_stage(tmp_path, log, "c", 0.0), needs=("a", "b")),
-             _StageNode("d", "kd", [tmp_path / "d"], _timed_stage(tmp_path, log, "d", 0.0), needs=("b",))]
+    nodes = [
+        _StageNode("a", "ka", [tmp_path / "a"], _timed_stage(tmp_path, log, "a", 0.4)),
+        _StageNode("b", "kb", [tmp_path / "b"], _timed_stage(tmp_path, log, "b", 0.1)),
+        _StageNode("c", "kc", [tmp_path / "c"], _timed_stage(tmp_path, log, "c", 0.0), needs=("a", "b")),
+        _StageNode("d", "kd", [tmp_path / "d"], _timed_stage(tmp_path, log, "d", 0.0), needs=("b",)),
+    ]
     stages = _Stages(tmp_path / "out", lambda s: None)
     _run_stage_graph(stages, nodes, DemoConfig(progress=False), lambda s: None)
     t = {tuple(line.split()[:2]): float(line.split()[2]) for line in log.read_text().splitlines()}
@@ -146,11 +168,16 @@ def test_stage_graph_runs_each_stage_after_what_it_needs(tmp_path):
     def broken() -> None:
         raise RuntimeError("stage failed on purpose")
 
-    bad = [_StageNode("e", "ke", [tmp_path / "e"], broken), _StageNode("f", "kf", [tmp_path / "f"],
-                                                                       _timed_stage(tmp_path, log, "f", 0.0))]
+    bad = [
+        _StageNode("e", "ke", [tmp_path / "e"], broken),
+        _StageNode("f", "kf", [tmp_path / "f"], _timed_stage(tmp_path, log, "f", 0.0)),
+    ]
     with pytest.raises(RuntimeError, match="on purpose"):
         _run_stage_graph(_Stages(tmp_path / "out", lambda s: None), bad, DemoConfig(progress=False), lambda s: None)
     with pytest.raises(ValueError, match="not listed before it"):
-        _run_stage_graph(_Stages(tmp_path / "out", lambda s: None),
-                         [_StageNode("g", "kg", [tmp_path / "g"], broken, needs=("h",))],
-                         DemoConfig(progress=False), lambda s: None)
+        _run_stage_graph(
+            _Stages(tmp_path / "out", lambda s: None),
+            [_StageNode("g", "kg", [tmp_path / "g"], broken, needs=("h",))],
+            DemoConfig(progress=False),
+            lambda s: None,
+        )

@@ -50,9 +50,28 @@ def test_dataclass_flags_round_trip():
     p = argparse.ArgumentParser()
     add_dataclass_arguments(p, _Outer)
     assert dataclass_from_args(_Outer, p.parse_args([])) == _Outer()
-    got = dataclass_from_args(_Outer, p.parse_args(
-        ["--name", "y", "--seeds", "4", "5", "6", "--flag", "--rate", "0.25", "--inner-size", "7",
-         "--inner-mode", "b", "--inner-path", "/p"]))
+    got = dataclass_from_args(
+        _Outer,
+        p.parse_args(
+            [
+                "--name",
+                "y",
+                "--seeds",
+                "4",
+                "5",
+                "6",
+                "--flag",
+                "--rate",
+                "0.25",
+                "--inner-size",
+                "7",
+                "--inner-mode",
+                "b",
+                "--inner-path",
+                "/p",
+            ]
+        ),
+    )
     assert got == _Outer("y", (4, 5, 6), True, 0.25, _Inner(7, "b", "/p"))
     with pytest.raises(SystemExit):
         p.parse_args(["--inner-mode", "c"])  # a Literal's values are the flag's choices
@@ -81,13 +100,16 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
     assert (cfg.model.backbone, cfg.model.img_res, cfg.train.batch_size, cfg.train.steps) == ("resnet50", 224, 64, 5)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--arms", "real", "bogus"], "unknown arms"),
-    (["--low-data", "0"], "low-data"),
-    (["--synthetic-share", "1.0"], "synthetic-share"),
-    (["--train-batch-size", "1"], "batch-size"),
-    (["--setup-bundle", "b"], "needs --setup-data"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--arms", "real", "bogus"], "unknown arms"),
+        (["--low-data", "0"], "low-data"),
+        (["--synthetic-share", "1.0"], "synthetic-share"),
+        (["--train-batch-size", "1"], "batch-size"),
+        (["--setup-bundle", "b"], "needs --setup-data"),
+    ],
+)
 def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
     ds = _downstream()
     with pytest.raises(SystemExit, match=message):
@@ -124,11 +146,19 @@ def test_every_arm_has_a_variant_spec():
     assert ds.run_settings("real", 0, cfg, dict(setup, fingerprints=_prints("w1", "b0", "a0"))) != k  # new world
     # a run's key follows the part of the setup it reads: a new pose bank re-runs the bank arms only
     new_bank = dict(setup, fingerprints=_prints("w0", "b0", "a1"))
-    for arm, changed in (("real", False), ("real_low", False), ("hogsa_no_pom", False), ("hogsa_free", False),
-                         ("hogsa", True), ("hogsa_no_srm", True), ("hogsa_low", True)):
+    for arm, changed in (
+        ("real", False),
+        ("real_low", False),
+        ("hogsa_no_pom", False),
+        ("hogsa_free", False),
+        ("hogsa", True),
+        ("hogsa_no_srm", True),
+        ("hogsa_low", True),
+    ):
         assert (ds.run_settings(arm, 0, cfg, new_bank) != ds.run_settings(arm, 0, cfg, setup)) == changed, arm
-    assert ds.run_settings("hogsa_no_pom", 0, cfg, dict(setup, fingerprints=_prints("w0", "b1", "a1"))) != \
-        ds.run_settings("hogsa_no_pom", 0, cfg, setup)  # new HOGS/SRM
+    assert ds.run_settings(
+        "hogsa_no_pom", 0, cfg, dict(setup, fingerprints=_prints("w0", "b1", "a1"))
+    ) != ds.run_settings("hogsa_no_pom", 0, cfg, setup)  # new HOGS/SRM
     # an export's folder changes with anything its frames depend on
     a = ds.export_dir("full", cfg, setup, Path("/o"))
     assert a != ds.export_dir("full", cfg, new_bank, Path("/o"))
@@ -156,7 +186,9 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     hogs = ds.setup_fingerprints(cfg, setup)  # a new HOGS
     assert hogs["world"] == first["world"] and hogs["bundle"] != bank["bundle"] and hogs["all"] != bank["all"]
     world.write_text('{"seed": 1}')
-    assert all(a != b for a, b in zip(ds.setup_fingerprints(cfg, setup).values(), hogs.values(), strict=True))  # a new world
+    assert all(
+        a != b for a, b in zip(ds.setup_fingerprints(cfg, setup).values(), hogs.values(), strict=True)
+    )  # a new world
 
 
 def _result(mpjpe: float, cdev: float) -> dict:
@@ -259,4 +291,3 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     # photo runs keep the keys they had before backgrounds (and the mix) could be chosen
     syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix")}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
-

@@ -64,21 +64,33 @@ def make_frame(i: int) -> SynthFrame:
     parts[10:30, 25:40, 2] = 0.75
     kp3d = rng.normal(size=(32, 3)) * 0.05 + [0, 0, 0.7]
     return SynthFrame(
-        image=img, alpha=alpha, part_alpha=parts,
+        image=img,
+        alpha=alpha,
+        part_alpha=parts,
         bbox=np.array([S / 2, S / 2, S / 200.0]),
         K_full=np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]]) + i,
         image_size=(640, 480),
-        right=_hand(rng, 1.0), left=_hand(rng, float(i % 2)),
+        right=_hand(rng, 1.0),
+        left=_hand(rng, float(i % 2)),
         obj=ObjectLabels(
-            name="box", radian=float(rng.uniform(0, 1)), kp3d_full=kp3d,
+            name="box",
+            radian=float(rng.uniform(0, 1)),
+            kp3d_full=kp3d,
             bbox3d_full=rng.normal(size=(16, 3)) * 0.05 + [0, 0, 0.7],
-            kp2d=rng.uniform(0, S, size=(32, 2)), bbox2d=rng.uniform(0, S, size=(16, 2)),
-            valid=1.0, kp_bottom_cano=(rng.normal(size=(16, 3)) * 50).astype(np.float32),
+            kp2d=rng.uniform(0, S, size=(32, 2)),
+            bbox2d=rng.uniform(0, S, size=(16, 2)),
+            valid=1.0,
+            kp_bottom_cano=(rng.normal(size=(16, 3)) * 50).astype(np.float32),
         ),
         imgname=f"./synthetic/s01/box/{i:06d}.jpg",
         meta={"seed": 3, "index": i, "subject": "s01", "pose_source": "bank", "cam": np.int64(i)},
-        extra_targets={} if i % 2 else {"dist.ro": rng.uniform(0, 0.1, 5).astype(np.float32),
-                                        "idx.ro": np.arange(5, dtype=np.int64) + i, "object.v_len": 40 + i},
+        extra_targets={}
+        if i % 2
+        else {
+            "dist.ro": rng.uniform(0, 0.1, 5).astype(np.float32),
+            "idx.ro": np.arange(5, dtype=np.int64) + i,
+            "object.v_len": 40 + i,
+        },
     )
 
 
@@ -87,6 +99,7 @@ def frames_for(calls: list):
         calls.append(shard)
         for i in range(shard * SHARD, min((shard + 1) * SHARD, NUM)):
             yield make_frame(i)
+
     return fn
 
 
@@ -134,15 +147,19 @@ def test_layout_and_members(export_dir):
     assert per["first"] == 4 and per["last"] == 6 and per["keys"][0] == "0000000004"
     with tarfile.open(export_dir / shard_name(0)) as tar:
         names = tar.getnames()
-        assert names[:5] == ["0000000000.jpg", "0000000000.alpha.png", "0000000000.parts.png",
-                             "0000000000.labels.npz", "0000000000.json"]
+        assert names[:5] == [
+            "0000000000.jpg",
+            "0000000000.alpha.png",
+            "0000000000.parts.png",
+            "0000000000.labels.npz",
+            "0000000000.json",
+        ]
         z = np.load(io.BytesIO(tar.extractfile("0000000000.labels.npz").read()), allow_pickle=False)
         assert z["right.j2d"].shape == (21, 2) and "obj.kp3d_full" in z.files
         info = json.loads(tar.extractfile("0000000000.json").read())
     assert info["imgname"] == make_frame(0).imgname and info["object"] == "box"
     assert info["index"] == 0 and info["image_size"] == [640, 480] and len(info["K_full"]) == 3
-    assert [k for k, _ in iter_tar_samples(export_dir / shard_name(1))] == ["0000000004", "0000000005",
-                                                                           "0000000006"]
+    assert [k for k, _ in iter_tar_samples(export_dir / shard_name(1))] == ["0000000004", "0000000005", "0000000006"]
 
 
 def test_round_trip_exact(export_dir):
@@ -209,7 +226,9 @@ def test_resume_refuses_another_exports_shards(tmp_path, export_dir):
         write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 4})
     with pytest.raises(ExportMismatchError, match=r"image_format"):
         write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 3}, image_format="png")
-    with pytest.raises(ExportMismatchError, match=r"synth-000001.tar is stale: it holds samples 4..6, this export's are 4..7"):
+    with pytest.raises(
+        ExportMismatchError, match=r"synth-000001.tar is stale: it holds samples 4..6, this export's are 4..7"
+    ):
         write_shards(frames_for(calls), out, NUM + 1, SHARD, progress=False, info={"seed": 3})
     with pytest.raises(ExportMismatchError, match=r"synth-000001.tar lies beyond this export's 1 shard"):
         write_shards(frames_for(calls), out, SHARD, SHARD, progress=False, info={"seed": 3})
@@ -217,7 +236,9 @@ def test_resume_refuses_another_exports_shards(tmp_path, export_dir):
     # overwrite: a smaller export removes the shard past its end; the index and the reader agree
     res = write_shards(frames_for(calls), out, SHARD, SHARD, progress=False, info={"seed": 3}, overwrite=True)
     assert calls == [] and res["skipped"] == [0] and res["complete"]
-    assert sorted(p.name for p in out.glob("*.tar")) == [shard_name(0)] and not (out / "synth-000001.index.json").exists()
+    assert (
+        sorted(p.name for p in out.glob("*.tar")) == [shard_name(0)] and not (out / "synth-000001.index.json").exists()
+    )
     assert len(list(SynthShardDataset(out))) == SHARD
     # overwrite with other settings rewrites every shard; the index records them
     res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False, info={"seed": 4}, overwrite=True)
@@ -272,13 +293,15 @@ def test_arctic_samples_and_workers(export_dir):
     assert source_scale(f) < 0.1
     aug = sample_aug_params(np.random.default_rng([5, 0, 1, 3]), True, False)
     got, live = frame_to_arctic_sample(f, 1, seed=5), frame_to_sample(f, aug)
-    assert torch.equal(got[0]["img"], live[0]["img"]) and torch.equal(got[1]["mano.j2d.norm.r"], live[1]["mano.j2d.norm.r"])
-    plain = make_arctic_sample(f.image, f.bbox, f.K_full, f.image_size, f.right, f.left, f.obj, False, None, aug,
-                               f.imgname)[0]  # ARCTIC's full-size blur on the small crop
+    assert torch.equal(got[0]["img"], live[0]["img"]) and torch.equal(
+        got[1]["mano.j2d.norm.r"], live[1]["mano.j2d.norm.r"]
+    )
+    plain = make_arctic_sample(
+        f.image, f.bbox, f.K_full, f.image_size, f.right, f.left, f.obj, False, None, aug, f.imgname
+    )[0]  # ARCTIC's full-size blur on the small crop
     assert not torch.allclose(plain["img"], live[0]["img"], atol=0.05)
     # two DataLoader workers, default collate: same samples, each exactly once
-    loader = DataLoader(SynthShardDataset(export_dir, arctic_samples=True, seed=5), batch_size=None,
-                        num_workers=2)
+    loader = DataLoader(SynthShardDataset(export_dir, arctic_samples=True, seed=5), batch_size=None, num_workers=2)
     got = {m["imgname"]: t["mano.j2d.norm.r"] for _, t, m in loader}
     assert len(got) == NUM
     for _, t, m in samples:
@@ -287,8 +310,9 @@ def test_arctic_samples_and_workers(export_dir):
     _, t3, _ = next(iter(SynthShardDataset(export_dir, arctic_samples=True)))
     f0 = make_frame(0)
     aug = sample_aug_params(np.random.default_rng([3, 0, 0, 3]), True, False)
-    ref = make_arctic_sample(f0.image, f0.bbox, f0.K_full, f0.image_size, f0.right, f0.left, f0.obj, False, None,
-                             aug, f0.imgname)[1]
+    ref = make_arctic_sample(
+        f0.image, f0.bbox, f0.K_full, f0.image_size, f0.right, f0.left, f0.obj, False, None, aug, f0.imgname
+    )[1]
     assert torch.equal(t3["mano.j2d.norm.r"], ref["mano.j2d.norm.r"]) and t3["object.rot"].equal(ref["object.rot"])
     # default collate (the test frames alternate with and without interaction-field targets)
     plain = [smp for smp in SynthShardDataset(export_dir, arctic_samples=True) if "dist.ro" not in smp[1]]
@@ -306,7 +330,9 @@ def test_map_style_samples_equal_the_stream(export_dir, tmp_path):
     for k in reversed(range(len(ds))):
         inputs, targets, meta = ds[k]
         ref_in, ref_t = stream[meta["imgname"]]
-        assert torch.equal(inputs["img"], ref_in["img"]) and torch.equal(targets["mano.j2d.norm.r"], ref_t["mano.j2d.norm.r"])
+        assert torch.equal(inputs["img"], ref_in["img"]) and torch.equal(
+            targets["mano.j2d.norm.r"], ref_t["mano.j2d.norm.r"]
+        )
         seen.add(meta["imgname"])
     assert len(seen) == NUM
     ds.set_epoch(1)
@@ -384,8 +410,12 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
         def __init__(self, bundle, data, config):
             self.batch_size = config.run.batch_size
             self.render_size = 48
-            self.kw = {**export_info(config), "num_samples": config.run.num_samples,
-                       "exclude_person": config.backgrounds.exclude_person, "srm_tta": config.refinement.srm_tta}
+            self.kw = {
+                **export_info(config),
+                "num_samples": config.run.num_samples,
+                "exclude_person": config.backgrounds.exclude_person,
+                "srm_tta": config.refinement.srm_tta,
+            }
             self.stats = types.SimpleNamespace(as_dict=lambda: {"num_dropped": 0})
             made.append(self)
 
@@ -396,8 +426,24 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     out = tmp_path / "cli"
     (tmp_path / "B").mkdir()  # (folders, as the command checks before any work)
     (tmp_path / "D").mkdir()
-    args = ["export", "--bundle", str(tmp_path / "B"), "--data", str(tmp_path / "D"), "--out", str(out), "--num", "7", "--shard-size", "2",
-            "--batch-size", "2", "--seed", "4", "--quiet"]
+    args = [
+        "export",
+        "--bundle",
+        str(tmp_path / "B"),
+        "--data",
+        str(tmp_path / "D"),
+        "--out",
+        str(out),
+        "--num",
+        "7",
+        "--shard-size",
+        "2",
+        "--batch-size",
+        "2",
+        "--seed",
+        "4",
+        "--quiet",
+    ]
     for rank in (1, 0):
         monkeypatch.setenv("RANK", str(rank))
         monkeypatch.setenv("WORLD_SIZE", "2")
@@ -411,7 +457,9 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     assert made[-1].kw["interfield"] is True
     assert made[0].kw["exclude_person"] is False and made[0].kw["srm_tta"] == 1
     assert "exclude_person" not in index["info"] and "srm_tta" not in index["info"]  # (defaults keep old hashes)
-    assert main(args[:-1] + ["--out", str(tmp_path / "ep"), "--exclude-person", "--srm", "--srm-tta", "8", "--quiet"]) == 0
+    assert (
+        main(args[:-1] + ["--out", str(tmp_path / "ep"), "--exclude-person", "--srm", "--srm-tta", "8", "--quiet"]) == 0
+    )
     assert made[-1].kw["exclude_person"] is True and made[-1].kw["srm_tta"] == 8
     info = json.loads((tmp_path / "ep" / "index.json").read_text())["info"]
     assert info["exclude_person"] is True and info["srm_tta"] == 8

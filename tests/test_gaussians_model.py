@@ -15,7 +15,6 @@ import torch
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import (
     FreeGaussians,
-    headlight_colors,
     GaussianSet,
     HandGaussians,
     MeshGaussians,
@@ -23,6 +22,7 @@ from hogsa_loader.gaussians import (
     avatar_gaussians_from_faces,
     compose,
     gaussians_from_faces,
+    headlight_colors,
     load_part,
     load_state,
     matrix_to_quat,
@@ -72,9 +72,13 @@ def _bumpy_sphere(dtype=D64) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 CUBE_COLOURS = {  # face key -> RGB
-    "+x": (0.9, 0.1, 0.1), "-x": (0.1, 0.9, 0.1), "+y": (0.1, 0.1, 0.9),
-    "-y": (0.9, 0.9, 0.1), "+z": (0.9, 0.2, 0.8), "-z": (0.1, 0.8, 0.9),
-}  # fmt: skip
+    "+x": (0.9, 0.1, 0.1),
+    "-x": (0.1, 0.9, 0.1),
+    "+y": (0.1, 0.1, 0.9),
+    "-y": (0.9, 0.9, 0.1),
+    "+z": (0.9, 0.2, 0.8),
+    "-z": (0.1, 0.8, 0.9),
+}
 
 
 def cube_template(half: float = 0.05, n: int = 12, colours=CUBE_COLOURS, name: str = "cube") -> ObjectTemplate:
@@ -109,12 +113,25 @@ def cube_template(half: float = 0.05, n: int = 12, colours=CUBE_COLOURS, name: s
     verts, faces, uvs = np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs)
     z3 = np.zeros((0, 3))
     return ObjectTemplate(
-        name=name, verts=verts, faces=faces, parts=np.ones(verts.shape[0], np.int64),
-        kp_top=np.zeros((16, 3)), kp_bottom=np.zeros((16, 3)), bbox_top=np.zeros((8, 3)),
-        bbox_bottom=np.zeros((8, 3)), mocap_top=z3, mocap_bottom=z3, sub_top=np.zeros((300, 3)),
-        sub_bottom=np.zeros((300, 3)), diameter=2 * math.sqrt(3) * half, tex_verts=verts,
-        tex_faces=faces, tex_uv=uvs, texture=tex, tex_parts=np.ones(verts.shape[0], np.int64),
-    )  # fmt: skip
+        name=name,
+        verts=verts,
+        faces=faces,
+        parts=np.ones(verts.shape[0], np.int64),
+        kp_top=np.zeros((16, 3)),
+        kp_bottom=np.zeros((16, 3)),
+        bbox_top=np.zeros((8, 3)),
+        bbox_bottom=np.zeros((8, 3)),
+        mocap_top=z3,
+        mocap_bottom=z3,
+        sub_top=np.zeros((300, 3)),
+        sub_bottom=np.zeros((300, 3)),
+        diameter=2 * math.sqrt(3) * half,
+        tex_verts=verts,
+        tex_faces=faces,
+        tex_uv=uvs,
+        texture=tex,
+        tex_parts=np.ones(verts.shape[0], np.int64),
+    )
 
 
 def _head_on_camera(dist: float, f: float, size: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -149,7 +166,13 @@ def test_matrix_quat_round_trip_including_half_turns():
     q = torch.randn(500, 4, generator=g, dtype=D64)
     # rotations by (almost) pi about random axes, where a naive w-based formula fails
     axes = torch.nn.functional.normalize(torch.randn(20, 3, generator=g, dtype=D64), dim=-1)
-    q = torch.cat([q, torch.cat([torch.zeros(20, 1, dtype=D64), axes], 1), torch.cat([torch.full((20, 1), 1e-7, dtype=D64), axes], 1)])
+    q = torch.cat(
+        [
+            q,
+            torch.cat([torch.zeros(20, 1, dtype=D64), axes], 1),
+            torch.cat([torch.full((20, 1), 1e-7, dtype=D64), axes], 1),
+        ]
+    )
     q = torch.nn.functional.normalize(q, dim=-1)
     out = matrix_to_quat(quat_to_matrix(q))
     assert (out[:, 0] >= 0).all()
@@ -262,7 +285,11 @@ def test_avatars_start_equal_to_games_and_follow_their_formula():
         assert torch.allclose(a.scales, b.scales, rtol=1e-9)
     # explicit GaussianAvatars formula for arbitrary local parameters on one face
     g = torch.Generator().manual_seed(2)
-    lm, lq, ls = torch.randn(1, 1, 3, generator=g, dtype=D64), torch.randn(1, 1, 4, generator=g, dtype=D64), torch.randn(1, 1, 3, generator=g, dtype=D64)
+    lm, lq, ls = (
+        torch.randn(1, 1, 3, generator=g, dtype=D64),
+        torch.randn(1, 1, 4, generator=g, dtype=D64),
+        torch.randn(1, 1, 3, generator=g, dtype=D64),
+    )
     tri = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [1.0, 0.0, 1.0]]], dtype=D64)  # first edge along z
     mu, q, s = avatar_gaussians_from_faces(tri, torch.tensor([[0, 1, 2]]), lm, lq, ls)
     e, n = torch.tensor([0.0, 0.0, 1.0], dtype=D64), torch.tensor([0.0, 1.0, 0.0], dtype=D64)
@@ -281,8 +308,10 @@ def test_gradients_reach_every_parameter_through_the_renderer(variant):
     vm, K = _head_on_camera(0.4, 60.0, 32)
     Q = axis_angle_to_matrix(torch.tensor([0.4, 0.5, 0.0]))
     gs = m((m.canonical_vertices() @ Q.T)[None])
-    out = render_gaussians(SplatInputs(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, vm, K, 32, 32),
-                           RenderSettings(sh_degree=1, render_mode="RGB+ED"))
+    out = render_gaussians(
+        SplatInputs(gs.means, gs.quats, gs.scales, gs.opacities, gs.sh, vm, K, 32, 32),
+        RenderSettings(sh_degree=1, render_mode="RGB+ED"),
+    )
     w = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(0))
     ((out.rgb * w).sum() + out.depth.sum()).backward()
     for name, p in m.named_parameters():
@@ -363,7 +392,9 @@ def test_hand_offsets_are_added_before_lbs_and_regularised(right_hand):
     offset_model = right_hand.replace(v_template=right_hand.v_template + hand.splats.offsets.detach().double().numpy())
     ref_verts = MANOLayer(offset_model)(**pose).vertices  # offsets also move the regressed joints
     assert torch.allclose(hand.posed_vertices(**pose), ref_verts, atol=2e-6)
-    ref = gaussians_from_faces(ref_verts, hand.binding_faces, hand.splats.barycentric_weights(), hand.splats.scale_factor())
+    ref = gaussians_from_faces(
+        ref_verts, hand.binding_faces, hand.splats.barycentric_weights(), hand.splats.scale_factor()
+    )
     assert torch.allclose(hand(**pose).means, ref.means, atol=2e-6)
     # gradients of L_R and of the posed means reach the offsets
     (hand(**pose).means.sum() + hand.offset_regulariser()).backward()
@@ -377,7 +408,9 @@ def test_left_hand_part_and_layer_input(hand_pair):
     assert hand.part_type == "hand_left" and hand.part_id == 1 and hand.layer is layer
     assert hand.config()["flat_hand_mean"] is True
     gs = hand(hand_pose=torch.zeros(1, 45))
-    assert torch.allclose(hand.posed_vertices(hand_pose=torch.zeros(1, 45)), layer(hand_pose=torch.zeros(1, 45)).vertices)
+    assert torch.allclose(
+        hand.posed_vertices(hand_pose=torch.zeros(1, 45)), layer(hand_pose=torch.zeros(1, 45)).vertices
+    )
     assert gs.part_ids.unique().tolist() == [1]
 
 
@@ -423,7 +456,9 @@ def test_object_subdivided_texture_binding_keeps_geometry(box_template):
     theta, omega, t = torch.tensor([0.5]), torch.tensor([[0.1, 0.2, 0.3]]), torch.tensor([[0.0, 0.1, 0.0]])
     from hogsa_loader.objects import articulate
 
-    ref = articulate(torch.as_tensor(box_template.verts)[None], torch.as_tensor(box_template.parts == 0), theta, omega, t)
+    ref = articulate(
+        torch.as_tensor(box_template.verts)[None], torch.as_tensor(box_template.parts == 0), theta, omega, t
+    )
     assert torch.allclose(obj.posed_geometry(theta, omega, t), ref)
     # Gaussian colours are the texture sampled at their uv: the atlas is not flat grey
     rgb = sh_to_rgb(obj.splats.sh_dc[:, 0])
@@ -461,7 +496,9 @@ def test_checkpoints_without_weld_seams_are_refused(box_template, tmp_path):
     lacks it (trained with one free offset per vertex) is refused with a clear error."""
     obj = ObjectGaussians(box_template, k=1, sh_degree=0)
     with torch.no_grad():
-        obj.splats.offsets.copy_(1e-3 * torch.randn(obj.splats.offsets.shape, generator=torch.Generator().manual_seed(1)))
+        obj.splats.offsets.copy_(
+            1e-3 * torch.randn(obj.splats.offsets.shape, generator=torch.Generator().manual_seed(1))
+        )
     save_part(obj, tmp_path / "new")
     assert json.loads((tmp_path / "new" / MANIFEST_FILE).read_text())["config"]["weld_seams"] is True
     new = load_part(tmp_path / "new", box_template)
@@ -542,10 +579,13 @@ def _toy_set(B: int, N: int, deg: int, part: int, seed: int) -> GaussianSet:
     sh = torch.randn(N, (deg + 1) ** 2, 3, generator=g)
     return GaussianSet(
         means=torch.randn(B, N, 3, generator=g) * 0.05 + torch.tensor([0.0, 0.0, 0.5]),
-        quats=torch.randn(B, N, 4, generator=g), scales=torch.full((B, N, 3), 0.01),
-        opacities=torch.full((B, N), 0.5), sh=sh[None].expand(B, N, -1, 3), sh_degree=deg,
+        quats=torch.randn(B, N, 4, generator=g),
+        scales=torch.full((B, N, 3), 0.01),
+        opacities=torch.full((B, N), 0.5),
+        sh=sh[None].expand(B, N, -1, 3),
+        sh_degree=deg,
         part_ids=torch.full((N,), part, dtype=torch.long),
-    )  # fmt: skip
+    )
 
 
 def test_compose_pads_sh_keeps_part_ids_and_broadcasts():
@@ -562,8 +602,10 @@ def test_compose_pads_sh_keeps_part_ids_and_broadcasts():
     # zero padding does not change the rendered colours
     vm = torch.eye(4)[None, None].expand(2, 1, 4, 4)
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])[None, None].expand(2, 1, 3, 3)
-    alone = render_gaussians(SplatInputs(a.means, a.quats, a.scales, a.opacities, a.sh, vm, K, 32, 32),
-                             RenderSettings(sh_degree=0, render_mode="RGB+ED"))
+    alone = render_gaussians(
+        SplatInputs(a.means, a.quats, a.scales, a.opacities, a.sh, vm, K, 32, 32),
+        RenderSettings(sh_degree=0, render_mode="RGB+ED"),
+    )
     padded = render_scene(compose([a, _toy_set(2, 0, 2, 1, 3)]), vm, K, 32, 32)
     assert torch.allclose(alone.rgb, padded.rgb, atol=1e-6)
 
@@ -598,12 +640,26 @@ def test_hogs_model_headlight_without_learned_light():
     from hogsa_loader.synthetic.objects.procedural import make_object
 
     r, l = synthetic_hand_pair()
-    m = HogsModel(HandGaussians(r, sh_degree=0), HandGaussians(l, sh_degree=0),
-                  ObjectGaussians(make_object("phone"), sh_degree=0))  # fmt: skip
+    m = HogsModel(
+        HandGaussians(r, sh_degree=0), HandGaussians(l, sh_degree=0), ObjectGaussians(make_object("phone"), sh_degree=0)
+    )
     assert m.light is None
-    poses = {k: torch.zeros(1, n) for k, n in (("right_rot", 3), ("right_pose", 45), ("right_betas", 10),
-             ("right_trans", 3), ("left_rot", 3), ("left_pose", 45), ("left_betas", 10), ("left_trans", 3),
-             ("obj_arti", 1), ("obj_rot", 3), ("obj_trans", 3))}  # fmt: skip
+    poses = {
+        k: torch.zeros(1, n)
+        for k, n in (
+            ("right_rot", 3),
+            ("right_pose", 45),
+            ("right_betas", 10),
+            ("right_trans", 3),
+            ("left_rot", 3),
+            ("left_pose", 45),
+            ("left_betas", 10),
+            ("left_trans", 3),
+            ("obj_arti", 1),
+            ("obj_rot", 3),
+            ("obj_trans", 3),
+        )
+    }
     poses["left_trans"][0, 0] = 0.3  # (the hands apart, the object in front)
     vm = torch.eye(4)[None, None].clone()
     vm[..., 2, 3] = 0.6
@@ -650,10 +706,12 @@ def test_two_overlapping_parts_nearer_one_wins():
     far = ObjectGaussians(cube_template(0.05, 12, red, "far"), k=2, sh_degree=0, part_id=0)
     near = ObjectGaussians(cube_template(0.03, 8, green, "near"), k=2, sh_degree=1, part_id=1)
     zero = torch.zeros(1, 3)
-    scene = compose([
-        far(torch.zeros(1), zero, torch.tensor([[-0.03, 0.0, 0.0]])),
-        near(torch.zeros(1), zero, torch.tensor([[0.02, 0.0, 0.15]])),
-    ])  # fmt: skip
+    scene = compose(
+        [
+            far(torch.zeros(1), zero, torch.tensor([[-0.03, 0.0, 0.0]])),
+            near(torch.zeros(1), zero, torch.tensor([[0.02, 0.0, 0.15]])),
+        ]
+    )
     vm, K = _head_on_camera(dist, f, size)
     out = render_scene(scene, vm, K, size, size)
     rgb, depth, pa = out.rgb[0, 0], out.depth[0, 0, ..., 0], out.part_alpha[0, 0]
@@ -699,8 +757,14 @@ def _state_bytes(part) -> dict[str, bytes]:
 def test_checkpoint_round_trip_is_bit_exact(tmp_path, right_hand, variant):
     hand = HandGaussians(right_hand, variant=variant, k=1, sh_degree=1)
     _perturb(hand, 0)
-    folder = save_part(hand, tmp_path / "right", dataset="arctic", subject="s01", sequence="box_grab_01",
-                       extra={"iterations": 30000, "note": "test"})  # fmt: skip
+    folder = save_part(
+        hand,
+        tmp_path / "right",
+        dataset="arctic",
+        subject="s01",
+        sequence="box_grab_01",
+        extra={"iterations": 30000, "note": "test"},
+    )
     assert sorted(p.name for p in folder.iterdir()) == [TENSORS_FILE, MANIFEST_FILE]  # no temp files left
     manifest = json.loads((folder / MANIFEST_FILE).read_text())
     assert manifest["part_type"] == "hand_right" and manifest["variant"] == variant
@@ -738,7 +802,9 @@ def _rewrite_tensors(folder: Path, edit) -> None:
     (folder / TENSORS_FILE).write_bytes(blob)
     m = json.loads((folder / MANIFEST_FILE).read_text())
     m["tensors_sha256"] = hashlib.sha256(blob).hexdigest()
-    m["tensors"] = {n: {"shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")} for n, t in tensors.items()}
+    m["tensors"] = {
+        n: {"shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")} for n, t in tensors.items()
+    }
     (folder / MANIFEST_FILE).write_text(json.dumps(m))
 
 

@@ -17,13 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from hogsa_loader.datasets.h2o import (
-    H2ORoot,
-    change_mano_frame,
-    h2o_mano_from_tracks,
-    mano_root_joint,
-    read_h2o_rgb,
-)
+from hogsa_loader.datasets.h2o import H2ORoot, change_mano_frame, h2o_mano_from_tracks, mano_root_joint, read_h2o_rgb
 from hogsa_loader.datasets.h2o_io import (
     H2O_COUNTS,
     H2O_IMAGE_SIZE,
@@ -41,8 +35,8 @@ from hogsa_loader.datasets.h2o_io import (
     parse_h2o_verb_label,
 )
 from hogsa_loader.errors import AssetError
-from hogsa_loader.synthetic.h2o_writer import H2OCameraRecord, write_h2o_sequence
 from hogsa_loader.hands.mano import MANOLayer
+from hogsa_loader.synthetic.h2o_writer import H2OCameraRecord, write_h2o_sequence
 
 F64 = torch.float64
 FRAMES = [3, 4, 5, 7]  # a gap, as in real sequences with unannotated ranges
@@ -153,13 +147,19 @@ class Scene:
         rng = np.random.default_rng(5)
         return {
             0: H2OCameraRecord(
-                cam_pose=self.c2w[0], intrinsics=INTR, mano=self.mano0,
-                obj_class=self.obj_class, obj_transform=self.obj0,
+                cam_pose=self.c2w[0],
+                intrinsics=INTR,
+                mano=self.mano0,
+                obj_class=self.obj_class,
+                obj_transform=self.obj0,
             ),
             1: H2OCameraRecord(cam_pose=np.repeat(self.c2w[1][None], F, axis=0), intrinsics=INTR),
             4: H2OCameraRecord(
-                cam_pose=self.c2w[4], intrinsics=INTR, mano=self.mano4,
-                obj_class=self.obj_class, obj_transform=self.obj4,
+                cam_pose=self.c2w[4],
+                intrinsics=INTR,
+                mano=self.mano4,
+                obj_class=self.obj_class,
+                obj_transform=self.obj4,
                 hand_pose=np.c_[np.ones(F), rng.normal(0, 0.2, (F, 63)), np.ones(F), rng.normal(0, 0.2, (F, 63))],
                 obj_pose=np.c_[self.obj_class, rng.normal(0, 0.2, (F, 63))],
                 action_label=np.array([0, 5, 5, 36]),

@@ -22,10 +22,10 @@ from hogsa_loader.gaussians.hogs_model import HogsModel
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.objects.h2o_meshes import H2O_MESH_NAMES, find_h2o_mesh, h2o_mesh_candidates, load_h2o_object
 from hogsa_loader.objects.template import BOTTOM
+from hogsa_loader.synthetic.world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
-from hogsa_loader.synthetic.world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -109,9 +109,12 @@ def test_export_round_trip(h2o_world, tiny_world):
     assert seq.frame_ids.tolist() == idx.tolist() and seq.object.name == "book"
 
     def verts(track, side, rows):
-        o = layers[side](global_orient=torch.as_tensor(track.rot[rows]), hand_pose=torch.as_tensor(track.pose[rows]),
-                         betas=torch.as_tensor(np.repeat(track.betas[None], len(rows), 0)),
-                         transl=torch.as_tensor(track.trans[rows]))  # fmt: skip
+        o = layers[side](
+            global_orient=torch.as_tensor(track.rot[rows]),
+            hand_pose=torch.as_tensor(track.pose[rows]),
+            betas=torch.as_tensor(np.repeat(track.betas[None], len(rows), 0)),
+            transl=torch.as_tensor(track.trans[rows]),
+        )
         return o.vertices.numpy()
 
     for side in ("right", "left"):
@@ -150,10 +153,12 @@ def test_export_refuses_to_mix_exports_and_cli_errors(tiny_world, tmp_path, caps
     root = H2ORoot(out)
     assert root.frames("subject1", "h1", 0) == rec["frames"] and len(rec["frames"]) > 2
     base = ["h2o-export", "--world", str(tiny_world), "--out", str(tmp_path / "x"), "--quiet"]
-    for extra, msg in ((["--object-class", "foo"], "unknown H2O object 'foo'"),
-                       (["--mesh-name", "pringles"], "not a known name of H2O class"),
-                       (["--subject", "s01", "--sequence", "box_use_01"], "articulation varies"),
-                       (["--frame-stride", "0"], "frame stride must be >= 1")):  # fmt: skip
+    for extra, msg in (
+        (["--object-class", "foo"], "unknown H2O object 'foo'"),
+        (["--mesh-name", "pringles"], "not a known name of H2O class"),
+        (["--subject", "s01", "--sequence", "box_use_01"], "articulation varies"),
+        (["--frame-stride", "0"], "frame stride must be >= 1"),
+    ):
         assert cli(base + extra) == 2
         assert msg in capsys.readouterr().err
     assert cli(base[:3] + ["--out", str(out), "--quiet"]) == 1
@@ -165,7 +170,11 @@ def test_crop_image_geometry():
     when the crop shrinks the image (supersampled + box-filtered); black outside."""
     H, W = 60, 100
     ramp = np.stack(np.broadcast_arrays(np.arange(W)[None, :], np.arange(H)[:, None]), -1).astype(np.float32)
-    for box, size in ((np.array([40.0, 30.0, 0.1]), 16), (np.array([40.0, 30.0, 0.1]), 60), (np.array([50, 25, 0.2]), 8)):
+    for box, size in (
+        (np.array([40.0, 30.0, 0.1]), 16),
+        (np.array([40.0, 30.0, 0.1]), 60),
+        (np.array([50, 25, 0.2]), 8),
+    ):
         side = 300 * box[2]
         c = crop_image(ramp, box, size)
         want = box[0] - side / 2 + np.arange(size) * side / size
@@ -207,8 +216,17 @@ def test_h2o_data_alignment(h2o_world, tiny_world):
         load_h2o_hogs_data(H2ORoot(out), "subject1", "milk", mano_layers=layers, template=tpl)
     with pytest.raises(ValueError, match="eval views must be among"):
         load_h2o_hogs_data(H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, eval_views=(4,))
-    ego = load_h2o_hogs_data(H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, image_size=32,
-                             views=(0, 1, 2, 3, 4), frame_stride=4, eval_every_frame=2)  # fmt: skip
+    ego = load_h2o_hogs_data(
+        H2ORoot(out),
+        "subject1",
+        "book",
+        mano_layers=layers,
+        template=tpl,
+        image_size=32,
+        views=(0, 1, 2, 3, 4),
+        frame_stride=4,
+        eval_every_frame=2,
+    )
     assert 4 in {s.view for s in ego.train}
 
 
@@ -216,11 +234,30 @@ def test_h2o_data_alignment(h2o_world, tiny_world):
 def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
     out, _ = h2o_world
     mano = str(Path(tiny_world) / "body_models" / "mano")
-    h2o = dict(dataset="h2o", data=str(out), mano_dir=mano, object_mesh_dir=str(out / "object"),
-               subject="subject1", object="book")  # fmt: skip
-    cfg = HogsConfig.from_json(dict(**h2o, out=str(tmp_path / "run"), iters=24, image_size=64, max_eval=3,
-                                    eval_every=0, ckpt_every=12, lr_scale=10.0, k=1, sh_degree=1, sh_warmup=0,
-                                    strip_views=2))  # fmt: skip
+    h2o = dict(
+        dataset="h2o",
+        data=str(out),
+        mano_dir=mano,
+        object_mesh_dir=str(out / "object"),
+        subject="subject1",
+        object="book",
+    )
+    cfg = HogsConfig.from_json(
+        dict(
+            **h2o,
+            out=str(tmp_path / "run"),
+            iters=24,
+            image_size=64,
+            max_eval=3,
+            eval_every=0,
+            ckpt_every=12,
+            lr_scale=10.0,
+            k=1,
+            sh_degree=1,
+            sh_warmup=0,
+            strip_views=2,
+        )
+    )
     tr = HogsTrainer(cfg, progress=False)
     assert tr.cfg.data.views == (0, 1, 2, 3) and tr.cfg.data.eval_views == (3,)
     fixed = tr.data.train[:: max(1, len(tr.data.train) // 4)][:4]
@@ -250,8 +287,27 @@ def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
 
     rq = _script("benchmarks/render_quality.py")
     qj = tmp_path / "q.json"
-    assert rq.main(["--dataset", "h2o", "--data", str(out), "--mano-dir", mano, "--object-mesh-dir",
-                    str(out / "object"), "--run", str(run), "--json", str(qj), "--png", str(tmp_path / "q.png")]) == 0  # fmt: skip
+    assert (
+        rq.main(
+            [
+                "--dataset",
+                "h2o",
+                "--data",
+                str(out),
+                "--mano-dir",
+                mano,
+                "--object-mesh-dir",
+                str(out / "object"),
+                "--run",
+                str(run),
+                "--json",
+                str(qj),
+                "--png",
+                str(tmp_path / "q.png"),
+            ]
+        )
+        == 0
+    )
     q = json.loads(qj.read_text())
     assert q["psnr"] == pytest.approx(m["psnr"]) and q["ssim"] == pytest.approx(m["ssim"]) and "lpips" in q
     assert [v["view"] for v in q["per_view"]] == [3] and q["runs"][0]["dataset"] == "h2o"
@@ -278,8 +334,9 @@ def test_train_all_hogs_lists_h2o_pairs(h2o_world, tmp_path, capsys):
     """--dataset h2o: pairs are (subject, object class) read from the obj_pose_rt labels."""
     root, _ = h2o_world
     ta = _script("pretrain/train_all_hogs.py")
-    args, rest = ta.parse_args(["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--dry-run", "--",
-                                "--mano-dir", "M"])
+    args, rest = ta.parse_args(
+        ["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--dry-run", "--", "--mano-dir", "M"]
+    )
     from hogsa_loader.datasets.h2o import H2ORoot
 
     assert ta.list_h2o_pairs(H2ORoot(root), args) == [("subject1", "book", ["h1/0"])] and rest == ["--mano-dir", "M"]

@@ -39,10 +39,39 @@ def _one_line(err: str, *needles: str) -> None:
 
 
 def _hogs_args(world: Path, out: Path, iters: int = 2) -> list[str]:
-    return ["--data-root", str(world), "--data-subject", "s01", "--data-object", "box", "--run-out", str(out),
-            "--data-image-size", "32", "--data-frame-stride", "8", "--data-eval-every-frame", "2", "--data-max-eval",
-            "1", "--run-eval-every", "0", "--run-ckpt-every", "1", "--model-k", "1", "--model-sh-degree", "0",
-            "--optim-sh-warmup", "0", "--run-strip-views", "1", "--optim-iters", str(iters), "--quiet"]  # fmt: skip
+    return [
+        "--data-root",
+        str(world),
+        "--data-subject",
+        "s01",
+        "--data-object",
+        "box",
+        "--run-out",
+        str(out),
+        "--data-image-size",
+        "32",
+        "--data-frame-stride",
+        "8",
+        "--data-eval-every-frame",
+        "2",
+        "--data-max-eval",
+        "1",
+        "--run-eval-every",
+        "0",
+        "--run-ckpt-every",
+        "1",
+        "--model-k",
+        "1",
+        "--model-sh-degree",
+        "0",
+        "--optim-sh-warmup",
+        "0",
+        "--run-strip-views",
+        "1",
+        "--optim-iters",
+        str(iters),
+        "--quiet",
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -292,8 +321,10 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
     path.write_bytes(buf.getvalue())
     with pytest.raises(AssetError, match=r"v_template.*nested list of shape 10000x1000x3x1 is far larger than any"):
         mano_io.load_mano(path)
-    for value, message in (([[[0.5] * 3] * 1000] * 2000, "nested list of shape 2000x1000x3 is far larger"),
-                           ([[2**70, 1, 2]], "expected a numeric array, got dtype object")):
+    for value, message in (
+        ([[[0.5] * 3] * 1000] * 2000, "nested list of shape 2000x1000x3 is far larger"),
+        ([[2**70, 1, 2]], "expected a numeric array, got dtype object"),
+    ):
         doc.update(v_template=value)
         buf = io.BytesIO()
         mano_io._LegacyPickler(buf, protocol=2).dump(doc)
@@ -454,8 +485,21 @@ def test_demo_checks_its_arguments_first(tiny_world, tmp_path, capsys):
 def test_export_checks_its_arguments_first(tmp_path, capsys):
     (tmp_path / "bundle").mkdir()
     (tmp_path / "data").mkdir()
-    base = ["export", "--bundle", str(tmp_path / "bundle"), "--data", str(tmp_path / "data"), "--out",
-            str(tmp_path / "out"), "--num", "8", "--shard-size", "4", "--batch-size", "2"]  # fmt: skip
+    base = [
+        "export",
+        "--bundle",
+        str(tmp_path / "bundle"),
+        "--data",
+        str(tmp_path / "data"),
+        "--out",
+        str(tmp_path / "out"),
+        "--num",
+        "8",
+        "--shard-size",
+        "4",
+        "--batch-size",
+        "2",
+    ]
     cases = [
         (["--poses", "nonsense"], "--poses", "invalid choice"),
         (["--device", "potato"], "--device", "not a device"),
@@ -501,9 +545,13 @@ def test_assets_unknown_object_refused_before_writing(tmp_path, capsys):
 
 def test_train_hogs_checks_numbers_first(tiny_world, tmp_path, capsys):
     train = _script("train_hogs")
-    for flag, value, needle in (("--data-image-size", "-64", "must be > 0"), ("--data-image-size", "0", "must be > 0"),
-                                ("--optim-iters", "-1", "must be >= 0"), ("--run-device", "potato", "not a device"),
-                                ("--model-sh-degree", "7", "invalid choice")):  # fmt: skip
+    for flag, value, needle in (
+        ("--data-image-size", "-64", "must be > 0"),
+        ("--data-image-size", "0", "must be > 0"),
+        ("--optim-iters", "-1", "must be >= 0"),
+        ("--run-device", "potato", "not a device"),
+        ("--model-sh-degree", "7", "invalid choice"),
+    ):
         args = _hogs_args(tiny_world, tmp_path / "r")
         if flag in args:
             args[args.index(flag) + 1] = value
@@ -563,8 +611,9 @@ def test_checkpoint_bytes_are_reproducible(tmp_path):
     # a file written in the writer's own order (before sorting) still reads and verifies
     old = save(tensors, metadata=meta)
     (tmp_path / "old.safetensors").write_bytes(old)
-    back = read_checked_tensors(tmp_path / "old.safetensors", {"tensors_sha256": hashlib.sha256(old).hexdigest()},
-                                tmp_path / "m.json")  # fmt: skip
+    back = read_checked_tensors(
+        tmp_path / "old.safetensors", {"tensors_sha256": hashlib.sha256(old).hexdigest()}, tmp_path / "m.json"
+    )
     assert torch.equal(back["b"], tensors["b"])
 
 
@@ -575,13 +624,40 @@ def test_pretrain_scripts_check_first(tiny_world, untrained_bundle, tmp_path, ca
     _one_line(capsys.readouterr().err, "build_bundle: error:", "already holds a bundle", "--overwrite")
     assert (untrained_bundle / "manifest.json").read_bytes() == before
     for name, argv, flag in (
-        ("train_contactnet", ["--data-root", str(tiny_world), "--run-out", str(tmp_path / "cn"), "--optim-points", "0"],
-         "--optim-points"),
-        ("build_pose_bank", ["--data-root", str(tiny_world), "--data-contactnet", str(tmp_path), "--run-out",
-                             str(tmp_path / "b"), "--run-device", "potato"], "--run-device"),
-        ("train_srm", ["--data-root", str(tiny_world), "--data-hogs", str(tmp_path), "--run-out", str(tmp_path / "s"),
-                       "--optim-batch-size", "0"], "--optim-batch-size"),
-    ):  # fmt: skip
+        (
+            "train_contactnet",
+            ["--data-root", str(tiny_world), "--run-out", str(tmp_path / "cn"), "--optim-points", "0"],
+            "--optim-points",
+        ),
+        (
+            "build_pose_bank",
+            [
+                "--data-root",
+                str(tiny_world),
+                "--data-contactnet",
+                str(tmp_path),
+                "--run-out",
+                str(tmp_path / "b"),
+                "--run-device",
+                "potato",
+            ],
+            "--run-device",
+        ),
+        (
+            "train_srm",
+            [
+                "--data-root",
+                str(tiny_world),
+                "--data-hogs",
+                str(tmp_path),
+                "--run-out",
+                str(tmp_path / "s"),
+                "--optim-batch-size",
+                "0",
+            ],
+            "--optim-batch-size",
+        ),
+    ):
         with pytest.raises(SystemExit) as exc:
             _script(name).main(argv)
         assert exc.value.code == 2

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 import torch
 
+from hogsa_loader.compose.part_masks import inside_image, pose_meshes, render_part_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, render_intrinsics
 from hogsa_loader.train import HogsConfig, HogsTrainer, load_hogs_data
-from hogsa_loader.datasets.arctic_processing import crop_boxes
-from hogsa_loader.compose.part_masks import inside_image, pose_meshes, render_part_mask
 
 PARTS = (1, 2, 3, 4)
 
@@ -123,7 +123,9 @@ def test_foreground_window_matches_files(tiny_world):
     K = s0.K.copy()
     K[0, 2] += 1.0
     cam = seq.cameras[s0.view]
-    off = render_part_mask(posed, s0.frame, s0.world2cam, K, 64, K_full=cam.K[s0.frame], full_size=(cam.width, cam.height))
+    off = render_part_mask(
+        posed, s0.frame, s0.world2cam, K, 64, K_full=cam.K[s0.frame], full_size=(cam.width, cam.height)
+    )
     assert _iou(off > 0, s0.mask > 0) < _iou(B[0] > 0, A[0] > 0) - 0.02
     # the window cuts no foreground the cropped image holds; the foreground covers more pixels
     C = np.stack([s.mask for s in crop.train + crop.eval])
@@ -150,9 +152,24 @@ def _maskless_root(world: Path, tmp: Path) -> Path:
 
 
 def _cfg(data, out, **kw) -> HogsConfig:
-    base = dict(data=str(data), subject="s01", object="box", out=str(out), iters=16, image_size=64, frame_stride=4,
-                eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0, k=1, sh_degree=1,
-                sh_warmup=0, strip_views=2)  # fmt: skip
+    base = dict(
+        data=str(data),
+        subject="s01",
+        object="box",
+        out=str(out),
+        iters=16,
+        image_size=64,
+        frame_stride=4,
+        eval_every_frame=2,
+        max_eval=3,
+        eval_every=0,
+        ckpt_every=0,
+        lr_scale=10.0,
+        k=1,
+        sh_degree=1,
+        sh_warmup=0,
+        strip_views=2,
+    )
     base.update(kw)
     return HogsConfig.from_json(base)
 

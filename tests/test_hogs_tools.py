@@ -26,15 +26,50 @@ def _module(path: Path, name: str):
     return mod
 
 
-FAST = ["--data-image-size", "64", "--data-frame-stride", "4", "--data-eval-every-frame", "2", "--data-max-eval", "3",
-        "--run-eval-every", "0", "--run-ckpt-every", "0", "--optim-lr-scale", "10", "--model-k", "1",
-        "--model-sh-degree", "1", "--optim-sh-warmup", "0", "--quiet"]  # fmt: skip
+FAST = [
+    "--data-image-size",
+    "64",
+    "--data-frame-stride",
+    "4",
+    "--data-eval-every-frame",
+    "2",
+    "--data-max-eval",
+    "3",
+    "--run-eval-every",
+    "0",
+    "--run-ckpt-every",
+    "0",
+    "--optim-lr-scale",
+    "10",
+    "--model-k",
+    "1",
+    "--model-sh-degree",
+    "1",
+    "--optim-sh-warmup",
+    "0",
+    "--quiet",
+]
 
 
 def _cfg(world, out, **kw) -> HogsConfig:
-    base = dict(data=str(world), subject="s01", object="box", out=str(out), iters=4, image_size=64,
-                frame_stride=4, eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0,
-                k=1, sh_degree=1, sh_warmup=0, strip_views=2)  # fmt: skip
+    base = dict(
+        data=str(world),
+        subject="s01",
+        object="box",
+        out=str(out),
+        iters=4,
+        image_size=64,
+        frame_stride=4,
+        eval_every_frame=2,
+        max_eval=3,
+        eval_every=0,
+        ckpt_every=0,
+        lr_scale=10.0,
+        k=1,
+        sh_degree=1,
+        sh_warmup=0,
+        strip_views=2,
+    )
     base.update(kw)
     return HogsConfig.from_json(base)
 
@@ -90,8 +125,27 @@ def test_render_quality_matches_training_metrics(tiny_world, trained_runs, tmp_p
     rq = _module(ROOT / "benchmarks" / "render_quality.py", "render_quality")
     out = tmp_path / "q.json"
     png = tmp_path / "q.png"
-    assert rq.main(["--data", str(tiny_world), "--run", str(mesh_run), "--run", str(free_run), "--json", str(out),
-                    "--png", str(png), "--max-eval", "3", "--png-rows", "2"]) == 0  # fmt: skip
+    assert (
+        rq.main(
+            [
+                "--data",
+                str(tiny_world),
+                "--run",
+                str(mesh_run),
+                "--run",
+                str(free_run),
+                "--json",
+                str(out),
+                "--png",
+                str(png),
+                "--max-eval",
+                "3",
+                "--png-rows",
+                "2",
+            ]
+        )
+        == 0
+    )
     q = json.loads(out.read_text())
     for key in ("psnr", "ssim", "lpips", "per_view", "runs", "lpips_note"):
         assert key in q
@@ -164,10 +218,16 @@ def test_directional_light_shading_and_checkpoint(tmp_path):
     # facing the light: ambient + diffuse; facing away / grazing: ambient only
     torch.testing.assert_close(light.shade(n).flatten(), torch.tensor([0.9, 0.3, 0.3]), atol=1e-5, rtol=0)
     rgb = torch.tensor([[0.8, 0.4, 0.2], [0.5, 0.5, 0.5], [0.1, 0.9, 0.3]])
-    scene = GaussianSet(means=torch.zeros(1, 3, 3), quats=torch.tensor([[1.0, 0, 0, 0]]).expand(1, 3, 4),
-                        scales=torch.full((1, 3, 3), 0.01), opacities=torch.ones(1, 3),
-                        sh=rgb_to_sh(rgb)[None, :, None, :], sh_degree=0, part_ids=torch.zeros(3, dtype=torch.long),
-                        normals=n[None])  # fmt: skip
+    scene = GaussianSet(
+        means=torch.zeros(1, 3, 3),
+        quats=torch.tensor([[1.0, 0, 0, 0]]).expand(1, 3, 4),
+        scales=torch.full((1, 3, 3), 0.01),
+        opacities=torch.ones(1, 3),
+        sh=rgb_to_sh(rgb)[None, :, None, :],
+        sh_degree=0,
+        part_ids=torch.zeros(3, dtype=torch.long),
+        normals=n[None],
+    )
     vm = torch.eye(4)[None, None].clone()
     vm[..., 2, 3] = 1.0
     cols = light(scene, vm)

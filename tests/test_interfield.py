@@ -53,13 +53,17 @@ def test_real_dataset_interfield_uses_the_frames_meshes(tiny_world):
     for index in np.linspace(0, len(ds) - 1, 12).round().astype(int):
         inputs, targets, meta = ds[int(index)]
         base = plain[int(index)][1]
-        assert list(targets)[: len(base)] == list(base) and list(targets)[len(base):] == list(INTERFIELD_KEYS)
+        assert list(targets)[: len(base)] == list(base) and list(targets)[len(base) :] == list(INTERFIELD_KEYS)
         assert targets["dist.ro"].shape == (n_hand,) and targets["idx.lo"].shape == (n_hand,)
         assert targets["dist.or"].shape == (v_max,)
         sid, seq, view, vidx, seq_data = ds._locate(ds.imgnames[int(index)])
         p = ds._world_poses(seq_data["params"], vidx)
-        j = layers["right"](global_orient=torch.as_tensor(p["right_rot"]), hand_pose=torch.as_tensor(p["right_pose"]),
-                            betas=torch.as_tensor(p["right_betas"]), transl=torch.as_tensor(p["right_trans"])).joints
+        j = layers["right"](
+            global_orient=torch.as_tensor(p["right_rot"]),
+            hand_pose=torch.as_tensor(p["right_pose"]),
+            betas=torch.as_tensor(p["right_betas"]),
+            transl=torch.as_tensor(p["right_trans"]),
+        ).joints
         w2c = np.asarray(root.subject_misc(sid).world2cam[view - 1]) if view > 0 else None
         if w2c is not None:
             np.testing.assert_allclose(transform(w2c, j[0].numpy()), np.asarray(targets["mano.j3d.full.r"]), atol=1e-4)

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_srm
 from torch.utils.data import DataLoader, default_collate
 
 from hogsa_loader.bundle import load_bundle, write_bundle
@@ -33,8 +34,6 @@ from hogsa_loader.loader import (
 )
 from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
-
-from conftest import tiny_srm
 
 #: Small patches keep rendering cheap; real and synthetic samples use the same config.
 CFG = ArcticConfig(img_res=64)
@@ -65,8 +64,13 @@ def _dataset(bundle_dir, world, *, backgrounds=None, poses=None, **kw) -> HOGSAD
     kw.setdefault("num_samples", 4)
     if isinstance(poses, str):  # a registered name: a config setting; else a pose-source object
         kw["poses"], poses = poses, None
-    return HOGSADataset(bundle_dir, world, _config(**kw), poses=poses,
-                        backgrounds=backgrounds if backgrounds is not None else ProceduralBackgrounds())
+    return HOGSADataset(
+        bundle_dir,
+        world,
+        _config(**kw),
+        poses=poses,
+        backgrounds=backgrounds if backgrounds is not None else ProceduralBackgrounds(),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +133,9 @@ def test_keypoints_lie_on_rendered_alpha(frames):
             # labels are truncated the HMR way (up to 1 px right/below): look 1 px around
             patch_hits.extend(joints_on_alpha(px[ok], a, radius=1))
     crop_rate, patch_rate = float(np.mean(crop_hits)), float(np.mean(patch_hits))
-    print(f"joints on alpha: crop {crop_rate:.4f} ({len(crop_hits)} joints), patch {patch_rate:.4f} ({len(patch_hits)})")
+    print(
+        f"joints on alpha: crop {crop_rate:.4f} ({len(crop_hits)} joints), patch {patch_rate:.4f} ({len(patch_hits)})"
+    )
     assert len(crop_hits) >= 200
     assert crop_rate >= 0.99
     assert patch_rate >= 0.99
@@ -172,12 +178,15 @@ class _Indexed(torch.utils.data.Dataset):
         return {"x": torch.tensor(i)}
 
 
-@pytest.mark.parametrize("n, B, ratio, real_kw, drop_last", [
-    (100, 10, 0.5, {"sampler": "distributed"}, True),  # one of two ranks: half the samples
-    (105, 10, 0.5, {"drop_last": True}, True),  # the real loader drops its last 5
-    (41, 40, 0.95, {}, False),  # a high ratio: the last real sample still gets its (smaller) batch
-    (23, 8, 0.25, {}, False),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "n, B, ratio, real_kw, drop_last",
+    [
+        (100, 10, 0.5, {"sampler": "distributed"}, True),  # one of two ranks: half the samples
+        (105, 10, 0.5, {"drop_last": True}, True),  # the real loader drops its last 5
+        (41, 40, 0.95, {}, False),  # a high ratio: the last real sample still gets its (smaller) batch
+        (23, 8, 0.25, {}, False),
+    ],
+)
 def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_last):
     from torch.utils.data.distributed import DistributedSampler
 
@@ -189,8 +198,11 @@ def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_l
     batches = list(mixed)
     assert len(mixed) == len(batches)
     if "sampler" not in real_kw:  # a sized iterable real dataset (its sampler has no length): same count
-        it_ds = type("SizedIterable", (torch.utils.data.IterableDataset,), {
-            "__iter__": lambda self: (ds[i] for i in range(n)), "__len__": lambda self: n})()
+        it_ds = type(
+            "SizedIterable",
+            (torch.utils.data.IterableDataset,),
+            {"__iter__": lambda self: (ds[i] for i in range(n)), "__len__": lambda self: n},
+        )()
         it_real = DataLoader(it_ds, batch_size=B, drop_last=bool(real_kw.get("drop_last")))
         it_mixed = MixedLoader(it_real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, drop_last=drop_last)
         assert len(it_mixed) == len(list(it_mixed)) == len(batches)
@@ -204,14 +216,16 @@ def test_mixed_loader_length_matches_what_it_yields(n, B, ratio, real_kw, drop_l
         assert k <= B and int((b["x"] < 0).sum()) == num_synthetic(ratio, k)
 
 
-@pytest.mark.parametrize("n, B, ratio, drop_last", [
-    (23, 8, 0.5, False), (23, 8, 0.25, True), (35, 6, 0.6, False), (9, 4, 0.0, False)])  # fmt: skip
+@pytest.mark.parametrize(
+    "n, B, ratio, drop_last", [(23, 8, 0.5, False), (23, 8, 0.25, True), (35, 6, 0.6, False), (9, 4, 0.0, False)]
+)
 def test_mixed_loader_add_mode_keeps_the_real_batches(n, B, ratio, drop_last):
     ds = _Indexed(n)
     real = DataLoader(ds, batch_size=B, drop_last=drop_last)
     # MixedLoader's own drop_last is for "replace"; the real loader's decides here
-    mixed = MixedLoader(real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, mode="add",
-                        drop_last=not drop_last)
+    mixed = MixedLoader(
+        real, itertools.repeat({"x": torch.tensor(-1)}), ratio=ratio, mode="add", drop_last=not drop_last
+    )
     batches = list(mixed)
     assert len(mixed) == len(batches) == len(real)
     assert mixed.batch_size == B + added_synthetic(ratio, B)
@@ -254,8 +268,8 @@ def test_batches_are_balanced_over_the_models(bundle_dir, tiny_world):
     for epoch in (0, 1):
         keys = [ds.batch_key(g, epoch) for g in range(60)]
         for block in range(20):  # each block of len(keys) batches uses every model once
-            assert sorted(keys[3 * block:3 * block + 3]) == sorted(ds.keys)
-        orders = {tuple(keys[3 * b:3 * b + 3]) for b in range(20)}
+            assert sorted(keys[3 * block : 3 * block + 3]) == sorted(ds.keys)
+        orders = {tuple(keys[3 * b : 3 * b + 3]) for b in range(20)}
         assert len(orders) > 1  # the order within a block is drawn, not fixed
     assert [ds.batch_key(g, 0) for g in range(60)] != [ds.batch_key(g, 1) for g in range(60)]
     same = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2, seed=3)
@@ -276,7 +290,9 @@ def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(b
     (e0, e0_again), (e1,) = per_epoch[0], per_epoch[1]
     assert e0 and e1 and all(parse_synthetic_imgname(n)["epoch"] == 0 for n, _ in e0)
     assert all(parse_synthetic_imgname(n)["epoch"] == 1 for n, _ in e1)  # the worker saw set_epoch(1)
-    assert [n for n, _ in e0] == [n for n, _ in e0_again] and all(torch.equal(x, y) for (_, x), (_, y) in zip(e0, e0_again))
+    assert [n for n, _ in e0] == [n for n, _ in e0_again] and all(
+        torch.equal(x, y) for (_, x), (_, y) in zip(e0, e0_again)
+    )
     name, img = e1[-1]
     again = ds.sample(parse_synthetic_imgname(name)["index"], epoch=1)
     assert again is not None and again[2]["imgname"] == name and torch.allclose(again[0]["img"], img, atol=1e-4)
@@ -297,7 +313,9 @@ def test_set_epoch_reaches_persistent_workers_and_waits_for_the_next_iteration(b
     assert rest and all(parse_synthetic_imgname(s[2]["imgname"])["epoch"] == 0 for s in [first, *rest])
     ref = [ds.to_sample(f) for f in ds.frames(0, epoch=0) if f is not None]  # the same render batch, epoch 0
     assert [s[2]["imgname"] for s in ref] == [s[2]["imgname"] for s in [first, *rest]]
-    assert all(torch.equal(a[0]["img"], b[0]["img"]) for a, b in zip(ref, [first, *rest]))  # augmentation of epoch 0 too
+    assert all(
+        torch.equal(a[0]["img"], b[0]["img"]) for a, b in zip(ref, [first, *rest])
+    )  # augmentation of epoch 0 too
 
 
 def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_path, monkeypatch):
@@ -321,8 +339,11 @@ def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_
 
     monkeypatch.setenv("HOGSA_CACHE", str(tmp_path / "cache"))  # (the COCO selection cache, not ~/.cache)
     coco = _write_coco(tmp_path / "coco")
-    ds = HOGSADataset(bundle_dir, tiny_world, _config(coco_root=coco, exclude_person=True,
-                                                       coco_image_dir=coco / "images" / "train2017"))
+    ds = HOGSADataset(
+        bundle_dir,
+        tiny_world,
+        _config(coco_root=coco, exclude_person=True, coco_image_dir=coco / "images" / "train2017"),
+    )
     assert ds.backgrounds.exclude_person and sorted(ds.backgrounds.image_ids) == [1, 3, 5]  # (2, 4 show people)
 
 
@@ -365,8 +386,13 @@ def test_bundle_keeps_the_runs_light(bundle_dir, tiny_world, tmp_path):
     root = ArcticRoot(tiny_world)
     model = b.load_hogs(("s01", "box"), root.mano_layers(), root.object_templates())
     assert isinstance(model.light, DirectionalLight)
-    assert torch.equal(model.light.state_dict()["direction"], DirectionalLight(direction=(0.3, -0.2, 1.0)).state_dict()["direction"])
-    assert b.hogs[("s01", "box")].light is not None and b.hogs[("s01", "box")].light.keys() == {"tensors_sha256", "manifest_sha256"}
+    assert torch.equal(
+        model.light.state_dict()["direction"], DirectionalLight(direction=(0.3, -0.2, 1.0)).state_dict()["direction"]
+    )
+    assert b.hogs[("s01", "box")].light is not None and b.hogs[("s01", "box")].light.keys() == {
+        "tensors_sha256",
+        "manifest_sha256",
+    }
     # rebuilding the bundle from its own runs keeps them (and the light)
     b2 = load_bundle(write_bundle(tmp_path / "b", tiny_world, [tmp_path / "b" / "hogs" / "s01_box"]))
     assert b2.hogs[("s01", "box")].light == b.hogs[("s01", "box")].light
@@ -394,8 +420,11 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
     run = bundle_dir / "hogs" / "s01_box"
     (tmp_path / "srm.bin").write_bytes(b"srm weights")
     (tmp_path / "notsrm").mkdir()
-    for srm, match in ((tmp_path / "srm.bin", "must be a checkpoint folder"), (tmp_path / "notsrm", "manifest.json.*missing"),
-                       (tmp_path / "nope", "nope is missing")):  # fmt: skip
+    for srm, match in (
+        (tmp_path / "srm.bin", "must be a checkpoint folder"),
+        (tmp_path / "notsrm", "manifest.json.*missing"),
+        (tmp_path / "nope", "nope is missing"),
+    ):
         with pytest.raises(AssetError, match=match):
             write_bundle(tmp_path / "b", tiny_world, [run], srm=srm)
     with pytest.raises(AssetError, match="ContactNet checkpoint.*manifest.json"):
@@ -403,15 +432,19 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
     (tmp_path / "s01" / "bank").mkdir(parents=True)
     (tmp_path / "s02" / "bank").mkdir(parents=True)
     with pytest.raises(AssetError, match="distinct folder names"):
-        write_bundle(tmp_path / "b", tiny_world, [run], pose_banks=[tmp_path / "s01" / "bank", tmp_path / "s02" / "bank"])
+        write_bundle(
+            tmp_path / "b", tiny_world, [run], pose_banks=[tmp_path / "s01" / "bank", tmp_path / "s02" / "bank"]
+        )
     assert not (tmp_path / "b").exists()  # nothing written
     # an SRM replaced inside a bundle (hashes updated) is still read as a checkpoint
     shutil.copytree(bundle_dir, tmp_path / "c")
     srm_dir = tmp_path / "c" / "srm" / "srm"
     (srm_dir / "manifest.json").write_text("{}")
     man = json.loads((tmp_path / "c" / "manifest.json").read_text())
-    man["srm"]["files"] = {"manifest.json": hashlib.sha256(b"{}").hexdigest(),
-                           "srm.safetensors": man["srm"]["files"]["srm.safetensors"]}  # fmt: skip
+    man["srm"]["files"] = {
+        "manifest.json": hashlib.sha256(b"{}").hexdigest(),
+        "srm.safetensors": man["srm"]["files"]["srm.safetensors"],
+    }
     (tmp_path / "c" / "manifest.json").write_text(json.dumps(man))
     with pytest.raises(AssetError, match="SRM checkpoint.*not an SRM checkpoint"):
         load_bundle(tmp_path / "c")
@@ -437,8 +470,9 @@ def test_bundle_checks_its_checkpoints(bundle_dir, tiny_world, tmp_path):
 
 def test_dropped_samples_are_counted(bundle_dir, tiny_world):
     # cameras inside the scene: every sample is behind the camera, dropped before rendering
-    ds = _dataset(bundle_dir, tiny_world, cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0,
-                                                                target_jitter_m=0.0))
+    ds = _dataset(
+        bundle_dir, tiny_world, cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0, target_jitter_m=0.0)
+    )
     assert list(ds) == []
     assert ds.stats.dropped["behind_camera"] == 4 and ds.stats.kept == 0 and ds.stats.attempted == 4
     # an impossible alpha minimum: rendered, then dropped as empty
@@ -495,14 +529,21 @@ def test_custom_pose_source_without_or_with_clashing_provenance(bundle_dir, tiny
 
 def test_dropped_samples_are_counted_across_workers(bundle_dir, tiny_world):
     """Workers add their counters to the dataset's shared table; the main process sums them."""
-    ds = _dataset(bundle_dir, tiny_world, num_samples=8, batch_size=2,
-                  cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0, target_jitter_m=0.0))
+    ds = _dataset(
+        bundle_dir,
+        tiny_world,
+        num_samples=8,
+        batch_size=2,
+        cameras=CameraConfig(distance_m=(0.001, 0.002), dataset_prob=0.0, target_jitter_m=0.0),
+    )
     for epoch in range(2):  # fresh workers each epoch: their counts add up
         ds.set_epoch(epoch)
         assert list(DataLoader(ds, batch_size=None, num_workers=2)) == []
     assert ds.stats.attempted == 0  # nothing rendered in this process
     w = ds.worker_stats()
-    assert w.attempted == 16 and w.dropped["behind_camera"] == 16 and w.kept == 0 and w.batches == ds.total_stats().batches
+    assert (
+        w.attempted == 16 and w.dropped["behind_camera"] == 16 and w.kept == 0 and w.batches == ds.total_stats().batches
+    )
     ok = _dataset(bundle_dir, tiny_world, num_samples=4, batch_size=2, seed=2)
     got = list(DataLoader(ok, batch_size=None, num_workers=2, persistent_workers=True))
     got += list(DataLoader(ok, batch_size=None, num_workers=1))
@@ -540,8 +581,13 @@ def test_wrap_train_loader_reads_the_protocol(bundle_dir, tiny_world):
     real = ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0)
     kw = dict(ratio=0.5, batch_size=2, backgrounds=ProceduralBackgrounds(), data_root=tiny_world)
     arctic_own = types.SimpleNamespace(args=types.SimpleNamespace(setup="p2a"), __len__=lambda: 4)
-    cases = ((real, "p1"), (Subset(real, [0, 1, 2, 3]), "p1"), (types.SimpleNamespace(setup="p1a"), "p1"),
-             (arctic_own, "p2"), (types.SimpleNamespace(setup="p2"), "p2"))  # fmt: skip
+    cases = (
+        (real, "p1"),
+        (Subset(real, [0, 1, 2, 3]), "p1"),
+        (types.SimpleNamespace(setup="p1a"), "p1"),
+        (arctic_own, "p2"),
+        (types.SimpleNamespace(setup="p2"), "p2"),
+    )
     for ds, want in cases:
         loader = wrap_train_loader(types.SimpleNamespace(dataset=ds, batch_size=2), bundle_dir, **kw)
         assert loader.synthetic.protocol == want, (ds, want)
@@ -619,8 +665,13 @@ def test_online_pose_source(bundle_dir, tiny_world, tmp_path):
     # the object stays where the (seeded) perturbation put it: POM optimises the hands only
     from hogsa_loader.pom.perturb import perturb
 
-    start = perturb(fr.state.select([r0]), src.infos, src.objects,
-                    torch.Generator().manual_seed(raw.provenance[0]["pom_seed"]), src.perturb_config)[0]
+    start = perturb(
+        fr.state.select([r0]),
+        src.infos,
+        src.objects,
+        torch.Generator().manual_seed(raw.provenance[0]["pom_seed"]),
+        src.perturb_config,
+    )[0]
     torch.testing.assert_close(a.poses["obj_trans"][:1], start.obj_trans.double())
     torch.testing.assert_close(a.poses["obj_rot"][:1], start.obj_rot.double())
     # end to end through the dataset: the POM stage is timed, every attempt kept or counted
@@ -710,9 +761,23 @@ def test_export_info_is_the_config_with_the_first_exports_keys():
     recorded (their settings hash is kept); options set away from their defaults are added."""
     from hogsa_loader.loader.config import export_info
 
-    assert set(export_info(LoaderConfig())) == {"seed", "poses", "srm", "batch_size", "render_size", "coco_root",
-                                                "coco_ann", "background_folder", "categories", "epoch", "interfield"}
-    info = export_info(with_options(exclude_person=True, srm=True, srm_tta=8, cameras=CameraConfig(roll_deg=0.0),
-                                    device="cuda", num_samples=5))
+    assert set(export_info(LoaderConfig())) == {
+        "seed",
+        "poses",
+        "srm",
+        "batch_size",
+        "render_size",
+        "coco_root",
+        "coco_ann",
+        "background_folder",
+        "categories",
+        "epoch",
+        "interfield",
+    }
+    info = export_info(
+        with_options(
+            exclude_person=True, srm=True, srm_tta=8, cameras=CameraConfig(roll_deg=0.0), device="cuda", num_samples=5
+        )
+    )
     assert info["exclude_person"] is True and info["srm_tta"] == 8 and info["cameras"]["roll_deg"] == 0.0
     assert "device" not in info and "num_samples" not in info

@@ -11,12 +11,7 @@ import numpy as np
 import pytest
 
 from hogsa_loader.errors import AssetError, UnsafePickleError
-from hogsa_loader.hands.mano_io import (
-    RestrictedUnpickler,
-    convert_mano_to_npz,
-    load_mano,
-    write_mano_pickle,
-)
+from hogsa_loader.hands.mano_io import RestrictedUnpickler, convert_mano_to_npz, load_mano, write_mano_pickle
 
 
 def _globals_in(path) -> set[str]:
@@ -39,8 +34,21 @@ def test_written_pickle_uses_the_legacy_mano_schema(mano_dir):
 def test_raw_keys_and_types_match_mano(mano_dir, chumpy_shim):
     with open(mano_dir / "MANO_LEFT.pkl", "rb") as fh:
         raw = pickle.load(fh, encoding="latin1")
-    for key in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f",
-                "hands_components", "hands_mean", "hands_coeffs", "J", "bs_style", "bs_type"):
+    for key in (
+        "v_template",
+        "shapedirs",
+        "posedirs",
+        "J_regressor",
+        "weights",
+        "kintree_table",
+        "f",
+        "hands_components",
+        "hands_mean",
+        "hands_coeffs",
+        "J",
+        "bs_style",
+        "bs_type",
+    ):
         assert key in raw, key
     import scipy.sparse as sp
 
@@ -58,8 +66,16 @@ def test_pickle_round_trip_is_exact(mano_dir, hand_pair):
     for model, name in ((right, "MANO_RIGHT.pkl"), (left, "MANO_LEFT.pkl")):
         got = load_mano(mano_dir / name)
         assert got.side == model.side
-        for field in ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "hands_components",
-                      "hands_mean", "hands_coeffs"):
+        for field in (
+            "v_template",
+            "shapedirs",
+            "posedirs",
+            "J_regressor",
+            "weights",
+            "hands_components",
+            "hands_mean",
+            "hands_coeffs",
+        ):
             np.testing.assert_array_equal(getattr(got, field), getattr(model, field), err_msg=field)
         np.testing.assert_array_equal(got.faces, model.faces)
         np.testing.assert_array_equal(got.parents, model.parents)
@@ -169,7 +185,10 @@ def test_npz_conversion_round_trip_and_no_pickle(mano_dir, tmp_path, hand_pair):
         (lambda d: d.__setitem__("posedirs", np.zeros((5, 3, 135))), "posedirs must be"),
         (lambda d: d.__setitem__("v_template", np.full_like(d["v_template"], np.nan)), "NaN"),
         (lambda d: d.__setitem__("f", np.array([[0, 1, 10**7]])), "faces must be"),
-        (lambda d: d.__setitem__("kintree_table", np.array([[0, 5, 0], [0, 1, 2]])), "J_regressor must be|posedirs must be|kintree"),
+        (
+            lambda d: d.__setitem__("kintree_table", np.array([[0, 5, 0], [0, 1, 2]])),
+            "J_regressor must be|posedirs must be|kintree",
+        ),
     ],
 )
 def test_bad_model_files_raise_clear_errors(tmp_path, mano_dir, chumpy_shim, mutate, message):
@@ -213,4 +232,10 @@ def test_unknown_vertex_count_needs_tips(tmp_path, hand_pair):
     np.savez(tmp_path / "MANO_RIGHT.npz", **{k: np.asarray(v) for k, v in raw.items()})
     with pytest.raises(AssetError, match="no fingertip metadata"):
         load_mano(tmp_path / "MANO_RIGHT.npz")
-    assert load_mano(tmp_path / "MANO_RIGHT.npz", tip_vertex_ids=(1, 2, 3, 4, 5)).tip_vertex_ids.tolist() == [1, 2, 3, 4, 5]
+    assert load_mano(tmp_path / "MANO_RIGHT.npz", tip_vertex_ids=(1, 2, 3, 4, 5)).tip_vertex_ids.tolist() == [
+        1,
+        2,
+        3,
+        4,
+        5,
+    ]

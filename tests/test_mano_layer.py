@@ -31,8 +31,12 @@ def test_matches_smplx_on_the_same_pickle(mano_dir, chumpy_shim, side, use_pca, 
     ncomps = 12 if use_pca else 45
     path = mano_dir / f"MANO_{side.upper()}.pkl"
     ref = smplx.MANO(
-        str(path), is_rhand=side == "right", use_pca=use_pca, num_pca_comps=ncomps,
-        flat_hand_mean=flat_hand_mean, dtype=torch.float64,
+        str(path),
+        is_rhand=side == "right",
+        use_pca=use_pca,
+        num_pca_comps=ncomps,
+        flat_hand_mean=flat_hand_mean,
+        dtype=torch.float64,
     )
     ours = MANOLayer(path, use_pca=use_pca, num_pca_comps=ncomps, flat_hand_mean=flat_hand_mean, dtype=torch.float64)
     inp = _random_inputs(6, ncomps, seed=hash((side, use_pca, flat_hand_mean)) % 1000)
@@ -220,9 +224,7 @@ def test_hd_lbs_at_rest_equals_subdivided_rest_mesh(hand_pair):
     # midpoints of the original rest mesh
     edges = unique_edges(base.faces)
     np.testing.assert_allclose(
-        hd.v_template[base.num_verts : base.num_verts + len(edges)],
-        base.v_template[edges].mean(1),
-        atol=1e-12,
+        hd.v_template[base.num_verts : base.num_verts + len(edges)], base.v_template[edges].mean(1), atol=1e-12
     )
 
 

@@ -103,8 +103,7 @@ def test_single_triangle_matches_brute_force_and_plane_depth(dtype: torch.dtype)
     np.testing.assert_array_equal(got == 0, inside)
     assert set(np.unique(got)) == {-1, 0}
     depth = frags.depth.numpy()
-    np.testing.assert_allclose(depth[inside], _plane_depth(tri, K_SKEW, H, W)[inside],
-                               rtol=0, atol=1e-5)
+    np.testing.assert_allclose(depth[inside], _plane_depth(tri, K_SKEW, H, W)[inside], rtol=0, atol=1e-5)
     assert np.isinf(depth[~inside]).all() and (depth[~inside] > 0).all()
     assert (frags.bary.numpy()[~inside] == 0).all()
 
@@ -161,12 +160,11 @@ def test_exact_depth_tie_goes_to_lowest_face_index() -> None:
         assert (out.face_idx[covered] == 0).all()
 
 
-def _coverage_count(verts: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, H: int,
-                    W: int) -> np.ndarray:
+def _coverage_count(verts: torch.Tensor, faces: torch.Tensor, K: torch.Tensor, H: int, W: int) -> np.ndarray:
     """(H, W) number of faces covering each pixel, rasterising every face on its own."""
     count = np.zeros((H, W), dtype=np.int64)
     for f in faces:
-        count += (rasterize(verts, f[None], K, H, W).face_idx.numpy() == 0)
+        count += rasterize(verts, f[None], K, H, W).face_idx.numpy() == 0
     return count
 
 
@@ -217,8 +215,7 @@ def test_perspective_mesh_is_watertight() -> None:
     faces = []
     for r in range(n):
         for c in range(n):
-            a, b, d, e = r * (n + 1) + c, r * (n + 1) + c + 1, (r + 1) * (n + 1) + c, \
-                (r + 1) * (n + 1) + c + 1
+            a, b, d, e = r * (n + 1) + c, r * (n + 1) + c + 1, (r + 1) * (n + 1) + c, (r + 1) * (n + 1) + c + 1
             for f in ([a, b, e], [a, e, d]):
                 faces.append(f if rng.random() < 0.5 else f[::-1])
     count = _coverage_count(verts, torch.tensor(faces), _t(K), H, W)
@@ -254,7 +251,7 @@ def test_shared_edges_through_centres_with_rounded_vertices() -> None:
         uv = np.asarray(tris).reshape(-1, 2)
         verts = torch.tensor(np.concatenate([uv, np.ones((len(uv), 1))], 1), dtype=torch.float32)
         faces = torch.arange(len(uv)).reshape(-1, 3)
-        count += (rasterize(verts, faces, K, H, W).face_idx.numpy() >= 0)
+        count += rasterize(verts, faces, K, H, W).face_idx.numpy() >= 0
     assert count.max() == 1
     cols, rows = np.asarray(on_edge).T.astype(np.int64)
     assert (count[rows, cols] == 1).all()
@@ -271,8 +268,7 @@ def test_barycentrics_are_perspective_correct() -> None:
     assert (bary >= 0).all()
     points = bary @ tri  # (N, 3) camera-space surface points
     ii, jj = np.nonzero(mask)
-    np.testing.assert_allclose(_np_project(points, K_SKEW), np.stack([jj + 0.5, ii + 0.5], 1),
-                               rtol=0, atol=1e-4)
+    np.testing.assert_allclose(_np_project(points, K_SKEW), np.stack([jj + 0.5, ii + 0.5], 1), rtol=0, atol=1e-4)
     n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
     n /= np.linalg.norm(n)
     np.testing.assert_allclose((points - tri[0]) @ n, 0.0, atol=1e-6)
@@ -331,8 +327,9 @@ def test_textured_quad_reproduces_checkerboard() -> None:
     checker = ((ii // 8 + jj // 8) % 2).astype(np.float32)
     tex = np.stack([checker, 0.2 * np.ones_like(checker), 1.0 - checker], -1)
     tex[:8, :8] = [0.0, 1.0, 0.0]  # marks the top-left square: catches flips / transposes
-    part = MeshPart(verts=verts, faces=torch.tensor([[0, 1, 2], [0, 2, 3]]), part_id=3,
-                    uv=uv, texture=torch.tensor(tex))
+    part = MeshPart(
+        verts=verts, faces=torch.tensor([[0, 1, 2], [0, 2, 3]]), part_id=3, uv=uv, texture=torch.tensor(tex)
+    )
     out = render_meshes([part], IDENTITY, K, S, S, light=FLAT)
     assert (out.alpha == 1).all() and (out.part_id == 3).all()
     np.testing.assert_allclose(out.rgb.numpy(), tex, atol=1e-5)
@@ -346,8 +343,7 @@ def _sphere_part(albedo: tuple[float, float, float], subdivisions: int = 3) -> M
 
 
 def _sphere_camera(size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    return camera_look_at((0.0, 0.0, -4.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)), \
-        intrinsics_from_fov(40.0, size, size)
+    return camera_look_at((0.0, 0.0, -4.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)), intrinsics_from_fov(40.0, size, size)
 
 
 def test_sphere_headlight_is_brightest_at_centre() -> None:
@@ -357,7 +353,7 @@ def test_sphere_headlight_is_brightest_at_centre() -> None:
     lum = out.rgb.mean(-1).numpy()
     covered = out.alpha.numpy() > 0
     assert covered[size // 2].sum() > 20
-    row = lum[size // 2, size // 2:][covered[size // 2, size // 2:]]  # centre -> silhouette
+    row = lum[size // 2, size // 2 :][covered[size // 2, size // 2 :]]  # centre -> silhouette
     # Centre: n = l = v, so ambient + diffuse + specular = 0.8 * (0.35 + 0.65) + 0.1.
     assert row[0] == pytest.approx(0.9, abs=0.02)
     assert lum[covered].max() == pytest.approx(row[0], abs=0.02)
@@ -375,21 +371,19 @@ def test_sphere_side_light_and_ambient_only() -> None:
     albedo = (0.8, 0.5, 0.2)
     bg = (0.1, 0.2, 0.3)
     part = _sphere_part(albedo, subdivisions=2)
-    flat = render_meshes([part], w2c, K, size, size, light=Light(ambient=0.4, diffuse=0.0,
-                                                                  specular=0.0), background=bg)
+    flat = render_meshes([part], w2c, K, size, size, light=Light(ambient=0.4, diffuse=0.0, specular=0.0), background=bg)
     covered = flat.alpha.numpy() == 1
-    np.testing.assert_allclose(flat.rgb.numpy()[covered], np.tile(0.4 * np.array(albedo),
-                                                                  (covered.sum(), 1)), atol=1e-6)
-    np.testing.assert_allclose(flat.rgb.numpy()[~covered], np.tile(bg, ((~covered).sum(), 1)),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        flat.rgb.numpy()[covered], np.tile(0.4 * np.array(albedo), (covered.sum(), 1)), atol=1e-6
+    )
+    np.testing.assert_allclose(flat.rgb.numpy()[~covered], np.tile(bg, ((~covered).sum(), 1)), atol=1e-6)
     # Light travelling along +x (camera right) comes from the left: left half brighter.
     side = render_meshes([part], w2c, K, size, size, light=Light(direction=(1.0, 0.0, 0.0)))
     rgb = side.rgb.numpy()
     left = rgb[:, : size // 2][covered[:, : size // 2]]
-    right = rgb[:, size // 2 + 3:][covered[:, size // 2 + 3:]]
+    right = rgb[:, size // 2 + 3 :][covered[:, size // 2 + 3 :]]
     # Right of the centre the surface faces away from the light: ambient only.
-    np.testing.assert_allclose(right, np.tile(0.35 * np.array(albedo), (len(right), 1)),
-                               atol=1e-6)
+    np.testing.assert_allclose(right, np.tile(0.35 * np.array(albedo), (len(right), 1)), atol=1e-6)
     # Toward the left limb the normal turns to the light: close to the full albedo.
     assert left[:, 0].max() > 0.95 * albedo[0]
     assert left[:, 0].mean() > right[:, 0].mean() + 0.1
@@ -399,8 +393,7 @@ def test_flat_normals_are_face_normals() -> None:
     K = torch.tensor([[30.0, 0, 16], [0, 30.0, 16], [0, 0, 1]])
     # A tilted plane (two triangles) seen from its back side: normals are flipped to face us.
     verts = torch.tensor([[-1.0, -1.0, 2.0], [1.0, -1.0, 3.0], [1.0, 1.0, 3.0], [-1.0, 1.0, 2.0]])
-    part = MeshPart(verts=verts, faces=torch.tensor([[0, 1, 2], [0, 2, 3]]), part_id=1,
-                    vertex_colors=torch.ones(4, 3))
+    part = MeshPart(verts=verts, faces=torch.tensor([[0, 1, 2], [0, 2, 3]]), part_id=1, vertex_colors=torch.ones(4, 3))
     for smooth in (True, False):
         out = render_meshes([part], IDENTITY, K, 32, 32, smooth_normals=smooth)
         n = out.normal.numpy()[out.alpha.numpy() > 0]
@@ -417,11 +410,14 @@ def test_supersampled_edge_alpha_is_exact_fraction() -> None:
     xy = (corners - [8.0, 6.0]) / 20.0
     verts = torch.tensor(np.concatenate([xy, np.ones((4, 1))], 1), dtype=torch.float64)
     colour = np.array([0.9, 0.6, 0.3])
-    part = MeshPart(verts=verts, faces=torch.tensor([[0, 1, 2], [0, 2, 3]]), part_id=1,
-                    vertex_colors=torch.tensor(colour).expand(4, 3).clone())
+    part = MeshPart(
+        verts=verts,
+        faces=torch.tensor([[0, 1, 2], [0, 2, 3]]),
+        part_id=1,
+        vertex_colors=torch.tensor(colour).expand(4, 3).clone(),
+    )
     bg = np.array([0.0, 0.1, 0.2])
-    out = render_meshes([part], IDENTITY.double(), K, H, W, light=FLAT, background=tuple(bg),
-                        supersample=s)
+    out = render_meshes([part], IDENTITY.double(), K, H, W, light=FLAT, background=tuple(bg), supersample=s)
     # Expected alpha: fraction of the s x s sample centres left of the line.
     off = (np.arange(s) + 0.5) / s
     expected = np.zeros((H, W))
@@ -435,25 +431,29 @@ def test_supersampled_edge_alpha_is_exact_fraction() -> None:
     frac = (alpha > 0) & (alpha < 1)
     assert frac.any(axis=1).all()  # every row has a fractional edge pixel
     assert frac.sum() <= 2 * H  # ... and only along the edge
-    np.testing.assert_allclose(out.rgb.numpy(),
-                               alpha[..., None] * colour + (1 - alpha[..., None]) * bg, atol=1e-9)
+    np.testing.assert_allclose(out.rgb.numpy(), alpha[..., None] * colour + (1 - alpha[..., None]) * bg, atol=1e-9)
 
 
 def test_supersampling_keeps_projection_and_takes_nearest_sample() -> None:
     K = torch.tensor([[31.0, 1.5, 13.7], [0.0, 29.0, 9.2], [0.0, 0.0, 1.0]])
     p = torch.tensor([[0.13, -0.21, 1.7], [-0.4, 0.3, 0.9]])
     for s in (2, 3):
-        np.testing.assert_allclose(project_points(p, scale_intrinsics(K, s)).numpy(),
-                                   s * project_points(p, K).numpy(), rtol=1e-6)
+        np.testing.assert_allclose(
+            project_points(p, scale_intrinsics(K, s)).numpy(), s * project_points(p, K).numpy(), rtol=1e-6
+        )
     # Near part 1 covers u < 10.5 (mid-pixel), far part 2 covers everything.
     H, W = 8, 20
     Kr = torch.tensor([[10.0, 0, 10], [0, 10.0, 4], [0, 0, 1]])
+
     def quad(u0: float, u1: float, z: float) -> torch.Tensor:
         return torch.tensor(_fronto_quad(u0, u1, -5.0, 15.0, z, Kr.numpy()), dtype=torch.float32)
+
     faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
     white = torch.ones(4, 3)
-    parts = [MeshPart(quad(-5.0, 10.5, 1.0), faces, 1, vertex_colors=white),
-             MeshPart(quad(-5.0, 25.0, 3.0), faces, 2, vertex_colors=white)]
+    parts = [
+        MeshPart(quad(-5.0, 10.5, 1.0), faces, 1, vertex_colors=white),
+        MeshPart(quad(-5.0, 25.0, 3.0), faces, 2, vertex_colors=white),
+    ]
     for s in (1, 2):
         out = render_meshes(parts, IDENTITY, Kr, H, W, supersample=s)
         # Column 10 spans u in [10, 11): at s=1 its centre 10.5 is on the edge (top-left
@@ -475,8 +475,7 @@ def test_camera_look_at_and_fov() -> None:
     t_cam = transform_points(torch.tensor([target]), w2c)
     dist = float(np.linalg.norm(np.subtract(target, eye)))
     torch.testing.assert_close(t_cam, torch.tensor([[0.0, 0.0, dist]]), atol=1e-5, rtol=0)
-    torch.testing.assert_close(project_points(t_cam, K), torch.tensor([[32.0, 24.0]]),
-                               atol=1e-4, rtol=0)
+    torch.testing.assert_close(project_points(t_cam, K), torch.tensor([[32.0, 24.0]]), atol=1e-4, rtol=0)
     above = transform_points(torch.tensor([target]) + 0.2 * torch.tensor([up]), w2c)
     uv = project_points(above, K)[0]
     assert uv[0].item() == pytest.approx(32.0, abs=1e-4)
@@ -511,8 +510,7 @@ def test_save_png_writes_rgb_and_rgba(tmp_path) -> None:
 
 
 def _good_part(**kw) -> MeshPart:
-    args = dict(verts=torch.zeros(3, 3), faces=torch.tensor([[0, 1, 2]]), part_id=1,
-                vertex_colors=torch.ones(3, 3))
+    args = dict(verts=torch.zeros(3, 3), faces=torch.tensor([[0, 1, 2]]), part_id=1, vertex_colors=torch.ones(3, 3))
     args.update(kw)
     return MeshPart(**args)
 
@@ -578,8 +576,9 @@ def test_mixed_colour_sources_and_shading_chunks(monkeypatch: pytest.MonkeyPatch
 
     tex_colour, vc_colour = [0.2, 0.7, 0.1], [0.9, 0.1, 0.4]
     parts = [
-        MeshPart(quad(-1.0, 8.0), faces, 5, uv=torch.rand(4, 2),
-                 texture=torch.tensor(tex_colour).expand(3, 4, 3).clone()),
+        MeshPart(
+            quad(-1.0, 8.0), faces, 5, uv=torch.rand(4, 2), texture=torch.tensor(tex_colour).expand(3, 4, 3).clone()
+        ),
         MeshPart(quad(8.0, 21.0), faces, 9, vertex_colors=torch.tensor(vc_colour).expand(4, 3)),
     ]
     ref = render_meshes(parts, IDENTITY, K, H, W, light=FLAT)

@@ -99,8 +99,17 @@ def _random_pose(rng: np.random.Generator, batch: int):
 
 def test_object_names_follow_arctic_index_order():
     assert OBJECT_NAMES == (
-        "capsulemachine", "box", "ketchup", "laptop", "microwave", "mixer", "notebook",
-        "espressomachine", "waffleiron", "scissors", "phone",
+        "capsulemachine",
+        "box",
+        "ketchup",
+        "laptop",
+        "microwave",
+        "mixer",
+        "notebook",
+        "espressomachine",
+        "waffleiron",
+        "scissors",
+        "phone",
     )
     assert set(PROCEDURAL_NAMES) <= set(OBJECT_NAMES)
 
@@ -191,9 +200,9 @@ def test_padding_mask_and_lengths(layer, templates):
     assert out["v_len"].tolist() == lens and out["f_len"].tolist() == flens
     assert out["mask"].sum(1).tolist() == lens
     for i, n in enumerate(names):
-        assert (out["parts_ids"][i, lens[i]:] == 0).all()
-        assert (out["v"][i, lens[i]:] == 0).all()
-        assert (out["f"][i, flens[i]:] == 0).all()
+        assert (out["parts_ids"][i, lens[i] :] == 0).all()
+        assert (out["v"][i, lens[i] :] == 0).all()
+        assert (out["f"][i, flens[i] :] == 0).all()
         np.testing.assert_array_equal(out["parts_ids"][i, : lens[i]].numpy(), templates[n].parts + 1)
         np.testing.assert_array_equal(out["f"][i, : flens[i]].numpy(), templates[n].faces)
     assert out["v_sub"].shape == (2, 600, 3) and out["kp3d"].shape == (2, 32, 3)
@@ -256,16 +265,22 @@ def test_articulation_is_rigid_within_each_part(theta, orient, transl, seed):
     rng = np.random.default_rng(seed)
     pts = torch.from_numpy(rng.normal(0, 0.2, (1, 12, 3)))
     is_top = torch.from_numpy(rng.random(12) < 0.5)
-    out = articulate(pts, is_top, torch.tensor([theta], dtype=F64), torch.tensor([orient], dtype=F64),
-                     torch.tensor([transl], dtype=F64))[0]
+    out = articulate(
+        pts,
+        is_top,
+        torch.tensor([theta], dtype=F64),
+        torch.tensor([orient], dtype=F64),
+        torch.tensor([transl], dtype=F64),
+    )[0]
     for mask in (is_top, ~is_top):
         before = torch.cdist(pts[0][mask], pts[0][mask])
         after = torch.cdist(out[mask], out[mask])
         torch.testing.assert_close(after, before, atol=1e-9, rtol=0)
     # the hinge axis (z line through the origin) is fixed by the articulation alone
     axis_pts = torch.tensor([[[0.0, 0.0, -0.1], [0.0, 0.0, 0.3]]], dtype=F64)
-    moved = articulate(axis_pts, torch.tensor([True, True]), torch.tensor([theta], dtype=F64),
-                       torch.zeros(1, 3, dtype=F64), None)
+    moved = articulate(
+        axis_pts, torch.tensor([True, True]), torch.tensor([theta], dtype=F64), torch.zeros(1, 3, dtype=F64), None
+    )
     torch.testing.assert_close(moved, axis_pts)
 
 
@@ -294,7 +309,7 @@ def test_template_reads_are_cached_as_copies_and_follow_file_changes(meta_dir, t
     np.testing.assert_allclose(third.kp_top, second.kp_top + 1e-3, atol=1e-9)
     at = text.index('"keypoints_top": [[') + len('"keypoints_top": [[')
     at += 1 if text[at] == "-" else 0  # the first digit of the first coordinate, one higher
-    same_size = text[:at] + str((int(text[at]) + 1) % 10) + text[at + 1:]
+    same_size = text[:at] + str((int(text[at]) + 1) % 10) + text[at + 1 :]
     params_path.write_text(same_size)
     assert params_path.stat().st_size == len(text)
     fourth = tmod.load_object_template(folder)
@@ -312,8 +327,17 @@ def test_write_load_round_trip(templates, meta_dir, name):
     np.testing.assert_allclose(got.verts, t.verts, atol=1e-7, rtol=0)
     np.testing.assert_array_equal(got.faces, t.faces)
     np.testing.assert_array_equal(got.parts, t.parts)
-    for key in ("kp_top", "kp_bottom", "bbox_top", "bbox_bottom", "mocap_top", "mocap_bottom",
-                "sub_top", "sub_bottom", "tex_verts"):
+    for key in (
+        "kp_top",
+        "kp_bottom",
+        "bbox_top",
+        "bbox_bottom",
+        "mocap_top",
+        "mocap_bottom",
+        "sub_top",
+        "sub_bottom",
+        "tex_verts",
+    ):
         np.testing.assert_allclose(getattr(got, key), getattr(t, key), atol=1e-7, rtol=0, err_msg=key)
     np.testing.assert_array_equal(got.tex_faces, t.tex_faces)
     np.testing.assert_array_equal(got.tex_parts, t.tex_parts)
@@ -358,18 +382,27 @@ BAD_CASES = {
     "missing_parts": ("parts.json", lambda f: (f / "parts.json").unlink()),
     "parts_too_short": ("parts.json", lambda f: _json_edit(f / "parts.json", lambda d: d.pop())),
     "parts_bad_value": ("parts.json", lambda f: _json_edit(f / "parts.json", lambda d: d.__setitem__(0, 2))),
-    "parts_no_bottom": ("parts.json", lambda f: (f / "parts.json").write_text(
-        json.dumps([0] * len(json.loads((f / "parts.json").read_text()))))),
+    "parts_no_bottom": (
+        "parts.json",
+        lambda f: (f / "parts.json").write_text(json.dumps([0] * len(json.loads((f / "parts.json").read_text())))),
+    ),
     "nan_keypoint": ("object_params.json", lambda f: _json_edit(f / "object_params.json", _set_nan)),
-    "kp_count": ("object_params.json", lambda f: _json_edit(
-        f / "object_params.json", lambda d: d["keypoints_bottom"].pop())),
-    "bbox_shape": ("object_params.json", lambda f: _json_edit(
-        f / "object_params.json", lambda d: d.__setitem__("bbox_top", [p[:2] for p in d["bbox_top"]]))),
-    "missing_key": ("object_params.json", lambda f: _json_edit(
-        f / "object_params.json", lambda d: d.pop("mocap_top"))),
+    "kp_count": (
+        "object_params.json",
+        lambda f: _json_edit(f / "object_params.json", lambda d: d["keypoints_bottom"].pop()),
+    ),
+    "bbox_shape": (
+        "object_params.json",
+        lambda f: _json_edit(
+            f / "object_params.json", lambda d: d.__setitem__("bbox_top", [p[:2] for p in d["bbox_top"]])
+        ),
+    ),
+    "missing_key": ("object_params.json", lambda f: _json_edit(f / "object_params.json", lambda d: d.pop("mocap_top"))),
     "bad_json": ("top_keypoints_300.json", lambda f: (f / "top_keypoints_300.json").write_text('{"keypoints": [[1, 2')),
-    "sub_count": ("bottom_keypoints_300.json", lambda f: _json_edit(
-        f / "bottom_keypoints_300.json", lambda d: d["keypoints"].pop())),
+    "sub_count": (
+        "bottom_keypoints_300.json",
+        lambda f: _json_edit(f / "bottom_keypoints_300.json", lambda d: d["keypoints"].pop()),
+    ),
     "missing_mesh": ("mesh.obj", lambda f: (f / "mesh.obj").unlink()),
     "mesh_no_faces": ("mesh.obj", _break_mesh),
     "missing_texture_image": ("material.jpg", lambda f: (f / "material.jpg").unlink()),
@@ -438,8 +471,9 @@ def test_top_opens_without_entering_bottom(templates, name):
     centre_bottom = bottom.mean(0)
     dist = []
     for theta in [0.0, *thetas]:
-        posed = articulate(top, torch.ones(top.shape[1], dtype=torch.bool), torch.tensor([theta], dtype=F64),
-                           zeros, zeros)[0].numpy()
+        posed = articulate(
+            top, torch.ones(top.shape[1], dtype=torch.bool), torch.tensor([theta], dtype=F64), zeros, zeros
+        )[0].numpy()
         inside = ((posed > lo) & (posed < hi)).all(axis=1)
         assert not inside.any(), f"theta={theta:.3f}: {inside.sum()} top vertices inside the bottom box"
         dist.append(np.linalg.norm(posed.mean(0) - centre_bottom))
@@ -449,7 +483,11 @@ def test_top_opens_without_entering_bottom(templates, name):
     axis = STACK_AXIS.get(name, 1)
     assert top_np[:, axis].min() > bottom[:, axis].max()
     if axis == 1:  # lids: footprints (x, z) overlap
-        overlap = np.prod(np.clip(np.minimum(top_np.max(0), bottom.max(0)) - np.maximum(top_np.min(0), bottom.min(0)), 0, None)[[0, 2]])
+        overlap = np.prod(
+            np.clip(np.minimum(top_np.max(0), bottom.max(0)) - np.maximum(top_np.min(0), bottom.min(0)), 0, None)[
+                [0, 2]
+            ]
+        )
         area = np.prod((top_np.max(0) - top_np.min(0))[[0, 2]])
         assert overlap > 0.95 * area
 
@@ -457,8 +495,10 @@ def test_top_opens_without_entering_bottom(templates, name):
 @pytest.mark.parametrize("name", PROCEDURAL_NAMES)
 def test_keypoints_bbox_and_samples(templates, name):
     t = templates[name]
-    for part, kp, bbox, sub, mocap in ((TOP, t.kp_top, t.bbox_top, t.sub_top, t.mocap_top),
-                                       (BOTTOM, t.kp_bottom, t.bbox_bottom, t.sub_bottom, t.mocap_bottom)):
+    for part, kp, bbox, sub, mocap in (
+        (TOP, t.kp_top, t.bbox_top, t.sub_top, t.mocap_top),
+        (BOTTOM, t.kp_bottom, t.bbox_bottom, t.sub_bottom, t.mocap_bottom),
+    ):
         pts = t.part_points(part)
         tree = cKDTree(pts)
         assert kp.shape == (16, 3) and sub.shape == (300, 3) and 4 <= mocap.shape[0] <= 6
@@ -502,7 +542,9 @@ def _welded_obj(verts: np.ndarray, faces: np.ndarray, uv: np.ndarray, path: Path
     inv = inv.reshape(-1)
     lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in uniq]
     lines += [f"vt {u:.6f} {v:.6f}" for u, v in uv[faces].reshape(-1, 2)]
-    lines += [" ".join(["f"] + [f"{inv[faces[i, c]] + 1}/{3 * i + c + 1}" for c in range(3)]) for i in range(len(faces))]
+    lines += [
+        " ".join(["f"] + [f"{inv[faces[i, c]] + 1}/{3 * i + c + 1}" for c in range(3)]) for i in range(len(faces))
+    ]
     path.write_text("\n".join(lines) + "\n")
     return uniq[inv[faces]], uv[faces]
 
@@ -547,14 +589,16 @@ def test_determinism_and_seed_variation(meta_dir, tmp_path):
         rel = Path("object_vtemplates") / name / "material.jpg"
         assert not filecmp.cmp(meta_dir / rel, other / rel, shallow=False)
         # geometry does not depend on the seed
-        assert filecmp.cmp(meta_dir / "object_vtemplates" / name / "mesh.obj",
-                           other / "object_vtemplates" / name / "mesh.obj", shallow=False)
+        assert filecmp.cmp(
+            meta_dir / "object_vtemplates" / name / "mesh.obj",
+            other / "object_vtemplates" / name / "mesh.obj",
+            shallow=False,
+        )
 
 
 def test_write_template_without_texture(templates, tmp_path):
     t = templates["phone"]
-    bare = dataclasses.replace(t, tex_verts=None, tex_faces=None, tex_uv=None, texture=None,
-                               tex_parts=None)
+    bare = dataclasses.replace(t, tex_verts=None, tex_faces=None, tex_uv=None, texture=None, tex_parts=None)
     write_object_template(bare, tmp_path / "phone")
     assert not (tmp_path / "phone" / "mesh_tex.obj").exists()
     got = load_object_template(tmp_path / "phone")

@@ -13,19 +13,11 @@ import pytest
 
 from hogsa_loader.cli.main import main
 from hogsa_loader.compose import FolderBackgrounds
-from hogsa_loader.compose.plates import (
-    PlateConfig,
-    _foreground,
-    _frames,
-    _median,
-    _Sample,
-    build_plates,
-    crop_to_plate,
-)
-from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.datasets.conventions import full_to_cropped
-from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.compose.part_masks import pose_meshes
+from hogsa_loader.compose.plates import PlateConfig, _foreground, _frames, _median, _Sample, build_plates, crop_to_plate
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_processing import crop_boxes
+from hogsa_loader.datasets.conventions import full_to_cropped
 
 
 def test_median_uses_only_background_samples() -> None:
@@ -50,8 +42,9 @@ def test_plate_of_a_known_image_equals_the_image_downscaled() -> None:
     the warped crop equals the downscaled full image (a 0.5-pixel error fails)."""
     W, H, crop, width = 700, 500, 256, 350
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
-    full = np.stack([127 + 120 * np.sin(xx / 7.0), 127 + 120 * np.cos(yy / 9.0), 127 + 100 * np.sin((xx + yy) / 11.0)],
-                    -1).astype(np.float32)  # fmt: skip
+    full = np.stack(
+        [127 + 120 * np.sin(xx / 7.0), 127 + 120 * np.cos(yy / 9.0), 127 + 100 * np.sin((xx + yy) / 11.0)], -1
+    ).astype(np.float32)
     gain = width / W
     ref = cv2.resize(full, (width, round(H * gain)), interpolation=cv2.INTER_AREA)
     for bbox in (np.array([350.0, 260.0, 1.0]), np.array([301.3, 222.7, 0.83])):
@@ -87,8 +80,16 @@ def test_crop_to_plate_inverts_the_crop() -> None:
 def plates(tiny_world, tmp_path_factory, request):
     """Plates from the mask files, and from masks rendered from the annotations (real ARCTIC)."""
     out = tmp_path_factory.mktemp("plates")
-    cfg = PlateConfig(data=str(tiny_world), out=str(out), subjects=("s01",), views=(1, 4), width=480,
-                      frames_per_sequence=6, masks=request.param, quiet=True)  # fmt: skip
+    cfg = PlateConfig(
+        data=str(tiny_world),
+        out=str(out),
+        subjects=("s01",),
+        views=(1, 4),
+        width=480,
+        frames_per_sequence=6,
+        masks=request.param,
+        quiet=True,
+    )
     return cfg, build_plates(cfg)
 
 
@@ -145,8 +146,29 @@ def test_plates_folder_is_a_background_source(plates) -> None:
 
 def test_plates_command(tiny_world, tmp_path, capsys) -> None:
     out = tmp_path / "p"
-    assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--subjects", "s01", "--views", "2",
-                 "--width", "320", "--frames-per-sequence", "2", "--masks", "render", "--quiet"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "plates",
+                "--data",
+                str(tiny_world),
+                "--out",
+                str(out),
+                "--subjects",
+                "s01",
+                "--views",
+                "2",
+                "--width",
+                "320",
+                "--frames-per-sequence",
+                "2",
+                "--masks",
+                "render",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     rec = json.loads((out / "plates.json").read_text())
     assert [p["file"] for p in rec["plates"]] == ["s01_view2.png"] and (out / "s01_view2.png").is_file()
     assert main(["plates", "--data", str(tiny_world), "--out", str(out), "--views", "0"]) == 2
@@ -185,8 +207,10 @@ def test_rendered_foreground_matches_mask_files(tiny_world) -> None:
     crop = root.world_meta().cropped_size
     seq = root.sequence("s01", "box_use_01")
     frames = _frames(seq.num_frames, 3)
-    cache = {"boxes": crop_boxes(root, seq, (1, 5)),
-             "pose": lambda: pose_meshes(seq, frames, root.mano_layers(), root.object_templates()["box"])}  # fmt: skip
+    cache = {
+        "boxes": crop_boxes(root, seq, (1, 5)),
+        "pose": lambda: pose_meshes(seq, frames, root.mano_layers(), root.object_templates()["box"]),
+    }
     ious = []
     for view in (1, 5):
         for f in frames:

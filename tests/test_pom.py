@@ -20,8 +20,8 @@ from hogsa_loader.pom import (
     GraspState,
     HandParams,
     ObjectSet,
-    POMConfig,
     PerturbConfig,
+    POMConfig,
     contact_map,
     grasp_metrics,
     hand_infos,
@@ -40,20 +40,39 @@ from hogsa_loader.pom.state import canonical_hands, hand_forward
 # --------------------------------------------------------------------------------------
 # Constructed scene: two boxes (bottom base, small top tab) and the synthetic hands
 # --------------------------------------------------------------------------------------
-_CUBE_FACES = np.array([
-    [0, 2, 1], [0, 3, 2],  # z-
-    [4, 5, 6], [4, 6, 7],  # z+
-    [0, 1, 5], [0, 5, 4],  # y-
-    [3, 7, 6], [3, 6, 2],  # y+
-    [0, 4, 7], [0, 7, 3],  # x-
-    [1, 2, 6], [1, 6, 5],  # x+
-])
+_CUBE_FACES = np.array(
+    [
+        [0, 2, 1],
+        [0, 3, 2],  # z-
+        [4, 5, 6],
+        [4, 6, 7],  # z+
+        [0, 1, 5],
+        [0, 5, 4],  # y-
+        [3, 7, 6],
+        [3, 6, 2],  # y+
+        [0, 4, 7],
+        [0, 7, 3],  # x-
+        [1, 2, 6],
+        [1, 6, 5],  # x+
+    ]
+)
 
 
 def _box(lo, hi):
     (x0, y0, z0), (x1, y1, z1) = lo, hi
-    v = np.array([[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0],
-                  [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]], dtype=np.float32)
+    v = np.array(
+        [
+            [x0, y0, z0],
+            [x1, y0, z0],
+            [x1, y1, z0],
+            [x0, y1, z0],
+            [x0, y0, z1],
+            [x1, y0, z1],
+            [x1, y1, z1],
+            [x0, y1, z1],
+        ],
+        dtype=np.float32,
+    )
     return v, _CUBE_FACES.copy()
 
 
@@ -64,9 +83,21 @@ def _two_box_template() -> ObjectTemplate:
     faces = np.concatenate([ft, fb + len(vt)])
     parts = np.array([0] * len(vt) + [1] * len(vb))
     z3 = lambda n: np.zeros((n, 3), np.float32)  # noqa: E731
-    return ObjectTemplate(name="twobox", verts=verts, faces=faces, parts=parts, kp_top=z3(16), kp_bottom=z3(16),
-                          bbox_top=z3(8), bbox_bottom=z3(8), mocap_top=z3(0), mocap_bottom=z3(0),
-                          sub_top=z3(300), sub_bottom=z3(300), diameter=0.2)
+    return ObjectTemplate(
+        name="twobox",
+        verts=verts,
+        faces=faces,
+        parts=parts,
+        kp_top=z3(16),
+        kp_bottom=z3(16),
+        bbox_top=z3(8),
+        bbox_bottom=z3(8),
+        mocap_top=z3(0),
+        mocap_bottom=z3(0),
+        sub_top=z3(300),
+        sub_bottom=z3(300),
+        diameter=0.2,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +198,9 @@ def test_perturbation_ranges(scene, seed):
 def test_perturbation_scale_zero_keeps_rotation(scene):
     infos, objects = scene
     state = _state(infos, FAR, B=3)
-    new, rec = perturb(state, infos, objects, torch.Generator().manual_seed(1), PerturbConfig(scale=0.0, arti_range=None))
+    new, rec = perturb(
+        state, infos, objects, torch.Generator().manual_seed(1), PerturbConfig(scale=0.0, arti_range=None)
+    )
     assert float(rec.angles["right"].abs().max()) == 0.0
     assert torch.equal(new.obj_arti, state.obj_arti)
 
@@ -282,8 +315,12 @@ def test_rigid_move_hand_matches_vertex_motion(scene):
 
     infos, _ = scene
     g = torch.Generator().manual_seed(3)
-    p = HandParams(torch.randn(4, 3, generator=g) * 0.7, torch.randn(4, 45, generator=g) * 0.2,
-                   torch.randn(4, 3, generator=g) * 0.1, torch.randn(4, 10, generator=g))
+    p = HandParams(
+        torch.randn(4, 3, generator=g) * 0.7,
+        torch.randn(4, 45, generator=g) * 0.2,
+        torch.randn(4, 3, generator=g) * 0.1,
+        torch.randn(4, 10, generator=g),
+    )
     M = axis_angle_to_matrix(torch.randn(4, 3, generator=g))
     c = torch.randn(4, 3, generator=g) * 0.1
     for s in SIDES:
@@ -319,7 +356,9 @@ def test_regrasp_restores_source_contacts(scene):
     assert torch.equal(out.hands["left"].trans, start.hands["left"].trans)  # no contacts: untouched
     # a stiff rotation prior keeps the perturbed orientation (translation only)
     stiff = regrasp(start, con, infos, objects, rot_weight=1e6)
-    torch.testing.assert_close(axis_angle_to_matrix(stiff.hands["right"].rot), axis_angle_to_matrix(moved.rot), atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        axis_angle_to_matrix(stiff.hands["right"].rot), axis_angle_to_matrix(moved.rot), atol=1e-4, rtol=0
+    )
 
 
 def test_hand_on_top_part_follows_articulation(scene):
@@ -363,7 +402,11 @@ def test_pose_bank_variant_seeds_are_distinct():
     seeds = {variant_seed(0, name, v) for name in names for v in range(4)}
     assert len(seeds) == 800 and all(0 <= x < 2**31 for x in seeds)  # (the old seed + 1000·v + frames collided)
     # a sequence's draws depend on its id, not on which other sequences are selected
-    assert variant_seed(0, "s01/box_use_01", 1) == variant_seed(0, "s01/box_use_01", 1) != variant_seed(1, "s01/box_use_01", 1)
+    assert (
+        variant_seed(0, "s01/box_use_01", 1)
+        == variant_seed(0, "s01/box_use_01", 1)
+        != variant_seed(1, "s01/box_use_01", 1)
+    )
 
 
 def test_nonfinite_samples_are_dropped(scene):
@@ -383,8 +426,12 @@ def test_contactnet_any_topology_and_roundtrip(tmp_path):
     torch.manual_seed(0)
     net = ContactNet().eval()
     for n_obj, n_hand in ((100, 778), (333, 2565), (50, 12)):
-        out = net(torch.rand(2, n_obj, 3) * 0.1, torch.rand(2, n_hand, 3) * 0.1, torch.rand(n_hand) > 0.7,
-                  torch.tensor([1.0, -1.0]))
+        out = net(
+            torch.rand(2, n_obj, 3) * 0.1,
+            torch.rand(2, n_hand, 3) * 0.1,
+            torch.rand(n_hand) > 0.7,
+            torch.tensor([1.0, -1.0]),
+        )
         assert out.shape == (2, n_obj) and bool(((out > 0) & (out < 1)).all())
     save_contactnet(net, tmp_path / "run")
     back = load_contactnet(tmp_path / "run")
@@ -457,8 +504,9 @@ def test_tiny_contactnet_training_lowers_val_loss(scene):
     d = objects.sdf(canonical_hands(val.state, infos)["right"].vertices, val.state.obj_names, val.state.obj_arti)
     assert float(d.min(1).values.abs().max()) < 0.003  # the constructed hands touch the object
     torch.manual_seed(0)
-    model, hist = train_contactnet(train, val, infos, objects,
-                                   TrainConfig(iters=15, batch=3, points=192, lr=3e-3, val_every=15))
+    model, hist = train_contactnet(
+        train, val, infos, objects, TrainConfig(iters=15, batch=3, points=192, lr=3e-3, val_every=15)
+    )
     first, last = hist["val"][0][1], hist["val"][-1][1]
     assert last["loss"] < 0.7 * first["loss"]
     assert last["mae"] < first["mae"]
@@ -529,8 +577,12 @@ def _bank(scene, tmp_path):
     infos, objects = scene
     state = _state(infos, FAR, B=3)
     state.obj_arti = torch.tensor([0.1, 0.2, 0.3])
-    metrics = {"penetration_depth": [0.0, 0.001, 0.0], "intersection": [0.0, 1e-6, 0.0],
-               "contact_ratio": [0.1, 0.2, 0.0], "accept": [1.0, 1.0, 0.0]}
+    metrics = {
+        "penetration_depth": [0.0, 0.001, 0.0],
+        "intersection": [0.0, 1e-6, 0.0],
+        "contact_ratio": [0.1, 0.2, 0.0],
+        "accept": [1.0, 1.0, 0.0],
+    }
     src = [("s01", "box_grab_01", 3), ("s01", "box_grab_01", 9), ("s02", "box_use_01", 0)]
     save_pose_bank(tmp_path / "bank", state, src, metrics, {"note": "test"})
     return state, src
@@ -540,7 +592,12 @@ def test_pose_bank_writer_refuses_nan(scene, tmp_path):
     infos, _ = scene
     state = _state(infos, FAR, B=2)
     src = [("s01", "box_grab_01", 3), ("s01", "box_grab_01", 9)]
-    ok = {"penetration_depth": [0.0, 0.0], "intersection": [0.0, 0.0], "contact_ratio": [0.1, 0.2], "accept": [1.0, 1.0]}
+    ok = {
+        "penetration_depth": [0.0, 0.0],
+        "intersection": [0.0, 0.0],
+        "contact_ratio": [0.1, 0.2],
+        "accept": [1.0, 1.0],
+    }
     with pytest.raises(ValueError, match="NaN"):  # a bank its reader would refuse is never written
         save_pose_bank(tmp_path / "a", state, src, {**ok, "contact_ratio": [float("nan"), 0.2]})
     with pytest.raises(ValueError, match="NaN"):

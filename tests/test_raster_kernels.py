@@ -23,8 +23,9 @@ def _soup(n: int, dtype: torch.dtype, seed: int, snap: bool) -> tuple[torch.Tens
     pixel centres and shares edges so that top-left ties and exact depth ties occur."""
     g = torch.Generator().manual_seed(seed)
     K = torch.tensor([[60.0, 2.5, 40.3], [0.0, 55.0, 31.7], [0.0, 0.0, 1.0]], dtype=dtype)
-    centre = torch.rand(n, 1, 3, generator=g, dtype=dtype) * torch.tensor([1.2, 1.0, 1.0], dtype=dtype) \
-        + torch.tensor([-0.6, -0.5, 1.0], dtype=dtype)
+    centre = torch.rand(n, 1, 3, generator=g, dtype=dtype) * torch.tensor([1.2, 1.0, 1.0], dtype=dtype) + torch.tensor(
+        [-0.6, -0.5, 1.0], dtype=dtype
+    )
     verts = (centre + 0.15 * torch.randn(n, 3, 3, generator=g, dtype=dtype)).reshape(-1, 3)
     if snap:  # move every vertex so that it projects onto a pixel centre, at depth 1.5 or 2
         z = torch.where(torch.rand(verts.shape[0], generator=g) < 0.5, 1.5, 2.0).to(dtype)
@@ -55,20 +56,44 @@ def test_fragments_are_bit_identical(dtype: torch.dtype, snap: bool, cull: bool)
 @pytest.mark.parametrize("cull", [False, True])
 def test_face_tables_are_bit_identical(dtype: torch.dtype, cull: bool) -> None:
     verts, faces, K = _soup(200, dtype, seed=7, snap=False)
-    special = torch.tensor([
-        [0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [float("nan"), 0.1, 1.0],  # non-finite
-        [0.0, 0.0, -1.0], [0.1, 0.0, 1.0], [0.0, 0.1, 1.0],  # straddles the near plane
-        [0.0, 0.0, 1.0], [0.1, 0.1, 1.0], [0.2, 0.2, 1.0],  # collinear
-        [5.0, 5.0, 1.0], [5.1, 5.0, 1.0], [5.0, 5.1, 1.0],  # off-screen
-        [0.0, 0.0, 1.0], [0.001, 0.0, 1.0], [0.0, 0.001, 1.0],  # between pixel centres
-    ], dtype=dtype)
+    special = torch.tensor(
+        [
+            [0.0, 0.0, 1.0],
+            [0.1, 0.0, 1.0],
+            [float("nan"), 0.1, 1.0],  # non-finite
+            [0.0, 0.0, -1.0],
+            [0.1, 0.0, 1.0],
+            [0.0, 0.1, 1.0],  # straddles the near plane
+            [0.0, 0.0, 1.0],
+            [0.1, 0.1, 1.0],
+            [0.2, 0.2, 1.0],  # collinear
+            [5.0, 5.0, 1.0],
+            [5.1, 5.0, 1.0],
+            [5.0, 5.1, 1.0],  # off-screen
+            [0.0, 0.0, 1.0],
+            [0.001, 0.0, 1.0],
+            [0.0, 0.001, 1.0],  # between pixel centres
+        ],
+        dtype=dtype,
+    )
     faces = torch.cat([faces, torch.arange(15).reshape(5, 3) + verts.shape[0]])
     verts = torch.cat([verts, special])
     ref = mr._setup_faces(verts, faces, K, 64, 80, 1e-3, cull)
     out = mr._setup_faces_kernel(verts, faces, K, 64, 80, 1e-3, cull)
     assert 0 < ref.face_ids.numel() < faces.shape[0] - 4
-    for name in ("face_ids", "edge_a", "edge_b", "edge_x", "edge_y", "edge_tl", "inv_z", "row0", "col0",
-                 "nrows", "ncols"):
+    for name in (
+        "face_ids",
+        "edge_a",
+        "edge_b",
+        "edge_x",
+        "edge_y",
+        "edge_tl",
+        "inv_z",
+        "row0",
+        "col0",
+        "nrows",
+        "ncols",
+    ):
         assert torch.equal(getattr(out, name), getattr(ref, name)), name
 
 
@@ -82,8 +107,13 @@ def test_shaded_render_matches_the_pytorch_path(dtype: torch.dtype) -> None:
         MeshPart(verts, faces[:third], 3, vertex_colors=torch.rand(verts.shape[0], 3, generator=g)),
         MeshPart(verts, faces[third:], 7, uv=torch.rand(verts.shape[0], 2, generator=g) * 1.2 - 0.1, texture=tex),
         MeshPart(verts + 0.01, faces[third:], 9, uv=torch.rand(verts.shape[0], 2, generator=g), texture=tex),
-        MeshPart(verts - 0.01, faces[:third], 11, uv=torch.rand(verts.shape[0], 2, generator=g),
-                 texture=torch.rand(1, 1, 3, generator=g)),  # a one-texel texture
+        MeshPart(
+            verts - 0.01,
+            faces[:third],
+            11,
+            uv=torch.rand(verts.shape[0], 2, generator=g),
+            texture=torch.rand(1, 1, 3, generator=g),
+        ),  # a one-texel texture
     ]
     bg = torch.rand(32, 40, 3, generator=g, dtype=dtype)
     light = Light(direction=(0.3, -0.2, 1.0), specular=0.4, shininess=12.0)
@@ -131,7 +161,8 @@ def test_nan_texture_coordinates_read_inside_the_texture() -> None:
     verts = torch.tensor([[-0.5, -0.5, 1.0], [0.5, -0.5, 1.0], [0.0, 0.5, 1.0]])
     uv = torch.tensor([[float("nan"), 0.2], [0.5, float("nan")], [0.3, 0.3]])
     part = MeshPart(verts, torch.tensor([[0, 1, 2]]), 1, uv=uv, texture=torch.full((4, 4, 3), 0.5))
-    out = render_meshes([part], torch.eye(4), torch.tensor([[8.0, 0, 8], [0, 8.0, 8], [0, 0, 1]]), 16, 16,
-                        backend="numba")
+    out = render_meshes(
+        [part], torch.eye(4), torch.tensor([[8.0, 0, 8], [0, 8.0, 8], [0, 0, 1]]), 16, 16, backend="numba"
+    )
     assert (out.part_id == 1).sum() > 20
     assert torch.isfinite(out.rgb).all()

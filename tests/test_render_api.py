@@ -49,8 +49,20 @@ def _intrinsics(f: float, cx: float, cy: float) -> torch.Tensor:
 EYES = [(0.0, 0.0, 0.0), (0.15, -0.1, 0.05), (-0.12, 0.08, 0.02)]
 
 
-def ball_scene(B=1, C=1, N=300, W=48, H=40, seed=0, dtype=torch.float32, device="cpu", sh_degree=None,
-               per_camera_colors=False, num_parts=0, background=False) -> dict:  # fmt: skip
+def ball_scene(
+    B=1,
+    C=1,
+    N=300,
+    W=48,
+    H=40,
+    seed=0,
+    dtype=torch.float32,
+    device="cpu",
+    sh_degree=None,
+    per_camera_colors=False,
+    num_parts=0,
+    background=False,
+) -> dict:
     """Random Gaussians in a ball of radius 0.1 m at z = 0.6 m, seen by C look-at cameras."""
     g = torch.Generator().manual_seed(seed)
     d = torch.randn(B, N, 3, generator=g, dtype=torch.float64)
@@ -62,7 +74,7 @@ def ball_scene(B=1, C=1, N=300, W=48, H=40, seed=0, dtype=torch.float32, device=
             torch.empty(B, N, 3, dtype=torch.float64).uniform_(math.log(3e-3), math.log(2e-2), generator=g)
         ),
         opacities=torch.empty(B, N, dtype=torch.float64).uniform_(0.05, 1.0, generator=g),
-    )  # fmt: skip
+    )
     cshape = (B, C, N) if per_camera_colors else (B, N)
     if sh_degree is None:
         args["colors"] = torch.rand(*cshape, 3, generator=g, dtype=torch.float64)
@@ -121,8 +133,9 @@ def _call(s: dict, **kw) -> RenderOutput:
 
 
 def _call_render_gaussians(s: dict, render_depth: bool) -> RenderOutput:
-    settings = RenderSettings(sh_degree=s["sh_degree"], num_parts=s.get("num_parts", 0),
-                              render_mode="RGB+ED" if render_depth else "RGB")  # fmt: skip
+    settings = RenderSettings(
+        sh_degree=s["sh_degree"], num_parts=s.get("num_parts", 0), render_mode="RGB+ED" if render_depth else "RGB"
+    )
     x = SplatInputs(*_positional(s), backgrounds=s.get("backgrounds"), part_ids=s.get("part_ids"))
     return render_gaussians(x, settings)
 
@@ -327,8 +340,17 @@ def test_antialiased_single_gaussian_centre_alpha():
     K = _intrinsics(f, 16.5, 16.5)[None, None]  # the optical axis hits the centre of pixel (16, 16)
     means = torch.tensor([[[0.0, 0.0, z]]], dtype=torch.float64)  # on the axis: no perspective skew
     f64 = dict(dtype=torch.float64)
-    args = (means, torch.tensor([[[1.0, 0, 0, 0]]], **f64), torch.full((1, 1, 3), sig_px * z / f, **f64),
-            torch.tensor([[o]], **f64), torch.ones(1, 1, 3, **f64), torch.eye(4, **f64)[None, None], K, 32, 32)  # fmt: skip
+    args = (
+        means,
+        torch.tensor([[[1.0, 0, 0, 0]]], **f64),
+        torch.full((1, 1, 3), sig_px * z / f, **f64),
+        torch.tensor([[o]], **f64),
+        torch.ones(1, 1, 3, **f64),
+        torch.eye(4, **f64)[None, None],
+        K,
+        32,
+        32,
+    )
     classic = render(*args, eps2d=eps)
     aa = render(*args, eps2d=eps, antialiased=True)
     s2 = sig_px**2
@@ -344,11 +366,18 @@ def test_antialiased_equals_per_camera_renders():
     for b in range(2):
         for c in range(2):
             x = SplatInputs(
-                s["means"][b : b + 1], s["quats"][b : b + 1], s["scales"][b : b + 1],
-                s["opacities"][b : b + 1] * rho[b : b + 1, c], s["colors"][b : b + 1],
-                s["viewmats"][b : b + 1, c : c + 1], s["Ks"][b : b + 1, c : c + 1], 48, 40,
-                part_ids=s["part_ids"][b : b + 1], backgrounds=s["backgrounds"][b : b + 1, c : c + 1],
-            )  # fmt: skip
+                s["means"][b : b + 1],
+                s["quats"][b : b + 1],
+                s["scales"][b : b + 1],
+                s["opacities"][b : b + 1] * rho[b : b + 1, c],
+                s["colors"][b : b + 1],
+                s["viewmats"][b : b + 1, c : c + 1],
+                s["Ks"][b : b + 1, c : c + 1],
+                48,
+                40,
+                part_ids=s["part_ids"][b : b + 1],
+                backgrounds=s["backgrounds"][b : b + 1, c : c + 1],
+            )
             ref = render_gaussians(x, RenderSettings(sh_degree=1, num_parts=2, render_mode="RGB+ED"))
             for name in ("rgb", "alpha", "depth", "part_alpha"):
                 torch.testing.assert_close(getattr(out, name)[b, c], getattr(ref, name)[0, 0], rtol=1e-5, atol=1e-6)
@@ -446,9 +475,27 @@ def test_torch_backend_options_pass_through():
 # --------------------------------------------------------------------------------------
 
 
-def _rasterization_double(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, near_plane,
-                          far_plane, eps2d, sh_degree, packed, tile_size, backgrounds, render_mode,
-                          rasterize_mode):  # fmt: skip
+def _rasterization_double(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    *,
+    near_plane,
+    far_plane,
+    eps2d,
+    sh_degree,
+    packed,
+    tile_size,
+    backgrounds,
+    render_mode,
+    rasterize_mode,
+):
     """Honours the contract of gsplat 1.5.3 ``rasterization`` the backend relies on
     (leading batch dim, ``render_mode`` depth as the last channel, float32 alphas), using
     the torch backend. The asserts check what the glue passes in."""
@@ -458,9 +505,25 @@ def _rasterization_double(means, quats, scales, opacities, colors, viewmats, Ks,
         assert t.is_contiguous()
     if sh_degree is not None:
         assert colors.shape[-1] == 3 and colors.dim() in (4, 5)
-    out = render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backend="torch",
-                 sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, render_mode=render_mode,
-                 antialiased=rasterize_mode == "antialiased", eps2d=eps2d, tile_size=tile_size)  # fmt: skip
+    out = render(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        backend="torch",
+        sh_degree=sh_degree,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        render_mode=render_mode,
+        antialiased=rasterize_mode == "antialiased",
+        eps2d=eps2d,
+        tile_size=tile_size,
+    )
     rc = out.rgb if out.depth is None else torch.cat([out.rgb, out.depth], -1)
     return rc, out.alpha, {"double": True}
 

@@ -69,15 +69,14 @@ def _brute_force(means, quats, scales, opac, cols, viewmat, K, W, H, bg):
     order composited onto every pixel (vectorised over pixels only), with the exact rule of
     RasterizeToPixels3DGSFwd.cu. No tiles, no bounding boxes. Float64."""
     covars, _ = gsplat_ref._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
-    radii, m2d, depths, conics, _ = gsplat_ref._fully_fused_projection(
-        means, covars, viewmat[None], K[None], W, H
-    )
+    radii, m2d, depths, conics, _ = gsplat_ref._fully_fused_projection(means, covars, viewmat[None], K[None], W, H)
     radii, m2d, depths, conics = radii[0], m2d[0], depths[0], conics[0]
     use = (radii > 0).all(-1) & (opac >= 1 / 255)
     order = torch.argsort(depths, stable=True)
     order = order[use[order]]
-    py, px = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5,
-                            torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")  # fmt: skip
+    py, px = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     T = torch.ones(H, W, dtype=torch.float64)
     rgb = torch.zeros(H, W, 3, dtype=torch.float64)
     dep = torch.zeros(H, W, dtype=torch.float64)
@@ -110,8 +109,18 @@ def _settings(**kw) -> RenderSettings:
 
 def _render1(means, quats, scales, opac, cols, viewmat, K, W, H, settings=None, **tensors):
     """Single-sample, single-camera wrapper; ``tensors``: backgrounds, part_ids, valid."""
-    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None],
-                    viewmat[None, None], K[None, None], W, H, **tensors)  # fmt: skip
+    x = SplatInputs(
+        means[None],
+        quats[None],
+        scales[None],
+        opac[None],
+        cols[None],
+        viewmat[None, None],
+        K[None, None],
+        W,
+        H,
+        **tensors,
+    )
     return render_gaussians(x, _settings() if settings is None else settings)
 
 
@@ -283,12 +292,16 @@ def test_independent_of_chunking(chunk, tile_batch):
 def _grad_scene():
     """4 large, semi-transparent Gaussians covering an 8x8 image: every pixel is far from
     the 1/255 cut-off, the 0.999 clamp and the 1e-4 termination."""
-    means = torch.tensor([[0.01, -0.02, 1.0], [-0.03, 0.02, 1.2], [0.02, 0.03, 1.5], [-0.01, -0.01, 0.9]],
-                         dtype=torch.float64)  # fmt: skip
-    quats = torch.tensor([[1.0, 0.1, -0.2, 0.05], [0.9, -0.1, 0.3, 0.2], [0.7, 0.2, 0.1, -0.4], [1.0, 0.0, 0.2, 0.1]],
-                         dtype=torch.float64)  # fmt: skip
-    scales = torch.tensor([[0.08, 0.05, 0.03], [0.06, 0.09, 0.04], [0.1, 0.07, 0.05], [0.05, 0.06, 0.07]],
-                          dtype=torch.float64)  # fmt: skip
+    means = torch.tensor(
+        [[0.01, -0.02, 1.0], [-0.03, 0.02, 1.2], [0.02, 0.03, 1.5], [-0.01, -0.01, 0.9]], dtype=torch.float64
+    )
+    quats = torch.tensor(
+        [[1.0, 0.1, -0.2, 0.05], [0.9, -0.1, 0.3, 0.2], [0.7, 0.2, 0.1, -0.4], [1.0, 0.0, 0.2, 0.1]],
+        dtype=torch.float64,
+    )
+    scales = torch.tensor(
+        [[0.08, 0.05, 0.03], [0.06, 0.09, 0.04], [0.1, 0.07, 0.05], [0.05, 0.06, 0.07]], dtype=torch.float64
+    )
     opac = torch.tensor([0.5, 0.6, 0.7, 0.4], dtype=torch.float64)
     K = _intrinsics(20.0, 4.2, 3.9, torch.float64)
     return means, quats, scales, opac, K
@@ -301,8 +314,19 @@ def test_gradcheck_rgb_parts_depth():
     part_ids = torch.tensor([[0, 1, 1, -1]])
 
     def fn(m, q, s, o, c):
-        x = SplatInputs(m[None], q[None], s[None], o[None], c[None], torch.eye(4, dtype=torch.float64)[None, None],
-                        K[None, None], 8, 8, backgrounds=bg, part_ids=part_ids)  # fmt: skip
+        x = SplatInputs(
+            m[None],
+            q[None],
+            s[None],
+            o[None],
+            c[None],
+            torch.eye(4, dtype=torch.float64)[None, None],
+            K[None, None],
+            8,
+            8,
+            backgrounds=bg,
+            part_ids=part_ids,
+        )
         out = render_gaussians(x, _settings(num_parts=2, tile_size=4))
         return out.rgb, out.alpha, out.depth, out.part_alpha
 
@@ -410,8 +434,18 @@ def test_part_alpha_sums_to_alpha():
     means, quats, scales, opac, cols = _ball_scene(300, 5)
     K = _intrinsics(80.0, 20.0, 20.0)
     part_ids = torch.randint(0, 3, (1, 300), generator=torch.Generator().manual_seed(0))
-    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                    K[None, None], 40, 40, part_ids=part_ids)  # fmt: skip
+    x = SplatInputs(
+        means[None],
+        quats[None],
+        scales[None],
+        opac[None],
+        cols[None],
+        torch.eye(4)[None, None],
+        K[None, None],
+        40,
+        40,
+        part_ids=part_ids,
+    )
     out = render_gaussians(x, _settings(num_parts=3))
     assert out.part_alpha.shape == (1, 1, 40, 40, 3)
     torch.testing.assert_close(out.part_alpha.sum(-1, keepdim=True), out.alpha, atol=2e-6, rtol=0)
@@ -427,14 +461,26 @@ def test_batching_equals_separate_renders():
     Ks = torch.stack([torch.stack([_intrinsics(60.0 + 5 * c + b, 20.0, 15.0 + b) for c in range(C)]) for b in range(B)])
     bg = torch.rand(B, C, 3, generator=torch.Generator().manual_seed(1))
     part_ids = torch.randint(0, 2, (B, N), generator=torch.Generator().manual_seed(2))
-    out = render_gaussians(SplatInputs(means, quats, scales, opac, cols, viewmats, Ks, W, H,
-                                       backgrounds=bg, part_ids=part_ids), _settings(num_parts=2))  # fmt: skip
+    out = render_gaussians(
+        SplatInputs(means, quats, scales, opac, cols, viewmats, Ks, W, H, backgrounds=bg, part_ids=part_ids),
+        _settings(num_parts=2),
+    )
     assert out.rgb.shape == (B, C, H, W, 3) and out.alpha.shape == (B, C, H, W, 1)
     for b in range(B):
         for c in range(C):
-            x = SplatInputs(means[b : b + 1], quats[b : b + 1], scales[b : b + 1], opac[b : b + 1],
-                            cols[b : b + 1], viewmats[b : b + 1, c : c + 1], Ks[b : b + 1, c : c + 1], W, H,
-                            backgrounds=bg[b : b + 1, c : c + 1], part_ids=part_ids[b : b + 1])  # fmt: skip
+            x = SplatInputs(
+                means[b : b + 1],
+                quats[b : b + 1],
+                scales[b : b + 1],
+                opac[b : b + 1],
+                cols[b : b + 1],
+                viewmats[b : b + 1, c : c + 1],
+                Ks[b : b + 1, c : c + 1],
+                W,
+                H,
+                backgrounds=bg[b : b + 1, c : c + 1],
+                part_ids=part_ids[b : b + 1],
+            )
             o = render_gaussians(x, _settings(num_parts=2))
             # float32: batched matmuls may round differently
             torch.testing.assert_close(out.rgb[b, c], o.rgb[0, 0], atol=2e-5, rtol=0)
@@ -449,8 +495,18 @@ def test_valid_mask_equals_dropping_gaussians():
     means, quats, scales, opac, cols = _ball_scene(200, 8)
     K = _intrinsics(80.0, 20.0, 20.0)
     keep = torch.rand(200, generator=torch.Generator().manual_seed(3)) > 0.4
-    x = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                    K[None, None], 40, 40, valid=keep[None])  # fmt: skip
+    x = SplatInputs(
+        means[None],
+        quats[None],
+        scales[None],
+        opac[None],
+        cols[None],
+        torch.eye(4)[None, None],
+        K[None, None],
+        40,
+        40,
+        valid=keep[None],
+    )
     full = render_gaussians(x, _settings())
     sub = _render1(means[keep], quats[keep], scales[keep], opac[keep], cols[keep], torch.eye(4), K, 40, 40)
     zero = _render1(means, quats, scales, torch.where(keep, opac, 0.0), cols, torch.eye(4), K, 40, 40)
@@ -486,8 +542,19 @@ def test_empty_scene_gives_background(n):
     opac = torch.zeros(1, n)  # zero opacity: culled
     cols = torch.rand(1, n, 3)
     bg = torch.tensor([[[0.2, 0.5, 0.7]]])
-    x = SplatInputs(means, quats, scales, opac, cols, torch.eye(4)[None, None], K[None, None], 20, 17,
-                    backgrounds=bg, part_ids=torch.zeros(1, n, dtype=torch.long))  # fmt: skip
+    x = SplatInputs(
+        means,
+        quats,
+        scales,
+        opac,
+        cols,
+        torch.eye(4)[None, None],
+        K[None, None],
+        20,
+        17,
+        backgrounds=bg,
+        part_ids=torch.zeros(1, n, dtype=torch.long),
+    )
     out = render_gaussians(x, _settings(num_parts=2))
     assert out.rgb.shape == (1, 1, 17, 20, 3)
     assert torch.equal(out.rgb, bg[:, :, None, None, :].expand(1, 1, 17, 20, 3))
@@ -505,15 +572,21 @@ def _two_image_scene(dtype):
     and Gaussians large enough that many pixels saturate (stop before the list's end)."""
     g = torch.Generator().manual_seed(11)
     B, C, N, W, H = 2, 2, 600, 45, 37
-    means = (torch.rand(B, N, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([0.2, 0.2, 0.2]) + \
-        torch.tensor([0.0, 0.0, 0.7])
+    means = (torch.rand(B, N, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [0.2, 0.2, 0.2]
+    ) + torch.tensor([0.0, 0.0, 0.7])
     quats = torch.randn(B, N, 4, generator=g, dtype=torch.float64)
-    scales = torch.exp(torch.empty(B, N, 3, dtype=torch.float64).uniform_(math.log(0.004), math.log(0.04),
-                                                                          generator=g))
+    scales = torch.exp(torch.empty(B, N, 3, dtype=torch.float64).uniform_(math.log(0.004), math.log(0.04), generator=g))
     opac = torch.rand(B, N, generator=g, dtype=torch.float64) * 0.7 + 0.29
     cols = torch.rand(B, N, 3, generator=g, dtype=torch.float64)
-    viewmats = torch.stack([torch.stack([_look_at((0.0, 0.0, 0.0), dtype=torch.float64),
-                                         _look_at((0.08, -0.05, 0.02), dtype=torch.float64)])] * B)
+    viewmats = torch.stack(
+        [
+            torch.stack(
+                [_look_at((0.0, 0.0, 0.0), dtype=torch.float64), _look_at((0.08, -0.05, 0.02), dtype=torch.float64)]
+            )
+        ]
+        * B
+    )
     Ks = _intrinsics(50.0, 22.0, 18.5, torch.float64).expand(B, C, 3, 3)
     valid = torch.rand(B, N, generator=g) > 0.1
     part_ids = torch.randint(-1, 3, (B, N), generator=g)
@@ -532,8 +605,9 @@ def test_compositors_agree(compositor, dtype, tol):
     results = {}
     for comp in ("torch", "numba"):
         ins = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols)]
-        x = SplatInputs(*ins, viewmats, Ks, kw["W"], kw["H"], backgrounds=bg, part_ids=kw["part_ids"],
-                        valid=kw["valid"])
+        x = SplatInputs(
+            *ins, viewmats, Ks, kw["W"], kw["H"], backgrounds=bg, part_ids=kw["part_ids"], valid=kw["valid"]
+        )
         out = render_gaussians(x, _settings(num_parts=3, compositor=comp))
         img = torch.cat([out.rgb, out.alpha, out.depth, out.part_alpha], -1)
         (img * wr).sum().backward()
@@ -552,29 +626,53 @@ def test_compositors_agree(compositor, dtype, tol):
 
 def test_compositor_choice_is_checked():
     means, quats, scales, opac, cols = _ball_scene(10, 1)
-    args = SplatInputs(means[None], quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                       _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
+    args = SplatInputs(
+        means[None],
+        quats[None],
+        scales[None],
+        opac[None],
+        cols[None],
+        torch.eye(4)[None, None],
+        _intrinsics(30.0, 8.0, 8.0)[None, None],
+        16,
+        16,
+    )
     with pytest.raises(ValueError, match="compositor must be"):
         render_gaussians(args, _settings(compositor="cuda"))
     with pytest.raises(ValueError, match="float32 or float64"):
-        render_gaussians(SplatInputs(*(a.half() if isinstance(a, torch.Tensor) else a for a in args)),
-                         _settings(compositor="numba"))
-    half = render_gaussians(SplatInputs(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args)),
-                            _settings(compositor="auto"))
+        render_gaussians(
+            SplatInputs(*(a.half() if isinstance(a, torch.Tensor) else a for a in args)), _settings(compositor="numba")
+        )
+    half = render_gaussians(
+        SplatInputs(*(a.bfloat16() if isinstance(a, torch.Tensor) else a for a in args)), _settings(compositor="auto")
+    )
     assert half.rgb.dtype == torch.bfloat16  # "auto" falls back to the PyTorch compositor
     # opacities above 1 reach beyond the radius, where the kernels do not look: the PyTorch path
     big = args._replace(scales=scales[None] * 4, opacities=(opac[None] * 3).clamp(min=1.5))
     with pytest.raises(ValueError, match="opacity is above 1"):
         render_gaussians(big, _settings(compositor="numba"))
-    torch.testing.assert_close(render_gaussians(big, _settings(compositor="auto")).rgb,
-                               render_gaussians(big, _settings(compositor="torch")).rgb, rtol=0, atol=0)
+    torch.testing.assert_close(
+        render_gaussians(big, _settings(compositor="auto")).rgb,
+        render_gaussians(big, _settings(compositor="torch")).rgb,
+        rtol=0,
+        atol=0,
+    )
 
 
 def test_second_order_gradients_are_refused_by_the_kernels():
     means, quats, scales, opac, cols = _ball_scene(10, 1)
     m = means[None].clone().requires_grad_(True)
-    x = SplatInputs(m, quats[None], scales[None], opac[None], cols[None], torch.eye(4)[None, None],
-                    _intrinsics(30.0, 8.0, 8.0)[None, None], 16, 16)
+    x = SplatInputs(
+        m,
+        quats[None],
+        scales[None],
+        opac[None],
+        cols[None],
+        torch.eye(4)[None, None],
+        _intrinsics(30.0, 8.0, 8.0)[None, None],
+        16,
+        16,
+    )
     out = render_gaussians(x, _settings(compositor="numba"))
     with pytest.raises(RuntimeError, match="first-order gradients only"):
         torch.autograd.grad(out.rgb.sum(), m, create_graph=True)

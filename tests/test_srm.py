@@ -248,10 +248,26 @@ def hogs_runs(tiny_world, tmp_path_factory):
     from hogsa_loader.train import HogsConfig, HogsTrainer
 
     runs = tmp_path_factory.mktemp("hogs_runs")
-    cfg = HogsConfig.from_json(dict(data=str(tiny_world), subject="s01", object="box", out=str(runs / "s01_box"),
-                                    iters=3, image_size=64, frame_stride=8, eval_every_frame=2, max_eval=2,
-                                    eval_every=0, ckpt_every=0, lr_scale=10.0, k=1, sh_degree=0, sh_warmup=0,
-                                    strip_views=1))  # fmt: skip
+    cfg = HogsConfig.from_json(
+        dict(
+            data=str(tiny_world),
+            subject="s01",
+            object="box",
+            out=str(runs / "s01_box"),
+            iters=3,
+            image_size=64,
+            frame_stride=8,
+            eval_every_frame=2,
+            max_eval=2,
+            eval_every=0,
+            ckpt_every=0,
+            lr_scale=10.0,
+            k=1,
+            sh_degree=0,
+            sh_warmup=0,
+            strip_views=1,
+        )
+    )
     HogsTrainer(cfg, progress=False).train()
     (runs / "unfinished").mkdir()  # skipped: no part manifests
     return runs
@@ -264,9 +280,12 @@ def folds(tiny_world, tmp_path_factory):
 
     folds = tmp_path_factory.mktemp("folds")
     for name, views in (("odd", [1, 3, 5, 7, 8]), ("even", [2, 4, 6, 8])):
-        HogsTrainer(HogsConfig.from_json(dict(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world),
-                                              **_FOLD_COMMON)),
-                    progress=False).train()
+        HogsTrainer(
+            HogsConfig.from_json(
+                dict(out=str(folds / name), views=views, seed=len(name), data=str(tiny_world), **_FOLD_COMMON)
+            ),
+            progress=False,
+        ).train()
     return folds
 
 
@@ -277,9 +296,31 @@ def srm_cache(tmp_path_factory):
 
 
 def _args(world, runs, out, iters):
-    return ["--data-root", str(world), "--data-hogs", str(runs), "--run-out", str(out), "--optim-iters", str(iters),
-            "--optim-batch-size", "2", "--data-crop", "32", "--model-channels", "8", "16", "16", "--run-eval-every",
-            "0", "--run-ckpt-every", "2", "--run-strip-views", "1", "--quiet"]  # fmt: skip
+    return [
+        "--data-root",
+        str(world),
+        "--data-hogs",
+        str(runs),
+        "--run-out",
+        str(out),
+        "--optim-iters",
+        str(iters),
+        "--optim-batch-size",
+        "2",
+        "--data-crop",
+        "32",
+        "--model-channels",
+        "8",
+        "16",
+        "16",
+        "--run-eval-every",
+        "0",
+        "--run-ckpt-every",
+        "2",
+        "--run-strip-views",
+        "1",
+        "--quiet",
+    ]
 
 
 def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
@@ -296,7 +337,9 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
     assert list((out / "cache").glob("coarse_s01_box_*.safetensors"))
     srm = load_srm(out)  # the run folder is a checkpoint folder
     assert srm.refine(torch.zeros(1, 32, 32, 3), torch.zeros(1, 32, 32)).abs().max() == 0
-    assert any("r1" in h for h in json.loads(next((out / "checkpoints").glob("step_*/trainer.json")).read_text())["history"])
+    assert any(
+        "r1" in h for h in json.loads(next((out / "checkpoints").glob("step_*/trainer.json")).read_text())["history"]
+    )
     # interrupted at step 2 (checkpoint), resumed to 4: identical to the straight run
     with pytest.warns(SubstituteWarning):
         assert cli.main(_args(tiny_world, hogs_runs, tmp_path / "b", 2)) == 0
@@ -310,8 +353,8 @@ def test_trainer_end_to_end_and_exact_resume(tiny_world, hogs_runs, tmp_path):
 def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     """View folds render the training samples whose view they never saw; leaks are refused."""
     from hogsa_loader.errors import AssetError
-    from hogsa_loader.train.srm_pairs import find_runs, fold_runs, load_pairs
     from hogsa_loader.train import HogsConfig, HogsTrainer
+    from hogsa_loader.train.srm_pairs import find_runs, fold_runs, load_pairs
 
     run = hogs_runs / "s01_box"
     found = fold_runs(run, find_runs(folds))
@@ -323,8 +366,10 @@ def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     assert own.train_rows.tolist() == list(range(n))
     # every training sample once from the run, once from the fold that did not see its view
     assert sorted(both.train_rows.tolist()) == sorted(list(range(n)) * 2)
-    assert sorted(cross.train_rows.tolist()) == list(range(n)) and cross.sources == {"odd": both.sources["odd"],
-                                                                                       "even": both.sources["even"]}
+    assert sorted(cross.train_rows.tolist()) == list(range(n)) and cross.sources == {
+        "odd": both.sources["odd"],
+        "even": both.sources["even"],
+    }
     start = 0
     for name, count in cross.sources.items():  # rows in source order
         views = {own.data.train[int(i)].view for i in cross.train_rows[start : start + count]}
@@ -335,15 +380,32 @@ def test_cross_view_pairs(tiny_world, hogs_runs, folds, srm_cache, tmp_path):
     with pytest.raises(AssetError, match="view-fold runs"):
         load_pairs(tiny_world, run, srm_cache, mode="cross", folds=[])
     leak = tmp_path / "leak"
-    HogsTrainer(HogsConfig.from_json({**_FOLD_COMMON, "out": str(leak), "views": [1, 2, 3, 8], "data": str(tiny_world),
-                                       "eval_views": [3]}), progress=False).train()
+    HogsTrainer(
+        HogsConfig.from_json(
+            {**_FOLD_COMMON, "out": str(leak), "views": [1, 2, 3, 8], "data": str(tiny_world), "eval_views": [3]}
+        ),
+        progress=False,
+    ).train()
     with pytest.raises(AssetError, match="held-out view"):
         fold_runs(run, find_runs(folds) + find_runs(leak))
 
 
-_FOLD_COMMON = dict(subject="s01", object="box", iters=1, image_size=64, frame_stride=8, eval_every_frame=2,
-                    max_eval=2, eval_every=0, ckpt_every=0, k=1, sh_degree=0, sh_warmup=0, strip_views=1,
-                    eval_views=[8])  # fmt: skip
+_FOLD_COMMON = dict(
+    subject="s01",
+    object="box",
+    iters=1,
+    image_size=64,
+    frame_stride=8,
+    eval_every_frame=2,
+    max_eval=2,
+    eval_every=0,
+    ckpt_every=0,
+    k=1,
+    sh_degree=0,
+    sh_warmup=0,
+    strip_views=1,
+    eval_views=[8],
+)
 
 
 def test_render_cache_key_follows_labels_cameras_and_body_model(tiny_world, hogs_runs):
@@ -351,8 +413,8 @@ def test_render_cache_key_follows_labels_cameras_and_body_model(tiny_world, hogs
     other cameras or another MANO file: each of them changes the key."""
     import dataclasses
 
-    from hogsa_loader.train.srm_pairs import _inputs_hash
     from hogsa_loader.train.hogs_source import load_run_data
+    from hogsa_loader.train.srm_pairs import _inputs_hash
 
     source, data = load_run_data(json.loads((hogs_runs / "s01_box" / "config.json").read_text()), data=tiny_world)
     parts = {"train": list(data.train[:3]), "eval": list(data.eval)}
@@ -385,7 +447,9 @@ def test_render_cache_key_follows_weights_settings_and_code(hogs_runs, tmp_path,
     ref = pairs._run_hash(run)
     man_path = run / "object" / "manifest.json"
     man = json.loads(man_path.read_text())
-    man_path.write_text(json.dumps({**man, "config": {**man["config"], "weld_seams": not man["config"].get("weld_seams", False)}}))
+    man_path.write_text(
+        json.dumps({**man, "config": {**man["config"], "weld_seams": not man["config"].get("weld_seams", False)}})
+    )
     other_cfg = pairs._run_hash(run)
     man_path.write_text(json.dumps(man))
     assert pairs._run_hash(run) == ref
@@ -484,7 +548,11 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
         with torch.no_grad():
             for t in tr.g_ema.net.parameters():
                 t.fill_(float(step))
-        tr.validate = lambda s=score: {"n": 1, "without_srm": {"psnr": 0.0, "ssim": 0.0}, "with_srm": {"psnr": s, "ssim": 0.9}}
+        tr.validate = lambda s=score: {
+            "n": 1,
+            "without_srm": {"psnr": 0.0, "ssim": 0.0},
+            "with_srm": {"psnr": s, "ssim": 0.9},
+        }
         tr._eval_point(fake_ev)
     assert tr.best["step"] == 2 and tr.best["psnr"] == 25.0
     assert all(float(t.flatten()[0]) == 2.0 for t in tr.best_model().net.parameters())
@@ -511,13 +579,37 @@ def _check_recorded_targets_and_render_quality_refusal(world, run, srm_dir, tmp_
     mod = importlib.util.module_from_spec(rq)
     rq.loader.exec_module(mod)
     js = tmp_path / "q.json"
-    assert mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2"]) == 0
+    assert (
+        mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2"])
+        == 0
+    )
     q1 = json.loads(js.read_text())
     assert q1["srm_views_check"].startswith("held-out:") and q1["srm_tta"] == 1
-    assert mod.main(["--data", str(world), "--run", str(run), "--srm", str(srm_dir), "--json", str(js), "--max-eval", "2",
-                     "--srm-tta", "8"]) == 0  # fmt: skip
+    assert (
+        mod.main(
+            [
+                "--data",
+                str(world),
+                "--run",
+                str(run),
+                "--srm",
+                str(srm_dir),
+                "--json",
+                str(js),
+                "--max-eval",
+                "2",
+                "--srm-tta",
+                "8",
+            ]
+        )
+        == 0
+    )
     q8 = json.loads(js.read_text())
-    assert q8["srm_tta"] == 8 and q8["without_srm"] == q1["without_srm"] and q8["with_srm"]["psnr"] != q1["with_srm"]["psnr"]
+    assert (
+        q8["srm_tta"] == 8
+        and q8["without_srm"] == q1["without_srm"]
+        and q8["with_srm"]["psnr"] != q1["with_srm"]["psnr"]
+    )
     # the same SRM claiming it trained on view 8: refused, or scored and marked with the flag
     seen = tmp_path / "seen_srm"
     shutil.copytree(srm_dir, seen, ignore=shutil.ignore_patterns("checkpoints", "cache"))
@@ -542,12 +634,25 @@ def test_dihedral_augment_moves_input_and_target_together(tiny_world, hogs_runs,
     outs = [dihedral(x, c) for c in range(8)]
     assert len({tuple(o.flatten().tolist()) for o in outs}) == 8  # the 8 symmetries of the square
     assert torch.equal(dihedral(x, 1), x.flip(-1)) and torch.equal(dihedral(x, 2), torch.rot90(x, 1, (-2, -1)))
-    base = dict(data=str(tiny_world), hogs=str(hogs_runs), batch_size=6, crop=32, channels=[8, 16, 16], lambda_gan=0.0,
-                cache=str(srm_cache))
-    plain = SRMTrainer(SRMTrainConfig.from_json(dict(out=str(tmp_path / "p"), augment="none", **base)), progress=False,
-                       log=lambda m: None)
-    aug = SRMTrainer(SRMTrainConfig.from_json(dict(out=str(tmp_path / "a"), augment="d4", **base)), progress=False,
-                     log=lambda m: None)
+    base = dict(
+        data=str(tiny_world),
+        hogs=str(hogs_runs),
+        batch_size=6,
+        crop=32,
+        channels=[8, 16, 16],
+        lambda_gan=0.0,
+        cache=str(srm_cache),
+    )
+    plain = SRMTrainer(
+        SRMTrainConfig.from_json(dict(out=str(tmp_path / "p"), augment="none", **base)),
+        progress=False,
+        log=lambda m: None,
+    )
+    aug = SRMTrainer(
+        SRMTrainConfig.from_json(dict(out=str(tmp_path / "a"), augment="d4", **base)),
+        progress=False,
+        log=lambda m: None,
+    )
     moved = 0
     for _ in range(3):  # same windows (same seed); the augmented ones are one symmetry of them, shared by all three
         p, a = plain.batch(), aug.batch()
@@ -566,9 +671,21 @@ def test_discriminator_real_is_reachable_by_the_generator(tiny_world, hogs_runs,
     (output c · alpha) cannot match, and the GT itself wherever it can."""
     from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
-    tr = SRMTrainer(SRMTrainConfig.from_json(dict(data=str(tiny_world), hogs=str(hogs_runs), out=str(tmp_path / "d"),
-                                                 batch_size=6, crop=0, channels=[8, 16, 16], cache=str(srm_cache))),
-                    progress=False, log=lambda m: None)
+    tr = SRMTrainer(
+        SRMTrainConfig.from_json(
+            dict(
+                data=str(tiny_world),
+                hogs=str(hogs_runs),
+                out=str(tmp_path / "d"),
+                batch_size=6,
+                crop=0,
+                channels=[8, 16, 16],
+                cache=str(srm_cache),
+            )
+        ),
+        progress=False,
+        log=lambda m: None,
+    )
     rgb, alpha, gt = tr.batch()
     assert float(gt.amax()) > 0.2
     for a in (alpha, 0.5 * alpha, torch.zeros_like(alpha)):  # the last two: GT silhouette beyond the render

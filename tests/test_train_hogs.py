@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from hogsa_loader.gaussians import load_part
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import project, transform
 from hogsa_loader.errors import AssetError
+from hogsa_loader.gaussians import load_part
 from hogsa_loader.train import HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,9 +28,24 @@ def _cli():
 
 
 def _cfg(world, out, **kw) -> HogsConfig:
-    base = dict(data=str(world), subject="s01", object="box", out=str(out), iters=4, image_size=64,
-                frame_stride=4, eval_every_frame=2, max_eval=3, eval_every=0, ckpt_every=0, lr_scale=10.0,
-                k=1, sh_degree=1, sh_warmup=0, strip_views=2)  # fmt: skip
+    base = dict(
+        data=str(world),
+        subject="s01",
+        object="box",
+        out=str(out),
+        iters=4,
+        image_size=64,
+        frame_stride=4,
+        eval_every_frame=2,
+        max_eval=3,
+        eval_every=0,
+        ckpt_every=0,
+        lr_scale=10.0,
+        k=1,
+        sh_degree=1,
+        sh_warmup=0,
+        strip_views=2,
+    )
     base.update(kw)
     return HogsConfig.from_json(base)
 
@@ -56,8 +71,16 @@ def test_data_alignment(tiny_world):
     for s in data.train[:: max(1, len(data.train) // 6)]:
         seq = data.sequences[s.seq_index]
         o = seq.object
-        v = layer(angles=torch.tensor([[o.arti[s.frame]]]), global_orient=torch.tensor(o.rot[s.frame : s.frame + 1]),
-                  transl=torch.tensor(o.trans[s.frame : s.frame + 1]), names=["box"])["v"][0].double().numpy()
+        v = (
+            layer(
+                angles=torch.tensor([[o.arti[s.frame]]]),
+                global_orient=torch.tensor(o.rot[s.frame : s.frame + 1]),
+                transl=torch.tensor(o.trans[s.frame : s.frame + 1]),
+                names=["box"],
+            )["v"][0]
+            .double()
+            .numpy()
+        )
         K = s.K.copy()
         K[:2, 2] -= 0.5  # render intrinsics -> pixel-index convention
         uv = np.rint(project(transform(s.world2cam, v), K)).astype(int)
@@ -113,10 +136,37 @@ def test_resume_matches_unbroken_run(tiny_world, tmp_path):
     full = HogsTrainer(_cfg(tiny_world, tmp_path / "full", iters=6, ckpt_every=3), progress=False)
     full.train()
     cli = _cli()
-    args = ["--data-root", str(tiny_world), "--data-subject", "s01", "--data-object", "box", "--run-out",
-            str(tmp_path / "cut"), "--data-image-size", "64", "--data-frame-stride", "4", "--data-eval-every-frame",
-            "2", "--data-max-eval", "3", "--run-eval-every", "0", "--run-ckpt-every", "3", "--optim-lr-scale", "10",
-            "--model-k", "1", "--model-sh-degree", "1", "--optim-sh-warmup", "0", "--quiet"]  # fmt: skip
+    args = [
+        "--data-root",
+        str(tiny_world),
+        "--data-subject",
+        "s01",
+        "--data-object",
+        "box",
+        "--run-out",
+        str(tmp_path / "cut"),
+        "--data-image-size",
+        "64",
+        "--data-frame-stride",
+        "4",
+        "--data-eval-every-frame",
+        "2",
+        "--data-max-eval",
+        "3",
+        "--run-eval-every",
+        "0",
+        "--run-ckpt-every",
+        "3",
+        "--optim-lr-scale",
+        "10",
+        "--model-k",
+        "1",
+        "--model-sh-degree",
+        "1",
+        "--optim-sh-warmup",
+        "0",
+        "--quiet",
+    ]
     assert cli.main(args + ["--optim-iters", "3"]) == 0  # the "killed" run: its last checkpoint is step 3
     assert json.loads((tmp_path / "cut" / "checkpoints" / "latest.json").read_text())["step"] == 3
     resumed = HogsTrainer(_cfg(tiny_world, tmp_path / "cut", iters=6, ckpt_every=3), progress=False)
@@ -186,10 +236,37 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     import sys
     import time
 
-    args = ["--data-root", str(tiny_world), "--data-subject", "s01", "--data-object", "box", "--data-image-size", "64",
-            "--data-frame-stride", "4", "--data-eval-every-frame", "2", "--data-max-eval", "3", "--run-eval-every", "0",
-            "--run-ckpt-every", "2", "--optim-lr-scale", "10", "--model-k", "1", "--model-sh-degree", "1",
-            "--optim-sh-warmup", "0", "--optim-iters", "14", "--quiet"]  # fmt: skip
+    args = [
+        "--data-root",
+        str(tiny_world),
+        "--data-subject",
+        "s01",
+        "--data-object",
+        "box",
+        "--data-image-size",
+        "64",
+        "--data-frame-stride",
+        "4",
+        "--data-eval-every-frame",
+        "2",
+        "--data-max-eval",
+        "3",
+        "--run-eval-every",
+        "0",
+        "--run-ckpt-every",
+        "2",
+        "--optim-lr-scale",
+        "10",
+        "--model-k",
+        "1",
+        "--model-sh-degree",
+        "1",
+        "--optim-sh-warmup",
+        "0",
+        "--optim-iters",
+        "14",
+        "--quiet",
+    ]
     cut = tmp_path / "cut"
     # the same intra-op thread count as this process: CPU float sums are reproducible per thread count
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
@@ -211,7 +288,6 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     b = json.loads((cut / "metrics.json").read_text())
     assert b["iters"] == 14 and a["psnr"] == b["psnr"] and a["ssim"] == b["ssim"]
     assert a["per_sample"] == b["per_sample"]
-
 
 
 def test_foreground_removed_before_resizing(tmp_path):

@@ -118,8 +118,15 @@ def test_transfer_report_has_contact_and_penetration_figures(transferred, pom):
     (rec,) = transfer_report(tr, infos, objects)
     assert set(rec) == {"source", "aligned", "transferred"}
     for stage in rec.values():
-        assert {"penetration_depth_mm", "intersection_cm3", "contact_ratio", "contact_right", "contact_left", "accept",
-                "contact_error_mm"} <= set(stage)  # fmt: skip
+        assert {
+            "penetration_depth_mm",
+            "intersection_cm3",
+            "contact_ratio",
+            "contact_right",
+            "contact_left",
+            "accept",
+            "contact_error_mm",
+        } <= set(stage)
     assert rec["source"]["contact_error_mm"]["right"] in (0.0, None)
     touching = [s for s in ("right", "left") if rec["source"]["contact_error_mm"][s] is not None]
     assert touching, "the test frame should be a grasp"
@@ -151,8 +158,12 @@ def _parts(root):
     kw = {"k": 1, "sh_degree": 0}
 
     def model(light):
-        return HogsModel(HandGaussians(layers["right"], **kw), HandGaussians(layers["left"], **kw),
-                         ObjectGaussians(templates["box"], **kw), light=light)  # fmt: skip
+        return HogsModel(
+            HandGaussians(layers["right"], **kw),
+            HandGaussians(layers["left"], **kw),
+            ObjectGaussians(templates["box"], **kw),
+            light=light,
+        )
 
     return model(DirectionalLight((0.0, 0.0, -1.0), 0.2, 0.9)), model(DirectionalLight((1.0, 0.0, 0.0), 0.9, 0.1))
 
@@ -208,8 +219,12 @@ def two_subject_bundle(tiny_world, tmp_path_factory):
     state, src = load_frames(root, [root.sequences("s01")[0]], stride=30)
     state, src = state.select([0, 1]), src[:2]
     n = state.batch
-    metrics = {"penetration_depth": np.zeros(n), "intersection": np.zeros(n), "contact_ratio": np.full(n, 0.1),
-               "accept": np.ones(n)}  # fmt: skip
+    metrics = {
+        "penetration_depth": np.zeros(n),
+        "intersection": np.zeros(n),
+        "contact_ratio": np.full(n, 0.1),
+        "accept": np.ones(n),
+    }
     save_pose_bank(out / "pose_bank", state, src, metrics)
     return write_bundle(out / "bundle", tiny_world, runs, srm=tiny_srm(out / "srm"), pose_banks=[out / "pose_bank"])
 
@@ -221,17 +236,49 @@ def _first_seq(world) -> str:
 
 
 def _args(bundle, world, out, *extra):
-    return ["view", "--bundle", str(bundle), "--data", str(world), "--subject", "s01", "--object", "box",
-            "--out", str(out), *extra]  # fmt: skip
+    return [
+        "view",
+        "--bundle",
+        str(bundle),
+        "--data",
+        str(world),
+        "--subject",
+        "s01",
+        "--object",
+        "box",
+        "--out",
+        str(out),
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
 def view_run(two_subject_bundle, tiny_world, tmp_path_factory):
     out = tmp_path_factory.mktemp("view")
     seq = _first_seq(tiny_world)
-    rc = main(_args(two_subject_bundle, tiny_world, out, "--orbit", "4", "--size", "32", "--transfer-to", "s05",
-                    "--frame", f"{seq}:40", "--pose-bank", "pose_bank:1", "--keypoints", "--background", "photo",
-                    "--contact-voxel", "0.004", "--quiet"))  # fmt: skip
+    rc = main(
+        _args(
+            two_subject_bundle,
+            tiny_world,
+            out,
+            "--orbit",
+            "4",
+            "--size",
+            "32",
+            "--transfer-to",
+            "s05",
+            "--frame",
+            f"{seq}:40",
+            "--pose-bank",
+            "pose_bank:1",
+            "--keypoints",
+            "--background",
+            "photo",
+            "--contact-voxel",
+            "0.004",
+            "--quiet",
+        )
+    )
     assert rc == 0
     return out, json.loads((out / "view.json").read_text())
 
@@ -268,8 +315,21 @@ def test_view_reports_the_transferred_grasps(view_run):
 
 
 def test_view_without_transfer_or_srm(two_subject_bundle, tiny_world, tmp_path):
-    rc = main(_args(two_subject_bundle, tiny_world, tmp_path, "--orbit", "3", "--size", "32", "--no-srm", "--video",
-                    "none", "--quiet"))  # fmt: skip
+    rc = main(
+        _args(
+            two_subject_bundle,
+            tiny_world,
+            tmp_path,
+            "--orbit",
+            "3",
+            "--size",
+            "32",
+            "--no-srm",
+            "--video",
+            "none",
+            "--quiet",
+        )
+    )
     assert rc == 0
     rec = json.loads((tmp_path / "view.json").read_text())
     assert rec["transfers"] == [] and "video" not in rec["orbits"]["s01"]
@@ -317,13 +377,29 @@ def _one_line_error(argv, message, capsys):
 
 def test_view_missing_or_broken_inputs(two_subject_bundle, tiny_world, tmp_path, capsys):
     cases = [
-        (["view", "--data", str(tiny_world), "--subject", "s01", "--object", "box", "--out", str(tmp_path)],
-         "the following arguments are required: --bundle"),
+        (
+            ["view", "--data", str(tiny_world), "--subject", "s01", "--object", "box", "--out", str(tmp_path)],
+            "the following arguments are required: --bundle",
+        ),
         (_args(tmp_path, tiny_world, tmp_path / "o"), "not a bundle folder"),
         (_args(two_subject_bundle, tmp_path / "none", tmp_path / "o"), "no such folder"),
-        (["view", "--bundle", str(two_subject_bundle), "--data", str(tiny_world), "--subject", "s05", "--object",
-          "laptop", "--out", str(tmp_path / "o")], "no HOGS model for s05/laptop"),
-    ]  # fmt: skip
+        (
+            [
+                "view",
+                "--bundle",
+                str(two_subject_bundle),
+                "--data",
+                str(tiny_world),
+                "--subject",
+                "s05",
+                "--object",
+                "laptop",
+                "--out",
+                str(tmp_path / "o"),
+            ],
+            "no HOGS model for s05/laptop",
+        ),
+    ]
     for argv, message in cases:
         _one_line_error(argv, message, capsys)
 
@@ -353,7 +429,9 @@ def test_view_keypoints_and_sample_labels_are_drawn_by_one_helper() -> None:
     assert tuple(drawn[20, 30]) == COLORS["r"] and tuple(drawn[44, 30]) == COLORS["l"]
     assert tuple(drawn[5, 5]) == COLORS["object"] and not img.any()  # a copy is drawn
     # the sample labels (normalised to the patch) land on the same pixels
-    norm = {k: torch.as_tensor(v / 32.0 - 1.0, dtype=torch.float32) for k, v in
-            (("mano.j2d.norm.r", r), ("mano.j2d.norm.l", l_), ("object.kp2d.norm", obj))}
+    norm = {
+        k: torch.as_tensor(v / 32.0 - 1.0, dtype=torch.float32)
+        for k, v in (("mano.j2d.norm.r", r), ("mano.j2d.norm.l", l_), ("object.kp2d.norm", obj))
+    }
     targets = {**norm, "is_valid": 1.0, "right_valid": 1.0, "left_valid": 0.0}
     assert np.array_equal(draw_labels(img, targets, img_res=64), draw_skeletons(img, {"r": r}, obj))

@@ -22,7 +22,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hogsa_loader.datasets.conventions import (
-    EGO_IMAGE_SIZE, allocentric_bbox, distort_points, full_to_cropped, project, transform,
+    EGO_IMAGE_SIZE,
+    allocentric_bbox,
+    distort_points,
+    full_to_cropped,
+    project,
+    transform,
 )
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import load_mano
@@ -47,23 +52,26 @@ class World:
         self.meta = json.loads((self.data / "meta" / "hogsa_world.json").read_text())
         self.misc = json.loads((self.data / "meta" / "misc.json").read_text())
         mano_dir = root / "body_models" / "mano"
-        self.layers = {s: MANOLayer(load_mano(mano_dir, side=s), flat_hand_mean=False, dtype=torch.float64)
-                       for s in ("right", "left")}
+        self.layers = {
+            s: MANOLayer(load_mano(mano_dir, side=s), flat_hand_mean=False, dtype=torch.float64)
+            for s in ("right", "left")
+        }
         self.seqs = [(s["sid"], s["seq"]) for s in self.meta["sequences"]]
         self._cache: dict = {}
 
     def template(self, name: str):
         key = ("template", name)
         if key not in self._cache:
-            self._cache[key] = load_object_template(self.data / "meta" / "object_vtemplates" / name,
-                                                    load_texture=False)
+            self._cache[key] = load_object_template(self.data / "meta" / "object_vtemplates" / name, load_texture=False)
         return self._cache[key]
 
     def raw(self, sid: str, seq: str) -> tuple[dict, np.ndarray, dict]:
         base = self.data / "raw_seqs" / sid
-        return (np.load(base / f"{seq}.mano.npy", allow_pickle=True).item(),
-                np.load(base / f"{seq}.object.npy", allow_pickle=True),
-                np.load(base / f"{seq}.egocam.dist.npy", allow_pickle=True).item())
+        return (
+            np.load(base / f"{seq}.mano.npy", allow_pickle=True).item(),
+            np.load(base / f"{seq}.object.npy", allow_pickle=True),
+            np.load(base / f"{seq}.egocam.dist.npy", allow_pickle=True).item(),
+        )
 
     def posed(self, sid: str, seq: str) -> dict:
         """World joints/verts of both hands, object mesh verts and keypoints, all frames."""
@@ -75,10 +83,12 @@ class World:
         for side, layer in self.layers.items():
             p = mano[side]
             F = p["rot"].shape[0]
-            o = layer(global_orient=torch.as_tensor(p["rot"], dtype=torch.float64),
-                      hand_pose=torch.as_tensor(p["pose"], dtype=torch.float64),
-                      betas=torch.as_tensor(np.repeat(p["shape"][None], F, 0), dtype=torch.float64),
-                      transl=torch.as_tensor(p["trans"], dtype=torch.float64))
+            o = layer(
+                global_orient=torch.as_tensor(p["rot"], dtype=torch.float64),
+                hand_pose=torch.as_tensor(p["pose"], dtype=torch.float64),
+                betas=torch.as_tensor(np.repeat(p["shape"][None], F, 0), dtype=torch.float64),
+                transl=torch.as_tensor(p["trans"], dtype=torch.float64),
+            )
             out[f"joints_{side}"] = o.joints.numpy()
             out[f"verts_{side}"] = o.vertices.numpy()
         t = self.template(seq.split("_")[0])
@@ -148,8 +158,13 @@ def test_layout_models_and_templates(world):
     meta = json.loads((d / "meta" / "object_meta.json").read_text())
     for name in {seq.split("_")[0] for _, seq in world.seqs}:
         folder = d / "meta" / "object_vtemplates" / name
-        for f in ("mesh.obj", "parts.json", "object_params.json", "top_keypoints_300.json",
-                  "bottom_keypoints_300.json"):
+        for f in (
+            "mesh.obj",
+            "parts.json",
+            "object_params.json",
+            "top_keypoints_300.json",
+            "bottom_keypoints_300.json",
+        ):
             assert (folder / f).is_file(), (name, f)
         assert 0.05 < meta[name]["diameter"] < 1.0
     assert (world.root / "world_preview.png").is_file()
@@ -164,8 +179,13 @@ def test_raw_seq_files_follow_arctic(world):
         assert set(mano) == {"right", "left"}
         for side, p in mano.items():
             assert set(p) >= {"rot", "pose", "trans", "shape", "fitting_err"}
-            for key, shape in (("rot", (F, 3)), ("pose", (F, 45)), ("trans", (F, 3)), ("shape", (10,)),
-                               ("fitting_err", (F,))):
+            for key, shape in (
+                ("rot", (F, 3)),
+                ("pose", (F, 45)),
+                ("trans", (F, 3)),
+                ("shape", (10,)),
+                ("fitting_err", (F,)),
+            ):
                 assert p[key].shape == shape and p[key].dtype == np.float32, (side, key, p[key].shape)
                 assert np.isfinite(p[key]).all()
             assert len(p["fitting_err"]) > 50 and (p["fitting_err"] == 0).all()  # exact labels
@@ -174,8 +194,16 @@ def test_raw_seq_files_follow_arctic(world):
         assert obj.shape == (F, 7) and obj.dtype.kind == "f"
         # translation in mm: the object sits on a table ~0.75 m above the floor
         assert 500 < np.abs(obj[:, 4:7]).max() < 2000
-        for key in ("R_k_cam_np", "T_k_cam_np", "intrinsics", "dist8", "ego_markers.ref", "ego_markers.label",
-                    "R0", "T0"):
+        for key in (
+            "R_k_cam_np",
+            "T_k_cam_np",
+            "intrinsics",
+            "dist8",
+            "ego_markers.ref",
+            "ego_markers.label",
+            "R0",
+            "T0",
+        ):
             assert key in ego, key
         R = ego["R_k_cam_np"].astype(np.float64)
         assert R.shape == (F, 3, 3) and ego["T_k_cam_np"].shape == (F, 3, 1)
@@ -237,8 +265,20 @@ def test_splits_json_and_processed_splits(world):
 
 def test_world_meta_record(world):
     m = world.meta
-    for key in ("schema_version", "generator", "preset", "seed", "cropped_size", "ego_image_scale",
-                "ego_image_size", "mask_dir", "mask_ids", "subjects", "sequences", "timings"):
+    for key in (
+        "schema_version",
+        "generator",
+        "preset",
+        "seed",
+        "cropped_size",
+        "ego_image_scale",
+        "ego_image_size",
+        "mask_dir",
+        "mask_ids",
+        "subjects",
+        "sequences",
+        "timings",
+    ):
         assert key in m, key
     assert m["preset"] == "tiny" and m["mask_dir"] == "masks" and m["mask_ids"] == MASK_IDS
     assert m["ego_image_size"] == list(EGO_IMAGE_SIZE)
@@ -325,12 +365,21 @@ def test_body_stand_ins_are_nan_and_recorded(world):
 
     rec = world.meta
     paths = {e["path"]: e for e in rec["stand_ins"]}
-    assert set(paths) == {"arctic_data/data/raw_seqs/<sid>/<seq>.smplx.npy", "arctic_data/data/splits/<protocol>_<split>.npy"}
+    assert set(paths) == {
+        "arctic_data/data/raw_seqs/<sid>/<seq>.smplx.npy",
+        "arctic_data/data/splits/<protocol>_<split>.npy",
+    }
     assert all(e["reason"] and e["content"] and e["keys"] for e in rec["stand_ins"])
     assert "cam_coord/joints.smplx" in paths["arctic_data/data/splits/<protocol>_<split>.npy"]["keys"]
     missing = {e["path"] for e in rec["not_provided"]}
-    assert missing == {"body_models/smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz", "arctic_data/data/meta/subject_vtemplates/<sid>.obj"}
-    assert not (world.root / "body_models" / "smplx").exists() and not (world.data / "meta" / "subject_vtemplates").exists()
+    assert missing == {
+        "body_models/smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz",
+        "arctic_data/data/meta/subject_vtemplates/<sid>.obj",
+    }
+    assert (
+        not (world.root / "body_models" / "smplx").exists()
+        and not (world.data / "meta" / "subject_vtemplates").exists()
+    )
     F = rec["num_frames"]
     for sid, seq in world.seqs:
         raw = read_npy(world.data / "raw_seqs" / sid / f"{seq}.smplx.npy")
@@ -382,8 +431,18 @@ def _joint_mask_stats(world: World) -> dict:
     vertices at the very tip, i.e. on the silhouette, so for them (and for the all-joint
     figure) a 1-pixel tolerance (3x3 neighbourhood) absorbs the pixel quantisation.
     """
-    keys = ("vis16", "in16", "vis21", "in21_strict", "in21_1px", "on_object", "frames_hand_visible",
-            "frames_hand_in_mask", "kp_visible", "kp_in_mask")
+    keys = (
+        "vis16",
+        "in16",
+        "vis21",
+        "in21_strict",
+        "in21_1px",
+        "on_object",
+        "frames_hand_visible",
+        "frames_hand_in_mask",
+        "kp_visible",
+        "kp_in_mask",
+    )
     stats = dict.fromkeys(keys, 0)
     kernel = np.ones((3, 3), np.uint8)
     for sid, seq in world.seqs:
@@ -424,9 +483,11 @@ def test_projected_joints_land_in_their_hand_masks(joint_stats):
     s = joint_stats
     f16 = s["in16"] / s["vis16"]
     f21 = s["in21_1px"] / s["vis21"]
-    print(f"\njoints in own hand mask: 16 skeleton joints {f16:.4f} (exact pixel, {s['vis16']} visible); "
-          f"all 21 joints {f21:.4f} within 1 px, {s['in21_strict'] / s['vis21']:.4f} exact pixel "
-          f"({s['vis21']} visible, {s['on_object']} on the object pixels, not counted)")
+    print(
+        f"\njoints in own hand mask: 16 skeleton joints {f16:.4f} (exact pixel, {s['vis16']} visible); "
+        f"all 21 joints {f21:.4f} within 1 px, {s['in21_strict'] / s['vis21']:.4f} exact pixel "
+        f"({s['vis21']} visible, {s['on_object']} on the object pixels, not counted)"
+    )
     assert s["vis21"] > 10000
     assert f16 >= 0.99, f16
     assert f21 >= 0.99, f21
@@ -489,9 +550,11 @@ def _part_planes(template, part: int) -> tuple[np.ndarray, np.ndarray]:
 
     keep = template.parts == part
     hull = trimesh.Trimesh(template.verts[keep].astype(np.float64), process=False).convex_hull
-    mesh = trimesh.Trimesh(template.verts[keep].astype(np.float64),
-                           np.searchsorted(np.flatnonzero(keep), template.faces[keep[template.faces].all(1)]),
-                           process=False)
+    mesh = trimesh.Trimesh(
+        template.verts[keep].astype(np.float64),
+        np.searchsorted(np.flatnonzero(keep), template.faces[keep[template.faces].all(1)]),
+        process=False,
+    )
     assert abs(hull.volume - mesh.volume) < 1e-3 * mesh.volume  # the part is convex
     n = np.asarray(hull.face_normals)
     d = np.einsum("ij,ij->i", n, hull.vertices[hull.faces[:, 0]])
@@ -549,8 +612,10 @@ def test_hands_touch_without_deep_penetration(world, contact_stats):
     for (sid, seq), (res, _) in contact_stats.items():
         for side, r in res.items():
             contact = r["dist"] <= 0.003
-            lines.append(f"{sid}/{seq} {side}: max penetration {r['depth'].max() * 1000:.2f} mm, "
-                         f"contact in {contact.mean():.2f} of frames")
+            lines.append(
+                f"{sid}/{seq} {side}: max penetration {r['depth'].max() * 1000:.2f} mm, "
+                f"contact in {contact.mean():.2f} of frames"
+            )
             assert r["depth"].max() < 0.002, (sid, seq, side, r["depth"].max())
             assert contact.mean() >= 0.3, (sid, seq, side, contact.mean())
             # first and last frames: hands at rest, away from the object
@@ -600,10 +665,11 @@ def test_motion_is_smooth(world):
             j = posed[f"joints_{side}"]
             worst["speed"] = max(worst["speed"], np.linalg.norm(np.diff(j, axis=0), axis=-1).max())
             worst["accel"] = max(worst["accel"], np.linalg.norm(np.diff(j, 2, axis=0), axis=-1).max())
-        worst["obj_speed"] = max(worst["obj_speed"],
-                                 np.linalg.norm(np.diff(posed["obj_mesh"], axis=0), axis=-1).max())
-    print(f"\nmax joint speed {worst['speed'] * 100:.1f} cm/frame, max joint accel "
-          f"{worst['accel'] * 100:.1f} cm/frame^2, max object vertex speed {worst['obj_speed'] * 100:.1f} cm/frame")
+        worst["obj_speed"] = max(worst["obj_speed"], np.linalg.norm(np.diff(posed["obj_mesh"], axis=0), axis=-1).max())
+    print(
+        f"\nmax joint speed {worst['speed'] * 100:.1f} cm/frame, max joint accel "
+        f"{worst['accel'] * 100:.1f} cm/frame^2, max object vertex speed {worst['obj_speed'] * 100:.1f} cm/frame"
+    )
     assert worst["speed"] < 0.08 and worst["accel"] < 0.06 and worst["obj_speed"] < 0.08, worst
 
 
@@ -627,15 +693,22 @@ def _hash_tree(root: Path) -> dict[str, str]:
 def _micro_preset():
     tiny = PRESETS["tiny"]
     return dataclasses.replace(
-        tiny, name="micro", num_frames=52, cropped_size=48, ego_image_scale=0.03, grasp_iters=60,
+        tiny,
+        name="micro",
+        num_frames=52,
+        cropped_size=48,
+        ego_image_scale=0.03,
+        grasp_iters=60,
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"),)),),
     )
 
 
 def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
     """Also with the sequences rendered in one process or side by side in two."""
-    preset = dataclasses.replace(_micro_preset(), subjects=(
-        SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),))
+    preset = dataclasses.replace(
+        _micro_preset(),
+        subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),),
+    )
     hashes = []
     for name, seed, workers in (("a", 7, 1), ("b", 7, 2), ("c", 8, None)):
         generate_world(tmp_path / name, preset, seed=seed, progress=False, workers=workers)
@@ -644,8 +717,11 @@ def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
     assert hashes[0] == hashes[1]
     assert set(hashes[0]) == set(hashes[2])
     differ = [k for k in hashes[0] if hashes[0][k] != hashes[2][k]]
-    for must in ("arctic_data/data/raw_seqs/s01/box_use_01.mano.npy", "arctic_data/data/meta/misc.json",
-                 "arctic_data/data/cropped_images/s01/box_use_01/3/00020.jpg"):
+    for must in (
+        "arctic_data/data/raw_seqs/s01/box_use_01.mano.npy",
+        "arctic_data/data/meta/misc.json",
+        "arctic_data/data/cropped_images/s01/box_use_01/3/00020.jpg",
+    ):
         assert must in differ, must
 
 
@@ -656,8 +732,10 @@ def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypat
     order; that a seed gives a byte-identical world is tested above.)"""
     import hogsa_loader.synthetic.world.writer as writer
 
-    preset = dataclasses.replace(_micro_preset(), subjects=(
-        SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),))
+    preset = dataclasses.replace(
+        _micro_preset(),
+        subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),),
+    )
     rendered: list[str] = []
 
     def fake_render(data, preset, job, *args, frames=None):
@@ -728,8 +806,12 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     # the noise model: requested std per component (offset + smoothed jitter), zero noise = identity
     rng = np.random.default_rng(0)
     F = 4000
-    p = {"rot": np.zeros((F, 3), np.float32), "pose": np.zeros((F, 45), np.float32),
-         "trans": np.zeros((F, 3), np.float32), "shape": np.zeros(10, np.float32)}  # fmt: skip
+    p = {
+        "rot": np.zeros((F, 3), np.float32),
+        "pose": np.zeros((F, 45), np.float32),
+        "trans": np.zeros((F, 3), np.float32),
+        "shape": np.zeros(10, np.float32),
+    }
     stds = []
     for seed in range(40):  # the per-sequence offset needs many sequences to show its variance
         q = perturb_hand(p, AnnotationNoise(trans_mm=2.0, pose_rad=0.04, smooth=5), np.random.default_rng(seed))
@@ -750,9 +832,12 @@ def test_annotation_noise_world(tiny_world, tmp_path):
 
     def verts(side, p):  # MANO forward of one hand's .mano.npy entry, (F, V, 3)
         f64 = torch.float64
-        return layers[side](global_orient=torch.as_tensor(p["rot"], dtype=f64), hand_pose=torch.as_tensor(p["pose"], dtype=f64),
-                            betas=torch.as_tensor(np.repeat(p["shape"][None], len(p["rot"]), 0), dtype=f64),
-                            transl=torch.as_tensor(p["trans"], dtype=f64)).vertices
+        return layers[side](
+            global_orient=torch.as_tensor(p["rot"], dtype=f64),
+            hand_pose=torch.as_tensor(p["pose"], dtype=f64),
+            betas=torch.as_tensor(np.repeat(p["shape"][None], len(p["rot"]), 0), dtype=f64),
+            transl=torch.as_tensor(p["trans"], dtype=f64),
+        ).vertices
 
     n_seq = 0
     for f in sorted((src_d / "raw_seqs").rglob("*.mano.npy")):
@@ -768,7 +853,9 @@ def test_annotation_noise_world(tiny_world, tmp_path):
             assert 1.0 < err.mean() * 1000 < 15.0  # millimetres, as ARCTIC's fitting error
             n_seq += 1
     # the processed splits are rebuilt from the noisy labels (the source's hold the exact ones)
-    assert not (dst_d / "splits").is_symlink() and (dst_d / "splits_json").resolve() == (src_d / "splits_json").resolve()
+    assert (
+        not (dst_d / "splits").is_symlink() and (dst_d / "splits_json").resolve() == (src_d / "splits_json").resolve()
+    )
     src_root, dst_root = ArcticRoot(tiny_world), ArcticRoot(out)
     for name in ("p1_train", "p2_val"):
         got, ref = dst_root.load_split(name), src_root.load_split(name)

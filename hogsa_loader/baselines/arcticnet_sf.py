@@ -20,12 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from hogsa_loader.baselines.resnet import (
-    BACKBONE_CHANNELS,
-    build_backbone,
-    check_state_keys,
-    read_state_dict,
-)
+from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys, read_state_dict
 from hogsa_loader.datasets.augment import normalize_kp2d
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
@@ -186,8 +181,7 @@ class HMRLayer(nn.Module):
         self.specs = dict(specs)
         in_dim = feat_dim + sum(self.specs.values())
         self.refine = nn.Sequential(
-            nn.Linear(in_dim, mid_dim), nn.ReLU(), nn.Dropout(),
-            nn.Linear(mid_dim, mid_dim), nn.ReLU(), nn.Dropout(),
+            nn.Linear(in_dim, mid_dim), nn.ReLU(), nn.Dropout(), nn.Linear(mid_dim, mid_dim), nn.ReLU(), nn.Dropout()
         )
         self.decoders = nn.ModuleDict({k: nn.Linear(mid_dim, n) for k, n in self.specs.items()})
         for dec in self.decoders.values():
@@ -244,8 +238,13 @@ class HandHMR(nn.Module):
         init = {"pose_6d": eye6.repeat(B, 16), "shape": feat.new_zeros(B, 10), "cam_t/wp": cam0}
         out = self.hmr_layer(feat, init, self.n_iter)
         pose = rotation_6d_to_matrix(out["pose_6d"].reshape(B, 16, 6))
-        return {"pose_6d": out["pose_6d"], "shape": out["shape"], "cam_t.wp": out["cam_t/wp"],
-                "pose": pose, "cam_t.wp.init": cam0}
+        return {
+            "pose_6d": out["pose_6d"],
+            "shape": out["shape"],
+            "cam_t.wp": out["cam_t/wp"],
+            "pose": pose,
+            "cam_t.wp.init": cam0,
+        }
 
 
 class ObjectHMR(nn.Module):
@@ -312,8 +311,17 @@ class ManoHead(nn.Module):
         j3d_cam = out.joints + cam_t[:, None]
         v3d_cam = out.vertices + cam_t[:, None]
         j2d = normalize_kp2d(project2d(K, j3d_cam), self.img_res)
-        return {"cam_t.wp": cam_wp, "cam_t": cam_t, "joints3d": out.joints, "vertices": out.vertices,
-                "j3d.cam": j3d_cam, "v3d.cam": v3d_cam, "j2d.norm": j2d, "beta": betas, "pose": rotmat}
+        return {
+            "cam_t.wp": cam_wp,
+            "cam_t": cam_t,
+            "joints3d": out.joints,
+            "vertices": out.vertices,
+            "j3d.cam": j3d_cam,
+            "v3d.cam": v3d_cam,
+            "j2d.norm": j2d,
+            "beta": betas,
+            "pose": rotmat,
+        }
 
 
 class ArtiHead(nn.Module):
@@ -351,11 +359,23 @@ class ArtiHead(nn.Module):
         bbox2d = normalize_kp2d(project2d(K, bbox3d_cam), self.img_res)
         nk, nb = kp2d.shape[1] // 2, bbox2d.shape[1] // 2
         return {
-            "rot": rot, "cam_t.wp": cam_wp, "cam_t": cam_t, "kp3d": out["kp3d"], "bbox3d": out["bbox3d"],
-            "bbox3d.cam": bbox3d_cam, "kp3d.cam": kp3d_cam, "kp2d.norm": kp2d,
-            "kp2d.norm.t": kp2d[:, :nk], "kp2d.norm.b": kp2d[:, nk:],
-            "bbox2d.norm.t": bbox2d[:, :nb], "bbox2d.norm.b": bbox2d[:, nb:], "radian": radian,
-            "v.cam": out["v"] + cam_t[:, None], "v_len": out["v_len"], "f": out["f"], "f_len": out["f_len"],
+            "rot": rot,
+            "cam_t.wp": cam_wp,
+            "cam_t": cam_t,
+            "kp3d": out["kp3d"],
+            "bbox3d": out["bbox3d"],
+            "bbox3d.cam": bbox3d_cam,
+            "kp3d.cam": kp3d_cam,
+            "kp2d.norm": kp2d,
+            "kp2d.norm.t": kp2d[:, :nk],
+            "kp2d.norm.b": kp2d[:, nk:],
+            "bbox2d.norm.t": bbox2d[:, :nb],
+            "bbox2d.norm.b": bbox2d[:, nb:],
+            "radian": radian,
+            "v.cam": out["v"] + cam_t[:, None],
+            "v_len": out["v_len"],
+            "f": out["f"],
+            "f_len": out["f_len"],
             "parts_ids": out["parts_ids"],
         }
 
@@ -516,7 +536,7 @@ def arctic_key_map(state_dict: Mapping[str, Tensor]) -> dict[str, Tensor]:
         if lightning:
             if not key.startswith("model."):
                 continue
-            key = key[len("model."):]
+            key = key[len("model.") :]
         if not key.startswith(ARCTIC_IGNORED_PREFIXES):
             out[key] = value
     return out

@@ -65,8 +65,9 @@ def _prepared(batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tupl
     """A batch on ``device`` with ArcticNet-SF's targets prepared (no gradients)."""
     inputs, targets, meta_info = to_device(batch, device)
     with torch.no_grad():
-        targets, meta_info = prepare_targets(dict(targets), dict(meta_info), layers.mano_r, layers.mano_l,
-                                             layers.objects, img_res=img_res, field="hands")
+        targets, meta_info = prepare_targets(
+            dict(targets), dict(meta_info), layers.mano_r, layers.mano_l, layers.objects, img_res=img_res, field="hands"
+        )
     return inputs, targets, meta_info
 
 
@@ -88,8 +89,11 @@ def mean_cameras(batches: Iterable[Any], layers: BodyLayers, img_res: int, devic
     Raises:
         ValueError: no valid frame of a hand or the object among the batches.
     """
-    keys = {"r": ("mano.cam_t.wp.r", "right_valid"), "l": ("mano.cam_t.wp.l", "left_valid"),
-            "o": ("object.cam_t.wp", "is_valid")}
+    keys = {
+        "r": ("mano.cam_t.wp.r", "right_valid"),
+        "l": ("mano.cam_t.wp.l", "left_valid"),
+        "o": ("object.cam_t.wp", "is_valid"),
+    }
     sums = {k: torch.zeros(3, dtype=torch.float64) for k in keys}
     counts = dict.fromkeys(keys, 0)
     for batch in batches:
@@ -157,8 +161,9 @@ def _group_of(imgname: str) -> tuple[tuple[str, str, int], int]:
     return (sid, seq, view), frame
 
 
-def _sequence_entry(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any],
-                    b: int) -> dict[str, Any]:
+def _sequence_entry(
+    pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any], b: int
+) -> dict[str, Any]:
     """What :func:`sequence_metrics` needs of frame ``b`` of a batch (CPU, float32), the object
     vertices trimmed to the frame's own count (batches pad them to their longest object)."""
     n = int(torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len")))[b])

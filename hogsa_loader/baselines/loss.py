@@ -97,9 +97,7 @@ def _root_relative(points: Tensor, root: int) -> Tensor:
     return points - points[:, root : root + 1]
 
 
-def contact_deviation(
-    v_obj: Tensor, v_hand: Tensor, dist: Tensor, idx: Tensor, frame_valid: Tensor
-) -> Tensor:
+def contact_deviation(v_obj: Tensor, v_hand: Tensor, dist: Tensor, idx: Tensor, frame_valid: Tensor) -> Tensor:
     """Per-frame contact deviation between predicted hand vertices and object vertices.
 
     For every hand vertex whose ground-truth distance ``dist`` to the object is at most

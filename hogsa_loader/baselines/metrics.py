@@ -98,9 +98,7 @@ def mpjpe_root_aligned(j_pred: Tensor, j_gt: Tensor, valid: Tensor) -> Tensor:
     return _nan_where(err, valid)
 
 
-def relative_root_error(
-    a_pred: Tensor, b_pred: Tensor, a_gt: Tensor, b_gt: Tensor, valid: Tensor
-) -> Tensor:
+def relative_root_error(a_pred: Tensor, b_pred: Tensor, a_gt: Tensor, b_gt: Tensor, valid: Tensor) -> Tensor:
     """MRRPE: error of the vector from root ``a`` to root ``b``.
 
     Args:
@@ -132,8 +130,13 @@ def object_roots(v: Tensor, v_len: Tensor, part_ids: Tensor) -> Tensor:
 
 
 def success_rate(
-    v_pred: Tensor, v_gt: Tensor, v_len: Tensor, part_ids: Tensor, diameter: Tensor,
-    valid: Tensor, alpha: float = SUCCESS_ALPHA,
+    v_pred: Tensor,
+    v_gt: Tensor,
+    v_len: Tensor,
+    part_ids: Tensor,
+    diameter: Tensor,
+    valid: Tensor,
+    alpha: float = SUCCESS_ALPHA,
 ) -> Tensor:
     """Percentage of object vertices within ``alpha * diameter`` after root alignment.
 
@@ -198,8 +201,11 @@ def per_frame_metrics(pred: Mapping, targets: Mapping, meta_info: Mapping) -> di
     mrrpe_ro = relative_root_error(jp["r"][:, 0], root_o_p, jg["r"][:, 0], root_o_g, rv)
     cdev = [
         contact_deviation(
-            vo_p, _t(pred[f"mano.v3d.cam.{s}"]), _t(targets[f"dist.{s}o"]),
-            torch.as_tensor(targets[f"idx.{s}o"]).cpu().long(), valid,
+            vo_p,
+            _t(pred[f"mano.v3d.cam.{s}"]),
+            _t(targets[f"dist.{s}o"]),
+            torch.as_tensor(targets[f"idx.{s}o"]).cpu().long(),
+            valid,
         )
         for s, valid in (("r", rv), ("l", lv))
     ]
@@ -228,6 +234,7 @@ def acceleration_error(x_gt: Tensor, x_pred: Tensor, fps: float = ACC_FPS) -> Te
         (N - 2,) mean over points of the norm of the acceleration difference (m/s^2), for
         frames 1 .. N-2.
     """
+
     def accel(x: Tensor) -> Tensor:
         return (x[:-2] - 2.0 * x[1:-1] + x[2:]) * fps**2
 
@@ -245,9 +252,7 @@ def _pad_nan(x: Tensor) -> Tensor:
     return torch.cat((pad, x, pad))
 
 
-def _acc_metrics(
-    pred: Mapping, targets: Mapping, v_len: int, part_ids: Tensor, fps: float
-) -> dict[str, Tensor]:
+def _acc_metrics(pred: Mapping, targets: Mapping, v_len: int, part_ids: Tensor, fps: float) -> dict[str, Tensor]:
     """ACC of the root-relative hand and object vertices of one sequence, padded to (N,)."""
     acc = {}
     for s in "rl":
@@ -278,8 +283,7 @@ def _is_sliding(j_list: np.ndarray, v_ref: Tensor, thres: float, min_len: int) -
 
 
 def contact_windows(
-    dist: Tensor, idx: Tensor, v_ref: Tensor,
-    thres: float = MDEV_CONTACT_THRESHOLD_M, min_len: int = MDEV_MIN_WINDOW,
+    dist: Tensor, idx: Tensor, v_ref: Tensor, thres: float = MDEV_CONTACT_THRESHOLD_M, min_len: int = MDEV_MIN_WINDOW
 ) -> list[tuple[int, int, int, int]]:
     """Stable-contact windows of one hand, as ARCTIC finds them for MDev.
 

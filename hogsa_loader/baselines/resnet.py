@@ -223,9 +223,11 @@ def check_state_keys(path: PathLike, own: dict[str, Tensor], state: dict[str, Te
     unexpected = sorted(set(state) - set(own))
     wrong = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))
     if missing or unexpected or wrong:
-        parts = [f"{name} ({len(keys)}): {keys[:8]}{' …' if len(keys) > 8 else ''}"
-                 for name, keys in (("missing keys", missing), ("unexpected keys", unexpected),
-                                    ("shape mismatch", wrong)) if keys]
+        parts = [
+            f"{name} ({len(keys)}): {keys[:8]}{' …' if len(keys) > 8 else ''}"
+            for name, keys in (("missing keys", missing), ("unexpected keys", unexpected), ("shape mismatch", wrong))
+            if keys
+        ]
         raise AssetError(path, f"weights do not fit {what}: " + "; ".join(parts))
 
 

@@ -13,20 +13,12 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from hogsa_loader.baselines.arcticnet_sf import (
-    mean_focal,
-    perspective_to_weak_perspective,
-)
+from hogsa_loader.baselines.arcticnet_sf import mean_focal, perspective_to_weak_perspective
 from hogsa_loader.datasets.augment import unnormalize_kp2d
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
 
-__all__ = [
-    "estimate_translation_k",
-    "nearest_distances",
-    "prepare_targets",
-    "solve_rigid_transform",
-]
+__all__ = ["estimate_translation_k", "nearest_distances", "prepare_targets", "solve_rigid_transform"]
 
 
 def solve_rigid_transform(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor]:
@@ -54,9 +46,7 @@ def solve_rigid_transform(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor]:
     return R.to(src.dtype), t.to(src.dtype)
 
 
-def estimate_translation_k(
-    points3d: Tensor, points2d: Tensor, K: Tensor, weights: Optional[Tensor] = None
-) -> Tensor:
+def estimate_translation_k(points3d: Tensor, points2d: Tensor, K: Tensor, weights: Optional[Tensor] = None) -> Tensor:
     """Translation t with ``project(K, X + t) ≈ uv``, by weighted linear least squares.
 
     Each point gives two equations linear in t (from ``u = fx (X + tx)/(Z + tz) + cx``):
@@ -169,19 +159,33 @@ def _hand_in_object_space(mano: MANOLayer, pose: Tensor, beta: Tensor, j3d: Tens
     return verts + shift, j3d, joints[:, 0]
 
 
-def _object_canonical(t: Mapping[str, Any], meta: Mapping[str, Any], object_layer: ArticulatedObjectLayer,
-                      dev: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
+def _object_canonical(
+    t: Mapping[str, Any],
+    meta: Mapping[str, Any],
+    object_layer: ArticulatedObjectLayer,
+    dev: torch.device,
+    dtype: torch.dtype,
+) -> dict[str, Tensor]:
     """The object posed with its GT rotation and angle, no translation ("object canonical space")."""
     names = [meta["query_names"]] if isinstance(meta["query_names"], str) else list(meta["query_names"])
     return object_layer(
         angles=torch.as_tensor(t["object.radian"]).to(dev, dtype).reshape(-1, 1),
         global_orient=torch.as_tensor(t["object.rot"]).to(dev, dtype).reshape(-1, 3),
-        transl=None, names=names,
+        transl=None,
+        names=names,
     )
 
 
-def _hand_cam_targets(t: Mapping[str, Any], s: str, mano: MANOLayer, R0: Tensor, T0: Tensor, transl: Tensor,
-                      dev: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
+def _hand_cam_targets(
+    t: Mapping[str, Any],
+    s: str,
+    mano: MANOLayer,
+    R0: Tensor,
+    T0: Tensor,
+    transl: Tensor,
+    dev: torch.device,
+    dtype: torch.dtype,
+) -> dict[str, Tensor]:
     """Patch-camera vertices (B, V, 3), joints (B, J, 3) and root translation (B, 3) of hand ``s``.
 
     ``R0``, ``T0`` take full-camera points into object canonical space; ``transl`` (B, 3)
@@ -192,12 +196,16 @@ def _hand_cam_targets(t: Mapping[str, Any], s: str, mano: MANOLayer, R0: Tensor,
     pose, beta = (torch.as_tensor(t[f"mano.{k}.{s}"]).to(dev, dtype) for k in ("pose", "beta"))
     verts, joints, root_cano = _hand_in_object_space(mano, pose, beta, j0)
     j3d = joints + transl[:, None]
-    return {f"mano.v3d.cam.{s}": verts + transl[:, None], f"mano.j3d.cam.{s}": j3d,
-            f"mano.cam_t.{s}": j3d[:, 0] - root_cano}
+    return {
+        f"mano.v3d.cam.{s}": verts + transl[:, None],
+        f"mano.j3d.cam.{s}": j3d,
+        f"mano.cam_t.{s}": j3d[:, 0] - root_cano,
+    }
 
 
-def _object_cam_targets(t: Mapping[str, Any], obj: Mapping[str, Tensor], transl: Tensor, focal: Tensor,
-                        img_res: int, dtype: torch.dtype) -> dict[str, Any]:
+def _object_cam_targets(
+    t: Mapping[str, Any], obj: Mapping[str, Tensor], transl: Tensor, focal: Tensor, img_res: int, dtype: torch.dtype
+) -> dict[str, Any]:
     """Translations (perspective and weak-perspective) and the patch-camera object points."""
     out: dict[str, Any] = {"object.cam_t": transl}
     for s in ("r", "l"):
@@ -270,7 +278,7 @@ def prepare_targets(
         K = torch.as_tensor(meta["intrinsics"]).to(dev, dtype)
         obj = _object_canonical(t, meta, object_layer, dev, dtype)
         meta["part_ids"], meta["diameter"] = obj["parts_ids"], obj["diameter"]
-        kp_b_cano = obj["kp3d"][:, obj["kp3d"].shape[1] // 2:].to(dtype)
+        kp_b_cano = obj["kp3d"][:, obj["kp3d"].shape[1] // 2 :].to(dtype)
         R0, T0 = solve_rigid_transform(kp3d_b, kp_b_cano)
         kp2d_b = unnormalize_kp2d(torch.as_tensor(t["object.kp2d.norm.b"]).to(dev, dtype), img_res)
         transl = estimate_translation_k(kp_b_cano, kp2d_b, K)

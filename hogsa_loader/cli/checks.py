@@ -246,8 +246,10 @@ def data_root_pairs(data: PathLike, pairs: Iterable[tuple[str, str]], flag: str 
     except HogsaError as exc:
         raise UsageError(f"{flag} {data}: {exc}") from None
     if missing:
-        raise UsageError(f"{flag} {data}: the data root has no sequence of {', '.join(missing)} "
-                         f"(subjects: {', '.join(sorted(subjects))})")  # fmt: skip
+        raise UsageError(
+            f"{flag} {data}: the data root has no sequence of {', '.join(missing)} "
+            f"(subjects: {', '.join(sorted(subjects))})"
+        )
 
 
 # --------------------------------------------------------------------------------------

@@ -22,7 +22,6 @@ import dataclasses
 import typing
 from typing import Any, Optional, TypeVar
 
-
 from hogsa_loader.cli import checks
 
 __all__ = ["add_dataclass_arguments", "dataclass_from_args", "flag_name"]
@@ -48,8 +47,9 @@ def _leaf_type(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
-def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, default: Any,
-              flag_path: tuple[str, ...]) -> None:
+def _add_leaf(
+    group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, default: Any, flag_path: tuple[str, ...]
+) -> None:
     kind, optional = _leaf_type(f.metadata.get("cli_type", tp))
     helptext = f.metadata.get("help", "")
     choices = f.metadata.get("choices")
@@ -59,27 +59,56 @@ def _add_leaf(group: Any, path: tuple[str, ...], f: dataclasses.Field, tp: Any, 
     if typing.get_origin(kind) is typing.Literal:
         choices, kind = typing.get_args(kind), type(typing.get_args(kind)[0])
     if kind is bool:
-        group.add_argument(flag, dest=_dest(path), action=argparse.BooleanOptionalAction,
-                           default=default, help=f"{helptext} (default: {default})")
+        group.add_argument(
+            flag,
+            dest=_dest(path),
+            action=argparse.BooleanOptionalAction,
+            default=default,
+            help=f"{helptext} (default: {default})",
+        )
         return
     if typing.get_origin(kind) is tuple:
         item = typing.get_args(kind)[0]
-        group.add_argument(flag, dest=_dest(path), type=convert or item, nargs="+", default=default,
-                           metavar=path[-1].upper(),
-                           help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})")
+        group.add_argument(
+            flag,
+            dest=_dest(path),
+            type=convert or item,
+            nargs="+",
+            default=default,
+            metavar=path[-1].upper(),
+            help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})",
+        )
         return
     conv = convert or (kind if kind in (int, float, str) else str)
     if f.metadata.get("required"):  # no default: argparse reports the flag missing
-        group.add_argument(flag, dest=_dest(path), type=conv, required=True, choices=choices,
-                           metavar=None if choices else path[-1].upper(), help=f"{helptext} (required)")
+        group.add_argument(
+            flag,
+            dest=_dest(path),
+            type=conv,
+            required=True,
+            choices=choices,
+            metavar=None if choices else path[-1].upper(),
+            help=f"{helptext} (required)",
+        )
         return
-    group.add_argument(flag, dest=_dest(path), type=conv, default=default, choices=choices,
-                       metavar=None if choices else path[-1].upper(),
-                       help=f"{helptext} (default: {default}{', optional' if optional else ''})")
+    group.add_argument(
+        flag,
+        dest=_dest(path),
+        type=conv,
+        default=default,
+        choices=choices,
+        metavar=None if choices else path[-1].upper(),
+        help=f"{helptext} (default: {default}{', optional' if optional else ''})",
+    )
 
 
-def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, default: Optional[Any] = None,
-                            prefix: tuple[str, ...] = (), flag_prefix: Optional[tuple[str, ...]] = None) -> None:
+def add_dataclass_arguments(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    default: Optional[Any] = None,
+    prefix: tuple[str, ...] = (),
+    flag_prefix: Optional[tuple[str, ...]] = None,
+) -> None:
     """Add one flag per leaf field of the dataclass ``cls`` (groups recurse).
 
     Args:

@@ -86,7 +86,9 @@ def _cmd_assets(args: argparse.Namespace) -> int:
             templates = [templates[n] for n in names] if isinstance(templates, dict) else templates
             save_sheet(os.path.join(meta_dir, "object_vtemplates", "preview.png"), object_preview(templates))
             bar.update()
-    print(f"hands:   {mano_dir}/MANO_RIGHT.pkl, MANO_LEFT.pkl ({right.num_verts} vertices, {right.faces.shape[0]} faces)")
+    print(
+        f"hands:   {mano_dir}/MANO_RIGHT.pkl, MANO_LEFT.pkl ({right.num_verts} vertices, {right.faces.shape[0]} faces)"
+    )
     print(f"objects: {meta_dir}/object_vtemplates/{{{','.join(names)}}}")
     if not args.no_preview:
         print(f"previews: {mano_dir}/preview.png, {meta_dir}/object_vtemplates/preview.png")
@@ -109,12 +111,15 @@ def _cmd_world(args: argparse.Namespace) -> int:
         raise checks.UsageError(f"--preset: {exc.args[0]}") from None
     checks.output_dir(args.out)
     say = (lambda s: None) if args.quiet else print
-    record = generate_world(args.out, preset, seed=args.seed, progress=not args.quiet,
-                            process_splits=not args.no_splits, log=say)
+    record = generate_world(
+        args.out, preset, seed=args.seed, progress=not args.quiet, process_splits=not args.no_splits, log=say
+    )
     out = os.path.abspath(args.out)
     n_seq = len(record["sequences"])
-    say(f"world:   {out}/arctic_data/data ({len(record['subjects'])} subjects, {n_seq} sequences, "
-        f"{record['num_frames']} frames, 9 views)")
+    say(
+        f"world:   {out}/arctic_data/data ({len(record['subjects'])} subjects, {n_seq} sequences, "
+        f"{record['num_frames']} frames, 9 views)"
+    )
     say(f"preview: {out}/world_preview.png")
     say("timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in record["timings"].items()))
     return 0
@@ -124,16 +129,20 @@ def _cmd_world_noise(args: argparse.Namespace) -> int:
     checks.input_dir(args.src, "--src")
     checks.output_dir(args.out)
     try:
-        noise = AnnotationNoise(trans_mm=args.trans_mm, rot_deg=args.rot_deg, pose_rad=args.pose_rad,
-                                smooth=args.smooth, seed=args.seed)  # fmt: skip
-        summary = add_annotation_noise(args.src, args.out, noise, process_splits=not args.no_splits,
-                                       progress=not args.quiet)  # fmt: skip
+        noise = AnnotationNoise(
+            trans_mm=args.trans_mm, rot_deg=args.rot_deg, pose_rad=args.pose_rad, smooth=args.smooth, seed=args.seed
+        )
+        summary = add_annotation_noise(
+            args.src, args.out, noise, process_splits=not args.no_splits, progress=not args.quiet
+        )
     except (AssetError, ValueError) as exc:
         print(f"hogsa: error: {exc}", file=sys.stderr)
         return 2
     if not args.quiet:
-        print(f"world:   {os.path.abspath(args.out)}/arctic_data/data (hand annotations perturbed; "
-              f"mean vertex error {summary['overall_mean_vertex_error_mm']:.2f} mm)")
+        print(
+            f"world:   {os.path.abspath(args.out)}/arctic_data/data (hand annotations perturbed; "
+            f"mean vertex error {summary['overall_mean_vertex_error_mm']:.2f} mm)"
+        )
         print(f"splits:  {summary['splits']}")
         print(f"summary: {os.path.abspath(args.out)}/annotation_noise.json")
     return 0
@@ -181,24 +190,41 @@ def _cmd_export(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     ds = HOGSADataset(args.bundle, args.data, config)
     # the config as recorded (options left at their defaults that the first exports lacked are left out)
-    info = {"bundle": os.path.abspath(args.bundle), "data": os.path.abspath(args.data), **export_info(config),
-            "render_size": ds.render_size, "world_size": world}
+    info = {
+        "bundle": os.path.abspath(args.bundle),
+        "data": os.path.abspath(args.data),
+        **export_info(config),
+        "render_size": ds.render_size,
+        "world_size": world,
+    }
     say = (lambda m: None) if args.quiet else print
-    say(f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
-        f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {config.run.device})")
+    say(
+        f"hogsa export: rank {rank}/{world}, {args.num} samples in {num_shards(args.num, args.shard_size)} shards "
+        f"of {args.shard_size} -> {os.path.abspath(args.out)} (device {config.run.device})"
+    )
     try:
         res = write_shards(
-            dataset_frames_for_shard(ds, args.num, args.shard_size), args.out, args.num, args.shard_size,
-            rank=rank, world_size=world, progress=not args.quiet, image_format=args.image_format,
-            alpha_bits=args.alpha_bits, info=info, overwrite=args.overwrite,
-        )  # fmt: skip
+            dataset_frames_for_shard(ds, args.num, args.shard_size),
+            args.out,
+            args.num,
+            args.shard_size,
+            rank=rank,
+            world_size=world,
+            progress=not args.quiet,
+            image_format=args.image_format,
+            alpha_bits=args.alpha_bits,
+            info=info,
+            overwrite=args.overwrite,
+        )
     except ExportMismatchError as exc:
         print(f"hogsa: error: {exc}", file=sys.stderr)
         return 2
     st = ds.stats.as_dict()
-    say(f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
+    say(
+        f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
         f"{st['num_dropped']} dropped), skipped {len(res['skipped'])} complete shards, "
-        f"{res['seconds']:.1f} s; index: {res['index']} ({'complete' if res['complete'] else 'incomplete'})")
+        f"{res['seconds']:.1f} s; index: {res['index']} ({'complete' if res['complete'] else 'incomplete'})"
+    )
     return 0
 
 
@@ -211,8 +237,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         checks.input_file(args.coco_ann, "--coco-ann")
     if args.data is not None:
         checks.data_root_pairs(args.data, DemoConfig().pairs)
-    cfg = DemoConfig(seed=args.seed, data=args.data, samples=args.samples, num_workers=args.workers, backgrounds=args.backgrounds,
-                     coco_root=args.coco_root, coco_ann=args.coco_ann, progress=not args.quiet)
+    cfg = DemoConfig(
+        seed=args.seed,
+        data=args.data,
+        samples=args.samples,
+        num_workers=args.workers,
+        backgrounds=args.backgrounds,
+        coco_root=args.coco_root,
+        coco_ann=args.coco_ann,
+        progress=not args.quiet,
+    )
     if args.threads:
         torch.set_num_threads(args.threads)
     run_demo(args.out, cfg, log=None if args.quiet else print)
@@ -236,8 +270,10 @@ def _cmd_plates(args: argparse.Namespace) -> int:
     checks.output_dir(cfg.out)
     manifest = build_plates(cfg, log=None if cfg.quiet else print)
     if not cfg.quiet:
-        print(f"{len(manifest['plates'])} plates in {cfg.out} ({len(manifest['skipped'])} skipped); "
-              "use them with --background-folder")
+        print(
+            f"{len(manifest['plates'])} plates in {cfg.out} ({len(manifest['skipped'])} skipped); "
+            "use them with --background-folder"
+        )
     return 0
 
 
@@ -247,15 +283,25 @@ def _cmd_h2o_export(args: argparse.Namespace) -> int:
         if w <= 0 or h <= 0:
             raise ValueError
     except ValueError:
-        print(f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
-              file=sys.stderr)
+        print(
+            f"hogsa: error: --image-size must be WIDTHxHEIGHT with positive integers, got {args.image_size!r}",
+            file=sys.stderr,
+        )
         return 2
     checks.input_dir(args.world, "--world")
     checks.output_dir(args.out)
     try:
-        rec = export_h2o_world(args.world, args.out, subject=args.subject, sequence=args.sequence,
-                               object_class=args.object_class, mesh_name=args.mesh_name, image_size=(w, h),
-                               frame_stride=args.frame_stride, overwrite=args.overwrite)  # fmt: skip
+        rec = export_h2o_world(
+            args.world,
+            args.out,
+            subject=args.subject,
+            sequence=args.sequence,
+            object_class=args.object_class,
+            mesh_name=args.mesh_name,
+            image_size=(w, h),
+            frame_stride=args.frame_stride,
+            overwrite=args.overwrite,
+        )
     except ValueError as exc:  # unknown class / mesh name, a sequence that is not rigid
         if isinstance(exc, HogsaError):  # problems with files: main() reports them (exit 1)
             raise
@@ -291,8 +337,11 @@ def _world_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa world`` sub-command."""
     w = sub.add_parser("world", help="generate a synthetic ARCTIC-format world with rendered images")
     w.add_argument("--out", required=True, help="output folder (plays the role of ARCTIC's ./data)")
-    w.add_argument("--preset", default="tiny",
-                   help="tiny (< 1 min, tests), demo (what hogsa demo uses) or small (ARCTIC image sizes)")
+    w.add_argument(
+        "--preset",
+        default="tiny",
+        help="tiny (< 1 min, tests), demo (what hogsa demo uses) or small (ARCTIC image sizes)",
+    )
     w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")
     w.add_argument("--quiet", action="store_true", help="no progress bar or messages")
@@ -301,21 +350,28 @@ def _world_parser(sub: argparse._SubParsersAction) -> None:
 
 def _world_noise_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa world-noise`` sub-command."""
-    n = sub.add_parser("world-noise", help="copy a world with ARCTIC-like fitting error in its hand annotations",
-                       description="Write a copy of a world (images, cameras and object poses linked) whose hands' "
-                       ".mano.npy carry noise (per-sequence offset + smoothed per-frame jitter); fitting_err holds "
-                       "the realised mean vertex error. Masks are not copied; the processed splits are rebuilt from the "
-                       "noisy labels.")
+    n = sub.add_parser(
+        "world-noise",
+        help="copy a world with ARCTIC-like fitting error in its hand annotations",
+        description="Write a copy of a world (images, cameras and object poses linked) whose hands' "
+        ".mano.npy carry noise (per-sequence offset + smoothed per-frame jitter); fitting_err holds "
+        "the realised mean vertex error. Masks are not copied; the processed splits are rebuilt from the "
+        "noisy labels.",
+    )
     n.add_argument("--src", required=True, help="the world / ARCTIC ./data root")
     n.add_argument("--out", required=True, help="output root (must not exist)")
-    n.add_argument("--trans-mm", type=checks.non_negative_float, default=2.0,
-                   help="wrist translation std per axis (mm)")
-    n.add_argument("--rot-deg", type=checks.non_negative_float, default=1.5,
-                   help="global orientation std per axis (degrees)")
-    n.add_argument("--pose-rad", type=checks.non_negative_float, default=0.04,
-                   help="finger pose std per component (rad)")
-    n.add_argument("--smooth", type=checks.positive_int, default=5,
-                   help="frames of the moving average of the per-frame part")
+    n.add_argument(
+        "--trans-mm", type=checks.non_negative_float, default=2.0, help="wrist translation std per axis (mm)"
+    )
+    n.add_argument(
+        "--rot-deg", type=checks.non_negative_float, default=1.5, help="global orientation std per axis (degrees)"
+    )
+    n.add_argument(
+        "--pose-rad", type=checks.non_negative_float, default=0.04, help="finger pose std per component (rad)"
+    )
+    n.add_argument(
+        "--smooth", type=checks.positive_int, default=5, help="frames of the moving average of the per-frame part"
+    )
     n.add_argument("--seed", type=checks.non_negative_int, default=0)
     n.add_argument("--no-splits", action="store_true", help="do not rebuild splits/ from the noisy labels")
     n.add_argument("--quiet", action="store_true")
@@ -324,19 +380,29 @@ def _world_noise_parser(sub: argparse._SubParsersAction) -> None:
 
 def _export_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa export`` sub-command."""
-    e = sub.add_parser("export", help="write synthetic frames as WebDataset tar shards (offline mode)",
-                       description="Render synthetic frames with a bundle and write them as resumable WebDataset "
-                       "tar shards (shard i = samples [i*S, (i+1)*S); complete shards are skipped when re-run). "
-                       "Under torchrun each process writes shards i with i % WORLD_SIZE == RANK.")
+    e = sub.add_parser(
+        "export",
+        help="write synthetic frames as WebDataset tar shards (offline mode)",
+        description="Render synthetic frames with a bundle and write them as resumable WebDataset "
+        "tar shards (shard i = samples [i*S, (i+1)*S); complete shards are skipped when re-run). "
+        "Under torchrun each process writes shards i with i % WORLD_SIZE == RANK.",
+    )
     e.add_argument("--bundle", required=True, help="bundle folder (pretrain/build_bundle.py)")
     e.add_argument("--data", required=True, help="ARCTIC(-format) data root the bundle was built on")
     e.add_argument("--out", required=True, help="output folder of the shards")
-    e.add_argument("--num", type=checks.positive_int, required=True, help="number of sample indices (dropped ones leave gaps)")
-    e.add_argument("--shard-size", type=checks.positive_int, default=1000, help="samples per shard (a multiple of --batch-size)")
+    e.add_argument(
+        "--num", type=checks.positive_int, required=True, help="number of sample indices (dropped ones leave gaps)"
+    )
+    e.add_argument(
+        "--shard-size", type=checks.positive_int, default=1000, help="samples per shard (a multiple of --batch-size)"
+    )
     e.add_argument("--image-format", choices=("jpg", "png"), default="jpg", help="jpg (quality 95) or png")
     e.add_argument("--alpha-bits", type=int, choices=(8, 16), default=8)
-    e.add_argument("--overwrite", action="store_true",
-                   help="rewrite shards in --out that another export (other settings, --num or --shard-size) wrote")
+    e.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="rewrite shards in --out that another export (other settings, --num or --shard-size) wrote",
+    )
     e.add_argument("--rank", type=checks.non_negative_int, default=None, help="default: $RANK or 0")
     e.add_argument("--world-size", type=checks.positive_int, default=None, help="default: $WORLD_SIZE or 1")
     e.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads (0 = default)")
@@ -347,18 +413,26 @@ def _export_parser(sub: argparse._SubParsersAction) -> None:
 
 def _demo_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa demo`` sub-command."""
-    d = sub.add_parser("demo", help="the main job: world, brief HOGS/ContactNet/POM/SRM training, bundle, stream",
-                       description="Build (or reuse, cached per stage) the demo world and a small bundle, stream "
-                       "synthetic samples through a DataLoader, write samples.png (synthetic next to real, 2D labels "
-                       "drawn), batch.npz and demo.json, and print the throughput.")
+    d = sub.add_parser(
+        "demo",
+        help="the main job: world, brief HOGS/ContactNet/POM/SRM training, bundle, stream",
+        description="Build (or reuse, cached per stage) the demo world and a small bundle, stream "
+        "synthetic samples through a DataLoader, write samples.png (synthetic next to real, 2D labels "
+        "drawn), batch.npz and demo.json, and print the throughput.",
+    )
     d.add_argument("--out", default="./hogsa_demo", help="demo folder (reused as a cache on later runs)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--data", default=None, help="use this ARCTIC(-format) data root instead of building the demo world")
     d.add_argument("--samples", type=checks.positive_int, default=64, help="synthetic samples to stream")
     d.add_argument("--workers", type=checks.non_negative_int, default=2, help="DataLoader workers rendering on the CPU")
-    d.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads of the main process (0 = default)")
-    d.add_argument("--backgrounds", default=None, help="image folder for backgrounds (default: photographs "
-                   "shipped with scikit-image)")
+    d.add_argument(
+        "--threads", type=checks.non_negative_int, default=0, help="torch CPU threads of the main process (0 = default)"
+    )
+    d.add_argument(
+        "--backgrounds",
+        default=None,
+        help="image folder for backgrounds (default: photographs shipped with scikit-image)",
+    )
     d.add_argument("--coco-root", default=None, help="COCO folder for backgrounds")
     d.add_argument("--coco-ann", default=None, help="COCO instances json (default under --coco-root)")
     d.add_argument("--quiet", action="store_true", help="no progress bars or messages")
@@ -367,9 +441,12 @@ def _demo_parser(sub: argparse._SubParsersAction) -> None:
 
 def _h2o_export_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa h2o-export`` sub-command."""
-    h = sub.add_parser("h2o-export", help="write one grab sequence of a generated world in the H2O layout",
-                       description="Convert a world sequence into an H2O tree (cam0-3 static, cam4 egocentric, MANO and "
-                       "obj_pose_rt labels, rgb frames, the object mesh under its H2O name) to try H2O code paths.")
+    h = sub.add_parser(
+        "h2o-export",
+        help="write one grab sequence of a generated world in the H2O layout",
+        description="Convert a world sequence into an H2O tree (cam0-3 static, cam4 egocentric, MANO and "
+        "obj_pose_rt labels, rgb frames, the object mesh under its H2O name) to try H2O code paths.",
+    )
     h.add_argument("--world", required=True, help="the world's data root (ARCTIC ./data)")
     h.add_argument("--out", required=True, help="H2O root to write")
     h.add_argument("--subject", default="s05")
@@ -385,21 +462,27 @@ def _h2o_export_parser(sub: argparse._SubParsersAction) -> None:
 
 def _view_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa view`` sub-command."""
-    v = sub.add_parser("view", help="360° orbits and pose transfer between subjects, as pictures",
-                       description="Render one grasp of a bundle's HOGS model on a full 360° orbit around the "
-                       "interaction centre, with and without the SRM (orbit_<sid>.png, orbit_<sid>.gif), and the same "
-                       "poses on other subjects' hand models (their own betas, wrists re-solved to keep the contacts; "
-                       "transfer.png: rows pose sources, columns subjects; contact / penetration figures in view.json).")
+    v = sub.add_parser(
+        "view",
+        help="360° orbits and pose transfer between subjects, as pictures",
+        description="Render one grasp of a bundle's HOGS model on a full 360° orbit around the "
+        "interaction centre, with and without the SRM (orbit_<sid>.png, orbit_<sid>.gif), and the same "
+        "poses on other subjects' hand models (their own betas, wrists re-solved to keep the contacts; "
+        "transfer.png: rows pose sources, columns subjects; contact / penetration figures in view.json).",
+    )
     add_dataclass_arguments(v, ViewConfig)
     v.set_defaults(func=_cmd_view)
 
 
 def _plates_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa plates`` sub-command."""
-    pl = sub.add_parser("plates", help="clean background plates of the dataset's static cameras, from its own frames",
-                        description="Map the cropped frames of each allocentric view back into the full camera "
-                        "image, mask out the annotated hands and object, and keep the per-pixel median of the "
-                        "background: one PNG per (subject, view) and plates.json, for --background-folder.")
+    pl = sub.add_parser(
+        "plates",
+        help="clean background plates of the dataset's static cameras, from its own frames",
+        description="Map the cropped frames of each allocentric view back into the full camera "
+        "image, mask out the annotated hands and object, and keep the per-pixel median of the "
+        "background: one PNG per (subject, view) and plates.json, for --background-folder.",
+    )
     add_dataclass_arguments(pl, PlateConfig)
     pl.set_defaults(func=_cmd_plates)
 
@@ -409,8 +492,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
     sub = p.add_subparsers(dest="command")
-    for add in (_assets_parser, _convert_parser, _world_parser, _world_noise_parser, _export_parser, _demo_parser,
-                _h2o_export_parser, _view_parser, _plates_parser, add_train_commands):
+    for add in (
+        _assets_parser,
+        _convert_parser,
+        _world_parser,
+        _world_noise_parser,
+        _export_parser,
+        _demo_parser,
+        _h2o_export_parser,
+        _view_parser,
+        _plates_parser,
+        add_train_commands,
+    ):
         add(sub)
     checks.one_line_errors(p)
     return p

@@ -25,14 +25,24 @@ from hogsa_loader.errors import AssetError, HogsaError, UsageError
 from hogsa_loader.objects.h2o_meshes import find_h2o_mesh
 from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
 from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
-from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.run_folder import check_run_folder, latest_checkpoint, read_trainer_state
+from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
 __all__ = [
-    "JOBS", "build_pose_bank_main", "hogs_parser", "parse_bank_args", "parse_contactnet_args",
-    "parse_hogs_args", "parse_srm_args", "run_hogs", "run_srm", "srm_parser",
-    "train_contactnet_main", "train_hogs_main", "train_srm_main",
+    "JOBS",
+    "build_pose_bank_main",
+    "hogs_parser",
+    "parse_bank_args",
+    "parse_contactnet_args",
+    "parse_hogs_args",
+    "parse_srm_args",
+    "run_hogs",
+    "run_srm",
+    "srm_parser",
+    "train_contactnet_main",
+    "train_hogs_main",
+    "train_srm_main",
 ]
 
 _RUN_FLAGS = (
@@ -176,13 +186,18 @@ def _print_srm_summary(m: dict) -> None:
     """The selected checkpoint (stderr), the held-out scores and one line per run and view (stdout)."""
     if m["selection"]:
         b = m["selection"]["best"]
-        print(f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "
-              f"{b['psnr_without_srm']:.2f} -> {b['psnr']:.2f} dB on {b['n']} pairs)", file=sys.stderr)
+        print(
+            f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "
+            f"{b['psnr_without_srm']:.2f} -> {b['psnr']:.2f} dB on {b['n']} pairs)",
+            file=sys.stderr,
+        )
     print(json.dumps({k: m[k] for k in ("without_srm", "with_srm", "delta_psnr", "delta_ssim")}, indent=1))
     for row in m["per_view"]:
         before, after = row["without_srm"], row["with_srm"]
-        print(f"{row['run']:>24s} view {row['view']}: n={row['n']} "
-              f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB, SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}")
+        print(
+            f"{row['run']:>24s} view {row['view']}: n={row['n']} "
+            f"PSNR {before['psnr']:.2f} -> {after['psnr']:.2f} dB, SSIM {before['ssim']:.4f} -> {after['ssim']:.4f}"
+        )
 
 
 def run_srm(cfg: SRMTrainConfig, *, resume: bool = False, overwrite: bool = False, quiet: bool = False) -> int:
@@ -300,5 +315,8 @@ def build_pose_bank_main(argv: Optional[Sequence[str]] = None) -> int:
 
 #: entry point of each ``hogsa train`` job
 JOBS: dict[str, Callable[[Optional[Sequence[str]]], int]] = {
-    "hogs": train_hogs_main, "srm": train_srm_main, "contactnet": train_contactnet_main, "bank": build_pose_bank_main,
+    "hogs": train_hogs_main,
+    "srm": train_srm_main,
+    "contactnet": train_contactnet_main,
+    "bank": build_pose_bank_main,
 }

@@ -24,8 +24,11 @@ TRAIN_JOBS = {
 def add_train_commands(subparsers: Any) -> None:
     """Add ``hogsa train JOB FLAGS`` to ``subparsers`` (the ``add_subparsers`` action of the
     ``hogsa`` parser); its handler is ``args.func(args)``."""
-    t = subparsers.add_parser("train", help="train a HOGS model, the SRM or ContactNet, or build a pose bank",
-                              description="Training jobs; each takes the flags of its pretrain/ script.")
+    t = subparsers.add_parser(
+        "train",
+        help="train a HOGS model, the SRM or ContactNet, or build a pose bank",
+        description="Training jobs; each takes the flags of its pretrain/ script.",
+    )
     t.add_argument("job", choices=sorted(TRAIN_JOBS), help="; ".join(f"{k}: {v}" for k, v in TRAIN_JOBS.items()))
     t.add_argument("job_args", nargs=argparse.REMAINDER, help="the job's flags (JOB --help lists them)")
     t.set_defaults(func=run_train_command)

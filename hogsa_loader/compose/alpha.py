@@ -20,17 +20,13 @@ def _alpha4(alpha: torch.Tensor, rgb: torch.Tensor) -> torch.Tensor:
     if alpha.dim() == rgb.dim() - 1:
         alpha = alpha.unsqueeze(-1)
     if alpha.dim() != rgb.dim() or alpha.shape[-1] != 1 or alpha.shape[:-1] != rgb.shape[:-1]:
-        raise ValueError(f"alpha must be (B, H, W) or (B, H, W, 1) for rgb {tuple(rgb.shape)}, "
-                         f"got {tuple(alpha.shape)}")
+        raise ValueError(
+            f"alpha must be (B, H, W) or (B, H, W, 1) for rgb {tuple(rgb.shape)}, got {tuple(alpha.shape)}"
+        )
     return alpha
 
 
-def composite(
-    rgb: torch.Tensor,
-    alpha: torch.Tensor,
-    background: torch.Tensor,
-    clamp: bool = False,
-) -> torch.Tensor:
+def composite(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor, clamp: bool = False) -> torch.Tensor:
     """Premultiplied "over": ``rgb + (1 − alpha) · background``.
 
     Gaussian splatting renders colour already multiplied by opacity on a black background

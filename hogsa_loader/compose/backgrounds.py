@@ -25,7 +25,7 @@ from typing import Optional, Sequence, Union
 
 from hogsa_loader.compose.coco import COCO_PERSON, CocoBackgrounds, default_cache_dir
 from hogsa_loader.compose.procedural import ProceduralBackgrounds
-from hogsa_loader.compose.sources import BackgroundSource, CropSpec, FolderBackgrounds, IMAGE_EXTENSIONS, ImageCache
+from hogsa_loader.compose.sources import IMAGE_EXTENSIONS, BackgroundSource, CropSpec, FolderBackgrounds, ImageCache
 from hogsa_loader.errors import PathLike
 
 __all__ = [
@@ -71,17 +71,26 @@ def make_backgrounds(
     if (coco_root is not None or coco_ann is not None) and folder is not None:
         raise ValueError("give either a COCO source (coco_root/coco_ann) or a folder, not both")
     if coco_root is not None or coco_ann is not None:
-        return CocoBackgrounds(coco_root, coco_ann, image_dir=image_dir, categories=categories,
-                               exclude_person=exclude_person, crop=crop, cache_bytes=cache_bytes,
-                               index_cache=index_cache)
+        return CocoBackgrounds(
+            coco_root,
+            coco_ann,
+            image_dir=image_dir,
+            categories=categories,
+            exclude_person=exclude_person,
+            crop=crop,
+            cache_bytes=cache_bytes,
+            index_cache=index_cache,
+        )
     if categories is not None or exclude_person or image_dir is not None:
         raise ValueError("categories, exclude_person and image_dir apply to COCO images; give coco_root/coco_ann")
     if folder is not None:
         return FolderBackgrounds(folder, crop=crop, cache_bytes=cache_bytes)
     if not _FALLBACK_WARNED:
         _FALLBACK_WARNED = True
-        warnings.warn("no background images given (coco_root / coco_ann / folder): using procedural "
-                      "backgrounds (gradients, noise, patterns); pass COCO for photoreal training data",
-                      UserWarning, stacklevel=2)
+        warnings.warn(
+            "no background images given (coco_root / coco_ann / folder): using procedural "
+            "backgrounds (gradients, noise, patterns); pass COCO for photoreal training data",
+            UserWarning,
+            stacklevel=2,
+        )
     return ProceduralBackgrounds()
-

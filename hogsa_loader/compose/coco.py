@@ -90,8 +90,13 @@ def _coco_selection(
     later runs skip parsing the annotation file."""
     names = _category_names(categories)
     st = ann.stat()
-    key = (str(ann.resolve()), st.st_size, st.st_mtime_ns, None if names is None else tuple(names),
-           bool(exclude_person))
+    key = (
+        str(ann.resolve()),
+        st.st_size,
+        st.st_mtime_ns,
+        None if names is None else tuple(names),
+        bool(exclude_person),
+    )
     if key in _COCO_MEMO:
         return _COCO_MEMO[key]
     cache_file = None
@@ -125,8 +130,9 @@ def _coco_selection(
         people = set(coco.getImgIds(catIds=[known[COCO_PERSON]]))
         img_ids = [i for i in img_ids if i not in people]
     if not img_ids:
-        raise AssetError(ann, f"no COCO image left after filtering (categories={names}, "
-                         f"exclude_person={exclude_person})")
+        raise AssetError(
+            ann, f"no COCO image left after filtering (categories={names}, exclude_person={exclude_person})"
+        )
     files = [str(coco.imgs[i]["file_name"]) for i in img_ids]
     sizes: list[Optional[tuple[int, int]]] = []
     for i in img_ids:
@@ -139,8 +145,15 @@ def _coco_selection(
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             tmp = cache_file.with_name(f".{cache_file.name}.{os.getpid()}")
             with open(tmp, "w", encoding="utf-8") as fh:
-                json.dump({"key": [str(k) for k in key], "ids": img_ids, "files": files,
-                           "sizes": [list(z) if z else None for z in sizes]}, fh)
+                json.dump(
+                    {
+                        "key": [str(k) for k in key],
+                        "ids": img_ids,
+                        "files": files,
+                        "sizes": [list(z) if z else None for z in sizes],
+                    },
+                    fh,
+                )
             os.replace(tmp, cache_file)
         except OSError as exc:  # a read-only cache folder only costs speed
             log.debug("cannot write COCO selection cache %s: %s", cache_file, exc)
@@ -152,8 +165,12 @@ def _find_coco_image_dir(root: Path, split: str, first_file: Optional[str]) -> P
     for c in candidates:
         if c.is_dir() and (first_file is None or (c / first_file).is_file()):
             return c
-    raise AssetError(root, "no COCO image folder: looked for " + ", ".join(str(c) for c in candidates)
-                     + (f" holding {first_file}" if first_file else ""))
+    raise AssetError(
+        root,
+        "no COCO image folder: looked for "
+        + ", ".join(str(c) for c in candidates)
+        + (f" holding {first_file}" if first_file else ""),
+    )
 
 
 class CocoBackgrounds(_ImageListSource):
@@ -205,8 +222,9 @@ class CocoBackgrounds(_ImageListSource):
         ann = Path(ann_file) if ann_file is not None else root / "annotations" / f"instances_{split}.json"
         if not ann.is_file():
             raise AssetError(ann, "COCO annotation file is missing")
-        cache_dir = (default_cache_dir() if index_cache is True else
-                     None if index_cache in (None, False) else Path(index_cache))  # type: ignore[arg-type]
+        cache_dir = (
+            default_cache_dir() if index_cache is True else None if index_cache in (None, False) else Path(index_cache)
+        )  # type: ignore[arg-type]
         img_ids, files, sizes = _coco_selection(ann, categories, exclude_person, cache_dir)
         first = files[0]
         if image_dir is not None:
@@ -226,4 +244,3 @@ class CocoBackgrounds(_ImageListSource):
         self.image_ids = img_ids
         self.categories = _category_names(categories)
         self.exclude_person = bool(exclude_person)
-

@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.datasets.conventions import MASK_IDS
 from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
-from hogsa_loader.datasets.conventions import MASK_IDS
 
 __all__ = ["PosedMeshes", "object_part_meshes", "pose_meshes", "render_part_mask", "inside_image"]
 
@@ -83,10 +83,7 @@ def object_part_meshes(template: ObjectTemplate) -> list[tuple[int, np.ndarray, 
 
 
 def pose_meshes(
-    seq: SequenceData,
-    frames: Sequence[int],
-    mano_layers: Mapping[str, torch.nn.Module],
-    template: ObjectTemplate,
+    seq: SequenceData, frames: Sequence[int], mano_layers: Mapping[str, torch.nn.Module], template: ObjectTemplate
 ) -> PosedMeshes:
     """Pose both hands and the object at the given frames of a sequence (world frame).
 
@@ -174,8 +171,12 @@ def render_part_mask(
         supersample: s ≥ 1 samples per pixel side (a pixel gets the nearest sample's part).
     """
     out = render_meshes(
-        posed.parts(posed.index(frame)), torch.as_tensor(world2cam, dtype=_F32), torch.as_tensor(K_render, dtype=_F32),
-        size, size, supersample=supersample,
-    )  # fmt: skip
+        posed.parts(posed.index(frame)),
+        torch.as_tensor(world2cam, dtype=_F32),
+        torch.as_tensor(K_render, dtype=_F32),
+        size,
+        size,
+        supersample=supersample,
+    )
     mask = out.part_id.numpy().astype(np.uint8)
     return mask * inside_image(K_render, K_full, full_size[0], full_size[1], size)

@@ -34,12 +34,7 @@ import numpy as np
 from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
-from hogsa_loader.datasets.conventions import (
-    BBOX_PIXELS_PER_SCALE,
-    CROP_ENLARGE,
-    cropped_intrinsics,
-    render_intrinsics,
-)
+from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics, render_intrinsics
 from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.io.atomic import atomic_write
 
@@ -100,8 +95,15 @@ def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float
     """
     half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])  # OpenCV -> centres at j + 0.5
     full_to_crop = cropped_intrinsics(np.eye(3), np.asarray(bbox, np.float64), cropped_size)
-    M = (np.linalg.inv(half) @ np.diag([gain, gain, 1.0]) @ half @ np.linalg.inv(full_to_crop)
-         @ np.linalg.inv(half) @ np.diag([cropped_size / resized, cropped_size / resized, 1.0]) @ half)
+    M = (
+        np.linalg.inv(half)
+        @ np.diag([gain, gain, 1.0])
+        @ half
+        @ np.linalg.inv(full_to_crop)
+        @ np.linalg.inv(half)
+        @ np.diag([cropped_size / resized, cropped_size / resized, 1.0])
+        @ half
+    )
     return M[:2]
 
 
@@ -167,8 +169,16 @@ def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateC
     Ks = np.diag([resized / crop, resized / crop, 1.0]) @ K_crop
     if "posed" not in cache:
         cache["posed"] = cache["pose"]()
-    mask = render_part_mask(cache["posed"], frame, cam.world2cam[frame], Ks, resized, K_full=cam.K[frame],
-                            full_size=(cam.width, cam.height), supersample=2)  # fmt: skip
+    mask = render_part_mask(
+        cache["posed"],
+        frame,
+        cam.world2cam[frame],
+        Ks,
+        resized,
+        K_full=cam.K[frame],
+        full_size=(cam.width, cam.height),
+        supersample=2,
+    )
     return mask > 0
 
 
@@ -240,8 +250,11 @@ def _cut_and_fill(plate: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, dic
     coverage = float(1.0 - holes.mean())
     if holes.any():
         cut = cv2.inpaint(cut, holes, 5, cv2.INPAINT_TELEA)
-    return cut, {"box": [x0, y0, x1, y1], "coverage": round(coverage, 4),
-                 "median_samples": float(np.median(count[seen]))}  # fmt: skip
+    return cut, {
+        "box": [x0, y0, x1, y1],
+        "coverage": round(coverage, 4),
+        "median_samples": float(np.median(count[seen])),
+    }
 
 
 def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) -> dict:
@@ -281,9 +294,13 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
         for name in seqs:
             seq = root.sequence(sid, name)
             frames = _frames(seq.num_frames, cfg.frames_per_sequence)
-            c = {"frames": frames, "boxes": crop_boxes(root, seq, cfg.views),
-                 "pose": lambda seq=seq, frames=frames: pose_meshes(  # only when a mask is rendered
-                     seq, frames, root.mano_layers(), root.object_templates()[seq.object.name])}  # fmt: skip
+            c = {
+                "frames": frames,
+                "boxes": crop_boxes(root, seq, cfg.views),
+                "pose": lambda seq=seq, frames=frames: pose_meshes(  # only when a mask is rendered
+                    seq, frames, root.mano_layers(), root.object_templates()[seq.object.name]
+                ),
+            }
             cache[name] = (seq, c)
         for view in cfg.views:
             samples, plate_hw, size = _plate_samples(root, sid, view, seqs, cfg, cache)
@@ -311,8 +328,14 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
     for old in out.glob("*_view*.png"):  # plates of earlier builds would be read as backgrounds too
         if old.name not in {p["file"] for p in plates}:
             old.unlink()
-    manifest = {"kind": "hogsa background plates", "version": 1, "settings": asdict(cfg),
-                "data_fingerprint": data_fingerprint(root), "plates": plates, "skipped": skipped}  # fmt: skip
+    manifest = {
+        "kind": "hogsa background plates",
+        "version": 1,
+        "settings": asdict(cfg),
+        "data_fingerprint": data_fingerprint(root),
+        "plates": plates,
+        "skipped": skipped,
+    }
     atomic_write(out / PLATES_MANIFEST, json.dumps(manifest, indent=1).encode())
     return manifest
 

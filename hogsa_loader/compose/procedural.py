@@ -107,8 +107,9 @@ class ProceduralBackgrounds(BackgroundSource):
             with _TEXTURE_LOCK:  # one generator at a time (torch thread setting is global)
                 tex = self._pool.get(k)
                 if tex is None:
-                    seed = int(np.random.SeedSequence([self.pool_seed, int(k), 0x70C]).generate_state(1, np.uint64)[0]
-                               >> 1)
+                    seed = int(
+                        np.random.SeedSequence([self.pool_seed, int(k), 0x70C]).generate_state(1, np.uint64)[0] >> 1
+                    )
                     g = torch.Generator().manual_seed(seed)
                     with _torch_threads(1):
                         img = self._one(self.tile, self.tile, g)
@@ -232,15 +233,10 @@ class ProceduralBackgrounds(BackgroundSource):
         return super().sample(n, height, width, generator, device)
 
     def sample_many(
-        self,
-        generators: Sequence[torch.Generator],
-        height: int,
-        width: int,
-        device: Optional[torch.device] = None,
+        self, generators: Sequence[torch.Generator], height: int, width: int, device: Optional[torch.device] = None
     ) -> torch.Tensor:
         """See :meth:`BackgroundSource.sample_many`."""
         if self.pool_size <= 0:
             out = torch.cat([self._direct(1, int(height), int(width), g) for g in generators])
             return out if device is None else out.to(device)
         return super().sample_many(generators, height, width, device)
-

@@ -197,11 +197,7 @@ class BackgroundSource:
         return self._finish(arr, _stack_gains(gains), device)
 
     def sample_many(
-        self,
-        generators: Sequence[torch.Generator],
-        height: int,
-        width: int,
-        device: Optional[torch.device] = None,
+        self, generators: Sequence[torch.Generator], height: int, width: int, device: Optional[torch.device] = None
     ) -> torch.Tensor:
         """One background per generator, drawn in parallel.
 
@@ -282,8 +278,9 @@ def _crop_size(size: tuple[int, int], aspect: float, frac: float) -> tuple[float
     return cw, ch
 
 
-def _crop_resize(img: np.ndarray, height: int, width: int, frac: float, u_x: float, u_y: float,
-                 flip: bool) -> np.ndarray:
+def _crop_resize(
+    img: np.ndarray, height: int, width: int, frac: float, u_x: float, u_y: float, flip: bool
+) -> np.ndarray:
     """The crop of ``img`` (``frac`` of the largest crop, position ``u_x, u_y`` in [0, 1))
     resized to ``(height, width)`` (area filter when shrinking, bilinear when enlarging)."""
     h, w = img.shape[:2]
@@ -291,7 +288,7 @@ def _crop_resize(img: np.ndarray, height: int, width: int, frac: float, u_x: flo
     cw_i, ch_i = max(1, min(w, int(round(cw)))), max(1, min(h, int(round(ch))))
     x0 = min(int(math.floor(u_x * (w - cw_i + 1))), w - cw_i)
     y0 = min(int(math.floor(u_y * (h - ch_i + 1))), h - ch_i)
-    patch = img[y0:y0 + ch_i, x0:x0 + cw_i]
+    patch = img[y0 : y0 + ch_i, x0 : x0 + cw_i]
     interp = cv2.INTER_AREA if (cw_i > width or ch_i > height) else cv2.INTER_LINEAR
     out = cv2.resize(patch, (width, height), interpolation=interp)
     return out[:, ::-1] if flip else out
@@ -314,7 +311,9 @@ class _ImageListSource(BackgroundSource):
         #: never filled in at run time, which would make the decode depend on earlier draws
         self.sizes = list(sizes) if sizes is not None else [None] * len(self.paths)
         #: what errors name: the folder or annotation file the list came from
-        self.origin = Path(origin) if origin is not None else (self.paths[0].parent if self.paths else Path("<backgrounds>"))
+        self.origin = (
+            Path(origin) if origin is not None else (self.paths[0].parent if self.paths else Path("<backgrounds>"))
+        )
         self.crop = crop
         self.cache = ImageCache(cache_bytes)
         self.reduced_decode = bool(reduced_decode)
@@ -331,8 +330,12 @@ class _ImageListSource(BackgroundSource):
         if img is not None:
             return img
         path = self.paths[idx]
-        flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2,
-                4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
+        flag = {
+            1: cv2.IMREAD_COLOR,
+            2: cv2.IMREAD_REDUCED_COLOR_2,
+            4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8,
+        }[reduce]
         bgr = cv2.imread(str(path), flag)
         if bgr is None or bgr.ndim != 3 or bgr.shape[0] < 2 or bgr.shape[1] < 2:
             return None
@@ -374,12 +377,14 @@ class _ImageListSource(BackgroundSource):
             img = self._decode(idx, reduce)
             if img is None:
                 self._bad.add(idx)
-                warnings.warn(f"background image unreadable (or smaller than 2x2 px), skipped: {self.paths[idx]}",
-                              RuntimeWarning, stacklevel=3)  # fmt: skip
+                warnings.warn(
+                    f"background image unreadable (or smaller than 2x2 px), skipped: {self.paths[idx]}",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
                 continue
             return _crop_resize(img, height, width, frac, u_x, u_y, self.crop.hflip and u_flip < 0.5)
         raise AssetError(self.origin, f"none of the {n} background images is readable (e.g. {self.paths[first]})")
-
 
 
 # --------------------------------------------------------------------------------------
@@ -403,11 +408,7 @@ class FolderBackgrounds(_ImageListSource):
     kind = "folder"
 
     def __init__(
-        self,
-        folder: PathLike,
-        recursive: bool = True,
-        crop: CropSpec = CropSpec(),
-        cache_bytes: int = 512 * 2**20,
+        self, folder: PathLike, recursive: bool = True, crop: CropSpec = CropSpec(), cache_bytes: int = 512 * 2**20
     ) -> None:
         folder = Path(folder)
         if not folder.is_dir():
@@ -420,4 +421,3 @@ class FolderBackgrounds(_ImageListSource):
         # would make results depend on what was drawn before)
         super().__init__(paths, None, crop, cache_bytes, reduced_decode=False, origin=folder)
         self.folder = folder
-

@@ -38,13 +38,7 @@ from typing import Any, Mapping, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from hogsa_loader.datasets.conventions import (
-    ALLO_VIEWS,
-    CROPPED_SIZE,
-    EGO_IMAGE_SCALE,
-    EGO_IMAGE_SIZE,
-    EGO_VIEW,
-)
+from hogsa_loader.datasets.conventions import ALLO_VIEWS, CROPPED_SIZE, EGO_IMAGE_SCALE, EGO_IMAGE_SIZE, EGO_VIEW
 from hogsa_loader.datasets.types import CameraTrack, HandTrack, ObjectTrack, SequenceData
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.hands.mano import MANOLayer
@@ -115,11 +109,7 @@ def _check_nested_shape(
 
 
 def _numeric(
-    value: Any,
-    path: Path,
-    key: str,
-    spec: Sequence[Union[int, str]],
-    frames: Optional[int] = None,
+    value: Any, path: Path, key: str, spec: Sequence[Union[int, str]], frames: Optional[int] = None
 ) -> np.ndarray:
     """Check that ``value`` is a finite real numeric array of shape ``spec``.
 
@@ -148,8 +138,7 @@ def _numeric(
         raise AssetError(path, f"{key} has dtype {arr.dtype}, expected real numbers (float or int)")
     want = tuple(frames if s == "F" and frames is not None else s for s in spec)
     ok = arr.ndim == len(spec) and all(
-        (w == "F" and arr.shape[i] == arr.shape[spec.index("F")]) or w == arr.shape[i]
-        for i, w in enumerate(want)
+        (w == "F" and arr.shape[i] == arr.shape[spec.index("F")]) or w == arr.shape[i] for i, w in enumerate(want)
     )
     if not ok:
         extra = f" with F = {frames}" if frames is not None and "F" in spec else ""
@@ -184,8 +173,9 @@ def _check_intrinsics(K: np.ndarray, path: Path, key: str) -> None:
     )
     bad = np.flatnonzero(~np.asarray(ok).reshape(-1))
     if bad.size:
-        raise AssetError(path, f"{key}[{int(bad[0])}] is not a pinhole intrinsics matrix "
-                               "(need fx, fy > 0 and last row (0, 0, 1))")
+        raise AssetError(
+            path, f"{key}[{int(bad[0])}] is not a pinhole intrinsics matrix (need fx, fy > 0 and last row (0, 0, 1))"
+        )
 
 
 def _plain_data(value: Any, path: Path, key: str, depth: int = 0, seen: Optional[set[int]] = None) -> None:
@@ -303,7 +293,10 @@ class WorldMeta:
         """Whether the image files have the sizes ARCTIC's own loader hard-codes (1000-px
         allocentric crops, the 2800×2000 ego image × 0.3)."""
         return (self.cropped_size, self.ego_image_scale, tuple(self.ego_image_size)) == (
-            CROPPED_SIZE, EGO_IMAGE_SCALE, EGO_IMAGE_SIZE)
+            CROPPED_SIZE,
+            EGO_IMAGE_SCALE,
+            EGO_IMAGE_SIZE,
+        )
 
 
 @dataclass
@@ -588,7 +581,8 @@ class ArcticRoot:
             raise AssetError(path, f"ego_image_size must be [width, height] positive integers, got {ego!r}")
         masks = raw["mask_ids"]
         if not isinstance(masks, dict) or any(
-            _json_int(v) is None or _json_int(v) < 0 for v in masks.values()  # type: ignore[operator]
+            _json_int(v) is None or _json_int(v) < 0
+            for v in masks.values()  # type: ignore[operator]
         ):
             raise AssetError(path, "mask_ids must map label names to integers >= 0")
         known = {"schema_version", "cropped_size", "ego_image_scale", "ego_image_size", "mask_ids"}
@@ -621,8 +615,10 @@ class ArcticRoot:
         obj_path = paths["object"]
         obj_raw = read_npy(obj_path)
         if (
-            isinstance(obj_raw, np.ndarray) and obj_raw.ndim == 2
-            and obj_raw.dtype.kind in "fiu" and obj_raw.shape[0] != F
+            isinstance(obj_raw, np.ndarray)
+            and obj_raw.ndim == 2
+            and obj_raw.dtype.kind in "fiu"
+            and obj_raw.shape[0] != F
         ):
             raise AssetError(obj_path, f"has {obj_raw.shape[0]} frames, but {paths['mano'].name} has {F}")
         obj = _numeric(obj_raw, obj_path, "object parameters", ("F", 7), F)
@@ -731,7 +727,11 @@ class ArcticRoot:
         def hand(side: str) -> HandTrack:
             h = raw.mano[side]
             return HandTrack(
-                rot=h["rot"], pose=h["pose"], trans=h["trans"], betas=h["shape"], valid=valid.copy(),
+                rot=h["rot"],
+                pose=h["pose"],
+                trans=h["trans"],
+                betas=h["shape"],
+                valid=valid.copy(),
                 fitting_err=h["fitting_err"],
             )
 
@@ -790,9 +790,7 @@ class ArcticRoot:
                 continue
             with os.scandir(vdir) as it:
                 names = {e.name for e in it}
-            out[view] = [
-                vdir / f"{int(i):05d}{ext}" if f"{int(i):05d}{ext}" in names else None for i in frame_ids
-            ]
+            out[view] = [vdir / f"{int(i):05d}{ext}" if f"{int(i):05d}{ext}" in names else None for i in frame_ids]
         return out
 
     # ------------------------------------------------------------------ protocols and splits
@@ -873,18 +871,45 @@ class ArcticRoot:
 #: What the dataset reads from a split's sequence: part -> {key: shape}, "F" = frames.
 #: Views: 10 in ``cam_coord`` / ``2d`` points, 9 in rotations, flags and boxes.
 _SPLIT_ARRAYS: dict[str, dict[str, tuple[Union[int, str], ...]]] = {
-    "cam_coord": {"joints.right": ("F", 10, 21, 3), "joints.left": ("F", 10, 21, 3), "bbox3d": ("F", 10, 16, 3),
-                  "kp3d": ("F", 10, 32, 3), "rot_r_cam": ("F", 9, 3), "rot_l_cam": ("F", 9, 3),
-                  "is_valid": ("F", 9), "right_valid": ("F", 9), "left_valid": ("F", 9)},
-    "2d": {"joints.right": ("F", 10, 21, 2), "joints.left": ("F", 10, 21, 2), "bbox3d": ("F", 10, 16, 2),
-           "kp3d": ("F", 10, 32, 2)},
+    "cam_coord": {
+        "joints.right": ("F", 10, 21, 3),
+        "joints.left": ("F", 10, 21, 3),
+        "bbox3d": ("F", 10, 16, 3),
+        "kp3d": ("F", 10, 32, 3),
+        "rot_r_cam": ("F", 9, 3),
+        "rot_l_cam": ("F", 9, 3),
+        "is_valid": ("F", 9),
+        "right_valid": ("F", 9),
+        "left_valid": ("F", 9),
+    },
+    "2d": {
+        "joints.right": ("F", 10, 21, 2),
+        "joints.left": ("F", 10, 21, 2),
+        "bbox3d": ("F", 10, 16, 2),
+        "kp3d": ("F", 10, 32, 2),
+    },
     "bbox": {"": ("F", 9, 3)},
-    "params": {"pose_r": ("F", 45), "pose_l": ("F", 45), "shape_r": ("F", 10), "shape_l": ("F", 10),
-               "obj_arti": ("F",), "dist": ("F", 8), "K_ego": ("F", 3, 3)},
-}  # fmt: skip
+    "params": {
+        "pose_r": ("F", 45),
+        "pose_l": ("F", 45),
+        "shape_r": ("F", 10),
+        "shape_l": ("F", 10),
+        "obj_arti": ("F",),
+        "dist": ("F", 8),
+        "K_ego": ("F", 3, 3),
+    },
+}
 #: Read only by the interaction-field targets; checked when present.
-_SPLIT_OPTIONAL = {"params": {"rot_r": ("F", 3), "rot_l": ("F", 3), "trans_r": ("F", 3), "trans_l": ("F", 3),
-                              "obj_rot": ("F", 3), "obj_trans": ("F", 3)}}  # fmt: skip
+_SPLIT_OPTIONAL = {
+    "params": {
+        "rot_r": ("F", 3),
+        "rot_l": ("F", 3),
+        "trans_r": ("F", 3),
+        "trans_l": ("F", 3),
+        "obj_rot": ("F", 3),
+        "obj_trans": ("F", 3),
+    }
+}
 
 
 def _check_split_sequence(path: Path, key: str, seq: Any) -> None:
@@ -907,11 +932,18 @@ def _check_split_sequence(path: Path, key: str, seq: Any) -> None:
                 raise AssetError(path, f"{where} is missing")
             arr = seq[part][name] if name else seq[part]
             if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "fiub":
-                raise AssetError(path, f"{where} is a {type(arr).__name__}"
-                                       f"{'' if not isinstance(arr, np.ndarray) else ' of ' + str(arr.dtype)}, "
-                                       f"expected a numeric array {_shape_str(spec)}")  # fmt: skip
+                raise AssetError(
+                    path,
+                    f"{where} is a {type(arr).__name__}"
+                    f"{'' if not isinstance(arr, np.ndarray) else ' of ' + str(arr.dtype)}, "
+                    f"expected a numeric array {_shape_str(spec)}",
+                )
             frames = arr.shape[0] if frames is None and arr.ndim else frames
-            if arr.ndim != len(spec) or any(w != "F" and w != n for w, n in zip(spec, arr.shape)) or arr.shape[0] != frames:
+            if (
+                arr.ndim != len(spec)
+                or any(w != "F" and w != n for w, n in zip(spec, arr.shape))
+                or arr.shape[0] != frames
+            ):
                 raise AssetError(path, f"{where} has shape {arr.shape}, expected {_shape_str(spec)} with F = {frames}")
             if arr.dtype.kind == "f" and not bool(np.isfinite(arr).all()):
                 raise AssetError(path, f"{where} contains NaN or inf")

@@ -24,13 +24,7 @@ from hogsa_loader.datasets.interfield import interfield_targets
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.errors import AssetError, PathLike
 
-__all__ = [
-    "ArcticDataset",
-    "SUBSAMPLE_COUNTS",
-    "parse_imgname",
-    "rewrite_imgname",
-    "subsample_imgnames",
-]
+__all__ = ["ArcticDataset", "SUBSAMPLE_COUNTS", "parse_imgname", "rewrite_imgname", "subsample_imgnames"]
 
 log = logging.getLogger(__name__)
 
@@ -205,8 +199,10 @@ class ArcticDataset(Dataset):
         self.seed = int(seed)
         self.epoch = int(epoch)
         self.speedup = bool(speedup)
-        self.kp_bottom = {name: np.asarray(t.kp_bottom, dtype=np.float32)
-                          for name, t in self.root.object_templates(load_texture=False).items()}
+        self.kp_bottom = {
+            name: np.asarray(t.kp_bottom, dtype=np.float32)
+            for name, t in self.root.object_templates(load_texture=False).items()
+        }
         self.missing_images = 0
         self.missing_image_paths: list[str] = []
         self.ego_patch_k: Optional[np.ndarray] = None
@@ -255,8 +251,7 @@ class ArcticDataset(Dataset):
         vidx = frame - int(self.root.subject_misc(sid).ioi_offset)
         num = seq_data["2d"]["joints.right"].shape[0]
         if not 0 <= vidx < num:
-            raise AssetError(self.root.arctic_dir / "splits",
-                             f"{imgname}: GT index {vidx} outside [0, {num}) of {key}")
+            raise AssetError(self.root.arctic_dir / "splits", f"{imgname}: GT index {vidx} outside [0, {num}) of {key}")
         return sid, seq, view, vidx, seq_data
 
     def _full_k(self, sid: str, view: int, vidx: int, seq_data: Mapping[str, Any]) -> np.ndarray:
@@ -291,8 +286,11 @@ class ArcticDataset(Dataset):
     def _check_image_size(self, image: np.ndarray, path: Path, sid: str, view: int) -> None:
         w, h = self.expected_image_size(sid, view)
         if abs(image.shape[1] - w) > 1 or abs(image.shape[0] - h) > 1:  # (1 px: resize rounding)
-            raise AssetError(path, f"image is {image.shape[1]}x{image.shape[0]} px, but its labels are in "
-                                   f"{w}x{h} px ({'cropped_images' if self.speedup else 'images'}, view {view})")
+            raise AssetError(
+                path,
+                f"image is {image.shape[1]}x{image.shape[0]} px, but its labels are in "
+                f"{w}x{h} px ({'cropped_images' if self.speedup else 'images'}, view {view})",
+            )
 
     def to_image_pixels(self, points2d: np.ndarray, bbox_full: np.ndarray, view: int) -> np.ndarray:
         """Full-resolution 2D points → pixels of the image that is read.
@@ -340,8 +338,12 @@ class ArcticDataset(Dataset):
             return self.to_image_pixels(d2[key][vidx, view], bbox_full, view)
 
         def hand(side: str, s: str) -> HandLabels:
-            pose48 = np.concatenate([np.asarray(cam[f"rot_{s}_cam"][vidx, view], dtype=np.float32),
-                                     np.asarray(params[f"pose_{s}"][vidx], dtype=np.float32)])
+            pose48 = np.concatenate(
+                [
+                    np.asarray(cam[f"rot_{s}_cam"][vidx, view], dtype=np.float32),
+                    np.asarray(params[f"pose_{s}"][vidx], dtype=np.float32),
+                ]
+            )
             return HandLabels(
                 pose48=pose48,
                 betas=np.asarray(params[f"shape_{s}"][vidx]),

@@ -20,12 +20,7 @@ from torch import Tensor
 
 from hogsa_loader.objects.articulated import TOP_ID
 
-__all__ = [
-    "ObjectTensors32",
-    "mano_forward",
-    "object_forward",
-    "rot_to_camera",
-]
+__all__ = ["ObjectTensors32", "mano_forward", "object_forward", "rot_to_camera"]
 
 _EPS_SMALL_ANGLE = 1e-6  # common/rot.py: below it sin(θ/2)/θ is its Taylor expansion
 
@@ -53,8 +48,10 @@ def _chain(rot_mats: Tensor, joints: Tensor, parents: list[int]) -> tuple[Tensor
     j = joints[..., None]  # (B, J, 3, 1)
     offsets = j.clone()
     offsets[:, 1:] = offsets[:, 1:] - j[:, parents[1:]]
-    local = torch.cat([nnf.pad(rot_mats.reshape(-1, 3, 3), [0, 0, 0, 1]),
-                       nnf.pad(offsets.reshape(-1, 3, 1), [0, 0, 0, 1], value=1)], dim=2).reshape(B, J, 4, 4)
+    local = torch.cat(
+        [nnf.pad(rot_mats.reshape(-1, 3, 3), [0, 0, 0, 1]), nnf.pad(offsets.reshape(-1, 3, 1), [0, 0, 0, 1], value=1)],
+        dim=2,
+    ).reshape(B, J, 4, 4)
     world = [local[:, 0]]
     for i in range(1, J):
         world.append(torch.matmul(world[parents[i]], local[:, i]))
@@ -63,8 +60,9 @@ def _chain(rot_mats: Tensor, joints: Tensor, parents: list[int]) -> tuple[Tensor
     return G[:, :, :3, 3], G - nnf.pad(shift, [3, 0])
 
 
-def mano_forward(layer: Any, global_orient: Tensor, hand_pose: Tensor, betas: Tensor,
-                 transl: Tensor) -> tuple[Tensor, Tensor]:
+def mano_forward(
+    layer: Any, global_orient: Tensor, hand_pose: Tensor, betas: Tensor, transl: Tensor
+) -> tuple[Tensor, Tensor]:
     """smplx ``MANO`` (as ARCTIC builds it) in float32 on a :class:`MANOLayer`'s buffers.
 
     Args:
@@ -111,12 +109,15 @@ def _qmul(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product (w, x, y, z), every term in the written order."""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack((
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ), -1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        -1,
+    )
 
 
 def _quat_from_rotvec(rotvec: Tensor) -> Tensor:
@@ -141,17 +142,21 @@ def _quat_from_matrix(R: Tensor) -> Tensor:
     """(..., 3, 3) → (..., 4): the best-conditioned of the four candidate quaternions."""
     lead = R.shape[:-2]
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(lead + (9,)).unbind(-1)
-    diag = torch.stack([1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22,
-                        1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], dim=-1)
+    diag = torch.stack(
+        [1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], dim=-1
+    )
     q_abs = torch.zeros_like(diag)
     pos = diag > 0
     q_abs[pos] = torch.sqrt(diag[pos])
-    cand = torch.stack([
-        torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
-        torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], dim=-1),
-        torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], dim=-1),
-        torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
-    ], dim=-2)
+    cand = torch.stack(
+        [
+            torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
+            torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], dim=-1),
+            torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], dim=-1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], dim=-1),
+        ],
+        dim=-2,
+    )
     floor = torch.tensor(0.1, dtype=q_abs.dtype, device=q_abs.device)
     cand = cand / (2.0 * q_abs[..., None].max(floor))
     pick = nnf.one_hot(q_abs.argmax(dim=-1), num_classes=4) > 0.5
@@ -224,8 +229,9 @@ class ObjectTensors32:
         return cls(layer.v[i, :n].to(f), v_top, layer.kp[i].to(f), kp_top, layer.bbox[i].to(f), bbox_top, False)
 
     @classmethod
-    def from_mm(cls, layer: Any, name: str, verts_mm: np.ndarray, kp_mm: np.ndarray,
-                bbox_mm: np.ndarray) -> Optional["ObjectTensors32"]:
+    def from_mm(
+        cls, layer: Any, name: str, verts_mm: np.ndarray, kp_mm: np.ndarray, bbox_mm: np.ndarray
+    ) -> Optional["ObjectTensors32"]:
         """ARCTIC's tensors ``float32(mm) / 1000`` from the template files' millimetres.
 
         Args:
@@ -245,8 +251,9 @@ class ObjectTensors32:
         pairs = ((verts_mm, layer.v[i, :n]), (kp_mm, layer.kp[i]), (bbox_mm, layer.bbox[i]))
         for mm, metres in pairs:
             ref = metres.detach().cpu().numpy()
-            if mm.shape != ref.shape or not np.array_equal((mm * (1.0 / 1000.0)).astype(np.float32),
-                                                           ref.astype(np.float32)):
+            if mm.shape != ref.shape or not np.array_equal(
+                (mm * (1.0 / 1000.0)).astype(np.float32), ref.astype(np.float32)
+            ):
                 return None
 
         def arctic(a: np.ndarray) -> Tensor:  # torch.FloatTensor(mm) / 1000
@@ -255,8 +262,7 @@ class ObjectTensors32:
         return cls(arctic(verts_mm), v_top, arctic(kp_mm), kp_top, arctic(bbox_mm), bbox_top, True)
 
 
-def object_forward(obj: ObjectTensors32, angles: Tensor, global_orient: Tensor,
-                   transl_mm: Tensor) -> dict[str, Tensor]:
+def object_forward(obj: ObjectTensors32, angles: Tensor, global_orient: Tensor, transl_mm: Tensor) -> dict[str, Tensor]:
     """Pose one object over B frames as ARCTIC's ``ObjectTensors.forward``.
 
     Args:
@@ -273,8 +279,11 @@ def object_forward(obj: ObjectTensors32, angles: Tensor, global_orient: Tensor,
     q_glob = _quat_from_rotvec(global_orient.view(-1, 3))[:, None, :]
     t = (transl_mm / 1000)[:, None, :]
     out = {}
-    for key, pts, top in (("v", obj.v, obj.v_top), ("kp3d", obj.kp3d, obj.kp_top),
-                          ("bbox3d", obj.bbox3d, obj.bbox_top)):
+    for key, pts, top in (
+        ("v", obj.v, obj.v_top),
+        ("kp3d", obj.kp3d, obj.kp_top),
+        ("bbox3d", obj.bbox3d, obj.bbox_top),
+    ):
         pts = pts[None].expand(B, -1, -1)
         top_pts = _quat_rotate(q_glob, _quat_rotate(q_arti, pts)) + t
         bottom_pts = _quat_rotate(q_glob, pts) + t

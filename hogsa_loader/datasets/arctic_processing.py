@@ -84,10 +84,7 @@ def _f32(a: np.ndarray) -> torch.Tensor:
 
 
 def _pose_chunk(
-    seq: SequenceData,
-    sl: slice,
-    mano_layers: Mapping[str, Any],
-    obj: a32.ObjectTensors32,
+    seq: SequenceData, sl: slice, mano_layers: Mapping[str, Any], obj: a32.ObjectTensors32
 ) -> dict[str, torch.Tensor]:
     """World-frame points of frames ``sl``, float32: joints (n,21,3), kp3d, bbox3d, verts.
 
@@ -99,8 +96,9 @@ def _pose_chunk(
         layer = mano_layers[side]
         n = hand.rot[sl].shape[0]
         betas = np.broadcast_to(np.asarray(hand.betas, dtype=np.float32).reshape(1, -1), (n, hand.betas.size))
-        verts, joints = a32.mano_forward(layer, _f32(hand.rot[sl]), _f32(hand.pose[sl]), _f32(betas),
-                                         _f32(hand.trans[sl]))
+        verts, joints = a32.mano_forward(
+            layer, _f32(hand.rot[sl]), _f32(hand.pose[sl]), _f32(betas), _f32(hand.trans[sl])
+        )
         out[f"joints.{side}"] = joints
         out[f"verts.{side}"] = verts
     o = seq.object
@@ -136,8 +134,9 @@ def _object_tensors(seq: SequenceData, object_layer: Any) -> a32.ObjectTensors32
         where: PathLike = name
         if seq.root is not None:
             where = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / name
-        raise AssetError(where, f"no template for object '{name}' (sequence {seq.subject}/{seq.name}; "
-                                f"known: {object_layer.names})")
+        raise AssetError(
+            where, f"no template for object '{name}' (sequence {seq.subject}/{seq.name}; known: {object_layer.names})"
+        )
     if seq.root is not None:
         folder = ArcticRoot(seq.root).meta_dir / "object_vtemplates" / name
         files = [folder / MESH_FILE, folder / PARAMS_FILE]
@@ -299,17 +298,21 @@ def process_sequence(
     keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
     ego_box = ego_bbox(tuple(ego_image_size)).astype(np.float32)
     obj = _object_tensors(seq, object_layer)
-    mano_layers = {side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
-                   for side, layer in mano_layers.items()}  # ARCTIC's layer holds float32 buffers
+    mano_layers = {
+        side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
+        for side, layer in mano_layers.items()
+    }  # ARCTIC's layer holds float32 buffers
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
     with torch.no_grad():
         for start in range(0, F, max(1, chunk_frames)):
             sl = slice(start, min(F, start + max(1, chunk_frames)))
-            for group, key, value in _process_chunk(seq, sl, world2cam, K, dist, mano_layers, obj, keep,
-                                                    ego_box, sizes):
+            for group, key, value in _process_chunk(
+                seq, sl, world2cam, K, dist, mano_layers, obj, keep, ego_box, sizes
+            ):
                 acc[group].setdefault(key, []).append(value)
-    out: dict[str, Any] = {g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()}
-                           for g in ("world_coord", "cam_coord", "2d")}  # fmt: skip
+    out: dict[str, Any] = {
+        g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
+    }
     out["bbox"] = np.concatenate(acc["bbox"]["bbox"], axis=0)
     out["params"] = _params(seq, world2cam[:, EGO_VIEW], K[:, EGO_VIEW], dist)
     return out
@@ -374,8 +377,9 @@ def _process_chunk(
     return out
 
 
-def _views(points: torch.Tensor, world2cam: torch.Tensor, K: torch.Tensor,
-           dist: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+def _views(
+    points: torch.Tensor, world2cam: torch.Tensor, K: torch.Tensor, dist: torch.Tensor
+) -> tuple[np.ndarray, np.ndarray]:
     """Points in ARCTIC's 10 views ``[ego, allo 1..8, ego distorted]``, float32.
 
     Args:
@@ -391,8 +395,9 @@ def _views(points: torch.Tensor, world2cam: torch.Tensor, K: torch.Tensor,
     return torch.stack(cams, dim=1).numpy(), torch.stack(pixels, dim=1).numpy()
 
 
-def _boxes_and_flags(p2d: Mapping[str, np.ndarray], ego_box: np.ndarray,
-                     sizes: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+def _boxes_and_flags(
+    p2d: Mapping[str, np.ndarray], ego_box: np.ndarray, sizes: np.ndarray
+) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """Crop boxes (n, 9, 3) float32 and (is_valid, right_valid, left_valid), each (n, 9).
 
     Allocentric boxes come from the object vertices; validity on views 0..8 judges view 0
@@ -403,8 +408,9 @@ def _boxes_and_flags(p2d: Mapping[str, np.ndarray], ego_box: np.ndarray,
     bbox[:, EGO_VIEW] = ego_box
     bbox[:, 1:] = _allo_bbox(v2d[:, 1:9])
     order = [9] + list(ALLO_VIEWS)
-    flags = validity_flags(_centroid(v2d[:, order]), p2d["joints.right"][:, order], p2d["joints.left"][:, order],
-                           bbox, sizes)
+    flags = validity_flags(
+        _centroid(v2d[:, order]), p2d["joints.right"][:, order], p2d["joints.left"][:, order], bbox, sizes
+    )
     return bbox, flags
 
 
@@ -467,8 +473,11 @@ def _check_offset(root: ArcticRoot, sid: str, frame_margin: int) -> None:
     """File numbers ``margin .. F − margin − 1`` minus the offset must be GT indices."""
     offset = root.subject_misc(sid).ioi_offset
     if abs(offset) > frame_margin:
-        raise AssetError(root.misc_path, f"subject {sid}: ioi_offset {offset} exceeds the split's frame margin "
-                                         f"{frame_margin}, so its first or last listed images have no GT frame")
+        raise AssetError(
+            root.misc_path,
+            f"subject {sid}: ioi_offset {offset} exceeds the split's frame margin "
+            f"{frame_margin}, so its first or last listed images have no GT frame",
+        )
 
 
 def build_split(
@@ -514,8 +523,7 @@ def build_split(
         if data is None:
             layers = root.mano_layers()
             data = process_sequence(
-                root.sequence(sid, name), layers, root.object_layer(),
-                ego_image_size=root.world_meta().ego_image_size,
+                root.sequence(sid, name), layers, root.object_layer(), ego_image_size=root.world_meta().ego_image_size
             )
         data_dict[key] = {k: data[k] for k in REQUEST_KEYS}
         F = int(data["params"]["rot_r"].shape[0])
@@ -576,7 +584,7 @@ def write_processed_splits(
             sid, name = key.split("/")
             processed[key] = process_sequence(root.sequence(sid, name), layers, obj_layer, ego_image_size=ego_size)
     out: dict[str, Path] = {}
-    for (p, s) in plan:
+    for p, s in plan:
         data = build_split(root, p, s, processed)
         path = root.split_path(p, s)
         _save_npy_atomic(path, data)

@@ -123,10 +123,7 @@ class AugParams:
 
 
 def sample_aug_params(
-    rng: np.random.Generator,
-    train: bool,
-    egocentric: bool = False,
-    cfg: ArcticConfig = ArcticConfig(),
+    rng: np.random.Generator, train: bool, egocentric: bool = False, cfg: ArcticConfig = ArcticConfig()
 ) -> AugParams:
     """Draw the augmentation of one sample (rotation, scale, colour noise).
 
@@ -208,9 +205,7 @@ def hmr_transform_matrix(center: Sequence[float], scale: float, rot: float, img_
     return A
 
 
-def transform_keypoints(
-    kp: np.ndarray, center: Sequence[float], scale: float, rot: float, img_res: int
-) -> np.ndarray:
+def transform_keypoints(kp: np.ndarray, center: Sequence[float], scale: float, rot: float, img_res: int) -> np.ndarray:
     """HMR keypoint transform into patch pixels, with its integer truncation.
 
     Reproduces ARCTIC/HMR exactly: the point is shifted by +1 (caller side) and −1
@@ -252,9 +247,7 @@ def unnormalize_kp2d(kp_norm, img_res: int):
     return (_points(kp_norm) + 1.0) * (img_res / 2.0)
 
 
-def j2d_processing(
-    kp: np.ndarray, center: Sequence[float], scale: float, aug: AugParams, img_res: int
-) -> np.ndarray:
+def j2d_processing(kp: np.ndarray, center: Sequence[float], scale: float, aug: AugParams, img_res: int) -> np.ndarray:
     """2D keypoints (source pixels) → normalised patch coordinates.
 
     The image warp (:func:`patch_warp_matrix`) and this keypoint transform use the same
@@ -394,11 +387,7 @@ def rot_aa(aa: np.ndarray, rot: float) -> np.ndarray:
 
 
 def patch_intrinsics(
-    K_full: np.ndarray,
-    image_size: Sequence[float],
-    sc: float,
-    use_gt_k: bool,
-    cfg: ArcticConfig = ArcticConfig(),
+    K_full: np.ndarray, image_size: Sequence[float], sc: float, use_gt_k: bool, cfg: ArcticConfig = ArcticConfig()
 ) -> np.ndarray:
     """Intrinsics of the patch (ARCTIC's ``get_aug_intrix``).
 
@@ -439,4 +428,3 @@ def patch_intrinsics(
     K[0, 2] *= k
     K[1, 2] *= k
     return K
-

@@ -44,8 +44,26 @@ MASK_IDS = {"background": 0, "right": 1, "left": 2, "object_top": 3, "object_bot
 #: (parent, child) pairs of the 21 ARCTIC/MANO joints (ARCTIC's joint order: wrist, then
 #: index, middle, pinky, ring, thumb chains of three, then the five tips 16..20).
 HAND_BONES: tuple[tuple[int, int], ...] = (
-    (0, 1), (1, 2), (2, 3), (3, 17), (0, 4), (4, 5), (5, 6), (6, 18), (0, 7), (7, 8), (8, 9), (9, 20),
-    (0, 10), (10, 11), (11, 12), (12, 19), (0, 13), (13, 14), (14, 15), (15, 16),
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 17),
+    (0, 4),
+    (4, 5),
+    (5, 6),
+    (6, 18),
+    (0, 7),
+    (7, 8),
+    (8, 9),
+    (9, 20),
+    (0, 10),
+    (10, 11),
+    (11, 12),
+    (12, 19),
+    (0, 13),
+    (13, 14),
+    (14, 15),
+    (15, 16),
 )
 
 #: View 0 is the egocentric camera, 1..8 the allocentric ones.
@@ -279,8 +297,9 @@ def validity_flags(
     return is_valid.astype(f32), hand(joints2d_r).astype(f32), hand(joints2d_l).astype(f32)
 
 
-def undistort_map(K: np.ndarray, dist8: np.ndarray, width: int, height: int,
-                  iters: int = 30) -> tuple[np.ndarray, np.ndarray]:
+def undistort_map(
+    K: np.ndarray, dist8: np.ndarray, width: int, height: int, iters: int = 30
+) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps that turn an undistorted rendering into the distorted image.
 
     For every distorted output pixel (OpenCV/ARCTIC convention: pixel (i, j) centred on
@@ -304,7 +323,7 @@ def undistort_map(K: np.ndarray, dist8: np.ndarray, width: int, height: int,
     x, y = xd.copy(), yd.copy()
     for _ in range(iters):
         r2 = x * x + y * y
-        radial = (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
+        radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
         dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         x = (xd - dx) / radial

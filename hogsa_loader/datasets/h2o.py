@@ -131,8 +131,10 @@ def _check_track_layers(mano_layers: Mapping[str, Any]) -> None:
     ``hands_mean`` without any error."""
     for side, layer in mano_layers.items():
         if isinstance(layer, MANOLayer) and (layer.flat_hand_mean or layer.use_pca):
-            raise ValueError(f"{side} MANO layer has flat_hand_mean={layer.flat_hand_mean}, use_pca={layer.use_pca}; "
-                             "H2O tracks are converted for MANOLayer(..., flat_hand_mean=False, use_pca=False)")
+            raise ValueError(
+                f"{side} MANO layer has flat_hand_mean={layer.flat_hand_mean}, use_pca={layer.use_pca}; "
+                "H2O tracks are converted for MANOLayer(..., flat_hand_mean=False, use_pca=False)"
+            )
 
 
 def _hand_models(mano_layers: ManoModels) -> dict[str, _HandModel]:
@@ -227,9 +229,7 @@ def change_mano_frame(
     return new_rot, new_trans
 
 
-def h2o_mano_to_track(
-    hand: H2OManoHand, transform: np.ndarray, model: Union[ModelLike, _HandModel]
-) -> HandTrack:
+def h2o_mano_to_track(hand: H2OManoHand, transform: np.ndarray, model: Union[ModelLike, _HandModel]) -> HandTrack:
     """Turn one hand's stored labels into a :class:`HandTrack` in another frame.
 
     Args:
@@ -253,10 +253,7 @@ def h2o_mano_to_track(
 
 
 def h2o_mano_from_tracks(
-    left: HandTrack,
-    right: HandTrack,
-    transform: np.ndarray,
-    mano_layers: ManoModels,
+    left: HandTrack, right: HandTrack, transform: np.ndarray, mano_layers: ManoModels
 ) -> H2OManoLabels:
     """Inverse of :func:`h2o_mano_to_track` for both hands: H2O labels of one camera.
 
@@ -433,9 +430,7 @@ class H2ORoot:
             raise AssetError(d, f"cannot list folder ({exc})") from None
         return sorted(int(m.group(1)) for m in map(_FRAME_FILE.fullmatch, names) if m and m.group(2) == ext)
 
-    def frame_path(
-        self, subject: str, scene: str, seq: SeqId, cam: int, modality: str, frame: int
-    ) -> Path:
+    def frame_path(self, subject: str, scene: str, seq: SeqId, cam: int, modality: str, frame: int) -> Path:
         """Path of one per-frame file (not checked for existence)."""
         d = self.modality_dir(subject, scene, seq, cam, modality)
         return d / f"{int(frame):06d}{_EXT.get(modality, '.txt')}"
@@ -471,7 +466,12 @@ class H2ORoot:
     def read_mano(self, subject: str, scene: str, seq: SeqId, cam: int, frames: Sequence[int]) -> H2OManoLabels:
         """Stored MANO labels (flat mean, per-frame betas, camera-K frame) of the given frames."""
         rows = self._read_frames(
-            subject, scene, seq, cam, "hand_pose_mano", frames,
+            subject,
+            scene,
+            seq,
+            cam,
+            "hand_pose_mano",
+            frames,
             lambda text, path: parse_h2o_hand_pose_mano(text, path).to_array()[0],
         )
         return H2OManoLabels.from_array(np.stack(rows) if rows else np.zeros((0, 124)))
@@ -485,9 +485,7 @@ class H2ORoot:
         mats = np.stack([m for _, m in recs]) if recs else np.zeros((0, 4, 4))
         return cls, mats
 
-    def read_hand_joints(
-        self, subject: str, scene: str, seq: SeqId, cam: int, frames: Sequence[int]
-    ) -> H2OHandJoints:
+    def read_hand_joints(self, subject: str, scene: str, seq: SeqId, cam: int, frames: Sequence[int]) -> H2OHandJoints:
         """``hand_pose`` of the given frames: valid (F, 2) and joints (F, 2, 21, 3), left first."""
         recs = self._read_frames(subject, scene, seq, cam, "hand_pose", frames, parse_h2o_hand_pose)
         valid = np.stack([r.valid for r in recs]) if recs else np.zeros((0, 2), dtype=bool)

@@ -16,8 +16,17 @@ from torch import Tensor
 __all__ = ["INTERFIELD_KEYS", "interaction_field", "InterFieldTargets", "interfield_targets"]
 
 #: Target keys added by :class:`InterFieldTargets`, in insertion order.
-INTERFIELD_KEYS: tuple[str, ...] = ("dist.ro", "dist.lo", "dist.or", "dist.ol", "idx.ro", "idx.lo", "idx.or",
-                                    "idx.ol", "object.v_len")
+INTERFIELD_KEYS: tuple[str, ...] = (
+    "dist.ro",
+    "dist.lo",
+    "dist.or",
+    "dist.ol",
+    "idx.ro",
+    "idx.lo",
+    "idx.or",
+    "idx.ol",
+    "object.v_len",
+)
 
 
 def _nearest(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
@@ -89,8 +98,9 @@ class InterFieldTargets:
         max_dist: distance clamp (m); ``inf`` = none (ArcticNet-SF), 0.1 for InterField-SF.
     """
 
-    def __init__(self, mano_layers: Mapping[str, Any], object_layer: Any, v_max: int | None = None,
-                 max_dist: float = math.inf) -> None:
+    def __init__(
+        self, mano_layers: Mapping[str, Any], object_layer: Any, v_max: int | None = None, max_dist: float = math.inf
+    ) -> None:
         self.layers = mano_layers
         self.object_layer = object_layer
         self.max_dist = float(max_dist)
@@ -115,11 +125,18 @@ class InterFieldTargets:
         P = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in poses.items()}
         B = len(names)
         with torch.no_grad():
-            verts = {side: self.layers[side](global_orient=P[f"{side}_rot"], hand_pose=P[f"{side}_pose"],
-                                             betas=P[f"{side}_betas"], transl=P[f"{side}_trans"]).vertices
-                     for side in ("right", "left")}
-            obj = self.object_layer(angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"],
-                                    transl=P["obj_trans"], names=list(names))
+            verts = {
+                side: self.layers[side](
+                    global_orient=P[f"{side}_rot"],
+                    hand_pose=P[f"{side}_pose"],
+                    betas=P[f"{side}_betas"],
+                    transl=P[f"{side}_trans"],
+                ).vertices
+                for side in ("right", "left")
+            }
+            obj = self.object_layer(
+                angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"], transl=P["obj_trans"], names=list(names)
+            )
         n_o = obj["v_len"].tolist()
         return [self.from_vertices(verts["right"][b], verts["left"][b], obj["v"][b, : n_o[b]]) for b in range(B)]
 

@@ -51,17 +51,42 @@ __all__ = [
 #:   float32 tensor (16, 3) (see ``_object_rotation``).
 SAMPLE_INPUT_KEYS: tuple[str, ...] = ("img",)
 SAMPLE_TARGET_KEYS: tuple[str, ...] = (
-    "mano.pose.r", "mano.pose.l", "mano.beta.r", "mano.beta.l",
-    "mano.j2d.norm.r", "mano.j2d.norm.l",
-    "object.kp3d.full.b", "object.kp2d.norm.b", "object.kp3d.full.t", "object.kp2d.norm.t",
-    "object.bbox3d.full.b", "object.bbox2d.norm.b", "object.bbox3d.full.t",
-    "object.bbox2d.norm.t", "object.radian", "object.kp2d.norm", "object.bbox2d.norm",
-    "object.rot", "mano.j3d.full.r", "mano.j3d.full.l",
-    "is_valid", "left_valid", "right_valid", "joints_valid_r", "joints_valid_l",
+    "mano.pose.r",
+    "mano.pose.l",
+    "mano.beta.r",
+    "mano.beta.l",
+    "mano.j2d.norm.r",
+    "mano.j2d.norm.l",
+    "object.kp3d.full.b",
+    "object.kp2d.norm.b",
+    "object.kp3d.full.t",
+    "object.kp2d.norm.t",
+    "object.bbox3d.full.b",
+    "object.bbox2d.norm.b",
+    "object.bbox3d.full.t",
+    "object.bbox2d.norm.t",
+    "object.radian",
+    "object.kp2d.norm",
+    "object.bbox2d.norm",
+    "object.rot",
+    "mano.j3d.full.r",
+    "mano.j3d.full.l",
+    "is_valid",
+    "left_valid",
+    "right_valid",
+    "joints_valid_r",
+    "joints_valid_l",
 )
 SAMPLE_META_KEYS: tuple[str, ...] = (
-    "imgname", "kp3d.cano", "query_names", "window_size", "intrinsics", "dist", "center",
-    "is_flipped", "rot_angle",
+    "imgname",
+    "kp3d.cano",
+    "query_names",
+    "window_size",
+    "intrinsics",
+    "dist",
+    "center",
+    "is_flipped",
+    "rot_angle",
 )
 
 
@@ -193,10 +218,14 @@ def _object_targets(
     part and (32, 2) [top, bottom] together; corners (8, 2) per part and (16, 2) together.
     """
     kp2d, bb2d, kp3d, bb3d = pts["kp2d"], pts["bb2d"], pts["kp3d"], pts["bb3d"]
-    kp2d_t, kp2d_b = (j2d_processing(kp2d[:16], center, scale, aug, res),
-                      j2d_processing(kp2d[16:], center, scale, aug, res))
-    bbox2d_t, bbox2d_b = (j2d_processing(bb2d[:8], center, scale, aug, res),
-                          j2d_processing(bb2d[8:], center, scale, aug, res))
+    kp2d_t, kp2d_b = (
+        j2d_processing(kp2d[:16], center, scale, aug, res),
+        j2d_processing(kp2d[16:], center, scale, aug, res),
+    )
+    bbox2d_t, bbox2d_b = (
+        j2d_processing(bb2d[:8], center, scale, aug, res),
+        j2d_processing(bb2d[8:], center, scale, aug, res),
+    )
     return {
         "object.kp3d.full.b": _f32(kp3d[16:]),
         "object.kp2d.norm.b": _f32(kp2d_b),
@@ -212,9 +241,7 @@ def _object_targets(
     }
 
 
-def _object_rotation(
-    cano: np.ndarray, kp3d_bottom: torch.Tensor, rot: float
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _object_rotation(cano: np.ndarray, kp3d_bottom: torch.Tensor, rot: float) -> tuple[torch.Tensor, torch.Tensor]:
     """ARCTIC's ``kp3d.cano`` and ``object.rot`` of a frame.
 
     ``kp3d.cano`` is the (16, 3) float32 canonical bottom keypoints divided by 1000

@@ -28,14 +28,7 @@ import numpy as np
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels
 from hogsa_loader.loader.frame import SynthFrame
 
-__all__ = [
-    "FORMAT_VERSION",
-    "encode_frame",
-    "decode_frame",
-    "frame_labels",
-    "json_default",
-    "split_member_name",
-]
+__all__ = ["FORMAT_VERSION", "encode_frame", "decode_frame", "frame_labels", "json_default", "split_member_name"]
 
 FORMAT_VERSION = 1
 _HAND_FIELDS = ("pose48", "betas", "j3d_full", "j2d", "valid")
@@ -69,7 +62,7 @@ def split_member_name(name: str) -> tuple[str, str]:
     dot = name.find(".", slash + 1)
     if dot < 0:
         return name, ""
-    return name[:dot], name[dot + 1:]
+    return name[:dot], name[dot + 1 :]
 
 
 #: Prefix of the stored ``SynthFrame.extra_targets`` in ``labels.npz``.
@@ -226,23 +219,40 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
 
     def hand(side: str) -> HandLabels:
         return HandLabels(
-            pose48=lab[f"{side}.pose48"], betas=lab[f"{side}.betas"], j3d_full=lab[f"{side}.j3d_full"],
-            j2d=lab[f"{side}.j2d"], valid=float(lab[f"{side}.valid"]),
+            pose48=lab[f"{side}.pose48"],
+            betas=lab[f"{side}.betas"],
+            j3d_full=lab[f"{side}.j3d_full"],
+            j2d=lab[f"{side}.j2d"],
+            valid=float(lab[f"{side}.valid"]),
         )
 
     obj = ObjectLabels(
-        name=str(info["object"]), radian=float(lab["obj.radian"]), kp3d_full=lab["obj.kp3d_full"],
-        bbox3d_full=lab["obj.bbox3d_full"], kp2d=lab["obj.kp2d"], bbox2d=lab["obj.bbox2d"],
-        valid=float(lab["obj.valid"]), kp_bottom_cano=lab["obj.kp_bottom_cano"],
+        name=str(info["object"]),
+        radian=float(lab["obj.radian"]),
+        kp3d_full=lab["obj.kp3d_full"],
+        bbox3d_full=lab["obj.bbox3d_full"],
+        kp2d=lab["obj.kp2d"],
+        bbox2d=lab["obj.bbox2d"],
+        valid=float(lab["obj.valid"]),
+        kp_bottom_cano=lab["obj.kp_bottom_cano"],
     )
     size = lab["image_size"]
     meta = dict(info.get("meta") or {})
     n = len(EXTRA_PREFIX)
     extra = {k[n:]: (v.item() if v.ndim == 0 else v) for k, v in lab.items() if k.startswith(EXTRA_PREFIX)}
     return SynthFrame(
-        image=image, alpha=alpha, part_alpha=part_alpha, bbox=lab["bbox"], K_full=lab["K_full"],
-        image_size=(int(size[0]), int(size[1])), right=hand("right"), left=hand("left"), obj=obj,
-        imgname=str(info["imgname"]), meta=meta, egocentric=bool(meta.get("egocentric", False)),
+        image=image,
+        alpha=alpha,
+        part_alpha=part_alpha,
+        bbox=lab["bbox"],
+        K_full=lab["K_full"],
+        image_size=(int(size[0]), int(size[1])),
+        right=hand("right"),
+        left=hand("left"),
+        obj=obj,
+        imgname=str(info["imgname"]),
+        meta=meta,
+        egocentric=bool(meta.get("egocentric", False)),
         dist=None if meta.get("dist") is None else np.asarray(meta["dist"], dtype=np.float64),
         extra_targets=extra,
     )

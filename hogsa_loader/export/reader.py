@@ -78,7 +78,7 @@ def _expand_braces(pattern: str) -> list[str]:
         items = body.split(",")
     out: list[str] = []
     for it in items:
-        out.extend(_expand_braces(pattern[: m.start()] + it + pattern[m.end():]))
+        out.extend(_expand_braces(pattern[: m.start()] + it + pattern[m.end() :]))
     return out
 
 
@@ -90,20 +90,32 @@ def _indexed_shards(folder: Path, incomplete: bool) -> list[Path]:
     if not isinstance(shards, list) or not all(isinstance(r, dict) for r in shards):
         raise AssetError(ipath, "not an export index: no list of shards")
     if index.get("complete") is not True and not incomplete:
-        raise AssetError(ipath, f"the export is incomplete: {len(shards)} of {index.get('num_shards')} shards written "
-                                f"({index.get('num_samples_written')} samples); run it again to finish it, or read "
-                                "its complete shards with incomplete=True")  # fmt: skip
+        raise AssetError(
+            ipath,
+            f"the export is incomplete: {len(shards)} of {index.get('num_shards')} shards written "
+            f"({index.get('num_samples_written')} samples); run it again to finish it, or read "
+            "its complete shards with incomplete=True",
+        )
     out = []
     for rec in shards:
         name = rec.get("file")
-        if not isinstance(name, str) or not name.endswith(".tar") or "/" in name or "\\" in name or name.startswith("."):
+        if (
+            not isinstance(name, str)
+            or not name.endswith(".tar")
+            or "/" in name
+            or "\\" in name
+            or name.startswith(".")
+        ):
             raise AssetError(ipath, f"lists a shard file {name!r} that is not a .tar file of the folder")
         shard = folder / name
         if not shard.is_file():
             raise AssetError(shard, f"shard listed in {ipath.name} is missing")
         if isinstance(rec.get("bytes"), int) and shard.stat().st_size != rec["bytes"]:
-            raise AssetError(shard, f"size {shard.stat().st_size} differs from the {rec['bytes']} bytes in {ipath.name} "
-                                    "(torn or modified shard)")  # fmt: skip
+            raise AssetError(
+                shard,
+                f"size {shard.stat().st_size} differs from the {rec['bytes']} bytes in {ipath.name} "
+                "(torn or modified shard)",
+            )
         out.append(shard)
     if not out:
         raise AssetError(ipath, "the export has no complete shard")
@@ -170,8 +182,11 @@ def member_checksums(shard: PathLike) -> Optional[dict[str, str]]:
     if not isinstance(digests, dict) or not all(isinstance(v, str) for v in digests.values()):
         raise AssetError(ipath, "members_sha256 must map member names to sha256 strings")
     if rec.get("bytes") != shard.stat().st_size:
-        raise AssetError(shard, f"size {shard.stat().st_size} differs from the {rec.get('bytes')} bytes in "
-                                f"{ipath.name} (torn or modified shard)")  # fmt: skip
+        raise AssetError(
+            shard,
+            f"size {shard.stat().st_size} differs from the {rec.get('bytes')} bytes in "
+            f"{ipath.name} (torn or modified shard)",
+        )
     return digests
 
 
@@ -206,7 +221,9 @@ def iter_tar_samples(path: PathLike, verify: bool = True) -> Iterator[tuple[str,
                     if m.name not in digests:
                         raise AssetError(path, f"member {m.name} is not listed in the shard's index")
                     if hashlib.sha256(data).hexdigest() != digests[m.name]:
-                        raise AssetError(path, f"member {m.name}: sha256 does not match the shard's index (corrupt shard)")
+                        raise AssetError(
+                            path, f"member {m.name}: sha256 does not match the shard's index (corrupt shard)"
+                        )
                     seen.add(m.name)
                 if key is not None and k != key:
                     yield key, files

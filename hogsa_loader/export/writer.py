@@ -69,13 +69,19 @@ class ExportMismatchError(ValueError):
     """The output folder holds shards of a different export (settings, range or count)."""
 
 
-def export_settings(image_format: str, jpeg_quality: int, alpha_bits: int, parts: bool,
-                    info: Optional[dict[str, Any]]) -> dict[str, Any]:
+def export_settings(
+    image_format: str, jpeg_quality: int, alpha_bits: int, parts: bool, info: Optional[dict[str, Any]]
+) -> dict[str, Any]:
     """What a shard's bytes depend on besides its sample range (recorded per shard)."""
     kept = {k: v for k, v in (info or {}).items() if k not in _INFO_IGNORED}
     blob = json.dumps(kept, sort_keys=True, default=json_default).encode("utf-8")
-    return {"image_format": image_format, "jpeg_quality": int(jpeg_quality) if image_format == "jpg" else None,
-            "alpha_bits": int(alpha_bits), "parts": bool(parts), "info_sha256": hashlib.sha256(blob).hexdigest()}
+    return {
+        "image_format": image_format,
+        "jpeg_quality": int(jpeg_quality) if image_format == "jpg" else None,
+        "alpha_bits": int(alpha_bits),
+        "parts": bool(parts),
+        "info_sha256": hashlib.sha256(blob).hexdigest(),
+    }
 
 
 def sample_key(index: int) -> str:
@@ -133,7 +139,8 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
     except (OSError, ValueError, AttributeError, TypeError):
         return "missing"
     if (rec.get("first"), rec.get("last")) != (rng.start, rng.stop - 1):
-        return f"stale: it holds samples {rec.get('first')}..{rec.get('last')}, this export's are {rng.start}..{rng.stop - 1}"
+        held, ours = f"{rec.get('first')}..{rec.get('last')}", f"{rng.start}..{rng.stop - 1}"
+        return f"stale: it holds samples {held}, this export's are {ours}"
     if settings is not None and rec.get("settings") != settings:
         old = rec.get("settings") or {}
         diff = sorted(k for k in settings if old.get(k) != settings[k]) or ["settings"]
@@ -221,8 +228,7 @@ def _frame_index(frame: SynthFrame, rng: range, position: int, last: int, shard:
     meta_index = frame.meta.get("index") if isinstance(frame.meta, dict) else None
     idx = rng.start + position if meta_index is None else int(meta_index)
     if not rng.start <= idx < rng.stop:
-        raise ValueError(f"shard {shard}: frame index {idx} outside the shard's samples "
-                         f"[{rng.start}, {rng.stop})")
+        raise ValueError(f"shard {shard}: frame index {idx} outside the shard's samples [{rng.start}, {rng.stop})")
     if idx <= last:
         raise ValueError(f"shard {shard}: frame indices must increase (got {idx} after {last})")
     return idx
@@ -259,8 +265,17 @@ class _Encoding:
     parts: bool
 
 
-def _shards_to_write(out: Path, n: int, num: int, shard_size: int, rank: int, world_size: int, prefix: str,
-                     settings: dict[str, Any], overwrite: bool) -> tuple[list[int], list[int]]:
+def _shards_to_write(
+    out: Path,
+    n: int,
+    num: int,
+    shard_size: int,
+    rank: int,
+    world_size: int,
+    prefix: str,
+    settings: dict[str, Any],
+    overwrite: bool,
+) -> tuple[list[int], list[int]]:
     """``(todo, skipped)``: this rank's shards to write and those already complete.
 
     Raises :class:`ExportMismatchError` on another export's shards unless ``overwrite`` (then
@@ -271,10 +286,16 @@ def _shards_to_write(out: Path, n: int, num: int, shard_size: int, rank: int, wo
     stale = [s for s in mine if state[s].startswith("stale")]
     extra = _extra_shards(out, n, prefix)
     if (stale or extra) and not overwrite:
-        what = (f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}" if stale else
-                f"{out / shard_name(extra[0], prefix)} lies beyond this export's {n} shard(s) (an export with a larger num?)")
-        raise ExportMismatchError(f"{out}: holds shards of another export: {what}; use another folder or "
-                                  "overwrite=True (hogsa export --overwrite)")  # fmt: skip
+        what = (
+            f"{out / shard_name(stale[0], prefix)} is {state[stale[0]]}"
+            if stale
+            else f"{out / shard_name(extra[0], prefix)} lies beyond this export's {n} shard(s) "
+            "(an export with a larger num?)"
+        )
+        raise ExportMismatchError(
+            f"{out}: holds shards of another export: {what}; use another folder or "
+            "overwrite=True (hogsa export --overwrite)"
+        )
     for x in extra:  # (overwrite) a reader globbing *.tar must not find them
         _index_path(out, x, prefix).unlink(missing_ok=True)
         (out / shard_name(x, prefix)).unlink(missing_ok=True)
@@ -282,8 +303,9 @@ def _shards_to_write(out: Path, n: int, num: int, shard_size: int, rank: int, wo
     return todo, [s for s in mine if s not in todo]
 
 
-def _write_tar(tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, enc: _Encoding,
-               bar: Optional[Any]) -> tuple[list[str], dict[str, str]]:
+def _write_tar(
+    tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, enc: _Encoding, bar: Optional[Any]
+) -> tuple[list[str], dict[str, str]]:
     """Write the frames of ``shard`` (global samples ``rng``) into the tar ``tmp``; its keys and member digests."""
     keys: list[str] = []
     digests: dict[str, str] = {}
@@ -293,9 +315,16 @@ def _write_tar(tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, 
             idx = _frame_index(frame, rng, j, last, shard)
             last = idx
             key = sample_key(idx)
-            for member, data in encode_frame(frame, key, index=idx, shard=shard, image_format=enc.image_format,
-                                             jpeg_quality=enc.jpeg_quality, alpha_bits=enc.alpha_bits,
-                                             parts=enc.parts).items():
+            for member, data in encode_frame(
+                frame,
+                key,
+                index=idx,
+                shard=shard,
+                image_format=enc.image_format,
+                jpeg_quality=enc.jpeg_quality,
+                alpha_bits=enc.alpha_bits,
+                parts=enc.parts,
+            ).items():
                 _add_member(tar, member, data, digests)
             keys.append(key)
             if bar is not None:  # progress in indices (dropped ones count as done)
@@ -308,8 +337,18 @@ def _write_tar(tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, 
     return keys, digests
 
 
-def _write_shard(out: Path, shard: int, frames: Iterable[SynthFrame], rng: range, enc: _Encoding, prefix: str,
-                 rank: int, world_size: int, settings: dict[str, Any], bar: Optional[Any]) -> int:
+def _write_shard(
+    out: Path,
+    shard: int,
+    frames: Iterable[SynthFrame],
+    rng: range,
+    enc: _Encoding,
+    prefix: str,
+    rank: int,
+    world_size: int,
+    settings: dict[str, Any],
+    bar: Optional[Any],
+) -> int:
     """Write one shard under a temporary name, then its index file, then rename it; returns its sample count."""
     name = shard_name(shard, prefix)
     for stale in out.glob(f".{name}.tmp.*"):
@@ -393,8 +432,16 @@ def write_shards(
     settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
     todo, skipped = _shards_to_write(out, n, num, shard_size, rank, world_size, prefix, settings, overwrite)
     enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
-    bar = tqdm(total=sum(len(shard_range(s, num, shard_size)) for s in todo), unit="img", dynamic_ncols=True,
-               desc=f"hogsa export (rank {rank}/{world_size})") if progress and rank == 0 else None
+    bar = (
+        tqdm(
+            total=sum(len(shard_range(s, num, shard_size)) for s in todo),
+            unit="img",
+            dynamic_ncols=True,
+            desc=f"hogsa export (rank {rank}/{world_size})",
+        )
+        if progress and rank == 0
+        else None
+    )
     t_all = time.perf_counter()
     written_samples, dropped = 0, 0
     failed = True
@@ -414,8 +461,14 @@ def write_shards(
         index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
         if failed and not index["shards"] and world_size == 1:  # nothing of this export exists
             _remove_empty_export(out, created)
-    return {"written": todo, "skipped": skipped, "samples": written_samples, "seconds": time.perf_counter() - t_all,
-            "index": str(out / INDEX_NAME), "complete": index["complete"]}
+    return {
+        "written": todo,
+        "skipped": skipped,
+        "samples": written_samples,
+        "seconds": time.perf_counter() - t_all,
+        "index": str(out / INDEX_NAME),
+        "complete": index["complete"],
+    }
 
 
 def _remove_empty_export(out: Path, created: bool) -> None:

@@ -39,8 +39,8 @@ from hogsa_loader.gaussians.parts import (
     mano_skinning,
     template_hash,
 )
-from hogsa_loader.geometry.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
 from hogsa_loader.gaussians.scene import compose, headlight_colors, pad_sh, render_scene
+from hogsa_loader.geometry.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
 
 __all__ = [
     "ALL_VARIANTS",

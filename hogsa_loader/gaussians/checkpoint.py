@@ -40,13 +40,7 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike
-from hogsa_loader.gaussians.parts import (
-    ALL_VARIANTS,
-    PART_TYPES,
-    GaussianPart,
-    HandGaussians,
-    ObjectGaussians,
-)
+from hogsa_loader.gaussians.parts import ALL_VARIANTS, PART_TYPES, GaussianPart, HandGaussians, ObjectGaussians
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.io.tensors import ManifestFormat, read_tensors, save_checkpoint
@@ -70,8 +64,14 @@ SCHEMA_VERSION = 1
 MANIFEST_FILE = "manifest.json"
 TENSORS_FILE = "gaussians.safetensors"
 #: The shared checkpoint header of a Gaussian part.
-GAUSSIANS_FORMAT = ManifestFormat(FORMAT, SCHEMA_VERSION, "a Gaussian part checkpoint", TENSORS_FILE,
-                                  manifest_file=MANIFEST_FILE, header_metadata=True)  # fmt: skip
+GAUSSIANS_FORMAT = ManifestFormat(
+    FORMAT,
+    SCHEMA_VERSION,
+    "a Gaussian part checkpoint",
+    TENSORS_FILE,
+    manifest_file=MANIFEST_FILE,
+    header_metadata=True,
+)
 
 #: The part's own manifest keys and their JSON types.
 _REQUIRED: dict[str, type | tuple[type, ...]] = {
@@ -173,9 +173,11 @@ def _check_template(raw: Mapping[str, Any], part: GaussianPart, path: Path) -> N
     if raw["template_hash"] != part.template_hash:
         hint = ""
         if part.part_type.startswith("hand"):
-            hint = ("; a hand part is bound to its hand model's vertices in their order, so a different MANO file "
-                    "(e.g. another version of the synthetic hand, see its 'generator' metadata) needs the part "
-                    "trained again")  # fmt: skip
+            hint = (
+                "; a hand part is bound to its hand model's vertices in their order, so a different MANO file "
+                "(e.g. another version of the synthetic hand, see its 'generator' metadata) needs the part "
+                "trained again"
+            )
         raise AssetError(
             path,
             f"template hash mismatch: the checkpoint was made for template {raw['template_hash'][:16]}..., "
@@ -201,8 +203,9 @@ def _check_against_part(raw: Mapping[str, Any], part: GaussianPart, path: Path) 
     for key in sorted(set(cfg) | set(saved)):
         if saved.get(key) != cfg.get(key):
             if key not in saved:
-                raise AssetError(path, f"config.{key} is missing from the checkpoint (a pre-1.0 checkpoint: train "
-                                       "the part again)")  # fmt: skip
+                raise AssetError(
+                    path, f"config.{key} is missing from the checkpoint (a pre-1.0 checkpoint: train the part again)"
+                )
             raise AssetError(
                 path, f"config.{key} is {saved.get(key)!r} in the checkpoint but {cfg.get(key)!r} in the model"
             )
@@ -307,4 +310,3 @@ def load_part(
         raise AssetError(mpath, f"config is invalid ({exc})") from exc
     load_state(part, folder)
     return part
-

@@ -166,11 +166,7 @@ class FreeGaussians(SplatAppearance):
         return self.means.new_zeros(())
 
     def gaussians(
-        self,
-        vertex_rot: Tensor,
-        vertex_trans: Tensor,
-        vertex_disp: Optional[Tensor] = None,
-        part_id: int = 0,
+        self, vertex_rot: Tensor, vertex_trans: Tensor, vertex_disp: Optional[Tensor] = None, part_id: int = 0
     ) -> GaussianSet:
         """Skin the Gaussians with per-vertex transforms.
 

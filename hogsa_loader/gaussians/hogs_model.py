@@ -118,16 +118,25 @@ class HogsModel(nn.Module):
                 f"object {obj_name!r} is not among the given templates {sorted(object_templates)}",
             )
         parts = {
-            "hand_right": load_part(folder / "hand_right", mano_layers["right"], expected_part_type="hand_right", dtype=dtype),  # type: ignore[arg-type]
-            "hand_left": load_part(folder / "hand_left", mano_layers["left"], expected_part_type="hand_left", dtype=dtype),  # type: ignore[arg-type]
-            "object": load_part(folder / "object", object_templates[obj_name], expected_part_type="object", dtype=dtype),  # type: ignore[arg-type]
-        }  # fmt: skip
+            "hand_right": load_part(
+                folder / "hand_right", mano_layers["right"], expected_part_type="hand_right", dtype=dtype
+            ),  # type: ignore[arg-type]
+            "hand_left": load_part(
+                folder / "hand_left", mano_layers["left"], expected_part_type="hand_left", dtype=dtype
+            ),  # type: ignore[arg-type]
+            "object": load_part(
+                folder / "object", object_templates[obj_name], expected_part_type="object", dtype=dtype
+            ),  # type: ignore[arg-type]
+        }
         source = {k: str(v) for k, v in manifest.get("source", {}).items()}
         source.setdefault("object", obj_name)
         shading = _run_shading(folder, manifest)
         if shading == "lambert" and not (folder / LIGHT_DIR).is_dir():
-            raise AssetError(folder / LIGHT_DIR, "is missing: the run was trained with shading 'lambert' (its colours "
-                                                 "were fitted under this learned light), so it would render unshaded")  # fmt: skip
+            raise AssetError(
+                folder / LIGHT_DIR,
+                "is missing: the run was trained with shading 'lambert' (its colours "
+                "were fitted under this learned light), so it would render unshaded",
+            )
         light = load_light(folder / LIGHT_DIR) if (folder / LIGHT_DIR).is_dir() else None
         model = cls(parts["hand_right"], parts["hand_left"], parts["object"], source=source, light=light)
         return model.to(device) if device is not None else model
@@ -141,8 +150,9 @@ class HogsModel(nn.Module):
     def num_gaussians(self) -> int:
         return sum(int(p.num_gaussians) for p in self.parts.values())
 
-    def scene(self, poses: Mapping[str, Tensor], sh_degree: Optional[int] = None,
-              keep_normals: bool = False) -> GaussianSet:
+    def scene(
+        self, poses: Mapping[str, Tensor], sh_degree: Optional[int] = None, keep_normals: bool = False
+    ) -> GaussianSet:
         """Posed, composed Gaussians of B frames.
 
         Args:
@@ -158,10 +168,12 @@ class HogsModel(nn.Module):
         if missing:
             raise KeyError(f"HogsModel.scene: missing pose keys {missing}")
         sets = [
-            self.parts["hand_right"](poses["right_rot"], poses["right_pose"], poses["right_betas"], poses["right_trans"]),
+            self.parts["hand_right"](
+                poses["right_rot"], poses["right_pose"], poses["right_betas"], poses["right_trans"]
+            ),
             self.parts["hand_left"](poses["left_rot"], poses["left_pose"], poses["left_betas"], poses["left_trans"]),
             self.parts["object"](poses["obj_arti"], poses["obj_rot"], poses["obj_trans"]),
-        ]  # fmt: skip
+        ]
         scene = compose(sets)
         if sh_degree is not None and sh_degree < scene.sh_degree:
             scene = replace(scene, sh=scene.sh[..., : num_sh_bases(sh_degree), :], sh_degree=sh_degree)
@@ -204,7 +216,9 @@ class HogsModel(nn.Module):
 def _run_shading(folder: Path, object_manifest: Mapping[str, object]) -> Optional[str]:
     """The shading a run was trained with: its parts' ``extra["shading"]``, else its
     ``config.json``'s ``shading`` (runs checkpointed before the parts recorded it), else None."""
-    shading = object_manifest.get("extra", {}).get("shading") if isinstance(object_manifest.get("extra"), dict) else None
+    shading = (
+        object_manifest.get("extra", {}).get("shading") if isinstance(object_manifest.get("extra"), dict) else None
+    )
     if isinstance(shading, str):
         return shading
     config = folder / "config.json"

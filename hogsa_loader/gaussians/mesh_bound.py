@@ -195,12 +195,7 @@ def _games(
 
 
 def gaussians_from_faces(
-    verts: Tensor,
-    faces: Tensor,
-    bary: Tensor,
-    scale_factor: Tensor,
-    *,
-    normal_eps: float = 1e-8,
+    verts: Tensor, faces: Tensor, bary: Tensor, scale_factor: Tensor, *, normal_eps: float = 1e-8
 ) -> FaceGaussians:
     """GaMeS Gaussians of a (posed) mesh: posing = calling this on posed vertices.
 
@@ -234,11 +229,7 @@ def _avatars(
 
 
 def avatar_gaussians_from_faces(
-    verts: Tensor,
-    faces: Tensor,
-    local_means: Tensor,
-    local_quats: Tensor,
-    local_log_scales: Tensor,
+    verts: Tensor, faces: Tensor, local_means: Tensor, local_quats: Tensor, local_log_scales: Tensor
 ) -> FaceGaussians:
     """GaussianAvatars Gaussians of a (posed) mesh, k per face.
 
@@ -520,4 +511,3 @@ class MeshGaussians(SplatAppearance):
             f"variant={self.variant}, V={self.num_verts}, F={self.num_faces}, k={self.k}, "
             f"N={self.num_gaussians}, sh_degree={self.sh_degree}"
         )
-

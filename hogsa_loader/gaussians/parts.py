@@ -124,8 +124,14 @@ def mano_skinning(
     """
     full_pose, betas = layer.full_pose_and_betas(global_orient, hand_pose, betas, transl)
     out = skin_template(
-        betas, full_pose, v_template, layer.shapedirs[..., : betas.shape[-1]], layer.posedirs,
-        layer.J_regressor, layer.parents, layer.lbs_weights,
+        betas,
+        full_pose,
+        v_template,
+        layer.shapedirs[..., : betas.shape[-1]],
+        layer.posedirs,
+        layer.J_regressor,
+        layer.parents,
+        layer.lbs_weights,
     )
     verts, joints, rot, trans, v_posed = out.vertices, out.joints, out.vertex_rot, out.vertex_trans, out.v_posed
     if transl is not None:
@@ -216,14 +222,28 @@ class GaussianPart(nn.Module):
             face_idx, bary = surface_samples(faces, verts.shape[0], free_init, self.k)
             colors = color_fn(face_idx, bary).clamp(0.0, 1.0)
             self.splats = FreeGaussians(
-                verts, faces, init=free_init, k=self.k, sh_degree=sh_degree, colors=colors,
-                init_opacity=init_opacity, normal_eps=normal_eps, dtype=dtype,
-            )  # fmt: skip
+                verts,
+                faces,
+                init=free_init,
+                k=self.k,
+                sh_degree=sh_degree,
+                colors=colors,
+                init_opacity=init_opacity,
+                normal_eps=normal_eps,
+                dtype=dtype,
+            )
         else:
             self.splats = MeshGaussians(
-                verts, faces, k=self.k, sh_degree=sh_degree, variant=variant,
-                init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
-            )  # fmt: skip
+                verts,
+                faces,
+                k=self.k,
+                sh_degree=sh_degree,
+                variant=variant,
+                init_opacity=init_opacity,
+                normal_eps=normal_eps,
+                weld_seams=weld_seams,
+                dtype=dtype,
+            )
             face_idx, bary = surface_samples(faces, verts.shape[0], "faces", self.k)  # = init_bary, float64
             colors = color_fn(face_idx, bary).clamp(0.0, 1.0)
             self.splats.set_colors_(colors)
@@ -340,16 +360,21 @@ class HandGaussians(GaussianPart):
             data = model.data
             dtype = model.v_template.dtype  # the layer's buffers set the dtype
             settings = dict(
-                flat_hand_mean=model.flat_hand_mean, use_pca=model.use_pca,
+                flat_hand_mean=model.flat_hand_mean,
+                use_pca=model.use_pca,
                 num_pca_comps=model.num_pca_comps if model.use_pca else 45,
-                num_betas=model.num_betas, fix_left_shapedirs=model.fix_left_shapedirs,
-            )  # fmt: skip
+                num_betas=model.num_betas,
+                fix_left_shapedirs=model.fix_left_shapedirs,
+            )
         else:
             data = model
             settings = dict(
-                flat_hand_mean=flat_hand_mean, use_pca=use_pca, num_pca_comps=num_pca_comps,
-                num_betas=num_betas, fix_left_shapedirs=fix_left_shapedirs,
-            )  # fmt: skip
+                flat_hand_mean=flat_hand_mean,
+                use_pca=use_pca,
+                num_pca_comps=num_pca_comps,
+                num_betas=num_betas,
+                fix_left_shapedirs=fix_left_shapedirs,
+            )
         if subdivide_levels not in (0, 1, 2):
             raise ValueError(f"subdivide_levels must be 0, 1 or 2, got {subdivide_levels}")
         self._extra_config: dict[str, Any] = dict(settings)
@@ -376,9 +401,18 @@ class HandGaussians(GaussianPart):
         self.register_buffer("binding_faces", faces, persistent=False)
         color_fn = _vertex_color_fn(faces, torch.as_tensor(colors, dtype=torch.float64))
         self._build_splats(
-            verts, faces, color_fn, variant=variant, k=k, sh_degree=sh_degree, free_init=free_init,
-            init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
-        )  # fmt: skip
+            verts,
+            faces,
+            color_fn,
+            variant=variant,
+            k=k,
+            sh_degree=sh_degree,
+            free_init=free_init,
+            init_opacity=init_opacity,
+            normal_eps=normal_eps,
+            weld_seams=weld_seams,
+            dtype=dtype,
+        )
 
     @staticmethod
     def _albedo(data: ManoModelData, albedo: Any) -> np.ndarray:
@@ -520,9 +554,18 @@ class ObjectGaussians(GaussianPart):
             const = torch.tensor(color, dtype=torch.float64).expand(verts.shape[0], 3)
             color_fn = _vertex_color_fn(faces_t, const)
         self._build_splats(
-            verts_t, faces_t, color_fn, variant=variant, k=k, sh_degree=sh_degree, free_init=free_init,
-            init_opacity=init_opacity, normal_eps=normal_eps, weld_seams=weld_seams, dtype=dtype,
-        )  # fmt: skip
+            verts_t,
+            faces_t,
+            color_fn,
+            variant=variant,
+            k=k,
+            sh_degree=sh_degree,
+            free_init=free_init,
+            init_opacity=init_opacity,
+            normal_eps=normal_eps,
+            weld_seams=weld_seams,
+            dtype=dtype,
+        )
 
     def posed_vertices(self, angle: Tensor, global_orient: Tensor, transl: Optional[Tensor] = None) -> Tensor:
         """(B, V, 3) posed binding-mesh vertices (offsets included)."""

@@ -157,7 +157,19 @@ def render_scene(
     else:
         colors, deg = headlight_colors(scene, viewmats, float(headlight)), None
     return render(
-        scene.means, scene.quats, scene.scales, scene.opacities, colors, viewmats, Ks, width, height,
-        backend=backend, sh_degree=deg, part_ids=part_ids, num_parts=num_parts,
-        render_mode=render_mode, **render_kwargs,  # type: ignore[arg-type]
-    )  # fmt: skip
+        scene.means,
+        scene.quats,
+        scene.scales,
+        scene.opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        backend=backend,
+        sh_degree=deg,
+        part_ids=part_ids,
+        num_parts=num_parts,
+        render_mode=render_mode,
+        **render_kwargs,  # type: ignore[arg-type]
+    )

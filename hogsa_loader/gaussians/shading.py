@@ -14,15 +14,30 @@ from hogsa_loader.gaussians.gaussian_set import GaussianSet
 from hogsa_loader.io.tensors import ManifestFormat, read_manifest, read_tensors, save_checkpoint
 from hogsa_loader.render.gaussians import sh_colors
 
-__all__ = ["LIGHT_FORMAT", "LIGHT_SCHEMA_VERSION", "LIGHT_TENSORS", "LIGHT_MANIFEST", "DirectionalLight", "save_light", "load_light"]
+__all__ = [
+    "LIGHT_FORMAT",
+    "LIGHT_SCHEMA_VERSION",
+    "LIGHT_TENSORS",
+    "LIGHT_MANIFEST",
+    "DirectionalLight",
+    "save_light",
+    "load_light",
+]
 
 LIGHT_FORMAT = "hogsa-light"
 LIGHT_SCHEMA_VERSION = 1
 LIGHT_TENSORS = "light.safetensors"
 LIGHT_MANIFEST = "manifest.json"
 #: The shared checkpoint header of a light (no tensor list, no library version).
-LIGHT_CHECKPOINT = ManifestFormat(LIGHT_FORMAT, LIGHT_SCHEMA_VERSION, "a light checkpoint", LIGHT_TENSORS, specs=None,
-                                  library_version=False, manifest_file=LIGHT_MANIFEST)  # fmt: skip
+LIGHT_CHECKPOINT = ManifestFormat(
+    LIGHT_FORMAT,
+    LIGHT_SCHEMA_VERSION,
+    "a light checkpoint",
+    LIGHT_TENSORS,
+    specs=None,
+    library_version=False,
+    manifest_file=LIGHT_MANIFEST,
+)
 
 
 def _inv_softplus(x: float) -> float:
@@ -40,8 +55,9 @@ class DirectionalLight(nn.Module):
     ``rgb = c_SH(view dir) · (ambient + diffuse · max(0, n · (−d)))``
 
     with ``n`` each Gaussian's shading normal (:meth:`MeshGaussians.shading_normals`, or the
-    skinned surface normal of free Gaussians; no gradient flows into the geometry through it), ``d`` the unit direction the light travels,
-    and ``c_SH`` the Gaussian's SH colour (+0.5, clamped at 0, as the rasteriser does).
+    skinned surface normal of free Gaussians; no gradient flows into the geometry through it),
+    ``d`` the unit direction the light travels, and ``c_SH`` the Gaussian's SH colour (+0.5,
+    clamped at 0, as the rasteriser does).
     Setting ``diffuse = 0, ambient = 1`` recovers unshaded rendering. At sampling time the
     light can be changed (relighting augmentation).
 
@@ -57,7 +73,9 @@ class DirectionalLight(nn.Module):
     (softplus-activated scalars).
     """
 
-    def __init__(self, direction: Sequence[float] = (0.0, 0.0, 1.0), ambient: float = 0.5, diffuse: float = 0.5) -> None:
+    def __init__(
+        self, direction: Sequence[float] = (0.0, 0.0, 1.0), ambient: float = 0.5, diffuse: float = 0.5
+    ) -> None:
         super().__init__()
         d = torch.as_tensor(direction, dtype=torch.float32).reshape(3)
         if not torch.isfinite(d).all() or float(d.norm()) < 1e-8:
@@ -103,8 +121,11 @@ class DirectionalLight(nn.Module):
 
     @torch.no_grad()
     def describe(self) -> dict[str, object]:
-        return {"direction": [round(float(x), 6) for x in self.unit_direction()],
-                "ambient": float(self.ambient()), "diffuse": float(self.diffuse())}  # fmt: skip
+        return {
+            "direction": [round(float(x), 6) for x in self.unit_direction()],
+            "ambient": float(self.ambient()),
+            "diffuse": float(self.diffuse()),
+        }
 
 
 def save_light(light: DirectionalLight, folder: PathLike) -> Path:

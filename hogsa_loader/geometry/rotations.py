@@ -23,9 +23,7 @@ def skew(v: Tensor) -> Tensor:
     """
     zero = torch.zeros_like(v[..., 0])
     x, y, z = v.unbind(-1)
-    return torch.stack(
-        [zero, -z, y, z, zero, -x, -y, x, zero], dim=-1
-    ).reshape(v.shape[:-1] + (3, 3))
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(v.shape[:-1] + (3, 3))
 
 
 def axis_angle_to_matrix(rotvec: Tensor) -> Tensor:

@@ -21,6 +21,7 @@ def sample_texture(texture: Tensor, uv: Tensor) -> Tensor:
     """
     grid = torch.stack([uv[:, 0] * 2.0 - 1.0, (1.0 - uv[:, 1]) * 2.0 - 1.0], dim=-1)
     img = texture.permute(2, 0, 1)[None].to(uv)  # (1, C, Ht, Wt)
-    out = F.grid_sample(img, grid[None, None], mode="bilinear", padding_mode="border",
-                        align_corners=False)  # (1, C, 1, N)
+    out = F.grid_sample(
+        img, grid[None, None], mode="bilinear", padding_mode="border", align_corners=False
+    )  # (1, C, 1, N)
     return out[0, :, 0].T

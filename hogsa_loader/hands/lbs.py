@@ -204,6 +204,5 @@ def lbs(
         joints: (B, J, 3) posed joints.
         rot_mats: (B, J, 3, 3) local joint rotations.
     """
-    out = skin_template(betas, pose, v_template, shapedirs, posedirs, J_regressor, parents, weights,
-                        pose_is_rotmat)
+    out = skin_template(betas, pose, v_template, shapedirs, posedirs, J_regressor, parents, weights, pose_is_rotmat)
     return out.vertices, out.joints, out.rot_mats

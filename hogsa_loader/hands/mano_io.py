@@ -235,8 +235,17 @@ def _read_pickle(path: str) -> dict:
             data = RestrictedUnpickler(fh, path).load()
     except AssetError:  # refused global, element / depth caps
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError,
-            LookupError, RecursionError, MemoryError) as exc:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        AttributeError,
+        IndexError,
+        LookupError,
+        RecursionError,
+        MemoryError,
+    ) as exc:
         raise AssetError(path, f"not a readable MANO pickle ({type(exc).__name__}: {exc})") from None
     if not isinstance(data, dict):
         raise AssetError(path, f"expected a dict of arrays at the top level, found {type(data).__name__}")
@@ -284,8 +293,9 @@ def model_from_dict(
         raise AssetError(where, f"not a readable MANO model ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
-def _model_from_dict(data: Mapping[str, Any], where: str, source: str, side: Optional[str],
-                     tip_vertex_ids: Optional[tuple[int, ...]]) -> ManoModelData:
+def _model_from_dict(
+    data: Mapping[str, Any], where: str, source: str, side: Optional[str], tip_vertex_ids: Optional[tuple[int, ...]]
+) -> ManoModelData:
     missing = [k for k in _REQUIRED_KEYS if k not in data]
     if missing:
         raise AssetError(where, f"missing MANO keys {missing}")
@@ -338,9 +348,7 @@ def _model_from_dict(data: Mapping[str, Any], where: str, source: str, side: Opt
 
 
 def load_mano(
-    path: PathLike,
-    side: Optional[str] = None,
-    tip_vertex_ids: Optional[tuple[int, ...]] = None,
+    path: PathLike, side: Optional[str] = None, tip_vertex_ids: Optional[tuple[int, ...]] = None
 ) -> ManoModelData:
     """Load a MANO model from a ``.pkl`` (restricted unpickler) or a converted ``.npz``.
 
@@ -365,8 +373,11 @@ def load_mano(
             raise AssetError(p, f"no MANO_{side.upper()}.pkl or .npz in this folder")
         p = found[0]
     if not os.path.isfile(p):
-        raise AssetError(p, "MANO model file not found (MANO cannot be downloaded here: "
-                            "register at mano.is.tue.mpg.de, or run `hogsa assets` for the synthetic hand)")
+        raise AssetError(
+            p,
+            "MANO model file not found (MANO cannot be downloaded here: "
+            "register at mano.is.tue.mpg.de, or run `hogsa assets` for the synthetic hand)",
+        )
     data = _read_npz(p) if p.endswith(".npz") else _read_pickle(p)
     return model_from_dict(data, source=p, side=side, tip_vertex_ids=tip_vertex_ids)
 
@@ -490,8 +501,9 @@ def check_npz_destination(src: PathLike, dst: PathLike, overwrite: bool = False)
             raise AssetError(out, "already exists (overwrite=True, or hogsa convert-mano --overwrite, replaces it)")
 
 
-def convert_mano_to_npz(src: PathLike, dst: PathLike, side: Optional[str] = None,
-                        overwrite: bool = False) -> ManoModelData:
+def convert_mano_to_npz(
+    src: PathLike, dst: PathLike, side: Optional[str] = None, overwrite: bool = False
+) -> ManoModelData:
     """Convert a MANO pickle into a chumpy-free, pickle-free ``.npz`` (smplx-compatible keys).
 
     ``dst`` is checked before anything is read (:func:`check_npz_destination`) and written

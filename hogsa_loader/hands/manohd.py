@@ -44,9 +44,7 @@ def subdivide_mesh(faces: np.ndarray, num_verts: int) -> tuple[np.ndarray, sp.cs
 
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-    new_faces = np.concatenate(
-        [np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
-    )
+    new_faces = np.concatenate([np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
     rows = np.concatenate([np.arange(num_verts), num_verts + np.repeat(np.arange(E), 2)])
     cols = np.concatenate([np.arange(num_verts), edges.reshape(-1)])
     vals = np.concatenate([np.ones(num_verts), np.full(2 * E, 0.5)])
@@ -65,10 +63,7 @@ def _laplacian_smooth(v: np.ndarray, faces: np.ndarray, passes: int) -> np.ndarr
 
 
 def subdivide_model(
-    model: ManoModelData,
-    levels: int = 1,
-    lbs_weights: Optional[np.ndarray] = None,
-    laplacian_passes: int = 0,
+    model: ManoModelData, levels: int = 1, lbs_weights: Optional[np.ndarray] = None, laplacian_passes: int = 0
 ) -> ManoModelData:
     """MANO-HD model by ``levels`` rounds of midpoint subdivision.
 

@@ -23,9 +23,9 @@ from hogsa_loader.datasets.arctic import protocol_views
 from hogsa_loader.errors import PathLike
 from hogsa_loader.loader.config import LoaderConfig, with_options
 from hogsa_loader.loader.dataset import HOGSADataset
+from hogsa_loader.loader.mixing import MixedLoader, MixMode
 from hogsa_loader.loader.poses import PoseSource
 from hogsa_loader.loader.synth import Refiner
-from hogsa_loader.loader.mixing import MixedLoader, MixMode
 
 __all__ = ["wrap_train_loader"]
 
@@ -60,11 +60,17 @@ def _loader_protocol(dataset: Any) -> Optional[str]:
 def _real_options(real_ds: Any, config: LoaderConfig, options: dict[str, Any]) -> dict[str, Any]:
     """``protocol``, ``arctic`` (the sample config) and ``interfield`` of the real dataset,
     for those the caller left at their defaults (in ``config`` and ``options``)."""
-    found = {"protocol": _loader_protocol(real_ds), "arctic": getattr(real_ds, "cfg", None),
-             "interfield": getattr(real_ds, "interfield", None)}
+    found = {
+        "protocol": _loader_protocol(real_ds),
+        "arctic": getattr(real_ds, "cfg", None),
+        "interfield": getattr(real_ds, "interfield", None),
+    }
     default = LoaderConfig().sample
-    return {name: value for name, value in found.items()
-            if value is not None and name not in options and getattr(config.sample, name) == getattr(default, name)}
+    return {
+        name: value
+        for name, value in found.items()
+        if value is not None and name not in options and getattr(config.sample, name) == getattr(default, name)
+    }
 
 
 def wrap_train_loader(

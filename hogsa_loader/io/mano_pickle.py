@@ -190,8 +190,9 @@ def as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
     if isinstance(value, (list, tuple)):
         shape = nested_shape(value)
         if math.prod(shape) > MAX_LIST_ELEMENTS:
-            raise AssetError(where, f"nested list of shape {'x'.join(map(str, shape))} is far larger than any MANO "
-                                    "array")  # fmt: skip
+            raise AssetError(
+                where, f"nested list of shape {'x'.join(map(str, shape))} is far larger than any MANO array"
+            )
     try:
         arr = np.asarray(value)
     except (ValueError, TypeError, OverflowError) as exc:  # ragged lists, unconvertible items

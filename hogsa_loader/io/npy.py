@@ -270,17 +270,13 @@ def read_npy(path: PathLike) -> Any:
                         p, f"pickled payload is corrupt or truncated ({type(exc).__name__}: {exc})"
                     ) from None
                 if not isinstance(obj, np.ndarray) or obj.dtype != object or obj.shape != shape:
-                    raise AssetError(
-                        p, f"pickled payload is not the object array announced by the header {shape}"
-                    )
+                    raise AssetError(p, f"pickled payload is not the object array announced by the header {shape}")
                 return _rebuild_sparse(obj.item() if obj.shape == () else obj, p)
             count = math.prod(shape)
             nbytes = count * dtype.itemsize
             left = size - fh.tell()
             if nbytes > left:
-                raise AssetError(
-                    p, f"file is truncated: array {shape} {dtype} needs {nbytes} bytes, {left} present"
-                )
+                raise AssetError(p, f"file is truncated: array {shape} {dtype} needs {nbytes} bytes, {left} present")
             data = fh.read(nbytes)
     except OSError as exc:
         raise AssetError(p, f"cannot read file ({exc})") from None

@@ -69,8 +69,11 @@ def check_unpickled(
     keep: list[Any] = []  # keeps visited objects alive so that their ids stay unique
 
     def too_many() -> AssetError:
-        return AssetError(path, f"pickled data expands to more than {limit} elements (shared references "
-                                "count once per use); refusing it before anything is allocated")  # fmt: skip
+        return AssetError(
+            path,
+            f"pickled data expands to more than {limit} elements (shared references "
+            "count once per use); refusing it before anything is allocated",
+        )
 
     def count(x: Any, depth: int) -> int:
         if isinstance(x, _ATOMS) and not isinstance(x, np.ndarray):

@@ -129,9 +129,16 @@ def canonical_safetensors(blob: bytes) -> bytes:
     return len(text).to_bytes(8, "little") + text + blob[8 + n :]
 
 
-def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping[str, Tensor], manifest_file: str,
-                               manifest: Mapping[str, Any], indent: Optional[int] = 1,
-                               metadata: Optional[Mapping[str, str]] = None, allow_nan: bool = False) -> Path:
+def write_tensors_and_manifest(
+    folder: Path,
+    tensors_file: str,
+    tensors: Mapping[str, Tensor],
+    manifest_file: str,
+    manifest: Mapping[str, Any],
+    indent: Optional[int] = 1,
+    metadata: Optional[Mapping[str, str]] = None,
+    allow_nan: bool = False,
+) -> Path:
     """Write a safetensors file and its JSON manifest into ``folder`` (created), each atomically,
     tensors first. Everything is checked before anything is written: floating tensors must be
     finite and the manifest strict JSON (no NaN / infinity unless ``allow_nan``), so a refused
@@ -152,19 +159,30 @@ def write_tensors_and_manifest(folder: Path, tensors_file: str, tensors: Mapping
         raise ValueError(f"{folder / tensors_file}: tensors {bad[:3]} contain NaN or infinity; not saved")
     blob = canonical_safetensors(st_save(dict(tensors), metadata=dict(metadata) if metadata else None))
     try:
-        text = json.dumps({**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent,
-                          allow_nan=allow_nan) + "\n"  # fmt: skip
+        text = (
+            json.dumps(
+                {**manifest, "tensors_sha256": hashlib.sha256(blob).hexdigest()}, indent=indent, allow_nan=allow_nan
+            )
+            + "\n"
+        )
     except ValueError as exc:
-        raise ValueError(f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); "
-                         "not saved") from None
+        raise ValueError(
+            f"{folder / manifest_file}: the manifest would hold NaN or infinity ({exc}); not saved"
+        ) from None
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write(folder / tensors_file, blob)
     atomic_write(folder / manifest_file, text.encode("utf-8"))
     return folder / manifest_file
 
 
-def save_checkpoint(folder: PathLike, fmt: ManifestFormat, tensors: Mapping[str, Tensor], fields: Mapping[str, Any],
-                    *, indent: Optional[int] = 1) -> Path:
+def save_checkpoint(
+    folder: PathLike,
+    fmt: ManifestFormat,
+    tensors: Mapping[str, Tensor],
+    fields: Mapping[str, Any],
+    *,
+    indent: Optional[int] = 1,
+) -> Path:
     """Write a checkpoint of kind ``fmt``: the manifest is the shared header around the kind's
     own ``fields`` (:meth:`ManifestFormat.head`, ``fields``, :meth:`ManifestFormat.tensor_entries`,
     ``tensors_sha256``).
@@ -184,8 +202,9 @@ def save_checkpoint(folder: PathLike, fmt: ManifestFormat, tensors: Mapping[str,
     """
     manifest = {**fmt.head(), **fields, **fmt.tensor_entries(tensors)}
     metadata = {fmt.name_key: fmt.name, "schema_version": str(fmt.version)} if fmt.header_metadata else None
-    return write_tensors_and_manifest(Path(folder), str(fmt.tensors_file), tensors, fmt.manifest_file, manifest,
-                                      indent=indent, metadata=metadata)  # fmt: skip
+    return write_tensors_and_manifest(
+        Path(folder), str(fmt.tensors_file), tensors, fmt.manifest_file, manifest, indent=indent, metadata=metadata
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -201,8 +220,9 @@ def _check_specs(raw: Mapping[str, Any], path: Path, fmt: ManifestFormat) -> Non
         if fmt.specs == "shape_dtype" and not (
             isinstance(entry, dict) and isinstance(entry.get("shape"), list) and isinstance(entry.get("dtype"), str)
         ):
-            raise AssetError(path, f"tensors[{name!r}] must be an object with a 'shape' list and a 'dtype' string, "
-                                   f"got {entry!r}")  # fmt: skip
+            raise AssetError(
+                path, f"tensors[{name!r}] must be an object with a 'shape' list and a 'dtype' string, got {entry!r}"
+            )
         if fmt.specs == "shape" and not isinstance(entry, list):
             raise AssetError(path, f"tensors[{name!r}] must be a shape list, got {entry!r}")
 
@@ -278,8 +298,9 @@ def read_checked_tensors(tpath: Path, manifest: Mapping[str, Any], manifest_path
     except OSError as exc:
         raise AssetError(tpath, f"cannot read file ({exc})") from exc
     if hashlib.sha256(blob).hexdigest() != want:
-        raise AssetError(tpath, f"sha256 does not match {manifest_path.name} (torn write or files from different "
-                                "checkpoints)")  # fmt: skip
+        raise AssetError(
+            tpath, f"sha256 does not match {manifest_path.name} (torn write or files from different checkpoints)"
+        )
     try:
         return st_load(blob)
     except Exception as exc:  # safetensors raises its own error types on corrupt headers
@@ -291,14 +312,18 @@ def _check_listed(tensors: Mapping[str, Tensor], raw: Mapping[str, Any], tpath: 
     listed = raw["tensors"]
     missing, unexpected = sorted(set(listed) - set(tensors)), sorted(set(tensors) - set(listed))
     if missing or unexpected:
-        raise AssetError(tpath, f"tensors {missing} listed in {fmt.manifest_file} are missing, "
-                                f"tensors {unexpected} are not listed there")  # fmt: skip
+        raise AssetError(
+            tpath,
+            f"tensors {missing} listed in {fmt.manifest_file} are missing, tensors {unexpected} are not listed there",
+        )
     for name, t in tensors.items():
         spec = listed[name]
         shape, dtype = (spec.get("shape"), spec.get("dtype")) if fmt.specs == "shape_dtype" else (spec, None)
         if list(t.shape) != shape or (dtype is not None and dtype_name(t.dtype) != dtype):
-            raise AssetError(tpath, f"tensor {name!r} has shape {tuple(t.shape)} {dtype_name(t.dtype)}, "
-                                    f"{fmt.manifest_file} says {spec}")  # fmt: skip
+            raise AssetError(
+                tpath,
+                f"tensor {name!r} has shape {tuple(t.shape)} {dtype_name(t.dtype)}, {fmt.manifest_file} says {spec}",
+            )
 
 
 def read_tensors(

@@ -31,13 +31,7 @@ from hogsa_loader.loader.mixing import MixedLoader, num_synthetic
 from hogsa_loader.loader.online_poses import OnlinePoses
 from hogsa_loader.loader.plan import BatchPlan
 from hogsa_loader.loader.poses import PoseBatch, PoseContext, PoseSource, register_pose_source
-from hogsa_loader.loader.synth import (
-    SynthPipeline,
-    SynthStats,
-    frame_to_sample,
-    is_synthetic,
-    parse_synthetic_imgname,
-)
+from hogsa_loader.loader.synth import SynthPipeline, SynthStats, frame_to_sample, is_synthetic, parse_synthetic_imgname
 
 __all__ = [
     "BackgroundConfig",

@@ -45,7 +45,9 @@ class BankPoses:
             banks = [e.path for e in entries.values()]
         if not banks:
             where = getattr(context.bundle, "path", "the bundle")
-            raise AssetError(where, "poses='bank' needs a pose bank (pretrain/build_pose_bank.py, then build_bundle.py --pose-bank)")
+            raise AssetError(
+                where, "poses='bank' needs a pose bank (pretrain/build_pose_bank.py, then build_bundle.py --pose-bank)"
+            )
         rows: dict[tuple[str, str], list[dict[str, np.ndarray]]] = {}
         prov: dict[tuple[str, str], list[dict[str, Any]]] = {}
         for path in banks:
@@ -60,11 +62,20 @@ class BankPoses:
                 row["obj_rot"] = t["obj_rot"][i].double().numpy()
                 row["obj_trans"] = t["obj_trans"][i].double().numpy()
                 rows.setdefault(key, []).append(row)
-                prov.setdefault(key, []).append({"pose_source": "bank", "bank": str(path), "row": i,
-                                                 "sequence": f"{sid}/{seq}", "frame": int(frame)})  # fmt: skip
+                prov.setdefault(key, []).append(
+                    {
+                        "pose_source": "bank",
+                        "bank": str(path),
+                        "row": i,
+                        "sequence": f"{sid}/{seq}",
+                        "frame": int(frame),
+                    }
+                )
         missing = [k for k in context.keys if k not in rows]
         if missing:
-            raise AssetError(banks[0], f"pose banks have no accepted grasp for (subject, object) {missing}; have {sorted(rows)}")
+            raise AssetError(
+                banks[0], f"pose banks have no accepted grasp for (subject, object) {missing}; have {sorted(rows)}"
+            )
         self.rows, self.prov = rows, prov
 
     @property

@@ -166,12 +166,21 @@ class CameraSampler:
         dist = np.linalg.norm(rel, axis=1)
         elev = np.degrees(np.arcsin(np.clip(rel @ self.up / np.maximum(dist, 1e-9), -1, 1)))
         m = config.elevation_margin_deg
-        self.elevation = tuple(config.elevation_deg) if config.elevation_deg is not None else (
-            float(max(-89.0, elev.min() - m)), float(min(89.0, elev.max() + m)))
-        self.distance = tuple(config.distance_m) if config.distance_m is not None else (
-            float(dist.min() * 0.9), float(dist.max() * 1.1))
-        self.focal = float(config.focal_px) if config.focal_px is not None else float(
-            np.median(np.concatenate([self.K[:, 0, 0], self.K[:, 1, 1]])))
+        self.elevation = (
+            tuple(config.elevation_deg)
+            if config.elevation_deg is not None
+            else (float(max(-89.0, elev.min() - m)), float(min(89.0, elev.max() + m)))
+        )
+        self.distance = (
+            tuple(config.distance_m)
+            if config.distance_m is not None
+            else (float(dist.min() * 0.9), float(dist.max() * 1.1))
+        )
+        self.focal = (
+            float(config.focal_px)
+            if config.focal_px is not None
+            else float(np.median(np.concatenate([self.K[:, 0, 0], self.K[:, 1, 1]])))
+        )
         if config.image_size is not None:
             self.image_wh = (int(config.image_size[0]), int(config.image_size[1]))
         else:
@@ -208,8 +217,10 @@ class CameraSampler:
         el = np.arcsin(s0 + u[:, 1] * (s1 - s0))
         d = self.distance[0] + u[:, 2] * (self.distance[1] - self.distance[0])
         roll = np.radians((2 * u[:, 3] - 1) * cfg.roll_deg)
-        dirs = (np.cos(el)[:, None] * (np.cos(az)[:, None] * self.e1 + np.sin(az)[:, None] * self.e2)
-                + np.sin(el)[:, None] * self.up)
+        dirs = (
+            np.cos(el)[:, None] * (np.cos(az)[:, None] * self.e1 + np.sin(az)[:, None] * self.e2)
+            + np.sin(el)[:, None] * self.up
+        )
         target = centres + jitter
         w2c = look_at(target + d[:, None] * dirs, target, self.up, roll)
         K = np.broadcast_to(self.virtual_K(), (B, 3, 3)).copy()

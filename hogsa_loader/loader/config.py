@@ -46,14 +46,24 @@ class BackgroundConfig:
 
     coco_root: Optional[str] = field(default=None, metadata={"help": "COCO folder for backgrounds"})
     coco_ann: Optional[str] = field(default=None, metadata={"help": "COCO instances json (default under --coco-root)"})
-    folder: Optional[str] = field(default=None, metadata={"help": "plain image folder for backgrounds",
-                                                          "name": "background_folder"})
-    categories: Optional[tuple[str, ...]] = field(default=None, metadata={
-        "help": "COCO categories for backgrounds (names, or one comma-separated list)", "recorded": _comma_joined})
-    exclude_person: bool = field(default=False, metadata={
-        "help": "no COCO background showing people (their hands would be unlabelled hands)", **_IF_SET})
-    image_dir: Optional[str] = field(default=None, metadata={"help": "COCO image folder (default under --coco-root)",
-                                                             "name": "coco_image_dir", **_IF_SET})
+    folder: Optional[str] = field(
+        default=None, metadata={"help": "plain image folder for backgrounds", "name": "background_folder"}
+    )
+    categories: Optional[tuple[str, ...]] = field(
+        default=None,
+        metadata={
+            "help": "COCO categories for backgrounds (names, or one comma-separated list)",
+            "recorded": _comma_joined,
+        },
+    )
+    exclude_person: bool = field(
+        default=False,
+        metadata={"help": "no COCO background showing people (their hands would be unlabelled hands)", **_IF_SET},
+    )
+    image_dir: Optional[str] = field(
+        default=None,
+        metadata={"help": "COCO image folder (default under --coco-root)", "name": "coco_image_dir", **_IF_SET},
+    )
 
     def __post_init__(self) -> None:
         if self.categories is not None:
@@ -69,11 +79,24 @@ class BackgroundConfig:
 class PoseConfig:
     """Where the poses come from: a registered pose source and its options."""
 
-    kind: str = field(default="perturb", metadata={
-        "help": "pose source: perturb (annotated grasps perturbed), bank (the bundle's pose banks), online (POM "
-                "per render batch)", "name": "poses", "choices": ("perturb", "bank", "online")})
-    options: Mapping[str, Any] = field(default_factory=dict, metadata={
-        "help": "keyword arguments of the pose-source factory", "name": "pose_options", "cli": False, **_IF_SET})
+    kind: str = field(
+        default="perturb",
+        metadata={
+            "help": "pose source: perturb (annotated grasps perturbed), bank (the bundle's pose banks), online (POM "
+            "per render batch)",
+            "name": "poses",
+            "choices": ("perturb", "bank", "online"),
+        },
+    )
+    options: Mapping[str, Any] = field(
+        default_factory=dict,
+        metadata={
+            "help": "keyword arguments of the pose-source factory",
+            "name": "pose_options",
+            "cli": False,
+            **_IF_SET,
+        },
+    )
 
 
 @dataclass(frozen=True)
@@ -81,9 +104,14 @@ class RefinementConfig:
     """Refinement of the renders by the bundle's SRM."""
 
     srm: bool = field(default=False, metadata={"help": "apply the bundle's SRM (scale-1 models only)"})
-    srm_tta: int = field(default=1, metadata={
-        "help": "with --srm: test-time augmentation (symmetric copies averaged; 8x the SRM cost at 8)",
-        "choices": SRM_TTA_CHOICES, **_IF_SET})
+    srm_tta: int = field(
+        default=1,
+        metadata={
+            "help": "with --srm: test-time augmentation (symmetric copies averaged; 8x the SRM cost at 8)",
+            "choices": SRM_TTA_CHOICES,
+            **_IF_SET,
+        },
+    )
 
     def __post_init__(self) -> None:
         if isinstance(self.srm_tta, bool) or self.srm_tta not in SRM_TTA_CHOICES:
@@ -96,20 +124,38 @@ class RefinementConfig:
 class SampleConfig:
     """What a sample looks like: protocol, crop, augmentation, extra targets."""
 
-    protocol: str = field(default="p1", metadata={
-        "help": "p1 (allocentric: novel + dataset cameras, ARCTIC crops) or p2 (egocentric: the subject's head "
-                "camera, whole frame)", "choices": ("p1", "p2"), **_IF_SET})
+    protocol: str = field(
+        default="p1",
+        metadata={
+            "help": "p1 (allocentric: novel + dataset cameras, ARCTIC crops) or p2 (egocentric: the subject's head "
+            "camera, whole frame)",
+            "choices": ("p1", "p2"),
+            **_IF_SET,
+        },
+    )
     split: str = field(default="train", metadata={"help": "split whose sequences the pose source may use", **_IF_SET})
-    augment: bool = field(default=True, metadata={
-        "help": "ARCTIC training augmentation (rotation, scale, colour noise)", **_IF_SET})
-    render_size: Optional[int] = field(default=None, metadata={
-        "help": "side of the rendered crop (default 1.5 x img_res)", "type": "positive_int"})
+    augment: bool = field(
+        default=True, metadata={"help": "ARCTIC training augmentation (rotation, scale, colour noise)", **_IF_SET}
+    )
+    render_size: Optional[int] = field(
+        default=None, metadata={"help": "side of the rendered crop (default 1.5 x img_res)", "type": "positive_int"}
+    )
     arctic: ArcticConfig = field(default_factory=ArcticConfig, metadata={"cli": False, **_IF_SET})
-    interfield: Union[bool, float] = field(default=False, metadata={
-        "help": "also make the InterField-SF targets (dist.*/idx.*/object.v_len); in Python a float is the clamp "
-                "in metres", "cli_type": bool})
-    ego_distortion: bool = field(default=True, metadata={
-        "help": "p2: pass the pixels through the egocentric lens distortion (labels stay undistorted)", **_IF_SET})
+    interfield: Union[bool, float] = field(
+        default=False,
+        metadata={
+            "help": "also make the InterField-SF targets (dist.*/idx.*/object.v_len); in Python a float is the clamp "
+            "in metres",
+            "cli_type": bool,
+        },
+    )
+    ego_distortion: bool = field(
+        default=True,
+        metadata={
+            "help": "p2: pass the pixels through the egocentric lens distortion (labels stay undistorted)",
+            **_IF_SET,
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.protocol not in ("p1", "p2"):
@@ -146,20 +192,28 @@ class SampleChecks:
 class RunConfig:
     """Where and how much: device, render batch, seed, epoch, models."""
 
-    device: str = field(default="cpu", metadata={
-        "help": "cpu or cuda (cuda:LOCAL_RANK under torchrun)", "type": "torch_device", "record": "never"})
-    batch_size: int = field(default=8, metadata={
-        "help": "render batch (samples per render call, one model per batch)", "type": "positive_int"})
+    device: str = field(
+        default="cpu",
+        metadata={"help": "cpu or cuda (cuda:LOCAL_RANK under torchrun)", "type": "torch_device", "record": "never"},
+    )
+    batch_size: int = field(
+        default=8,
+        metadata={"help": "render batch (samples per render call, one model per batch)", "type": "positive_int"},
+    )
     seed: int = field(default=0, metadata={"help": "base seed of every random draw"})
     epoch: int = field(default=0, metadata={"help": "initial epoch (set_epoch)", "type": "non_negative_int"})
-    num_samples: Optional[int] = field(default=None, metadata={
-        "help": "samples per epoch (None: endless)", "cli": False, "record": "never"})
-    backend: str = field(default="auto", metadata={
-        "help": "renderer backend", "choices": ("auto", "torch", "gsplat"), **_IF_SET})
-    subjects: Optional[tuple[str, ...]] = field(default=None, metadata={
-        "help": "restrict the models to these subjects", **_IF_SET})
-    objects: Optional[tuple[str, ...]] = field(default=None, metadata={
-        "help": "restrict the models to these objects", **_IF_SET})
+    num_samples: Optional[int] = field(
+        default=None, metadata={"help": "samples per epoch (None: endless)", "cli": False, "record": "never"}
+    )
+    backend: str = field(
+        default="auto", metadata={"help": "renderer backend", "choices": ("auto", "torch", "gsplat"), **_IF_SET}
+    )
+    subjects: Optional[tuple[str, ...]] = field(
+        default=None, metadata={"help": "restrict the models to these subjects", **_IF_SET}
+    )
+    objects: Optional[tuple[str, ...]] = field(
+        default=None, metadata={"help": "restrict the models to these objects", **_IF_SET}
+    )
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:

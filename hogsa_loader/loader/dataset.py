@@ -155,15 +155,18 @@ class HOGSADataset(IterableDataset):
         self.cfg = replace(sample.arctic, ego_image_scale=float(self.root.world_meta().ego_image_scale))
         self.render_size = int(sample.render_size) if sample.render_size else int(round(1.5 * self.cfg.img_res))
         self.views = tuple(protocol_views(sample.protocol))
-        self.backgrounds = backgrounds if backgrounds is not None else make_backgrounds(
-            **config.backgrounds.make_kwargs())
+        self.backgrounds = (
+            backgrounds if backgrounds is not None else make_backgrounds(**config.backgrounds.make_kwargs())
+        )
         self.refiner = refiner
         self._check_srm()
         self._epoch = torch.zeros((), dtype=torch.int64).share_memory_()  # seen by (persistent) workers
         self.epoch = config.run.epoch
         self.stats = SynthStats()
         # DataLoader workers' statistics: row = worker id (a worker adds what it counted since it last did)
-        self._worker_stats = torch.zeros(MAX_WORKER_ROWS, len(SynthStats().to_vector()), dtype=torch.float64).share_memory_()
+        self._worker_stats = torch.zeros(
+            MAX_WORKER_ROWS, len(SynthStats().to_vector()), dtype=torch.float64
+        ).share_memory_()
         self._published: Optional[tuple[int, np.ndarray]] = None  # (pid, stats vector already added)
         self._pipe: Optional[SynthPipeline] = None
         # pose source built eagerly (cheap) so bad configurations fail at construction
@@ -221,17 +224,24 @@ class HOGSADataset(IterableDataset):
             raise ValueError(f"srm=True but bundle {self.bundle.path} has no SRM checkpoint")
         scale = read_srm_manifest(self.bundle.srm.path)["io"].get("scale", 1)
         if scale != 1:
-            raise AssetError(self.bundle.srm.path / SRM_MANIFEST,
-                             f"the SRM outputs {scale}x its input size; the loader composites at the render "
-                             "size and needs a scale-1 SRM")  # fmt: skip
+            raise AssetError(
+                self.bundle.srm.path / SRM_MANIFEST,
+                f"the SRM outputs {scale}x its input size; the loader composites at the render "
+                "size and needs a scale-1 SRM",
+            )
 
     def _requested_keys(self) -> list[tuple[str, str]]:
         """The bundle's models allowed by ``config.run.subjects`` / ``objects``."""
         subjects, objects = self.config.run.subjects, self.config.run.objects
-        keys = [k for k in self.bundle.keys
-                if (subjects is None or k[0] in subjects) and (objects is None or k[1] in objects)]
+        keys = [
+            k
+            for k in self.bundle.keys
+            if (subjects is None or k[0] in subjects) and (objects is None or k[1] in objects)
+        ]
         if not keys:
-            raise ValueError(f"no HOGS model left for subjects={subjects} objects={objects}; bundle has {self.bundle.keys}")
+            raise ValueError(
+                f"no HOGS model left for subjects={subjects} objects={objects}; bundle has {self.bundle.keys}"
+            )
         return keys
 
     def _pose_keys(self, keys: list[tuple[str, str]], poses: Optional[PoseSource]) -> list[tuple[str, str]]:
@@ -240,14 +250,17 @@ class HOGSADataset(IterableDataset):
         have = getattr(src, "keys", keys)
         usable = [k for k in keys if k in have]
         if not usable:
-            raise ValueError(f"pose source {getattr(src, 'name', src)!r} has no poses for the bundle's models {keys} "
-                             f"in {self.protocol} {self.split}")
+            raise ValueError(
+                f"pose source {getattr(src, 'name', src)!r} has no poses for the bundle's models {keys} "
+                f"in {self.protocol} {self.split}"
+            )
         self._pose_source = src
         return usable
 
     def _pose_context(self, keys: list[tuple[str, str]]) -> PoseContext:
-        return PoseContext(root=self.root, keys=keys, protocol=self.protocol, split=self.split,
-                           bundle=self.bundle, device=self.device)
+        return PoseContext(
+            root=self.root, keys=keys, protocol=self.protocol, split=self.split, bundle=self.bundle, device=self.device
+        )
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -278,12 +291,21 @@ class HOGSADataset(IterableDataset):
             templates = self.root.object_templates()
             sample = self.config.sample
             self._pipe = SynthPipeline(
-                self.root, lambda key: self.bundle.load_hogs(key, layers, templates, dev), self._pose_source,
-                self._cameras(), self.backgrounds, self.render_size, device=dev, refiner=self._refiner(dev),
-                checks=self.checks, stats=self.stats, backend=self.config.run.backend,
-                interfield=interfield_targets(self.root, sample.interfield), protocol=sample.protocol,
+                self.root,
+                lambda key: self.bundle.load_hogs(key, layers, templates, dev),
+                self._pose_source,
+                self._cameras(),
+                self.backgrounds,
+                self.render_size,
+                device=dev,
+                refiner=self._refiner(dev),
+                checks=self.checks,
+                stats=self.stats,
+                backend=self.config.run.backend,
+                interfield=interfield_targets(self.root, sample.interfield),
+                protocol=sample.protocol,
                 ego_distortion=sample.ego_distortion,
-            )  # fmt: skip
+            )
         self._pipe.stats = self.stats
         return self._pipe
 
@@ -298,9 +320,13 @@ class HOGSADataset(IterableDataset):
             views = [v for v in self.views if v >= 1]
             ref = np.mean([s.object.trans.mean(0) for s in self._sequences_of(sid)], axis=0)
             cams[sid] = CameraSampler(
-                misc.world2cam[[v - 1 for v in views]], misc.intris_mat[[v - 1 for v in views]],
-                misc.image_size[views], views, ref, self.config.cameras,
-            )  # fmt: skip
+                misc.world2cam[[v - 1 for v in views]],
+                misc.intris_mat[[v - 1 for v in views]],
+                misc.image_size[views],
+                views,
+                ref,
+                self.config.cameras,
+            )
         return cams
 
     def _refiner(self, dev: torch.device) -> Optional[Refiner]:
@@ -313,8 +339,10 @@ class HOGSADataset(IterableDataset):
         def refine(rgb: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
             out = model.refine(rgb, alpha, tta=tta)
             if out.shape != rgb.shape:
-                raise ValueError(f"the bundle's SRM changes the image size {tuple(rgb.shape)} -> {tuple(out.shape)}; "
-                                 "the loader composites at the render size (use a scale-1 SRM)")
+                raise ValueError(
+                    f"the bundle's SRM changes the image size {tuple(rgb.shape)} -> {tuple(out.shape)}; "
+                    "the loader composites at the render size (use a scale-1 SRM)"
+                )
             return out
 
         return refine
@@ -470,9 +498,13 @@ class HOGSADataset(IterableDataset):
 
 def _refuse_overrides(config: LoaderConfig, backgrounds: Any, poses: Any, refiner: Any) -> None:
     """An explicit object replaces its config group: refuse non-default settings of that group beside it."""
-    for arg, obj, field in (("backgrounds", backgrounds, "backgrounds"), ("poses", poses, "poses"),
-                            ("refiner", refiner, "refinement")):
+    for arg, obj, field in (
+        ("backgrounds", backgrounds, "backgrounds"),
+        ("poses", poses, "poses"),
+        ("refiner", refiner, "refinement"),
+    ):
         group = getattr(config, field)
         if obj is not None and not is_default(group):
-            raise ValueError(f"{arg}= is given together with non-default config.{field} settings ({group}); "
-                             "give one of the two")
+            raise ValueError(
+                f"{arg}= is given together with non-default config.{field} settings ({group}); give one of the two"
+            )

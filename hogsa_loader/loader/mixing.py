@@ -132,8 +132,9 @@ class MixedLoader:
         if mode == "add" and not float(ratio) < 1.0:
             raise ValueError("mode='add' needs ratio < 1 (real samples in every batch)")
         if hasattr(real_loader, "batch_sampler") and real_loader.batch_sampler is None:
-            raise ValueError("the real loader yields single samples (batch_size=None); MixedLoader needs "
-                             "collated batches")
+            raise ValueError(
+                "the real loader yields single samples (batch_size=None); MixedLoader needs collated batches"
+            )
         self.mode = mode
         self.real_loader = real_loader
         self.synthetic = synthetic
@@ -162,8 +163,10 @@ class MixedLoader:
         elif hasattr(getattr(self.real_loader, "dataset", None), "__len__"):  # e.g. a sized IterableDataset
             n = len(self.real_loader.dataset)  # type: ignore[attr-defined]
         else:
-            raise TypeError(f"length unknown: the real loader ({type(self.real_loader).__name__}) has neither a "
-                            "sized sampler nor a sized dataset")
+            raise TypeError(
+                f"length unknown: the real loader ({type(self.real_loader).__name__}) has neither a "
+                "sized sampler nor a sized dataset"
+            )
         return (n // size) * size if drop and size else n
 
     def __len__(self) -> int:

@@ -73,8 +73,11 @@ class OnlinePoses:
             entry = getattr(context.bundle, "contactnet", None)
             if entry is None:
                 where = getattr(context.bundle, "path", "the bundle")
-                raise AssetError(where, "poses='online' needs a ContactNet (pretrain/train_contactnet.py, then "
-                                        "build_bundle.py --contactnet)")
+                raise AssetError(
+                    where,
+                    "poses='online' needs a ContactNet (pretrain/train_contactnet.py, then "
+                    "build_bundle.py --contactnet)",
+                )
             contactnet = entry.path
         self.device = torch.device(context.device)
         self.net = load_contactnet(contactnet, self.device)
@@ -85,8 +88,9 @@ class OnlinePoses:
         allowed = set(split_sequences(context.root, context.protocol, context.split))
         self.frames: dict[tuple[str, str], Any] = {}
         for sid, obj in context.keys:
-            seqs = [s for s in context.root.sequences(sid)
-                    if s in allowed and s.split("/", 1)[1].split("_", 1)[0] == obj]
+            seqs = [
+                s for s in context.root.sequences(sid) if s in allowed and s.split("/", 1)[1].split("_", 1)[0] == obj
+            ]
             if not seqs:
                 continue
             fr = contact_frames(context.root, seqs, self.infos, self.objects, threshold=contact_threshold)
@@ -94,8 +98,10 @@ class OnlinePoses:
                 self.frames[(sid, obj)] = fr
         missing = [k for k in context.keys if k not in self.frames]
         if missing and not self.frames:
-            raise AssetError(context.root.data_root, f"no contact frames for (subject, object) {missing} in "
-                                                     f"{context.protocol} {context.split}")
+            raise AssetError(
+                context.root.data_root,
+                f"no contact frames for (subject, object) {missing} in {context.protocol} {context.split}",
+            )
 
     @property
     def keys(self) -> list[tuple[str, str]]:
@@ -111,8 +117,16 @@ class OnlinePoses:
         prov = []
         for r, s in zip(rows, seeds):
             sid, seq, frame = fr.sources[r]
-            prov.append({"pose_source": self.name, "sequence": f"{sid}/{seq}", "frame": int(frame), "row": r,
-                         "pom_seed": s, "pom_iters": self.config.iters})
+            prov.append(
+                {
+                    "pose_source": self.name,
+                    "sequence": f"{sid}/{seq}",
+                    "frame": int(frame),
+                    "row": r,
+                    "pom_seed": s,
+                    "pom_iters": self.config.iters,
+                }
+            )
         return PoseBatch(_poses(fr.state.select(rows)), prov)
 
     def optimize(self, key: tuple[str, str], batch: PoseBatch) -> PoseBatch:
@@ -120,15 +134,23 @@ class OnlinePoses:
         fr = self.frames[key]
         rows = [int(p["row"]) for p in batch.provenance]
         ref = fr.state.select(rows)
-        starts = [perturb(ref.select([b]), self.infos, self.objects,
-                          torch.Generator().manual_seed(int(p["pom_seed"])), self.perturb_config)[0]
-                  for b, p in enumerate(batch.provenance)]  # fmt: skip
+        starts = [
+            perturb(
+                ref.select([b]),
+                self.infos,
+                self.objects,
+                torch.Generator().manual_seed(int(p["pom_seed"])),
+                self.perturb_config,
+            )[0]
+            for b, p in enumerate(batch.provenance)
+        ]
         start = GraspState.cat(starts).map(lambda t: t.to(self.device))
         ref_d = ref.map(lambda t: t.to(self.device))
         active = {s: a[torch.as_tensor(rows)].to(self.device) for s, a in fr.active.items()}
         gen = torch.Generator().manual_seed(int(batch.provenance[0]["pom_seed"]) % (2**31))
-        res = optimise_grasps(start, self.infos, self.objects, self.net, self.config, reference=ref_d, active=active,
-                              generator=gen)
+        res = optimise_grasps(
+            start, self.infos, self.objects, self.net, self.config, reference=ref_d, active=active, generator=gen
+        )
         prov = [dict(p) for p in batch.provenance]
         for b, ok in enumerate(res.keep.cpu().tolist()):
             if not ok:
@@ -138,7 +160,9 @@ class OnlinePoses:
 
 def _poses(state: Any) -> dict[str, torch.Tensor]:
     """A :class:`~hogsa_loader.pom.state.GraspState` as loader pose tensors (float64, CPU)."""
-    out = {f"{s}_{k}": getattr(state.hands[s], k).detach().cpu().double() for s in ("right", "left") for k in _HAND_KEYS}
+    out = {
+        f"{s}_{k}": getattr(state.hands[s], k).detach().cpu().double() for s in ("right", "left") for k in _HAND_KEYS
+    }
     out["obj_arti"] = state.obj_arti.detach().cpu().double().reshape(-1, 1)
     out["obj_rot"] = state.obj_rot.detach().cpu().double()
     out["obj_trans"] = state.obj_trans.detach().cpu().double()

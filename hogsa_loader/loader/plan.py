@@ -14,8 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["STREAMS", "STREAM_AUG", "BATCH_ORDER_STREAM", "SHARD_ORDER_STREAM", "sample_rng", "batch_order",
-           "shard_order", "BatchPlan"]
+__all__ = [
+    "STREAMS",
+    "STREAM_AUG",
+    "BATCH_ORDER_STREAM",
+    "SHARD_ORDER_STREAM",
+    "sample_rng",
+    "batch_order",
+    "shard_order",
+    "BatchPlan",
+]
 
 #: The random streams of one sample: name → last entry of its seed sequence.
 STREAMS: dict[str, int] = {"pose": 0, "camera": 1, "background": 2, "augment": 3}

@@ -31,12 +31,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.compose import composite
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, CROPPED_SIZE, EGO_IMAGE_SCALE
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from hogsa_loader.compose import composite
 from hogsa_loader.loader.cameras import CameraSampler
 from hogsa_loader.loader.config import SampleChecks
 from hogsa_loader.loader.frame import SynthFrame
@@ -94,11 +94,17 @@ def parse_synthetic_imgname(imgname: str) -> dict[str, Any]:
     """Inverse of :func:`synthetic_imgname`: ``{"subject", "object", "seed", "epoch", "view", "index"}``."""
     if not is_synthetic(imgname):
         raise ValueError(f"not a synthetic image name: {imgname!r}")
-    sid, seq, view, fname = imgname[len(SYNTH_PREFIX):].split("/")
+    sid, seq, view, fname = imgname[len(SYNTH_PREFIX) :].split("/")
     obj, _, tag = seq.rpartition("_synth_")
     seed, _, epoch = tag[1:].partition("e")
-    return {"subject": sid, "object": obj, "seed": int(seed), "epoch": int(epoch), "view": int(view),
-            "index": int(fname.split(".")[0])}
+    return {
+        "subject": sid,
+        "object": obj,
+        "seed": int(seed),
+        "epoch": int(epoch),
+        "view": int(view),
+        "index": int(fname.split(".")[0]),
+    }
 
 
 @dataclass
@@ -134,22 +140,34 @@ class SynthStats:
         under the last one) and the seconds by stage (:data:`STAGES` order)."""
         drops = [float(self.dropped.get(r, 0)) for r in DROP_REASONS]
         drops[-1] += float(sum(v for k, v in self.dropped.items() if k not in DROP_REASONS))
-        return np.array([self.attempted, self.kept, self.batches, *drops,
-                         *(self.seconds.get(st, 0.0) for st in STAGES)], dtype=np.float64)  # fmt: skip
+        return np.array(
+            [self.attempted, self.kept, self.batches, *drops, *(self.seconds.get(st, 0.0) for st in STAGES)],
+            dtype=np.float64,
+        )
 
     @classmethod
     def from_vector(cls, v: Any) -> "SynthStats":
         """Inverse of :meth:`to_vector`."""
         v = np.asarray(v, dtype=np.float64)
         nd = len(DROP_REASONS)
-        return cls(attempted=int(round(v[0])), kept=int(round(v[1])), batches=int(round(v[2])),
-                   dropped={r: int(round(x)) for r, x in zip(DROP_REASONS, v[3 : 3 + nd])},
-                   seconds={st: float(x) for st, x in zip(STAGES, v[3 + nd :])})  # fmt: skip
+        return cls(
+            attempted=int(round(v[0])),
+            kept=int(round(v[1])),
+            batches=int(round(v[2])),
+            dropped={r: int(round(x)) for r, x in zip(DROP_REASONS, v[3 : 3 + nd])},
+            seconds={st: float(x) for st, x in zip(STAGES, v[3 + nd :])},
+        )
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-able copy."""
-        return {"attempted": self.attempted, "kept": self.kept, "dropped": dict(self.dropped),
-                "num_dropped": self.num_dropped, "seconds": dict(self.seconds), "batches": self.batches}
+        return {
+            "attempted": self.attempted,
+            "kept": self.kept,
+            "dropped": dict(self.dropped),
+            "num_dropped": self.num_dropped,
+            "seconds": dict(self.seconds),
+            "batches": self.batches,
+        }
 
     @contextmanager
     def timed(self, stage: str, device: Optional[torch.device] = None) -> Iterator[None]:
@@ -183,7 +201,7 @@ def joints_on_alpha(points: np.ndarray, alpha: np.ndarray, threshold: float = 0.
     out = np.zeros(len(pts), dtype=bool)
     for i, (x, y) in enumerate(pts):
         if 0 <= x < W and 0 <= y < H:
-            win = alpha[max(0, y - radius): y + radius + 1, max(0, x - radius): x + radius + 1]
+            win = alpha[max(0, y - radius) : y + radius + 1, max(0, x - radius) : x + radius + 1]
             out[i] = bool(win.max() > threshold)
     return out
 
@@ -206,9 +224,7 @@ def source_scale(frame: SynthFrame) -> float:
 
 
 def frame_to_sample(
-    frame: SynthFrame,
-    aug: AugParams,
-    cfg: ArcticConfig = ArcticConfig(),
+    frame: SynthFrame, aug: AugParams, cfg: ArcticConfig = ArcticConfig()
 ) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
     """ARCTIC's augmentation and targets of one synthetic frame (real samples' code path).
 
@@ -224,10 +240,21 @@ def frame_to_sample(
         synthetic image's pixel size (:func:`source_scale`), so both blur the patch alike.
     """
     inputs, targets, meta = make_arctic_sample(
-        image=frame.image, bbox=frame.bbox, K_full=frame.K_full, image_size=frame.image_size,
-        right=frame.right, left=frame.left, obj=frame.obj, egocentric=frame.egocentric, dist=frame.dist, aug=aug,
-        imgname=frame.imgname, query_name=frame.obj.name, cfg=cfg, source_scale=source_scale(frame),
-    )  # fmt: skip
+        image=frame.image,
+        bbox=frame.bbox,
+        K_full=frame.K_full,
+        image_size=frame.image_size,
+        right=frame.right,
+        left=frame.left,
+        obj=frame.obj,
+        egocentric=frame.egocentric,
+        dist=frame.dist,
+        aug=aug,
+        imgname=frame.imgname,
+        query_name=frame.obj.name,
+        cfg=cfg,
+        source_scale=source_scale(frame),
+    )
     targets.update(frame.extra_targets)
     return inputs, targets, meta
 
@@ -330,8 +357,9 @@ class SynthPipeline:
         self.last_backend: Optional[str] = None  # the renderer "auto" resolved to, at the last render
         self.layers = root.mano_layers(torch.float64)
         self.object_layer = root.object_layer()
-        self.kp_bottom = {n: np.asarray(t.kp_bottom, dtype=np.float32)
-                          for n, t in root.object_templates(load_texture=False).items()}
+        self.kp_bottom = {
+            n: np.asarray(t.kp_bottom, dtype=np.float32) for n, t in root.object_templates(load_texture=False).items()
+        }
         wm = root.world_meta()  # the real images' sizes, for the source blur (source_scale)
         self.source_sizes = {"cropped_size": int(wm.cropped_size), "ego_image_scale": float(wm.ego_image_scale)}
 
@@ -394,13 +422,21 @@ class SynthPipeline:
         hand_verts: dict[str, Tensor] = {}
         with torch.no_grad():
             for side in ("right", "left"):
-                res = self.layers[side](global_orient=P[f"{side}_rot"], hand_pose=P[f"{side}_pose"],
-                                        betas=P[f"{side}_betas"], transl=P[f"{side}_trans"])
+                res = self.layers[side](
+                    global_orient=P[f"{side}_rot"],
+                    hand_pose=P[f"{side}_pose"],
+                    betas=P[f"{side}_betas"],
+                    transl=P[f"{side}_trans"],
+                )
                 out[f"joints.{side}"] = res.joints.double().numpy()
                 hand_verts[side] = res.vertices
             B = len(batch)
-            res = self.object_layer(angles=P["obj_arti"].reshape(B, 1), global_orient=P["obj_rot"],
-                                    transl=P["obj_trans"], names=[key[1]] * B)
+            res = self.object_layer(
+                angles=P["obj_arti"].reshape(B, 1),
+                global_orient=P["obj_rot"],
+                transl=P["obj_trans"],
+                names=[key[1]] * B,
+            )
         out["kp3d"] = res["kp3d"].double().numpy()
         out["bbox3d"] = res["bbox3d"].double().numpy()
         out["verts"] = res["v"].double().numpy()
@@ -419,8 +455,10 @@ class SynthPipeline:
             else:
                 vg = allocentric_views(cams, posed.geo, cam_rngs, S)
             R_w2c = torch.as_tensor(vg.world2cam[:, :3, :3])
-            rot_cam = {side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
-                       for side in ("right", "left")}
+            rot_cam = {
+                side: matrix_to_axis_angle(R_w2c @ axis_angle_to_matrix(batch.poses[f"{side}_rot"])).numpy()
+                for side in ("right", "left")
+            }
             min_z = np.minimum.reduce([vg.cam[k][..., 2].min(1) for k in ("verts", "joints.right", "joints.left")])
             finite = np.isfinite(min_z)  # (a NaN pose would otherwise fail the depth test as "behind")
             front = finite & (min_z > self.checks.near_m)
@@ -482,8 +520,9 @@ class SynthPipeline:
                 rgb_finite=torch.isfinite(rgb.reshape(len(viewed.keep), -1)).all(1).cpu().numpy(),
             )
 
-    def _labels(self, plan: BatchPlan, b: int, posed: _Posed,
-                viewed: _Viewed) -> tuple[HandLabels, HandLabels, ObjectLabels]:
+    def _labels(
+        self, plan: BatchPlan, b: int, posed: _Posed, viewed: _Viewed
+    ) -> tuple[HandLabels, HandLabels, ObjectLabels]:
         """Stage ``labels``: the camera-frame hand and object labels of sample ``b``."""
         is_valid, right_valid, left_valid = (float(f[b]) for f in viewed.vg.flags)
         P, cam, lab = posed.batch.poses, viewed.vg.cam, viewed.vg.label2d
@@ -499,18 +538,40 @@ class SynthPipeline:
 
         obj = plan.key[1]
         objl = ObjectLabels(
-            name=obj, radian=float(P["obj_arti"][b].reshape(-1)[0]),
-            kp3d_full=cam["kp3d"][b].astype(np.float32), bbox3d_full=cam["bbox3d"][b].astype(np.float32),
-            kp2d=lab["kp3d"][b], bbox2d=lab["bbox3d"][b], valid=is_valid, kp_bottom_cano=self.kp_bottom[obj],
-        )  # fmt: skip
+            name=obj,
+            radian=float(P["obj_arti"][b].reshape(-1)[0]),
+            kp3d_full=cam["kp3d"][b].astype(np.float32),
+            bbox3d_full=cam["bbox3d"][b].astype(np.float32),
+            kp2d=lab["kp3d"][b],
+            bbox2d=lab["bbox3d"][b],
+            valid=is_valid,
+            kp_bottom_cano=self.kp_bottom[obj],
+        )
         return hand("right", right_valid), hand("left", left_valid), objl
 
-    def _check(self, b: int, vg: ViewGeometry, labels: tuple[HandLabels, HandLabels, ObjectLabels],
-               alpha: np.ndarray, part_alpha: np.ndarray, rgb_finite: bool) -> Optional[str]:
+    def _check(
+        self,
+        b: int,
+        vg: ViewGeometry,
+        labels: tuple[HandLabels, HandLabels, ObjectLabels],
+        alpha: np.ndarray,
+        part_alpha: np.ndarray,
+        rgb_finite: bool,
+    ) -> Optional[str]:
         """Stage ``checks``: the drop reason of sample ``b`` (None: kept); alpha (S, S), part alpha (S, S, 3)."""
         right, left, objl = labels
-        if not rgb_finite or not _finite(right.pose48, left.pose48, right.j2d, left.j2d, right.j3d_full,
-                                         left.j3d_full, objl.kp2d, objl.bbox2d, objl.kp3d_full, objl.radian):
+        if not rgb_finite or not _finite(
+            right.pose48,
+            left.pose48,
+            right.j2d,
+            left.j2d,
+            right.j3d_full,
+            left.j3d_full,
+            objl.kp2d,
+            objl.bbox2d,
+            objl.kp3d_full,
+            objl.radian,
+        ):
             return "nan"
         c = self.checks
         if int((alpha > 0.5).sum()) < c.min_alpha_pixels or int((part_alpha[..., 2] > 0.5).sum()) < c.min_alpha_pixels:
@@ -533,8 +594,9 @@ class SynthPipeline:
                 return "label_pixel_mismatch"
         return None
 
-    def _frame(self, plan: BatchPlan, b: int, posed: _Posed, viewed: _Viewed, pixels: _Pixels,
-               j: int) -> Optional[SynthFrame]:
+    def _frame(
+        self, plan: BatchPlan, b: int, posed: _Posed, viewed: _Viewed, pixels: _Pixels, j: int
+    ) -> Optional[SynthFrame]:
         """Labels, checks and the :class:`SynthFrame` of sample ``b`` (``j``-th kept one); None: dropped."""
         vg = viewed.vg
         labels = self._labels(plan, b, posed, viewed)
@@ -546,22 +608,35 @@ class SynthPipeline:
         batch = posed.batch
         # the pose source's provenance first: the sample's own identity keys always win
         meta = {
-            **(batch.provenance[b] if batch.provenance else {}), **self.source_sizes,
-            "seed": plan.seed, "epoch": plan.epoch, "index": int(index), "subject": sid, "object": obj,
-            "view": view, "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
-        }  # fmt: skip
+            **(batch.provenance[b] if batch.provenance else {}),
+            **self.source_sizes,
+            "seed": plan.seed,
+            "epoch": plan.epoch,
+            "index": int(index),
+            "subject": sid,
+            "object": obj,
+            "view": view,
+            "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
+        }
         if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
             meta["dist"] = [float(x) for x in vg.dist[b]]  # type: ignore[index]
         right, left, objl = labels
         return SynthFrame(
-            image=pixels.images[j], alpha=pixels.alpha[j].astype(np.float32),
+            image=pixels.images[j],
+            alpha=pixels.alpha[j].astype(np.float32),
             part_alpha=pixels.parts[j].astype(np.float32),
-            bbox=np.asarray(vg.box_img[b], dtype=np.float64), K_full=np.asarray(vg.K_full[b], dtype=np.float64),
-            image_size=(int(vg.image_size[b, 0]), int(vg.image_size[b, 1])), right=right, left=left, obj=objl,
-            imgname=synthetic_imgname(sid, obj, plan.seed, plan.epoch, view, index), meta=meta,
-            egocentric=vg.egocentric, dist=None if vg.dist is None else np.asarray(vg.dist[b], dtype=np.float64),
-        )  # fmt: skip
+            bbox=np.asarray(vg.box_img[b], dtype=np.float64),
+            K_full=np.asarray(vg.K_full[b], dtype=np.float64),
+            image_size=(int(vg.image_size[b, 0]), int(vg.image_size[b, 1])),
+            right=right,
+            left=left,
+            obj=objl,
+            imgname=synthetic_imgname(sid, obj, plan.seed, plan.epoch, view, index),
+            meta=meta,
+            egocentric=vg.egocentric,
+            dist=None if vg.dist is None else np.asarray(vg.dist[b], dtype=np.float64),
+        )
 
     def _interfield(self, plan: BatchPlan, posed: _Posed, results: list[Optional[SynthFrame]]) -> None:
         """The InterField-SF targets of the kept frames, from the meshes posed in ``poses``."""
@@ -571,4 +646,5 @@ class SynthPipeline:
         n_o = int(self.object_layer.v_len[self.object_layer.indices([plan.key[1]])][0])
         for b in kept:
             results[b].extra_targets = self.interfield.from_vertices(  # type: ignore[union-attr]
-                posed.hand_verts["right"][b], posed.hand_verts["left"][b], posed.geo["verts"][b, :n_o])
+                posed.hand_verts["right"][b], posed.hand_verts["left"][b], posed.geo["verts"][b, :n_o]
+            )

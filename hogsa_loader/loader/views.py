@@ -88,8 +88,9 @@ class ViewGeometry:
     dist: Optional[np.ndarray] = None
 
 
-def allocentric_views(sampler: CameraSampler, geo: Mapping[str, np.ndarray], rngs: Sequence[np.random.Generator],
-                      size: int) -> ViewGeometry:
+def allocentric_views(
+    sampler: CameraSampler, geo: Mapping[str, np.ndarray], rngs: Sequence[np.random.Generator], size: int
+) -> ViewGeometry:
     """Allocentric cameras around the interaction centre and the ARCTIC crop of each (``p1``).
 
     Args:
@@ -107,11 +108,20 @@ def allocentric_views(sampler: CameraSampler, geo: Mapping[str, np.ndarray], rng
     crop2d = {k: full_to_cropped(v, box_full, size) for k, v in full2d.items()}
     lo, hi = size / 6.0, size - size / 6.0  # the ARCTIC box inside the 1.5x crop
     return ViewGeometry(
-        world2cam=cams.world2cam, K_full=cams.K, image_size=cams.image_size, view=cams.view, cam=cam,
-        label2d=crop2d, pix2d=crop2d, box_img=cropped_bbox(box_full, size), flags=flags,
-        K_render=render_intrinsics(cropped_intrinsics(cams.K, box_full, size)), render_hw=(size, size),
-        out_hw=(size, size), check_box=(lo, lo, hi, hi),
-    )  # fmt: skip
+        world2cam=cams.world2cam,
+        K_full=cams.K,
+        image_size=cams.image_size,
+        view=cams.view,
+        cam=cam,
+        label2d=crop2d,
+        pix2d=crop2d,
+        box_img=cropped_bbox(box_full, size),
+        flags=flags,
+        K_render=render_intrinsics(cropped_intrinsics(cams.K, box_full, size)),
+        render_hw=(size, size),
+        out_hw=(size, size),
+        check_box=(lo, lo, hi, hi),
+    )
 
 
 class EgoCameras:
@@ -135,7 +145,9 @@ class EgoCameras:
             raise ValueError("no egocentric camera in the subject's sequences (protocol p2 needs view 0)")
         self.names = sorted(self.tracks)
 
-    def pick(self, provenance: Mapping[str, Any], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    def pick(
+        self, provenance: Mapping[str, Any], rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
         """``(world2cam (4,4), K (3,3), dist (8,), (W, H))`` for one sample: the camera of the
         pose's source frame when known, else a random frame (drawn with ``rng``)."""
         name, frame = provenance.get("sequence"), provenance.get("frame")
@@ -146,8 +158,12 @@ class EgoCameras:
             f = int(rng.integers(track.world2cam.shape[0]))
         dist = np.zeros(8) if track.dist is None else np.asarray(track.dist, dtype=np.float64)
         dist = dist[f] if dist.ndim == 2 else dist
-        return (np.asarray(track.world2cam[f], dtype=np.float64), np.asarray(track.K[f], dtype=np.float64), dist,
-                (int(track.width), int(track.height)))
+        return (
+            np.asarray(track.world2cam[f], dtype=np.float64),
+            np.asarray(track.K[f], dtype=np.float64),
+            dist,
+            (int(track.width), int(track.height)),
+        )
 
 
 _MAP_CACHE: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
@@ -162,8 +178,14 @@ def _distortion_map(K: np.ndarray, dist: np.ndarray, w: int, h: int) -> tuple[np
     return _MAP_CACHE[key]
 
 
-def egocentric_views(ego: EgoCameras, geo: Mapping[str, np.ndarray], provenance: Sequence[Mapping[str, Any]],
-                     rngs: Sequence[np.random.Generator], size: int, distortion: bool = True) -> ViewGeometry:
+def egocentric_views(
+    ego: EgoCameras,
+    geo: Mapping[str, np.ndarray],
+    provenance: Sequence[Mapping[str, Any]],
+    rngs: Sequence[np.random.Generator],
+    size: int,
+    distortion: bool = True,
+) -> ViewGeometry:
     """The subject's egocentric camera and ARCTIC's whole-frame box (``p2``, see module docstring).
 
     Args:
@@ -208,16 +230,29 @@ def egocentric_views(ego: EgoCameras, geo: Mapping[str, np.ndarray], provenance:
         gy = np.stack([(my + pad_y) * 2.0 / (render_hw[0] - 1) - 1.0 for _, my in maps])
         warp = torch.as_tensor(np.stack([gx, gy], axis=-1), dtype=torch.float32)
     return ViewGeometry(
-        world2cam=w2c, K_full=K, image_size=sizes, view=np.zeros(len(picks), dtype=np.int64), cam=cam,
-        label2d=label2d, pix2d=pix2d, box_img=box_full * e, flags=flags, K_render=K_render, render_hw=render_hw,
-        out_hw=(h_out, w_out), warp=warp, check_box=(0.0, 0.0, w_out - 1.0, h_out - 1.0), egocentric=True,
+        world2cam=w2c,
+        K_full=K,
+        image_size=sizes,
+        view=np.zeros(len(picks), dtype=np.int64),
+        cam=cam,
+        label2d=label2d,
+        pix2d=pix2d,
+        box_img=box_full * e,
+        flags=flags,
+        K_render=K_render,
+        render_hw=render_hw,
+        out_hw=(h_out, w_out),
+        warp=warp,
+        check_box=(0.0, 0.0, w_out - 1.0, h_out - 1.0),
+        egocentric=True,
         dist=dist,
-    )  # fmt: skip
+    )
 
 
 def apply_warp(images: Tensor, warp: Tensor) -> Tensor:
     """Resample (B, H, W, C) renders through a (B, Ho, Wo, 2) ``grid_sample`` grid → (B, Ho, Wo, C)."""
     x = images.permute(0, 3, 1, 2)
-    out = torch.nn.functional.grid_sample(x, warp.to(device=x.device, dtype=x.dtype), mode="bilinear",
-                                          padding_mode="zeros", align_corners=True)
+    out = torch.nn.functional.grid_sample(
+        x, warp.to(device=x.device, dtype=x.dtype), mode="bilinear", padding_mode="zeros", align_corners=True
+    )
     return out.permute(0, 2, 3, 1)

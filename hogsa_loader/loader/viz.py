@@ -40,8 +40,9 @@ def _pt(p: np.ndarray) -> tuple[int, int]:
     return int(round(float(p[0]))), int(round(float(p[1])))
 
 
-def draw_labels(image: np.ndarray, targets: Mapping[str, Any], img_res: Optional[int] = None,
-                scale: float = 1.0) -> np.ndarray:
+def draw_labels(
+    image: np.ndarray, targets: Mapping[str, Any], img_res: Optional[int] = None, scale: float = 1.0
+) -> np.ndarray:
     """Draw hand skeletons (right red, left blue; thin bones, joint dots) and object keypoints
     (small yellow dots), thin enough that the pixels underneath stay visible.
 
@@ -55,8 +56,11 @@ def draw_labels(image: np.ndarray, targets: Mapping[str, Any], img_res: Optional
         a drawn copy of ``image``.
     """
     res = int(img_res if img_res is not None else round(image.shape[0] / scale))
-    hands = {side: unnormalize_kp2d(_np(targets[f"mano.j2d.norm.{side}"]), res) * scale
-             for side, flag in (("r", "right_valid"), ("l", "left_valid")) if float(_np(targets[flag])) > 0}
+    hands = {
+        side: unnormalize_kp2d(_np(targets[f"mano.j2d.norm.{side}"]), res) * scale
+        for side, flag in (("r", "right_valid"), ("l", "left_valid"))
+        if float(_np(targets[flag])) > 0
+    }
     obj = None
     if float(_np(targets["is_valid"])) > 0:
         obj = unnormalize_kp2d(_np(targets["object.kp2d.norm"]), res) * scale

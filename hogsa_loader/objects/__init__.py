@@ -5,18 +5,8 @@ axis is the hinge; ``parts.json`` 0 = top (articulated), 1 = bottom (base); the 
 rotates by ``R_z(-θ)`` before the global pose.
 """
 
-from hogsa_loader.objects.articulated import (
-    ARTICULATION_AXIS,
-    ArticulatedObjectLayer,
-    articulate,
-    articulation_matrix,
-)
-from hogsa_loader.objects.rigid import (
-    H2O_OBJECT_NAMES,
-    parse_h2o_obj_pose_rt,
-    pose_rigid,
-    read_h2o_obj_pose_rt,
-)
+from hogsa_loader.objects.articulated import ARTICULATION_AXIS, ArticulatedObjectLayer, articulate, articulation_matrix
+from hogsa_loader.objects.rigid import H2O_OBJECT_NAMES, parse_h2o_obj_pose_rt, pose_rigid, read_h2o_obj_pose_rt
 from hogsa_loader.objects.template import (
     BOTTOM,
     OBJECT_NAMES,

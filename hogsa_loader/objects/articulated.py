@@ -15,12 +15,7 @@ from torch import Tensor
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, rotation_about_axis
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 
-__all__ = [
-    "ARTICULATION_AXIS",
-    "articulation_matrix",
-    "articulate",
-    "ArticulatedObjectLayer",
-]
+__all__ = ["ARTICULATION_AXIS", "articulation_matrix", "articulate", "ArticulatedObjectLayer"]
 
 #: Axis-angle direction of the articulation: the top part rotates by θ·(0,0,-1).
 ARTICULATION_AXIS: tuple[float, float, float] = (0.0, 0.0, -1.0)
@@ -89,11 +84,7 @@ def global_transform(points: Tensor, global_orient: Tensor, transl: Optional[Ten
 
 
 def articulate(
-    points: Tensor,
-    is_top: Tensor,
-    angle: Tensor,
-    global_orient: Tensor,
-    transl: Optional[Tensor],
+    points: Tensor, is_top: Tensor, angle: Tensor, global_orient: Tensor, transl: Optional[Tensor]
 ) -> Tensor:
     """Pose canonical object points (ARCTIC's hinge convention).
 
@@ -206,34 +197,22 @@ class ArticulatedObjectLayer(torch.nn.Module):
         self.register_buffer("f", torch.from_numpy(_pad_stack([t.faces for t in templates], fmax)))
         self.register_buffer("f_len", torch.from_numpy(f_len))
         self.register_buffer("mask", torch.arange(vmax)[None, :] < torch.from_numpy(v_len)[:, None])
+        self.register_buffer("parts_ids", torch.from_numpy(_pad_stack([t.parts + 1 for t in templates], vmax)))
         self.register_buffer(
-            "parts_ids", torch.from_numpy(_pad_stack([t.parts + 1 for t in templates], vmax))
+            "v_sub", torch.from_numpy(np.stack([np.concatenate([t.sub_top, t.sub_bottom]) for t in templates]))
         )
-        self.register_buffer(
-            "v_sub",
-            torch.from_numpy(np.stack([np.concatenate([t.sub_top, t.sub_bottom]) for t in templates])),
-        )
-        self.register_buffer(
-            "parts_sub_ids", torch.from_numpy(np.stack([_sub_part_ids(t) for t in templates]))
-        )
+        self.register_buffer("parts_sub_ids", torch.from_numpy(np.stack([_sub_part_ids(t) for t in templates])))
         self.register_buffer(
             "kp", torch.from_numpy(np.stack([np.concatenate([t.kp_top, t.kp_bottom]) for t in templates]))
         )
         self.register_buffer(
-            "bbox",
-            torch.from_numpy(np.stack([np.concatenate([t.bbox_top, t.bbox_bottom]) for t in templates])),
+            "bbox", torch.from_numpy(np.stack([np.concatenate([t.bbox_top, t.bbox_bottom]) for t in templates]))
         )
-        self.register_buffer(
-            "diameter", torch.tensor([t.diameter for t in templates], dtype=torch.float32)
-        )
+        self.register_buffer("diameter", torch.tensor([t.diameter for t in templates], dtype=torch.float32))
         n_kp = templates[0].kp_top.shape[0]
         n_bb = templates[0].bbox_top.shape[0]
-        self.register_buffer(
-            "kp_is_top", torch.arange(self.kp.shape[1]) < n_kp, persistent=False
-        )
-        self.register_buffer(
-            "bbox_is_top", torch.arange(self.bbox.shape[1]) < n_bb, persistent=False
-        )
+        self.register_buffer("kp_is_top", torch.arange(self.kp.shape[1]) < n_kp, persistent=False)
+        self.register_buffer("bbox_is_top", torch.arange(self.bbox.shape[1]) < n_bb, persistent=False)
 
     # ----------------------------------------------------------------------------------
 
@@ -277,11 +256,7 @@ class ArticulatedObjectLayer(torch.nn.Module):
         }
 
     def forward(
-        self,
-        angles: Tensor,
-        global_orient: Tensor,
-        transl: Optional[Tensor],
-        names: Sequence[str],
+        self, angles: Tensor, global_orient: Tensor, transl: Optional[Tensor], names: Sequence[str]
     ) -> dict[str, Tensor]:
         """Pose a batch of objects (ARCTIC ``ObjectTensors.forward``).
 

@@ -147,13 +147,29 @@ def rigid_template(
     box = bbox_corners(verts)
     tex: dict[str, Any] = {}
     if tex_verts is not None and texture is not None:
-        tex = dict(tex_verts=tex_verts, tex_faces=tex_faces, tex_uv=tex_uv, texture=texture,
-                   tex_parts=np.full(len(tex_verts), BOTTOM, dtype=np.int64))  # fmt: skip
+        tex = dict(
+            tex_verts=tex_verts,
+            tex_faces=tex_faces,
+            tex_uv=tex_uv,
+            texture=texture,
+            tex_parts=np.full(len(tex_verts), BOTTOM, dtype=np.int64),
+        )
     return ObjectTemplate(
-        name=name, verts=verts, faces=faces, parts=np.full(len(verts), BOTTOM, dtype=np.int64),
-        kp_top=kp, kp_bottom=kp, bbox_top=box, bbox_bottom=box, mocap_top=np.zeros((0, 3)),
-        mocap_bottom=np.zeros((0, 3)), sub_top=sub, sub_bottom=sub, diameter=max_pairwise_distance(verts), **tex,
-    )  # fmt: skip
+        name=name,
+        verts=verts,
+        faces=faces,
+        parts=np.full(len(verts), BOTTOM, dtype=np.int64),
+        kp_top=kp,
+        kp_bottom=kp,
+        bbox_top=box,
+        bbox_bottom=box,
+        mocap_top=np.zeros((0, 3)),
+        mocap_bottom=np.zeros((0, 3)),
+        sub_top=sub,
+        sub_bottom=sub,
+        diameter=max_pairwise_distance(verts),
+        **tex,
+    )
 
 
 def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: bool = True) -> ObjectTemplate:

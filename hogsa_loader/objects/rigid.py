@@ -18,12 +18,7 @@ from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike
 
-__all__ = [
-    "H2O_OBJECT_NAMES",
-    "parse_h2o_obj_pose_rt",
-    "read_h2o_obj_pose_rt",
-    "pose_rigid",
-]
+__all__ = ["H2O_OBJECT_NAMES", "parse_h2o_obj_pose_rt", "read_h2o_obj_pose_rt", "pose_rigid"]
 
 #: H2O class ids (README names); index = class id, 0 = no object.
 H2O_OBJECT_NAMES: tuple[str, ...] = (
@@ -56,9 +51,7 @@ def _numbers(values: Union[str, Sequence[float], np.ndarray], where: PathLike) -
 
 
 def parse_h2o_obj_pose_rt(
-    values: Union[str, Sequence[float], np.ndarray],
-    path: Optional[PathLike] = None,
-    atol: float = 1e-3,
+    values: Union[str, Sequence[float], np.ndarray], path: Optional[PathLike] = None, atol: float = 1e-3
 ) -> tuple[int, np.ndarray]:
     """Parse one H2O ``obj_pose_rt`` record.
 

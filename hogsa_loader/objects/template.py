@@ -139,8 +139,16 @@ class ObjectTemplate:
         self.verts = np.ascontiguousarray(self.verts, dtype=f32).reshape(-1, 3)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
         self.parts = np.ascontiguousarray(self.parts, dtype=np.int64).reshape(-1)
-        for key in ("kp_top", "kp_bottom", "bbox_top", "bbox_bottom", "mocap_top",
-                    "mocap_bottom", "sub_top", "sub_bottom"):
+        for key in (
+            "kp_top",
+            "kp_bottom",
+            "bbox_top",
+            "bbox_bottom",
+            "mocap_top",
+            "mocap_bottom",
+            "sub_top",
+            "sub_bottom",
+        ):
             setattr(self, key, np.ascontiguousarray(getattr(self, key), dtype=f32).reshape(-1, 3))
         self.diameter = float(self.diameter)
         if self.tex_verts is not None:
@@ -152,8 +160,7 @@ class ObjectTemplate:
                 self.tex_parts = np.ascontiguousarray(self.tex_parts, dtype=np.int64).reshape(-1)
         if self.parts.shape[0] != self.verts.shape[0]:
             raise ValueError(
-                f"object {self.name!r}: {self.parts.shape[0]} part labels for "
-                f"{self.verts.shape[0]} vertices"
+                f"object {self.name!r}: {self.parts.shape[0]} part labels for {self.verts.shape[0]} vertices"
             )
 
     @property
@@ -258,8 +265,6 @@ def max_pairwise_distance(points: np.ndarray) -> float:
 # --------------------------------------------------------------------------------------
 
 
-
-
 def _points(value: Any, path: Path, key: str, count: Optional[int]) -> np.ndarray:
     """Convert a JSON value to (count, 3) finite float64 points (mm)."""
     if isinstance(value, Mapping):  # marker dicts {name: xyz} keep their stored order
@@ -295,9 +300,7 @@ def _read_obj(path: Path, keep_order: bool = True) -> Any:
     if not path.is_file():
         raise AssetError(path, "file is missing")
     try:
-        mesh = trimesh.load(
-            str(path), process=False, force="mesh", maintain_order=keep_order, skip_materials=True
-        )
+        mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=keep_order, skip_materials=True)
     except Exception as exc:  # trimesh raises many kinds of errors on bad files
         raise AssetError(path, f"cannot parse mesh ({exc})") from exc
     verts = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
@@ -313,7 +316,9 @@ def _read_obj(path: Path, keep_order: bool = True) -> Any:
     return mesh
 
 
-def merge_uv_vertices(verts: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def merge_uv_vertices(
+    verts: np.ndarray, faces: np.ndarray, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Merge vertices with the same position and texture coordinate (files that give every
     face corner its own ``vt``, read with seams split, would otherwise be triangle soups).
     Vertices keep the order of their first occurrence, so a mesh without such duplicates
@@ -345,9 +350,7 @@ def _read_parts(path: Path, num_verts: int) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise AssetError(path, "part labels must be numbers") from exc
     if arr.shape[0] != num_verts:
-        raise AssetError(
-            path, f"has {arr.shape[0]} labels but {MESH_FILE} has {num_verts} vertices"
-        )
+        raise AssetError(path, f"has {arr.shape[0]} labels but {MESH_FILE} has {num_verts} vertices")
     if not np.isin(arr, (TOP, BOTTOM)).all():
         bad = np.unique(arr[~np.isin(arr, (TOP, BOTTOM))])[:5]
         raise AssetError(path, f"labels must be 0 (top) or 1 (bottom), found {bad.tolist()}")
@@ -413,7 +416,7 @@ def read_object_meta(path: PathLike) -> dict[str, dict[str, float]]:
     path = Path(path)
     raw = read_json(path)
     if not isinstance(raw, Mapping):
-        raise AssetError(path, "expected a JSON object {name: {\"diameter\": ...}}")
+        raise AssetError(path, 'expected a JSON object {name: {"diameter": ...}}')
     out: dict[str, dict[str, float]] = {}
     for name, entry in raw.items():
         if not isinstance(entry, Mapping) or "diameter" not in entry:
@@ -495,8 +498,13 @@ def load_object_template(
         raise AssetError(folder, "object template folder is missing")
     name = folder.name if name is None else name
     entry = None if object_meta is None else object_meta.get(name)
-    key = (str(folder.resolve()), name, bool(load_texture), json.dumps(entry, sort_keys=True, default=str),
-           _folder_fingerprint(folder))
+    key = (
+        str(folder.resolve()),
+        name,
+        bool(load_texture),
+        json.dumps(entry, sort_keys=True, default=str),
+        _folder_fingerprint(folder),
+    )
     with _TEMPLATE_CACHE_LOCK:
         cached = _TEMPLATE_CACHE.get(key)
         if cached is not None:
@@ -576,9 +584,7 @@ def _sort_names(names: Iterable[str]) -> list[str]:
 
 
 def load_object_templates(
-    meta_dir: PathLike,
-    names: Optional[Sequence[str]] = None,
-    load_texture: bool = True,
+    meta_dir: PathLike, names: Optional[Sequence[str]] = None, load_texture: bool = True
 ) -> dict[str, ObjectTemplate]:
     """Read every (or the named) object under ``meta_dir/object_vtemplates``.
 
@@ -601,8 +607,7 @@ def load_object_templates(
         names = _sort_names(p.name for p in root.iterdir() if p.is_dir())
     out: dict[str, ObjectTemplate] = {}
     for name in names:
-        out[name] = load_object_template(root / name, name=name, object_meta=meta,
-                                         load_texture=load_texture)
+        out[name] = load_object_template(root / name, name=name, object_meta=meta, load_texture=load_texture)
     return out
 
 
@@ -618,8 +623,9 @@ def _fmt_rows(rows: np.ndarray, prefix: str) -> str:
     return (fmt * rows.shape[0]) % tuple(rows.ravel().tolist())  # one formatting call
 
 
-def _obj_text(verts_mm: np.ndarray, faces: np.ndarray, uv: Optional[np.ndarray] = None,
-              mtl: Optional[str] = None) -> str:
+def _obj_text(
+    verts_mm: np.ndarray, faces: np.ndarray, uv: Optional[np.ndarray] = None, mtl: Optional[str] = None
+) -> str:
     """Wavefront OBJ text; with ``uv`` the ``vt`` indices equal the ``v`` indices."""
     lines = []
     if mtl is not None:
@@ -676,8 +682,7 @@ def write_object_template(template: ObjectTemplate, folder: PathLike) -> Path:
     }
     _write_text(folder / PARAMS_FILE, json.dumps(params))
     _write_text(folder / TOP300_FILE, json.dumps({"keypoints": _json_points(template.sub_top)}))
-    _write_text(folder / BOTTOM300_FILE,
-                json.dumps({"keypoints": _json_points(template.sub_bottom)}))
+    _write_text(folder / BOTTOM300_FILE, json.dumps({"keypoints": _json_points(template.sub_bottom)}))
     for part, fname in ((TOP, "top.obj"), (BOTTOM, "bottom.obj")):
         pv, pf = template.part_mesh(part)
         _write_text(folder / fname, _obj_text(pv.astype(np.float64) * MM_PER_M, pf))
@@ -687,17 +692,23 @@ def write_object_template(template: ObjectTemplate, folder: PathLike) -> Path:
         assert template.tex_uv is not None and template.texture is not None
         _write_text(
             folder / TEX_MESH_FILE,
-            _obj_text(template.tex_verts.astype(np.float64) * MM_PER_M, template.tex_faces,
-                      uv=template.tex_uv, mtl=TEX_MTL_FILE),
+            _obj_text(
+                template.tex_verts.astype(np.float64) * MM_PER_M,
+                template.tex_faces,
+                uv=template.tex_uv,
+                mtl=TEX_MTL_FILE,
+            ),
         )
         _write_text(
             folder / TEX_MTL_FILE,
             "newmtl material_0\nKa 1.000000 1.000000 1.000000\nKd 1.000000 1.000000 1.000000\n"
             f"Ks 0.000000 0.000000 0.000000\nd 1.000000\nillum 1\nmap_Kd {TEX_IMAGE_FILE}\n",
         )
-        ok = cv2.imwrite(str(folder / TEX_IMAGE_FILE),
-                         np.ascontiguousarray(template.texture[..., ::-1]),
-                         [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        ok = cv2.imwrite(
+            str(folder / TEX_IMAGE_FILE),
+            np.ascontiguousarray(template.texture[..., ::-1]),
+            [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY],
+        )
         if not ok:
             raise AssetError(folder / TEX_IMAGE_FILE, "cv2 could not write the texture")
     return folder

@@ -56,9 +56,17 @@ MANIFEST_FILE = "manifest.json"
 METRIC_KEYS = ("penetration_depth", "intersection", "contact_ratio", "accept")
 _HAND_WIDTH = {"rot": 3, "pose": 45, "trans": 3, "betas": 10}
 #: The shared checkpoint header of a pose bank.
-BANK_FORMAT = ManifestFormat(BANK_SCHEMA, BANK_VERSION, "a pose bank", TENSOR_FILE, name_key="schema",
-                             file_key="tensor_file", specs="shape", library_version=False,
-                             manifest_file=MANIFEST_FILE)  # fmt: skip
+BANK_FORMAT = ManifestFormat(
+    BANK_SCHEMA,
+    BANK_VERSION,
+    "a pose bank",
+    TENSOR_FILE,
+    name_key="schema",
+    file_key="tensor_file",
+    specs="shape",
+    library_version=False,
+    manifest_file=MANIFEST_FILE,
+)
 
 
 def _expected_shapes(n: int) -> dict[str, tuple[int, ...]]:
@@ -105,8 +113,13 @@ class PoseBank:
         return {k: v.detach().to("cpu", torch.float32).clone().contiguous() for k, v in out.items()}
 
 
-def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[str, str, int]],
-                   metrics: Mapping[str, Any], info: Optional[dict] = None) -> Path:
+def save_pose_bank(
+    path: PathLike,
+    state: GraspState,
+    sources: Sequence[tuple[str, str, int]],
+    metrics: Mapping[str, Any],
+    info: Optional[dict] = None,
+) -> Path:
     """Write a bank folder (see module docstring).
 
     Args:
@@ -126,9 +139,11 @@ def save_pose_bank(path: PathLike, state: GraspState, sources: Sequence[tuple[st
     fields = {
         "count": n,
         "convention": "ARCTIC world frame as SequenceData: axis-angle, metres, hand pose relative to "
-                      "the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
-        "entries": [{"subject": a, "sequence": b, "frame": int(c), "object": state.obj_names[i]}
-                    for i, (a, b, c) in enumerate(sources)],
+        "the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
+        "entries": [
+            {"subject": a, "sequence": b, "frame": int(c), "object": state.obj_names[i]}
+            for i, (a, b, c) in enumerate(sources)
+        ],
         "info": bank.info,
     }
     return save_checkpoint(path, BANK_FORMAT, bank.tensors(), fields)
@@ -144,8 +159,13 @@ def _read_entries(man: dict, mpath: Path) -> tuple[list[tuple[str, str, int]], l
         raise AssetError(mpath, f"'entries' must be a list of {n} sources")
     sources, names = [], []
     for i, e in enumerate(entries):
-        if not (isinstance(e, dict) and isinstance(e.get("subject"), str) and isinstance(e.get("sequence"), str)
-                and isinstance(e.get("frame"), int) and isinstance(e.get("object"), str)):
+        if not (
+            isinstance(e, dict)
+            and isinstance(e.get("subject"), str)
+            and isinstance(e.get("sequence"), str)
+            and isinstance(e.get("frame"), int)
+            and isinstance(e.get("object"), str)
+        ):
             raise AssetError(mpath, f"entries[{i}] must have string subject/sequence/object and an int frame")
         sources.append((e["subject"], e["sequence"], e["frame"]))
         names.append(e["object"])

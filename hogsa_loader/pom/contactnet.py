@@ -47,9 +47,17 @@ CONTACTNET_VERSION = 1
 WEIGHTS_FILE = "contactnet.safetensors"
 MANIFEST_FILE = "manifest.json"
 #: The shared checkpoint header of a ContactNet.
-CONTACTNET_FORMAT = ManifestFormat(CONTACTNET_SCHEMA, CONTACTNET_VERSION, "a ContactNet checkpoint", WEIGHTS_FILE,
-                                   name_key="schema", file_key="weights", specs="shape", library_version=False,
-                                   manifest_file=MANIFEST_FILE)  # fmt: skip
+CONTACTNET_FORMAT = ManifestFormat(
+    CONTACTNET_SCHEMA,
+    CONTACTNET_VERSION,
+    "a ContactNet checkpoint",
+    WEIGHTS_FILE,
+    name_key="schema",
+    file_key="weights",
+    specs="shape",
+    library_version=False,
+    manifest_file=MANIFEST_FILE,
+)
 
 
 def contact_map(dist: Tensor) -> Tensor:

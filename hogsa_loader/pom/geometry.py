@@ -58,10 +58,7 @@ def sample_surface(
 
 
 def ray_parity_inside(
-    points: Tensor,
-    tris: Tensor,
-    direction: Sequence[float] = RAY_DIRECTION,
-    chunk: int = 4_000_000,
+    points: Tensor, tris: Tensor, direction: Sequence[float] = RAY_DIRECTION, chunk: int = 4_000_000
 ) -> Tensor:
     """Inside test by ray parity (Möller–Trumbore against every triangle, one fixed ray).
 
@@ -96,7 +93,7 @@ def ray_parity_inside(
     inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
     step = max(1, chunk // tris.shape[0])
     for s in range(0, cand.numel(), step):
-        idx = cand[s: s + step]
+        idx = cand[s : s + step]
         tvec = points[idx, None, :] - v0[None]  # (p, F, 3)
         u = (tvec * pvec[None]).sum(-1) * inv
         qvec = torch.linalg.cross(tvec, e1[None].expand_as(tvec))
@@ -200,7 +197,7 @@ def nearest(a: Tensor, b: Tensor, chunk: int = 2_000_000) -> tuple[Tensor, Tenso
     d_out, i_out = [], []
     with torch.no_grad():
         for s in range(0, N, step):
-            d = torch.cdist(a[:, s: s + step], b)
+            d = torch.cdist(a[:, s : s + step], b)
             m, i = d.min(-1)
             d_out.append(m * m)
             i_out.append(i)
@@ -251,14 +248,16 @@ class SDFGrid:
         outside = (p - pc).norm(dim=-1)
         g = 2.0 * (pc - lo) / (hi - lo) - 1.0  # x, y, z in [-1, 1]
         vals = F.grid_sample(
-            self.values.to(p.dtype)[None, None], g[None, None, None], mode="bilinear",
-            padding_mode="border", align_corners=True,
+            self.values.to(p.dtype)[None, None],
+            g[None, None, None],
+            mode="bilinear",
+            padding_mode="border",
+            align_corners=True,
         ).reshape(-1)
         return (vals + outside).reshape(shape)
 
 
-def grid_inside(tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray,
-                   max_cross: int = 32) -> np.ndarray:
+def grid_inside(tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, max_cross: int = 32) -> np.ndarray:
     """Inside flags of the nodes of a regular grid by ray parity (one +z ray per column).
 
     Args:
@@ -283,7 +282,7 @@ def grid_inside(tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray
     inside = torch.zeros(cols.shape[0], len(zs), dtype=torch.bool)
     step = max(1, 3_000_000 // t.shape[0])
     for s in range(0, cols.shape[0], step):
-        px, py = cols[s: s + step, 0:1], cols[s: s + step, 1:2]
+        px, py = cols[s : s + step, 0:1], cols[s : s + step, 1:2]
         l1 = ((b[:, 1] - c[:, 1]) * (px - c[:, 0]) + (c[:, 0] - b[:, 0]) * (py - c[:, 1])) / den
         l2 = ((c[:, 1] - a[:, 1]) * (px - c[:, 0]) + (a[:, 0] - c[:, 0]) * (py - c[:, 1])) / den
         l3 = 1 - l1 - l2
@@ -293,7 +292,7 @@ def grid_inside(tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray
         k = min(max_cross, z.shape[1])
         zc = torch.topk(z, k, dim=1, largest=False).values  # (cols, k)
         cnt = (zc[:, :, None] > zt[None, None, :]).sum(1)  # crossings above each node
-        inside[s: s + step] = (cnt % 2) == 1
+        inside[s : s + step] = (cnt % 2) == 1
     return inside.reshape(len(ys), len(xs), len(zs)).permute(2, 0, 1).numpy()
 
 
@@ -327,7 +326,7 @@ def build_sdf_grid(
     inside = grid_inside(v[f], xs, ys, zs)
     tri = v[f]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
-    count = int(min(max_samples, max(10_000, area / surface_spacing ** 2)))
+    count = int(min(max_samples, max(10_000, area / surface_spacing**2)))
     rng = np.random.default_rng(seed)
     pts, _ = sample_surface(v, f, count, rng)
     Z, Y, X = np.meshgrid(zs, ys, xs, indexing="ij")

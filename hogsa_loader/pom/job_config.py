@@ -13,8 +13,14 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 __all__ = [
-    "BankDataConfig", "BankPOMConfig", "BankRunConfig", "ContactNetDataConfig", "ContactNetJobConfig",
-    "ContactNetOptimConfig", "ContactNetRunConfig", "PoseBankConfig",
+    "BankDataConfig",
+    "BankPOMConfig",
+    "BankRunConfig",
+    "ContactNetDataConfig",
+    "ContactNetJobConfig",
+    "ContactNetOptimConfig",
+    "ContactNetRunConfig",
+    "PoseBankConfig",
 ]
 
 
@@ -39,7 +45,8 @@ class ContactNetDataConfig:
 
     root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
     val_subjects: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("held-out subjects (unset: the last one)"))
+        default=None, metadata=_opt("held-out subjects (unset: the last one)")
+    )
 
     def __post_init__(self) -> None:
         self.val_subjects = _tuple(self.val_subjects)
@@ -86,7 +93,8 @@ class BankDataConfig:
     contactnet: str = field(default="", metadata=_opt("ContactNet run folder", required=True))
     subjects: Optional[tuple[str, ...]] = field(default=None, metadata=_opt("subjects (unset: all)"))
     sequences: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all)"))
+        default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all)")
+    )
     per_sequence: int = field(default=16, metadata=_opt("contact frames per sequence (evenly spaced)", "positive_int"))
     variants: int = field(default=1, metadata=_opt("perturbations per frame", "positive_int"))
 
@@ -100,9 +108,14 @@ class BankPOMConfig:
 
     iters: int = field(default=200, metadata=_opt("POM iterations", "non_negative_int"))
     batch: int = field(default=16, metadata=_opt("grasps optimised at once", "positive_int"))
-    arti_range: Optional[tuple[float, ...]] = field(default=None, metadata=_opt(
-        "draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314 0.628) instead of keeping the "
-        "annotated angle", nargs=2))
+    arti_range: Optional[tuple[float, ...]] = field(
+        default=None,
+        metadata=_opt(
+            "draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314 0.628) instead of keeping the "
+            "annotated angle",
+            nargs=2,
+        ),
+    )
     keep_rejected: bool = field(default=False, metadata=_opt("also keep grasps that fail acceptance"))
 
     def __post_init__(self) -> None:
@@ -114,8 +127,9 @@ class BankRunConfig:
     """Bank folder, seed and device."""
 
     out: str = field(default="", metadata=_opt("bank folder", required=True))
-    seed: int = field(default=0, metadata=_opt(
-        "base seed; each (sequence, variant) draws from a seed derived from it (variant_seed)"))
+    seed: int = field(
+        default=0, metadata=_opt("base seed; each (sequence, variant) draws from a seed derived from it (variant_seed)")
+    )
     device: str = field(default="cpu", metadata=_opt("torch device", "torch_device"))
 
 

@@ -79,8 +79,14 @@ def _split_subjects(root: ArcticRoot, val_subjects: Optional[tuple[str, ...]]) -
     return train_subj, val_subj
 
 
-def _train_with_bar(train: ContactData, val: Optional[ContactData], infos: dict[str, HandInfo], objects: ObjectSet,
-                    tc: TrainConfig, progress: bool) -> tuple[ContactNet, dict]:
+def _train_with_bar(
+    train: ContactData,
+    val: Optional[ContactData],
+    infos: dict[str, HandInfo],
+    objects: ObjectSet,
+    tc: TrainConfig,
+    progress: bool,
+) -> tuple[ContactNet, dict]:
     """:func:`~hogsa_loader.pom.train.train_contactnet` with a progress bar; ``(model, history)``."""
     bar = tqdm(total=tc.iters, disable=not progress, desc="contactnet")
 
@@ -93,8 +99,9 @@ def _train_with_bar(train: ContactData, val: Optional[ContactData], infos: dict[
     return model, hist
 
 
-def _contactnet_metrics(hist: dict, final: dict, subjects: tuple[list[str], list[str]], sizes: tuple[int, int],
-                        iters: int, prep: float) -> dict[str, Any]:
+def _contactnet_metrics(
+    hist: dict, final: dict, subjects: tuple[list[str], list[str]], sizes: tuple[int, int], iters: int, prep: float
+) -> dict[str, Any]:
     """The ``metrics.json`` of a fit: subjects, frame counts, final and initial validation scores, timings."""
     first = hist["val"][0][1] if hist["val"] else {}
     return {
@@ -150,8 +157,9 @@ def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[s
     if val is not None and val.size:  # the loop always scores its last step: reuse that, it is the same weights
         last_scored = hist["val"] and hist["val"][-1][0] == o.iters
         final = hist["val"][-1][1] if last_scored else evaluate_contactnet(model, val, infos, objects)
-    metrics = _contactnet_metrics(hist, final, (train_subj, val_subj), (train.size, val.size if val is not None else 0),
-                                  o.iters, prep)
+    metrics = _contactnet_metrics(
+        hist, final, (train_subj, val_subj), (train.size, val.size if val is not None else 0), o.iters, prep
+    )
     training = {k: metrics[k] for k in ("val_subjects", "train_subjects", "iters", "val_mae", "val_iou05")}
     save_contactnet(model, out, {"training": training, "data": str(root.data_root)})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -188,7 +196,8 @@ class _BankParts:
         self.states: list[GraspState] = []
         self.sources: list[tuple[str, str, int]] = []
         self.metrics: dict[str, list[np.ndarray]] = {
-            k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")}
+            k: [] for k in ("penetration_depth", "intersection", "contact_ratio", "accept")
+        }
         self.dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0, "rejected": 0}
         self.total = 0
 
@@ -208,8 +217,15 @@ class _BankParts:
             self.metrics[k].append(m[k][keep].astype("float32"))
 
 
-def _optimise_sequences(root: ArcticRoot, seqs: list[str], net: ContactNet, pom: POMConfig, pert: PerturbConfig,
-                        cfg: PoseBankConfig, progress: bool) -> _BankParts:
+def _optimise_sequences(
+    root: ArcticRoot,
+    seqs: list[str],
+    net: ContactNet,
+    pom: POMConfig,
+    pert: PerturbConfig,
+    cfg: PoseBankConfig,
+    progress: bool,
+) -> _BankParts:
     """Perturb and optimise ``cfg.data.variants`` times the contact frames of every sequence."""
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
@@ -219,8 +235,17 @@ def _optimise_sequences(root: ArcticRoot, seqs: list[str], net: ContactNet, pom:
         if frames.state.batch == 0:
             continue
         for v in range(cfg.data.variants):
-            aug = augment(frames, infos, objects, net, pom, seed=variant_seed(cfg.run.seed, seq, v),
-                          batch=cfg.pom.batch, perturb_config=pert, device=cfg.run.device)
+            aug = augment(
+                frames,
+                infos,
+                objects,
+                net,
+                pom,
+                seed=variant_seed(cfg.run.seed, seq, v),
+                batch=cfg.pom.batch,
+                perturb_config=pert,
+                device=cfg.run.device,
+            )
             m = grasp_metrics(aug.result, infos, objects, frames.active)
             parts.add(frames, aug, m, cfg.pom.keep_rejected)
     return parts
@@ -257,11 +282,25 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
             f"no contact frame found in {root.data_root} (subjects {list(cfg.data.subjects or []) or 'all'})"
         )
     state = GraspState.cat(parts.states)
-    info = {"data": str(root.data_root), "contactnet": str(cfg.data.contactnet), "per_sequence": cfg.data.per_sequence,
-            "variants": cfg.data.variants, "seed": cfg.run.seed, "optimised": parts.total, "dropped": parts.dropped,
-            "config": {k: getattr(pom, k) for k in pom.__dataclass_fields__}, "perturbation": asdict(pert),
-            "seconds": time.perf_counter() - t0}  # fmt: skip
-    path = save_pose_bank(cfg.run.out, state, parts.sources, {k: np.concatenate(v) for k, v in parts.metrics.items()},
-                          info)
-    return {"bank": str(path.parent), "entries": state.batch, "optimised": parts.total, "dropped": parts.dropped,
-            "seconds": info["seconds"]}
+    info = {
+        "data": str(root.data_root),
+        "contactnet": str(cfg.data.contactnet),
+        "per_sequence": cfg.data.per_sequence,
+        "variants": cfg.data.variants,
+        "seed": cfg.run.seed,
+        "optimised": parts.total,
+        "dropped": parts.dropped,
+        "config": {k: getattr(pom, k) for k in pom.__dataclass_fields__},
+        "perturbation": asdict(pert),
+        "seconds": time.perf_counter() - t0,
+    }
+    path = save_pose_bank(
+        cfg.run.out, state, parts.sources, {k: np.concatenate(v) for k, v in parts.metrics.items()}, info
+    )
+    return {
+        "bank": str(path.parent),
+        "entries": state.batch,
+        "optimised": parts.total,
+        "dropped": parts.dropped,
+        "seconds": info["seconds"],
+    }

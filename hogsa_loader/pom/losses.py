@@ -36,8 +36,7 @@ REF_HAND_VERTS = 778
 CM = 0.01
 
 
-def hand_contact(obj_points: Tensor, hand_verts: Tensor, idx: Optional[Tensor] = None
-                 ) -> tuple[Tensor, Tensor, Tensor]:
+def hand_contact(obj_points: Tensor, hand_verts: Tensor, idx: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor]:
     """Hand-derived contact map and nearest hand vertex of every object point.
 
     Args:
@@ -61,8 +60,14 @@ def contact_consistency(c_hand: Tensor, c_target: Tensor) -> Tensor:
     return 0.3 * (c_hand - c_target.detach()).pow(2).mean(-1)
 
 
-def hand_centric(obj_points: Tensor, hand_verts: Tensor, prior_ids: Tensor, dist: Tensor,
-                 near: float = NEAR_DISTANCE, idx: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+def hand_centric(
+    obj_points: Tensor,
+    hand_verts: Tensor,
+    prior_ids: Tensor,
+    dist: Tensor,
+    near: float = NEAR_DISTANCE,
+    idx: Optional[Tensor] = None,
+) -> tuple[Tensor, Tensor]:
     """``L_H`` (B,): pull object points near the hand onto the prior contact vertices.
 
     ``L_H = 7500 · mean_{i∈M} min_{k∈P} ||o_i − h_k||²`` with M the object points within
@@ -87,7 +92,9 @@ def hand_centric(obj_points: Tensor, hand_verts: Tensor, prior_ids: Tensor, dist
     return 7500.0 * (d2 * m).sum(-1) / m.sum(-1).clamp_min(1.0), idx
 
 
-def hand_in_object(hand_verts_c: Tensor, objects: ObjectSet, names: Sequence[str], arti: Tensor) -> tuple[Tensor, Tensor]:
+def hand_in_object(
+    hand_verts_c: Tensor, objects: ObjectSet, names: Sequence[str], arti: Tensor
+) -> tuple[Tensor, Tensor]:
     """Penetration of hand vertices into the object (SDF grid, sign by ray parity).
 
     Returns:
@@ -98,8 +105,9 @@ def hand_in_object(hand_verts_c: Tensor, objects: ObjectSet, names: Sequence[str
     return (REF_HAND_VERTS / V) * (torch.relu(-sdf) / CM).pow(2).sum(-1), sdf
 
 
-def object_in_hand(obj_points: Tensor, hand_verts: Tensor, faces: Tensor, idx: Tensor, dist: Tensor,
-                   near: float = 0.01) -> Tensor:
+def object_in_hand(
+    obj_points: Tensor, hand_verts: Tensor, faces: Tensor, idx: Tensor, dist: Tensor, near: float = 0.01
+) -> Tensor:
     """GraspTTA's interior term: object points inside the hand by the nearest-vertex normal test.
 
     A point o with nearest hand vertex h (outward normal n) is inside when ``(h − o)·n > 0``;
@@ -116,8 +124,16 @@ def object_in_hand(obj_points: Tensor, hand_verts: Tensor, faces: Tensor, idx: T
     return 0.1 * (REF_OBJ_POINTS / N) * ((dist / CM).pow(2) * inside.to(dist.dtype)).sum(-1)
 
 
-def penetration(hand_verts_c: Tensor, obj_points: Tensor, faces: Tensor, idx: Tensor, dist: Tensor,
-                objects: ObjectSet, names: Sequence[str], arti: Tensor) -> tuple[Tensor, Tensor]:
+def penetration(
+    hand_verts_c: Tensor,
+    obj_points: Tensor,
+    faces: Tensor,
+    idx: Tensor,
+    dist: Tensor,
+    objects: ObjectSet,
+    names: Sequence[str],
+    arti: Tensor,
+) -> tuple[Tensor, Tensor]:
     """``L_P`` (B,) = :func:`hand_in_object` + :func:`object_in_hand`; also returns the SDF (B, V).
 
     ``L_P = (778/V) Σ_v (relu(−sdf(h_v))/cm)² + 0.1 (3000/N) Σ_{i inside} (d_i/cm)²``. Depths
@@ -129,7 +145,8 @@ def penetration(hand_verts_c: Tensor, obj_points: Tensor, faces: Tensor, idx: Te
     return l_hand + object_in_hand(obj_points, hand_verts_c, faces, idx, dist), sdf
 
 
-def pose_prior(pose: Tensor, pose_ref: Tensor, betas: Tensor, betas_ref: Tensor,
-               w_pose: float = 1.0, w_shape: float = 1.0) -> Tensor:
+def pose_prior(
+    pose: Tensor, pose_ref: Tensor, betas: Tensor, betas_ref: Tensor, w_pose: float = 1.0, w_shape: float = 1.0
+) -> Tensor:
     """Mild prior (B,): mean squared articulation change (rad²) + shape change to the source."""
     return w_pose * (pose - pose_ref.detach()).pow(2).mean(-1) + w_shape * (betas - betas_ref.detach()).pow(2).mean(-1)

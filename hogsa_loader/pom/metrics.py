@@ -72,8 +72,9 @@ def _canonical_vertices(state: GraspState, infos: Mapping[str, HandInfo]) -> dic
         return {s: hands[s].vertices.double().cpu() for s in SIDES}
 
 
-def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-                  active: Optional[Mapping[str, Tensor]] = None) -> dict[str, np.ndarray]:
+def grasp_metrics(
+    state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet, active: Optional[Mapping[str, Tensor]] = None
+) -> dict[str, np.ndarray]:
     """Per-sample grasp-quality metrics.
 
     Per sample (both hands together):
@@ -112,7 +113,7 @@ def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
     contact = {s: np.zeros(B, dtype=bool) for s in SIDES}
     for b in range(B):
         g = objects.geometry(state.obj_names[b])
-        Rt = articulation_matrix(arti[b: b + 1])[0]  # top-part frame -> canonical
+        Rt = articulation_matrix(arti[b : b + 1])[0]  # top-part frame -> canonical
         V = {s: verts[s][b] for s in SIDES}
         near = torch.cat([sdf[s][b] for s in SIDES]) < CANDIDATE_DISTANCE
         ins, dist = _inside_and_distance(g, Rt, torch.cat([V[s] for s in SIDES]), near)
@@ -122,9 +123,9 @@ def grasp_metrics(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
         n0 = 0
         for s in SIDES:
             n = V[s].shape[0]
-            contact[s][b] = bool(touch[n0: n0 + n].any())
+            contact[s][b] = bool(touch[n0 : n0 + n].any())
             n0 += n
-        volume[b] = _intersection_count(g, Rt, V, infos) * VOLUME_PITCH ** 3
+        volume[b] = _intersection_count(g, Rt, V, infos) * VOLUME_PITCH**3
     need = np.ones(B, dtype=bool)
     if active is not None:
         for s in SIDES:
@@ -167,7 +168,9 @@ def summarize(m: Mapping[str, np.ndarray], joints: Optional[Tensor] = None) -> d
     """Means in report units: depth mm, volume cm³, ratios, accept rate, diversity mm."""
     out = {
         "penetration_depth_mm": float(np.mean(m["penetration_depth"]) * 1000.0),
-        "penetration_depth_max_mm": float(np.max(m["penetration_depth"]) * 1000.0) if len(m["penetration_depth"]) else 0.0,
+        "penetration_depth_max_mm": float(np.max(m["penetration_depth"]) * 1000.0)
+        if len(m["penetration_depth"])
+        else 0.0,
         "intersection_cm3": float(np.mean(m["intersection"]) * 1e6),
         "contact_ratio": float(np.mean(m["contact_ratio"])),
         "contact_rate": float(np.mean(m["contact_right"] | m["contact_left"])),

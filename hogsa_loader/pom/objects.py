@@ -93,8 +93,9 @@ class ObjectGeometry:
     diameter: float
 
     @classmethod
-    def build(cls, template: ObjectTemplate, n_points: int = 2048, sdf_voxel: float = 0.002,
-              seed: int = 0) -> "ObjectGeometry":
+    def build(
+        cls, template: ObjectTemplate, n_points: int = 2048, sdf_voxel: float = 0.002, seed: int = 0
+    ) -> "ObjectGeometry":
         rng = np.random.default_rng(seed)
         pts, fid = sample_surface(template.verts, template.faces, n_points, rng)
         face_part = template.parts[template.faces[:, 0]]
@@ -116,7 +117,11 @@ class ObjectGeometry:
             name=template.name,
             points=torch.as_tensor(pts),
             points_top=torch.as_tensor(face_part[fid] == TOP),
-            sdf=sdf, tris=tris, trees=trees, voxels=voxels, vox_grid=vox_grid,
+            sdf=sdf,
+            tris=tris,
+            trees=trees,
+            voxels=voxels,
+            vox_grid=vox_grid,
             diameter=float(template.diameter),
         )
 
@@ -131,8 +136,9 @@ class ObjectSet:
         seed: sampling seed.
     """
 
-    def __init__(self, templates: Mapping[str, ObjectTemplate], n_points: int = 2048,
-                 sdf_voxel: float = 0.002, seed: int = 0) -> None:
+    def __init__(
+        self, templates: Mapping[str, ObjectTemplate], n_points: int = 2048, sdf_voxel: float = 0.002, seed: int = 0
+    ) -> None:
         self.templates = dict(templates)
         self.n_points = n_points
         self.sdf_voxel = sdf_voxel
@@ -143,12 +149,12 @@ class ObjectSet:
         if name not in self._geo:
             if name not in self.templates:
                 raise KeyError(f"unknown object {name!r}; known: {sorted(self.templates)}")
-            self._geo[name] = ObjectGeometry.build(self.templates[name], self.n_points,
-                                                   self.sdf_voxel, self.seed)
+            self._geo[name] = ObjectGeometry.build(self.templates[name], self.n_points, self.sdf_voxel, self.seed)
         return self._geo[name]
 
-    def points(self, names: Sequence[str], arti: Tensor, count: int | None = None,
-               generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    def points(
+        self, names: Sequence[str], arti: Tensor, count: int | None = None, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Canonical surface samples articulated by θ.
 
         Args:

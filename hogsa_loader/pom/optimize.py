@@ -13,13 +13,7 @@ from torch import Tensor
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.pom.contactnet import ContactNet
 from hogsa_loader.pom.hands import SIDES, HandInfo
-from hogsa_loader.pom.losses import (
-    contact_consistency,
-    hand_centric,
-    hand_contact,
-    penetration,
-    pose_prior,
-)
+from hogsa_loader.pom.losses import contact_consistency, hand_centric, hand_contact, penetration, pose_prior
 from hogsa_loader.pom.objects import ObjectSet, to_canonical
 from hogsa_loader.pom.regrasp import carry_with_part, regrasp, source_contacts
 from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
@@ -99,8 +93,16 @@ def _canon_verts(info: HandInfo, p: HandParams, state: GraspState) -> Tensor:
     return to_canonical(hand_forward(info, p).vertices, state.obj_rot, state.obj_trans)
 
 
-def _escape(base: Tensor, trans: Tensor, R: Tensor, state: GraspState, objects: ObjectSet, margin: float,
-            max_dist: float = 0.08, n_steps: int = 40) -> Tensor:
+def _escape(
+    base: Tensor,
+    trans: Tensor,
+    R: Tensor,
+    state: GraspState,
+    objects: ObjectSet,
+    margin: float,
+    max_dist: float = 0.08,
+    n_steps: int = 40,
+) -> Tensor:
     """Smallest rigid move that takes a penetrating hand out of the object (line search).
 
     Candidate directions (canonical frame): the depth-weighted mean outward SDF gradient of
@@ -158,9 +160,16 @@ def _escape(base: Tensor, trans: Tensor, R: Tensor, state: GraspState, objects: 
     return trans + torch.einsum("bij,bj->bi", R, move_c)
 
 
-def snap_hands(state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-               active: Optional[Mapping[str, Tensor]], steps: int = 10, margin: float = 0.001,
-               damping: float = 1e-3, escape: bool = True) -> GraspState:
+def snap_hands(
+    state: GraspState,
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    active: Optional[Mapping[str, Tensor]],
+    steps: int = 10,
+    margin: float = 0.001,
+    damping: float = 1e-3,
+    escape: bool = True,
+) -> GraspState:
     """Rigid contact projection of each hand (translation only, batched Gauss-Newton).
 
     Each step, per hand: if vertices penetrate, the translation ``δ`` minimising
@@ -206,16 +215,24 @@ def snap_hands(state: GraspState, infos: Mapping[str, HandInfo], objects: Object
             mn, arg = sdf.min(1)
             g_min = torch.gather(g, 1, arg[:, None, None].expand(-1, 1, 3))[:, 0]
             approach = (~pen) & act & (mn > margin)
-            move_c = torch.where(pen[:, None], delta_out,
-                                 torch.where(approach[:, None], -g_min * (mn - margin)[:, None],
-                                             torch.zeros_like(delta_out)))
+            move_c = torch.where(
+                pen[:, None],
+                delta_out,
+                torch.where(approach[:, None], -g_min * (mn - margin)[:, None], torch.zeros_like(delta_out)),
+            )
             trans = trans + torch.einsum("bij,bj->bi", R, move_c)
         hands[side] = HandParams(p.rot, p.pose, trans, p.betas)
     return GraspState(hands, list(state.obj_names), state.obj_arti, state.obj_rot, state.obj_trans)
 
 
-def _initialise(start: GraspState, ref: GraspState, active: Mapping[str, Tensor], infos: Mapping[str, HandInfo],
-                objects: ObjectSet, config: POMConfig) -> GraspState:  # fmt: skip
+def _initialise(
+    start: GraspState,
+    ref: GraspState,
+    active: Mapping[str, Tensor],
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    config: POMConfig,
+) -> GraspState:
     """A detached copy of ``start``; with ``config.snap`` re-grasped: hands on the top part carried
     with it, moved out of the object, then fitted to the active source contacts."""
     state = start.map(lambda t: t.detach().clone())
@@ -227,20 +244,41 @@ def _initialise(start: GraspState, ref: GraspState, active: Mapping[str, Tensor]
         contacts.on_top[s] &= active[s].to(contacts.on_top[s].device)
     state = carry_with_part(state, ref.obj_arti, contacts, infos)
     state = snap_hands(state, infos, objects, None, config.snap_steps, config.contact_margin)
-    return regrasp(state, contacts, infos, objects, config.regrasp_steps, config.contact_margin,
-                   rot_weight=config.regrasp_rot_weight)  # fmt: skip
+    return regrasp(
+        state,
+        contacts,
+        infos,
+        objects,
+        config.regrasp_steps,
+        config.contact_margin,
+        rot_weight=config.regrasp_rot_weight,
+    )
 
 
 class _Objective:
     """The per-sample POM loss of both hands, with the caches it keeps between iterations
     (nearest object points, prior-vertex neighbours, ContactNet's target maps)."""
 
-    def __init__(self, state: GraspState, ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-                 contactnet: Optional[ContactNet], config: POMConfig, obj_pts: Tensor,
-                 active: Mapping[str, Tensor]) -> None:  # fmt: skip
+    def __init__(
+        self,
+        state: GraspState,
+        ref: GraspState,
+        infos: Mapping[str, HandInfo],
+        objects: ObjectSet,
+        contactnet: Optional[ContactNet],
+        config: POMConfig,
+        obj_pts: Tensor,
+        active: Mapping[str, Tensor],
+    ) -> None:
         device = obj_pts.device
         self.state, self.ref, self.infos, self.objects, self.config, self.obj_pts = (
-            state, ref, infos, objects, config, obj_pts)  # fmt: skip
+            state,
+            ref,
+            infos,
+            objects,
+            config,
+            obj_pts,
+        )
         self.contactnet = contactnet.to(device).eval() if contactnet is not None else None
         self.faces = {s: infos[s].layer.faces.to(device) for s in SIDES}
         self.sign = {s: torch.full((state.batch,), infos[s].side_sign, device=device) for s in SIDES}
@@ -265,11 +303,13 @@ class _Objective:
                     pred = self.contactnet(obj_pts, v.detach(), infos[s].prior_mask.to(device), self.sign[s])
                     self.target[s] = pred / pred.max(-1, keepdim=True).values.clamp_min(1e-6)
             total = total + on * cfg.w_contact * contact_consistency(c_hand, self.target[s])
-        l_h, self.prior_idx[s] = hand_centric(obj_pts, v, infos[s].prior_ids.to(device), dist,
-                                              idx=None if refresh else self.prior_idx[s])  # fmt: skip
+        l_h, self.prior_idx[s] = hand_centric(
+            obj_pts, v, infos[s].prior_ids.to(device), dist, idx=None if refresh else self.prior_idx[s]
+        )
         total = total + on * cfg.w_hand * l_h
-        l_pen, _ = penetration(v, obj_pts, self.faces[s], idx, dist, self.objects, self.state.obj_names,
-                               self.state.obj_arti)  # fmt: skip
+        l_pen, _ = penetration(
+            v, obj_pts, self.faces[s], idx, dist, self.objects, self.state.obj_names, self.state.obj_arti
+        )
         total = total + cfg.w_pen * l_pen
         r = self.ref.hands[s]
         return total + cfg.w_prior * pose_prior(p.pose, r.pose, p.betas, r.betas)
@@ -279,8 +319,13 @@ def _adam(objective: _Objective, config: POMConfig) -> tuple[dict[str, HandParam
     """``config.iters`` Adam steps on both hands' rotation, articulation, translation and shape;
     the optimised hands and the per-iteration mean loss."""
     state, B = objective.state, objective.state.batch
-    params = {s: {k: getattr(state.hands[s], k).detach().clone().requires_grad_(True)
-                  for k in ("rot", "pose", "trans", "betas")} for s in SIDES}  # fmt: skip
+    params = {
+        s: {
+            k: getattr(state.hands[s], k).detach().clone().requires_grad_(True)
+            for k in ("rot", "pose", "trans", "betas")
+        }
+        for s in SIDES
+    }
     lrs = {"rot": config.lr_rot, "pose": config.lr_pose, "trans": config.lr_trans, "betas": config.lr_shape}
     opt = torch.optim.Adam([{"params": [params[s][k] for s in SIDES], "lr": lrs[k]} for k in lrs])
     history: list[float] = []
@@ -306,8 +351,15 @@ def _final_push(out: GraspState, infos: Mapping[str, HandInfo], objects: ObjectS
     for s in SIDES:
         for t in out.hands[s].as_dict().values():
             finite &= torch.isfinite(t).all(-1)
-    pushed = snap_hands(out.map(lambda t: torch.nan_to_num(t, 0.0, 0.0, 0.0)), infos, objects, None,
-                        config.snap_steps, config.contact_margin, escape=False)  # fmt: skip
+    pushed = snap_hands(
+        out.map(lambda t: torch.nan_to_num(t, 0.0, 0.0, 0.0)),
+        infos,
+        objects,
+        None,
+        config.snap_steps,
+        config.contact_margin,
+        escape=False,
+    )
     for s in SIDES:  # non-finite samples keep their NaNs (dropped by the plausibility check)
         out.hands[s].trans = torch.where(finite[:, None], pushed.hands[s].trans, out.hands[s].trans)
 
@@ -369,8 +421,9 @@ def optimise_grasps(
     if active is None:
         active = {s: torch.ones(B, dtype=torch.bool, device=device) for s in SIDES}
     state = _initialise(start, ref, active, infos, objects, config)
-    obj_pts, _ = objects.points(state.obj_names, state.obj_arti, count=min(config.n_obj_points, objects.n_points),
-                                generator=generator)
+    obj_pts, _ = objects.points(
+        state.obj_names, state.obj_arti, count=min(config.n_obj_points, objects.n_points), generator=generator
+    )
     obj_pts = obj_pts.to(device, start.obj_trans.dtype)
     objective = _Objective(state, ref, infos, objects, contactnet, config, obj_pts, active)
     hands, history = _adam(objective, config)
@@ -381,8 +434,9 @@ def optimise_grasps(
     return POMResult(out, keep, dropped, history, time.perf_counter() - t0)
 
 
-def _plausibility(state: GraspState, ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-                  config: POMConfig) -> tuple[Tensor, dict[str, int]]:
+def _plausibility(
+    state: GraspState, ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet, config: POMConfig
+) -> tuple[Tensor, dict[str, int]]:
     B = state.batch
     device = state.obj_trans.device
     finite = torch.ones(B, dtype=torch.bool, device=device)
@@ -392,8 +446,8 @@ def _plausibility(state: GraspState, ref: GraspState, infos: Mapping[str, HandIn
         h, r = state.hands[s], ref.hands[s]
         for t in h.as_dict().values():
             finite &= torch.isfinite(t).all(-1)
-        plausible &= ((h.pose - r.pose).abs().max(-1).values <= config.max_pose_change)
-        plausible &= (h.betas.abs().max(-1).values <= config.max_betas)
+        plausible &= (h.pose - r.pose).abs().max(-1).values <= config.max_pose_change
+        plausible &= h.betas.abs().max(-1).values <= config.max_betas
     safe = state.map(lambda t: torch.nan_to_num(t, 0.0, 0.0, 0.0))
     with torch.no_grad():
         for s in SIDES:

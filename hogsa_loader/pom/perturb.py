@@ -65,7 +65,7 @@ class PerturbRecord:
 def euler_xyz_matrix(angles: Tensor) -> Tensor:
     """(B, 3) angles (x, y, z) -> (B, 3, 3) ``R_z R_y R_x``."""
     eye = torch.eye(3, dtype=angles.dtype, device=angles.device)
-    mats = [axis_angle_to_matrix(angles[:, i: i + 1] * eye[i]) for i in range(3)]
+    mats = [axis_angle_to_matrix(angles[:, i : i + 1] * eye[i]) for i in range(3)]
     return mats[2] @ mats[1] @ mats[0]
 
 
@@ -142,10 +142,14 @@ def perturb(
             rot = matrix_to_axis_angle(R @ axis_angle_to_matrix(p.rot))
             wrist = hand_forward(infos[side], p).joints[:, 0]
             shift = config.root_away * (wrist - center)
-            jit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(device)
+            jit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(
+                device
+            )
             hands[side] = HandParams(rot, p.pose.clone(), p.trans + shift + jit, p.betas.clone())
             rec_angles[side], rec_shift[side], rec_jit[side], rec_wrist[side] = angles, shift, jit, wrist
-        ojit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(device)
+        ojit = (random_directions(B, generator, dtype) * _uniform(B, 0.0, max_jit, generator, dtype)[:, None]).to(
+            device
+        )
         rec_jit["object"] = ojit
         if config.arti_range is not None:
             arti = _uniform(B, config.arti_range[0], config.arti_range[1], generator, dtype).to(device)

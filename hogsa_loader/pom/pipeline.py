@@ -37,12 +37,19 @@ class ContactFrames:
     active: dict[str, Tensor]
 
     def select(self, idx: Tensor) -> "ContactFrames":
-        return ContactFrames(self.state.select(idx), [self.sources[int(i)] for i in idx],
-                             {s: a[idx] for s, a in self.active.items()})
+        return ContactFrames(
+            self.state.select(idx), [self.sources[int(i)] for i in idx], {s: a[idx] for s, a in self.active.items()}
+        )
 
 
-def contact_frames(root, seq_ids: Sequence[str], infos: Mapping[str, HandInfo], objects: ObjectSet,
-                   per_sequence: Optional[int] = None, threshold: float = 0.005) -> ContactFrames:
+def contact_frames(
+    root,
+    seq_ids: Sequence[str],
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    per_sequence: Optional[int] = None,
+    threshold: float = 0.005,
+) -> ContactFrames:
     """Contact frames of ``seq_ids``; with ``per_sequence`` at most that many per sequence,
     evenly spaced over the sequence's contact frames."""
     state, src = load_frames(root, seq_ids)
@@ -75,10 +82,17 @@ class Augmented:
     seconds: float
 
 
-def augment(frames: ContactFrames, infos: Mapping[str, HandInfo], objects: ObjectSet,
-            contactnet: Optional[ContactNet], config: POMConfig = POMConfig(), seed: int = 0,
-            batch: int = 16, perturb_config: PerturbConfig = PerturbConfig(),
-            device: str | torch.device = "cpu") -> Augmented:
+def augment(
+    frames: ContactFrames,
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    contactnet: Optional[ContactNet],
+    config: POMConfig = POMConfig(),
+    seed: int = 0,
+    batch: int = 16,
+    perturb_config: PerturbConfig = PerturbConfig(),
+    device: str | torch.device = "cpu",
+) -> Augmented:
     """Perturb (seeded) and optimise every frame, ``batch`` samples per optimiser call."""
     gen = torch.Generator().manual_seed(seed)
     start, _ = perturb(frames.state, infos, objects, gen, perturb_config)
@@ -91,8 +105,16 @@ def augment(frames: ContactFrames, infos: Mapping[str, HandInfo], objects: Objec
         ref = frames.state.select(idx).map(lambda t: t.to(device))
         act = {s: frames.active[s][idx].to(device) for s in SIDES}
         t0 = time.perf_counter()
-        res = optimise_grasps(st, infos, objects, contactnet, config, reference=ref, active=act,
-                              generator=torch.Generator().manual_seed(seed + s0))
+        res = optimise_grasps(
+            st,
+            infos,
+            objects,
+            contactnet,
+            config,
+            reference=ref,
+            active=act,
+            generator=torch.Generator().manual_seed(seed + s0),
+        )
         secs += time.perf_counter() - t0
         outs.append(res.state.map(lambda t: t.cpu()))
         keeps.append(res.keep.cpu())

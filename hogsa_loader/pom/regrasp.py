@@ -38,8 +38,9 @@ class SourceContacts:
         return self.mask[side].any(1)
 
 
-def source_contacts(ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-                    contact_distance: float = 0.005) -> SourceContacts:
+def source_contacts(
+    ref: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet, contact_distance: float = 0.005
+) -> SourceContacts:
     """Contact sets of the source grasps ``ref`` (see :class:`SourceContacts`)."""
     sdf, mask, on_top = {}, {}, {}
     with torch.no_grad():
@@ -82,8 +83,9 @@ def _canonical_to_world(Mc: Tensor, tc: Tensor, obj_rot: Tensor, obj_trans: Tens
     return M, c
 
 
-def carry_with_part(state: GraspState, source_arti: Tensor, contacts: SourceContacts,
-                    infos: Mapping[str, HandInfo]) -> GraspState:
+def carry_with_part(
+    state: GraspState, source_arti: Tensor, contacts: SourceContacts, infos: Mapping[str, HandInfo]
+) -> GraspState:
     """Hands holding the top part follow it from the source θ to the state's θ.
 
     Args:
@@ -101,8 +103,9 @@ def carry_with_part(state: GraspState, source_arti: Tensor, contacts: SourceCont
         p = state.hands[s]
         moved = rigid_move_hand(infos[s], p, M, c)
         top = contacts.on_top[s].to(p.rot.device)[:, None]
-        hands[s] = HandParams(torch.where(top, moved.rot, p.rot), p.pose,
-                              torch.where(top, moved.trans, p.trans), p.betas)
+        hands[s] = HandParams(
+            torch.where(top, moved.rot, p.rot), p.pose, torch.where(top, moved.trans, p.trans), p.betas
+        )
     return GraspState(hands, list(state.obj_names), state.obj_arti, state.obj_rot, state.obj_trans)
 
 
@@ -141,8 +144,9 @@ class _RigidFit:
         cost = (w * r * r).sum(1) + self.rot_weight * matrix_to_axis_angle(M).pow(2).sum(-1)
         return cost, r, w, g, v
 
-    def step(self, Mc: Tensor, tc: Tensor, pivot0: Tensor, lam: Tensor, max_step: float,
-             max_rot_step: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+    def step(
+        self, Mc: Tensor, tc: Tensor, pivot0: Tensor, lam: Tensor, max_step: float, max_rot_step: float
+    ) -> tuple[Tensor, Tensor]:
         """The clamped LM step from ``(Mc, tc)``: the proposed rotation (B, 3, 3) and translation (B, 3)."""
         dt = self.base.dtype
         _, r, w, g, v = self.evaluate(Mc, tc, True)
@@ -162,8 +166,7 @@ class _RigidFit:
         return Rs @ Mc, torch.einsum("bij,bj->bi", Rs, tc - pivot) + pivot + dx
 
 
-def _fit_rigid(fit: _RigidFit, act: Tensor, steps: int, max_step: float,
-               max_rot_step: float) -> tuple[Tensor, Tensor]:  # fmt: skip
+def _fit_rigid(fit: _RigidFit, act: Tensor, steps: int, max_step: float, max_rot_step: float) -> tuple[Tensor, Tensor]:
     """``steps`` LM iterations from the identity; canonical rotation (B, 3, 3) and translation (B, 3).
     A step is kept only for active samples whose cost went down (else the damping grows)."""
     base, dt = fit.base, fit.base.dtype
@@ -184,9 +187,18 @@ def _fit_rigid(fit: _RigidFit, act: Tensor, steps: int, max_step: float,
     return Mc, tc
 
 
-def regrasp(state: GraspState, contacts: SourceContacts, infos: Mapping[str, HandInfo], objects: ObjectSet,
-            steps: int = 20, margin: float = 0.001, pen_weight: float = 10.0, rot_weight: float = 2e-4,
-            max_step: float = 0.02, max_rot_step: float = 0.2) -> GraspState:
+def regrasp(
+    state: GraspState,
+    contacts: SourceContacts,
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    steps: int = 20,
+    margin: float = 0.001,
+    pen_weight: float = 10.0,
+    rot_weight: float = 2e-4,
+    max_step: float = 0.02,
+    max_rot_step: float = 0.2,
+) -> GraspState:
     """Batched Levenberg–Marquardt fit of each hand's rigid motion to its source contacts.
 
     Our addition before the paper's 200 Adam steps (``POMConfig.snap``). The paper's learning

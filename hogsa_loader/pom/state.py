@@ -66,8 +66,13 @@ class GraspState:
 
     def map(self, fn) -> "GraspState":
         """Apply ``fn`` to every tensor (e.g. ``.detach().clone()``, ``.to(device)``)."""
-        return GraspState({s: h.map(fn) for s, h in self.hands.items()}, list(self.obj_names),
-                          fn(self.obj_arti), fn(self.obj_rot), fn(self.obj_trans))
+        return GraspState(
+            {s: h.map(fn) for s, h in self.hands.items()},
+            list(self.obj_names),
+            fn(self.obj_arti),
+            fn(self.obj_rot),
+            fn(self.obj_trans),
+        )
 
     def select(self, idx: Tensor | Sequence[int]) -> "GraspState":
         """Sub-batch (index or bool mask)."""
@@ -82,15 +87,21 @@ class GraspState:
     @staticmethod
     def cat(states: Iterable["GraspState"]) -> "GraspState":
         states = list(states)
-        hands = {s: HandParams(*(torch.cat([getattr(st.hands[s], k) for st in states]) for k in HAND_KEYS))
-                 for s in SIDES}
-        return GraspState(hands, [n for st in states for n in st.obj_names],
-                          torch.cat([st.obj_arti for st in states]), torch.cat([st.obj_rot for st in states]),
-                          torch.cat([st.obj_trans for st in states]))
+        hands = {
+            s: HandParams(*(torch.cat([getattr(st.hands[s], k) for st in states]) for k in HAND_KEYS)) for s in SIDES
+        }
+        return GraspState(
+            hands,
+            [n for st in states for n in st.obj_names],
+            torch.cat([st.obj_arti for st in states]),
+            torch.cat([st.obj_rot for st in states]),
+            torch.cat([st.obj_trans for st in states]),
+        )
 
 
-def load_frames(root, seq_ids: Sequence[str], stride: int = 1, dtype: torch.dtype = torch.float32
-                ) -> tuple[GraspState, list[tuple[str, str, int]]]:
+def load_frames(
+    root, seq_ids: Sequence[str], stride: int = 1, dtype: torch.dtype = torch.float32
+) -> tuple[GraspState, list[tuple[str, str, int]]]:
     """Annotated frames of ARCTIC sequences as one :class:`GraspState`.
 
     Args:
@@ -145,8 +156,9 @@ def canonical_hands(state: GraspState, infos: Mapping[str, HandInfo]) -> dict[st
     return out
 
 
-def contact_flags(state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet,
-                  threshold: float = 0.005) -> dict[str, Tensor]:
+def contact_flags(
+    state: GraspState, infos: Mapping[str, HandInfo], objects: ObjectSet, threshold: float = 0.005
+) -> dict[str, Tensor]:
     """Which hands touch the object (some vertex within ``threshold`` or inside; SDF grid).
 
     Returns:
@@ -154,5 +166,6 @@ def contact_flags(state: GraspState, infos: Mapping[str, HandInfo], objects: Obj
     """
     with torch.no_grad():
         hands = canonical_hands(state, infos)
-        return {s: objects.sdf(hands[s].vertices, state.obj_names, state.obj_arti).min(1).values <= threshold
-                for s in SIDES}
+        return {
+            s: objects.sdf(hands[s].vertices, state.obj_names, state.obj_arti).min(1).values <= threshold for s in SIDES
+        }

@@ -7,8 +7,9 @@ perturbation (rotation/jitter scaled by U[0, 1]; a quarter of the samples unpert
 that the network learns the contact of the *annotated* grasp from a displaced hand — what
 POM asks of it. Target: GraspTTA's map ``2 − 2σ(2 d_cm)`` of the annotated hand. Loss:
 binary cross-entropy with these soft targets, each point weighted ``1 + 10·target``
-(contact points are ~2 % of the cloud; unweighted, the network never predicts > 0.5). Validation on held-out subjects with a fixed
-perturbation: MAE, IoU of the maps thresholded at 0.5, loss.
+(contact points are ~2 % of the cloud; unweighted, the network never predicts > 0.5).
+Validation on held-out subjects with a fixed perturbation: MAE, IoU of the maps thresholded
+at 0.5, loss.
 """
 
 from __future__ import annotations
@@ -60,8 +61,9 @@ class ContactData:
         return self.state.batch
 
 
-def build_contact_data(root, subjects: Sequence[str], infos: Mapping[str, HandInfo], objects: ObjectSet,
-                       near: float = 0.02) -> ContactData:
+def build_contact_data(
+    root, subjects: Sequence[str], infos: Mapping[str, HandInfo], objects: ObjectSet, near: float = 0.02
+) -> ContactData:
     """Frames of ``subjects`` where a hand is within ``near`` of the object."""
     seqs = [s for s in root.sequences() if s.split("/")[0] in set(subjects)]
     if not seqs:
@@ -76,8 +78,16 @@ def build_contact_data(root, subjects: Sequence[str], infos: Mapping[str, HandIn
     return ContactData(state.select(idx), [src[int(i)] for i in idx])
 
 
-def _batch(data: ContactData, idx: Tensor, infos, objects, points: Optional[int], gen: torch.Generator,
-           scale: float, clean: Tensor) -> tuple[dict, Tensor]:
+def _batch(
+    data: ContactData,
+    idx: Tensor,
+    infos,
+    objects,
+    points: Optional[int],
+    gen: torch.Generator,
+    scale: float,
+    clean: Tensor,
+) -> tuple[dict, Tensor]:
     """Inputs/targets of one batch: per side (obj_pts, hand_in, target); plus obj points."""
     st = data.state.select(idx)
     obj, _ = objects.points(st.obj_names, st.obj_arti, count=points, generator=gen if points else None)
@@ -96,8 +106,16 @@ def _batch(data: ContactData, idx: Tensor, infos, objects, points: Optional[int]
     return out, obj
 
 
-def evaluate_contactnet(model: ContactNet, data: ContactData, infos, objects, seed: int = 123,
-                        scale: float = 0.5, batch: int = 16, max_frames: int = 48) -> dict[str, float]:
+def evaluate_contactnet(
+    model: ContactNet,
+    data: ContactData,
+    infos,
+    objects,
+    seed: int = 123,
+    scale: float = 0.5,
+    batch: int = 16,
+    max_frames: int = 48,
+) -> dict[str, float]:
     """Validation MAE, IoU@0.5 and BCE on a fixed perturbation (and MAE/IoU unperturbed).
 
     Uses at most ``max_frames`` frames, evenly spaced, with all object points. ``loss`` is the
@@ -134,8 +152,14 @@ def evaluate_contactnet(model: ContactNet, data: ContactData, infos, objects, se
     return res
 
 
-def train_contactnet(train: ContactData, val: Optional[ContactData], infos, objects, config: TrainConfig = TrainConfig(),
-                     progress: Optional[Callable[[int, dict], None]] = None) -> tuple[ContactNet, dict]:
+def train_contactnet(
+    train: ContactData,
+    val: Optional[ContactData],
+    infos,
+    objects,
+    config: TrainConfig = TrainConfig(),
+    progress: Optional[Callable[[int, dict], None]] = None,
+) -> tuple[ContactNet, dict]:
     """Train a ContactNet.
 
     Args:

@@ -86,8 +86,14 @@ def tsne(X: np.ndarray, perplexity: float = 30.0, iters: int = 750, seed: int = 
     return Y
 
 
-def render_grasps(states: Sequence[GraspState], labels: Sequence[str], infos: Mapping[str, HandInfo],
-                  objects: ObjectSet, size: int = 240, max_cols: int = 6) -> np.ndarray:
+def render_grasps(
+    states: Sequence[GraspState],
+    labels: Sequence[str],
+    infos: Mapping[str, HandInfo],
+    objects: ObjectSet,
+    size: int = 240,
+    max_cols: int = 6,
+) -> np.ndarray:
     """Sheet of grasps: one row per state (e.g. original / perturbed / optimised), one column
     per sample; each cell is the object and both hands seen from a fixed offset of the object.
 
@@ -104,25 +110,42 @@ def render_grasps(states: Sequence[GraspState], labels: Sequence[str], infos: Ma
             verts = {s: hand_forward(infos[s], st.hands[s].map(lambda t: t[:cols].float())).vertices for s in SIDES}
         for b in range(cols):
             tpl = objects.templates[st.obj_names[b]]
-            ov = articulate(torch.as_tensor(tpl.verts)[None], torch.as_tensor(tpl.parts == 0),
-                            st.obj_arti[b: b + 1].float(), st.obj_rot[b: b + 1].float(),
-                            st.obj_trans[b: b + 1].float())[0]
-            parts = [MeshPart(ov, torch.as_tensor(tpl.faces), 1,
-                              vertex_colors=torch.full_like(ov, 0.72))]
+            ov = articulate(
+                torch.as_tensor(tpl.verts)[None],
+                torch.as_tensor(tpl.parts == 0),
+                st.obj_arti[b : b + 1].float(),
+                st.obj_rot[b : b + 1].float(),
+                st.obj_trans[b : b + 1].float(),
+            )[0]
+            parts = [MeshPart(ov, torch.as_tensor(tpl.faces), 1, vertex_colors=torch.full_like(ov, 0.72))]
             for k, s in enumerate(SIDES):
                 v = verts[s][b]
-                parts.append(MeshPart(v, infos[s].layer.faces.cpu(), 2 + k,
-                                      vertex_colors=torch.tensor(colors[s]).expand_as(v).contiguous()))
+                parts.append(
+                    MeshPart(
+                        v,
+                        infos[s].layer.faces.cpu(),
+                        2 + k,
+                        vertex_colors=torch.tensor(colors[s]).expand_as(v).contiguous(),
+                    )
+                )
             allv = torch.cat([p.verts for p in parts])
             center = allv.mean(0)
             ext = float((allv.max(0).values - allv.min(0).values).norm())
             eye = center + ext * 1.25 * torch.tensor([0.45, -0.75, -0.5]) / torch.tensor([0.45, -0.75, -0.5]).norm()
             w2c = camera_look_at(eye, center, torch.tensor([0.0, -1.0, 0.0]))
-            img = render_meshes(parts, w2c, intrinsics_from_fov(40.0, size, size), size, size,
-                                light=Light(direction=(0.3, 0.5, 1.0)), background=(0.95, 0.95, 0.97)).rgb.numpy()
+            img = render_meshes(
+                parts,
+                w2c,
+                intrinsics_from_fov(40.0, size, size),
+                size,
+                size,
+                light=Light(direction=(0.3, 0.5, 1.0)),
+                background=(0.95, 0.95, 0.97),
+            ).rgb.numpy()
             img = np.ascontiguousarray((img * 255).astype(np.uint8))
-            cv2.putText(img, f"{lab} {st.obj_names[b]}", (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (20, 20, 20), 1,
-                        cv2.LINE_AA)
+            cv2.putText(
+                img, f"{lab} {st.obj_names[b]}", (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (20, 20, 20), 1, cv2.LINE_AA
+            )
             cells.append(img.astype(np.float32) / 255.0)
         rows.append(np.concatenate(cells, 1))
     return np.concatenate(rows, 0)

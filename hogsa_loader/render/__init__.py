@@ -10,5 +10,11 @@ from hogsa_loader.render.api import BackendUnavailableError, antialias_compensat
 from hogsa_loader.render.gaussians import RenderOutput
 from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
-__all__ = ["render", "RenderSettings", "SplatInputs", "RenderOutput", "BackendUnavailableError",
-           "antialias_compensation"]
+__all__ = [
+    "render",
+    "RenderSettings",
+    "SplatInputs",
+    "RenderOutput",
+    "BackendUnavailableError",
+    "antialias_compensation",
+]

@@ -24,11 +24,7 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.render.gaussians import RenderOutput, antialias_compensation, render_gaussians
-from hogsa_loader.render.gsplat_backend import (
-    BackendUnavailableError,
-    gsplat_unavailable_reason,
-    render_gsplat,
-)
+from hogsa_loader.render.gsplat_backend import BackendUnavailableError, gsplat_unavailable_reason, render_gsplat
 from hogsa_loader.render.settings import BACKENDS, RENDER_MODES, Backend, RenderMode, RenderSettings, SplatInputs
 from hogsa_loader.system import keep_allocator_memory
 
@@ -113,11 +109,33 @@ def render(
         ``backend="gsplat"`` cannot run here (CPU tensors, not float32, no CUDA, gsplat or
         its CUDA extension missing; "auto" falls back to "torch").
     """
-    settings = _settings(torch_backend_options, backend=backend, sh_degree=sh_degree, near_plane=near_plane,
-                         far_plane=far_plane, eps2d=eps2d, render_mode=render_mode, num_parts=num_parts,
-                         packed=packed, antialiased=antialiased, debug=debug)  # fmt: skip
-    inputs = SplatInputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, part_ids,
-                         torch_backend_options.get("valid"))  # fmt: skip
+    settings = _settings(
+        torch_backend_options,
+        backend=backend,
+        sh_degree=sh_degree,
+        near_plane=near_plane,
+        far_plane=far_plane,
+        eps2d=eps2d,
+        render_mode=render_mode,
+        num_parts=num_parts,
+        packed=packed,
+        antialiased=antialiased,
+        debug=debug,
+    )
+    inputs = SplatInputs(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+        backgrounds,
+        part_ids,
+        torch_backend_options.get("valid"),
+    )
     x, batched = _validate(inputs, settings)
     return _run_backend(x, settings, batched)
 
@@ -148,8 +166,13 @@ def _run_backend(x: SplatInputs, settings: RenderSettings, batched: bool) -> Ren
         keep_allocator_memory()
     run = render_gsplat if chosen == "gsplat" else render_gaussians
     out = run(x, settings)
-    out.meta.update(backend=chosen, backend_reason=reason, render_mode=settings.render_mode,
-                    antialiased=settings.antialiased, batched=batched)  # fmt: skip
+    out.meta.update(
+        backend=chosen,
+        backend_reason=reason,
+        render_mode=settings.render_mode,
+        antialiased=settings.antialiased,
+        batched=batched,
+    )
     return out if batched else _unbatched(out)
 
 
@@ -209,8 +232,15 @@ def _validate(x: SplatInputs, settings: RenderSettings) -> tuple[SplatInputs, bo
     """Check every field of the inputs of :func:`render` (still unchecked, of any type)
     against the others and ``settings``; return them in the batched layout, and whether
     they came so."""
-    named = dict(means=x.means, quats=x.quats, scales=x.scales, opacities=x.opacities, colors=x.colors,
-                 viewmats=x.viewmats, Ks=x.Ks)  # fmt: skip
+    named = dict(
+        means=x.means,
+        quats=x.quats,
+        scales=x.scales,
+        opacities=x.opacities,
+        colors=x.colors,
+        viewmats=x.viewmats,
+        Ks=x.Ks,
+    )
     if x.backgrounds is not None:
         named["backgrounds"] = x.backgrounds
     _check_types(named)

@@ -92,8 +92,17 @@ from hogsa_loader.render import splat_kernels
 from hogsa_loader.render.raster_kernels import pixel_centres, use_kernels
 from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
-__all__ = ["RenderOutput", "render_gaussians", "project_gaussians", "quat_scale_to_covar", "sh_colors",
-           "camera_colors", "part_channels", "antialias_compensation", "warm_up_compositor"]
+__all__ = [
+    "RenderOutput",
+    "render_gaussians",
+    "project_gaussians",
+    "quat_scale_to_covar",
+    "sh_colors",
+    "camera_colors",
+    "part_channels",
+    "antialias_compensation",
+    "warm_up_compositor",
+]
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # cuda/include/Common.h: ALPHA_THRESHOLD
 ALPHA_MAX = 0.999  # RasterizeToPixels3DGSFwd.cu: min(0.999f, opac * __expf(-sigma))
@@ -231,12 +240,7 @@ def _projected_covariance(
     j11, j12 = fy * rz, -fy * ty * rz * rz
     c = cov_c
     a = j00 * j00 * c[..., 0, 0] + 2 * j00 * j02 * c[..., 0, 2] + j02 * j02 * c[..., 2, 2] + eps2d
-    b = (
-        j00 * j11 * c[..., 0, 1]
-        + j00 * j12 * c[..., 0, 2]
-        + j02 * j11 * c[..., 2, 1]
-        + j02 * j12 * c[..., 2, 2]
-    )
+    b = j00 * j11 * c[..., 0, 1] + j00 * j12 * c[..., 0, 2] + j02 * j11 * c[..., 2, 1] + j02 * j12 * c[..., 2, 2]
     d = j11 * j11 * c[..., 1, 1] + 2 * j11 * j12 * c[..., 1, 2] + j12 * j12 * c[..., 2, 2] + eps2d
     return a, b, d
 
@@ -623,9 +627,19 @@ class _CompiledComposite(torch.autograd.Function):
     hand-written backward pass (the same gradients as the PyTorch compositor)."""
 
     @staticmethod
-    def forward(ctx: Any, means2d: Tensor, conics: Tensor, log_o: Tensor, feats: Tensor, radii: Tensor,
-                gids: Tensor, busy: Tensor, start: Tensor, count: Tensor, geometry: tuple[int, ...]
-                ) -> tuple[Tensor, Tensor]:
+    def forward(
+        ctx: Any,
+        means2d: Tensor,
+        conics: Tensor,
+        log_o: Tensor,
+        feats: Tensor,
+        radii: Tensor,
+        gids: Tensor,
+        busy: Tensor,
+        start: Tensor,
+        count: Tensor,
+        geometry: tuple[int, ...],
+    ) -> tuple[Tensor, Tensor]:
         """means2d (M, 2), conics (M, 3), log_o (M,), feats (M, F), radii (M, 2) int32,
         gids (K,), busy / start / count (nb,) int64, geometry ``(tile_size, tile_w, n_tiles,
         width, height)`` -> acc (nb, P, F), trans (nb, P)."""
@@ -641,10 +655,22 @@ class _CompiledComposite(torch.autograd.Function):
         order = torch.argsort(count, descending=True, stable=True)
         ts, tile_w, n_tiles = geometry[:3]
         pxs, pys = (pixel_centres(n, dtype).numpy() for n in (tile_w * ts, n_tiles // tile_w * ts))
-        common = (busy.numpy(), start.numpy(), count.numpy(), gids.numpy(), *(t.numpy() for t in tables[:3]),
-                  radii.numpy(), tables[3].numpy(), *geometry, pxs, pys, consts.numpy())
-        _run_split(splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()),
-                   (p, torch.bool))
+        common = (
+            busy.numpy(),
+            start.numpy(),
+            count.numpy(),
+            gids.numpy(),
+            *(t.numpy() for t in tables[:3]),
+            radii.numpy(),
+            tables[3].numpy(),
+            *geometry,
+            pxs,
+            pys,
+            consts.numpy(),
+        )
+        _run_split(
+            splat_kernels.composite_forward, order, (*common, acc.numpy(), trans.numpy(), last.numpy()), (p, torch.bool)
+        )
         ctx.save_for_backward(*tables, gids, trans, last)  # (in-place changes before backward are caught)
         ctx.common, ctx.order = common, order  # the kernels' shared arguments, views of the saved tensors
         ctx.dtypes = (means2d.dtype, conics.dtype, log_o.dtype)
@@ -653,17 +679,29 @@ class _CompiledComposite(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, v_acc: Tensor, v_trans: Tensor) -> tuple[Any, ...]:
         if torch.is_grad_enabled():  # backward(create_graph=True): the kernels' gradients are not differentiable
-            raise RuntimeError("the compiled compositor gives first-order gradients only; render with "
-                               "compositor='torch' for higher-order ones")
+            raise RuntimeError(
+                "the compiled compositor gives first-order gradients only; render with "
+                "compositor='torch' for higher-order ones"
+            )
         m2d, _, _, feats, gids, trans, last = ctx.saved_tensors
         dtype, nf = feats.dtype, feats.shape[1]
         grads = torch.zeros(gids.shape[0], splat_kernels.GRAD_COLUMNS + nf, dtype=dtype)
-        _run_split(splat_kernels.composite_backward, ctx.order,
-                   (*ctx.common, trans.numpy(), last.numpy(), v_acc.to(dtype).contiguous().numpy(),
-                    v_trans.to(dtype).contiguous().numpy(), grads.numpy()), (2 * trans.shape[1] + nf, dtype))
+        _run_split(
+            splat_kernels.composite_backward,
+            ctx.order,
+            (
+                *ctx.common,
+                trans.numpy(),
+                last.numpy(),
+                v_acc.to(dtype).contiguous().numpy(),
+                v_trans.to(dtype).contiguous().numpy(),
+                grads.numpy(),
+            ),
+            (2 * trans.shape[1] + nf, dtype),
+        )
         per_row = torch.zeros(m2d.shape[0], grads.shape[1], dtype=dtype).index_add_(0, gids, grads)
         d_m2d, d_con, d_lo = per_row[:, 0:2], per_row[:, 2:5], per_row[:, 5]
-        d_feat = per_row[:, splat_kernels.GRAD_COLUMNS:]
+        d_feat = per_row[:, splat_kernels.GRAD_COLUMNS :]
         t_m2d, t_con, t_lo = ctx.dtypes
         return (d_m2d.to(t_m2d), d_con.to(t_con), d_lo.to(t_lo), d_feat) + (None,) * 6
 
@@ -722,8 +760,18 @@ def render_gaussians(inputs: SplatInputs, settings: RenderSettings | None = None
     means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, part_ids, valid = inputs
     kernels = _use_compiled_compositor(s.compositor, means, colors, opacities)
     ts = s.tile_size
-    lay = _Layout(means.shape[0], viewmats.shape[1], means.shape[1], width, height, ts,
-                  (width + ts - 1) // ts, (height + ts - 1) // ts, means.dtype, means.device)  # fmt: skip
+    lay = _Layout(
+        means.shape[0],
+        viewmats.shape[1],
+        means.shape[1],
+        width,
+        height,
+        ts,
+        (width + ts - 1) // ts,
+        (height + ts - 1) // ts,
+        means.dtype,
+        means.device,
+    )
 
     # 1. projection (gsplat: fully_fused_projection with opacities)
     covars = quat_scale_to_covar(quats, scales)
@@ -738,15 +786,27 @@ def render_gaussians(inputs: SplatInputs, settings: RenderSettings | None = None
     # 3. tiles
     n_img = lay.B * lay.C
     flat_ids, _, tile_counts = _intersect_tiles(
-        means2d.detach().reshape(n_img, lay.N, 2), radii.reshape(n_img, lay.N, 2),
-        depths.detach().reshape(n_img, lay.N), ts, lay.tile_w, lay.tile_h,
-    )  # fmt: skip
+        means2d.detach().reshape(n_img, lay.N, 2),
+        radii.reshape(n_img, lay.N, 2),
+        depths.detach().reshape(n_img, lay.N),
+        ts,
+        lay.tile_w,
+        lay.tile_h,
+    )
     # 4. compositing
     acc, trans = _composite(means2d, conics, opacities, feat, radii, flat_ids, tile_counts, lay, s, kernels)
     out = _to_output(acc, trans, cols.shape[-1], backgrounds, s, lay)
-    out.meta = {"radii": radii, "means2d": means2d, "depths": depths, "conics": conics, "colors": cols,
-                "n_isects": int(flat_ids.numel()), "tile_width": lay.tile_w, "tile_height": lay.tile_h,
-                "tile_size": ts}  # fmt: skip
+    out.meta = {
+        "radii": radii,
+        "means2d": means2d,
+        "depths": depths,
+        "conics": conics,
+        "colors": cols,
+        "n_isects": int(flat_ids.numel()),
+        "tile_width": lay.tile_w,
+        "tile_height": lay.tile_h,
+        "tile_size": ts,
+    }
     return out
 
 
@@ -835,8 +895,17 @@ def _composite(
     tile_start = torch.cumsum(tile_counts, 0) - tile_counts
     if kernels:
         acc_b, trans_b = _CompiledComposite.apply(
-            means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat, radii.reshape(-1, 2), flat_ids, busy,
-            tile_start[busy], tile_counts[busy], (lay.tile_size, lay.tile_w, lay.n_tiles, lay.width, lay.height))
+            means2d.reshape(-1, 2),
+            conics.reshape(-1, 3),
+            log_o,
+            feat,
+            radii.reshape(-1, 2),
+            flat_ids,
+            busy,
+            tile_start[busy],
+            tile_counts[busy],
+            (lay.tile_size, lay.tile_w, lay.n_tiles, lay.width, lay.height),
+        )
         return acc.index_copy(0, busy, acc_b), trans.index_copy(0, busy, trans_b)
     table = _gaussian_table(means2d.reshape(-1, 2), conics.reshape(-1, 3), log_o, feat)
     ids, acc_b, trans_b = _composite_torch(table, flat_ids, busy, tile_start, tile_counts, lay, s)
@@ -938,11 +1007,19 @@ def _render_antialiased(x: SplatInputs, s: RenderSettings) -> RenderOutput:
 
     per_cam_colors = x.colors.dim() == (4 if s.sh_degree is None else 5)
     flat = SplatInputs(
-        per_gaussian(x.means), per_gaussian(x.quats), per_gaussian(x.scales), op_c.reshape(B * C, N),  # type: ignore[arg-type]
-        per_camera(x.colors) if per_cam_colors else per_gaussian(x.colors), per_camera(x.viewmats),  # type: ignore[arg-type]
-        per_camera(x.Ks), x.width, x.height, backgrounds=per_camera(x.backgrounds),  # type: ignore[arg-type]
-        part_ids=per_gaussian(x.part_ids), valid=per_gaussian(x.valid),
-    )  # fmt: skip
+        per_gaussian(x.means),
+        per_gaussian(x.quats),
+        per_gaussian(x.scales),
+        op_c.reshape(B * C, N),  # type: ignore[arg-type]
+        per_camera(x.colors) if per_cam_colors else per_gaussian(x.colors),
+        per_camera(x.viewmats),  # type: ignore[arg-type]
+        per_camera(x.Ks),
+        x.width,
+        x.height,
+        backgrounds=per_camera(x.backgrounds),  # type: ignore[arg-type]
+        part_ids=per_gaussian(x.part_ids),
+        valid=per_gaussian(x.valid),
+    )
     out = render_gaussians(flat, replace(s, antialiased=False))
 
     def back(t: Tensor | None) -> Tensor | None:  # (B*C, 1, ...) -> (B, C, ...)
@@ -969,7 +1046,16 @@ def warm_up_compositor() -> None:
 def _warm_up() -> None:
     means = torch.tensor([[[0.0, 0.0, 1.0]]], requires_grad=True)
     K = torch.tensor([[[[10.0, 0.0, 4.0], [0.0, 10.0, 4.0], [0.0, 0.0, 1.0]]]])
-    x = SplatInputs(means, torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]), torch.full((1, 1, 3), 0.1),
-                    torch.full((1, 1), 0.5), torch.ones(1, 1, 3), torch.eye(4)[None, None], K, 8, 8)  # fmt: skip
+    x = SplatInputs(
+        means,
+        torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]),
+        torch.full((1, 1, 3), 0.1),
+        torch.full((1, 1), 0.5),
+        torch.ones(1, 1, 3),
+        torch.eye(4)[None, None],
+        K,
+        8,
+        8,
+    )
     out = render_gaussians(x, RenderSettings(render_mode="RGB+ED", compositor="numba"))
     out.rgb.sum().backward()

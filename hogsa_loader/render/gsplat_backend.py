@@ -74,7 +74,9 @@ def _probe_extension() -> str | None:
     return None
 
 
-def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = None, tile_size: int = 16) -> str | None:
+def gsplat_unavailable_reason(
+    device: torch.device, dtype: torch.dtype | None = None, tile_size: int = 16
+) -> str | None:
     """Why the gsplat backend cannot render tensors on ``device`` of ``dtype`` with tiles of
     ``tile_size`` (None = it can).
 
@@ -82,8 +84,10 @@ def gsplat_unavailable_reason(device: torch.device, dtype: torch.dtype | None = 
     devices the first call may JIT-compile gsplat's extension (minutes, once per machine).
     """
     if tile_size > MAX_GSPLAT_TILE:
-        return (f"tile_size {tile_size} > {MAX_GSPLAT_TILE}: gsplat's raster kernel runs tile_size² threads per "
-                "block, at most 1024")  # fmt: skip
+        return (
+            f"tile_size {tile_size} > {MAX_GSPLAT_TILE}: gsplat's raster kernel runs tile_size² threads per "
+            "block, at most 1024"
+        )
     if device.type != "cuda":
         return f"the tensors are on '{device}', and gsplat's rasteriser runs on CUDA tensors only"
     if not torch.cuda.is_available():

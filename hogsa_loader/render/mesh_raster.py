@@ -341,8 +341,7 @@ def _interpolate(values: Tensor, tri_vidx: Tensor, bary: Tensor) -> Tensor:
 
 
 def _check_raster_inputs(
-    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float,
-    max_pairs: int,
+    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float, max_pairs: int
 ) -> None:
     """Raise ValueError with a clear message on malformed :func:`rasterize` inputs."""
     if not isinstance(verts_cam, Tensor) or verts_cam.ndim != 2 or verts_cam.shape[1] != 3:
@@ -372,10 +371,7 @@ def _check_faces(faces: Tensor, num_verts: int, name: str) -> None:
     if faces.is_floating_point() or faces.dtype == torch.bool or faces.is_complex():
         raise ValueError(f"{name} must hold integer vertex indices, got {faces.dtype}")
     if faces.numel() and (int(faces.min()) < 0 or int(faces.max()) >= num_verts):
-        raise ValueError(
-            f"{name} index out of range [0, {num_verts}): "
-            f"min {int(faces.min())}, max {int(faces.max())}"
-        )
+        raise ValueError(f"{name} index out of range [0, {num_verts}): min {int(faces.min())}, max {int(faces.max())}")
 
 
 def _check_K(K: Tensor) -> None:
@@ -428,8 +424,7 @@ def _oriented_edges(tri_uv: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Ten
         a = -(e1[:, 1] - e0[:, 1])
         b = e1[:, 0] - e0[:, 0]
         # Side of the opposite vertex, in float64 for a robust sign.
-        side = (a.double() * (c[:, 0].double() - e0[:, 0].double())
-                + b.double() * (c[:, 1].double() - e0[:, 1].double()))
+        side = a.double() * (c[:, 0].double() - e0[:, 0].double()) + b.double() * (c[:, 1].double() - e0[:, 1].double())
         sign = torch.sign(side).to(tri_uv.dtype)
         a_l.append(a * sign)
         b_l.append(b * sign)
@@ -463,8 +458,7 @@ def _pixel_bbox(tri_uv: Tensor, height: int, width: int) -> tuple[Tensor, Tensor
 
 
 def _setup_faces(
-    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float,
-    cull_backfaces: bool,
+    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float, cull_backfaces: bool
 ) -> _FaceTables:
     """Project, drop (near plane, degenerate, off-screen, culled) and tabulate faces.
 
@@ -524,10 +518,7 @@ def _make_tiles(tables: _FaceTables, max_pairs: int) -> _PixelTiles:
     row0 = tables.row0[face] + band * band_rows[face]
     row_end = tables.row0[face] + tables.nrows[face]
     nrows = torch.minimum(band_rows[face], row_end - row0)
-    return _PixelTiles(
-        face=face, row0=row0, col0=tables.col0[face], ncols=ncols[face],
-        count=nrows * ncols[face],
-    )
+    return _PixelTiles(face=face, row0=row0, col0=tables.col0[face], ncols=ncols[face], count=nrows * ncols[face])
 
 
 def _chunk_bounds(counts: Tensor, max_pairs: int) -> list[tuple[int, int, int]]:
@@ -552,9 +543,7 @@ def _chunk_bounds(counts: Tensor, max_pairs: int) -> list[tuple[int, int, int]]:
     return bounds
 
 
-def _enumerate_pairs(
-    tiles: _PixelTiles, start: int, end: int, pairs: int,
-) -> tuple[Tensor, Tensor, Tensor]:
+def _enumerate_pairs(tiles: _PixelTiles, start: int, end: int, pairs: int) -> tuple[Tensor, Tensor, Tensor]:
     """All (face, pixel) candidate pairs of tiles ``start:end``.
 
     Returns:
@@ -563,9 +552,7 @@ def _enumerate_pairs(
     """
     counts = tiles.count[start:end]
     device = counts.device
-    tile = torch.repeat_interleave(
-        torch.arange(end - start, device=device), counts, output_size=pairs
-    )
+    tile = torch.repeat_interleave(torch.arange(end - start, device=device), counts, output_size=pairs)
     first = torch.cumsum(counts, 0) - counts
     local = torch.arange(pairs, device=device) - first[tile]
     ncols = tiles.ncols[start:end][tile]
@@ -575,9 +562,7 @@ def _enumerate_pairs(
     return tiles.face[start:end][tile], row, col
 
 
-def _coverage(
-    tables: _FaceTables, face: Tensor, px: Tensor, py: Tensor,
-) -> tuple[Tensor, list[Tensor]]:
+def _coverage(tables: _FaceTables, face: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, list[Tensor]]:
     """Inside test of pixel centres against their triangle (top-left tie rule).
 
     Args:
@@ -592,8 +577,9 @@ def _coverage(
     inside = torch.ones_like(px, dtype=torch.bool)
     edges = []
     for k in range(3):
-        e = (tables.edge_a[k][face] * (px - tables.edge_x[k][face])
-             + tables.edge_b[k][face] * (py - tables.edge_y[k][face]))
+        e = tables.edge_a[k][face] * (px - tables.edge_x[k][face]) + tables.edge_b[k][face] * (
+            py - tables.edge_y[k][face]
+        )
         inside &= torch.where(tables.edge_tl[k][face], e >= 0, e > 0)
         edges.append(e)
     return inside, edges
@@ -667,9 +653,7 @@ def _cross2(a: Tensor, b: Tensor) -> Tensor:
     return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
 
 
-def _perspective_barycentrics(
-    pix_uv: Tensor, tri_uv: Tensor, tri_z: Tensor,
-) -> tuple[Tensor, Tensor]:
+def _perspective_barycentrics(pix_uv: Tensor, tri_uv: Tensor, tri_z: Tensor) -> tuple[Tensor, Tensor]:
     """Perspective-correct barycentrics and depth at given pixel centres.
 
     Args:
@@ -682,8 +666,7 @@ def _perspective_barycentrics(
         depth: (N,) camera-space z.
     """
     d = tri_uv - pix_uv[:, None, :]  # (N, 3, 2) vertices relative to the pixel centre
-    lam = torch.stack([_cross2(d[:, 1], d[:, 2]), _cross2(d[:, 2], d[:, 0]),
-                       _cross2(d[:, 0], d[:, 1])], dim=-1)
+    lam = torch.stack([_cross2(d[:, 1], d[:, 2]), _cross2(d[:, 2], d[:, 0]), _cross2(d[:, 0], d[:, 1])], dim=-1)
     lam = lam / lam.sum(dim=-1, keepdim=True)
     lam = lam.clamp_min(0.0)
     lam = lam / lam.sum(dim=-1, keepdim=True).clamp_min(torch.finfo(lam.dtype).tiny)
@@ -693,8 +676,7 @@ def _perspective_barycentrics(
 
 
 def _resolve_fragments(
-    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor,
-    height: int, width: int, chunk: int,
+    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, chunk: int
 ) -> Fragments:
     """Decode the z-buffer and compute barycentrics / depth of the visible faces.
 
@@ -717,9 +699,7 @@ def _resolve_fragments(
         bary[pix] = b
         depth[pix] = z
     return Fragments(
-        face_idx=face_idx.view(height, width),
-        bary=bary.view(height, width, 3),
-        depth=depth.view(height, width),
+        face_idx=face_idx.view(height, width), bary=bary.view(height, width, 3), depth=depth.view(height, width)
     )
 
 
@@ -733,8 +713,7 @@ def _use_kernels(backend: str, tensors: Sequence[Tensor]) -> bool:
 
 
 def _setup_faces_kernel(
-    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float,
-    cull_backfaces: bool,
+    verts_cam: Tensor, faces: Tensor, K: Tensor, height: int, width: int, near: float, cull_backfaces: bool
 ) -> _FaceTables:
     """:func:`_setup_faces` by the compiled kernel (bit-identical tables)."""
     dtype, num_f = verts_cam.dtype, faces.shape[0]
@@ -749,15 +728,37 @@ def _setup_faces_kernel(
     else:
         front = torch.ones(num_f, dtype=torch.bool)
     kept = raster_kernels.setup_faces(
-        verts_cam.detach().contiguous().numpy(), faces.contiguous().numpy(), K.detach().contiguous().numpy(),
-        height, width, torch.tensor([near], dtype=dtype).numpy(), front.numpy(), consts.numpy(),
-        face_ids.numpy(), a.numpy(), b.numpy(), x.numpy(), y.numpy(), tl.numpy(), inv_z.numpy(),
-        row0.numpy(), col0.numpy(), nrows.numpy(), ncols.numpy(),
+        verts_cam.detach().contiguous().numpy(),
+        faces.contiguous().numpy(),
+        K.detach().contiguous().numpy(),
+        height,
+        width,
+        torch.tensor([near], dtype=dtype).numpy(),
+        front.numpy(),
+        consts.numpy(),
+        face_ids.numpy(),
+        a.numpy(),
+        b.numpy(),
+        x.numpy(),
+        y.numpy(),
+        tl.numpy(),
+        inv_z.numpy(),
+        row0.numpy(),
+        col0.numpy(),
+        nrows.numpy(),
+        ncols.numpy(),
     )
     return _FaceTables(  # contiguous copies: one compiled signature per dtype downstream
-        face_ids=face_ids[:kept], edge_a=a[:, :kept].contiguous(), edge_b=b[:, :kept].contiguous(),
-        edge_x=x[:, :kept].contiguous(), edge_y=y[:, :kept].contiguous(), edge_tl=tl[:, :kept].contiguous(),
-        inv_z=inv_z[:, :kept].contiguous(), row0=row0[:kept], col0=col0[:kept], nrows=nrows[:kept],
+        face_ids=face_ids[:kept],
+        edge_a=a[:, :kept].contiguous(),
+        edge_b=b[:, :kept].contiguous(),
+        edge_x=x[:, :kept].contiguous(),
+        edge_y=y[:, :kept].contiguous(),
+        edge_tl=tl[:, :kept].contiguous(),
+        inv_z=inv_z[:, :kept].contiguous(),
+        row0=row0[:kept],
+        col0=col0[:kept],
+        nrows=nrows[:kept],
         ncols=ncols[:kept],
     )
 
@@ -769,8 +770,10 @@ def warm_up_kernels() -> None:
         return
     verts = torch.tensor([[-0.1, -0.1, 1.0], [0.1, -0.1, 1.0], [0.0, 0.1, 1.0], [0.0, 0.0, -1.0]])
     faces = torch.tensor([[0, 1, 2], [0, 1, 3]])
-    parts = [MeshPart(verts, faces, 1, vertex_colors=torch.ones(4, 3)),
-             MeshPart(verts, faces, 2, uv=torch.zeros(4, 2), texture=torch.ones(1, 1, 3))]
+    parts = [
+        MeshPart(verts, faces, 1, vertex_colors=torch.ones(4, 3)),
+        MeshPart(verts, faces, 2, uv=torch.zeros(4, 2), texture=torch.ones(1, 1, 3)),
+    ]
     render_meshes(parts, torch.eye(4), intrinsics_from_fov(60.0, 4, 4), 4, 4, backend="numba")
 
 
@@ -782,15 +785,26 @@ def _zbuffer_kernel(tables: _FaceTables, pxs: Tensor, pys: Tensor) -> Tensor:
     if tables.face_ids.numel() == 0:
         return zkey
     raster_kernels.zbuffer(
-        tables.edge_a.numpy(), tables.edge_b.numpy(), tables.edge_x.numpy(), tables.edge_y.numpy(),
-        tables.edge_tl.numpy(), tables.inv_z.numpy(), tables.row0.numpy(), tables.col0.numpy(),
-        tables.nrows.numpy(), tables.ncols.numpy(), pxs.numpy(), pys.numpy(), width, zkey.numpy(),
+        tables.edge_a.numpy(),
+        tables.edge_b.numpy(),
+        tables.edge_x.numpy(),
+        tables.edge_y.numpy(),
+        tables.edge_tl.numpy(),
+        tables.inv_z.numpy(),
+        tables.row0.numpy(),
+        tables.col0.numpy(),
+        tables.nrows.numpy(),
+        tables.ncols.numpy(),
+        pxs.numpy(),
+        pys.numpy(),
+        width,
+        zkey.numpy(),
     )
     return zkey
 
 
 def _resolve_kernel(
-    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor, pxs: Tensor, pys: Tensor,
+    zkey: Tensor, tables: _FaceTables, verts_cam: Tensor, faces: Tensor, K: Tensor, pxs: Tensor, pys: Tensor
 ) -> Fragments:
     """:func:`_resolve_fragments` by the compiled kernel (bit-identical fragments)."""
     dtype = verts_cam.dtype
@@ -800,14 +814,21 @@ def _resolve_kernel(
     depth = torch.empty((height * width,), dtype=dtype)
     consts = torch.tensor([torch.finfo(dtype).tiny, 1.0], dtype=dtype)
     raster_kernels.resolve(
-        zkey.numpy(), tables.face_ids.numpy(), verts_cam.detach().contiguous().numpy(),
-        faces.contiguous().numpy(), K.detach().contiguous().numpy(), pxs.numpy(), pys.numpy(), width,
-        consts.numpy(), face_idx.numpy(), bary.numpy(), depth.numpy(),
+        zkey.numpy(),
+        tables.face_ids.numpy(),
+        verts_cam.detach().contiguous().numpy(),
+        faces.contiguous().numpy(),
+        K.detach().contiguous().numpy(),
+        pxs.numpy(),
+        pys.numpy(),
+        width,
+        consts.numpy(),
+        face_idx.numpy(),
+        bary.numpy(),
+        depth.numpy(),
     )
     return Fragments(
-        face_idx=face_idx.view(height, width),
-        bary=bary.view(height, width, 3),
-        depth=depth.view(height, width),
+        face_idx=face_idx.view(height, width), bary=bary.view(height, width, 3), depth=depth.view(height, width)
     )
 
 
@@ -855,8 +876,7 @@ def rasterize(
         return _resolve_kernel(_zbuffer_kernel(tables, pxs, pys), tables, verts_cam, faces, K, pxs, pys)
     tables = _setup_faces(verts_cam, faces, K, height, width, near, cull_backfaces)
     zkey = _zbuffer(tables, height, width, max_pairs)
-    return _resolve_fragments(zkey, tables, verts_cam, faces, K, height, width,
-                              chunk=max(max_pairs // 4, 1))
+    return _resolve_fragments(zkey, tables, verts_cam, faces, K, height, width, chunk=max(max_pairs // 4, 1))
 
 
 # --------------------------------------------------------------------------------------
@@ -873,10 +893,8 @@ def _validate_part(part: MeshPart, name: str) -> None:
         raise ValueError(f"{name}.verts must be floating point, got {verts.dtype}")
     num_verts = verts.shape[0]
     _check_faces(part.faces, num_verts, f"{name}.faces")
-    if isinstance(part.part_id, bool) or not hasattr(part.part_id, "__index__") \
-            or operator.index(part.part_id) < 1:
-        raise ValueError(f"{name}.part_id must be an int >= 1 (0 is background), "
-                         f"got {part.part_id!r}")
+    if isinstance(part.part_id, bool) or not hasattr(part.part_id, "__index__") or operator.index(part.part_id) < 1:
+        raise ValueError(f"{name}.part_id must be an int >= 1 (0 is background), got {part.part_id!r}")
     has_vc = part.vertex_colors is not None
     has_uv, has_tex = part.uv is not None, part.texture is not None
     if has_vc and (has_uv or has_tex):
@@ -896,16 +914,14 @@ def _validate_part(part: MeshPart, name: str) -> None:
     if not isinstance(part.uv, Tensor) or part.uv.shape != (num_verts, 2):
         raise ValueError(f"{name}.uv must be ({num_verts}, 2), got {_shape(part.uv)}")
     tex = part.texture
-    if not isinstance(tex, Tensor) or tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] < 1 \
-            or tex.shape[1] < 1:
+    if not isinstance(tex, Tensor) or tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] < 1 or tex.shape[1] < 1:
         raise ValueError(f"{name}.texture must be a (Ht, Wt, 3) tensor, got {_shape(tex)}")
     if tex.dtype == torch.uint8:
         part.texture = tex.float() / 255.0
 
 
 def _check_render_inputs(
-    parts: Sequence[MeshPart], world2cam: Tensor, K: Tensor, height: int, width: int,
-    supersample: int,
+    parts: Sequence[MeshPart], world2cam: Tensor, K: Tensor, height: int, width: int, supersample: int
 ) -> None:
     """Raise ValueError with a clear message on malformed :func:`render_meshes` inputs."""
     if len(parts) == 0:
@@ -948,15 +964,10 @@ def _concat_parts(parts: Sequence[MeshPart], dtype: torch.dtype, device: torch.d
         faces.append(part.faces.to(device=device, dtype=torch.int64) + vert_start[-1])
         face_part.append(torch.full((part.faces.shape[0],), i, dtype=torch.int64, device=device))
         vert_start.append(vert_start[-1] + part.verts.shape[0])
-    return _Scene(
-        verts=torch.cat(verts), faces=torch.cat(faces), face_part=torch.cat(face_part),
-        vert_start=vert_start,
-    )
+    return _Scene(verts=torch.cat(verts), faces=torch.cat(faces), face_part=torch.cat(face_part), vert_start=vert_start)
 
 
-def _albedo(
-    parts: Sequence[MeshPart], scene: _Scene, face: Tensor, bary: Tensor,
-) -> Tensor:
+def _albedo(parts: Sequence[MeshPart], scene: _Scene, face: Tensor, bary: Tensor) -> Tensor:
     """Surface colour of each covered sample, from vertex colours or textures.
 
     Args:
@@ -983,8 +994,7 @@ def _albedo(
 
 
 def _shading_normals(
-    unit_fn: Tensor, vert_n: Tensor | None, faces: Tensor, face: Tensor, bary: Tensor,
-    points: Tensor,
+    unit_fn: Tensor, vert_n: Tensor | None, faces: Tensor, face: Tensor, bary: Tensor, points: Tensor
 ) -> Tensor:
     """Unit camera-space shading normals facing the camera (two-sided lighting).
 
@@ -1039,25 +1049,24 @@ def shade_blinn_phong(albedo: Tensor, normal: Tensor, points: Tensor, light: Lig
     half = _normalize(to_light + view)
     n_dot_h = (normal * half).sum(-1).clamp_min(0.0)
     spec = torch.where(n_dot_l > 0, n_dot_h.pow(light.shininess), torch.zeros_like(n_dot_h))
-    rgb = albedo * (light.ambient + light.diffuse * n_dot_l)[:, None] \
-        + light.specular * spec[:, None]
+    rgb = albedo * (light.ambient + light.diffuse * n_dot_l)[:, None] + light.specular * spec[:, None]
     return rgb.clamp(0.0, 1.0)
 
 
 def _background(
-    background: tuple[float, float, float] | Tensor, height: int, width: int,
-    dtype: torch.dtype, device: torch.device,
+    background: tuple[float, float, float] | Tensor, height: int, width: int, dtype: torch.dtype, device: torch.device
 ) -> Tensor:
     """Background as a (3,) colour or (H, W, 3) image tensor."""
     bg = torch.as_tensor(background, dtype=dtype, device=device)
     if bg.shape != (3,) and bg.shape != (height, width, 3):
-        raise ValueError(f"background must be an RGB triple or a ({height}, {width}, 3) "
-                         f"image, got shape {tuple(bg.shape)}")
+        raise ValueError(
+            f"background must be an RGB triple or a ({height}, {width}, 3) image, got shape {tuple(bg.shape)}"
+        )
     return bg
 
 
 def _downsample(
-    color: Tensor, coverage: Tensor, depth: Tensor, part_id: Tensor, normal: Tensor, s: int,
+    color: Tensor, coverage: Tensor, depth: Tensor, part_id: Tensor, normal: Tensor, s: int
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Reduce supersampled buffers over s x s blocks.
 
@@ -1085,8 +1094,13 @@ def _downsample(
 
 
 def _shade_samples(
-    parts: Sequence[MeshPart], scene: _Scene, verts_cam: Tensor, frags: Fragments,
-    light: Light, smooth_normals: bool, chunk: int,
+    parts: Sequence[MeshPart],
+    scene: _Scene,
+    verts_cam: Tensor,
+    frags: Fragments,
+    light: Light,
+    smooth_normals: bool,
+    chunk: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Shade every covered sample, ``chunk`` samples at a time (bounded memory).
 
@@ -1102,8 +1116,7 @@ def _shade_samples(
     dtype, device = verts_cam.dtype, verts_cam.device
     unit_fn = _normalize(face_normals(verts_cam, scene.faces))
     vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else None
-    part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64,
-                            device=device)
+    part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64, device=device)
     color = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
     normal = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
     pid = torch.zeros((sh * sw,), dtype=torch.int64, device=device)
@@ -1119,13 +1132,11 @@ def _shade_samples(
         normal[pix] = n
         pid[pix] = part_ids[scene.face_part[face]]
     coverage = (flat_face >= 0).to(dtype)
-    return (color.view(sh, sw, 3), normal.view(sh, sw, 3), pid.view(sh, sw),
-            coverage.view(sh, sw))
+    return (color.view(sh, sw, 3), normal.view(sh, sw, 3), pid.view(sh, sw), coverage.view(sh, sw))
 
 
 def _shade_kernel(
-    parts: Sequence[MeshPart], scene: _Scene, verts_cam: Tensor, frags: Fragments,
-    light: Light, smooth_normals: bool,
+    parts: Sequence[MeshPart], scene: _Scene, verts_cam: Tensor, frags: Fragments, light: Light, smooth_normals: bool
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`_shade_samples` by the compiled kernel (colours within a few float ulps)."""
     sh, sw = frags.face_idx.shape
@@ -1157,8 +1168,14 @@ def _shade_kernel(
     else:
         flat_tex = textures[0] if len(textures) == 1 else torch.cat(textures)
     tex_hw = torch.tensor([[h, w] for h, w in zip(tex_h, tex_w, strict=True)] or [[1, 1]], dtype=dtype)
-    light_vec = torch.cat([to_light, torch.tensor(
-        [light.ambient, light.diffuse, light.specular, light.shininess, 1e-6, _NORMAL_EPS], dtype=dtype)])
+    light_vec = torch.cat(
+        [
+            to_light,
+            torch.tensor(
+                [light.ambient, light.diffuse, light.specular, light.shininess, 1e-6, _NORMAL_EPS], dtype=dtype
+            ),
+        ]
+    )
     unit_fn = _normalize(face_normals(verts_cam, scene.faces))
     vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else unit_fn[:1]
     part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64)
@@ -1167,19 +1184,31 @@ def _shade_kernel(
     pid = torch.empty((sh * sw,), dtype=torch.int64)
     flat_face = frags.face_idx.reshape(-1).contiguous()
     raster_kernels.shade(
-        flat_face.numpy(), frags.bary.reshape(-1, 3).contiguous().numpy(),
-        verts_cam.detach().contiguous().numpy(), scene.faces.contiguous().numpy(),
-        unit_fn.detach().contiguous().numpy(), vert_n.detach().contiguous().numpy(),
-        bool(smooth_normals), scene.face_part.numpy(), part_ids.numpy(), part_tex.numpy(),
-        colors.numpy(), uv.numpy(), flat_tex.numpy(),
+        flat_face.numpy(),
+        frags.bary.reshape(-1, 3).contiguous().numpy(),
+        verts_cam.detach().contiguous().numpy(),
+        scene.faces.contiguous().numpy(),
+        unit_fn.detach().contiguous().numpy(),
+        vert_n.detach().contiguous().numpy(),
+        bool(smooth_normals),
+        scene.face_part.numpy(),
+        part_ids.numpy(),
+        part_tex.numpy(),
+        colors.numpy(),
+        uv.numpy(),
+        flat_tex.numpy(),
         torch.tensor(tex_off or [0], dtype=torch.int64).numpy(),
         torch.tensor(tex_h or [1], dtype=torch.int64).numpy(),
-        torch.tensor(tex_w or [1], dtype=torch.int64).numpy(), tex_hw.numpy(),
-        light_vec.numpy(), torch.ones(1, dtype=dtype).numpy(), color.numpy(), normal.numpy(), pid.numpy(),
+        torch.tensor(tex_w or [1], dtype=torch.int64).numpy(),
+        tex_hw.numpy(),
+        light_vec.numpy(),
+        torch.ones(1, dtype=dtype).numpy(),
+        color.numpy(),
+        normal.numpy(),
+        pid.numpy(),
     )
     coverage = (flat_face >= 0).to(dtype)
-    return (color.view(sh, sw, 3), normal.view(sh, sw, 3), pid.view(sh, sw),
-            coverage.view(sh, sw))
+    return (color.view(sh, sw, 3), normal.view(sh, sw, 3), pid.view(sh, sw), coverage.view(sh, sw))
 
 
 def render_meshes(
@@ -1227,18 +1256,17 @@ def render_meshes(
     s = supersample
     sh, sw = s * height, s * width
     Ks = scale_intrinsics(K.to(device, dtype), s)
-    kernels = _use_kernels(backend, [verts_cam, Ks] + [t for p in parts for t in
-                                                       (p.vertex_colors, p.uv, p.texture) if t is not None])
-    frags = rasterize(verts_cam, scene.faces, Ks, sh, sw, near=near,
-                      backend="numba" if kernels else "torch")
+    kernels = _use_kernels(
+        backend, [verts_cam, Ks] + [t for p in parts for t in (p.vertex_colors, p.uv, p.texture) if t is not None]
+    )
+    frags = rasterize(verts_cam, scene.faces, Ks, sh, sw, near=near, backend="numba" if kernels else "torch")
     if kernels:
         color_s, normal_s, pid_s, cov_s = _shade_kernel(parts, scene, verts_cam, frags, light, smooth_normals)
     else:
         color_s, normal_s, pid_s, cov_s = _shade_samples(
             parts, scene, verts_cam, frags, light, smooth_normals, _SHADE_CHUNK
         )
-    rgb, alpha, depth, part_id, nrm = _downsample(color_s, cov_s, frags.depth, pid_s,
-                                                  normal_s, s)
+    rgb, alpha, depth, part_id, nrm = _downsample(color_s, cov_s, frags.depth, pid_s, normal_s, s)
     rgb = (rgb + (1.0 - alpha)[..., None] * bg).clamp(0.0, 1.0)
     return MeshRender(rgb=rgb, alpha=alpha, depth=depth, part_id=part_id, normal=nrm)
 
@@ -1250,17 +1278,14 @@ def render_meshes(
 
 def _as_vec3(x: Sequence[float] | Tensor, name: str, dtype: torch.dtype) -> Tensor:
     """A (3,) CPU tensor of the given dtype from a sequence or tensor."""
-    t = torch.as_tensor(x, dtype=dtype).detach().cpu() if isinstance(x, Tensor) \
-        else torch.tensor(x, dtype=dtype)
+    t = torch.as_tensor(x, dtype=dtype).detach().cpu() if isinstance(x, Tensor) else torch.tensor(x, dtype=dtype)
     if t.shape != (3,):
         raise ValueError(f"{name} must have 3 components, got shape {tuple(t.shape)}")
     return t
 
 
 def camera_look_at(
-    eye: Sequence[float] | Tensor,
-    target: Sequence[float] | Tensor,
-    up: Sequence[float] | Tensor = (0.0, 1.0, 0.0),
+    eye: Sequence[float] | Tensor, target: Sequence[float] | Tensor, up: Sequence[float] | Tensor = (0.0, 1.0, 0.0)
 ) -> Tensor:
     """OpenCV world-to-camera matrix of a camera at ``eye`` looking at ``target``.
 
@@ -1273,8 +1298,7 @@ def camera_look_at(
     Returns:
         (4, 4) world2cam, float32 (the dtype of ``eye`` when it is a floating tensor).
     """
-    out_dtype = eye.dtype if isinstance(eye, Tensor) and eye.is_floating_point() \
-        else torch.float32
+    out_dtype = eye.dtype if isinstance(eye, Tensor) and eye.is_floating_point() else torch.float32
     e = _as_vec3(eye, "eye", torch.float64)
     t = _as_vec3(target, "target", torch.float64)
     u = _as_vec3(up, "up", torch.float64)
@@ -1294,9 +1318,7 @@ def camera_look_at(
     return M.to(out_dtype)
 
 
-def intrinsics_from_fov(
-    fov_y_deg: float, width: int, height: int, dtype: torch.dtype = torch.float32,
-) -> Tensor:
+def intrinsics_from_fov(fov_y_deg: float, width: int, height: int, dtype: torch.dtype = torch.float32) -> Tensor:
     """Pinhole intrinsics with square pixels and the principal point at the image centre.
 
     Args:
@@ -1311,8 +1333,7 @@ def intrinsics_from_fov(
     if width < 1 or height < 1:
         raise ValueError(f"width and height must be positive, got {width}x{height}")
     f = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2.0)
-    return torch.tensor([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]],
-                        dtype=dtype)
+    return torch.tensor([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]], dtype=dtype)
 
 
 def save_png(path: str | os.PathLike[str], rgb_or_rgba: Tensor) -> None:
@@ -1352,8 +1373,13 @@ def _timing_demo(repeats: int = 5) -> None:
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     verts = torch.tensor(sphere.vertices, dtype=torch.float32)
     faces = torch.tensor(sphere.faces, dtype=torch.int64)
-    uv = torch.stack([0.5 + torch.atan2(verts[:, 0], verts[:, 2]) / (2 * math.pi),
-                      0.5 + torch.asin(verts[:, 1].clamp(-1, 1)) / math.pi], dim=-1)
+    uv = torch.stack(
+        [
+            0.5 + torch.atan2(verts[:, 0], verts[:, 2]) / (2 * math.pi),
+            0.5 + torch.asin(verts[:, 1].clamp(-1, 1)) / math.pi,
+        ],
+        dim=-1,
+    )
     ii, jj = torch.meshgrid(torch.arange(512), torch.arange(1024), indexing="ij")
     checker = ((ii // 32 + jj // 32) % 2).float()
     texture = torch.stack([checker, 0.5 * checker + 0.25, 1.0 - checker], dim=-1)
@@ -1366,9 +1392,11 @@ def _timing_demo(repeats: int = 5) -> None:
         t0 = time.perf_counter()
         out = render_meshes([part], w2c, K, 1000, 1000)
         times.append((time.perf_counter() - t0) * 1e3)
-    print(f"render_meshes icosphere(5) {faces.shape[0]} faces textured 1000x1000 "
-          f"(threads={torch.get_num_threads()}): median {sorted(times)[len(times) // 2]:.0f} ms, "
-          f"min {min(times):.0f} ms, coverage {out.alpha.mean().item():.2f}")
+    print(
+        f"render_meshes icosphere(5) {faces.shape[0]} faces textured 1000x1000 "
+        f"(threads={torch.get_num_threads()}): median {sorted(times)[len(times) // 2]:.0f} ms, "
+        f"min {min(times):.0f} ms, coverage {out.alpha.mean().item():.2f}"
+    )
 
 
 if __name__ == "__main__":

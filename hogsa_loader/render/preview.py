@@ -36,19 +36,24 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     return out.astype(np.float32) / 255.0
 
 
-def _view(parts: Sequence[MeshPart], center: np.ndarray, direction: np.ndarray, up: np.ndarray,
-          dist: float, size: int) -> np.ndarray:
+def _view(
+    parts: Sequence[MeshPart], center: np.ndarray, direction: np.ndarray, up: np.ndarray, dist: float, size: int
+) -> np.ndarray:
     eye = center + dist * direction / np.linalg.norm(direction)
     w2c = camera_look_at(torch.tensor(eye), torch.tensor(center), torch.tensor(up)).float()
     K = intrinsics_from_fov(35.0, size, size)
-    out = render_meshes(parts, w2c, K, size, size, light=Light(direction=(0.3, 0.5, 1.0)),
-                        background=_BG, supersample=2)
+    out = render_meshes(
+        parts, w2c, K, size, size, light=Light(direction=(0.3, 0.5, 1.0)), background=_BG, supersample=2
+    )
     return out.rgb.numpy()
 
 
-def hand_preview(right: ManoModelData, left: ManoModelData,
-                 poses: Sequence[str] = ("flat", "relaxed", "fist", "pinch", "spread", "point"),
-                 size: int = 224) -> np.ndarray:
+def hand_preview(
+    right: ManoModelData,
+    left: ManoModelData,
+    poses: Sequence[str] = ("flat", "relaxed", "fist", "pinch", "spread", "point"),
+    size: int = 224,
+) -> np.ndarray:
     """(2 * size, len(poses) * size, 3) sheet: right hand (top row), left hand (bottom row).
 
     Views look at the back of the hand from above the thumb side, fingers pointing up.
@@ -56,8 +61,10 @@ def hand_preview(right: ManoModelData, left: ManoModelData,
     rows = []
     for model in (right, left):
         layer = MANOLayer(model, flat_hand_mean=True, dtype=torch.float32)
-        colors = torch.tensor(model.vertex_colors if model.vertex_colors is not None
-                              else np.full((model.num_verts, 3), 0.75), dtype=torch.float32)
+        colors = torch.tensor(
+            model.vertex_colors if model.vertex_colors is not None else np.full((model.num_verts, 3), 0.75),
+            dtype=torch.float32,
+        )
         faces = torch.as_tensor(model.faces)
         cells = []
         for name in poses:
@@ -65,8 +72,14 @@ def hand_preview(right: ManoModelData, left: ManoModelData,
             v = layer(hand_pose=art).vertices[0]
             center = v.mean(0).numpy()
             side = 1.0 if model.side == "right" else -1.0
-            img = _view([MeshPart(v, faces, 1, vertex_colors=colors)], center,
-                        np.array([0.35 * side, 1.0, 0.55]), np.array([-side, 0.0, 0.0]), 0.42, size)
+            img = _view(
+                [MeshPart(v, faces, 1, vertex_colors=colors)],
+                center,
+                np.array([0.35 * side, 1.0, 0.55]),
+                np.array([-side, 0.0, 0.0]),
+                0.42,
+                size,
+            )
             cells.append(_label(img, f"{model.side} {name}"))
         rows.append(np.concatenate(cells, axis=1))
     return np.concatenate(rows, axis=0)
@@ -88,8 +101,14 @@ def object_preview(templates: Sequence, angles: Sequence[float] = (0.0, 0.3, 0.9
         for a in angles:
             v = articulate(verts[None], is_top, torch.tensor([a]), torch.zeros(1, 3), torch.zeros(1, 3))[0]
             center = t.verts.mean(0)
-            img = _view([MeshPart(v, faces, 1, uv=uv, texture=tex)], center,
-                        np.array([-0.6, 0.7, 0.9]), np.array([0.0, 1.0, 0.0]), 2.2 * extent, size)
+            img = _view(
+                [MeshPart(v, faces, 1, uv=uv, texture=tex)],
+                center,
+                np.array([-0.6, 0.7, 0.9]),
+                np.array([0.0, 1.0, 0.0]),
+                2.2 * extent,
+                size,
+            )
             cells.append(_label(img, f"{t.name} theta={a:.2f}"))
         rows.append(np.concatenate(cells, axis=1))
     return np.concatenate(rows, axis=0)

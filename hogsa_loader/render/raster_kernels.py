@@ -123,8 +123,7 @@ def zbuffer(a, b, x, y, tl, inv_z, row0, col0, nrows, ncols, pxs, pys, width, zk
 
 
 @compile_kernel
-def resolve(zkey, face_ids, verts_cam, faces, K, pxs, pys, width, consts,
-            face_idx, bary, depth):  # pragma: no cover
+def resolve(zkey, face_ids, verts_cam, faces, K, pxs, pys, width, consts, face_idx, bary, depth):  # pragma: no cover
     """Visible face, perspective-correct barycentrics and depth of every covered pixel.
 
     Args:
@@ -179,8 +178,30 @@ def resolve(zkey, face_ids, verts_cam, faces, K, pxs, pys, width, consts,
 
 
 @compile_kernel
-def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, part_ids, part_tex,
-          colors, uv, tex, tex_off, tex_h, tex_w, tex_hw, light, consts, color, normal, pid):  # pragma: no cover
+def shade(
+    face_idx,
+    bary,
+    verts_cam,
+    faces,
+    unit_fn,
+    vert_n,
+    smooth,
+    face_part,
+    part_ids,
+    part_tex,
+    colors,
+    uv,
+    tex,
+    tex_off,
+    tex_h,
+    tex_w,
+    tex_hw,
+    light,
+    consts,
+    color,
+    normal,
+    pid,
+):  # pragma: no cover
     """Blinn-Phong colour, shading normal and part id of every covered sample.
 
     Args:
@@ -257,8 +278,7 @@ def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, 
             c1 = c0 + 1 if c0 + 1 < tw else c0  # outside corners carry weight 0
             r1 = r0 + 1 if r0 + 1 < th else r0
             ar = ag = ab = zero
-            for rr, cc, w in ((r0, c0, wx0 * wy0), (r0, c1, wx1 * wy0), (r1, c0, wx0 * wy1),
-                              (r1, c1, wx1 * wy1)):
+            for rr, cc, w in ((r0, c0, wx0 * wy0), (r0, c1, wx1 * wy0), (r1, c0, wx0 * wy1), (r1, c1, wx1 * wy1)):
                 q = off + (rr * tw + cc) * 3
                 ar += w * tex[q]
                 ag += w * tex[q + 1]
@@ -275,7 +295,7 @@ def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, 
         hx, hy, hz = hx / hn, hy / hn, hz / hn
         n_dot_h = nx * hx + ny * hy + nz * hz
         n_dot_h = zero if n_dot_h < zero else n_dot_h
-        spec = n_dot_h ** shin if n_dot_l > zero else zero
+        spec = n_dot_h**shin if n_dot_l > zero else zero
         k = amb + dif * n_dot_l
         r = ar * k + spw * spec
         g = ag * k + spw * spec
@@ -288,8 +308,9 @@ def shade(face_idx, bary, verts_cam, faces, unit_fn, vert_n, smooth, face_part, 
 
 
 @compile_kernel
-def setup_faces(verts_cam, faces, K, height, width, near, front, consts,
-                face_ids, a, b, x, y, tl, inv_z, row0, col0, nrows, ncols):  # pragma: no cover
+def setup_faces(
+    verts_cam, faces, K, height, width, near, front, consts, face_ids, a, b, x, y, tl, inv_z, row0, col0, nrows, ncols
+):  # pragma: no cover
     """Project, drop (near plane, non-finite, culled, degenerate, off-screen) and tabulate
     faces; the kept ones are written in increasing face order.
 
@@ -321,8 +342,12 @@ def setup_faces(verts_cam, faces, K, height, width, near, front, consts,
         for k in range(3):
             v = faces[f, k]
             zs[k] = verts_cam[v, 2]
-            if not (verts_cam[v, 2] > near[0] and np.isfinite(verts_cam[v, 0]) and np.isfinite(verts_cam[v, 1])
-                    and np.isfinite(verts_cam[v, 2])):
+            if not (
+                verts_cam[v, 2] > near[0]
+                and np.isfinite(verts_cam[v, 0])
+                and np.isfinite(verts_cam[v, 1])
+                and np.isfinite(verts_cam[v, 2])
+            ):
                 ok = False
         if not ok:
             continue
@@ -344,8 +369,9 @@ def setup_faces(verts_cam, faces, K, height, width, near, front, consts,
                 p, q = q, p
             ea[k] = -(uv[q, 1] - uv[p, 1])
             eb[k] = uv[q, 0] - uv[p, 0]
-            side = (np.float64(ea[k]) * (np.float64(uv[k, 0]) - np.float64(uv[p, 0]))
-                    + np.float64(eb[k]) * (np.float64(uv[k, 1]) - np.float64(uv[p, 1])))
+            side = np.float64(ea[k]) * (np.float64(uv[k, 0]) - np.float64(uv[p, 0])) + np.float64(eb[k]) * (
+                np.float64(uv[k, 1]) - np.float64(uv[p, 1])
+            )
             if side > 0:
                 sign = one
             elif side < 0:

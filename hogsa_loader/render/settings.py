@@ -9,8 +9,16 @@ from typing import Literal, NamedTuple, get_args
 
 from torch import Tensor
 
-__all__ = ["SplatInputs", "RenderSettings", "Backend", "RenderMode", "Compositor", "BACKENDS", "RENDER_MODES",
-           "COMPOSITORS"]
+__all__ = [
+    "SplatInputs",
+    "RenderSettings",
+    "Backend",
+    "RenderMode",
+    "Compositor",
+    "BACKENDS",
+    "RENDER_MODES",
+    "COMPOSITORS",
+]
 
 Backend = Literal["auto", "torch", "gsplat"]
 RenderMode = Literal["RGB", "RGB+ED", "RGB+D"]

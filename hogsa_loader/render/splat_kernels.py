@@ -64,8 +64,30 @@ def _visibility(mx, dy, a, b, c, lo, px, half):  # pragma: no cover
 
 
 @compile_kernel
-def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                      n_tiles, width, height, pxs, pys, consts, acc, trans, last, done):  # pragma: no cover
+def composite_forward(
+    sel,
+    busy,
+    start,
+    count,
+    gids,
+    means2d,
+    conics,
+    log_o,
+    radii,
+    feats,
+    tile_size,
+    tile_w,
+    n_tiles,
+    width,
+    height,
+    pxs,
+    pys,
+    consts,
+    acc,
+    trans,
+    last,
+    done,
+):  # pragma: no cover
     """Composite the busy tiles ``sel`` front to back.
 
     Args:
@@ -126,9 +148,32 @@ def composite_forward(sel, busy, start, count, gids, means2d, conics, log_o, rad
 
 
 @compile_kernel
-def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, radii, feats, tile_size, tile_w,
-                       n_tiles, width, height, pxs, pys, consts, trans, last, v_acc, v_trans, grads,
-                       scratch):  # pragma: no cover
+def composite_backward(
+    sel,
+    busy,
+    start,
+    count,
+    gids,
+    means2d,
+    conics,
+    log_o,
+    radii,
+    feats,
+    tile_size,
+    tile_w,
+    n_tiles,
+    width,
+    height,
+    pxs,
+    pys,
+    consts,
+    trans,
+    last,
+    v_acc,
+    v_trans,
+    grads,
+    scratch,
+):  # pragma: no cover
     """Gradients of :func:`composite_forward`'s outputs, per intersection.
 
     Args:
@@ -144,8 +189,8 @@ def composite_backward(sel, busy, start, count, gids, means2d, conics, log_o, ra
     nfeat = feats.shape[1]
     P = tile_size * tile_size
     t_cur = scratch[:P]  # transmittance after the entry being visited
-    after = scratch[P:2 * P]  # sum over later entries of w (feat . v) + T_final v_T
-    gfeat = scratch[2 * P:]
+    after = scratch[P : 2 * P]  # sum over later entries of w (feat . v) + T_final v_T
+    gfeat = scratch[2 * P :]
     for i in sel:
         x0, y0 = _tile_origin(busy[i], n_tiles, tile_w, tile_size)
         n_used = 0

@@ -20,4 +20,13 @@ from hogsa_loader.srm.io import load_srm, read_srm_manifest, save_srm, seen_view
 from hogsa_loader.srm.model import SRM
 from hogsa_loader.srm.styleunet import StyleUNet, StyleUNetConfig, count_gflops
 
-__all__ = ["SRM", "StyleUNet", "StyleUNetConfig", "count_gflops", "load_srm", "save_srm", "read_srm_manifest", "seen_views"]
+__all__ = [
+    "SRM",
+    "StyleUNet",
+    "StyleUNetConfig",
+    "count_gflops",
+    "load_srm",
+    "save_srm",
+    "read_srm_manifest",
+    "seen_views",
+]

@@ -34,7 +34,9 @@ class ConditionalDiscriminator(nn.Module):
         stddev_group: minibatch-stddev group size.
     """
 
-    def __init__(self, size: int, cond_channels: int = 4, channels: Optional[Sequence[int]] = None, stddev_group: int = 4) -> None:
+    def __init__(
+        self, size: int, cond_channels: int = 4, channels: Optional[Sequence[int]] = None, stddev_group: int = 4
+    ) -> None:
         super().__init__()
         if size < 16 or size & (size - 1):
             raise ValueError(f"discriminator size must be a power of two >= 16, got {size}")

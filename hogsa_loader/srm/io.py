@@ -30,24 +30,29 @@ from hogsa_loader.io.tensors import ManifestFormat, read_manifest, read_tensors,
 from hogsa_loader.srm.model import SRM
 from hogsa_loader.srm.styleunet import StyleUNetConfig
 
-__all__ = ["SRM_FORMAT", "SRM_SCHEMA_VERSION", "SRM_MANIFEST", "SRM_TENSORS", "SRM_CHECKPOINT", "save_srm",
-           "read_srm_manifest", "load_srm", "seen_views"]
+__all__ = [
+    "SRM_FORMAT",
+    "SRM_SCHEMA_VERSION",
+    "SRM_MANIFEST",
+    "SRM_TENSORS",
+    "SRM_CHECKPOINT",
+    "save_srm",
+    "read_srm_manifest",
+    "load_srm",
+    "seen_views",
+]
 
 SRM_FORMAT = "hogsa-srm"
 SRM_SCHEMA_VERSION = 1
 SRM_MANIFEST = "manifest.json"
 SRM_TENSORS = "srm.safetensors"
 #: The shared checkpoint header of an SRM.
-SRM_CHECKPOINT = ManifestFormat(SRM_FORMAT, SRM_SCHEMA_VERSION, "an SRM checkpoint", SRM_TENSORS,
-                                manifest_file=SRM_MANIFEST, header_metadata=True)  # fmt: skip
+SRM_CHECKPOINT = ManifestFormat(
+    SRM_FORMAT, SRM_SCHEMA_VERSION, "an SRM checkpoint", SRM_TENSORS, manifest_file=SRM_MANIFEST, header_metadata=True
+)
 
 #: The SRM's own manifest keys and their JSON types.
-_REQUIRED: dict[str, type | tuple[type, ...]] = {
-    "architecture": str,
-    "config": dict,
-    "io": dict,
-    "extra": dict,
-}
+_REQUIRED: dict[str, type | tuple[type, ...]] = {"architecture": str, "config": dict, "io": dict, "extra": dict}
 
 
 def save_srm(model: SRM, folder: PathLike, *, extra: Optional[Mapping[str, Any]] = None) -> Path:
@@ -69,8 +74,11 @@ def save_srm(model: SRM, folder: PathLike, *, extra: Optional[Mapping[str, Any]]
     fields = {
         "architecture": "styleunet",
         "config": model.cfg.to_json(),
-        "io": {"input": "premultiplied RGB (B,H,W,3) in [0,1] + alpha (B,H,W)", "output": "premultiplied RGB",
-               "scale": model.scale},  # fmt: skip
+        "io": {
+            "input": "premultiplied RGB (B,H,W,3) in [0,1] + alpha (B,H,W)",
+            "output": "premultiplied RGB",
+            "scale": model.scale,
+        },
         "extra": dict(extra or {}),
     }
     save_checkpoint(folder, SRM_CHECKPOINT, tensors, fields)
@@ -142,8 +150,9 @@ def load_srm(
     want = model.net.state_dict()
     missing, unexpected = sorted(set(want) - set(tensors)), sorted(set(tensors) - set(want))
     if missing or unexpected:
-        raise AssetError(tpath, f"tensors do not fit the configured StyleUNet: missing {missing[:4]}, "
-                                f"unexpected {unexpected[:4]}")  # fmt: skip
+        raise AssetError(
+            tpath, f"tensors do not fit the configured StyleUNet: missing {missing[:4]}, unexpected {unexpected[:4]}"
+        )
     bad = [k for k in want if tuple(tensors[k].shape) != tuple(want[k].shape)]
     if bad:
         raise AssetError(tpath, f"tensor shapes do not fit the configured StyleUNet: {bad[:4]}")

@@ -51,8 +51,29 @@ __all__ = [
 ]
 
 #: torchvision's VGG19 configuration "E": conv widths, "M" = 2×2 max pool.
-VGG19_CFG: tuple[Union[int, str], ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M",
-                                           512, 512, 512, 512, "M", 512, 512, 512, 512, "M")  # fmt: skip
+VGG19_CFG: tuple[Union[int, str], ...] = (
+    64,
+    64,
+    "M",
+    128,
+    128,
+    "M",
+    256,
+    256,
+    256,
+    256,
+    "M",
+    512,
+    512,
+    512,
+    512,
+    "M",
+    512,
+    512,
+    512,
+    512,
+    "M",
+)
 #: ``features`` index ranges of the five perceptual slices (≈ relu1_1 … relu5_1).
 VGG_SLICES: tuple[tuple[int, int], ...] = ((0, 2), (2, 7), (7, 12), (12, 21), (21, 30))
 #: Default weight of the perceptual term by kind.
@@ -104,10 +125,15 @@ def load_vgg19_features(path: PathLike) -> nn.Sequential:
     want = feats.state_dict()
     missing = sorted(set(want) - set(sd))
     if missing:
-        raise AssetError(path, f"not a torchvision VGG19 state dict: missing {missing[:4]}{'...' if len(missing) > 4 else ''}")
+        raise AssetError(
+            path, f"not a torchvision VGG19 state dict: missing {missing[:4]}{'...' if len(missing) > 4 else ''}"
+        )
     bad = [k for k in want if tuple(sd[k].shape) != tuple(want[k].shape)]
     if bad:
-        raise AssetError(path, f"VGG19 tensor shapes differ for {bad[:4]} (e.g. {tuple(sd[bad[0]].shape)} vs {tuple(want[bad[0]].shape)})")
+        raise AssetError(
+            path,
+            f"VGG19 tensor shapes differ for {bad[:4]} (e.g. {tuple(sd[bad[0]].shape)} vs {tuple(want[bad[0]].shape)})",
+        )
     feats.load_state_dict({k: sd[k].float() for k in want})
     return feats
 

@@ -120,8 +120,7 @@ class SRM(nn.Module):
         return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
 
     @torch.no_grad()
-    def refine(self, rgb: Tensor, alpha: Tensor, *, autocast: bool = True, return_alpha: bool = False,
-               tta: int = 1):
+    def refine(self, rgb: Tensor, alpha: Tensor, *, autocast: bool = True, return_alpha: bool = False, tta: int = 1):
         """Refine a batch of renders (the loader's layout).
 
         Args:
@@ -147,10 +146,15 @@ class SRM(nn.Module):
         if isinstance(tta, bool) or tta not in TTA_CODES:
             raise ValueError(f"tta must be one of {sorted(TTA_CODES)}, got {tta!r}")
         if tta > 1:  # (channel-last images: the symmetries act on axes 1, 2)
-            outs = [self.refine(dihedral(rgb.movedim(-1, 1), c).movedim(1, -1), dihedral(a, c), autocast=autocast,
-                                return_alpha=True) for c in TTA_CODES[tta]]  # fmt: skip
-            out = torch.stack([dihedral_inverse(o.movedim(-1, 1), c).movedim(1, -1)
-                               for (o, _), c in zip(outs, TTA_CODES[tta])]).mean(0)  # fmt: skip
+            outs = [
+                self.refine(
+                    dihedral(rgb.movedim(-1, 1), c).movedim(1, -1), dihedral(a, c), autocast=autocast, return_alpha=True
+                )
+                for c in TTA_CODES[tta]
+            ]
+            out = torch.stack(
+                [dihedral_inverse(o.movedim(-1, 1), c).movedim(1, -1) for (o, _), c in zip(outs, TTA_CODES[tta])]
+            ).mean(0)
             return (out, outs[0][1]) if return_alpha else out  # (code 0 first: the input's own alpha)
         p = next(self.parameters())
         x = rgb.to(p.device, p.dtype).permute(0, 3, 1, 2)  # (fp32, or the fp16/bf16 of load_srm(dtype=...))

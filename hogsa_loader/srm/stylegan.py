@@ -83,7 +83,9 @@ def downsample2(x: Tensor) -> Tensor:
 class EqualConv2d(nn.Module):
     """Conv2d with equalised learning rate: weight ~ N(0, 1) × 1/√(C_in·k²) at run time."""
 
-    def __init__(self, in_ch: int, out_ch: int, kernel: int, stride: int = 1, padding: int = 0, bias: bool = True) -> None:
+    def __init__(
+        self, in_ch: int, out_ch: int, kernel: int, stride: int = 1, padding: int = 0, bias: bool = True
+    ) -> None:
         super().__init__()
         self.weight = nn.Parameter(torch.randn(out_ch, in_ch, kernel, kernel))
         self.scale = 1.0 / math.sqrt(in_ch * kernel * kernel)
@@ -98,7 +100,9 @@ class EqualConv2d(nn.Module):
 class EqualLinear(nn.Module):
     """Linear with equalised learning rate (weight ~ N(0,1)/lr_mul scaled at run time)."""
 
-    def __init__(self, in_dim: int, out_dim: int, bias_init: float = 0.0, lr_mul: float = 1.0, activation: bool = False) -> None:
+    def __init__(
+        self, in_dim: int, out_dim: int, bias_init: float = 0.0, lr_mul: float = 1.0, activation: bool = False
+    ) -> None:
         super().__init__()
         self.weight = nn.Parameter(torch.randn(out_dim, in_dim) / lr_mul)
         self.bias = nn.Parameter(torch.full((out_dim,), float(bias_init)))
@@ -319,7 +323,9 @@ class FromRGB(nn.Module):
 class ConvLayer(nn.Module):
     """Equalised conv (k×k, optional blur + stride-2 downsampling) + fused leaky ReLU."""
 
-    def __init__(self, in_ch: int, out_ch: int, kernel: int = 3, *, downsample: bool = False, activate: bool = True) -> None:
+    def __init__(
+        self, in_ch: int, out_ch: int, kernel: int = 3, *, downsample: bool = False, activate: bool = True
+    ) -> None:
         super().__init__()
         self.blur: Optional[Blur] = None
         if downsample:

@@ -193,7 +193,11 @@ class StyleUNet(nn.Module):
             d = self.extra1(d, s, noise_mode)
             d = self.extra2(d, s, noise_mode)
             skip = self.to_rgb[L + 1](d, s, skip)
-        out = self.iwt(skip) if self.cfg.wavelet else F.interpolate(skip, scale_factor=2.0, mode="bilinear", align_corners=False)
+        out = (
+            self.iwt(skip)
+            if self.cfg.wavelet
+            else F.interpolate(skip, scale_factor=2.0, mode="bilinear", align_corners=False)
+        )
         if self.cfg.residual:
             base = x[:, :3]
             if self.cfg.scale == 2:

@@ -119,7 +119,9 @@ def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
     return b * (1 - h) + a * h - k * h * (1 - h)
 
 
-def _tube_sdf(p: np.ndarray, chain: np.ndarray, radii: np.ndarray, flatten: float = 0.86) -> tuple[np.ndarray, np.ndarray]:
+def _tube_sdf(
+    p: np.ndarray, chain: np.ndarray, radii: np.ndarray, flatten: float = 0.86
+) -> tuple[np.ndarray, np.ndarray]:
     """Approximate SDF of a tapered tube along a polyline with an elliptic section.
 
     Returns (sdf (N,), arc parameter s (N,) of the closest axis point, metres from chain[0]).
@@ -159,9 +161,7 @@ def _palm_sdf(p: np.ndarray, sk: _Skeleton) -> np.ndarray:
     x = p[:, 0]
     # palm slab, narrowing toward the wrist
     taper = np.clip((x - 0.012) / 0.07, 0.0, 1.0)
-    half = np.stack(
-        [np.full_like(x, 0.034), np.full_like(x, 0.0062), 0.029 - 0.007 * taper], axis=1
-    )
+    half = np.stack([np.full_like(x, 0.034), np.full_like(x, 0.0062), 0.029 - 0.007 * taper], axis=1)
     q = np.abs(p - np.array([0.046, -0.003, -0.004])) - half
     slab = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(1), 0.0) - 0.0065
     knuckles = J[[1, 4, 10, 7]]
@@ -177,7 +177,9 @@ def _palm_sdf(p: np.ndarray, sk: _Skeleton) -> np.ndarray:
 def _thumb_sdf(p: np.ndarray, sk: _Skeleton) -> tuple[np.ndarray, np.ndarray]:
     d, s = _tube_sdf(p, sk.chains["thumb"], sk.radii["thumb"], flatten=0.9)
     # thenar eminence: a fleshy pad from the wrist to the thumb MCP
-    pad = _capsule_sdf(p, (0.075, -0.010, 0.008), sk.joints[14] + np.array([0.004, -0.002, -0.004]), 0.0125, 0.0100, (1.0, 0.85, 1.0))
+    pad = _capsule_sdf(
+        p, (0.075, -0.010, 0.008), sk.joints[14] + np.array([0.004, -0.002, -0.004]), 0.0125, 0.0100, (1.0, 0.85, 1.0)
+    )
     return _smin(d, pad, 0.006), s
 
 
@@ -420,7 +422,7 @@ def _albedo(v: np.ndarray, f: np.ndarray, W: np.ndarray, sk: _Skeleton, skin: np
     # knuckle creases: slightly darker around finger joints
     for j in range(1, 16):
         d = np.linalg.norm(v - sk.joints[j], axis=1)
-        col *= 1.0 - 0.06 * np.exp(-(d / 0.006) ** 2)[:, None]
+        col *= 1.0 - 0.06 * np.exp(-((d / 0.006) ** 2))[:, None]
     # nails: dorsal side near each fingertip
     for tip in sk.tips.values():
         d = np.linalg.norm(v - tip, axis=1)

@@ -1,8 +1,5 @@
 """Training of the HOGS models (``pretrain/train_hogs.py``)."""
 
-from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask, load_hogs_data, select_sequences
-from hogsa_loader.train.hogs_data_h2o import load_h2o_hogs_data
-from hogsa_loader.train.hogs_source import HogsSource, load_run_data, open_hogs_source
 from hogsa_loader.train.hogs_config import (
     HogsConfig,
     HogsDataConfig,
@@ -11,6 +8,9 @@ from hogsa_loader.train.hogs_config import (
     HogsOptimConfig,
     HogsRunConfig,
 )
+from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask, load_hogs_data, select_sequences
+from hogsa_loader.train.hogs_data_h2o import load_h2o_hogs_data
+from hogsa_loader.train.hogs_source import HogsSource, load_run_data, open_hogs_source
 from hogsa_loader.train.hogs_trainer import BASE_LRS, PART_NAMES, HogsTrainer
 from hogsa_loader.train.losses import alpha_outside, box_of, hogs_loss, masked_l1, masked_ssim, psnr, ssim_map
 

@@ -46,17 +46,26 @@ from torch import Tensor
 from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
-from hogsa_loader.datasets.conventions import (
-    ALLO_VIEWS,
-    cropped_intrinsics,
-    project,
-    render_intrinsics,
-    transform,
-)
+from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, project, render_intrinsics, transform
 from hogsa_loader.datasets.types import SequenceData
 
-__all__ = ["MASK_MODES", "WINDOWS", "ViewSample", "foreground_window", "HogsData", "select_sequences", "check_subject", "pick_sequences", "load_hogs_data", "dilate_mask",
-           "split_role", "check_views", "split_samples", "mask_supersample", "crop_boxes"]
+__all__ = [
+    "MASK_MODES",
+    "WINDOWS",
+    "ViewSample",
+    "foreground_window",
+    "HogsData",
+    "select_sequences",
+    "check_subject",
+    "pick_sequences",
+    "load_hogs_data",
+    "dilate_mask",
+    "split_role",
+    "check_views",
+    "split_samples",
+    "mask_supersample",
+    "crop_boxes",
+]
 
 #: Where the part masks come from (``load_hogs_data(masks=...)``).
 MASK_MODES = ("auto", "files", "render")
@@ -163,7 +172,9 @@ def pick_sequences(
             raise ValueError(f"sequences {wrong} do not show object {object_name!r}")
         mine = [s for s in mine if s in sequences]
     if not mine:
-        raise ValueError(f"subject {subject} has no sequence with object {object_name!r} (objects per sequence: {dict(shows)})")
+        raise ValueError(
+            f"subject {subject} has no sequence with object {object_name!r} (objects per sequence: {dict(shows)})"
+        )
     return mine
 
 
@@ -183,8 +194,9 @@ def _cut(img: np.ndarray, window: Optional[tuple[int, int, int]]) -> np.ndarray:
     return img[y0 : y0 + side, x0 : x0 + side]
 
 
-def _read_foreground(image_path, mask_path, size: int, window: Optional[tuple[int, int, int]] = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _read_foreground(
+    image_path, mask_path, size: int, window: Optional[tuple[int, int, int]] = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Foreground image and part mask at ``size``.
 
     The background is removed at the native resolution (image × (mask > 0)) *before*
@@ -225,8 +237,9 @@ def _read_image(image_path, size: int, window: Optional[tuple[int, int, int]] = 
     return img
 
 
-def foreground_window(posed, frame: int, world2cam: np.ndarray, K_crop: np.ndarray, crop: int, size: int,
-                      margin: float = 0.15) -> tuple[int, int, int]:
+def foreground_window(
+    posed, frame: int, world2cam: np.ndarray, K_crop: np.ndarray, crop: int, size: int, margin: float = 0.15
+) -> tuple[int, int, int]:
     """Square window ``(x0, y0, side)`` (cropped-image pixels) around the posed meshes.
 
     Args:
@@ -259,7 +272,9 @@ def mask_supersample(native: float, size: int) -> int:
     return int(min(4, max(1, np.ceil(native / size - 1e-6))))
 
 
-def split_role(i: int, view: int, train_views: Sequence[int], eval_views: Sequence[int], eval_every_frame: int) -> Optional[str]:
+def split_role(
+    i: int, view: int, train_views: Sequence[int], eval_views: Sequence[int], eval_every_frame: int
+) -> Optional[str]:
     """``"train"``, ``"eval"`` or None for the ``i``-th used frame seen from ``view``.
 
     Frames at positions ``i % eval_every_frame == eval_every_frame // 2`` are held out
@@ -370,12 +385,25 @@ def load_hogs_data(
         for v, f, role in jobs:
             s = _view_sample(seq, si, v, f, boxes[v][f], posed, render, crop, size, window, window_margin)
             (held if role == "eval" else train).append(s)
-    return HogsData(subject, object_name, seqs, *split_samples(train, held, max_eval, f"{subject}/{object_name}"),
-                    train_views, eval_views, size, crop_size=crop, mask_source="+".join(sorted(sources)))  # fmt: skip
+    return HogsData(
+        subject,
+        object_name,
+        seqs,
+        *split_samples(train, held, max_eval, f"{subject}/{object_name}"),
+        train_views,
+        eval_views,
+        size,
+        crop_size=crop,
+        mask_source="+".join(sorted(sources)),
+    )
 
 
 def _sequence_jobs(
-    seq: Any, where: str, views: Sequence[int], frame_stride: int, split_views: tuple[Sequence[int], Sequence[int]],
+    seq: Any,
+    where: str,
+    views: Sequence[int],
+    frame_stride: int,
+    split_views: tuple[Sequence[int], Sequence[int]],
     eval_every_frame: int,
 ) -> list[tuple[int, int, str]]:
     """``(view, frame, "train" | "eval")`` of every used image of ``seq`` that exists.
@@ -385,8 +413,12 @@ def _sequence_jobs(
     """
     train_views, eval_views = split_views
     frames = list(range(0, seq.num_frames, max(1, frame_stride)))
-    jobs = [(v, f, role) for v in views for i, f in enumerate(frames)
-            if (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None]  # fmt: skip
+    jobs = [
+        (v, f, role)
+        for v in views
+        for i, f in enumerate(frames)
+        if (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None
+    ]
     missing = sorted({v for v, _, _ in jobs if v not in seq.image_paths})
     if missing:
         raise ValueError(f"{where}: views {missing} have no cropped images")
@@ -402,13 +434,26 @@ def _renders_masks(seq: Any, jobs: Sequence[tuple[int, int, str]], masks: str, w
     """
     have_masks = all(v in seq.mask_paths and seq.mask_paths[v][f] is not None for v, f, _ in jobs)
     if masks == "files" and not have_masks:
-        raise ValueError(f"{where}: some used images have no mask file (masks='files'; "
-                         "use masks='render' or 'auto' to render them from the annotations)")  # fmt: skip
+        raise ValueError(
+            f"{where}: some used images have no mask file (masks='files'; "
+            "use masks='render' or 'auto' to render them from the annotations)"
+        )
     return masks == "render" or not have_masks
 
 
-def _view_sample(seq: Any, si: int, v: int, f: int, box: np.ndarray, posed: Any, render: bool, crop: int,
-                 size: int, window: str, window_margin: float) -> ViewSample:
+def _view_sample(
+    seq: Any,
+    si: int,
+    v: int,
+    f: int,
+    box: np.ndarray,
+    posed: Any,
+    render: bool,
+    crop: int,
+    size: int,
+    window: str,
+    window_margin: float,
+) -> ViewSample:
     """One (frame ``f``, view ``v``) sample of sequence number ``si`` at ``size`` px: the
     cropped image (or the ``fg`` window of it around the posed meshes), its part mask (read,
     or with ``render`` rendered from the posed meshes) and the camera (``Ks``: intrinsics of
@@ -427,6 +472,14 @@ def _view_sample(seq: Any, si: int, v: int, f: int, box: np.ndarray, posed: Any,
     else:
         image = _read_image(ip, size, win)
         native = crop if win is None else win[2]
-        mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f], full_size=(cam.width, cam.height),
-                                supersample=mask_supersample(native, size))  # fmt: skip
+        mask = render_part_mask(
+            posed,
+            f,
+            cam.world2cam[f],
+            Ks,
+            size,
+            K_full=cam.K[f],
+            full_size=(cam.width, cam.height),
+            supersample=mask_supersample(native, size),
+        )
     return ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 import torch
 
+from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 from hogsa_loader.datasets.conventions import (
     BBOX_PIXELS_PER_SCALE,
     CROP_ENLARGE,
@@ -56,7 +57,6 @@ from hogsa_loader.train.hogs_data import (
     split_role,
     split_samples,
 )
-from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
 
 __all__ = [
     "H2O_VIEWS",
@@ -132,8 +132,14 @@ def crop_image(image: np.ndarray, box: np.ndarray, size: int, max_supersample: i
     s = int(min(max_supersample, max(1, np.ceil(1.0 / k - 1e-9))))
     shift = (s - 1) / (2.0 * s * k)
     M = np.array([[1.0 / (s * k), 0.0, ox - shift], [0.0, 1.0 / (s * k), oy - shift]])
-    big = cv2.warpAffine(image, M, (s * size, s * size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))  # fmt: skip
+    big = cv2.warpAffine(
+        image,
+        M,
+        (s * size, s * size),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0),
+    )
     if s == 1:
         return big
     small = big.reshape(size, s, size, s, -1).astype(np.float64).mean((1, 3)).reshape((size, size) + image.shape[2:])
@@ -182,9 +188,14 @@ def load_h2o_hogs_data(
         seqs.append(seq)
         frames = list(range(0, seq.num_frames, max(1, frame_stride)))
         ok = seq.right.valid & seq.left.valid & seq.object.valid
-        jobs = [(v, f, role) for v in views for i, f in enumerate(frames)
-                if ok[f] and seq.image_paths[v][f] is not None
-                and (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None]  # fmt: skip
+        jobs = [
+            (v, f, role)
+            for v in views
+            for i, f in enumerate(frames)
+            if ok[f]
+            and seq.image_paths[v][f] is not None
+            and (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None
+        ]
         if not jobs:
             continue
         posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), mano_layers, template)
@@ -197,10 +208,28 @@ def load_h2o_hogs_data(
             Ks = render_intrinsics(cropped_intrinsics(cam.K[f], box, size))
             full = read_h2o_rgb(seq.image_paths[v][f], expected_size=(cam.width, cam.height))
             side = CROP_ENLARGE * BBOX_PIXELS_PER_SCALE * box[2]
-            mask = render_part_mask(posed, f, cam.world2cam[f], Ks, size, K_full=cam.K[f],
-                                    full_size=(cam.width, cam.height), supersample=mask_supersample(side, size))  # fmt: skip
+            mask = render_part_mask(
+                posed,
+                f,
+                cam.world2cam[f],
+                Ks,
+                size,
+                K_full=cam.K[f],
+                full_size=(cam.width, cam.height),
+                supersample=mask_supersample(side, size),
+            )
             s = ViewSample(si, f, v, crop_image(full, box, size), mask, cam.world2cam[f].astype(np.float64), Ks)
             (held if role == "eval" else train).append(s)
     train, held = split_samples(train, held, max_eval, f"H2O {subject}/{object_name} (views {views})")
-    return HogsData(subject, object_name, seqs, train, held, train_views, eval_views, size, crop_size=H2O_CROP_SIZE,
-                    mask_source="render")  # fmt: skip
+    return HogsData(
+        subject,
+        object_name,
+        seqs,
+        train,
+        held,
+        train_views,
+        eval_views,
+        size,
+        crop_size=H2O_CROP_SIZE,
+        mask_source="render",
+    )

@@ -31,7 +31,9 @@ RefineFn = Callable[[Tensor, Tensor], Tensor]
 LpipsFn = Callable[[Tensor, Tensor], Tensor]
 
 
-def gt_and_region(samples: Sequence[ViewSample], margin: int, device: torch.device | str = "cpu") -> tuple[Tensor, Tensor]:
+def gt_and_region(
+    samples: Sequence[ViewSample], margin: int, device: torch.device | str = "cpu"
+) -> tuple[Tensor, Tensor]:
     """Ground truth with the background blacked out (B, H, W, 3) and the loss region (B, H, W) bool.
 
     Args:
@@ -100,16 +102,20 @@ def evaluate_samples(
         m = box_metrics(rgb[0], gt[0], region[0], lpips_fn)
         outside = ~region[0]
         m.update(
-            sequence=names[s.seq_index], frame=s.frame, view=s.view,
+            sequence=names[s.seq_index],
+            frame=s.frame,
+            view=s.view,
             alpha_outside=float(alpha[0][outside].mean()) if bool(outside.any()) else 0.0,
-        )  # fmt: skip
+        )
         rows.append(m)
         if len(images) < keep:
             images.append((gt[0].cpu(), rgb[0].clamp(0, 1).cpu()))
     per_view = []
     for v in sorted({r["view"] for r in rows}):
         rv = [r for r in rows if r["view"] == v]
-        per_view.append({"view": v, "n": len(rv), "psnr": _mean(rv, "psnr"), "ssim": _mean(rv, "ssim"), "lpips": _mean(rv, "lpips")})
+        per_view.append(
+            {"view": v, "n": len(rv), "psnr": _mean(rv, "psnr"), "ssim": _mean(rv, "ssim"), "lpips": _mean(rv, "lpips")}
+        )
     out: dict[str, Any] = {
         "psnr": _mean(rows, "psnr"),
         "ssim": _mean(rows, "ssim"),

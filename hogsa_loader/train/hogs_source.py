@@ -93,8 +93,14 @@ class HogsSource:
             raise ValueError("H2O ships no masks: use masks='render' (or 'auto')")
         if object_name not in self.object_templates:
             raise ValueError(f"object {object_name!r} was not opened (have {sorted(self.object_templates)})")
-        return load_h2o_hogs_data(self.root, subject, object_name, mano_layers=self.mano_layers,
-                                  template=self.object_templates[object_name], **split)  # fmt: skip
+        return load_h2o_hogs_data(
+            self.root,
+            subject,
+            object_name,
+            mano_layers=self.mano_layers,
+            template=self.object_templates[object_name],
+            **split,
+        )
 
 
 def mano_layers_from_dir(mano_dir: PathLike) -> dict:
@@ -121,8 +127,10 @@ def open_hogs_source(
         raise ValueError(f"dataset must be one of {DATASETS}, got {dataset!r}")
     if dataset == "arctic":
         if mano_dir is not None or object_mesh_dir is not None:
-            raise ValueError("--mano-dir / --object-mesh-dir are H2O options; an ARCTIC root has "
-                             "body_models/mano and meta/object_vtemplates")  # fmt: skip
+            raise ValueError(
+                "--mano-dir / --object-mesh-dir are H2O options; an ARCTIC root has "
+                "body_models/mano and meta/object_vtemplates"
+            )
         root = ArcticRoot(data)
         templates = root.object_templates()
         prov = {"template": str(root.meta_dir / "object_vtemplates" / object_name)} if object_name in templates else {}
@@ -135,8 +143,15 @@ def open_hogs_source(
         raise ValueError(f"name the H2O object by its class name {h2o_class_name(object_name)!r}, not {object_name!r}")
     root = H2ORoot(data)
     template = load_h2o_object(object_mesh_dir, object_name)
-    return HogsSource("h2o", root, mano_layers_from_dir(mano_dir), {object_name: template},
-                      h2o_mesh_provenance(object_mesh_dir, object_name), H2O_VIEWS, H2O_EVAL_VIEWS)  # fmt: skip
+    return HogsSource(
+        "h2o",
+        root,
+        mano_layers_from_dir(mano_dir),
+        {object_name: template},
+        h2o_mesh_provenance(object_mesh_dir, object_name),
+        H2O_VIEWS,
+        H2O_EVAL_VIEWS,
+    )
 
 
 def load_run_data(
@@ -158,15 +173,23 @@ def load_run_data(
     dataset = cfg.get("dataset", "arctic")
     h2o = dataset == "h2o"
     source = open_hogs_source(
-        dataset, data or cfg["data"], cfg["object"],
+        dataset,
+        data or cfg["data"],
+        cfg["object"],
         mano_dir=(mano_dir or cfg.get("mano_dir")) if h2o else None,
         object_mesh_dir=(object_mesh_dir or cfg.get("object_mesh_dir")) if h2o else None,
-    )  # fmt: skip
+    )
     split = source.load(
-        cfg["subject"], cfg["object"], sequences=cfg.get("sequences"), views=cfg.get("views"),
-        eval_views=cfg.get("eval_views"), eval_every_frame=cfg.get("eval_every_frame", 8),
-        frame_stride=cfg.get("frame_stride", 1), image_size=cfg.get("image_size"),
-        max_eval=cfg.get("max_eval", 8) if max_eval is None else max_eval, masks=cfg.get("masks", "auto"),
+        cfg["subject"],
+        cfg["object"],
+        sequences=cfg.get("sequences"),
+        views=cfg.get("views"),
+        eval_views=cfg.get("eval_views"),
+        eval_every_frame=cfg.get("eval_every_frame", 8),
+        frame_stride=cfg.get("frame_stride", 1),
+        image_size=cfg.get("image_size"),
+        max_eval=cfg.get("max_eval", 8) if max_eval is None else max_eval,
+        masks=cfg.get("masks", "auto"),
         window=cfg.get("window", "crop"),
-    )  # fmt: skip
+    )
     return source, split

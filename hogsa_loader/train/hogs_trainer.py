@@ -37,12 +37,17 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
+from hogsa_loader.gaussians.checkpoint import read_manifest
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
-from hogsa_loader.gaussians.checkpoint import read_manifest
 from hogsa_loader.io.atomic import atomic_write
-from hogsa_loader.errors import AssetError
+from hogsa_loader.train.hogs_config import HogsConfig
+from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
+from hogsa_loader.train.hogs_eval import evaluate_samples
+from hogsa_loader.train.hogs_source import open_hogs_source
+from hogsa_loader.train.losses import hogs_loss
 from hogsa_loader.train.run_folder import (
     RunExistsError,
     clear_run,
@@ -52,11 +57,6 @@ from hogsa_loader.train.run_folder import (
     read_trainer_state,
     save_trainer_state,
 )
-from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
-from hogsa_loader.train.hogs_config import HogsConfig
-from hogsa_loader.train.hogs_eval import evaluate_samples
-from hogsa_loader.train.hogs_source import open_hogs_source
-from hogsa_loader.train.losses import hogs_loss
 
 __all__ = ["HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
 
@@ -118,22 +118,40 @@ class HogsTrainer:
         if cfg.data.masks not in MASK_MODES:
             raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.data.masks!r}")
         t0 = time.perf_counter()
-        self.source = open_hogs_source(cfg.data.dataset, cfg.data.root, cfg.data.object, mano_dir=cfg.data.mano_dir,
-                                       object_mesh_dir=cfg.data.object_mesh_dir)  # fmt: skip
+        self.source = open_hogs_source(
+            cfg.data.dataset,
+            cfg.data.root,
+            cfg.data.object,
+            mano_dir=cfg.data.mano_dir,
+            object_mesh_dir=cfg.data.object_mesh_dir,
+        )
         # the dataset's default views are written into config.json (what render_quality rebuilds)
-        cfg = replace(cfg, data=replace(cfg.data, views=tuple(cfg.data.views or self.source.views),
-                                        eval_views=tuple(cfg.data.eval_views or self.source.eval_views)))
+        cfg = replace(
+            cfg,
+            data=replace(
+                cfg.data,
+                views=tuple(cfg.data.views or self.source.views),
+                eval_views=tuple(cfg.data.eval_views or self.source.eval_views),
+            ),
+        )
         self.cfg = cfg
         self.progress = progress
         self.device = torch.device(cfg.run.device)
         self.out = Path(cfg.run.out)
         self.root = self.source.root
         self.data: HogsData = self.source.load(
-            cfg.data.subject, cfg.data.object, sequences=_list(cfg.data.sequences), views=list(cfg.data.views),
-            eval_views=list(cfg.data.eval_views), eval_every_frame=cfg.data.eval_every_frame,
-            frame_stride=cfg.data.frame_stride, image_size=cfg.data.image_size, max_eval=cfg.data.max_eval,
-            masks=cfg.data.masks, window=cfg.data.window,
-        )  # fmt: skip
+            cfg.data.subject,
+            cfg.data.object,
+            sequences=_list(cfg.data.sequences),
+            views=list(cfg.data.views),
+            eval_views=list(cfg.data.eval_views),
+            eval_every_frame=cfg.data.eval_every_frame,
+            frame_stride=cfg.data.frame_stride,
+            image_size=cfg.data.image_size,
+            max_eval=cfg.data.max_eval,
+            masks=cfg.data.masks,
+            window=cfg.data.window,
+        )
         self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
         torch.manual_seed(cfg.run.seed)
         variant = "games" if cfg.model.gaussians == "mesh" else "free"
@@ -231,9 +249,18 @@ class HogsTrainer:
         gt, mask, region = self.targets(samples)
         rgb, alpha = self.render(samples)
         inside = ~dilate_mask(~mask, 1)  # eroded by 1 px: partly covered edge pixels are left free
-        loss, terms = hogs_loss(rgb, gt, alpha, region, self.l_r(), lambda_ssim=self.cfg.loss.lambda_ssim,
-                                lambda_r=self.cfg.loss.lambda_r, lambda_alpha=self.cfg.loss.lambda_alpha, inside=inside,
-                                lambda_alpha_in=self.cfg.loss.lambda_alpha_in)  # fmt: skip
+        loss, terms = hogs_loss(
+            rgb,
+            gt,
+            alpha,
+            region,
+            self.l_r(),
+            lambda_ssim=self.cfg.loss.lambda_ssim,
+            lambda_r=self.cfg.loss.lambda_r,
+            lambda_alpha=self.cfg.loss.lambda_alpha,
+            inside=inside,
+            lambda_alpha_in=self.cfg.loss.lambda_alpha_in,
+        )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         frozen = self.step < self.cfg.optim.opacity_warmup
@@ -265,8 +292,11 @@ class HogsTrainer:
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
-                raise RunExistsError(self.out, "holds a training run (checkpoints/); resume it (--resume) or "
-                                               "start it again with overwrite (--overwrite)")  # fmt: skip
+                raise RunExistsError(
+                    self.out,
+                    "holds a training run (checkpoints/); resume it (--resume) or "
+                    "start it again with overwrite (--overwrite)",
+                )
             clear_run(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         _write_json(self.out / "config.json", cfg.to_json())
@@ -301,8 +331,11 @@ class HogsTrainer:
 
     # ------------------------------------------------------------------ checkpoints
     def _source(self) -> dict[str, str]:
-        return {"dataset": self.cfg.data.dataset, "subject": self.cfg.data.subject,
-                "sequence": ",".join(s.name for s in self.data.sequences)}  # fmt: skip
+        return {
+            "dataset": self.cfg.data.dataset,
+            "subject": self.cfg.data.subject,
+            "sequence": ",".join(s.name for s in self.data.sequences),
+        }
 
     def _save_parts(self, folder: Path) -> None:
         for name, part in self.parts.items():
@@ -351,9 +384,11 @@ class HogsTrainer:
             p = group["params"][0]
             prefix = f"adam.{group['name']}."
             for k, v in tensors.items():
-                if k.startswith(prefix) and k[len(prefix):] in ("exp_avg", "exp_avg_sq") and v.shape != p.shape:
-                    raise AssetError(folder / "trainer.safetensors",
-                                     f"{k} has shape {tuple(v.shape)}, the model's parameter {tuple(p.shape)}")
+                if k.startswith(prefix) and k[len(prefix) :] in ("exp_avg", "exp_avg_sq") and v.shape != p.shape:
+                    raise AssetError(
+                        folder / "trainer.safetensors",
+                        f"{k} has shape {tuple(v.shape)}, the model's parameter {tuple(p.shape)}",
+                    )
         for name, part in self.parts.items():
             if not read_manifest(folder / name)["config"].get("weld_seams", False) and part.weld_seams:
                 part.disable_seam_welding()  # checkpointed before seam welding: go on as it was trained
@@ -368,7 +403,7 @@ class HogsTrainer:
         for group in self.optimizer.param_groups:
             p = group["params"][0]
             prefix = f"adam.{group['name']}."
-            st = {k[len(prefix):]: v.to(p.device) for k, v in tensors.items() if k.startswith(prefix)}
+            st = {k[len(prefix) :]: v.to(p.device) for k, v in tensors.items() if k.startswith(prefix)}
             if st:
                 st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
                 self.optimizer.state[p] = st

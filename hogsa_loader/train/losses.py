@@ -77,8 +77,10 @@ def hogs_loss(
     a_in = alpha_inside(alpha, inside) if inside is not None else alpha.new_zeros(())
     if inside is not None and lambda_alpha_in:
         loss = loss + lambda_alpha_in * a_in
-    terms = {k: float(v.detach()) for k, v in (("l1", l1), ("ssim", ss), ("photo", photo), ("l_r", l_r),
-                                                ("alpha_out", a_out), ("alpha_in", a_in))}
+    terms = {
+        k: float(v.detach())
+        for k, v in (("l1", l1), ("ssim", ss), ("photo", photo), ("l_r", l_r), ("alpha_out", a_out), ("alpha_in", a_in))
+    }
     return loss, terms
 
 

@@ -77,8 +77,11 @@ def check_run_folder(out: PathLike, *, resume: bool, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise AssetError(out, "run folder is a file")
     if not resume and not overwrite and has_checkpoints(out):
-        raise RunExistsError(out, "holds a training run (checkpoints/); pass --resume to continue it or --overwrite "
-                                  "to start it again from step 0 (the folder is emptied)")  # fmt: skip
+        raise RunExistsError(
+            out,
+            "holds a training run (checkpoints/); pass --resume to continue it or --overwrite "
+            "to start it again from step 0 (the folder is emptied)",
+        )
 
 
 def clear_run(out: PathLike) -> None:

@@ -63,7 +63,9 @@ def find_runs(runs_dir: str | Path, names: Optional[Sequence[str]] = None) -> li
     if names:
         runs = [p for p in runs if p.name in set(names)]
     if not runs:
-        raise AssetError(runs_dir, f"no finished HOGS run (folders with {', '.join(PART_NAMES)} manifests and config.json)")
+        raise AssetError(
+            runs_dir, f"no finished HOGS run (folders with {', '.join(PART_NAMES)} manifests and config.json)"
+        )
     return runs
 
 
@@ -136,7 +138,9 @@ def fold_runs(run: Path, candidates: Sequence[Path]) -> list[Path]:
             continue
         seen = _trained_views(fc)
         if seen & held:
-            raise AssetError(f / "config.json", f"view fold trained on held-out view(s) {sorted(seen & held)} of {run.name}")
+            raise AssetError(
+                f / "config.json", f"view fold trained on held-out view(s) {sorted(seen & held)} of {run.name}"
+            )
         if seen < own:
             out.append(f)
     return out
@@ -174,8 +178,9 @@ class PairSet:
     cache_files: list[Path] = field(default_factory=list)
 
 
-def _render_all(model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int,
-                batch: int = 4) -> tuple[Tensor, Tensor]:
+def _render_all(
+    model: HogsModel, data: HogsData, samples: Sequence[ViewSample], size: int, sh_degree: int, batch: int = 4
+) -> tuple[Tensor, Tensor]:
     """Render samples at ``size`` (K scaled from the data's resolution): rgb (N,h,w,3), alpha (N,h,w)."""
     s = size / data.image_size
     scale = torch.tensor([[s, 0, 0], [0, s, 0], [0, 0, 1.0]], dtype=torch.float64)
@@ -200,17 +205,32 @@ def _final_sh(rc: dict) -> int:
     return sh_deg if sh_warm <= 0 else min(sh_deg, int(rc.get("iters", 0)) // sh_warm)
 
 
-def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[str, Sequence[ViewSample]], lo: int,
-                    cache_dir: Path, log: Callable[[str], None]) -> tuple[dict[str, Tensor], Path]:
+def _cached_renders(
+    run: Path,
+    source: HogsSource,
+    data: HogsData,
+    parts: dict[str, Sequence[ViewSample]],
+    lo: int,
+    cache_dir: Path,
+    log: Callable[[str], None],
+) -> tuple[dict[str, Tensor], Path]:
     """``{name}_rgb`` / ``{name}_alpha`` renders of ``run`` for each sample list of ``parts``
     (``train`` lists as uint8, others float32), read from or written to the cache, and the
     cache file."""
     rc = json.loads((run / "config.json").read_text())
     sh = _final_sh(rc)
-    key = hashlib.sha256(json.dumps(
-        [_run_hash(run), _inputs_hash(source, str(rc.get("object", "")), data, parts), data.image_size, lo, sh,
-         {k: [(s.seq_index, s.frame, s.view) for s in v] for k, v in parts.items()}]
-    ).encode()).hexdigest()[:16]  # fmt: skip
+    key = hashlib.sha256(
+        json.dumps(
+            [
+                _run_hash(run),
+                _inputs_hash(source, str(rc.get("object", "")), data, parts),
+                data.image_size,
+                lo,
+                sh,
+                {k: [(s.seq_index, s.frame, s.view) for s in v] for k, v in parts.items()},
+            ]
+        ).encode()
+    ).hexdigest()[:16]
     path = cache_dir / f"coarse_{run.name}_{key}.safetensors"
     if path.is_file():
         log(f"[srm] {run.name}: cached renders {path.name} ({', '.join(f'{len(v)} {k}' for k, v in parts.items())})")
@@ -227,8 +247,10 @@ def _cached_renders(run: Path, source: HogsSource, data: HogsData, parts: dict[s
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # runs sharing a cache never write the same file
     save_file(t, str(tmp))
     tmp.replace(path)
-    log(f"[srm] {run.name}: rendered {', '.join(f'{len(v)} {k}' for k, v in parts.items())} views at {lo}² "
-        f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}")  # fmt: skip
+    log(
+        f"[srm] {run.name}: rendered {', '.join(f'{len(v)} {k}' for k, v in parts.items())} views at {lo}² "
+        f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}"
+    )
     return t, path
 
 
@@ -246,17 +268,31 @@ def _check_pair_views(run: Path, rc: dict, data: HogsData, val: set[int], mode: 
     """
     train_views = {smp.view for smp in data.train}
     if val - train_views:
-        raise ValueError(f"validation view(s) {sorted(val - train_views)} are not training views of {run.name} "
-                         f"(training views {sorted(train_views)})")  # fmt: skip
+        raise ValueError(
+            f"validation view(s) {sorted(val - train_views)} are not training views of {run.name} "
+            f"(training views {sorted(train_views)})"
+        )
     if val and val >= train_views:
         raise ValueError(f"validation views {sorted(val)} leave no training view of {run.name}")
     if mode != "own" and not folds:
-        raise AssetError(run, f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
-                              "(HOGS runs trained on subsets of the training views; --cross-hogs)")  # fmt: skip
+        raise AssetError(
+            run,
+            f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
+            "(HOGS runs trained on subsets of the training views; --cross-hogs)",
+        )
 
 
-def _fold_chunk(fold: Path, source: HogsSource, data: HogsData, val: set[int], mode: str, lo: int, cache_dir: Path,
-                log: Callable[[str], None], files: list[Path]) -> Optional[_Chunk]:
+def _fold_chunk(
+    fold: Path,
+    source: HogsSource,
+    data: HogsData,
+    val: set[int],
+    mode: str,
+    lo: int,
+    cache_dir: Path,
+    log: Callable[[str], None],
+    files: list[Path],
+) -> Optional[_Chunk]:
     """The renders by view-fold run ``fold`` of the training samples whose view it did not
     see (with ``mode="own"`` only those of validation views), or None when there are none;
     the cache file is appended to ``files``."""
@@ -271,8 +307,9 @@ def _fold_chunk(fold: Path, source: HogsSource, data: HogsData, val: set[int], m
     return fold.name, ft["train_rgb"], ft["train_alpha"], torch.as_tensor(idx, dtype=torch.long)
 
 
-def _assign_chunks(chunks: Sequence[_Chunk], run_name: str, data: HogsData, val: set[int], mode: str,
-                   has_folds: bool) -> tuple[tuple[list, list, list], tuple[list, list, list], dict[str, int]]:
+def _assign_chunks(
+    chunks: Sequence[_Chunk], run_name: str, data: HogsData, val: set[int], mode: str, has_folds: bool
+) -> tuple[tuple[list, list, list], tuple[list, list, list], dict[str, int]]:
     """Split every source's renders into training and validation pairs.
 
     A source supplies training pairs unless ``mode`` excludes it (``own``: no fold pairs,
@@ -302,9 +339,17 @@ def _assign_chunks(chunks: Sequence[_Chunk], run_name: str, data: HogsData, val:
     return (rgbs, alphas, rows), (vrgb, valpha, vrows), sources
 
 
-def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Optional[int] = None, scale: int = 1,
-               mode: str = "own", folds: Sequence[Path] = (), log: Callable[[str], None] = print,
-               val_views: Sequence[int] = ()) -> PairSet:
+def load_pairs(
+    data_root: str | Path,
+    run: Path,
+    cache_dir: Path,
+    image_size: Optional[int] = None,
+    scale: int = 1,
+    mode: str = "own",
+    folds: Sequence[Path] = (),
+    log: Callable[[str], None] = print,
+    val_views: Sequence[int] = (),
+) -> PairSet:
     """Load one run's split and its coarse renders (see module docstring).
 
     Args:
@@ -342,15 +387,26 @@ def load_pairs(data_root: str | Path, run: Path, cache_dir: Path, image_size: Op
         chunk = _fold_chunk(f, source, data, val, mode, lo, cache_dir, log, files)
         if chunk is not None:
             chunks.append(chunk)
-    (rgbs, alphas, rows), (vrgb, valpha, vrows), sources = _assign_chunks(chunks, run.name, data, val, mode,
-                                                                          bool(folds))  # fmt: skip
+    (rgbs, alphas, rows), (vrgb, valpha, vrows), sources = _assign_chunks(
+        chunks, run.name, data, val, mode, bool(folds)
+    )
     if val and not vrows:
         raise AssetError(run, f"no view fold left out validation view(s) {sorted(val)}: every fold saw them")
     if mode != "own" and sum(sources.get(f.name, 0) for f in folds) == 0:
         raise AssetError(run, "the view folds cover no training view of the run (each fold saw every view)")
     margin = int(round(int(rc.get("margin", 4)) * size / (data.crop_size or size)))
-    ps = PairSet(run.name, data, torch.cat(rgbs), torch.cat(alphas), torch.cat(rows), t["eval_rgb"], t["eval_alpha"],
-                 margin, sources, cache_files=files)  # fmt: skip
+    ps = PairSet(
+        run.name,
+        data,
+        torch.cat(rgbs),
+        torch.cat(alphas),
+        torch.cat(rows),
+        t["eval_rgb"],
+        t["eval_alpha"],
+        margin,
+        sources,
+        cache_files=files,
+    )
     if vrows:
         ps.val_rgb, ps.val_alpha, ps.val_rows = torch.cat(vrgb), torch.cat(valpha), torch.cat(vrows)
     return ps

@@ -63,6 +63,20 @@ from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.srm.discriminator import ConditionalDiscriminator
+from hogsa_loader.srm.io import load_srm, save_srm
+from hogsa_loader.srm.losses import (
+    PERCEPTUAL_DEFAULT_WEIGHT,
+    d_logistic,
+    g_nonsaturating,
+    l1_loss,
+    perceptual_loss,
+    r1_penalty,
+)
+from hogsa_loader.srm.model import SRM, dihedral
+from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
+from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
+from hogsa_loader.train.losses import box_of, psnr, ssim_map
 from hogsa_loader.train.run_folder import (
     RunExistsError,
     clear_run,
@@ -72,15 +86,8 @@ from hogsa_loader.train.run_folder import (
     read_trainer_state,
     save_trainer_state,
 )
-from hogsa_loader.srm.discriminator import ConditionalDiscriminator
-from hogsa_loader.srm.io import load_srm, save_srm
-from hogsa_loader.srm.losses import PERCEPTUAL_DEFAULT_WEIGHT, d_logistic, g_nonsaturating, l1_loss, perceptual_loss, r1_penalty
-from hogsa_loader.srm.model import SRM, dihedral
-from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
-from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
 from hogsa_loader.train.srm_config import SRMTrainConfig
-from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
-from hogsa_loader.train.losses import box_of, psnr, ssim_map
+from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 
 __all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet", "AUGMENTS", "dihedral"]
 
@@ -96,12 +103,18 @@ def _gt(samples: Sequence[ViewSample]) -> tuple[Tensor, Tensor]:
 
 def _adam_state(opt: torch.optim.Optimizer, prefix: str) -> tuple[dict[str, Tensor], list[dict[str, Any]]]:
     sd = opt.state_dict()
-    tensors = {f"{prefix}.{i}.{k}": torch.as_tensor(v).detach().cpu().contiguous() for i, st in sd["state"].items() for k, v in st.items()}
+    tensors = {
+        f"{prefix}.{i}.{k}": torch.as_tensor(v).detach().cpu().contiguous()
+        for i, st in sd["state"].items()
+        for k, v in st.items()
+    }
     groups = [{k: v for k, v in g.items()} for g in sd["param_groups"]]
     return tensors, groups
 
 
-def _load_adam(opt: torch.optim.Optimizer, prefix: str, tensors: dict[str, Tensor], groups: list[dict[str, Any]]) -> None:
+def _load_adam(
+    opt: torch.optim.Optimizer, prefix: str, tensors: dict[str, Tensor], groups: list[dict[str, Any]]
+) -> None:
     state: dict[int, dict[str, Tensor]] = {}
     for k, v in tensors.items():
         if k.startswith(prefix + "."):
@@ -135,8 +148,20 @@ class SRMTrainer:
         cands = find_runs(cfg.data.cross_hogs) if cfg.data.cross_hogs else []
         cache = Path(cfg.data.cache) if cfg.data.cache else self.out / "cache"
         d = cfg.data
-        self.sets = [load_pairs(d.root, r, cache, d.image_size, cfg.model.scale, d.pairs, fold_runs(r, cands), self.log,
-                                d.val_views or ()) for r in self.runs]  # fmt: skip
+        self.sets = [
+            load_pairs(
+                d.root,
+                r,
+                cache,
+                d.image_size,
+                cfg.model.scale,
+                d.pairs,
+                fold_runs(r, cands),
+                self.log,
+                d.val_views or (),
+            )
+            for r in self.runs
+        ]
         self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
         self.size = self.sets[0].data.image_size
         if any(s.data.image_size != self.size for s in self.sets):
@@ -289,8 +314,11 @@ class SRMTrainer:
         coarse = rgb.cpu()
         scale = float(self.cfg.model.scale)
         if scale != 1:
-            coarse = F.interpolate(coarse.permute(0, 3, 1, 2), scale_factor=scale, mode="bilinear",
-                                   align_corners=False).permute(0, 2, 3, 1).clamp(0, 1)  # fmt: skip
+            coarse = (
+                F.interpolate(coarse.permute(0, 3, 1, 2), scale_factor=scale, mode="bilinear", align_corners=False)
+                .permute(0, 2, 3, 1)
+                .clamp(0, 1)
+            )
         y0, y1, x0, x1 = box_of(region)
         g = gt[:, y0:y1, x0:x1]
         win = 11 if min(y1 - y0, x1 - x0) >= 11 else 3
@@ -328,8 +356,12 @@ class SRMTrainer:
         rows = []
         for ps in self.sets:
             for k, smp in enumerate(ps.data.eval):
-                row: dict[str, Any] = {"run": ps.name, "sequence": ps.data.sequences[smp.seq_index].name,
-                                       "frame": smp.frame, "view": smp.view}  # fmt: skip
+                row: dict[str, Any] = {
+                    "run": ps.name,
+                    "sequence": ps.data.sequences[smp.seq_index].name,
+                    "frame": smp.frame,
+                    "view": smp.view,
+                }
                 row.update(self._score(ps, smp, ps.eval_rgb[k : k + 1], ps.eval_alpha[k : k + 1], model))
                 rows.append(row)
         per_view = []
@@ -343,8 +375,11 @@ class SRMTrainer:
             per_view.append(entry)
         out: dict[str, Any] = {"step": self.step}
         for tag in ("without_srm", "with_srm"):
-            out[tag] = {"psnr": float(np.mean([r[tag]["psnr"] for r in rows])),
-                        "ssim": float(np.mean([r[tag]["ssim"] for r in rows])), "lpips": None}  # fmt: skip
+            out[tag] = {
+                "psnr": float(np.mean([r[tag]["psnr"] for r in rows])),
+                "ssim": float(np.mean([r[tag]["ssim"] for r in rows])),
+                "lpips": None,
+            }
         out["delta_psnr"] = out["with_srm"]["psnr"] - out["without_srm"]["psnr"]
         out["delta_ssim"] = out["with_srm"]["ssim"] - out["without_srm"]["ssim"]
         out["per_view"] = per_view
@@ -361,8 +396,11 @@ class SRMTrainer:
         cfg = self.cfg
         if not self.resumed and has_checkpoints(self.out):
             if not overwrite:
-                raise RunExistsError(self.out, "holds a training run (checkpoints/); resume it (--resume) or "
-                                               "start it again with overwrite (--overwrite)")  # fmt: skip
+                raise RunExistsError(
+                    self.out,
+                    "holds a training run (checkpoints/); resume it (--resume) or "
+                    "start it again with overwrite (--overwrite)",
+                )
             clear_run(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         _write_json(self.out / "config.json", cfg.to_json())
@@ -380,8 +418,11 @@ class SRMTrainer:
                 ev = self.evaluate()
                 self.evals.append(self._eval_point(ev))
                 val = f", validation {self.evals[-1]['val_with_srm']:.2f} dB" if self.use_val else ""
-                bar.write(f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} dB, "
-                          f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}{val}")  # fmt: skip
+                bar.write(
+                    f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} "
+                    "dB, "
+                    f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}{val}"
+                )
             if cfg.run.ckpt_every > 0 and self.step % cfg.run.ckpt_every == 0 and self.step < cfg.optim.iters:
                 self.save_checkpoint()
         bar.close()
@@ -405,11 +446,20 @@ class SRMTrainer:
         summary = _summary(ev)
         if self.use_val:
             v = self.validate()
-            summary.update(val_without_srm=v["without_srm"]["psnr"], val_with_srm=v["with_srm"]["psnr"],
-                           val_ssim_with_srm=v["with_srm"]["ssim"], val_n=v["n"])  # fmt: skip
+            summary.update(
+                val_without_srm=v["without_srm"]["psnr"],
+                val_with_srm=v["with_srm"]["psnr"],
+                val_ssim_with_srm=v["with_srm"]["ssim"],
+                val_n=v["n"],
+            )
             if self.best is None or v["with_srm"]["psnr"] > self.best["psnr"]:
-                self.best = {"step": self.step, "psnr": v["with_srm"]["psnr"], "ssim": v["with_srm"]["ssim"],
-                             "psnr_without_srm": v["without_srm"]["psnr"], "n": v["n"]}  # fmt: skip
+                self.best = {
+                    "step": self.step,
+                    "psnr": v["with_srm"]["psnr"],
+                    "ssim": v["with_srm"]["ssim"],
+                    "psnr_without_srm": v["without_srm"]["psnr"],
+                    "n": v["n"],
+                }
                 self.best_state = {k: t.detach().clone() for k, t in self.g_ema.net.state_dict().items()}
         return summary
 
@@ -431,13 +481,27 @@ class SRMTrainer:
         for ps in self.sets:
             views = sorted({int(ps.data.train[int(i)].view) for i in ps.train_rows})
             val = sorted({int(ps.data.train[int(i)].view) for i in ps.val_rows})
-            out.append({"run": ps.name, "subject": ps.data.subject, "object": ps.data.object_name,
-                        "sequences": [s.name for s in ps.data.sequences], "views": views, "val_views": val})  # fmt: skip
+            out.append(
+                {
+                    "run": ps.name,
+                    "subject": ps.data.subject,
+                    "object": ps.data.object_name,
+                    "sequences": [s.name for s in ps.data.sequences],
+                    "views": views,
+                    "val_views": val,
+                }
+            )
         return out
 
     def _provenance(self, final: Optional[dict[str, Any]] = None, step: Optional[int] = None) -> dict[str, Any]:
-        d: dict[str, Any] = {"step": self.step if step is None else step, "runs": [s.name for s in self.sets], "image_size": self.size,
-                             "perceptual": self.perc.kind, "gflops_256": self.gflops, "targets": self.targets()}  # fmt: skip
+        d: dict[str, Any] = {
+            "step": self.step if step is None else step,
+            "runs": [s.name for s in self.sets],
+            "image_size": self.size,
+            "perceptual": self.perc.kind,
+            "gflops_256": self.gflops,
+            "targets": self.targets(),
+        }
         if final is not None:
             d["held_out"] = {k: final[k] for k in ("without_srm", "with_srm")}
         if self.best is not None:
@@ -464,8 +528,15 @@ class SRMTrainer:
             t, groups_d = _adam_state(self.opt_d, "adam_d")
             tensors.update(t)
             tensors.update({f"d.{k}": v.detach().cpu().contiguous() for k, v in self.d.state_dict().items()})
-        state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time,
-                 "adam_g_groups": groups_g, "adam_d_groups": groups_d, "best": self.best}  # fmt: skip
+        state = {
+            "step": self.step,
+            "history": self.history,
+            "evals": self.evals,
+            "train_time_s": self._train_time,
+            "adam_g_groups": groups_g,
+            "adam_d_groups": groups_d,
+            "best": self.best,
+        }
         save_trainer_state(folder, tensors, state)
         commit_checkpoint(folder, self.step)
         return folder
@@ -488,19 +559,29 @@ class SRMTrainer:
         self.g.net.load_state_dict(load_srm(folder / "g").net.state_dict())
         self.g_ema.net.load_state_dict(load_srm(folder / "g_ema").net.state_dict())
         try:
-            _load_adam(self.opt_g, "adam_g", {k: v.to(self.device) if not k.endswith(".step") else v
-                                              for k, v in tensors.items()}, state["adam_g_groups"])  # fmt: skip
+            _load_adam(
+                self.opt_g,
+                "adam_g",
+                {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
+                state["adam_g_groups"],
+            )
             if self.d is not None and self.opt_d is not None:
                 self.d.load_state_dict({k[2:]: v for k, v in tensors.items() if k.startswith("d.")})
-                _load_adam(self.opt_d, "adam_d", {k: v.to(self.device) if not k.endswith(".step") else v
-                                                  for k, v in tensors.items()}, state["adam_d_groups"])  # fmt: skip
+                _load_adam(
+                    self.opt_d,
+                    "adam_d",
+                    {k: v.to(self.device) if not k.endswith(".step") else v for k, v in tensors.items()},
+                    state["adam_d_groups"],
+                )
         except (RuntimeError, ValueError, KeyError, TypeError) as exc:
             raise AssetError(tpath, f"optimiser or discriminator state does not fit the networks ({exc})") from None
         for opt in (self.opt_g, self.opt_d):
-            for p, st in (opt.state.items() if opt is not None else ()):
+            for p, st in opt.state.items() if opt is not None else ():
                 for k in ("exp_avg", "exp_avg_sq"):
                     if k in st and st[k].shape != p.shape:
-                        raise AssetError(tpath, f"Adam {k} of shape {tuple(st[k].shape)} for a parameter {tuple(p.shape)}")
+                        raise AssetError(
+                            tpath, f"Adam {k} of shape {tuple(st[k].shape)} for a parameter {tuple(p.shape)}"
+                        )
         self.best = state.get("best")
         if self.best is not None:  # before the RNG is restored: building a model draws random numbers
             self.best_state = load_srm(folder / "g_best").net.state_dict()
@@ -559,7 +640,7 @@ class SRMTrainer:
                     "pair_sources": s.sources,
                 }
                 for s in self.sets
-            ],  # fmt: skip
+            ],
             "image_size": self.size,
             "crop": self.crop,
             "scale": self.cfg.model.scale,
@@ -604,8 +685,12 @@ class SRMTrainer:
             side = max(y1 - y0, x1 - x0)  # square box around the foreground, enlarged to S (nearest)
             cy, cx = (y0 + y1) // 2, (x0 + x1) // 2
             y0, x0 = min(max(0, cy - side // 2), S - side), min(max(0, cx - side // 2), S - side)
-            cells = [F.interpolate(im[:, y0 : y0 + side, x0 : x0 + side].permute(0, 3, 1, 2), size=(S, S), mode="nearest")
-                     .permute(0, 2, 3, 1)[0] for im in (coarse, ref, gt)]  # fmt: skip
+            cells = [
+                F.interpolate(
+                    im[:, y0 : y0 + side, x0 : x0 + side].permute(0, 3, 1, 2), size=(S, S), mode="nearest"
+                ).permute(0, 2, 3, 1)[0]
+                for im in (coarse, ref, gt)
+            ]
             rows.append(torch.cat(cells, 1).clamp(0, 1))
         strip = (torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8)
         plt.imsave(self.out / "samples.png", strip)
@@ -625,8 +710,12 @@ class SRMTrainer:
         ax[1].axhline(0.0, color="0.5", lw=0.8, ls="--", label="HOGS only")
         ax[1].plot([e["step"] for e in ev], [e["with_srm"] - e["without_srm"] for e in ev], "o-", label="held-out")
         if self.use_val:
-            ax[1].plot([e["step"] for e in ev], [e["val_with_srm"] - e["val_without_srm"] for e in ev], "s-",
-                       label=f"validation (views {list(self.cfg.data.val_views or [])})")  # fmt: skip
+            ax[1].plot(
+                [e["step"] for e in ev],
+                [e["val_with_srm"] - e["val_without_srm"] for e in ev],
+                "s-",
+                label=f"validation (views {list(self.cfg.data.val_views or [])})",
+            )
             if self.best is not None:
                 ax[1].axvline(self.best["step"], color="k", lw=0.6, label=f"selected (step {self.best['step']})")
         ax[1].set_xlabel("step")
@@ -639,8 +728,13 @@ class SRMTrainer:
 
 
 def _summary(ev: dict[str, Any]) -> dict[str, Any]:
-    return {"step": ev["step"], "without_srm": ev["without_srm"]["psnr"], "with_srm": ev["with_srm"]["psnr"],
-            "ssim_without_srm": ev["without_srm"]["ssim"], "ssim_with_srm": ev["with_srm"]["ssim"]}  # fmt: skip
+    return {
+        "step": ev["step"],
+        "without_srm": ev["without_srm"]["psnr"],
+        "with_srm": ev["with_srm"]["psnr"],
+        "ssim_without_srm": ev["without_srm"]["ssim"],
+        "ssim_with_srm": ev["with_srm"]["ssim"],
+    }
 
 
 def _write_json(path: Path, obj: Any) -> None:

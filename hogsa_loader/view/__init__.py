@@ -20,13 +20,34 @@ from typing import Any
 
 _EXPORTS = {
     "config": ("ViewConfig", "ViewError", "check_view_config", "parse_item"),
-    "orbit": ("OrbitRender", "PartLights", "orbit_cameras", "orbit_azimuth", "orbit_intrinsics", "scene_bounds",
-              "project", "posed_points", "swap_hands", "render_views", "render_orbit"),
-    "transfer": ("Transfer", "ViewPose", "align_wrists", "transfer_pose", "transfer_report", "state_poses",
-                 "subject_betas", "frame_pose", "default_pose", "bank_pose"),
+    "orbit": (
+        "OrbitRender",
+        "PartLights",
+        "orbit_cameras",
+        "orbit_azimuth",
+        "orbit_intrinsics",
+        "scene_bounds",
+        "project",
+        "posed_points",
+        "swap_hands",
+        "render_views",
+        "render_orbit",
+    ),
+    "transfer": (
+        "Transfer",
+        "ViewPose",
+        "align_wrists",
+        "transfer_pose",
+        "transfer_report",
+        "state_poses",
+        "subject_betas",
+        "frame_pose",
+        "default_pose",
+        "bank_pose",
+    ),
     "pictures": ("neutral_background", "to_uint8", "draw_keypoints", "sheet"),
     "job": ("run_view",),
-}  # fmt: skip
+}
 _WHERE = {name: mod for mod, names in _EXPORTS.items() for name in names}
 
 __all__ = [

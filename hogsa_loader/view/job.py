@@ -77,14 +77,17 @@ def _prepare(cfg: ViewConfig) -> _Setup:
         raise ViewError(" ".join(str(exc).split())) from None
     key = (str(cfg.subject), str(cfg.object))
     if key not in bundle.hogs:
-        raise ViewError(f"the bundle has no HOGS model for {key[0]}/{key[1]} (has "
-                        f"{', '.join(f'{s}/{o}' for s, o in bundle.keys)})")  # fmt: skip
+        raise ViewError(
+            f"the bundle has no HOGS model for {key[0]}/{key[1]} (has {', '.join(f'{s}/{o}' for s, o in bundle.keys)})"
+        )
     hands_key = {key[0]: key}
     for sid in cfg.transfer_to:
         runs = [k for k in bundle.keys if k[0] == sid]
         if not runs:
-            raise ViewError(f"--transfer-to {sid}: the bundle has no HOGS model of that subject (subjects: "
-                            f"{', '.join(sorted({s for s, _ in bundle.keys}))})")  # fmt: skip
+            raise ViewError(
+                f"--transfer-to {sid}: the bundle has no HOGS model of that subject (subjects: "
+                f"{', '.join(sorted({s for s, _ in bundle.keys}))})"
+            )
         hands_key[sid] = (sid, key[1]) if (sid, key[1]) in runs else runs[0]
     root = ArcticRoot(cfg.data)  # type: ignore[arg-type]
     for sid in hands_key:
@@ -116,8 +119,10 @@ def _transfer_line(label: str, sid: str, rec: dict[str, Any]) -> str:
         return ", ".join(f"{s} {v:.1f} mm" for s, v in items if v is not None) or "no contact"
 
     pen = {k: rec[k]["penetration_depth_mm"] for k in ("source", "transferred")}
-    return (f"[transfer] {label} -> {sid}: penetration {pen['transferred']:.1f} mm (source {pen['source']:.1f} mm), "
-            f"contact error {err('transferred')} (wrists only aligned: {err('aligned')})")  # fmt: skip
+    return (
+        f"[transfer] {label} -> {sid}: penetration {pen['transferred']:.1f} mm (source {pen['source']:.1f} mm), "
+        f"contact error {err('transferred')} (wrists only aligned: {err('aligned')})"
+    )
 
 
 class _Scenes:
@@ -162,28 +167,50 @@ def _orbit(sc: _Scenes, sid: str, vp: ViewPose, state: Any, bg: Tensor, out: Pat
     cfg = sc.cfg
     poses, _, points = sc.posed(state)
     d, az0 = sc.camera(scene_bounds(points)[0])
-    orb = render_orbit(sc.scene[sid], poses, points, cfg.orbit, cfg.elevation, d, cfg.size, up=sc.up,
-                       azimuth0_deg=az0, refiner=sc.refiner, backend=cfg.backend)  # fmt: skip
+    orb = render_orbit(
+        sc.scene[sid],
+        poses,
+        points,
+        cfg.orbit,
+        cfg.elevation,
+        d,
+        cfg.size,
+        up=sc.up,
+        azimuth0_deg=az0,
+        refiner=sc.refiner,
+        backend=cfg.backend,
+    )
     raw = to_uint8(orb.rgb, orb.alpha, bg)
     ref = to_uint8(orb.refined, orb.alpha, bg) if orb.refined is not None else None
     caps = [f"{a - az0:+.4g} deg" for a in orb.azimuth_deg]
     what = f"{vp.label} on {sid}'s hands" + (" (transferred)" if sid != vp.subject else "")
-    rows = [(f"HOGS: {what}; azimuth from dataset view 1, elevation {cfg.elevation:g} deg, distance {d:.2f} m",
-             list(raw), caps)]  # fmt: skip
+    rows = [
+        (
+            f"HOGS: {what}; azimuth from dataset view 1, elevation {cfg.elevation:g} deg, distance {d:.2f} m",
+            list(raw),
+            caps,
+        )
+    ]
     if ref is not None:
         rows.append(("HOGS + SRM", list(ref), caps))
     png = out / f"orbit_{sid}.png"
     write_png(png, sheet(rows, cols=min(8, cfg.orbit)))
     rec = {
-        "png": str(png), "pose": vp.label, "views": cfg.orbit,
-        "azimuth_deg": [round(float(a), 3) for a in orb.azimuth_deg], "elevation_deg": cfg.elevation,
-        "distance_m": round(orb.distance, 4), "centre": [round(float(c), 5) for c in orb.centre],
-        "radius_m": round(orb.radius, 4), "seconds": {k: round(v, 2) for k, v in orb.seconds.items()},
-    }  # fmt: skip
+        "png": str(png),
+        "pose": vp.label,
+        "views": cfg.orbit,
+        "azimuth_deg": [round(float(a), 3) for a in orb.azimuth_deg],
+        "elevation_deg": cfg.elevation,
+        "distance_m": round(orb.distance, 4),
+        "centre": [round(float(c), 5) for c in orb.centre],
+        "radius_m": round(orb.radius, 4),
+        "seconds": {k: round(v, 2) for k, v in orb.seconds.items()},
+    }
     if cfg.video != "none":
-        frames = [np.concatenate([caption(raw[j], "HOGS")]
-                                 + ([caption(ref[j], "HOGS + SRM")] if ref is not None else []), 1)
-                  for j in range(cfg.orbit)]  # fmt: skip
+        frames = [
+            np.concatenate([caption(raw[j], "HOGS")] + ([caption(ref[j], "HOGS + SRM")] if ref is not None else []), 1)
+            for j in range(cfg.orbit)
+        ]
         rec["video"] = str(out / f"orbit_{sid}.{cfg.video}")
         write_video(Path(rec["video"]), frames, cfg.fps)
     return rec
@@ -249,9 +276,12 @@ def _backgrounds(cfg: ViewConfig, out: Path) -> Callable[[int], Tensor]:
 
 
 def _orbits(
-    sc: _Scenes, grasps: dict[tuple[int, str], Any], background: Callable[[int], Tensor], out: Path,
+    sc: _Scenes,
+    grasps: dict[tuple[int, str], Any],
+    background: Callable[[int], Tensor],
+    out: Path,
     say: Callable[[str], None],
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """The orbit of the first pose source on every subject (none when ``cfg.orbit`` is 0); their records."""
     cfg, su = sc.cfg, sc.su
     orbits: dict[str, Any] = {}
@@ -269,8 +299,10 @@ def _transfer_grid(
     su = sc.su
     rows = []
     for i, vp in enumerate(su.poses):
-        cells = [_cells(sc, sid, grasps[i, sid], background(1 + i * len(su.subjects) + j))
-                 for j, sid in enumerate(su.subjects)]  # fmt: skip
+        cells = [
+            _cells(sc, sid, grasps[i, sid], background(1 + i * len(su.subjects) + j))
+            for j, sid in enumerate(su.subjects)
+        ]
         caps = [sid + ("" if sid == vp.subject else " (transferred)") for sid in su.subjects]
         rows.append((f"pose: {vp.label} (HOGS)", [c[0] for c in cells], caps))
         if sc.refiner is not None:

@@ -150,13 +150,21 @@ def posed_points(
         for side in SIDES:
             lay = layers[side]
             dt = lay.v_template.dtype
-            res = lay(global_orient=poses[f"{side}_rot"].to(dt), hand_pose=poses[f"{side}_pose"].to(dt),
-                      betas=poses[f"{side}_betas"].to(dt), transl=poses[f"{side}_trans"].to(dt))  # fmt: skip
+            res = lay(
+                global_orient=poses[f"{side}_rot"].to(dt),
+                hand_pose=poses[f"{side}_pose"].to(dt),
+                betas=poses[f"{side}_betas"].to(dt),
+                transl=poses[f"{side}_trans"].to(dt),
+            )
             out[f"verts.{side}"] = res.vertices.double().cpu().numpy()
             out[f"joints.{side}"] = res.joints.double().cpu().numpy()
         B = poses["obj_rot"].shape[0]
-        res = object_layer(angles=poses["obj_arti"].reshape(B, 1).float(), global_orient=poses["obj_rot"].float(),
-                           transl=poses["obj_trans"].float(), names=[obj] * B)  # fmt: skip
+        res = object_layer(
+            angles=poses["obj_arti"].reshape(B, 1).float(),
+            global_orient=poses["obj_rot"].float(),
+            transl=poses["obj_trans"].float(),
+            names=[obj] * B,
+        )
         n_o = int(object_layer.v_len[object_layer.indices([obj])][0])
     out["verts.object"] = res["v"][:, :n_o].double().cpu().numpy()
     out["kp3d"] = res["kp3d"].double().cpu().numpy()
@@ -206,8 +214,13 @@ def swap_hands(hands: Any, obj: Any) -> Any:
     }
     light: nn.Module | None = None
     if hands.light is not None or obj.light is not None:
-        light = PartLights({parts["hand_right"].part_id: hands.light, parts["hand_left"].part_id: hands.light,
-                            parts["object"].part_id: obj.light})  # fmt: skip
+        light = PartLights(
+            {
+                parts["hand_right"].part_id: hands.light,
+                parts["hand_left"].part_id: hands.light,
+                parts["object"].part_id: obj.light,
+            }
+        )
     source = {
         **obj.source,
         "hands_from": hands.source.get("subject", "?"),
@@ -323,6 +336,16 @@ def render_orbit(
             refined = torch.cat([refiner(rgb[i : i + 8], alpha[i : i + 8]).float().cpu() for i in range(0, n, 8)])
     t2 = time.perf_counter()
     az = float(azimuth0_deg) + 360.0 * np.arange(n) / n
-    return OrbitRender(world2cam=w2c, K=K, azimuth_deg=az, elevation_deg=float(elevation_deg), distance=d,
-                       centre=centre, radius=radius, rgb=rgb, alpha=alpha, refined=refined,
-                       seconds={"render": t1 - t0, "srm": t2 - t1})  # fmt: skip
+    return OrbitRender(
+        world2cam=w2c,
+        K=K,
+        azimuth_deg=az,
+        elevation_deg=float(elevation_deg),
+        distance=d,
+        centre=centre,
+        radius=radius,
+        rgb=rgb,
+        alpha=alpha,
+        refined=refined,
+        seconds={"render": t1 - t0, "srm": t2 - t1},
+    )

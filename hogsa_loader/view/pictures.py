@@ -30,8 +30,14 @@ __all__ = [
     "write_video",
 ]
 
-DEMO_PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "motorcycle_left.png",
-               "motorcycle_right.png")
+DEMO_PHOTOS = (
+    "astronaut.png",
+    "chelsea.png",
+    "coffee.png",
+    "rocket.jpg",
+    "motorcycle_left.png",
+    "motorcycle_right.png",
+)
 """The colour photographs shipped with scikit-image that serve as default photo backgrounds."""
 
 
@@ -84,8 +90,16 @@ def sheet(rows: Sequence[tuple[str, Sequence[np.ndarray], Sequence[str]]], cols:
             x = pad + j * (cell_w + pad)
             out[y : y + cell_h, x : x + cell_w] = im
             if i0 + j < len(caps):
-                cv2.putText(out, caps[i0 + j], (x + 2, y + cell_h + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                            (60, 60, 60), 1, cv2.LINE_AA)  # fmt: skip
+                cv2.putText(
+                    out,
+                    caps[i0 + j],
+                    (x + 2, y + cell_h + 12),
+                    cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4,
+                    (60, 60, 60),
+                    1,
+                    cv2.LINE_AA,
+                )
         y += cell_h + cap_h + pad
     return out
 

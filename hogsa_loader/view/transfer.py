@@ -165,9 +165,10 @@ def transfer_report(t: Transfer, infos: Mapping[str, Any], objects: Any) -> list
                 "contact_right": bool(m["contact_right"][b]),
                 "contact_left": bool(m["contact_left"][b]),
                 "accept": bool(m["accept"][b]),
-                "contact_error_mm": {s: (None if np.isnan(err[s][b]) else round(float(err[s][b]) * 1e3, 3))
-                                     for s in SIDES},
-            }  # fmt: skip
+                "contact_error_mm": {
+                    s: (None if np.isnan(err[s][b]) else round(float(err[s][b]) * 1e3, 3)) for s in SIDES
+                },
+            }
     return recs
 
 
@@ -194,8 +195,15 @@ def _state(poses: Mapping[str, np.ndarray], obj: str) -> Any:
     def t(x: Any) -> Tensor:
         return torch.as_tensor(np.asarray(x, dtype=np.float32)).reshape(1, -1)
 
-    hands = {s: HandParams(t(poses[f"{s}_rot"]), t(poses[f"{s}_pose"]), t(poses[f"{s}_trans"]),
-                           t(np.asarray(poses[f"{s}_betas"]).reshape(-1)[:10])) for s in SIDES}  # fmt: skip
+    hands = {
+        s: HandParams(
+            t(poses[f"{s}_rot"]),
+            t(poses[f"{s}_pose"]),
+            t(poses[f"{s}_trans"]),
+            t(np.asarray(poses[f"{s}_betas"]).reshape(-1)[:10]),
+        )
+        for s in SIDES
+    }
     return GraspState(hands, [obj], t(poses["obj_arti"]).reshape(1), t(poses["obj_rot"]), t(poses["obj_trans"]))
 
 
@@ -229,8 +237,13 @@ def frame_pose(root: Any, subject: str, sequence: str, index: int) -> ViewPose:
     poses = {f"{s}_{k}": getattr(getattr(sd, s), k)[index] for s in SIDES for k in ("rot", "pose", "trans")}
     poses.update({f"{s}_betas": getattr(sd, s).betas for s in SIDES})
     poses.update(obj_arti=sd.object.arti[index], obj_rot=sd.object.rot[index], obj_trans=sd.object.trans[index])
-    return ViewPose(f"{subject} {sequence}:{index}", subject, sd.object.name, _state(poses, sd.object.name),
-                    {"kind": "frame", "subject": subject, "sequence": sequence, "frame": int(index)})  # fmt: skip
+    return ViewPose(
+        f"{subject} {sequence}:{index}",
+        subject,
+        sd.object.name,
+        _state(poses, sd.object.name),
+        {"kind": "frame", "subject": subject, "sequence": sequence, "frame": int(index)},
+    )
 
 
 def default_pose(root: Any, subject: str, obj: str) -> ViewPose:
@@ -256,6 +269,18 @@ def bank_pose(bundle: Any, name: str, row: int) -> ViewPose:
         raise ViewError(f"--pose-bank: {name} has rows 0..{len(bank) - 1}, got {row}")
     sid, seq, frame = bank.sources[row]
     st = bank.state.select([row])
-    return ViewPose(f"bank {name}:{row}", sid, st.obj_names[0], st.map(lambda x: x.float()),
-                    {"kind": "pose_bank", "bank": name, "row": int(row), "subject": sid, "sequence": seq,
-                     "frame": int(frame), "accept": bool(float(bank.metrics["accept"][row]) > 0.5)})  # fmt: skip
+    return ViewPose(
+        f"bank {name}:{row}",
+        sid,
+        st.obj_names[0],
+        st.map(lambda x: x.float()),
+        {
+            "kind": "pose_bank",
+            "bank": name,
+            "row": int(row),
+            "subject": sid,
+            "sequence": seq,
+            "frame": int(frame),
+            "accept": bool(float(bank.metrics["accept"][row]) > 0.5),
+        },
+    )

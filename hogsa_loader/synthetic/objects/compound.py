@@ -49,15 +49,21 @@ class CompoundSpec:
     parts: dict[int, list[Piece]]
 
 
-def box_piece(lo: Sequence[float], hi: Sequence[float], radius: float, default: Painter,
-              painters: Optional[Mapping[str, Painter]] = None, spacing: float = 6.0, band: int = 2,
-              up: Optional[dict[str, str]] = None) -> Piece:
+def box_piece(
+    lo: Sequence[float],
+    hi: Sequence[float],
+    radius: float,
+    default: Painter,
+    painters: Optional[Mapping[str, Painter]] = None,
+    spacing: float = 6.0,
+    band: int = 2,
+    up: Optional[dict[str, str]] = None,
+) -> Piece:
     """A rounded box piece (see :func:`~hogsa_loader.synthetic.objects.procedural.rounded_box`)."""
     return Piece(rounded_box(lo, hi, radius, spacing, band, up=up), default, dict(painters or {}))
 
 
-def disc_profile(radius: float, h0: float, h1: float, edge: float, rings: int = 6,
-                 edge_steps: int = 3) -> np.ndarray:
+def disc_profile(radius: float, h0: float, h1: float, edge: float, rings: int = 6, edge_steps: int = 3) -> np.ndarray:
     """Profile of a flat cylinder with rounded rims, from the pole at ``h0`` to the one at ``h1``.
 
     Args:
@@ -75,10 +81,15 @@ def disc_profile(radius: float, h0: float, h1: float, edge: float, rings: int = 
     low_rim = np.stack([radius - e + e * np.sin(ang), h0 + e - e * np.cos(ang)], 1)
     high_rim = np.stack([radius - e + e * np.cos(ang), h1 - e + e * np.sin(ang)], 1)
     side = np.array([[radius, h0 + e], [radius, h1 - e]])
-    return np.concatenate([
-        np.stack([flat, np.full_like(flat, h0)], 1), low_rim, side, high_rim,
-        np.stack([flat[::-1], np.full_like(flat, h1)], 1),
-    ])
+    return np.concatenate(
+        [
+            np.stack([flat, np.full_like(flat, h0)], 1),
+            low_rim,
+            side,
+            high_rim,
+            np.stack([flat[::-1], np.full_like(flat, h1)], 1),
+        ]
+    )
 
 
 def _lathe_ids(segments: int, rows: int, radii: np.ndarray, loop: bool) -> np.ndarray:
@@ -102,9 +113,15 @@ def _lathe_ids(segments: int, rows: int, radii: np.ndarray, loop: bool) -> np.nd
     return ids
 
 
-def lathe(profile: np.ndarray, axis: int = 1, centre: Sequence[float] = (0.0, 0.0, 0.0),
-          scale: Sequence[float] = (1.0, 1.0), segments: int = 32, loop: bool = False,
-          key: str = "side") -> PartMesh:
+def lathe(
+    profile: np.ndarray,
+    axis: int = 1,
+    centre: Sequence[float] = (0.0, 0.0, 0.0),
+    scale: Sequence[float] = (1.0, 1.0),
+    segments: int = 32,
+    loop: bool = False,
+    key: str = "side",
+) -> PartMesh:
     """Closed surface of revolution about a coordinate axis through ``centre``.
 
     The point ``(r, h)`` of the profile at angle φ is
@@ -148,8 +165,11 @@ def lathe(profile: np.ndarray, axis: int = 1, centre: Sequence[float] = (0.0, 0.
     tris = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
     flat_ids = ids.ravel()
     welded_tris = flat_ids[tris]
-    keep = ((welded_tris[:, 0] != welded_tris[:, 1]) & (welded_tris[:, 1] != welded_tris[:, 2])
-            & (welded_tris[:, 0] != welded_tris[:, 2]))
+    keep = (
+        (welded_tris[:, 0] != welded_tris[:, 1])
+        & (welded_tris[:, 1] != welded_tris[:, 2])
+        & (welded_tris[:, 0] != welded_tris[:, 2])
+    )
     tris = tris[keep]
 
     pts = grid.reshape(-1, 3)
@@ -158,14 +178,19 @@ def lathe(profile: np.ndarray, axis: int = 1, centre: Sequence[float] = (0.0, 0.
     mean_scale = 0.5 * (abs(scale[0]) + abs(scale[1]))
     seg_len = np.linalg.norm(np.diff(prof, axis=0) * [mean_scale, 1.0], axis=1)
     arc = np.concatenate([[0.0], np.cumsum(seg_len)])
-    uv = np.stack([np.repeat(np.arange(segments + 1) / segments, rows),
-                   np.tile(arc / max(arc[-1], 1e-9), segments + 1)], 1)
+    uv = np.stack(
+        [np.repeat(np.arange(segments + 1) / segments, rows), np.tile(arc / max(arc[-1], 1e-9), segments + 1)], 1
+    )
     used = np.unique(tris)  # a pole keeps one chart vertex per triangle fan
     remap = np.full(pts.shape[0], -1, dtype=np.int64)
     remap[used] = np.arange(used.size)
     return PartMesh(
-        verts=verts, faces=flat_ids[tris], chart_verts=[pts[used]], chart_faces=[remap[tris]],
-        chart_param=[uv[used]], chart_keys=[key],
+        verts=verts,
+        faces=flat_ids[tris],
+        chart_verts=[pts[used]],
+        chart_faces=[remap[tris]],
+        chart_param=[uv[used]],
+        chart_keys=[key],
         chart_size=[(2.0 * math.pi * float(prof[:, 0].max()) * mean_scale, float(arc[-1]))],
         chart_to_welded=[flat_ids[used]],
     )

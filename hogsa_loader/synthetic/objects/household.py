@@ -55,34 +55,42 @@ def _sub_rng(rng: np.random.Generator) -> np.random.Generator:
 
 def plastic(rgb: Sequence[float], r: np.random.Generator, strength: float = 0.12) -> Painter:
     """Smooth coloured plastic."""
+
     def paint(h: int, w: int, s: float) -> Image:
         return material(h, w, rgb, smooth_noise(h, w, r, 8), strength)
+
     return paint
 
 
 def metal(rgb: Sequence[float], r: np.random.Generator) -> Painter:
     """Brushed metal."""
+
     def paint(h: int, w: int, s: float) -> Image:
         return material(h, w, rgb, 0.8 * brushed(h, w, r) + 0.2 * smooth_noise(h, w, r), 0.35)
+
     return paint
 
 
 def wood(rgb: Sequence[float], r: np.random.Generator) -> Painter:
     """Wood: long streaks plus slow rings of growth."""
+
     def paint(h: int, w: int, s: float) -> Image:
         streak = brushed(h, w, r)
         waves = np.sin(np.linspace(0, 6 + 10 * r.random(), w)[None, :] + 3 * smooth_noise(h, w, r, 4))
         return material(h, w, rgb, 0.6 * streak + 0.4 * (0.5 + 0.5 * waves), 0.35)
+
     return paint
 
 
 def decorated(base: Painter, *steps: Callable[[Image, float], None]) -> Painter:
     """``base`` followed by drawing steps ``step(img, px_per_mm)``."""
+
     def paint(h: int, w: int, s: float) -> Image:
         img = base(h, w, s)
         for step in steps:
             step(img, s)
         return img
+
     return paint
 
 
@@ -137,19 +145,35 @@ def _capsulemachine(rng: np.random.Generator) -> CompoundSpec:
         text(img, "BREW", (0.45, 0.8), 0.1 * img.shape[0], _darker(body), max_width_px=0.4 * img.shape[1], bold=True)
 
     bottom = [
-        box_piece((-170, -70, -55), (0, -G, 55), 8, body_p, spacing=12.0,
-                  painters={"-x": decorated(body_p, head_front), "+y": decorated(body_p, chamber)}),
-        box_piece((-110, -245, -50), (-3, -60, 50), 8, body_p, spacing=16.0,
-                  painters={"-x": decorated(body_p, column_front)}),
-        box_piece((-175, -255, -60), (0, -235, 60), 5, accent_p, spacing=14.0,
-                  painters={"+y": decorated(accent_p, grille)}),
-        Piece(lathe(disc_profile(10, -95, -66, 2, 2, 2), axis=1, centre=(-140, 0, 0), segments=20),
-              metal((0.75, 0.75, 0.78), r)),
+        box_piece(
+            (-170, -70, -55),
+            (0, -G, 55),
+            8,
+            body_p,
+            spacing=12.0,
+            painters={"-x": decorated(body_p, head_front), "+y": decorated(body_p, chamber)},
+        ),
+        box_piece(
+            (-110, -245, -50), (-3, -60, 50), 8, body_p, spacing=16.0, painters={"-x": decorated(body_p, column_front)}
+        ),
+        box_piece(
+            (-175, -255, -60), (0, -235, 60), 5, accent_p, spacing=14.0, painters={"+y": decorated(accent_p, grille)}
+        ),
+        Piece(
+            lathe(disc_profile(10, -95, -66, 2, 2, 2), axis=1, centre=(-140, 0, 0), segments=20),
+            metal((0.75, 0.75, 0.78), r),
+        ),
         Piece(lathe(disc_profile(18, -118, -106, 3, 3, 2), axis=0, centre=(0, -150, 0), segments=24), accent_p),
     ]
     top = [
-        box_piece((-170, G, -55), (0, 32, 55), 8, body_p, spacing=12.0,
-                  painters={"+y": decorated(body_p, lid_top), "-y": decorated(inner_p, chamber)}),
+        box_piece(
+            (-170, G, -55),
+            (0, 32, 55),
+            8,
+            body_p,
+            spacing=12.0,
+            painters={"+y": decorated(body_p, lid_top), "-y": decorated(inner_p, chamber)},
+        ),
         Piece(lathe(disc_profile(18, 28, 40, 3, 3, 2), axis=1, centre=(-60, 0, 0), segments=24), accent_p),
     ]
     return CompoundSpec("capsulemachine", {TOP: top, BOTTOM: bottom})
@@ -187,20 +211,30 @@ def _espressomachine(rng: np.random.Generator) -> CompoundSpec:
 
     bottom = [
         box_piece((-60, -197, -147), (-3, -3, 147), 6, wood_p, spacing=28.0),
-        box_piece((-150, -75, -150), (0, -G, 150), 6, white_p, spacing=20.0,
-                  painters={"-x": decorated(white_p, panel), "+y": decorated(white_p, tank)}),
-        box_piece((-150, -200, -150), (0, -186, 150), 4, wood_p, spacing=26.0,
-                  painters={"+y": decorated(wood_p, grille)}),
-        *[Piece(lathe(disc_profile(16, -100, -72, 3, 2, 2), axis=1, centre=(-105, 0, z), segments=16), steel_p)
-          for z in (-70, 70)],
+        box_piece(
+            (-150, -75, -150),
+            (0, -G, 150),
+            6,
+            white_p,
+            spacing=20.0,
+            painters={"-x": decorated(white_p, panel), "+y": decorated(white_p, tank)},
+        ),
+        box_piece(
+            (-150, -200, -150), (0, -186, 150), 4, wood_p, spacing=26.0, painters={"+y": decorated(wood_p, grille)}
+        ),
+        *[
+            Piece(lathe(disc_profile(16, -100, -72, 3, 2, 2), axis=1, centre=(-105, 0, z), segments=16), steel_p)
+            for z in (-70, 70)
+        ],
         Piece(lathe(disc_profile(7, -215, -100, 3, 1, 2), axis=0, centre=(0, -92, -70), segments=16), black_p),
-        *[Piece(lathe(disc_profile(15, -162, -146, 4, 2, 2), axis=0, centre=(0, -38, z), segments=16), black_p)
-          for z in (-118, 118)],
+        *[
+            Piece(lathe(disc_profile(15, -162, -146, 4, 2, 2), axis=0, centre=(0, -38, z), segments=16), black_p)
+            for z in (-118, 118)
+        ],
         Piece(lathe(disc_profile(4, -150, -70, 1.5, 1, 2), axis=1, centre=(-130, 0, 125), segments=12), steel_p),
     ]
     top = [
-        box_piece((-150, G, -150), (0, 14, 150), 6, wood_p, spacing=20.0,
-                  painters={"+y": decorated(wood_p, lid_top)}),
+        box_piece((-150, G, -150), (0, 14, 150), 6, wood_p, spacing=20.0, painters={"+y": decorated(wood_p, lid_top)}),
         Piece(lathe(disc_profile(10, 10, 24, 3, 2, 2), axis=1, centre=(-40, 0, 0), segments=20), steel_p),
     ]
     return CompoundSpec("espressomachine", {TOP: top, BOTTOM: bottom})
@@ -228,13 +262,18 @@ def _ketchup(rng: np.random.Generator) -> CompoundSpec:
         for fy in (0.35, 0.5, 0.65):
             fill_rect(img, (0, fy - 0.004, 1, fy + 0.004), _darker(cap, 0.7))
 
-    body_profile = np.array([[0, -195], [22, -193], [31, -187], [35, -178], [36, -165]]
-                            + [[36, y] for y in range(-150, -60, 15)]
-                            + [[35, -52], [32, -42], [26, -30], [21.5, -21], [20, -14], [0, -14]], dtype=float)
+    body_profile = np.array(
+        [[0, -195], [22, -193], [31, -187], [35, -178], [36, -165]]
+        + [[36, y] for y in range(-150, -60, 15)]
+        + [[35, -52], [32, -42], [26, -30], [21.5, -21], [20, -14], [0, -14]],
+        dtype=float,
+    )
     bottom = [
         Piece(lathe(body_profile, axis=1, centre=(-24, 0, 0), scale=(0.7, 1.0), segments=40), bottle),
-        Piece(lathe(disc_profile(24, -20, -G, 3, rings=5), axis=1, centre=(-24, 0, 0), segments=40),
-              decorated(cap_p, cap_rings)),
+        Piece(
+            lathe(disc_profile(24, -20, -G, 3, rings=5), axis=1, centre=(-24, 0, 0), segments=40),
+            decorated(cap_p, cap_rings),
+        ),
     ]
     top = [Piece(lathe(disc_profile(24, G, 12, 3, rings=5), axis=1, centre=(-24, 0, 0), segments=40), cap_p)]
     return CompoundSpec("ketchup", {TOP: top, BOTTOM: bottom})
@@ -258,8 +297,9 @@ def _microwave(rng: np.random.Generator) -> CompoundSpec:
         text(img, "0:45", (0.83, 0.165), 0.1 * h, (0.4, 1.0, 0.5), max_width_px=0.2 * w)
         for i in range(9):
             row, col = divmod(i, 3)
-            fill_rect(img, (0.72 + 0.08 * col, 0.32 + 0.1 * row, 0.78 + 0.08 * col, 0.39 + 0.1 * row),
-                      (0.92, 0.92, 0.9))
+            fill_rect(
+                img, (0.72 + 0.08 * col, 0.32 + 0.1 * row, 0.78 + 0.08 * col, 0.39 + 0.1 * row), (0.92, 0.92, 0.9)
+            )
         circle(img, (0.83, 0.78), 0.08 * h, _darker(trim, 0.8))
 
     def window(img: Image, s: float) -> None:
@@ -267,20 +307,39 @@ def _microwave(rng: np.random.Generator) -> CompoundSpec:
         fill_rect(img, (0.1, 0.15, 0.85, 0.85), (0.1, 0.1, 0.12))
         fill_rect(img, (0.13, 0.2, 0.82, 0.8), (0.2, 0.22, 0.2))
         step = max(2, int(round(3 * s)))
-        img[int(0.2 * h):int(0.8 * h):step, int(0.13 * w):int(0.82 * w):step] = 0.05
+        img[int(0.2 * h) : int(0.8 * h) : step, int(0.13 * w) : int(0.82 * w) : step] = 0.05
         text(img, "MICRO", (0.47, 0.08), 0.05 * h, _darker(shell), max_width_px=0.3 * w, bold=True)
 
-    feet = [Piece(lathe(disc_profile(10, -110, -96, 2, 2, 2), axis=2, centre=(x, y, 0), segments=12),
-                  plastic((0.1, 0.1, 0.1), r))
-            for x in (-30, -270) for y in (-30, -170)]
+    feet = [
+        Piece(
+            lathe(disc_profile(10, -110, -96, 2, 2, 2), axis=2, centre=(x, y, 0), segments=12),
+            plastic((0.1, 0.1, 0.1), r),
+        )
+        for x in (-30, -270)
+        for y in (-30, -170)
+    ]
     bottom = [
-        box_piece((-300, -200, -100), (0, -G, 100), 6, shell_p, spacing=18.0, up=up_z,
-                  painters={"+y": decorated(shell_p, front), "+z": trim_p, "-z": trim_p}),
+        box_piece(
+            (-300, -200, -100),
+            (0, -G, 100),
+            6,
+            shell_p,
+            spacing=18.0,
+            up=up_z,
+            painters={"+y": decorated(shell_p, front), "+z": trim_p, "-z": trim_p},
+        ),
         *feet,
     ]
     top = [
-        box_piece((-200, G, -100), (0, 16, 100), 6, shell_p, spacing=18.0, up=up_z,
-                  painters={"+y": decorated(shell_p, window), "-y": plastic((0.75, 0.75, 0.77), r)}),
+        box_piece(
+            (-200, G, -100),
+            (0, 16, 100),
+            6,
+            shell_p,
+            spacing=18.0,
+            up=up_z,
+            painters={"+y": decorated(shell_p, window), "-y": plastic((0.75, 0.75, 0.77), r)},
+        ),
         box_piece((-195, 14, -60), (-178, 34, 60), 4, chrome, spacing=10.0),
     ]
     return CompoundSpec("microwave", {TOP: top, BOTTOM: bottom})
@@ -303,20 +362,31 @@ def _mixer(rng: np.random.Generator) -> CompoundSpec:
         for i in range(6):
             fill_rect(img, (i / 6, 0.55, i / 6 + 0.02, 0.8), (0.95, 0.95, 0.95))
 
-    bowl = np.array([[0, -217], [40, -216], [58, -195], [66, -165], [68, -140], [62, -140],
-                     [56, -160], [40, -175], [0, -180]], dtype=float)
+    bowl = np.array(
+        [[0, -217], [40, -216], [58, -195], [66, -165], [68, -140], [62, -140], [56, -160], [40, -175], [0, -180]],
+        dtype=float,
+    )
     bottom = [
         box_piece((-230, -250, -70), (-3, -215, 70), 10, base_p, spacing=13.0),
         box_piece((-70, -245, -50), (0, -G, 50), 12, shell_p, spacing=13.0),
         Piece(lathe(bowl, axis=1, centre=(-140, 0, 0), segments=40), bowl_p),
-        Piece(lathe(disc_profile(14, 48, 58, 3, 2, 2), axis=2, centre=(-35, -60, 0), segments=20),
-              decorated(bowl_p, dial)),
+        Piece(
+            lathe(disc_profile(14, 48, 58, 3, 2, 2), axis=2, centre=(-35, -60, 0), segments=20), decorated(bowl_p, dial)
+        ),
     ]
     top = [
-        box_piece((-200, G, -50), (0, 75, 50), 12, shell_p, spacing=13.0,
-                  painters={"+z": decorated(shell_p, head_side), "-z": decorated(shell_p, head_side)}),
-        Piece(lathe(disc_profile(20, -212, -196, 4, 2, 2), axis=0, centre=(0, 38, 0), segments=24),
-              metal((0.8, 0.8, 0.82), r)),
+        box_piece(
+            (-200, G, -50),
+            (0, 75, 50),
+            12,
+            shell_p,
+            spacing=13.0,
+            painters={"+z": decorated(shell_p, head_side), "-z": decorated(shell_p, head_side)},
+        ),
+        Piece(
+            lathe(disc_profile(20, -212, -196, 4, 2, 2), axis=0, centre=(0, 38, 0), segments=24),
+            metal((0.8, 0.8, 0.82), r),
+        ),
     ]
     return CompoundSpec("mixer", {TOP: top, BOTTOM: bottom})
 
@@ -337,26 +407,31 @@ def _waffleiron(rng: np.random.Generator) -> CompoundSpec:
         step = max(3, int(round(16 * s)))
         bar = max(1, step // 4)
         for k in range(0, h, step):
-            img[k:k + bar] = np.asarray(_darker(batter, 0.65), dtype=np.float32)
+            img[k : k + bar] = np.asarray(_darker(batter, 0.65), dtype=np.float32)
         for k in range(0, w, step):
-            img[:, k:k + bar] = np.asarray(_darker(batter, 0.65), dtype=np.float32)
+            img[:, k : k + bar] = np.asarray(_darker(batter, 0.65), dtype=np.float32)
 
     def plate(img: Image, s: float) -> None:
         fill_rect(img, (0, 0.9, 1, 1), _darker(shell, 0.8))
 
     insert = dict(radius=3, spacing=14.0)
     bottom = [
-        Piece(lathe(disc_profile(95, -40, -3, 8, 5, 2), axis=1, centre=(-100, 0, 0), segments=32),
-              decorated(shell_p, plate)),
+        Piece(
+            lathe(disc_profile(95, -40, -3, 8, 5, 2), axis=1, centre=(-100, 0, 0), segments=32),
+            decorated(shell_p, plate),
+        ),
         box_piece((-167, -8, -67), (-33, -G, 67), default=grey, painters={"+y": decorated(grey, waffle)}, **insert),
         box_piece((-14, -20, -25), (0, -G, 25), 3, black_p, spacing=8.0),
         box_piece((-270, -30, -14), (-190, -14, 14), 5, black_p, spacing=10.0),
-        *[Piece(lathe(disc_profile(8, -48, -38, 2, 2, 2), axis=1, centre=(x, 0, z), segments=12), black_p)
-          for x, z in ((-60, 45), (-60, -45), (-160, 0))],
+        *[
+            Piece(lathe(disc_profile(8, -48, -38, 2, 2, 2), axis=1, centre=(x, 0, z), segments=12), black_p)
+            for x, z in ((-60, 45), (-60, -45), (-160, 0))
+        ],
     ]
     top = [
-        Piece(lathe(disc_profile(95, 3, 35, 8, 5, 2), axis=1, centre=(-100, 0, 0), segments=32),
-              decorated(shell_p, plate)),
+        Piece(
+            lathe(disc_profile(95, 3, 35, 8, 5, 2), axis=1, centre=(-100, 0, 0), segments=32), decorated(shell_p, plate)
+        ),
         box_piece((-167, G, -67), (-33, 8, 67), default=grey, painters={"-y": decorated(grey, waffle)}, **insert),
         box_piece((-14, G, -25), (0, 20, 25), 3, black_p, spacing=8.0),
         box_piece((-270, 14, -14), (-190, 30, 14), 5, black_p, spacing=10.0),
@@ -376,21 +451,35 @@ def _scissors(rng: np.random.Generator) -> CompoundSpec:
         h, w = img.shape[:2]
         text(img, "STAINLESS", (0.25, 0.55), 0.12 * h, (0.35, 0.35, 0.38), max_width_px=0.2 * w)
 
-    blade = np.array([[0, -130], [2, -120], [4, -100], [6, -80], [8, -55], [9.5, -30], [10, -10],
-                      [9, 0], [6, 6], [0, 10]], dtype=float)
+    blade = np.array(
+        [[0, -130], [2, -120], [4, -100], [6, -80], [8, -55], [9.5, -30], [10, -10], [9, 0], [6, 6], [0, 10]],
+        dtype=float,
+    )
 
     def half(side: int) -> list[Piece]:
         z = 2.0 * side  # +1: top (z >= G), -1: bottom (z <= -G)
         lo, hi = sorted((side * G, side * (G + 3.0)))
         y0, y1 = sorted((-side * 4.0, -side * 22.0))
         return [
-            Piece(lathe(blade, axis=0, centre=(0, 0, z), scale=(1.0, 0.15), segments=16),
-                  decorated(steel_p, blade_print)),
+            Piece(
+                lathe(blade, axis=0, centre=(0, 0, z), scale=(1.0, 0.15), segments=16), decorated(steel_p, blade_print)
+            ),
             box_piece((4, y0, lo), (34, y1, hi), 1.2, handle_p, spacing=5.0),
-            Piece(lathe(_ring_profile(17, 4.5, 1.5, z), axis=2, centre=(50, -24 * side, 0), scale=(1.25, 1.0),
-                        segments=40, loop=True), handle_p),
-            Piece(lathe(disc_profile(5, *sorted((side * 3.0, side * 5.0)), 0.8), axis=2, centre=(0, 0, 0),
-                        segments=16), steel_p),
+            Piece(
+                lathe(
+                    _ring_profile(17, 4.5, 1.5, z),
+                    axis=2,
+                    centre=(50, -24 * side, 0),
+                    scale=(1.25, 1.0),
+                    segments=40,
+                    loop=True,
+                ),
+                handle_p,
+            ),
+            Piece(
+                lathe(disc_profile(5, *sorted((side * 3.0, side * 5.0)), 0.8), axis=2, centre=(0, 0, 0), segments=16),
+                steel_p,
+            ),
         ]
 
     return CompoundSpec("scissors", {TOP: half(1), BOTTOM: half(-1)})

@@ -152,8 +152,14 @@ def _round_points(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, radius: fl
     return q + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def rounded_box(lo: Sequence[float], hi: Sequence[float], radius: float, spacing: float,
-                band: int = 3, up: Optional[dict[str, str]] = None) -> PartMesh:
+def rounded_box(
+    lo: Sequence[float],
+    hi: Sequence[float],
+    radius: float,
+    spacing: float,
+    band: int = 3,
+    up: Optional[dict[str, str]] = None,
+) -> PartMesh:
     """Closed, outward-oriented mesh of a box with rounded edges and its 6 charts.
 
     Args:
@@ -209,7 +215,7 @@ def rounded_box(lo: Sequence[float], hi: Sequence[float], radius: float, spacing
     faces, offset = [], 0
     for (key_name, box_pts), keys, tris in zip(charts, keys_all, tris_all):
         n = keys.shape[0]
-        to_welded = inverse[offset: offset + n]
+        to_welded = inverse[offset : offset + n]
         offset += n
         faces.append(to_welded[tris])
         # chart parameters: u along (up x normal), v along up
@@ -271,7 +277,7 @@ def fit(img: Image, h: int, w: int) -> Image:
     scale = max(h / ih, w / iw)
     ch, cw = min(ih, int(round(h / scale))), min(iw, int(round(w / scale)))
     y0, x0 = (ih - ch) // 2, (iw - cw) // 2
-    crop = np.ascontiguousarray(img[y0: y0 + ch, x0: x0 + cw])
+    crop = np.ascontiguousarray(img[y0 : y0 + ch, x0 : x0 + cw])
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC
     return np.clip(cv2.resize(crop, (max(w, 1), max(h, 1)), interpolation=interp), 0, 1)
 
@@ -287,7 +293,7 @@ def grain(h: int, w: int, source: str, px_per_texel: float, rng: np.random.Gener
     reps = (h // size + 2, w // size + 2)
     tiled = np.tile(src, reps)
     y0, x0 = int(rng.integers(0, size)), int(rng.integers(0, size))
-    out = tiled[y0: y0 + h, x0: x0 + w]
+    out = tiled[y0 : y0 + h, x0 : x0 + w]
     lo, hi = np.percentile(out, 2), np.percentile(out, 98)
     return np.clip((out - lo) / max(hi - lo, 1e-6), 0, 1).astype(np.float32)
 
@@ -334,8 +340,15 @@ def fill_rect(canvas: Image, rect: Sequence[float], rgb: Sequence[float]) -> Ima
     return canvas
 
 
-def text(canvas: Image, words: str, center: Sequence[float], height_px: float,
-         rgb: Sequence[float], max_width_px: Optional[float] = None, bold: bool = False) -> Image:
+def text(
+    canvas: Image,
+    words: str,
+    center: Sequence[float],
+    height_px: float,
+    rgb: Sequence[float],
+    max_width_px: Optional[float] = None,
+    bold: bool = False,
+) -> Image:
     """Draw ``words`` centred at ``center`` (fractions) with cap height ``height_px``."""
     if height_px < 3:
         return canvas
@@ -355,8 +368,9 @@ def text(canvas: Image, words: str, center: Sequence[float], height_px: float,
     return canvas
 
 
-def text_lines(canvas: Image, rect: Sequence[float], rows: int, rgb: Sequence[float],
-               rng: np.random.Generator) -> Image:
+def text_lines(
+    canvas: Image, rect: Sequence[float], rows: int, rgb: Sequence[float], rng: np.random.Generator
+) -> Image:
     """Fake small print: rows of word-like bars inside ``rect`` (fractions)."""
     h, w = canvas.shape[:2]
     x0, y0, x1, y1 = rect[0] * w, rect[1] * h, rect[2] * w, rect[3] * h
@@ -380,22 +394,33 @@ def barcode(canvas: Image, rect: Sequence[float], rng: np.random.Generator) -> I
     """A white box with black bars (fractions rect)."""
     h, w = canvas.shape[:2]
     fill_rect(canvas, rect, (0.97, 0.97, 0.95))
-    x0, y0, x1, y1 = (int(round(rect[0] * w)), int(round(rect[1] * h)),
-                      int(round(rect[2] * w)), int(round(rect[3] * h)))
+    x0, y0, x1, y1 = (
+        int(round(rect[0] * w)),
+        int(round(rect[1] * h)),
+        int(round(rect[2] * w)),
+        int(round(rect[3] * h)),
+    )
     x = x0 + max(1, (x1 - x0) // 12)
     while x < x1 - max(1, (x1 - x0) // 12):
         bw = int(rng.integers(1, 4))
-        canvas[y0 + (y1 - y0) // 8: y1 - (y1 - y0) // 5, x: x + bw] = 0.05
+        canvas[y0 + (y1 - y0) // 8 : y1 - (y1 - y0) // 5, x : x + bw] = 0.05
         x += bw + int(rng.integers(1, 4))
     return canvas
 
 
-def circle(canvas: Image, center: Sequence[float], radius_px: float, rgb: Sequence[float],
-           thickness: int = -1) -> Image:
+def circle(
+    canvas: Image, center: Sequence[float], radius_px: float, rgb: Sequence[float], thickness: int = -1
+) -> Image:
     """Filled (or outlined) anti-aliased circle at ``center`` (fractions)."""
     h, w = canvas.shape[:2]
-    cv2.circle(canvas, (int(round(center[0] * w)), int(round(center[1] * h))),
-               max(1, int(round(radius_px))), tuple(float(c) for c in rgb), thickness, cv2.LINE_AA)
+    cv2.circle(
+        canvas,
+        (int(round(center[0] * w)), int(round(center[1] * h))),
+        max(1, int(round(radius_px))),
+        tuple(float(c) for c in rgb),
+        thickness,
+        cv2.LINE_AA,
+    )
     return canvas
 
 
@@ -405,8 +430,9 @@ def hsv(hue: float, sat: float, val: float) -> tuple[float, float, float]:
     return (r, g, b)
 
 
-def jitter_colour(rng: np.random.Generator, hue: float, sat: float, val: float,
-                  dh: float = 0.06, ds: float = 0.12, dv: float = 0.12) -> tuple[float, float, float]:
+def jitter_colour(
+    rng: np.random.Generator, hue: float, sat: float, val: float, dh: float = 0.06, ds: float = 0.12, dv: float = 0.12
+) -> tuple[float, float, float]:
     """A seeded variation of an HSV colour."""
     return hsv(hue + dh * rng.uniform(-1, 1), sat + ds * rng.uniform(-1, 1), val + dv * rng.uniform(-1, 1))
 
@@ -437,8 +463,9 @@ def _shelf_pack(sizes: Sequence[tuple[int, int]], side: int, pad: int) -> Option
     return None
 
 
-def _shelf_pack_order(sizes: Sequence[tuple[int, int]], order: Sequence[int], side: int,
-                      pad: int) -> Optional[list[tuple[int, int]]]:
+def _shelf_pack_order(
+    sizes: Sequence[tuple[int, int]], order: Sequence[int], side: int, pad: int
+) -> Optional[list[tuple[int, int]]]:
     """Shelf packing in a given order; None if the rectangles do not fit."""
     pos: list[tuple[int, int]] = [(0, 0)] * len(sizes)
     x = y = shelf = 0
@@ -456,13 +483,15 @@ def _shelf_pack_order(sizes: Sequence[tuple[int, int]], order: Sequence[int], si
     return pos
 
 
-def pack_charts(sizes_mm: Sequence[tuple[float, float]], side: int = ATLAS_SIZE,
-                pad: int = CHART_PAD) -> tuple[float, list[tuple[int, int]], list[tuple[int, int]]]:
+def pack_charts(
+    sizes_mm: Sequence[tuple[float, float]], side: int = ATLAS_SIZE, pad: int = CHART_PAD
+) -> tuple[float, list[tuple[int, int]], list[tuple[int, int]]]:
     """Largest common scale (px/mm) at which all charts fit a ``side`` x ``side`` atlas.
 
     Returns:
         (px_per_mm, top-left positions, pixel sizes (w, h)).
     """
+
     def px(s: float) -> list[tuple[int, int]]:
         return [(max(2, int(round(w * s))), max(2, int(round(h * s)))) for w, h in sizes_mm]
 
@@ -529,8 +558,7 @@ def _rng(name: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode("utf-8"))])
 
 
-PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "hubble_deep_field.jpg",
-          "motorcycle_left.png")
+PHOTOS = ("astronaut.png", "chelsea.png", "coffee.png", "rocket.jpg", "hubble_deep_field.jpg", "motorcycle_left.png")
 
 
 def _spec_box(rng: np.random.Generator) -> ObjectSpec:
@@ -623,16 +651,16 @@ def _draw_keyboard(img: Image, s: float, shell: tuple) -> None:
             cv2.rectangle(img, (int(x), int(y)), (int(x + key), int(y + key)), (0.08, 0.08, 0.09), -1)
             text(img, ch, ((x + key / 2) / w, (y + key / 2) / h), 0.3 * key, (0.85, 0.85, 0.85))
     y = top + 0.62 * pitch + 4 * pitch
-    cv2.rectangle(img, (int(x_start + 3 * pitch), int(y)), (int(x_start + 10 * pitch), int(y + key)),
-                  (0.08, 0.08, 0.09), -1)
+    cv2.rectangle(
+        img, (int(x_start + 3 * pitch), int(y)), (int(x_start + 10 * pitch), int(y + key)), (0.08, 0.08, 0.09), -1
+    )
     fill_rect(img, (0.33, 0.62, 0.67, 0.95), tuple(min(1.0, 1.08 * c) for c in shell))
 
 
 def _spec_laptop(rng: np.random.Generator) -> ObjectSpec:
     """Laptop: 210 x 16 x 300 mm base with keyboard + 210 x 7 x 300 mm screen."""
     shell_hue = rng.random()
-    shell = jitter_colour(rng, shell_hue, 0.03 + 0.12 * rng.random(), 0.45 + 0.4 * rng.random(),
-                          ds=0.02, dv=0.02)
+    shell = jitter_colour(rng, shell_hue, 0.03 + 0.12 * rng.random(), 0.45 + 0.4 * rng.random(), ds=0.02, dv=0.02)
     dark = tuple(0.35 * c for c in shell)
     screen_photo = PHOTOS[int(rng.integers(0, len(PHOTOS)))]
     sticker = PHOTOS[int(rng.integers(0, len(PHOTOS)))]
@@ -681,10 +709,7 @@ def _spec_laptop(rng: np.random.Generator) -> ObjectSpec:
         top=Slab((210.0, 7.0, 300.0), 2.5),
         spacing=9.0,
         band=3,
-        painters={
-            BOTTOM: {"+y": keyboard, "-y": underside, "+z": side, "-z": side},
-            TOP: {"-y": display, "+y": lid},
-        },
+        painters={BOTTOM: {"+y": keyboard, "-y": underside, "+z": side, "-z": side}, TOP: {"-y": display, "+y": lid}},
         default={BOTTOM: metal, TOP: metal},
         up={BOTTOM: {"+y": "+x"}},
     )
@@ -724,7 +749,7 @@ def _spec_notebook(rng: np.random.Generator) -> ObjectSpec:
         ph = max(1, min(int(0.6 * h), int(round(pw * page.shape[0] / page.shape[1]))))
         ink = fit(np.repeat(page[..., None], 3, axis=2), ph, pw)
         y0, x0 = int(0.15 * h), int(0.14 * w)
-        img[y0: y0 + ph, x0: x0 + pw] *= ink  # print the scanned page onto the paper
+        img[y0 : y0 + ph, x0 : x0 + pw] *= ink  # print the scanned page onto the paper
         return img
 
     def page_edges(h: int, w: int, s: float) -> Image:
@@ -778,8 +803,9 @@ def _spec_phone(rng: np.random.Generator) -> ObjectSpec:
         for i, ch in enumerate(labels):
             row, col = divmod(i, 3)
             x0, y0 = 0.1 + col * 0.28, 0.36 + row * 0.13
-            cv2.rectangle(img, (int(x0 * w), int(y0 * h)), (int((x0 + 0.24) * w), int((y0 + 0.1) * h)),
-                          (0.85, 0.85, 0.87), -1)
+            cv2.rectangle(
+                img, (int(x0 * w), int(y0 * h)), (int((x0 + 0.24) * w), int((y0 + 0.1) * h)), (0.85, 0.85, 0.87), -1
+            )
             text(img, ch, ((x0 + 0.12), (y0 + 0.05)), 0.05 * h, (0.1, 0.1, 0.1))
         return img
 
@@ -800,7 +826,9 @@ def _spec_phone(rng: np.random.Generator) -> ObjectSpec:
     def back(h: int, w: int, s: float) -> Image:
         img = plastic(h, w, s)
 
-        cv2.rectangle(img, (int(0.1 * w), int(0.3 * h)), (int(0.9 * w), int(0.9 * h)), tuple(inner), max(1, int(0.4 * s)))
+        cv2.rectangle(
+            img, (int(0.1 * w), int(0.3 * h)), (int(0.9 * w), int(0.9 * h)), tuple(inner), max(1, int(0.4 * s))
+        )
         text(img, "PHONE", (0.5, 0.6), 0.05 * h, tuple(inner), max_width_px=0.5 * w, bold=True)
         return img
 
@@ -810,10 +838,7 @@ def _spec_phone(rng: np.random.Generator) -> ObjectSpec:
         top=Slab((95.0, 9.0, 50.0), 3.0),
         spacing=2.6,
         band=3,
-        painters={
-            BOTTOM: {"+y": keypad, "-y": back},
-            TOP: {"-y": inner_screen, "+y": outer},
-        },
+        painters={BOTTOM: {"+y": keypad, "-y": back}, TOP: {"-y": inner_screen, "+y": outer}},
         default={BOTTOM: plastic, TOP: plastic},
         up={BOTTOM: {"+y": "+x"}},
     )
@@ -840,8 +865,9 @@ def build_parts(spec: ObjectSpec) -> dict[int, PartMesh]:
     boxes = part_boxes(spec.bottom, spec.top)
     slabs = {TOP: spec.top, BOTTOM: spec.bottom}
     return {
-        part: rounded_box(boxes[part][0], boxes[part][1], slabs[part].radius, spec.spacing,
-                          spec.band, up=spec.up.get(part))
+        part: rounded_box(
+            boxes[part][0], boxes[part][1], slabs[part].radius, spec.spacing, spec.band, up=spec.up.get(part)
+        )
         for part in (TOP, BOTTOM)
     }
 
@@ -879,7 +905,7 @@ def build_textured(spec: Optional[ObjectSpec], parts: dict[int, PartMesh]) -> di
         img = np.ascontiguousarray(_painter(spec, mesh, p, k)(h, w, s), dtype=np.float32)
         assert img.shape == (h, w, 3), (p, mesh.chart_keys[k], img.shape)
         padded = cv2.copyMakeBorder(img, CHART_PAD, CHART_PAD, CHART_PAD, CHART_PAD, cv2.BORDER_REPLICATE)
-        atlas[y0 - CHART_PAD: y0 + h + CHART_PAD, x0 - CHART_PAD: x0 + w + CHART_PAD] = padded
+        atlas[y0 - CHART_PAD : y0 + h + CHART_PAD, x0 - CHART_PAD : x0 + w + CHART_PAD] = padded
         fu, fv = mesh.chart_param[k][:, 0], mesh.chart_param[k][:, 1]
         u = (x0 + fu * w) / side
         v = 1.0 - (y0 + (1.0 - fv) * h) / side
@@ -975,9 +1001,7 @@ def make_and_write_objects(meta_dir: PathLike, names: Iterable[str], seed: int =
 
 
 def write_procedural_objects(
-    meta_dir: PathLike,
-    names: Iterable[str] = ("box", "laptop", "notebook"),
-    seed: int = 0,
+    meta_dir: PathLike, names: Iterable[str] = ("box", "laptop", "notebook"), seed: int = 0
 ) -> list[str]:
     """Generate objects and write them as ``meta_dir/object_vtemplates/<name>/``.
 

@@ -83,7 +83,9 @@ def _noise(rng: np.random.Generator, F: int, dims: int, std: float, smooth: int)
     return (offset + jitter[:F]) * std * np.sqrt(0.5)
 
 
-def perturb_hand(params: dict[str, np.ndarray], noise: AnnotationNoise, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def perturb_hand(
+    params: dict[str, np.ndarray], noise: AnnotationNoise, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
     """One hand's ``.mano.npy`` entry with noisy ``rot`` (composed on the left, about the wrist
     joint), ``trans`` and ``pose``; ``shape`` is kept; float32 as ARCTIC's."""
     F = params["rot"].shape[0]
@@ -100,9 +102,12 @@ def _vertices(layer: Any, p: dict[str, np.ndarray]) -> np.ndarray:
     dt = torch.float64
     F = p["rot"].shape[0]
     with torch.no_grad():
-        out = layer(global_orient=torch.as_tensor(p["rot"], dtype=dt), hand_pose=torch.as_tensor(p["pose"], dtype=dt),
-                    betas=torch.as_tensor(np.repeat(np.asarray(p["shape"])[None], F, 0), dtype=dt),
-                    transl=torch.as_tensor(p["trans"], dtype=dt))  # fmt: skip
+        out = layer(
+            global_orient=torch.as_tensor(p["rot"], dtype=dt),
+            hand_pose=torch.as_tensor(p["pose"], dtype=dt),
+            betas=torch.as_tensor(np.repeat(np.asarray(p["shape"])[None], F, 0), dtype=dt),
+            transl=torch.as_tensor(p["trans"], dtype=dt),
+        )
     return out.vertices.numpy()
 
 
@@ -111,8 +116,14 @@ def _link(src: Path, dst: Path) -> None:
     os.symlink(src.resolve(), dst, target_is_directory=src.is_dir())
 
 
-def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = AnnotationNoise(), *,
-                         process_splits: bool = True, progress: bool = False) -> dict[str, Any]:
+def add_annotation_noise(
+    src: PathLike,
+    dst: PathLike,
+    noise: AnnotationNoise = AnnotationNoise(),
+    *,
+    process_splits: bool = True,
+    progress: bool = False,
+) -> dict[str, Any]:
     """Write the noisy-annotation copy of the world at ``src`` to ``dst`` (see :class:`AnnotationNoise`).
 
     Args:
@@ -172,11 +183,15 @@ def add_annotation_noise(src: PathLike, dst: PathLike, noise: AnnotationNoise = 
         shutil.rmtree(dst, ignore_errors=True)
         raise
     all_err = [e for s in errors.values() for e in s.values()]
-    summary = {"source": str(src.resolve()), "noise": asdict(noise), "mean_vertex_error_mm": errors,
-               "overall_mean_vertex_error_mm": float(np.mean(all_err)) if all_err else 0.0,
-               "splits": (f"rebuilt from the noisy labels ({', '.join(protocols)})" if process_splits and protocols
-                          else "not written"),
-               "note": "images, cameras and object poses are the source's; hands' .mano.npy are perturbed; "
-                       "masks/ not copied"}  # fmt: skip
+    summary = {
+        "source": str(src.resolve()),
+        "noise": asdict(noise),
+        "mean_vertex_error_mm": errors,
+        "overall_mean_vertex_error_mm": float(np.mean(all_err)) if all_err else 0.0,
+        "splits": (
+            f"rebuilt from the noisy labels ({', '.join(protocols)})" if process_splits and protocols else "not written"
+        ),
+        "note": "images, cameras and object poses are the source's; hands' .mano.npy are perturbed; masks/ not copied",
+    }
     (dst / "annotation_noise.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

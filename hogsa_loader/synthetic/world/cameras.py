@@ -62,8 +62,9 @@ class EgoCamera:
         return out
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]),
-            roll: float = 0.0) -> np.ndarray:
+def look_at(
+    eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]), roll: float = 0.0
+) -> np.ndarray:
     """OpenCV world->camera (4, 4): z toward ``target``, image-up toward ``up``, then a roll
     (radians) about the optical axis."""
     z = target - eye
@@ -94,7 +95,7 @@ def allocentric_rig(base_rng: np.random.Generator, subject_rng: np.random.Genera
         az = az0 + 2 * np.pi * k / 8 + base_rng.uniform(-0.12, 0.12)
         dist = base_rng.uniform(1.15, 1.45)
         height = base_rng.uniform(0.3, 0.55) if k % 2 == 0 else base_rng.uniform(0.65, 0.95)
-        horiz = np.sqrt(max(dist ** 2 - height ** 2, 0.25))
+        horiz = np.sqrt(max(dist**2 - height**2, 0.25))
         eye = WORKSPACE + np.array([horiz * np.cos(az), horiz * np.sin(az), height])
         eye = eye + subject_rng.normal(0, 0.01, 3)
         target = WORKSPACE + base_rng.normal(0, 0.03, 3) + subject_rng.normal(0, 0.005, 3)
@@ -118,18 +119,25 @@ def ego_calibration(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """
     w, h = EGO_IMAGE_SIZE
     f = rng.uniform(1680, 1800)
-    K = np.array([[f * rng.uniform(0.998, 1.002), 0.0, w / 2 + rng.normal(0, 8)],
-                  [0.0, f, h / 2 + rng.normal(0, 8)], [0.0, 0.0, 1.0]])
-    dist8 = np.array([
-        rng.uniform(-0.09, -0.05),   # k1 (barrel)
-        rng.uniform(0.01, 0.03),     # k2
-        rng.normal(0, 3e-4),         # p1
-        rng.normal(0, 3e-4),         # p2
-        rng.uniform(-0.004, 0.0),    # k3
-        rng.uniform(0.0, 0.02),      # k4
-        rng.uniform(0.0, 0.005),     # k5
-        0.0,                         # k6
-    ])
+    K = np.array(
+        [
+            [f * rng.uniform(0.998, 1.002), 0.0, w / 2 + rng.normal(0, 8)],
+            [0.0, f, h / 2 + rng.normal(0, 8)],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+    dist8 = np.array(
+        [
+            rng.uniform(-0.09, -0.05),  # k1 (barrel)
+            rng.uniform(0.01, 0.03),  # k2
+            rng.normal(0, 3e-4),  # p1
+            rng.normal(0, 3e-4),  # p2
+            rng.uniform(-0.004, 0.0),  # k3
+            rng.uniform(0.0, 0.02),  # k4
+            rng.uniform(0.0, 0.005),  # k5
+            0.0,  # k6
+        ]
+    )
     return K, dist8
 
 

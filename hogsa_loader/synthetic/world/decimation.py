@@ -79,8 +79,9 @@ def _save(path: Path, obj: Any) -> None:
         np.save(fh, np.array(obj, dtype=object), allow_pickle=True)
 
 
-def write_decimation_files(meta_dir: PathLike, models: Mapping[str, Any],
-                           templates: Mapping[str, ObjectTemplate]) -> tuple[Path, Path]:
+def write_decimation_files(
+    meta_dir: PathLike, models: Mapping[str, Any], templates: Mapping[str, ObjectTemplate]
+) -> tuple[Path, Path]:
     """Write ``mano_decimator_195.npy`` and ``downsamplers.npy`` into ``meta_dir``.
 
     Both are ``np.save``-d 0-d object arrays holding a dict (ARCTIC reads them with

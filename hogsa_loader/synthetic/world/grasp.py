@@ -23,8 +23,20 @@ from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 
-__all__ = ["RoundedBox", "HandKit", "GraspSpec", "Grasp", "GRASP_DESIGNS", "GRASP_OBJECTS", "fit_part_boxes", "object_sdf",
-           "grasp_specs", "optimise_grasp", "placement_rotation", "rot_z_matrix"]
+__all__ = [
+    "RoundedBox",
+    "HandKit",
+    "GraspSpec",
+    "Grasp",
+    "GRASP_DESIGNS",
+    "GRASP_OBJECTS",
+    "fit_part_boxes",
+    "object_sdf",
+    "grasp_specs",
+    "optimise_grasp",
+    "placement_rotation",
+    "rot_z_matrix",
+]
 
 
 # --------------------------------------------------------------------------------------
@@ -208,12 +220,18 @@ def grasp_specs(obj: str, action: str) -> dict[str, GraspSpec]:
         raise KeyError(f"no grasps designed for {obj} {action}; designed: {GRASP_DESIGNS}")
     if obj == "box":
         if action == "grab":
-            return {"right": GraspSpec(BOTTOM, (-0.25, 0.15, 1.0), (0, 0, -1), (1, 0, 0), 0.2, _ALL),
-                    "left": GraspSpec(BOTTOM, (-0.25, 0.15, -1.0), (0, 0, 1), (1, 0, 0), 0.2, _ALL)}
-        return {"right": GraspSpec(TOP, (-0.55, 1.0, 0.1), (0, -1, 0), (1, 0, 0), 0.15, _ALL),
-                "left": GraspSpec(BOTTOM, (-0.25, -0.3, -1.0), (0, 0, 1), (1, 0, 0), 0.2, _ALL)}
-    return {"right": GraspSpec(BOTTOM, (0.0, 1.0, 1.0), (0, -0.5, -0.87), (1, 0, 0), 0.4, _ALL),
-            "left": GraspSpec(BOTTOM, (0.0, 1.0, -1.0), (0, -0.5, 0.87), (1, 0, 0), 0.4, _ALL)}
+            return {
+                "right": GraspSpec(BOTTOM, (-0.25, 0.15, 1.0), (0, 0, -1), (1, 0, 0), 0.2, _ALL),
+                "left": GraspSpec(BOTTOM, (-0.25, 0.15, -1.0), (0, 0, 1), (1, 0, 0), 0.2, _ALL),
+            }
+        return {
+            "right": GraspSpec(TOP, (-0.55, 1.0, 0.1), (0, -1, 0), (1, 0, 0), 0.15, _ALL),
+            "left": GraspSpec(BOTTOM, (-0.25, -0.3, -1.0), (0, 0, 1), (1, 0, 0), 0.2, _ALL),
+        }
+    return {
+        "right": GraspSpec(BOTTOM, (0.0, 1.0, 1.0), (0, -0.5, -0.87), (1, 0, 0), 0.4, _ALL),
+        "left": GraspSpec(BOTTOM, (0.0, 1.0, -1.0), (0, -0.5, 0.87), (1, 0, 0), 0.4, _ALL),
+    }
 
 
 # --------------------------------------------------------------------------------------
@@ -239,9 +257,11 @@ class Grasp:
     stats: dict
 
 
-def placement_rotation(local_fingers: np.ndarray, local_normal: np.ndarray,
-                       fingers: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def placement_rotation(
+    local_fingers: np.ndarray, local_normal: np.ndarray, fingers: np.ndarray, normal: np.ndarray
+) -> np.ndarray:
     """Rotation taking the hand's (finger, palm-normal) directions onto target directions."""
+
     def frame(f: np.ndarray, n: np.ndarray) -> np.ndarray:
         n = n / np.linalg.norm(n)
         f = f - (f @ n) * n
@@ -277,8 +297,8 @@ class _Adam:
                 continue
             m.mul_(self.b1).add_(p.grad, alpha=1 - self.b1)
             v.mul_(self.b2).addcmul_(p.grad, p.grad, value=1 - self.b2)
-            mh = m / (1 - self.b1 ** self.t)
-            vh = v / (1 - self.b2 ** self.t)
+            mh = m / (1 - self.b1**self.t)
+            vh = v / (1 - self.b2**self.t)
             p.sub_(lr * mh / (vh.sqrt() + self.eps))
 
 
@@ -326,23 +346,38 @@ def _place(kit: HandKit, b: Tensor, spec: GraspSpec, boxes: dict[int, RoundedBox
     probe = torch.as_tensor(target[None], dtype=dt)
     depth = -object_sdf(probe, boxes).item()  # > 0 when the target is inside
     wrist0 = wrist0 - (depth + spec.standoff) * normal
-    return _Placement(flex0_t, abd0_t, torch.as_tensor(R0, dtype=dt), torch.as_tensor(J0, dtype=dt),
-                      torch.as_tensor(wrist0, dtype=dt), normal)  # fmt: skip
+    return _Placement(
+        flex0_t,
+        abd0_t,
+        torch.as_tensor(R0, dtype=dt),
+        torch.as_tensor(J0, dtype=dt),
+        torch.as_tensor(wrist0, dtype=dt),
+        normal,
+    )
 
 
 class _GraspFit:
     """The hand posed by (flex, abd, drot, dpos) around a placement, and the object it must
     touch without entering (also at every opening of ``sweep_angles``)."""
 
-    def __init__(self, kit: HandKit, b: Tensor, spec: GraspSpec, boxes: dict[int, RoundedBox], pl: _Placement,
-                 sweep_angles: tuple[float, ...]) -> None:  # fmt: skip
+    def __init__(
+        self,
+        kit: HandKit,
+        b: Tensor,
+        spec: GraspSpec,
+        boxes: dict[int, RoundedBox],
+        pl: _Placement,
+        sweep_angles: tuple[float, ...],
+    ) -> None:
         dt = b.dtype
         self.kit, self.b, self.spec, self.boxes, self.pl = kit, b, spec, boxes, pl
         self.sweep = [torch.as_tensor(rot_z_matrix(-a), dtype=dt) for a in sweep_angles]
-        self.lo = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[0] for j in range(15)],
-                               dtype=dt)  # fmt: skip
-        self.hi = torch.tensor([(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[1] for j in range(15)],
-                               dtype=dt)  # fmt: skip
+        self.lo = torch.tensor(
+            [(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[0] for j in range(15)], dtype=dt
+        )
+        self.hi = torch.tensor(
+            [(_FLEX_LIMITS["thumb"] if j >= 12 else _FLEX_LIMITS["other"])[1] for j in range(15)], dtype=dt
+        )
         self.groups = {g: torch.as_tensor(kit.pads[g]) for g in spec.contacts}
         self.n_t = torch.as_tensor(pl.normal, dtype=dt)
 
@@ -384,7 +419,7 @@ class _GraspFit:
         loss = loss + 1e-3 * ((flex - self.pl.flex0) ** 2).sum() + 2e-2 * ((abd - self.pl.abd0) ** 2).sum()
         loss = loss + 1.0 * (torch.relu(flex - self.hi) ** 2 + torch.relu(self.lo - flex) ** 2).sum()
         dtan = dpos - (dpos @ self.n_t) * self.n_t
-        return loss + 2.0 * (dtan ** 2).sum() + 1e-3 * (drot ** 2).sum()
+        return loss + 2.0 * (dtan**2).sum() + 1e-3 * (drot**2).sum()
 
     @torch.no_grad()
     def push_out(self, verts: Tensor, wrist: Tensor, max_depth: float) -> tuple[Tensor, Tensor]:
@@ -403,9 +438,17 @@ class _GraspFit:
         return verts, wrist
 
 
-def optimise_grasp(kit: HandKit, betas: np.ndarray, spec: GraspSpec, boxes: dict[int, RoundedBox],
-                   table_normal: np.ndarray, table_offset: float, iters: int = 140,
-                   max_depth: float = 1e-3, sweep_angles: tuple[float, ...] = ()) -> Grasp:
+def optimise_grasp(
+    kit: HandKit,
+    betas: np.ndarray,
+    spec: GraspSpec,
+    boxes: dict[int, RoundedBox],
+    table_normal: np.ndarray,
+    table_offset: float,
+    iters: int = 140,
+    max_depth: float = 1e-3,
+    sweep_angles: tuple[float, ...] = (),
+) -> Grasp:
     """Find a grasp in the frame of the part it attaches to, at articulation θ = 0.
 
     1. Placement from ``spec`` (:func:`_place`): the palm centre (mean of the palm
@@ -456,12 +499,14 @@ def optimise_grasp(kit: HandKit, betas: np.ndarray, spec: GraspSpec, boxes: dict
         stats = {
             "max_depth_m": float(max(0.0, -fit.field(verts).min().item())),
             "min_table_clearance_m": float(height.min().item()),
-            "contact_groups": {g: float(boxes[spec.part].sdf(verts[ids]).min().item())
-                               for g, ids in fit.groups.items()},  # fmt: skip
+            "contact_groups": {
+                g: float(boxes[spec.part].sdf(verts[ids]).min().item()) for g, ids in fit.groups.items()
+            },
         }
         art = kit.articulation(flex_c.double(), abd.double()).numpy()
         open_art = kit.articulation(pl.flex0.double() * 0.3 - 0.05, pl.abd0.double() * 0.5).numpy()
         u, _, vt = np.linalg.svd(R.double().numpy())  # re-orthonormalise the float32 rotation
         rot = u @ vt
-    return Grasp(part=spec.part, rot=rot, wrist=wrist.double().numpy(), art=art, open_art=open_art,
-                 normal=pl.normal, stats=stats)
+    return Grasp(
+        part=spec.part, rot=rot, wrist=wrist.double().numpy(), art=art, open_art=open_art, normal=pl.normal, stats=stats
+    )

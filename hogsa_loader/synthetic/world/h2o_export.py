@@ -37,8 +37,14 @@ EXPORT_RECORD = "hogsa_h2o_export.json"
 _F32 = torch.float32
 
 
-def write_obj_mesh(folder: PathLike, stem: str, verts: np.ndarray, faces: np.ndarray,
-                   uv: Optional[np.ndarray] = None, texture: Optional[np.ndarray] = None) -> Path:
+def write_obj_mesh(
+    folder: PathLike,
+    stem: str,
+    verts: np.ndarray,
+    faces: np.ndarray,
+    uv: Optional[np.ndarray] = None,
+    texture: Optional[np.ndarray] = None,
+) -> Path:
     """Write ``<folder>/<stem>.obj`` (vertices in the given unit; with ``uv`` + ``texture`` also
     ``<stem>.mtl`` and ``<stem>.png``; ``vt`` indices equal ``v`` indices).
 
@@ -53,7 +59,9 @@ def write_obj_mesh(folder: PathLike, stem: str, verts: np.ndarray, faces: np.nda
     if uv is not None:
         lines += [f"vt {u:.9f} {v:.9f}\n" for u, v in np.asarray(uv, np.float64).tolist()]
         lines += [f"f {a}/{a} {b}/{b} {c}/{c}\n" for a, b, c in f1.tolist()]
-        (folder / f"{stem}.mtl").write_text(f"newmtl material_0\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {stem}.png\n")
+        (folder / f"{stem}.mtl").write_text(
+            f"newmtl material_0\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {stem}.png\n"
+        )
         cv2.imwrite(str(folder / f"{stem}.png"), np.ascontiguousarray(np.asarray(texture)[..., ::-1]))
     else:
         lines += [f"f {a} {b} {c}\n" for a, b, c in f1.tolist()]
@@ -91,8 +99,9 @@ def _hand_colors(root: ArcticRoot, subject: str, models: dict) -> dict[str, torc
     return {side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=_F32) for side in models}
 
 
-def _check_export(object_class: str, mesh_name: Optional[str], allo_views: Sequence[int],
-                  frame_stride: int) -> tuple[str, str]:  # fmt: skip
+def _check_export(
+    object_class: str, mesh_name: Optional[str], allo_views: Sequence[int], frame_stride: int
+) -> tuple[str, str]:
     """The H2O class name and mesh name of an export; ValueError for bad arguments."""
     cls = h2o_class_name(object_class)
     mesh_name = mesh_name or H2O_MESH_NAMES[cls][-1]
@@ -110,8 +119,11 @@ def _check_replace(seq_dir: Path, overwrite: bool) -> bool:
     (frames of two exports would mix)."""
     replace_old = seq_dir.is_dir() and any(seq_dir.iterdir())
     if replace_old and not overwrite:
-        raise AssetError(seq_dir, "already holds an H2O sequence; its frames would mix with this export's "
-                                  "(pass overwrite=True, or --overwrite, to replace it)")  # fmt: skip
+        raise AssetError(
+            seq_dir,
+            "already holds an H2O sequence; its frames would mix with this export's "
+            "(pass overwrite=True, or --overwrite, to replace it)",
+        )
     return replace_old
 
 
@@ -119,8 +131,10 @@ def _constant_articulation(seq: SequenceData, name: str) -> float:
     """The sequence's articulation angle (rad); ValueError when it varies (H2O objects are rigid)."""
     arti = seq.object.arti
     if float(np.ptp(arti)) > 1e-6:
-        raise ValueError(f"{name}: articulation varies ({arti.min():.4f}..{arti.max():.4f} rad); "
-                         "H2O objects are rigid, export a grab sequence")  # fmt: skip
+        raise ValueError(
+            f"{name}: articulation varies ({arti.min():.4f}..{arti.max():.4f} rad); "
+            "H2O objects are rigid, export a grab sequence"
+        )
     return float(arti[0])
 
 
@@ -146,14 +160,22 @@ def _render_frames(scene: dict[str, Any], w2c: np.ndarray, K: np.ndarray, size: 
     for i in range(len(w2c)):
         fg = foreground(scene["posed"], i, scene["hand_faces"], scene["colors"], scene["meshes"])
         m = w2c[i]
-        r = render_meshes(scene["stage"] + fg, torch.as_tensor(m, dtype=_F32), Kr, H, W, light=light_for_camera(m),
-                          background=(0.1, 0.1, 0.1))  # fmt: skip
+        r = render_meshes(
+            scene["stage"] + fg,
+            torch.as_tensor(m, dtype=_F32),
+            Kr,
+            H,
+            W,
+            light=light_for_camera(m),
+            background=(0.1, 0.1, 0.1),
+        )
         rgb.append(np.clip(np.rint(r.rgb.numpy() * 255.0), 0, 255).astype(np.uint8))
     return rgb
 
 
-def _export_scene(root: ArcticRoot, subject: str, sequence: str, idx: np.ndarray, template: ObjectTemplate,
-                  models: dict, seed: int) -> dict[str, Any]:  # fmt: skip
+def _export_scene(
+    root: ArcticRoot, subject: str, sequence: str, idx: np.ndarray, template: ObjectTemplate, models: dict, seed: int
+) -> dict[str, Any]:
     """What the world's scene renderer needs for frames ``idx``: posed meshes, hand faces and
     colours, object meshes, and the stage of world seed ``seed``."""
     raw = root.raw_sequence(subject, sequence)
@@ -169,9 +191,17 @@ def _export_scene(root: ArcticRoot, subject: str, sequence: str, idx: np.ndarray
 
 
 def _camera_records(
-    root: ArcticRoot, seq: SequenceData, subject: str, sequence: str, cams: dict[int, tuple[int, Any]],
-    idx: np.ndarray, template: ObjectTemplate, cls: str, seed: int, size: tuple[int, int],
-) -> dict[int, H2OCameraRecord]:  # fmt: skip
+    root: ArcticRoot,
+    seq: SequenceData,
+    subject: str,
+    sequence: str,
+    cams: dict[int, tuple[int, Any]],
+    idx: np.ndarray,
+    template: ObjectTemplate,
+    cls: str,
+    seed: int,
+    size: tuple[int, int],
+) -> dict[int, H2OCameraRecord]:
     """The H2O record (images, camera pose, intrinsics, MANO and object labels in its frame) of every camera."""
     W, H = size
     F = len(idx)
@@ -266,12 +296,25 @@ def export_h2o_world(
         shutil.rmtree(seq_dir)
     write_h2o_sequence(out, h2o_subject, scene, seq_id, idx.tolist(), records)
     record = {
-        "source": {"arctic_root": str(root.data_root), "subject": subject, "sequence": sequence,
-                   "object": seq.object.name, "articulation": angle, "stage_seed": int(seed)},
-        "h2o": {"subject": h2o_subject, "scene": scene, "seq": int(seq_id), "object_class": cls,
-                "class_id": H2O_OBJECT_NAMES.index(cls), "mesh": str(mesh_path.relative_to(out))},
+        "source": {
+            "arctic_root": str(root.data_root),
+            "subject": subject,
+            "sequence": sequence,
+            "object": seq.object.name,
+            "articulation": angle,
+            "stage_seed": int(seed),
+        },
+        "h2o": {
+            "subject": h2o_subject,
+            "scene": scene,
+            "seq": int(seq_id),
+            "object_class": cls,
+            "class_id": H2O_OBJECT_NAMES.index(cls),
+            "mesh": str(mesh_path.relative_to(out)),
+        },
         "cameras": {f"cam{k}": {"world_view": int(v)} for k, (v, _) in cams.items()},
-        "frames": idx.tolist(), "image_size": [W, H],
-    }  # fmt: skip
+        "frames": idx.tolist(),
+        "image_size": [W, H],
+    }
     (out / EXPORT_RECORD).write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
     return record

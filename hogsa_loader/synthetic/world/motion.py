@@ -33,7 +33,7 @@ REST_CLEARANCE = 0.004  # m, resting hands hover this much above the table
 def min_jerk(s: np.ndarray) -> np.ndarray:
     """Minimum-jerk profile of s clipped to [0, 1]."""
     s = np.clip(s, 0.0, 1.0)
-    return s ** 3 * (10 - 15 * s + 6 * s * s)
+    return s**3 * (10 - 15 * s + 6 * s * s)
 
 
 rot_z = rot_z_matrix
@@ -91,12 +91,20 @@ def _object_keyframes(action: str, rng: np.random.Generator) -> list[tuple[float
     sgn = rng.choice([-1.0, 1.0])
     if action == "grab":
         lift = rng.uniform(0.09, 0.13)
-        k1 = (0.0, Rotation.from_rotvec([rng.uniform(-0.15, 0.15), sgn * rng.uniform(0.1, 0.2),
-                                         sgn * rng.uniform(0.3, 0.45)]).as_matrix(),
-              np.array([rng.uniform(-0.03, 0.03), -rng.uniform(0.03, 0.07), lift]))
-        k2 = (0.0, Rotation.from_rotvec([rng.uniform(0.15, 0.3), -sgn * rng.uniform(0.05, 0.15),
-                                         -sgn * rng.uniform(0.1, 0.25)]).as_matrix(),
-              np.array([sgn * rng.uniform(0.02, 0.04), -rng.uniform(0.0, 0.03), lift + rng.uniform(0.0, 0.02)]))
+        k1 = (
+            0.0,
+            Rotation.from_rotvec(
+                [rng.uniform(-0.15, 0.15), sgn * rng.uniform(0.1, 0.2), sgn * rng.uniform(0.3, 0.45)]
+            ).as_matrix(),
+            np.array([rng.uniform(-0.03, 0.03), -rng.uniform(0.03, 0.07), lift]),
+        )
+        k2 = (
+            0.0,
+            Rotation.from_rotvec(
+                [rng.uniform(0.15, 0.3), -sgn * rng.uniform(0.05, 0.15), -sgn * rng.uniform(0.1, 0.25)]
+            ).as_matrix(),
+            np.array([sgn * rng.uniform(0.02, 0.04), -rng.uniform(0.0, 0.03), lift + rng.uniform(0.0, 0.02)]),
+        )
         k3 = (0.0, rot_z(rng.uniform(-0.1, 0.1)), np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), 0.0]))
         return [k1, k2, k3]
     theta_max = rng.uniform(0.22, 0.4) * np.pi
@@ -114,9 +122,13 @@ def _object_rest(template: ObjectTemplate, rng: np.random.Generator) -> tuple[np
     R = rot_z(rng.uniform(-0.15, 0.15)) @ R0
     v = template.verts.astype(np.float64) @ R.T
     centre = (v.min(0) + v.max(0)) / 2
-    t = np.array([WORKSPACE[0] + rng.uniform(-0.02, 0.02) - centre[0],
-                  WORKSPACE[1] + rng.uniform(-0.02, 0.02) - centre[1],
-                  TABLE_Z + 0.0005 - v[:, 2].min()])
+    t = np.array(
+        [
+            WORKSPACE[0] + rng.uniform(-0.02, 0.02) - centre[0],
+            WORKSPACE[1] + rng.uniform(-0.02, 0.02) - centre[1],
+            TABLE_Z + 0.0005 - v[:, 2].min(),
+        ]
+    )
     return R, t
 
 
@@ -175,8 +187,9 @@ def _rest_pose(kit: HandKit, betas: np.ndarray, side: str, rng: np.random.Genera
     tilt = Rotation.from_rotvec([0.0, sgn * rng.uniform(0.1, 0.3), 0.0]).as_matrix()  # roll onto the pinky side
     R = tilt @ R
     w = (v - j[0]) @ R.T
-    xy = np.array([WORKSPACE[0] + sgn * (max(0.17, half_width + 0.08) + rng.uniform(0.0, 0.04)),
-                   rng.uniform(-0.29, -0.24)])
+    xy = np.array(
+        [WORKSPACE[0] + sgn * (max(0.17, half_width + 0.08) + rng.uniform(0.0, 0.04)), rng.uniform(-0.29, -0.24)]
+    )
     wrist = np.array([xy[0], xy[1], TABLE_Z + REST_CLEARANCE - w[:, 2].min()])
     return R, wrist, art
 
@@ -229,9 +242,20 @@ def _hand_track(F: int, times: tuple, grasp: Grasp, rest0: tuple, rest1: tuple, 
     return Rs, Ws, As, attached
 
 
-def _depenetrate(kit: HandKit, betas: np.ndarray, R: np.ndarray, W: np.ndarray, A: np.ndarray,
-                 attached: np.ndarray, theta: np.ndarray, Ro: np.ndarray, to: np.ndarray,
-                 boxes: dict[int, RoundedBox], back: np.ndarray, tol: float = 3e-4) -> np.ndarray:
+def _depenetrate(
+    kit: HandKit,
+    betas: np.ndarray,
+    R: np.ndarray,
+    W: np.ndarray,
+    A: np.ndarray,
+    attached: np.ndarray,
+    theta: np.ndarray,
+    Ro: np.ndarray,
+    to: np.ndarray,
+    boxes: dict[int, RoundedBox],
+    back: np.ndarray,
+    tol: float = 3e-4,
+) -> np.ndarray:
     """Move the wrist out of the object in frames where the hand is not attached.
 
     Reaching and closing/opening interpolate between collision-free poses, but fingers
@@ -295,8 +319,16 @@ def hands_to_params(kit: HandKit, betas: np.ndarray, R: np.ndarray, wrist: np.nd
     }
 
 
-def build_motion(F: int, obj: str, action: str, template: ObjectTemplate, kits: dict[str, HandKit],
-                 betas: np.ndarray, rng: np.random.Generator, grasp_iters: int = 140) -> SequenceMotion:
+def build_motion(
+    F: int,
+    obj: str,
+    action: str,
+    template: ObjectTemplate,
+    kits: dict[str, HandKit],
+    betas: np.ndarray,
+    rng: np.random.Generator,
+    grasp_iters: int = 140,
+) -> SequenceMotion:
     """Generate one sequence: rest, reach, grasp, manipulate, release, rest.
 
     Time is the frame index t in [0, F-1]. Every phase is interpolated with the minimum-jerk

@@ -123,8 +123,10 @@ class WorldPreset:
     @property
     def ego_size(self) -> tuple[int, int]:
         """(width, height) of the egocentric cropped images."""
-        return (int(round(EGO_IMAGE_SIZE[0] * self.ego_image_scale)),
-                int(round(EGO_IMAGE_SIZE[1] * self.ego_image_scale)))
+        return (
+            int(round(EGO_IMAGE_SIZE[0] * self.ego_image_scale)),
+            int(round(EGO_IMAGE_SIZE[1] * self.ego_image_scale)),
+        )
 
 
 def _seqs(*items: tuple[str, str]) -> tuple[SequencePlan, ...]:

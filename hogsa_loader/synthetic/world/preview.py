@@ -45,21 +45,27 @@ class _World:
         self.meta = json.loads((self.data / "meta" / "hogsa_world.json").read_text())
         self.misc = json.loads((self.data / "meta" / "misc.json").read_text())
         mano_dir = root / "body_models" / "mano"
-        self.layers = {s: MANOLayer(load_mano(mano_dir, side=s), flat_hand_mean=False, dtype=torch.float64)
-                       for s in ("right", "left")}
+        self.layers = {
+            s: MANOLayer(load_mano(mano_dir, side=s), flat_hand_mean=False, dtype=torch.float64)
+            for s in ("right", "left")
+        }
         self._templates: dict = {}
         self._load_template = load_object_template
 
     def template(self, name: str):
         if name not in self._templates:
-            self._templates[name] = self._load_template(self.data / "meta" / "object_vtemplates" / name,
-                                                        load_texture=False)
+            self._templates[name] = self._load_template(
+                self.data / "meta" / "object_vtemplates" / name, load_texture=False
+            )
         return self._templates[name]
 
     def raw(self, sid: str, seq: str) -> tuple[dict, np.ndarray, dict]:
         base = self.data / "raw_seqs" / sid
-        return (read_npy(base / f"{seq}.mano.npy"), np.asarray(read_npy(base / f"{seq}.object.npy")),
-                read_npy(base / f"{seq}.egocam.dist.npy"))
+        return (
+            read_npy(base / f"{seq}.mano.npy"),
+            np.asarray(read_npy(base / f"{seq}.object.npy")),
+            read_npy(base / f"{seq}.egocam.dist.npy"),
+        )
 
 
 def project_annotations(world: "_World", sid: str, seq: str, frames: list[int], view: int) -> dict:
@@ -73,10 +79,12 @@ def project_annotations(world: "_World", sid: str, seq: str, frames: list[int], 
     pts = {}
     for side, layer in world.layers.items():
         p = mano[side]
-        out = layer(global_orient=torch.as_tensor(p["rot"][idx], dtype=torch.float64),
-                    hand_pose=torch.as_tensor(p["pose"][idx], dtype=torch.float64),
-                    betas=torch.as_tensor(np.repeat(p["shape"][None], len(idx), 0), dtype=torch.float64),
-                    transl=torch.as_tensor(p["trans"][idx], dtype=torch.float64))
+        out = layer(
+            global_orient=torch.as_tensor(p["rot"][idx], dtype=torch.float64),
+            hand_pose=torch.as_tensor(p["pose"][idx], dtype=torch.float64),
+            betas=torch.as_tensor(np.repeat(p["shape"][None], len(idx), 0), dtype=torch.float64),
+            transl=torch.as_tensor(p["trans"][idx], dtype=torch.float64),
+        )
         pts[side] = out.joints.numpy()
     t = world.template(seq.split("_")[0])
     op = torch.as_tensor(obj[idx].astype(np.float64))
@@ -87,8 +95,13 @@ def project_annotations(world: "_World", sid: str, seq: str, frames: list[int], 
 
     pts["kp_top"] = pose(t.kp_top, True)
     pts["kp_bottom"] = pose(t.kp_bottom, False)
-    mesh = articulate(torch.as_tensor(t.verts, dtype=torch.float64)[None].expand(len(idx), -1, -1),
-                      torch.as_tensor(t.parts == 0), op[:, 0], op[:, 1:4], op[:, 4:7] / 1000).numpy()
+    mesh = articulate(
+        torch.as_tensor(t.verts, dtype=torch.float64)[None].expand(len(idx), -1, -1),
+        torch.as_tensor(t.parts == 0),
+        op[:, 0],
+        op[:, 1:4],
+        op[:, 4:7] / 1000,
+    ).numpy()
     m = world.misc[sid]
     out2d = {}
     if view == 0:
@@ -115,8 +128,14 @@ def _draw(img: np.ndarray, ann: dict, j: int, scale: float) -> np.ndarray:
     for side in ("right", "left"):
         p = ann[side][j] * scale
         for a, b in HAND_BONES:
-            cv2.line(img, tuple(int(round(x)) for x in p[a]), tuple(int(round(x)) for x in p[b]), _COLORS[side], lw,
-                     cv2.LINE_AA)
+            cv2.line(
+                img,
+                tuple(int(round(x)) for x in p[a]),
+                tuple(int(round(x)) for x in p[b]),
+                _COLORS[side],
+                lw,
+                cv2.LINE_AA,
+            )
         for q in p:
             cv2.circle(img, (int(round(q[0])), int(round(q[1]))), 2, _COLORS[side], -1, cv2.LINE_AA)
     for k in ("kp_top", "kp_bottom"):
@@ -135,14 +154,16 @@ def _cell(world: "_World", sid: str, seq: str, view: int, frame: int, ann: dict,
     w = int(round(1.4 * h))
     cell = np.full((h, w, 3), 255, np.uint8)
     x0 = (w - img.shape[1]) // 2
-    cell[:, x0:x0 + img.shape[1]] = img[:, : w]
-    cv2.putText(cell, f"{sid}/{seq} v{view} f{frame}", (4, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    cell[:, x0 : x0 + img.shape[1]] = img[:, :w]
+    cv2.putText(
+        cell, f"{sid}/{seq} v{view} f{frame}", (4, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA
+    )
     return cell
 
 
-def write_world_preview(root: PathLike, path: PathLike, frames: int = 5, views: tuple[int, ...] = (0, 2, 5),
-                        cell_height: int = 200) -> Path:
+def write_world_preview(
+    root: PathLike, path: PathLike, frames: int = 5, views: tuple[int, ...] = (0, 2, 5), cell_height: int = 200
+) -> Path:
     """Write the preview grid.
 
     Layout: one row with all 9 views of the first sequence at its middle frame, then per
@@ -154,8 +175,15 @@ def write_world_preview(root: PathLike, path: PathLike, frames: int = 5, views: 
     seqs = [(s["sid"], s["seq"], s["num_frames"]) for s in world.meta["sequences"]]
     sid, seq, F = seqs[0]
     mid = int(0.55 * (F - 1))
-    rows.append(np.concatenate([_cell(world, sid, seq, v, mid, project_annotations(world, sid, seq, [mid], v), 0,
-                                      cell_height) for v in range(9)], axis=1))
+    rows.append(
+        np.concatenate(
+            [
+                _cell(world, sid, seq, v, mid, project_annotations(world, sid, seq, [mid], v), 0, cell_height)
+                for v in range(9)
+            ],
+            axis=1,
+        )
+    )
     width = rows[0].shape[1]
     for sid, seq, F in seqs:
         picks = [int(round(f * (F - 1))) for f in np.linspace(0.1, 0.9, frames)]

@@ -52,17 +52,23 @@ def sequence_quality(joints: dict, verts: dict, obj_params: np.ndarray, boxes: d
         vertex within 3 mm of the object), ``max_joint_speed_m_per_frame`` and
         ``max_joint_accel_m_per_frame2``.
     """
-    out = {"max_penetration_mm": 0.0, "contact_fraction": {}, "max_joint_speed_m_per_frame": 0.0,
-           "max_joint_accel_m_per_frame2": 0.0}
+    out = {
+        "max_penetration_mm": 0.0,
+        "contact_fraction": {},
+        "max_joint_speed_m_per_frame": 0.0,
+        "max_joint_accel_m_per_frame2": 0.0,
+    }
     for side in ("right", "left"):
         d = hand_object_distances(np.asarray(verts[side], np.float64), obj_params, boxes)
         out["max_penetration_mm"] = max(out["max_penetration_mm"], float(max(0.0, -d.min()) * 1000))
         out["contact_fraction"][side] = round(float((d.min(1) <= CONTACT_THRESHOLD).mean()), 4)
         j = np.asarray(joints[side])
-        out["max_joint_speed_m_per_frame"] = max(out["max_joint_speed_m_per_frame"],
-                                                 float(np.linalg.norm(np.diff(j, axis=0), axis=-1).max()))
-        out["max_joint_accel_m_per_frame2"] = max(out["max_joint_accel_m_per_frame2"],
-                                                  float(np.linalg.norm(np.diff(j, 2, axis=0), axis=-1).max()))
+        out["max_joint_speed_m_per_frame"] = max(
+            out["max_joint_speed_m_per_frame"], float(np.linalg.norm(np.diff(j, axis=0), axis=-1).max())
+        )
+        out["max_joint_accel_m_per_frame2"] = max(
+            out["max_joint_accel_m_per_frame2"], float(np.linalg.norm(np.diff(j, 2, axis=0), axis=-1).max())
+        )
     for k in ("max_penetration_mm", "max_joint_speed_m_per_frame", "max_joint_accel_m_per_frame2"):
         out[k] = round(out[k], 5)
     return out

@@ -26,8 +26,15 @@ from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
 from hogsa_loader.synthetic.hand import HandSpec
 from hogsa_loader.synthetic.world.stage import light_for_camera
 
-__all__ = ["HAND_BASE_SKIN", "PosedSequence", "pose_sequence", "crop_boxes", "object_meshes",
-           "foreground", "SubjectRenderer"]
+__all__ = [
+    "HAND_BASE_SKIN",
+    "PosedSequence",
+    "pose_sequence",
+    "crop_boxes",
+    "object_meshes",
+    "foreground",
+    "SubjectRenderer",
+]
 
 #: Skin colour the synthetic hand's albedo was painted with; a subject's tone rescales it.
 HAND_BASE_SKIN = np.asarray(HandSpec().skin_rgb, dtype=np.float64)
@@ -65,10 +72,12 @@ def pose_sequence(layers: dict, mano: dict, obj_params: np.ndarray, template: Ob
         p = mano[side]
         dt = layer.v_template.dtype
         F = p["rot"].shape[0]
-        out = layer(global_orient=torch.as_tensor(p["rot"], dtype=dt),
-                    hand_pose=torch.as_tensor(p["pose"], dtype=dt),
-                    betas=torch.as_tensor(np.repeat(p["shape"][None], F, 0), dtype=dt),
-                    transl=torch.as_tensor(p["trans"], dtype=dt))
+        out = layer(
+            global_orient=torch.as_tensor(p["rot"], dtype=dt),
+            hand_pose=torch.as_tensor(p["pose"], dtype=dt),
+            betas=torch.as_tensor(np.repeat(p["shape"][None], F, 0), dtype=dt),
+            transl=torch.as_tensor(p["trans"], dtype=dt),
+        )
         hands[side] = out.vertices.to(_F32)
         joints[side] = out.joints.double().numpy()
     op = torch.as_tensor(np.asarray(obj_params, np.float64))
@@ -148,8 +157,18 @@ class SubjectRenderer:
         cropped_size: allocentric crop side; ego_scale: ego image scale; supersample: s.
     """
 
-    def __init__(self, rig, ego_K: np.ndarray, ego_dist: np.ndarray, stage: list, hand_faces: dict,
-                 hand_colors: dict, cropped_size: int, ego_scale: float, supersample: int = 1) -> None:
+    def __init__(
+        self,
+        rig,
+        ego_K: np.ndarray,
+        ego_dist: np.ndarray,
+        stage: list,
+        hand_faces: dict,
+        hand_colors: dict,
+        cropped_size: int,
+        ego_scale: float,
+        supersample: int = 1,
+    ) -> None:
         self.rig, self.stage, self.size, self.ss = rig, stage, cropped_size, supersample
         self.hand_faces, self.hand_colors = hand_faces, hand_colors
         self.lights = [light_for_camera(w) for w in rig.world2cam]
@@ -176,8 +195,16 @@ class SubjectRenderer:
             wb, hb = int(round(w * b)), int(round(h * b))
             K = render_intrinsics(np.diag([b, b, 1.0]) @ self.rig.K[view - 1])
             w2c = self.rig.world2cam[view - 1]
-            out = render_meshes(self.stage, torch.as_tensor(w2c, dtype=_F32), torch.as_tensor(K, dtype=_F32), hb, wb,
-                                light=self.lights[view - 1], background=(0.1, 0.1, 0.1), supersample=1)
+            out = render_meshes(
+                self.stage,
+                torch.as_tensor(w2c, dtype=_F32),
+                torch.as_tensor(K, dtype=_F32),
+                hb,
+                wb,
+                light=self.lights[view - 1],
+                background=(0.1, 0.1, 0.1),
+                supersample=1,
+            )
             self._bg[view] = (np.ascontiguousarray(out.rgb.numpy()), b)
         return self._bg[view]
 
@@ -192,11 +219,25 @@ class SubjectRenderer:
         ox, oy = bbox[0] - side / 2, bbox[1] - side / 2
         # crop pixel i shows label coordinate ox + i / k; background pixel q shows q / b
         M = np.array([[b / k, 0.0, b * ox], [0.0, b / k, b * oy]])
-        crop_bg = cv2.warpAffine(bg, M, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+        crop_bg = cv2.warpAffine(
+            bg,
+            M,
+            (size, size),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=(0, 0, 0),
+        )
         w2c = torch.as_tensor(self.rig.world2cam[view - 1], dtype=_F32)
-        out = render_meshes(fg, w2c, torch.as_tensor(Kc, dtype=_F32), size, size, light=self.lights[view - 1],
-                            background=torch.from_numpy(crop_bg), supersample=self.ss)
+        out = render_meshes(
+            fg,
+            w2c,
+            torch.as_tensor(Kc, dtype=_F32),
+            size,
+            size,
+            light=self.lights[view - 1],
+            background=torch.from_numpy(crop_bg),
+            supersample=self.ss,
+        )
         rgb = out.rgb.numpy()
         mask = out.part_id.numpy().astype(np.uint8)
         # crop pixels whose centre lies outside the full-resolution image are padding (black);
@@ -214,9 +255,16 @@ class SubjectRenderer:
         """Distorted egocentric image (h, w, 3) uint8 RGB and mask (h, w) uint8."""
         W = self.ego_w + 2 * self.pad_x
         H = self.ego_h + 2 * self.pad_y
-        out = render_meshes(self.stage + fg, torch.as_tensor(world2cam, dtype=_F32),
-                            torch.as_tensor(self.ego_K_pad, dtype=_F32), H, W, light=light_for_camera(world2cam),
-                            background=(0.1, 0.1, 0.1), supersample=self.ss)
+        out = render_meshes(
+            self.stage + fg,
+            torch.as_tensor(world2cam, dtype=_F32),
+            torch.as_tensor(self.ego_K_pad, dtype=_F32),
+            H,
+            W,
+            light=light_for_camera(world2cam),
+            background=(0.1, 0.1, 0.1),
+            supersample=self.ss,
+        )
         rgb = _to_uint8(out.rgb.numpy())
         pid = out.part_id.numpy()
         mask = np.where(pid <= max(MASK_IDS.values()), pid, 0).astype(np.uint8)

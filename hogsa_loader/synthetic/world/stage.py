@@ -17,8 +17,15 @@ import torch
 from hogsa_loader.render.mesh_raster import Light, MeshPart
 
 __all__ = [
-    "TABLE_Z", "TABLE_X", "TABLE_Y", "WORKSPACE", "STAGE_PART_ID",
-    "build_stage", "wood_texture", "world_light", "light_for_camera",
+    "TABLE_Z",
+    "TABLE_X",
+    "TABLE_Y",
+    "WORKSPACE",
+    "STAGE_PART_ID",
+    "build_stage",
+    "wood_texture",
+    "world_light",
+    "light_for_camera",
 ]
 
 TABLE_Z = 0.75
@@ -59,17 +66,19 @@ def wood_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     for _ in range(4):
         fu, fv = int(rng.integers(20, 60)), int(rng.integers(60, 140))
         fleck += np.sin(2 * np.pi * (fu * U + fv * (V + warp)) + rng.uniform(0, 2 * np.pi))
-    seam = np.exp(-(np.minimum(V, 1 - V) * size / 2.0) ** 2)  # dark line between planks
-    palettes = np.array([[0.78, 0.64, 0.46], [0.62, 0.60, 0.56], [0.86, 0.84, 0.80], [0.45, 0.30, 0.20],
-                         [0.70, 0.52, 0.36]])  # oak, grey laminate, white, walnut, pine
+    seam = np.exp(-((np.minimum(V, 1 - V) * size / 2.0) ** 2))  # dark line between planks
+    palettes = np.array(
+        [[0.78, 0.64, 0.46], [0.62, 0.60, 0.56], [0.86, 0.84, 0.80], [0.45, 0.30, 0.20], [0.70, 0.52, 0.36]]
+    )  # oak, grey laminate, white, walnut, pine
     base = palettes[int(rng.integers(0, len(palettes)))] * rng.uniform(0.92, 1.05, size=3)
     shade = 0.86 + 0.14 * grain + 0.02 * fleck / 4 - 0.4 * seam
     img = base[None, None] * shade[..., None]
     return np.clip(img, 0.0, 1.0).astype(np.float32)
 
 
-def _grid_quads(origin: np.ndarray, du: np.ndarray, dv: np.ndarray, nu: int, nv: int,
-                unweld: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _grid_quads(
+    origin: np.ndarray, du: np.ndarray, dv: np.ndarray, nu: int, nv: int, unweld: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A planar grid of nu x nv quads (2 triangles each).
 
     Args:
@@ -118,8 +127,9 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
     x0, x1 = TABLE_X
     y0, y1 = TABLE_Y
     nu, nv = int(round((x1 - x0) / TABLE_TILE)), int(round((y1 - y0) / TABLE_TILE))
-    v, f, uv, _ = _grid_quads(np.array([x0, y0, TABLE_Z]), np.array([x1 - x0, 0, 0]),
-                              np.array([0, y1 - y0, 0]), nu, nv, unweld=True)
+    v, f, uv, _ = _grid_quads(
+        np.array([x0, y0, TABLE_Z]), np.array([x1 - x0, 0, 0]), np.array([0, y1 - y0, 0]), nu, nv, unweld=True
+    )
     tex = wood_texture(rng)
     parts.append(MeshPart(_t(v), torch.as_tensor(f), STAGE_PART_ID, uv=_t(uv), texture=_t(tex)))
     # --- table edges (aprons) and legs, flat coloured
@@ -132,31 +142,53 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
         cols.append(np.tile(col, (len(vv), 1)))
 
     h = 0.04
-    for (o, du) in (((x0, y0), (x1 - x0, 0)), ((x1, y0), (0, y1 - y0)), ((x1, y1), (x0 - x1, 0)),
-                    ((x0, y1), (0, y0 - y1))):
-        gv, gf, _, _ = _grid_quads(np.array([o[0], o[1], TABLE_Z - h]), np.array([du[0], du[1], 0.0]),
-                                   np.array([0, 0, h]), 8, 1, unweld=False)
+    for o, du in (
+        ((x0, y0), (x1 - x0, 0)),
+        ((x1, y0), (0, y1 - y0)),
+        ((x1, y1), (x0 - x1, 0)),
+        ((x0, y1), (0, y0 - y1)),
+    ):
+        gv, gf, _, _ = _grid_quads(
+            np.array([o[0], o[1], TABLE_Z - h]), np.array([du[0], du[1], 0.0]), np.array([0, 0, h]), 8, 1, unweld=False
+        )
         add(gv, gf, edge_col)
     for lx in (x0 + 0.05, x1 - 0.09):
         for ly in (y0 + 0.05, y1 - 0.09):
-            for (o, du) in (((0, 0), (0.04, 0)), ((0.04, 0), (0, 0.04)), ((0.04, 0.04), (-0.04, 0)),
-                            ((0, 0.04), (0, -0.04))):
-                gv, gf, _, _ = _grid_quads(np.array([lx + o[0], ly + o[1], 0.0]), np.array([du[0], du[1], 0.0]),
-                                           np.array([0, 0, TABLE_Z - h]), 1, 4, unweld=False)
+            for o, du in (
+                ((0, 0), (0.04, 0)),
+                ((0.04, 0), (0, 0.04)),
+                ((0.04, 0.04), (-0.04, 0)),
+                ((0, 0.04), (0, -0.04)),
+            ):
+                gv, gf, _, _ = _grid_quads(
+                    np.array([lx + o[0], ly + o[1], 0.0]),
+                    np.array([du[0], du[1], 0.0]),
+                    np.array([0, 0, TABLE_Z - h]),
+                    1,
+                    4,
+                    unweld=False,
+                )
                 add(gv, gf, edge_col * 0.8)
     # --- room: tiled floor, walls with a lighter band and a door/window panel
     floor_a = np.array([0.55, 0.55, 0.53]) * rng.uniform(0.8, 1.1)
     floor_b = floor_a * 0.82
     n = 12
-    gv, gf, _, q = _grid_quads(np.array([-ROOM_HALF, -ROOM_HALF, 0.0]), np.array([2 * ROOM_HALF, 0, 0]),
-                               np.array([0, 2 * ROOM_HALF, 0]), n, n, unweld=True)
+    gv, gf, _, q = _grid_quads(
+        np.array([-ROOM_HALF, -ROOM_HALF, 0.0]),
+        np.array([2 * ROOM_HALF, 0, 0]),
+        np.array([0, 2 * ROOM_HALF, 0]),
+        n,
+        n,
+        unweld=True,
+    )
     checker = ((q // n + q % n) % 2)[:, None]
     faces.append(gf + sum(len(x) for x in verts))
     verts.append(gv)
     cols.append(np.where(checker == 1, floor_a, floor_b))
     hue = rng.uniform(0, 1)
-    wall = np.array([0.78, 0.76, 0.72]) + 0.08 * np.array([np.cos(2 * np.pi * hue), np.cos(2 * np.pi * (hue + 1 / 3)),
-                                                           np.cos(2 * np.pi * (hue + 2 / 3))])
+    wall = np.array([0.78, 0.76, 0.72]) + 0.08 * np.array(
+        [np.cos(2 * np.pi * hue), np.cos(2 * np.pi * (hue + 1 / 3)), np.cos(2 * np.pi * (hue + 2 / 3))]
+    )
     corners = [(-ROOM_HALF, -ROOM_HALF), (ROOM_HALF, -ROOM_HALF), (ROOM_HALF, ROOM_HALF), (-ROOM_HALF, ROOM_HALF)]
     for k in range(4):
         a = np.array([*corners[k], 0.0])
@@ -170,11 +202,23 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
         inward = -np.array([a[0] + b[0], a[1] + b[1], 0.0])
         inward /= np.linalg.norm(inward)
         c = rng.uniform(0.25, 0.7)
-        pv, pf, _, _ = _grid_quads(a + (b - a) * c + inward * 0.01 + np.array([0, 0, 0.9]),
-                                   (b - a) * 0.12, np.array([0, 0, 0.9]), 2, 2, unweld=False)
+        pv, pf, _, _ = _grid_quads(
+            a + (b - a) * c + inward * 0.01 + np.array([0, 0, 0.9]),
+            (b - a) * 0.12,
+            np.array([0, 0, 0.9]),
+            2,
+            2,
+            unweld=False,
+        )
         add(pv, pf, np.array([0.35, 0.3, 0.28]) * rng.uniform(0.7, 1.3, size=3))
-    parts.append(MeshPart(_t(np.concatenate(verts)), torch.as_tensor(np.concatenate(faces)), STAGE_PART_ID + 1,
-                          vertex_colors=_t(np.clip(np.concatenate(cols), 0, 1))))
+    parts.append(
+        MeshPart(
+            _t(np.concatenate(verts)),
+            torch.as_tensor(np.concatenate(faces)),
+            STAGE_PART_ID + 1,
+            vertex_colors=_t(np.clip(np.concatenate(cols), 0, 1)),
+        )
+    )
     return parts
 
 

@@ -32,9 +32,15 @@ __all__ = [
 
 #: SMPL-X parameters of ARCTIC's ``.smplx.npy`` and their widths.
 SMPLX_PARAMS: dict[str, int] = {
-    "transl": 3, "global_orient": 3, "body_pose": 63, "jaw_pose": 3, "leye_pose": 3, "reye_pose": 3,
-    "left_hand_pose": 45, "right_hand_pose": 45,
-}  # fmt: skip
+    "transl": 3,
+    "global_orient": 3,
+    "body_pose": 63,
+    "jaw_pose": 3,
+    "leye_pose": 3,
+    "reye_pose": 3,
+    "left_hand_pose": 45,
+    "right_hand_pose": 45,
+}
 #: Joints SMPL-X returns in ARCTIC's processing.
 SMPLX_JOINTS = 127
 #: Views of the processed ``cam_coord`` / ``2d`` points (ego, 8 allocentric, distorted ego).
@@ -44,14 +50,18 @@ _NO_BODY = "the world's subjects have hands but no body model, so there is no SM
 
 #: ARCTIC paths a world leaves out, and why.
 NOT_PROVIDED: tuple[dict[str, str], ...] = (
-    {"path": "body_models/smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz",
-     "reason": "SMPL-X is licensed and cannot be downloaded or fabricated here; ARCTIC opens it only in its "
-               "sequence processing (scripts_data/process_seqs.py, common/body_models.py build_subject_smplx / "
-               "construct_layers) and visualiser, not on the dataset or training path, and a world ships its "
-               "processed splits"},
-    {"path": "arctic_data/data/meta/subject_vtemplates/<sid>.obj",
-     "reason": "SMPL-X template meshes of the subjects, opened only with the SMPL-X model above; " + _NO_BODY},
-)  # fmt: skip
+    {
+        "path": "body_models/smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz",
+        "reason": "SMPL-X is licensed and cannot be downloaded or fabricated here; ARCTIC opens it only in its "
+        "sequence processing (scripts_data/process_seqs.py, common/body_models.py build_subject_smplx / "
+        "construct_layers) and visualiser, not on the dataset or training path, and a world ships its "
+        "processed splits",
+    },
+    {
+        "path": "arctic_data/data/meta/subject_vtemplates/<sid>.obj",
+        "reason": "SMPL-X template meshes of the subjects, opened only with the SMPL-X model above; " + _NO_BODY,
+    },
+)
 
 
 def smplx_raw(num_frames: int) -> dict[str, np.ndarray]:
@@ -114,14 +124,19 @@ def record() -> dict[str, list[dict[str, Any]]]:
     raw_keys = list(SMPLX_PARAMS)
     return {
         "stand_ins": [
-            {"path": "arctic_data/data/raw_seqs/<sid>/<seq>.smplx.npy", "keys": raw_keys,
-             "content": "float32 NaN with ARCTIC's shapes (F, width)",
-             "reason": _NO_BODY + "; ARCTIC's processing opens the file (src/arctic/preprocess_dataset.py)"},
-            {"path": "arctic_data/data/splits/<protocol>_<split>.npy",
-             "keys": ["cam_coord/joints.smplx", "2d/joints.smplx"] + [f"params/smplx_{k}" for k in raw_keys],
-             "content": f"float32 NaN, (F,{SPLIT_VIEWS},{SMPLX_JOINTS},3), (F,{SPLIT_VIEWS},{SMPLX_JOINTS},2), "
-                        "(F, width)",
-             "reason": _NO_BODY + "; ARCTIC's split check skips NaN in SMPL-X keys and its dataset never reads them"},
+            {
+                "path": "arctic_data/data/raw_seqs/<sid>/<seq>.smplx.npy",
+                "keys": raw_keys,
+                "content": "float32 NaN with ARCTIC's shapes (F, width)",
+                "reason": _NO_BODY + "; ARCTIC's processing opens the file (src/arctic/preprocess_dataset.py)",
+            },
+            {
+                "path": "arctic_data/data/splits/<protocol>_<split>.npy",
+                "keys": ["cam_coord/joints.smplx", "2d/joints.smplx"] + [f"params/smplx_{k}" for k in raw_keys],
+                "content": f"float32 NaN, (F,{SPLIT_VIEWS},{SMPLX_JOINTS},3), (F,{SPLIT_VIEWS},{SMPLX_JOINTS},2), "
+                "(F, width)",
+                "reason": _NO_BODY + "; ARCTIC's split check skips NaN in SMPL-X keys and its dataset never reads them",
+            },
         ],
         "not_provided": [dict(e) for e in NOT_PROVIDED],
     }

@@ -15,20 +15,30 @@ __all__ = ["Subject", "ARCTIC_GENDERS", "SKIN_TONES", "make_subject", "subject_r
 
 #: Gender of ARCTIC's subjects (comments of ARCTIC's ``src/arctic/split.py``).
 ARCTIC_GENDERS: dict[str, str] = {
-    "s01": "female", "s02": "female", "s03": "male", "s04": "male", "s05": "female",
-    "s06": "male", "s07": "male", "s08": "female", "s09": "female", "s10": "male",
+    "s01": "female",
+    "s02": "female",
+    "s03": "male",
+    "s04": "male",
+    "s05": "female",
+    "s06": "male",
+    "s07": "male",
+    "s08": "female",
+    "s09": "female",
+    "s10": "male",
 }
 
 #: Skin albedo anchors (linear-ish RGB in [0, 1]), light to dark; a subject picks a point
 #: between two neighbours. The synthetic hand's default skin is (0.80, 0.60, 0.50).
-SKIN_TONES: np.ndarray = np.array([
-    [0.92, 0.74, 0.64],
-    [0.84, 0.63, 0.52],
-    [0.74, 0.53, 0.40],
-    [0.60, 0.41, 0.30],
-    [0.44, 0.29, 0.21],
-    [0.32, 0.21, 0.15],
-])
+SKIN_TONES: np.ndarray = np.array(
+    [
+        [0.92, 0.74, 0.64],
+        [0.84, 0.63, 0.52],
+        [0.74, 0.53, 0.40],
+        [0.60, 0.41, 0.30],
+        [0.44, 0.29, 0.21],
+        [0.32, 0.21, 0.15],
+    ]
+)
 
 
 @dataclass(frozen=True)

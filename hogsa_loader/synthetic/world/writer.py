@@ -163,8 +163,9 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
         }
         for seq in plan.sequences:
             rng = _rng(seed, plan.sid, seq.name)
-            motion = build_motion(F, seq.object, seq.action, templates[seq.object], kits, subj.betas, rng,
-                                  grasp_iters=preset.grasp_iters)
+            motion = build_motion(
+                F, seq.object, seq.action, templates[seq.object], kits, subj.betas, rng, grasp_iters=preset.grasp_iters
+            )
             R_ego, T_ego = ego_trajectory(F, rng, motion.focus)
             mano = {side: motion.hands[side] for side in ("right", "left")}
             obj_params = motion.object_params.astype(np.float32)
@@ -190,8 +191,13 @@ PARTIAL_RECORD = ".hogsa_world_partial.json"
 def _partial_fingerprint(preset: WorldPreset, seed: int) -> dict:
     """What a partly rendered world must match to be resumed: generators, preset and seed."""
     digest = zlib.crc32(repr(preset).encode("utf-8"))
-    return {"generator": GENERATOR, "hand_generator": GENERATOR_VERSION, "preset": preset.name,
-            "preset_crc32": int(digest), "seed": int(seed)}
+    return {
+        "generator": GENERATOR,
+        "hand_generator": GENERATOR_VERSION,
+        "preset": preset.name,
+        "preset_crc32": int(digest),
+        "seed": int(seed),
+    }
 
 
 def _sequence_finished(data: Path, preset: WorldPreset, job, recorded: frozenset) -> bool:
@@ -203,14 +209,27 @@ def _sequence_finished(data: Path, preset: WorldPreset, job, recorded: frozenset
     stem = f"{preset.num_frames - 1 + job.subject.ioi_offset:05d}"
     last_mask = data / MASK_DIR / sid / name / "8" / f"{stem}.png"
     last_image = data / "cropped_images" / sid / name / "8" / f"{stem}.jpg"
-    return (last_mask.is_file() and last_image.is_file()
-            and cv2.imread(str(last_mask), cv2.IMREAD_UNCHANGED) is not None
-            and cv2.imread(str(last_image)) is not None)  # fmt: skip
+    return (
+        last_mask.is_file()
+        and last_image.is_file()
+        and cv2.imread(str(last_mask), cv2.IMREAD_UNCHANGED) is not None
+        and cv2.imread(str(last_image)) is not None
+    )
 
 
-def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dict, templates: dict, stage: list,
-            progress: bool, finished: frozenset = frozenset(),
-            on_finished: Optional[Callable[[str], None]] = None, workers: int = 1) -> list[dict]:
+def _render(
+    data: Path,
+    preset: WorldPreset,
+    jobs: list,
+    models: dict,
+    kits: dict,
+    templates: dict,
+    stage: list,
+    progress: bool,
+    finished: frozenset = frozenset(),
+    on_finished: Optional[Callable[[str], None]] = None,
+    workers: int = 1,
+) -> list[dict]:
     """Render every frame and view of every job (but the ``(sid, sequence)`` pairs in
     ``finished``, already on disk; ``on_finished("sid/seq")`` after each rendered one), one
     sequence per task on ``workers`` processes; returns per-sequence records with quality."""
@@ -219,30 +238,49 @@ def _render(data: Path, preset: WorldPreset, jobs: list, models: dict, kits: dic
     misc = json.loads((data / "meta" / "misc.json").read_text())
     layers = {side: kits[side].layer for side in ("right", "left")}
     hand_faces = {side: torch.as_tensor(models[side].faces) for side in ("right", "left")}
-    bar = tqdm(total=len(jobs) * F * 9, desc="hogsa world", unit="img", disable=not progress, smoothing=0.05,
-               mininterval=2.0)
+    bar = tqdm(
+        total=len(jobs) * F * 9, desc="hogsa world", unit="img", disable=not progress, smoothing=0.05, mininterval=2.0
+    )
     records, tasks = [], []
     for sid in dict.fromkeys(j.subject.sid for j in jobs):
         mine = [j for j in jobs if j.subject.sid == sid]
         m = misc[sid]
-        rig = AlloRig(world2cam=np.array(m["world2cam"]), K=np.array(m["intris_mat"]),
-                      sizes=[tuple(x) for x in m["image_size"][1:]])
+        rig = AlloRig(
+            world2cam=np.array(m["world2cam"]),
+            K=np.array(m["intris_mat"]),
+            sizes=[tuple(x) for x in m["image_size"][1:]],
+        )
         posed = [pose_sequence(layers, j.mano, j.obj_params, templates[j.plan.object]) for j in mine]
         boxes = [crop_boxes(rig, p.obj_mesh, size) for p in posed]  # (8, F, 3) each
         # the static background is rendered at the pixel density of this subject's densest crop
         density = np.max([size / (1.5 * 200 * b[..., 2]) for b in boxes], axis=(0, 2))
         tone = np.clip(np.asarray(mine[0].subject.skin_rgb) / HAND_BASE_SKIN, 0.2, 1.3)
-        colors = {side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=torch.float32)
-                  for side in ("right", "left")}
+        colors = {
+            side: torch.as_tensor(np.clip(models[side].vertex_colors * tone, 0, 1), dtype=torch.float32)
+            for side in ("right", "left")
+        }
         for job, p, bb in zip(mine, posed, boxes, strict=True):
             if (sid, job.plan.name) in finished:
                 bar.update(F * 9)
             else:
                 tasks.append(_RenderTask(job, p, bb, density, rig, mine[0].ego, colors))
-            quality = sequence_quality(p.joints, {k: v.numpy() for k, v in p.hands.items()},
-                                       job.obj_params.astype(np.float64), fit_part_boxes(templates[job.plan.object]))
-            records.append({"sid": sid, "seq": job.plan.name, "object": job.plan.object, "action": job.plan.action,
-                            "split": job.subject.split, "num_frames": F, "quality": quality})
+            quality = sequence_quality(
+                p.joints,
+                {k: v.numpy() for k, v in p.hands.items()},
+                job.obj_params.astype(np.float64),
+                fit_part_boxes(templates[job.plan.object]),
+            )
+            records.append(
+                {
+                    "sid": sid,
+                    "seq": job.plan.name,
+                    "object": job.plan.object,
+                    "action": job.plan.action,
+                    "split": job.subject.split,
+                    "num_frames": F,
+                    "quality": quality,
+                }
+            )
     shared = _RenderShared(data, preset, tasks, stage, hand_faces, templates)
     done = on_finished or (lambda name: None)
     if workers <= 1 or len(tasks) <= 1 or not can_fork():
@@ -293,11 +331,27 @@ def _render_task(shared: _RenderShared, task: _RenderTask, bar, renderers: dict)
     if renderer is None:
         renderers.clear()
         renderer = renderers[sid] = SubjectRenderer(
-            task.rig, task.ego["intrinsics"].astype(np.float64), task.ego["dist8"].astype(np.float64), shared.stage,
-            shared.hand_faces, task.colors, shared.preset.cropped_size, shared.preset.ego_image_scale,
-            shared.preset.supersample)  # fmt: skip
-    _render_sequence(shared.data, shared.preset, task.job, task.posed, task.boxes, task.density, renderer,
-                     shared.templates[task.job.plan.object], bar)
+            task.rig,
+            task.ego["intrinsics"].astype(np.float64),
+            task.ego["dist8"].astype(np.float64),
+            shared.stage,
+            shared.hand_faces,
+            task.colors,
+            shared.preset.cropped_size,
+            shared.preset.ego_image_scale,
+            shared.preset.supersample,
+        )
+    _render_sequence(
+        shared.data,
+        shared.preset,
+        task.job,
+        task.posed,
+        task.boxes,
+        task.density,
+        renderer,
+        shared.templates[task.job.plan.object],
+        bar,
+    )
     return task.name
 
 
@@ -339,17 +393,23 @@ def _render_in_processes(shared: _RenderShared, workers: int, bar, done: Callabl
     start = bar.n
     _SHARED = shared
     try:
-        run_forked(_process_task, [()] * len(shared.tasks), workers,
-                   on_result=lambda i, name: done(name), initializer=_process_init,
-                   initargs=(counter,),
-                   poll=lambda: bar.update(start + counter.value - bar.n))
+        run_forked(
+            _process_task,
+            [()] * len(shared.tasks),
+            workers,
+            on_result=lambda i, name: done(name),
+            initializer=_process_init,
+            initargs=(counter,),
+            poll=lambda: bar.update(start + counter.value - bar.n),
+        )
     finally:
         _SHARED = None
     bar.update(start + counter.value - bar.n)
 
 
-def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray,
-                     renderer, template, bar) -> None:
+def _render_sequence(
+    data: Path, preset: WorldPreset, job: _Job, posed, boxes: np.ndarray, density: np.ndarray, renderer, template, bar
+) -> None:
     """Write the cropped images and masks of one sequence (all frames, views 0..8)."""
     sid, name = job.subject.sid, job.plan.name
     meshes = object_meshes(template)
@@ -370,8 +430,11 @@ def _render_sequence(data: Path, preset: WorldPreset, job: _Job, posed, boxes: n
                 rgb, mask = renderer.render_ego(w2e[i], fg)
             else:
                 rgb, mask = renderer.render_allo(v, boxes[v - 1, i], fg, float(density[v - 1]))
-            cv2.imwrite(str(dirs[v][0] / f"{stem}.jpg"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                        [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality])
+            cv2.imwrite(
+                str(dirs[v][0] / f"{stem}.jpg"),
+                cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality],
+            )
             cv2.imwrite(str(dirs[v][1] / f"{stem}.png"), mask, [cv2.IMWRITE_PNG_COMPRESSION, 3])
             bar.update()
 
@@ -402,8 +465,9 @@ class _Progress:
 
     def keep(self, data: Path, preset: WorldPreset, jobs: list) -> frozenset:
         """The ``(sid, seq)`` pairs recorded as finished whose files are complete (recorded anew)."""
-        finished = frozenset((j.subject.sid, j.plan.name) for j in jobs
-                             if _sequence_finished(data, preset, j, self.recorded))  # fmt: skip
+        finished = frozenset(
+            (j.subject.sid, j.plan.name) for j in jobs if _sequence_finished(data, preset, j, self.recorded)
+        )
         self.record["finished"] = sorted(f"{sid}/{name}" for sid, name in finished)
         _write_json_atomic(self.path, self.record)
         return finished
@@ -435,8 +499,9 @@ def _world_record(preset: WorldPreset, seed: int, subjects: list, records: list[
     }
 
 
-def _write_extras(root: Path, preset: WorldPreset, preview: bool, process_splits: bool, progress: bool,
-                  timings: dict[str, float]) -> None:  # fmt: skip
+def _write_extras(
+    root: Path, preset: WorldPreset, preview: bool, process_splits: bool, progress: bool, timings: dict[str, float]
+) -> None:
     """``world_preview.png`` and ARCTIC's processed ``splits/`` (each when asked), timed into ``timings``."""
     if preview:
         t0 = time.perf_counter()
@@ -449,10 +514,17 @@ def _write_extras(root: Path, preset: WorldPreset, preview: bool, process_splits
         timings["splits_s"] = time.perf_counter() - t0
 
 
-def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: bool = True,
-                   process_splits: bool = True, preview: bool = True,
-                   log: Optional[Callable[[str], None]] = None, resume: bool = False,
-                   workers: Optional[int] = None) -> dict:
+def generate_world(
+    out: PathLike,
+    preset: WorldPreset,
+    seed: int = 0,
+    progress: bool = True,
+    process_splits: bool = True,
+    preview: bool = True,
+    log: Optional[Callable[[str], None]] = None,
+    resume: bool = False,
+    workers: Optional[int] = None,
+) -> dict:
     """Generate a world: ARCTIC's ``./data`` tree with rendered images.
 
     Layout written under ``out``::
@@ -516,8 +588,9 @@ def generate_world(out: PathLike, preset: WorldPreset, seed: int = 0, progress: 
     t0 = time.perf_counter()
     if workers is None:
         workers = _default_workers()
-    records = _render(data, preset, jobs, models, kits, templates, stage, progress, finished, partial.mark_finished,
-                      workers=workers)
+    records = _render(
+        data, preset, jobs, models, kits, templates, stage, progress, finished, partial.mark_finished, workers=workers
+    )
     timings["render_s"] = time.perf_counter() - t0
 
     record = _world_record(preset, seed, subjects, records)
