@@ -213,40 +213,39 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
-    """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle."""
+def _child_cfg(cfg: DemoConfig) -> DemoConfig:
+    """The settings a stage builds with: those of the stage process (no progress bars), else ``cfg``."""
+    return _CHILD_CFG or cfg
+
+
+def _world_stage(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, str]:
+    """Build (or reuse) the world in ``out/world`` unless ``cfg.data`` names one; its data root and key."""
     if cfg.data is not None:
         data = Path(os.path.abspath(cfg.data))
-        k_world = _key("data", str(data), cfg.seed)  # (the seed also drives every training stage below)
-    else:
-        world = out / "world"
-        data = world / "arctic_data" / "data"
-        preset = get_preset(cfg.preset)
-        k_world = _key("world", cfg.preset, cfg.seed)
-        stages.run(
-            "world",
-            k_world,
-            [world],
-            lambda: {
-                "sequences": len(
-                    generate_world(world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)[
-                        "sequences"
-                    ]
-                )
-            },
-            resumable=True,
-        )
+        return data, _key("data", str(data), cfg.seed)  # (the seed also drives every training stage)
+    world = out / "world"
+    data = world / "arctic_data" / "data"
+    preset = get_preset(cfg.preset)
+    k_world = _key("world", cfg.preset, cfg.seed)
+    stages.run(
+        "world",
+        k_world,
+        [world],
+        lambda: {
+            "sequences": len(
+                generate_world(world, preset, seed=cfg.seed, progress=cfg.progress, log=say, resume=True)["sequences"]
+            )
+        },
+        resumable=True,
+    )
+    return data, k_world
 
-    def child_cfg() -> DemoConfig:
-        return _CHILD_CFG or cfg
 
-    # (name, key, outputs, build, stages it needs): the stages between the world and the bundle
+def _hogs_nodes(cfg: DemoConfig, out: Path, data: Path, k_world: str) -> list[_StageNode]:
+    """One HOGS training stage per (subject, object) pair, into ``out/runs/hogs/<sid>_<obj>``."""
     nodes: list[_StageNode] = []
-    runs = []
-    k_hogs = []
     for sid, obj in cfg.pairs:
         run = out / "runs" / "hogs" / f"{sid}_{obj}"
-        runs.append(run)
         k = _key(
             "hogs",
             k_world,
@@ -260,21 +259,22 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
             cfg.hogs_object_subdivide,
             cfg.hogs_window,
         )
-        k_hogs.append(k)
         nodes.append(
             _StageNode(
                 f"hogs/{sid}_{obj}",
                 k,
                 [run],
-                lambda sid=sid, obj=obj, run=run: _train_hogs(child_cfg(), data, sid, obj, run),
+                lambda sid=sid, obj=obj, run=run: _train_hogs(_child_cfg(cfg), data, sid, obj, run),
             )
         )
+    return nodes
 
-    cn = out / "runs" / "contactnet"
-    k_cn = _key("contactnet", k_world, cfg.contactnet_iters)
+
+def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _StageNode:
+    """The ContactNet training stage, into ``cn``."""
 
     def contactnet() -> dict[str, Any]:
-        c = child_cfg()
+        c = _child_cfg(cfg)
         job = ContactNetJobConfig(
             data=ContactNetDataConfig(root=str(data)),
             optim=ContactNetOptimConfig(iters=c.contactnet_iters, seed=c.seed),
@@ -283,8 +283,11 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         m = fit_contactnet(job, progress=c.progress)
         return {k: m[k] for k in ("val_mae", "val_iou05")}
 
-    nodes.append(_StageNode("contactnet", k_cn, [cn], contactnet))
-    bank = out / "runs" / "pose_bank"
+    return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters), [cn], contactnet)
+
+
+def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> _StageNode:
+    """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, asdict(KEEP_ARTICULATION))  # the start perturbation
@@ -294,30 +297,36 @@ def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], Non
         ),
         run=BankRunConfig(out=str(bank), seed=cfg.seed),
     )
-    nodes.append(
-        _StageNode(
-            "bank",
-            k_bank,
-            [bank],
-            lambda: build_pose_bank(bank_cfg, progress=child_cfg().progress),
-            needs=("contactnet",),
-        )
+    return _StageNode(
+        "bank",
+        k_bank,
+        [bank],
+        lambda: build_pose_bank(bank_cfg, progress=_child_cfg(cfg).progress),
+        needs=("contactnet",),
     )
-    srm = out / "runs" / "srm"
+
+
+def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
+    """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle; the data root and bundle."""
+    data, k_world = _world_stage(cfg, out, stages, say)
+    # the stages between the world and the bundle
+    hogs = _hogs_nodes(cfg, out, data, k_world)
+    runs, k_hogs = [n.outputs[0] for n in hogs], [n.key for n in hogs]
+    cn, bank, srm = out / "runs" / "contactnet", out / "runs" / "pose_bank", out / "runs" / "srm"
+    cn_node = _contactnet_node(cfg, cn, data, k_world)
+    bank_node = _bank_node(cfg, bank, data, cn, cn_node.key)
     k_srm = _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment)
-    nodes.append(
-        _StageNode(
-            "srm",
-            k_srm,
-            [srm],
-            lambda: _train_srm(child_cfg(), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
-            needs=tuple(n.name for n in nodes if n.name.startswith("hogs/")),
-        )
+    srm_node = _StageNode(
+        "srm",
+        k_srm,
+        [srm],
+        lambda: _train_srm(_child_cfg(cfg), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
+        needs=tuple(n.name for n in hogs),
     )
-    _run_stage_graph(stages, nodes, cfg, say)
+    _run_stage_graph(stages, [*hogs, cn_node, bank_node, srm_node], cfg, say)
 
     bundle = out / "bundle"
-    k_bundle = _key("bundle", k_hogs, k_cn, k_bank, k_srm, BUNDLE_SCHEMA_VERSION)
+    k_bundle = _key("bundle", k_hogs, cn_node.key, bank_node.key, k_srm, BUNDLE_SCHEMA_VERSION)
     stages.run(
         "bundle",
         k_bundle,

@@ -257,6 +257,73 @@ def _cut_and_fill(plate: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, dic
     }
 
 
+def _subjects(cfg: PlateConfig, root: ArcticRoot) -> list[str]:
+    """The subjects to build: ``cfg.subjects``, or the training subjects of protocol p1.
+
+    Raises:
+        UsageError: a subject the data root does not have.
+    """
+    subjects = list(cfg.subjects) or sorted({s.split("/", 1)[0] for s in root.protocol("p1")["train"]})
+    unknown = [s for s in subjects if s not in root.subjects()]
+    if unknown:
+        raise UsageError(f"subjects {unknown} are not in {root.misc_path} (have {root.subjects()})")
+    return subjects
+
+
+def _sequence_cache(root: ArcticRoot, sid: str, seqs: Sequence[str], cfg: PlateConfig) -> dict:
+    """Per sequence name of subject ``sid``: ``(seq, {"frames", "boxes", "pose"})``, where ``pose``
+    poses the meshes of the sampled frames lazily (only when a mask is rendered)."""
+    cache: dict = {}
+    for name in seqs:
+        seq = root.sequence(sid, name)
+        frames = _frames(seq.num_frames, cfg.frames_per_sequence)
+        c = {
+            "frames": frames,
+            "boxes": crop_boxes(root, seq, cfg.views),
+            "pose": lambda seq=seq, frames=frames: pose_meshes(  # only when a mask is rendered
+                seq, frames, root.mano_layers(), root.object_templates()[seq.object.name]
+            ),
+        }
+        cache[name] = (seq, c)
+    return cache
+
+
+def _view_plate(
+    root: ArcticRoot, sid: str, view: int, seqs: Sequence[str], cfg: PlateConfig, cache: dict, out: Path
+) -> tuple[Optional[dict], Optional[dict]]:
+    """Build and write the plate of (``sid``, ``view``) into ``out``.
+
+    Returns:
+        ``(plate entry, None)`` when written, else ``(None, skipped record with its reason)``.
+
+    Raises:
+        AssetError: the plate cannot be encoded as PNG (and those of :func:`_plate_samples`).
+    """
+    samples, plate_hw, size = _plate_samples(root, sid, view, seqs, cfg, cache)
+    if not samples:
+        return None, {"subject": sid, "view": view, "reason": "no cropped images"}
+    plate, count = _median(samples, plate_hw)
+    if not (count > 0).any():
+        return None, {"subject": sid, "view": view, "reason": "no background pixel seen"}
+    cut, rec = _cut_and_fill(plate, count)
+    entry = {"subject": sid, "view": view, "frames": len(samples), "full_size": list(size), **rec}
+    if rec["coverage"] < cfg.min_coverage:
+        return None, {**entry, "reason": f"coverage {rec['coverage']:.2f} < {cfg.min_coverage}"}
+    fname = f"{sid}_view{view}.png"
+    ok, png = cv2.imencode(".png", cut)
+    if not ok:
+        raise AssetError(out / fname, "could not be encoded as PNG")
+    atomic_write(out / fname, png.tobytes())
+    return {"file": fname, **entry}, None
+
+
+def _remove_old_plates(out: Path, plates: Sequence[dict]) -> None:
+    """Delete plate PNGs in ``out`` not in ``plates`` (earlier builds' would be read as backgrounds too)."""
+    for old in out.glob("*_view*.png"):
+        if old.name not in {p["file"] for p in plates}:
+            old.unlink()
+
+
 def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) -> dict:
     """Write a clean plate per (subject, allocentric view) of a data root.
 
@@ -279,10 +346,7 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
         raise UsageError("build_plates needs data and out")
     say = log or (lambda _m: None)
     root = ArcticRoot(cfg.data)
-    subjects = list(cfg.subjects) or sorted({s.split("/", 1)[0] for s in root.protocol("p1")["train"]})
-    unknown = [s for s in subjects if s not in root.subjects()]
-    if unknown:
-        raise UsageError(f"subjects {unknown} are not in {root.misc_path} (have {root.subjects()})")
+    subjects = _subjects(cfg, root)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     plates, skipped = [], []
@@ -290,44 +354,17 @@ def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) 
         seqs = [s.split("/", 1)[1] for s in root.sequences(sid)]
         if not seqs:
             continue
-        cache: dict = {}
-        for name in seqs:
-            seq = root.sequence(sid, name)
-            frames = _frames(seq.num_frames, cfg.frames_per_sequence)
-            c = {
-                "frames": frames,
-                "boxes": crop_boxes(root, seq, cfg.views),
-                "pose": lambda seq=seq, frames=frames: pose_meshes(  # only when a mask is rendered
-                    seq, frames, root.mano_layers(), root.object_templates()[seq.object.name]
-                ),
-            }
-            cache[name] = (seq, c)
+        cache = _sequence_cache(root, sid, seqs, cfg)
         for view in cfg.views:
-            samples, plate_hw, size = _plate_samples(root, sid, view, seqs, cfg, cache)
-            if not samples:
-                skipped.append({"subject": sid, "view": view, "reason": "no cropped images"})
+            entry, skip = _view_plate(root, sid, view, seqs, cfg, cache, out)
+            if entry is None:
+                skipped.append(skip)
                 continue
-            plate, count = _median(samples, plate_hw)
-            if not (count > 0).any():
-                skipped.append({"subject": sid, "view": view, "reason": "no background pixel seen"})
-                continue
-            cut, rec = _cut_and_fill(plate, count)
-            entry = {"subject": sid, "view": view, "frames": len(samples), "full_size": list(size), **rec}
-            if rec["coverage"] < cfg.min_coverage:
-                skipped.append({**entry, "reason": f"coverage {rec['coverage']:.2f} < {cfg.min_coverage}"})
-                continue
-            fname = f"{sid}_view{view}.png"
-            ok, png = cv2.imencode(".png", cut)
-            if not ok:
-                raise AssetError(out / fname, "could not be encoded as PNG")
-            atomic_write(out / fname, png.tobytes())
-            plates.append({"file": fname, **entry})
-            say(f"{sid} view {view}: {len(samples)} frames, coverage {rec['coverage']:.2f} -> {fname}")
+            plates.append(entry)
+            say(f"{sid} view {view}: {entry['frames']} frames, coverage {entry['coverage']:.2f} -> {entry['file']}")
     if not plates:
         raise UsageError(f"no plate could be built from {cfg.data} (skipped: {skipped})")
-    for old in out.glob("*_view*.png"):  # plates of earlier builds would be read as backgrounds too
-        if old.name not in {p["file"] for p in plates}:
-            old.unlink()
+    _remove_old_plates(out, plates)
     manifest = {
         "kind": "hogsa background plates",
         "version": 1,

@@ -37,7 +37,7 @@ import tarfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Optional
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from tqdm import tqdm
 
@@ -379,6 +379,30 @@ def _write_shard(
     return len(keys)
 
 
+def _output_folder(out_dir: PathLike, num: int, shard_size: int) -> tuple[Path, bool]:
+    """The export folder (created) and whether this call created it.
+
+    Raises:
+        ValueError: ``num`` or ``shard_size`` is not positive.
+    """
+    if num <= 0 or shard_size <= 0:
+        raise ValueError(f"num and shard_size must be positive, got {num}, {shard_size}")
+    out = Path(out_dir)
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    return out, created
+
+
+def _progress_bar(todo: Sequence[int], num: int, shard_size: int, rank: int, world_size: int) -> Any:
+    """A tqdm bar over the samples of the shards ``todo``."""
+    return tqdm(
+        total=sum(len(shard_range(s, num, shard_size)) for s in todo),
+        unit="img",
+        dynamic_ncols=True,
+        desc=f"hogsa export (rank {rank}/{world_size})",
+    )
+
+
 def write_shards(
     frames_for_shard: Callable[[int], Iterable[SynthFrame]],
     out_dir: PathLike,
@@ -423,25 +447,12 @@ def write_shards(
     Raises:
         ExportMismatchError: ``out_dir`` holds shards of another export and not ``overwrite``.
     """
-    if num <= 0 or shard_size <= 0:
-        raise ValueError(f"num and shard_size must be positive, got {num}, {shard_size}")
-    out = Path(out_dir)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    out, created = _output_folder(out_dir, num, shard_size)
     n = num_shards(num, shard_size)
     settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
     todo, skipped = _shards_to_write(out, n, num, shard_size, rank, world_size, prefix, settings, overwrite)
     enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
-    bar = (
-        tqdm(
-            total=sum(len(shard_range(s, num, shard_size)) for s in todo),
-            unit="img",
-            dynamic_ncols=True,
-            desc=f"hogsa export (rank {rank}/{world_size})",
-        )
-        if progress and rank == 0
-        else None
-    )
+    bar = _progress_bar(todo, num, shard_size, rank, world_size) if progress and rank == 0 else None
     t_all = time.perf_counter()
     written_samples, dropped = 0, 0
     failed = True

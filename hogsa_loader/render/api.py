@@ -88,13 +88,11 @@ def render(
         backgrounds: (B, C, D) colour behind the Gaussians (D = 3 with SH), or None (0);
             part and depth channels always have background 0.
         part_ids: (B, N) integer part in [0, num_parts), or -1 for none (iff num_parts > 0).
-        backend, sh_degree, near_plane, far_plane, render_mode, num_parts, packed,
-        antialiased, eps2d, debug: the :class:`~hogsa_loader.render.settings.RenderSettings`
-            fields of the same names (one settings object is built here for the backend).
-        **torch_backend_options: the ``RenderSettings`` fields ``tile_size`` (16; also
-            used by gsplat), ``chunk``, ``tile_batch``, ``checkpoint`` and ``compositor``
-            (ignored by gsplat), and ``valid`` ((B, N) bool, False = padding; gsplat:
-            opacity 0). Any other name is a TypeError.
+        backend, sh_degree, near_plane, far_plane, render_mode, num_parts, packed, antialiased, eps2d, debug:
+            the :class:`~hogsa_loader.render.settings.RenderSettings` fields of the same names.
+        **torch_backend_options: the ``RenderSettings`` fields ``tile_size`` (16; also used by gsplat),
+            ``chunk``, ``tile_batch``, ``checkpoint`` and ``compositor`` (ignored by gsplat), and ``valid``
+            ((B, N) bool, False = padding; gsplat: opacity 0). Any other name is a TypeError.
 
     Returns:
         :class:`~hogsa_loader.render.gaussians.RenderOutput`: rgb (B, C, H, W, D),
@@ -109,32 +107,12 @@ def render(
         ``backend="gsplat"`` cannot run here (CPU tensors, not float32, no CUDA, gsplat or
         its CUDA extension missing; "auto" falls back to "torch").
     """
-    settings = _settings(
-        torch_backend_options,
-        backend=backend,
-        sh_degree=sh_degree,
-        near_plane=near_plane,
-        far_plane=far_plane,
-        eps2d=eps2d,
-        render_mode=render_mode,
-        num_parts=num_parts,
-        packed=packed,
-        antialiased=antialiased,
-        debug=debug,
-    )
+    fields = dict(backend=backend, sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d)
+    fields.update(render_mode=render_mode, num_parts=num_parts, packed=packed, antialiased=antialiased, debug=debug)
+    settings = _settings(torch_backend_options, **fields)
+    valid = torch_backend_options.get("valid")
     inputs = SplatInputs(
-        means,
-        quats,
-        scales,
-        opacities,
-        colors,
-        viewmats,
-        Ks,
-        width,
-        height,
-        backgrounds,
-        part_ids,
-        torch_backend_options.get("valid"),
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds, part_ids, valid
     )
     x, batched = _validate(inputs, settings)
     return _run_backend(x, settings, batched)
