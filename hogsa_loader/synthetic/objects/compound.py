@@ -113,6 +113,30 @@ def _lathe_ids(segments: int, rows: int, radii: np.ndarray, loop: bool) -> np.nd
     return ids
 
 
+def _lathe_grid(
+    prof: np.ndarray, axis: int, centre: Sequence[float], scale: Sequence[float], segments: int
+) -> np.ndarray:
+    """Points of the profile swept around the axis (see :func:`lathe`).
+
+    Args:
+        prof: (rows, 2) ``(r, h)`` samples.
+        axis, centre, scale, segments: as in :func:`lathe`.
+
+    Returns:
+        (segments + 1, rows, 3) points (mm); the last angle repeats the first exactly.
+    """
+    a, b, c = axis, (axis + 1) % 3, (axis + 2) % 3
+    phi = 2.0 * math.pi * np.arange(segments + 1) / segments
+    cos, sin = np.cos(phi), np.sin(phi)
+    cos[-1], sin[-1] = 1.0, 0.0
+    grid = np.zeros((segments + 1, prof.shape[0], 3))
+    grid[..., a] = prof[None, :, 1]
+    grid[..., b] = scale[0] * cos[:, None] * prof[None, :, 0]
+    grid[..., c] = scale[1] * sin[:, None] * prof[None, :, 0]
+    grid += np.asarray(centre, dtype=np.float64)
+    return grid
+
+
 def lathe(
     profile: np.ndarray,
     axis: int = 1,
@@ -148,15 +172,7 @@ def lathe(
     elif prof[0, 0] != 0.0 or prof[-1, 0] != 0.0:
         raise ValueError("an open lathe profile must start and end on the axis (r = 0)")
     rows = prof.shape[0]
-    a, b, c = axis, (axis + 1) % 3, (axis + 2) % 3
-    phi = 2.0 * math.pi * np.arange(segments + 1) / segments
-    cos, sin = np.cos(phi), np.sin(phi)
-    cos[-1], sin[-1] = 1.0, 0.0
-    grid = np.zeros((segments + 1, rows, 3))
-    grid[..., a] = prof[None, :, 1]
-    grid[..., b] = scale[0] * cos[:, None] * prof[None, :, 0]
-    grid[..., c] = scale[1] * sin[:, None] * prof[None, :, 0]
-    grid += np.asarray(centre, dtype=np.float64)
+    grid = _lathe_grid(prof, axis, centre, scale, segments)
     ids = _lathe_ids(segments, rows, prof[:, 0], loop)
 
     g = np.arange((segments + 1) * rows).reshape(segments + 1, rows)

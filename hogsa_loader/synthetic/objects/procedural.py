@@ -152,6 +152,46 @@ def _round_points(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, radius: fl
     return q + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def _face_grid_tris(nb: int, nc: int, sign: int) -> np.ndarray:
+    """Triangles of an (nb, nc) vertex grid on a box face, row-major vertex ids.
+
+    Args:
+        nb, nc: samples along the face's axes b and c (a, b, c cyclic).
+        sign: -1 or +1, the side of axis a the face is on; triangles face outward.
+
+    Returns:
+        (2 (nb-1) (nc-1), 3) int64 triangles.
+    """
+    g = np.arange(nb * nc).reshape(nb, nc)
+    v00, v10 = g[:-1, :-1].ravel(), g[1:, :-1].ravel()
+    v11, v01 = g[1:, 1:].ravel(), g[:-1, 1:].ravel()
+    if sign > 0:  # e_b x e_c = e_a: counter-clockwise in (b, c) faces +a
+        return np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    return np.concatenate([np.stack([v00, v11, v10], 1), np.stack([v00, v01, v11], 1)])
+
+
+def _chart_param(box_pts: np.ndarray, key_name: str, up_name: str, size: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Chart parameters of one box face: u along (up x normal), v along up, both in [0, 1].
+
+    Args:
+        box_pts: (n, 3) the face's grid points on the unrounded box (mm).
+        key_name: the face's key (its outward normal, see :func:`face_key`).
+        up_name: the face's image-up direction key.
+        size: (3,) box extent ``hi - lo`` (mm).
+
+    Returns:
+        (param (n, 2), ext_u, ext_v): the parameters and the chart's extent along u and v (mm).
+    """
+    normal = _unit(key_name)
+    v_dir = _unit(up_name)
+    u_dir = np.cross(v_dir, normal)
+    pu, pv = box_pts @ u_dir, box_pts @ v_dir
+    ext_u = float(np.abs(size) @ np.abs(u_dir))
+    ext_v = float(np.abs(size) @ np.abs(v_dir))
+    param = np.stack([(pu - pu.min()) / ext_u, (pv - pv.min()) / ext_v], axis=1)
+    return param, ext_u, ext_v
+
+
 def rounded_box(
     lo: Sequence[float],
     hi: Sequence[float],
@@ -190,13 +230,7 @@ def rounded_box(
             idx[:, b] = ib.ravel()
             idx[:, c] = ic.ravel()
             key = (idx[:, 0] * counts[1] + idx[:, 1]) * counts[2] + idx[:, 2]
-            g = np.arange(nb * nc).reshape(nb, nc)
-            v00, v10 = g[:-1, :-1].ravel(), g[1:, :-1].ravel()
-            v11, v01 = g[1:, 1:].ravel(), g[:-1, 1:].ravel()
-            if sign > 0:  # e_b x e_c = e_a: counter-clockwise in (b, c) faces +a
-                tris = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
-            else:
-                tris = np.concatenate([np.stack([v00, v11, v10], 1), np.stack([v00, v01, v11], 1)])
+            tris = _face_grid_tris(nb, nc, sign)
             box_pts = np.stack([coords[k][idx[:, k]] for k in range(3)], axis=1)
             keys_all.append(key)
             tris_all.append(tris)
@@ -218,14 +252,7 @@ def rounded_box(
         to_welded = inverse[offset : offset + n]
         offset += n
         faces.append(to_welded[tris])
-        # chart parameters: u along (up x normal), v along up
-        normal = _unit(key_name)
-        v_dir = _unit(up.get(key_name, default_up(key_name)))
-        u_dir = np.cross(v_dir, normal)
-        pu, pv = box_pts @ u_dir, box_pts @ v_dir
-        ext_u = float(np.abs(hi - lo) @ np.abs(u_dir))
-        ext_v = float(np.abs(hi - lo) @ np.abs(v_dir))
-        param = np.stack([(pu - pu.min()) / ext_u, (pv - pv.min()) / ext_v], axis=1)
+        param, ext_u, ext_v = _chart_param(box_pts, key_name, up.get(key_name, default_up(key_name)), hi - lo)
         mesh.chart_verts.append(welded[to_welded])
         mesh.chart_faces.append(tris)
         mesh.chart_param.append(param)

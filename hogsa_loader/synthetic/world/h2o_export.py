@@ -225,6 +225,45 @@ def _camera_records(
     return records
 
 
+def _export_record(
+    root: ArcticRoot,
+    subject: str,
+    sequence: str,
+    seq: SequenceData,
+    angle: float,
+    seed: int,
+    where: tuple[str, str, int],
+    cls: str,
+    mesh_path: Path,
+    out: Path,
+) -> dict[str, Any]:
+    """The ``source`` and ``h2o`` parts of the export record.
+
+    Args:
+        where: (h2o_subject, scene, seq_id) the sequence was written to.
+        mesh_path: the written object mesh, under ``out``.
+    """
+    h2o_subject, scene, seq_id = where
+    return {
+        "source": {
+            "arctic_root": str(root.data_root),
+            "subject": subject,
+            "sequence": sequence,
+            "object": seq.object.name,
+            "articulation": angle,
+            "stage_seed": int(seed),
+        },
+        "h2o": {
+            "subject": h2o_subject,
+            "scene": scene,
+            "seq": int(seq_id),
+            "object_class": cls,
+            "class_id": H2O_OBJECT_NAMES.index(cls),
+            "mesh": str(mesh_path.relative_to(out)),
+        },
+    }
+
+
 def export_h2o_world(
     arctic_root: PathLike,
     out: PathLike,
@@ -295,23 +334,10 @@ def export_h2o_world(
     if replace_old:  # (only now: a failed export leaves the old one in place)
         shutil.rmtree(seq_dir)
     write_h2o_sequence(out, h2o_subject, scene, seq_id, idx.tolist(), records)
-    record = {
-        "source": {
-            "arctic_root": str(root.data_root),
-            "subject": subject,
-            "sequence": sequence,
-            "object": seq.object.name,
-            "articulation": angle,
-            "stage_seed": int(seed),
-        },
-        "h2o": {
-            "subject": h2o_subject,
-            "scene": scene,
-            "seq": int(seq_id),
-            "object_class": cls,
-            "class_id": H2O_OBJECT_NAMES.index(cls),
-            "mesh": str(mesh_path.relative_to(out)),
-        },
+    record = _export_record(
+        root, subject, sequence, seq, angle, seed, (h2o_subject, scene, seq_id), cls, mesh_path, out
+    )
+    record |= {
         "cameras": {f"cam{k}": {"world_view": int(v)} for k, (v, _) in cams.items()},
         "frames": idx.tolist(),
         "image_size": [W, H],

@@ -115,15 +115,21 @@ def _t(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
     return torch.as_tensor(np.ascontiguousarray(x), dtype=dtype)
 
 
-def build_stage(rng: np.random.Generator) -> list[MeshPart]:
-    """Table (tiled wood texture, with a front apron) and a room (floor tiles, walls).
+#: A flat-coloured mesh piece: verts (V, 3), faces (F, 3) local to the piece, colours (V, 3).
+_Piece = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _flat(verts: np.ndarray, faces: np.ndarray, col: np.ndarray) -> _Piece:
+    """A piece with one colour (3,) on every vertex."""
+    return verts, faces, np.tile(col, (len(verts), 1))
+
+
+def _table_top(rng: np.random.Generator) -> tuple[MeshPart, np.ndarray]:
+    """Table top of 0.2 m tiles, each mapping the whole periodic wood texture.
 
     Returns:
-        list of MeshParts with part ids ``STAGE_PART_ID`` (table) and
-        ``STAGE_PART_ID + 1`` (room).
+        the textured MeshPart (part id ``STAGE_PART_ID``) and its (512, 512, 3) texture.
     """
-    parts: list[MeshPart] = []
-    # --- table top: 0.2 m tiles, each mapping the whole periodic wood texture
     x0, x1 = TABLE_X
     y0, y1 = TABLE_Y
     nu, nv = int(round((x1 - x0) / TABLE_TILE)), int(round((y1 - y0) / TABLE_TILE))
@@ -131,17 +137,15 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
         np.array([x0, y0, TABLE_Z]), np.array([x1 - x0, 0, 0]), np.array([0, y1 - y0, 0]), nu, nv, unweld=True
     )
     tex = wood_texture(rng)
-    parts.append(MeshPart(_t(v), torch.as_tensor(f), STAGE_PART_ID, uv=_t(uv), texture=_t(tex)))
-    # --- table edges (aprons) and legs, flat coloured
-    verts, faces, cols = [], [], []
-    edge_col = tex.reshape(-1, 3).mean(0) * 0.75
+    return MeshPart(_t(v), torch.as_tensor(f), STAGE_PART_ID, uv=_t(uv), texture=_t(tex)), tex
 
-    def add(vv: np.ndarray, ff: np.ndarray, col: np.ndarray) -> None:
-        faces.append(ff + sum(len(x) for x in verts))
-        verts.append(vv)
-        cols.append(np.tile(col, (len(vv), 1)))
 
+def _table_frame(edge_col: np.ndarray) -> list[_Piece]:
+    """The table's four edge aprons (0.04 m high) and four square legs, flat coloured."""
+    x0, x1 = TABLE_X
+    y0, y1 = TABLE_Y
     h = 0.04
+    pieces = []
     for o, du in (
         ((x0, y0), (x1 - x0, 0)),
         ((x1, y0), (0, y1 - y0)),
@@ -151,7 +155,7 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
         gv, gf, _, _ = _grid_quads(
             np.array([o[0], o[1], TABLE_Z - h]), np.array([du[0], du[1], 0.0]), np.array([0, 0, h]), 8, 1, unweld=False
         )
-        add(gv, gf, edge_col)
+        pieces.append(_flat(gv, gf, edge_col))
     for lx in (x0 + 0.05, x1 - 0.09):
         for ly in (y0 + 0.05, y1 - 0.09):
             for o, du in (
@@ -168,8 +172,12 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
                     4,
                     unweld=False,
                 )
-                add(gv, gf, edge_col * 0.8)
-    # --- room: tiled floor, walls with a lighter band and a door/window panel
+                pieces.append(_flat(gv, gf, edge_col * 0.8))
+    return pieces
+
+
+def _room_floor(rng: np.random.Generator) -> _Piece:
+    """The room's floor: 12 x 12 checkered tiles of two random grey shades."""
     floor_a = np.array([0.55, 0.55, 0.53]) * rng.uniform(0.8, 1.1)
     floor_b = floor_a * 0.82
     n = 12
@@ -182,23 +190,25 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
         unweld=True,
     )
     checker = ((q // n + q % n) % 2)[:, None]
-    faces.append(gf + sum(len(x) for x in verts))
-    verts.append(gv)
-    cols.append(np.where(checker == 1, floor_a, floor_b))
+    return gv, gf, np.where(checker == 1, floor_a, floor_b)
+
+
+def _room_walls(rng: np.random.Generator) -> list[_Piece]:
+    """Four walls of a random tint with a darker band, each with a darker panel (door / picture) in front."""
     hue = rng.uniform(0, 1)
     wall = np.array([0.78, 0.76, 0.72]) + 0.08 * np.array(
         [np.cos(2 * np.pi * hue), np.cos(2 * np.pi * (hue + 1 / 3)), np.cos(2 * np.pi * (hue + 2 / 3))]
     )
     corners = [(-ROOM_HALF, -ROOM_HALF), (ROOM_HALF, -ROOM_HALF), (ROOM_HALF, ROOM_HALF), (-ROOM_HALF, ROOM_HALF)]
+    pieces = []
     for k in range(4):
         a = np.array([*corners[k], 0.0])
         b = np.array([*corners[(k + 1) % 4], 0.0])
         gv, gf, uvw, _ = _grid_quads(a, b - a, np.array([0, 0, ROOM_HEIGHT]), 10, 6, unweld=False)
         shade = wall * (0.86 + 0.14 * uvw[:, 1:2]) * (0.92 + 0.08 * (k % 2))
         band = (uvw[:, 1:2] > 0.28) & (uvw[:, 1:2] < 0.34)
-        add(gv, gf, np.array([0.0, 0.0, 0.0]))
-        cols[-1] = np.where(band, wall * 0.7, shade)
-        # a darker panel (door / picture) on each wall, slightly in front of it
+        pieces.append((gv, gf, np.where(band, wall * 0.7, shade)))
+        # the panel sits slightly in front of the wall
         inward = -np.array([a[0] + b[0], a[1] + b[1], 0.0])
         inward /= np.linalg.norm(inward)
         c = rng.uniform(0.25, 0.7)
@@ -210,16 +220,37 @@ def build_stage(rng: np.random.Generator) -> list[MeshPart]:
             2,
             unweld=False,
         )
-        add(pv, pf, np.array([0.35, 0.3, 0.28]) * rng.uniform(0.7, 1.3, size=3))
-    parts.append(
-        MeshPart(
-            _t(np.concatenate(verts)),
-            torch.as_tensor(np.concatenate(faces)),
-            STAGE_PART_ID + 1,
-            vertex_colors=_t(np.clip(np.concatenate(cols), 0, 1)),
-        )
+        pieces.append(_flat(pv, pf, np.array([0.35, 0.3, 0.28]) * rng.uniform(0.7, 1.3, size=3)))
+    return pieces
+
+
+def _merge(pieces: list[_Piece], part_id: int) -> MeshPart:
+    """One vertex-coloured MeshPart from pieces (face indices offset, colours clipped to [0, 1])."""
+    faces, offset = [], 0
+    for verts, ff, _ in pieces:
+        faces.append(ff + offset)
+        offset += len(verts)
+    return MeshPart(
+        _t(np.concatenate([p[0] for p in pieces])),
+        torch.as_tensor(np.concatenate(faces)),
+        part_id,
+        vertex_colors=_t(np.clip(np.concatenate([p[2] for p in pieces]), 0, 1)),
     )
-    return parts
+
+
+def build_stage(rng: np.random.Generator) -> list[MeshPart]:
+    """Table (tiled wood texture, with a front apron) and a room (floor tiles, walls).
+
+    Returns:
+        list of MeshParts with part ids ``STAGE_PART_ID`` (table) and
+        ``STAGE_PART_ID + 1`` (room: table aprons and legs, floor, walls).
+    """
+    top, tex = _table_top(rng)
+    edge_col = tex.reshape(-1, 3).mean(0) * 0.75
+    pieces = _table_frame(edge_col)
+    pieces.append(_room_floor(rng))
+    pieces += _room_walls(rng)
+    return [top, _merge(pieces, STAGE_PART_ID + 1)]
 
 
 def world_light() -> np.ndarray:

@@ -514,6 +514,28 @@ def _write_extras(
         timings["splits_s"] = time.perf_counter() - t0
 
 
+def _write_inputs(
+    root: Path, data: Path, preset: WorldPreset, seed: int, timings: dict[str, float], say: Callable[[str], None]
+) -> tuple[dict, dict, dict, list, list, list]:
+    """Write the assets, then the motion and annotations; time both into ``timings``.
+
+    Returns:
+        (models, kits, templates, stage, subjects, jobs): the outputs of :func:`_write_assets`,
+        one :class:`HandKit` per side, and the outputs of :func:`_write_annotations`.
+    """
+    t0 = time.perf_counter()
+    models, templates, stage = _write_assets(root, preset, seed)
+    kits = {side: HandKit(m) for side, m in models.items()}
+    timings["assets_s"] = time.perf_counter() - t0
+    say(f"assets written ({timings['assets_s']:.1f} s)")
+
+    t0 = time.perf_counter()
+    subjects, jobs = _write_annotations(data, preset, seed, kits, templates)
+    timings["motion_s"] = time.perf_counter() - t0
+    say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
+    return models, kits, templates, stage, subjects, jobs
+
+
 def generate_world(
     out: PathLike,
     preset: WorldPreset,
@@ -571,17 +593,7 @@ def generate_world(
     data = root / "arctic_data" / "data"
     partial = _Progress(root, preset, seed, resume)
 
-    t0 = time.perf_counter()
-    models, templates, stage = _write_assets(root, preset, seed)
-    kits = {side: HandKit(m) for side, m in models.items()}
-    timings["assets_s"] = time.perf_counter() - t0
-    say(f"assets written ({timings['assets_s']:.1f} s)")
-
-    t0 = time.perf_counter()
-    subjects, jobs = _write_annotations(data, preset, seed, kits, templates)
-    timings["motion_s"] = time.perf_counter() - t0
-    say(f"motion and annotations written ({timings['motion_s']:.1f} s)")
-
+    models, kits, templates, stage, subjects, jobs = _write_inputs(root, data, preset, seed, timings, say)
     finished = partial.keep(data, preset, jobs)
     if finished:
         say(f"resuming: {len(finished)} of {len(jobs)} sequences already rendered")
