@@ -49,6 +49,7 @@ from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.objects.rigid import H2O_OBJECT_NAMES
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_data import (
+    FrameSelection,
     HogsData,
     ViewSample,
     check_subject,
@@ -154,13 +155,7 @@ def load_h2o_hogs_data(
     *,
     mano_layers: Mapping[str, torch.nn.Module],
     template: ObjectTemplate,
-    sequences: Optional[Sequence[str]] = None,
-    views: Sequence[int] = H2O_VIEWS,
-    eval_views: Sequence[int] = H2O_EVAL_VIEWS,
-    eval_every_frame: int = 8,
-    frame_stride: int = 1,
-    image_size: Optional[int] = None,
-    max_eval: int = 8,
+    selection: Optional[FrameSelection] = None,
     crop_enlarge: float = CROP_ENLARGE_H2O,
 ) -> HogsData:
     """Load every training and held-out (frame, view) of an H2O ``subject`` + ``object_name``.
@@ -170,21 +165,20 @@ def load_h2o_hogs_data(
         subject: e.g. ``"subject1"``; object_name: H2O class name (``"book"``...).
         mano_layers: ``{"right", "left"}`` MANO layers, ``flat_hand_mean=False``.
         template: the object's rigid template (:func:`~hogsa_loader.objects.h2o_meshes.load_h2o_object`).
-        sequences: ``"scene/seq"`` names (default every sequence showing the object).
-        views: cameras used (default the static 0–3); eval_views: held out among them.
-        eval_every_frame, frame_stride, max_eval: as :func:`~hogsa_loader.train.hogs_data.load_hogs_data`.
-        image_size: training resolution (default :data:`H2O_CROP_SIZE`).
+        selection: frames, views and resolution (default views: the static cameras 0–3,
+            camera 3 held out; default size: :data:`H2O_CROP_SIZE`).
         crop_enlarge: crop side / extent of the projected meshes.
     """
-    chosen = select_h2o_sequences(root, subject, object_name, sequences)
-    views = tuple(int(v) for v in views)
-    train_views, eval_views = check_views(views, eval_views)
-    size = int(image_size or H2O_CROP_SIZE)
+    sel = selection or FrameSelection()
+    chosen = select_h2o_sequences(root, subject, object_name, sel.sequences)
+    views = tuple(int(v) for v in (H2O_VIEWS if sel.views is None else sel.views))
+    train_views, eval_views = check_views(views, H2O_EVAL_VIEWS if sel.eval_views is None else sel.eval_views)
+    size = int(sel.image_size or H2O_CROP_SIZE)
     seqs, train, held = [], [], []
     for si, (scene, seq_id, cid) in enumerate(chosen):
         seq = _open_sequence(root, subject, scene, seq_id, cid, mano_layers, views)
         seqs.append(seq)
-        jobs = _sequence_jobs(seq, views, frame_stride, train_views, eval_views, eval_every_frame)
+        jobs = _sequence_jobs(seq, views, sel.frame_stride, train_views, eval_views, sel.eval_every_frame)
         if not jobs:
             continue
         posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), mano_layers, template)
@@ -192,7 +186,7 @@ def load_h2o_hogs_data(
             s = _crop_sample(seq, posed, si, v, f, size, crop_enlarge)
             if s is not None:
                 (held if role == "eval" else train).append(s)
-    train, held = split_samples(train, held, max_eval, f"H2O {subject}/{object_name} (views {views})")
+    train, held = split_samples(train, held, sel.max_eval, f"H2O {subject}/{object_name} (views {views})")
     return HogsData(
         subject,
         object_name,

@@ -45,7 +45,7 @@ from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_li
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_config import HogsConfig
-from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
+from hogsa_loader.train.hogs_data import MASK_MODES, FrameSelection, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
 from hogsa_loader.train.losses import hogs_loss
@@ -179,13 +179,15 @@ class HogsTrainer:
         return self.source.load(
             data.subject,
             data.object,
-            sequences=_list(data.sequences),
-            views=list(data.views),
-            eval_views=list(data.eval_views),
-            eval_every_frame=data.eval_every_frame,
-            frame_stride=data.frame_stride,
-            image_size=data.image_size,
-            max_eval=data.max_eval,
+            FrameSelection(
+                sequences=_list(data.sequences),
+                views=list(data.views),
+                eval_views=list(data.eval_views),
+                eval_every_frame=data.eval_every_frame,
+                frame_stride=data.frame_stride,
+                image_size=data.image_size,
+                max_eval=data.max_eval,
+            ),
             masks=data.masks,
             window=data.window,
         )
