@@ -24,6 +24,7 @@ from hogsa_loader.objects.h2o_meshes import H2O_MESH_NAMES, find_h2o_mesh, h2o_m
 from hogsa_loader.objects.template import BOTTOM
 from hogsa_loader.synthetic.world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 from hogsa_loader.train import HogsConfig, HogsTrainer
+from hogsa_loader.train.hogs_data import FrameSelection
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
 
@@ -192,7 +193,9 @@ def test_h2o_data_alignment(h2o_world, tiny_world):
     out, _ = h2o_world
     layers = mano_layers_from_dir(Path(tiny_world) / "body_models" / "mano")
     tpl = load_h2o_object(out / "object", "book")
-    data = load_h2o_hogs_data(H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, image_size=64)
+    data = load_h2o_hogs_data(
+        H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, selection=FrameSelection(image_size=64)
+    )
     assert data.train_views == (0, 1, 2) and data.eval_views == (3,) and data.mask_source == "render"
     assert {s.view for s in data.train} == {0, 1, 2} and {s.view for s in data.eval} == {3}
     assert len(data.train) >= 30 and data.crop_size == 256
@@ -215,17 +218,21 @@ def test_h2o_data_alignment(h2o_world, tiny_world):
     with pytest.raises(ValueError, match="no sequence with object 'milk'"):
         load_h2o_hogs_data(H2ORoot(out), "subject1", "milk", mano_layers=layers, template=tpl)
     with pytest.raises(ValueError, match="eval views must be among"):
-        load_h2o_hogs_data(H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, eval_views=(4,))
+        load_h2o_hogs_data(
+            H2ORoot(out),
+            "subject1",
+            "book",
+            mano_layers=layers,
+            template=tpl,
+            selection=FrameSelection(eval_views=(4,)),
+        )
     ego = load_h2o_hogs_data(
         H2ORoot(out),
         "subject1",
         "book",
         mano_layers=layers,
         template=tpl,
-        image_size=32,
-        views=(0, 1, 2, 3, 4),
-        frame_stride=4,
-        eval_every_frame=2,
+        selection=FrameSelection(image_size=32, views=(0, 1, 2, 3, 4), frame_stride=4, eval_every_frame=2),
     )
     assert 4 in {s.view for s in ego.train}
 

@@ -21,7 +21,7 @@ from hogsa_loader.compose.part_masks import inside_image, pose_meshes, render_pa
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, render_intrinsics
-from hogsa_loader.train import HogsConfig, HogsTrainer, load_hogs_data
+from hogsa_loader.train import FrameSelection, HogsConfig, HogsTrainer, load_hogs_data
 
 PARTS = (1, 2, 3, 4)
 
@@ -86,9 +86,9 @@ def test_inside_image_rule():
 
 def test_training_resolution_masks_match_resized_files(tiny_world):
     root = ArcticRoot(tiny_world)
-    kw = dict(frame_stride=8, image_size=128)
-    a = load_hogs_data(root, "s05", "box", masks="files", **kw)
-    b = load_hogs_data(root, "s05", "box", masks="render", **kw)
+    frames = FrameSelection(frame_stride=8, image_size=128)
+    a = load_hogs_data(root, "s05", "box", frames, masks="files")
+    b = load_hogs_data(root, "s05", "box", frames, masks="render")
     assert (a.mask_source, b.mask_source) == ("files", "render")
     assert [(s.frame, s.view) for s in a.train + a.eval] == [(s.frame, s.view) for s in b.train + b.eval]
     A = np.stack([s.mask for s in a.train + a.eval])
@@ -107,10 +107,10 @@ def test_foreground_window_matches_files(tiny_world):
     """``window="fg"``: the file masks cut to each window line up with masks rendered through
     the window's intrinsics, the window holds all of the hands and object, and it zooms in."""
     root = ArcticRoot(tiny_world)
-    kw = dict(frame_stride=8, image_size=64)
-    crop = load_hogs_data(root, "s05", "box", masks="files", **kw)
-    a = load_hogs_data(root, "s05", "box", masks="files", window="fg", **kw)
-    b = load_hogs_data(root, "s05", "box", masks="render", window="fg", **kw)
+    frames = FrameSelection(frame_stride=8, image_size=64)
+    crop = load_hogs_data(root, "s05", "box", frames, masks="files")
+    a = load_hogs_data(root, "s05", "box", frames, masks="files", window="fg")
+    b = load_hogs_data(root, "s05", "box", frames, masks="render", window="fg")
     assert [(s.frame, s.view) for s in a.train] == [(s.frame, s.view) for s in crop.train]
     A = np.stack([s.mask for s in a.train + a.eval])
     B = np.stack([s.mask for s in b.train + b.eval])
@@ -137,7 +137,7 @@ def test_foreground_window_matches_files(tiny_world):
     assert sum(touches(a_) for a_ in A) < len(A) // 2
     assert float((A > 0).mean()) > 1.2 * float((C > 0).mean())  # tiny world (256-px crops, 64-px windows ≥ 192)
     with pytest.raises(ValueError, match="window"):
-        load_hogs_data(root, "s05", "box", window="tight", **kw)
+        load_hogs_data(root, "s05", "box", frames, window="tight")
 
 
 def _maskless_root(world: Path, tmp: Path) -> Path:

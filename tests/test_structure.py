@@ -27,11 +27,7 @@ REPEATED_PARAMS_ALLOWED = {
     (
         "hogsa_loader/gaussians/parts.py __init__",
         "hogsa_loader/gaussians/parts.py __init__",
-    ): "hand and object parts take the same Gaussian-binding keywords, recorded flat in checkpoints",
-    (
-        "hogsa_loader/train/hogs_data.py load_hogs_data",
-        "hogsa_loader/train/hogs_data_h2o.py load_h2o_hogs_data",
-    ): "the ARCTIC and H2O frame loaders take the same frame-selection keywords",
+    ): "hand and object parts take the same Gaussian-binding keywords, recorded flat in checkpoints"
 }
 
 

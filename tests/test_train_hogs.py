@@ -15,7 +15,7 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import project, transform
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import load_part
-from hogsa_loader.train import HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
+from hogsa_loader.train import FrameSelection, HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,7 +61,7 @@ def _photo(trainer: HogsTrainer, samples) -> float:
 def test_data_alignment(tiny_world):
     """Crops, intrinsics and masks line up: projected object vertices land on object pixels."""
     root = ArcticRoot(tiny_world)
-    data = load_hogs_data(root, "s01", "box", frame_stride=8, image_size=128)
+    data = load_hogs_data(root, "s01", "box", FrameSelection(frame_stride=8, image_size=128))
     assert set(data.eval_views) == {8} and 8 not in data.train_views
     assert all(s.view == 8 for s in data.eval) and all(s.view != 8 for s in data.train)
     train_frames = {(s.seq_index, s.frame) for s in data.train}

@@ -232,6 +232,23 @@ def _rot_cam(world2cam: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return torch.stack(views, dim=1).numpy()
 
 
+def _float32_layers(mano_layers: Mapping[str, Any]) -> dict[str, Any]:
+    """The MANO layers with float32 buffers, as ARCTIC's (a float32 layer is used as is, others copied)."""
+    return {
+        side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
+        for side, layer in mano_layers.items()
+    }
+
+
+def _concat_chunks(acc: dict[str, dict[str, list[np.ndarray]]]) -> dict[str, Any]:
+    """Join the per-chunk arrays over frames: ``world_coord``/``cam_coord``/``2d`` dicts and the (F,9,3) ``bbox``."""
+    out: dict[str, Any] = {
+        g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
+    }
+    out["bbox"] = np.concatenate(acc["bbox"]["bbox"], axis=0)
+    return out
+
+
 def process_sequence(
     seq: SequenceData,
     mano_layers: Mapping[str, Any],
@@ -298,10 +315,7 @@ def process_sequence(
     keep = _POINT_KEYS + (_VERT_KEYS if export_verts else ())
     ego_box = ego_bbox(tuple(ego_image_size)).astype(np.float32)
     obj = _object_tensors(seq, object_layer)
-    mano_layers = {
-        side: layer if layer.v_template.dtype == torch.float32 else copy.deepcopy(layer).float()
-        for side, layer in mano_layers.items()
-    }  # ARCTIC's layer holds float32 buffers
+    mano_layers = _float32_layers(mano_layers)
     acc: dict[str, dict[str, list[np.ndarray]]] = {"world_coord": {}, "cam_coord": {}, "2d": {}, "bbox": {}}
     with torch.no_grad():
         for start in range(0, F, max(1, chunk_frames)):
@@ -310,10 +324,7 @@ def process_sequence(
                 seq, sl, world2cam, K, dist, mano_layers, obj, keep, ego_box, sizes
             ):
                 acc[group].setdefault(key, []).append(value)
-    out: dict[str, Any] = {
-        g: {k: np.concatenate(v, axis=0) for k, v in acc[g].items()} for g in ("world_coord", "cam_coord", "2d")
-    }
-    out["bbox"] = np.concatenate(acc["bbox"]["bbox"], axis=0)
+    out = _concat_chunks(acc)
     out["params"] = _params(seq, world2cam[:, EGO_VIEW], K[:, EGO_VIEW], dist)
     return out
 

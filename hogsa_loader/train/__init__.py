@@ -8,7 +8,15 @@ from hogsa_loader.train.hogs_config import (
     HogsOptimConfig,
     HogsRunConfig,
 )
-from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask, load_hogs_data, select_sequences
+from hogsa_loader.train.hogs_data import (
+    MASK_MODES,
+    FrameSelection,
+    HogsData,
+    ViewSample,
+    dilate_mask,
+    load_hogs_data,
+    select_sequences,
+)
 from hogsa_loader.train.hogs_data_h2o import load_h2o_hogs_data
 from hogsa_loader.train.hogs_source import HogsSource, load_run_data, open_hogs_source
 from hogsa_loader.train.hogs_trainer import BASE_LRS, PART_NAMES, HogsTrainer
@@ -16,6 +24,7 @@ from hogsa_loader.train.losses import alpha_outside, box_of, hogs_loss, masked_l
 
 __all__ = [
     "BASE_LRS",
+    "FrameSelection",
     "MASK_MODES",
     "PART_NAMES",
     "HogsConfig",

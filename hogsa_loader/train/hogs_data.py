@@ -54,6 +54,7 @@ __all__ = [
     "WINDOWS",
     "ViewSample",
     "foreground_window",
+    "FrameSelection",
     "HogsData",
     "select_sequences",
     "check_subject",
@@ -71,6 +72,31 @@ __all__ = [
 MASK_MODES = ("auto", "files", "render")
 #: Which part of each cropped image is trained on (``load_hogs_data(window=...)``).
 WINDOWS = ("crop", "fg")
+
+
+@dataclass(frozen=True)
+class FrameSelection:
+    """Which (frame, view) images a HOGS loader uses, and at what resolution.
+
+    Attributes:
+        sequences: sequence names (None: every sequence of the subject with the object;
+            H2O names them ``"scene/seq"``).
+        views: camera views used (None: the dataset's default).
+        eval_views: views held out from training, among ``views`` (None: the dataset's default).
+        eval_every_frame: of the used frames (after ``frame_stride``), those at positions
+            ``i % eval_every_frame == eval_every_frame // 2`` are held out (0: none).
+        frame_stride: use every n-th frame only.
+        image_size: training resolution (None: the dataset's crop size).
+        max_eval: at most this many held-out samples (evenly spaced).
+    """
+
+    sequences: Optional[Sequence[str]] = None
+    views: Optional[Sequence[int]] = None
+    eval_views: Optional[Sequence[int]] = None
+    eval_every_frame: int = 8
+    frame_stride: int = 1
+    image_size: Optional[int] = None
+    max_eval: int = 8
 
 
 @dataclass
@@ -327,14 +353,8 @@ def load_hogs_data(
     root: ArcticRoot,
     subject: str,
     object_name: str,
+    selection: Optional[FrameSelection] = None,
     *,
-    sequences: Optional[Sequence[str]] = None,
-    views: Sequence[int] = ALLO_VIEWS,
-    eval_views: Sequence[int] = (8,),
-    eval_every_frame: int = 8,
-    frame_stride: int = 1,
-    image_size: Optional[int] = None,
-    max_eval: int = 8,
     masks: str = "auto",
     window: str = "crop",
     window_margin: float = 0.15,
@@ -343,14 +363,8 @@ def load_hogs_data(
 
     Args:
         root: the ARCTIC(-format) root.
-        sequences: sequence names to use (default every sequence of the subject with the object).
-        views: allocentric views used (default 1..8).
-        eval_views: views held out from training (among ``views``).
-        eval_every_frame: of the used frames (after ``frame_stride``), those at positions
-            ``i % eval_every_frame == eval_every_frame // 2`` are held out (0: none).
-        frame_stride: use every n-th frame only.
-        image_size: training resolution (default the cropped size).
-        max_eval: at most this many held-out samples (evenly spaced).
+        selection: frames, views and resolution (default views: allocentric 1..8, view 8
+            held out; default size: the cropped size).
         masks: ``"auto"``, ``"files"`` or ``"render"`` (module docstring).
         window: ``"crop"`` or ``"fg"`` (module docstring); window_margin: its margin.
     """
@@ -358,23 +372,24 @@ def load_hogs_data(
         raise ValueError(f"masks must be one of {MASK_MODES}, got {masks!r}")
     if window not in WINDOWS:
         raise ValueError(f"window must be one of {WINDOWS}, got {window!r}")
-    names = select_sequences(root, subject, object_name, sequences)
-    views = tuple(int(v) for v in views)
+    sel = selection or FrameSelection()
+    names = select_sequences(root, subject, object_name, sel.sequences)
+    views = tuple(int(v) for v in (ALLO_VIEWS if sel.views is None else sel.views))
     bad = [v for v in views if v not in ALLO_VIEWS]
     if bad:
         raise ValueError(f"views must be allocentric views {ALLO_VIEWS}, got {bad}")
     try:
-        train_views, eval_views = check_views(views, eval_views)
+        train_views, eval_views = check_views(views, (8,) if sel.eval_views is None else sel.eval_views)
     except ValueError as exc:
         raise ValueError(f"{exc} (ARCTIC: allocentric views only)") from None
     crop = root.world_meta().cropped_size
-    size = int(image_size or crop)
+    size = int(sel.image_size or crop)
     seqs, train, held, sources = [], [], [], set()
     for si, name in enumerate(names):
         seq = root.sequence(subject, name)
         seqs.append(seq)
         split = (train_views, eval_views)
-        jobs = _sequence_jobs(seq, f"{subject}/{name}", views, frame_stride, split, eval_every_frame)
+        jobs = _sequence_jobs(seq, f"{subject}/{name}", views, sel.frame_stride, split, sel.eval_every_frame)
         render = _renders_masks(seq, jobs, masks, f"{subject}/{name}")
         sources.add("render" if render else "files")
         posed = None
@@ -389,7 +404,7 @@ def load_hogs_data(
         subject,
         object_name,
         seqs,
-        *split_samples(train, held, max_eval, f"{subject}/{object_name}"),
+        *split_samples(train, held, sel.max_eval, f"{subject}/{object_name}"),
         train_views,
         eval_views,
         size,

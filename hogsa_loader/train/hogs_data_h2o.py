@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 import torch
 
-from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
+from hogsa_loader.compose.part_masks import PosedMeshes, pose_meshes, render_part_mask
 from hogsa_loader.datasets.conventions import (
     BBOX_PIXELS_PER_SCALE,
     CROP_ENLARGE,
@@ -45,9 +45,11 @@ from hogsa_loader.datasets.conventions import (
 )
 from hogsa_loader.datasets.h2o import H2ORoot, read_h2o_rgb
 from hogsa_loader.datasets.h2o_io import H2O_EGO_CAMERA
+from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.objects.rigid import H2O_OBJECT_NAMES
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_data import (
+    FrameSelection,
     HogsData,
     ViewSample,
     check_subject,
@@ -153,13 +155,7 @@ def load_h2o_hogs_data(
     *,
     mano_layers: Mapping[str, torch.nn.Module],
     template: ObjectTemplate,
-    sequences: Optional[Sequence[str]] = None,
-    views: Sequence[int] = H2O_VIEWS,
-    eval_views: Sequence[int] = H2O_EVAL_VIEWS,
-    eval_every_frame: int = 8,
-    frame_stride: int = 1,
-    image_size: Optional[int] = None,
-    max_eval: int = 8,
+    selection: Optional[FrameSelection] = None,
     crop_enlarge: float = CROP_ENLARGE_H2O,
 ) -> HogsData:
     """Load every training and held-out (frame, view) of an H2O ``subject`` + ``object_name``.
@@ -169,58 +165,28 @@ def load_h2o_hogs_data(
         subject: e.g. ``"subject1"``; object_name: H2O class name (``"book"``...).
         mano_layers: ``{"right", "left"}`` MANO layers, ``flat_hand_mean=False``.
         template: the object's rigid template (:func:`~hogsa_loader.objects.h2o_meshes.load_h2o_object`).
-        sequences: ``"scene/seq"`` names (default every sequence showing the object).
-        views: cameras used (default the static 0–3); eval_views: held out among them.
-        eval_every_frame, frame_stride, max_eval: as :func:`~hogsa_loader.train.hogs_data.load_hogs_data`.
-        image_size: training resolution (default :data:`H2O_CROP_SIZE`).
+        selection: frames, views and resolution (default views: the static cameras 0–3,
+            camera 3 held out; default size: :data:`H2O_CROP_SIZE`).
         crop_enlarge: crop side / extent of the projected meshes.
     """
-    chosen = select_h2o_sequences(root, subject, object_name, sequences)
-    views = tuple(int(v) for v in views)
-    train_views, eval_views = check_views(views, eval_views)
-    size = int(image_size or H2O_CROP_SIZE)
+    sel = selection or FrameSelection()
+    chosen = select_h2o_sequences(root, subject, object_name, sel.sequences)
+    views = tuple(int(v) for v in (H2O_VIEWS if sel.views is None else sel.views))
+    train_views, eval_views = check_views(views, H2O_EVAL_VIEWS if sel.eval_views is None else sel.eval_views)
+    size = int(sel.image_size or H2O_CROP_SIZE)
     seqs, train, held = [], [], []
     for si, (scene, seq_id, cid) in enumerate(chosen):
-        seq = root.sequence(subject, scene, seq_id, mano_layers, cameras=views, object_class=cid)
-        missing = [v for v in views if v not in seq.cameras]
-        if missing:
-            raise ValueError(f"{subject}/{seq.name}: no camera folder for views {missing} (has {sorted(seq.cameras)})")
+        seq = _open_sequence(root, subject, scene, seq_id, cid, mano_layers, views)
         seqs.append(seq)
-        frames = list(range(0, seq.num_frames, max(1, frame_stride)))
-        ok = seq.right.valid & seq.left.valid & seq.object.valid
-        jobs = [
-            (v, f, role)
-            for v in views
-            for i, f in enumerate(frames)
-            if ok[f]
-            and seq.image_paths[v][f] is not None
-            and (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None
-        ]
+        jobs = _sequence_jobs(seq, views, sel.frame_stride, train_views, eval_views, sel.eval_every_frame)
         if not jobs:
             continue
         posed = pose_meshes(seq, sorted({f for _, f, _ in jobs}), mano_layers, template)
         for v, f, role in jobs:
-            cam = seq.cameras[v]
-            cam_pts = transform(cam.world2cam[f], posed.points(posed.index(f)))
-            if (cam_pts[:, 2] <= 1e-3).any():
-                continue
-            box = square_box(project(cam_pts, cam.K[f]), crop_enlarge)
-            Ks = render_intrinsics(cropped_intrinsics(cam.K[f], box, size))
-            full = read_h2o_rgb(seq.image_paths[v][f], expected_size=(cam.width, cam.height))
-            side = CROP_ENLARGE * BBOX_PIXELS_PER_SCALE * box[2]
-            mask = render_part_mask(
-                posed,
-                f,
-                cam.world2cam[f],
-                Ks,
-                size,
-                K_full=cam.K[f],
-                full_size=(cam.width, cam.height),
-                supersample=mask_supersample(side, size),
-            )
-            s = ViewSample(si, f, v, crop_image(full, box, size), mask, cam.world2cam[f].astype(np.float64), Ks)
-            (held if role == "eval" else train).append(s)
-    train, held = split_samples(train, held, max_eval, f"H2O {subject}/{object_name} (views {views})")
+            s = _crop_sample(seq, posed, si, v, f, size, crop_enlarge)
+            if s is not None:
+                (held if role == "eval" else train).append(s)
+    train, held = split_samples(train, held, sel.max_eval, f"H2O {subject}/{object_name} (views {views})")
     return HogsData(
         subject,
         object_name,
@@ -233,3 +199,73 @@ def load_h2o_hogs_data(
         crop_size=H2O_CROP_SIZE,
         mask_source="render",
     )
+
+
+def _open_sequence(
+    root: H2ORoot,
+    subject: str,
+    scene: str,
+    seq_id: str,
+    cid: int,
+    mano_layers: Mapping[str, torch.nn.Module],
+    views: tuple[int, ...],
+) -> SequenceData:
+    """Open one H2O sequence with the cameras ``views``.
+
+    Raises:
+        ValueError: a camera of ``views`` has no folder.
+    """
+    seq = root.sequence(subject, scene, seq_id, mano_layers, cameras=views, object_class=cid)
+    missing = [v for v in views if v not in seq.cameras]
+    if missing:
+        raise ValueError(f"{subject}/{seq.name}: no camera folder for views {missing} (has {sorted(seq.cameras)})")
+    return seq
+
+
+def _sequence_jobs(
+    seq: SequenceData,
+    views: tuple[int, ...],
+    frame_stride: int,
+    train_views: tuple[int, ...],
+    eval_views: tuple[int, ...],
+    eval_every_frame: int,
+) -> list[tuple[int, int, str]]:
+    """``(view, frame, role)`` of every usable (frame, view): all three annotated, image present."""
+    frames = list(range(0, seq.num_frames, max(1, frame_stride)))
+    ok = seq.right.valid & seq.left.valid & seq.object.valid
+    return [
+        (v, f, role)
+        for v in views
+        for i, f in enumerate(frames)
+        if ok[f]
+        and seq.image_paths[v][f] is not None
+        and (role := split_role(i, v, train_views, eval_views, eval_every_frame)) is not None
+    ]
+
+
+def _crop_sample(
+    seq: SequenceData, posed: PosedMeshes, si: int, v: int, f: int, size: int, crop_enlarge: float
+) -> Optional[ViewSample]:
+    """The (size, size) crop of frame ``f`` of camera ``v`` with its rendered mask.
+
+    Returns None when a mesh vertex is not in front of the camera.
+    """
+    cam = seq.cameras[v]
+    cam_pts = transform(cam.world2cam[f], posed.points(posed.index(f)))
+    if (cam_pts[:, 2] <= 1e-3).any():
+        return None
+    box = square_box(project(cam_pts, cam.K[f]), crop_enlarge)
+    Ks = render_intrinsics(cropped_intrinsics(cam.K[f], box, size))
+    full = read_h2o_rgb(seq.image_paths[v][f], expected_size=(cam.width, cam.height))
+    side = CROP_ENLARGE * BBOX_PIXELS_PER_SCALE * box[2]
+    mask = render_part_mask(
+        posed,
+        f,
+        cam.world2cam[f],
+        Ks,
+        size,
+        K_full=cam.K[f],
+        full_size=(cam.width, cam.height),
+        supersample=mask_supersample(side, size),
+    )
+    return ViewSample(si, f, v, crop_image(full, box, size), mask, cam.world2cam[f].astype(np.float64), Ks)

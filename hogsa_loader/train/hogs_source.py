@@ -21,8 +21,8 @@ converted by :class:`~hogsa_loader.datasets.h2o.H2ORoot`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Mapping, Optional, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping, Optional
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import ALLO_VIEWS
@@ -32,7 +32,7 @@ from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import load_mano
 from hogsa_loader.objects.h2o_meshes import h2o_class_name, h2o_mesh_provenance, load_h2o_object
 from hogsa_loader.objects.template import ObjectTemplate
-from hogsa_loader.train.hogs_data import HogsData, load_hogs_data
+from hogsa_loader.train.hogs_data import FrameSelection, HogsData, load_hogs_data
 from hogsa_loader.train.hogs_data_h2o import H2O_EVAL_VIEWS, H2O_VIEWS, load_h2o_hogs_data
 
 __all__ = ["DATASETS", "HogsSource", "open_hogs_source", "mano_layers_from_dir", "load_run_data"]
@@ -68,25 +68,23 @@ class HogsSource:
         self,
         subject: str,
         object_name: str,
+        selection: Optional[FrameSelection] = None,
         *,
-        views: Optional[Sequence[int]] = None,
-        eval_views: Optional[Sequence[int]] = None,
         masks: str = "auto",
         window: str = "crop",
-        **split: Any,
     ) -> HogsData:
         """The training / held-out split.
 
         Args:
-            views, eval_views: camera views used / held out (None: the dataset's defaults).
+            selection: frames, views and resolution (unset or empty views / eval_views: the
+                dataset's defaults).
             masks: ``"auto"``, ``"files"`` or ``"render"`` (H2O: never files).
             window: ``"crop"`` or ``"fg"`` (ARCTIC only, see :mod:`~hogsa_loader.train.hogs_data`).
-            **split: ``sequences``, ``eval_every_frame``, ``frame_stride``, ``image_size``,
-                ``max_eval`` as :func:`~hogsa_loader.train.hogs_data.load_hogs_data`.
         """
-        split.update(views=tuple(views or self.views), eval_views=tuple(eval_views or self.eval_views))
+        sel = selection or FrameSelection()
+        sel = replace(sel, views=tuple(sel.views or self.views), eval_views=tuple(sel.eval_views or self.eval_views))
         if self.dataset == "arctic":
-            return load_hogs_data(self.root, subject, object_name, masks=masks, window=window, **split)
+            return load_hogs_data(self.root, subject, object_name, sel, masks=masks, window=window)
         if window != "crop":
             raise ValueError(f"window={window!r} is implemented for ARCTIC only (H2O trains on whole crops)")
         if masks == "files":
@@ -99,7 +97,7 @@ class HogsSource:
             object_name,
             mano_layers=self.mano_layers,
             template=self.object_templates[object_name],
-            **split,
+            selection=sel,
         )
 
 
@@ -182,13 +180,15 @@ def load_run_data(
     split = source.load(
         cfg["subject"],
         cfg["object"],
-        sequences=cfg.get("sequences"),
-        views=cfg.get("views"),
-        eval_views=cfg.get("eval_views"),
-        eval_every_frame=cfg.get("eval_every_frame", 8),
-        frame_stride=cfg.get("frame_stride", 1),
-        image_size=cfg.get("image_size"),
-        max_eval=cfg.get("max_eval", 8) if max_eval is None else max_eval,
+        FrameSelection(
+            sequences=cfg.get("sequences"),
+            views=cfg.get("views"),
+            eval_views=cfg.get("eval_views"),
+            eval_every_frame=cfg.get("eval_every_frame", 8),
+            frame_stride=cfg.get("frame_stride", 1),
+            image_size=cfg.get("image_size"),
+            max_eval=cfg.get("max_eval", 8) if max_eval is None else max_eval,
+        ),
         masks=cfg.get("masks", "auto"),
         window=cfg.get("window", "crop"),
     )

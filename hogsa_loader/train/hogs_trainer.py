@@ -43,8 +43,9 @@ from hogsa_loader.gaussians.checkpoint import read_manifest
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_config import HogsConfig
-from hogsa_loader.train.hogs_data import MASK_MODES, HogsData, ViewSample, dilate_mask
+from hogsa_loader.train.hogs_data import MASK_MODES, FrameSelection, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
 from hogsa_loader.train.losses import hogs_loss
@@ -100,23 +101,48 @@ def _t(x: np.ndarray, device: torch.device) -> Tensor:
     return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
 
 
+def _check_config(cfg: HogsConfig) -> None:
+    """Raises ValueError for a setting :class:`HogsTrainer` cannot run with."""
+    if cfg.model.gaussians not in ("mesh", "free"):
+        raise ValueError(f"--model-gaussians must be 'mesh' or 'free', got {cfg.model.gaussians!r}")
+    unknown = sorted(set(cfg.optim.lr_overrides) - set(BASE_LRS))
+    if unknown:
+        raise ValueError(f"lr overrides for unknown parameters {unknown}; known: {sorted(BASE_LRS)}")
+    if cfg.model.shading not in SHADINGS:
+        raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.model.shading!r}")
+    if cfg.optim.iters < 0 or cfg.optim.batch_size < 1:
+        raise ValueError("iters must be >= 0 and batch_size >= 1")
+    if cfg.data.image_size is not None and cfg.data.image_size < 1:
+        raise ValueError(f"image_size must be >= 1 (or None: the dataset's crop size), got {cfg.data.image_size}")
+    if cfg.data.masks not in MASK_MODES:
+        raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.data.masks!r}")
+
+
+def _with_default_views(cfg: HogsConfig, views: Sequence[int], eval_views: Sequence[int]) -> HogsConfig:
+    """``cfg`` with unset ``views`` / ``eval_views`` filled in with the dataset's defaults."""
+    data = replace(cfg.data, views=tuple(cfg.data.views or views), eval_views=tuple(cfg.data.eval_views or eval_views))
+    return replace(cfg, data=data)
+
+
+def _object_subdivide_levels(template: ObjectTemplate, levels: Optional[int], min_faces: int) -> int:
+    """``levels``, or when None the fewest (at most 2) that give the object ``min_faces`` faces.
+
+    Each level multiplies the faces by 4; the textured faces count when the template has a texture.
+    """
+    if levels is not None:
+        return levels
+    faces = (template.tex_faces if template.has_texture else template.faces).shape[0]
+    levels = 0
+    while faces * 4**levels < min_faces and levels < 2:
+        levels += 1
+    return levels
+
+
 class HogsTrainer:
     """Builds the parts and data of one (subject, object) and trains them."""
 
     def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
-        if cfg.model.gaussians not in ("mesh", "free"):
-            raise ValueError(f"--model-gaussians must be 'mesh' or 'free', got {cfg.model.gaussians!r}")
-        unknown = sorted(set(cfg.optim.lr_overrides) - set(BASE_LRS))
-        if unknown:
-            raise ValueError(f"lr overrides for unknown parameters {unknown}; known: {sorted(BASE_LRS)}")
-        if cfg.model.shading not in SHADINGS:
-            raise ValueError(f"shading must be one of {SHADINGS}, got {cfg.model.shading!r}")
-        if cfg.optim.iters < 0 or cfg.optim.batch_size < 1:
-            raise ValueError("iters must be >= 0 and batch_size >= 1")
-        if cfg.data.image_size is not None and cfg.data.image_size < 1:
-            raise ValueError(f"image_size must be >= 1 (or None: the dataset's crop size), got {cfg.data.image_size}")
-        if cfg.data.masks not in MASK_MODES:
-            raise ValueError(f"masks must be one of {MASK_MODES}, got {cfg.data.masks!r}")
+        _check_config(cfg)
         t0 = time.perf_counter()
         self.source = open_hogs_source(
             cfg.data.dataset,
@@ -126,73 +152,82 @@ class HogsTrainer:
             object_mesh_dir=cfg.data.object_mesh_dir,
         )
         # the dataset's default views are written into config.json (what render_quality rebuilds)
-        cfg = replace(
-            cfg,
-            data=replace(
-                cfg.data,
-                views=tuple(cfg.data.views or self.source.views),
-                eval_views=tuple(cfg.data.eval_views or self.source.eval_views),
-            ),
-        )
+        cfg = _with_default_views(cfg, self.source.views, self.source.eval_views)
         self.cfg = cfg
         self.progress = progress
         self.device = torch.device(cfg.run.device)
         self.out = Path(cfg.run.out)
         self.root = self.source.root
-        self.data: HogsData = self.source.load(
-            cfg.data.subject,
-            cfg.data.object,
-            sequences=_list(cfg.data.sequences),
-            views=list(cfg.data.views),
-            eval_views=list(cfg.data.eval_views),
-            eval_every_frame=cfg.data.eval_every_frame,
-            frame_stride=cfg.data.frame_stride,
-            image_size=cfg.data.image_size,
-            max_eval=cfg.data.max_eval,
-            masks=cfg.data.masks,
-            window=cfg.data.window,
-        )
+        self.data: HogsData = self._load_data()
         self.timings: dict[str, float] = {"load_s": time.perf_counter() - t0}
         torch.manual_seed(cfg.run.seed)
-        variant = "games" if cfg.model.gaussians == "mesh" else "free"
-        layers = self.source.mano_layers
-        template = self.source.object_templates[cfg.data.object]
-        levels = cfg.model.object_subdivide
-        if levels is None:
-            faces = (template.tex_faces if template.has_texture else template.faces).shape[0]
-            levels = 0
-            while faces * 4**levels < cfg.model.min_object_faces and levels < 2:
-                levels += 1
-        common = dict(variant=variant, k=cfg.model.k, sh_degree=cfg.model.sh_degree)
-        self.model = HogsModel(
-            HandGaussians(layers["right"], subdivide_levels=cfg.model.hand_subdivide, **common),
-            HandGaussians(layers["left"], subdivide_levels=cfg.model.hand_subdivide, **common),
-            ObjectGaussians(template, subdivide_levels=levels, **common),
-            source=self._source(),
-        ).to(self.device)
+        self.model = self._build_model()
         self.parts = self.model.parts
         if cfg.model.shading == "lambert":
             self.model.light = DirectionalLight(direction=self._mean_view_direction()).to(self.device)
-        groups = []
-        for pname, part in self.parts.items():
-            for name, p in part.splats.named_parameters():
-                lr = BASE_LRS.get(name)
-                if lr is None:
-                    raise KeyError(f"no learning rate for parameter {name!r}")
-                scale = 1.0 if name in POSITION_PARAMS else cfg.optim.lr_scale
-                lr = cfg.optim.lr_overrides.get(name, lr * scale)
-                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"{pname}.{name}"})
-        if self.model.light is not None:
-            for name, p in self.model.light.named_parameters():
-                lr = cfg.optim.lr_overrides.get(name, BASE_LRS[name])
-                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"light.{name}"})
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.optimizer = torch.optim.Adam(self._param_groups(), eps=1e-15)
         self.gen = torch.Generator().manual_seed(cfg.run.seed)
         self.step = 0
         self.history: list[dict[str, float]] = []
         self.evals: list[dict[str, Any]] = []
         self._train_time = 0.0
         self.resumed = False
+
+    def _load_data(self) -> HogsData:
+        """The training and held-out samples the data settings select."""
+        data = self.cfg.data
+        return self.source.load(
+            data.subject,
+            data.object,
+            FrameSelection(
+                sequences=_list(data.sequences),
+                views=list(data.views),
+                eval_views=list(data.eval_views),
+                eval_every_frame=data.eval_every_frame,
+                frame_stride=data.frame_stride,
+                image_size=data.image_size,
+                max_eval=data.max_eval,
+            ),
+            masks=data.masks,
+            window=data.window,
+        )
+
+    def _build_model(self) -> HogsModel:
+        """Both hands and the object as Gaussians (no light), on the run's device."""
+        model = self.cfg.model
+        variant = "games" if model.gaussians == "mesh" else "free"
+        layers = self.source.mano_layers
+        template = self.source.object_templates[self.cfg.data.object]
+        levels = _object_subdivide_levels(template, model.object_subdivide, model.min_object_faces)
+        common = dict(variant=variant, k=model.k, sh_degree=model.sh_degree)
+        return HogsModel(
+            HandGaussians(layers["right"], subdivide_levels=model.hand_subdivide, **common),
+            HandGaussians(layers["left"], subdivide_levels=model.hand_subdivide, **common),
+            ObjectGaussians(template, subdivide_levels=levels, **common),
+            source=self._source(),
+        ).to(self.device)
+
+    def _param_groups(self) -> list[dict[str, Any]]:
+        """One Adam group per parameter of the parts and light, with its learning rate.
+
+        Raises:
+            KeyError: a part parameter has no entry in :data:`BASE_LRS`.
+        """
+        optim = self.cfg.optim
+        groups = []
+        for pname, part in self.parts.items():
+            for name, p in part.splats.named_parameters():
+                lr = BASE_LRS.get(name)
+                if lr is None:
+                    raise KeyError(f"no learning rate for parameter {name!r}")
+                scale = 1.0 if name in POSITION_PARAMS else optim.lr_scale
+                lr = optim.lr_overrides.get(name, lr * scale)
+                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"{pname}.{name}"})
+        if self.model.light is not None:
+            for name, p in self.model.light.named_parameters():
+                lr = optim.lr_overrides.get(name, BASE_LRS[name])
+                groups.append({"params": [p], "lr": lr, "base_lr": lr, "name": f"light.{name}"})
+        return groups
 
     # ------------------------------------------------------------------ rendering
     def active_sh_degree(self, step: Optional[int] = None) -> int:
