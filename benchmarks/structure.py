@@ -53,6 +53,7 @@ class Structure:
     modules: dict[str, int] = field(default_factory=dict)  #: module path -> lines
     edges: dict[str, list[str]] = field(default_factory=dict)  #: package -> packages it imports at module level
     module_edges: dict[str, list[str]] = field(default_factory=dict)  #: module -> library modules it imports
+    deferred_edges: dict[str, list[str]] = field(default_factory=dict)  #: package -> packages imported in functions
     deferred: list[DeferredImport] = field(default_factory=list)
     long_functions: list[tuple[int, str]] = field(default_factory=list)
     params: dict[str, list[str]] = field(default_factory=dict)  #: function -> parameter names
@@ -120,6 +121,8 @@ def _scan_file(path: Path, out: Structure) -> None:
                     mod_edges.update(lib)
                     edges.update(_top_package(n) for n in lib if "." in n and _top_package(n) != package)
                 else:
+                    inner_pkgs = {_top_package(n) for n in lib if "." in n and _top_package(n) != package}
+                    out.deferred_edges[package] = sorted(set(out.deferred_edges.get(package, [])) | inner_pkgs)
                     line = " ".join(lines[child.lineno - 1 : child.end_lineno])
                     m = _DEFERRED.search(line)
                     reason = line[m.start() :].split(":", 1)[1].strip() if m else None
@@ -189,8 +192,10 @@ def repeated_parameter_lists(s: Structure) -> list[tuple[str, str, int]]:
 
 
 def synthetic_importers(s: Structure) -> list[str]:
-    """Library packages (not the entry points) that import the generated-world package."""
-    return sorted(p for p, deps in s.edges.items() if SYNTHETIC in deps and p not in ENTRY_POINTS + (SYNTHETIC,))
+    """Library packages (not the entry points) that import the generated-world package,
+    at module level or inside a function."""
+    deps = {p: set(d) | set(s.deferred_edges.get(p, [])) for p, d in s.edges.items()}
+    return sorted(p for p, d in deps.items() if SYNTHETIC in d and p not in ENTRY_POINTS + (SYNTHETIC,))
 
 
 def violations(s: Structure) -> dict[str, list[str]]:

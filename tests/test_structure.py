@@ -51,7 +51,7 @@ def test_scanner_sees_imports_cycles_and_deferred_reasons(tmp_path, monkeypatch)
     (pkg / "a" / "__init__.py").write_text("from hogsa_loader.b import x\n")
     (pkg / "b" / "__init__.py").write_text(
         "from hogsa_loader.a import y\n"
-        "from hogsa_loader.synthetic import z\n"
+        "def g():\n    from hogsa_loader.synthetic import z  # deferred: test\n"
         "def f():\n    import numpy  # deferred: optional\n    import cv2\n"
         + "".join(f"    v{i} = {i}\n" for i in range(80))
     )
@@ -61,8 +61,8 @@ def test_scanner_sees_imports_cycles_and_deferred_reasons(tmp_path, monkeypatch)
     v = structure.violations(s)
     assert v["package cycles"] == ["a <-> b"]
     assert v["production imports synthetic"] == ["b"]
-    assert v["deferred import without a reason"] == ["hogsa_loader/b/__init__.py:5"]
-    assert [d.reason for d in s.deferred] == ["optional", None]
+    assert v["deferred import without a reason"] == ["hogsa_loader/b/__init__.py:6"]
+    assert [d.reason for d in s.deferred] == ["test", "optional", None]
     assert [n for n, _ in s.long_functions] == [83]
 
 
