@@ -9,21 +9,9 @@ from typing import Callable, Mapping, Optional, Sequence
 import cv2
 import numpy as np
 
+from hogsa_loader.datasets import h2o_io
 from hogsa_loader.datasets.h2o import MODALITY_FOLDERS, SeqId
-from hogsa_loader.datasets.h2o_io import (
-    H2O_CAM_INTRINSICS_FILE,
-    H2OIntrinsics,
-    H2OManoLabels,
-    format_h2o_line,
-    parse_h2o_action_label,
-    parse_h2o_cam_intrinsics,
-    parse_h2o_cam_pose,
-    parse_h2o_hand_pose,
-    parse_h2o_hand_pose_mano,
-    parse_h2o_obj_pose,
-    parse_h2o_obj_pose_rt_strict,
-    parse_h2o_verb_label,
-)
+from hogsa_loader.datasets.h2o_io import H2OIntrinsics, H2OManoLabels
 from hogsa_loader.errors import AssetError, PathLike
 
 __all__ = ["H2OCameraRecord", "write_h2o_sequence"]
@@ -58,7 +46,7 @@ class H2OCameraRecord:
 
 
 def _write_line(path: Path, values: np.ndarray, precision: Optional[int], check: Callable[[str, Path], object]) -> None:
-    line = format_h2o_line(values, precision)
+    line = h2o_io.format_h2o_line(values, precision)
     check(line, path)  # what is written must read back (AssetError names the file otherwise)
     path.write_text(line + "\n", encoding="utf-8")
 
@@ -97,22 +85,24 @@ def _write_labels(fr: _Frames, cdir: Path, rec: H2OCameraRecord) -> None:
     F = len(fr.frame_ids)
     pose = np.asarray(rec.cam_pose, dtype=np.float64)
     pose = np.broadcast_to(pose, (F, 4, 4)) if pose.shape == (4, 4) else fr.rows(pose, (4, 4), "cam_pose")
-    fr.write(fr.folder(cdir, "cam_pose"), [m.reshape(16) for m in pose], parse_h2o_cam_pose)
+    fr.write(fr.folder(cdir, "cam_pose"), [m.reshape(16) for m in pose], h2o_io.parse_h2o_cam_pose)
     if rec.mano is not None:
         rows = fr.rows(rec.mano.to_array(), (124,), "mano")
-        fr.write(fr.folder(cdir, "hand_pose_mano"), rows, parse_h2o_hand_pose_mano)
+        fr.write(fr.folder(cdir, "hand_pose_mano"), rows, h2o_io.parse_h2o_hand_pose_mano)
     if rec.obj_class is not None or rec.obj_transform is not None:
         if rec.obj_class is None or rec.obj_transform is None:
             raise ValueError("obj_class and obj_transform go together")
         cls = fr.rows(rec.obj_class, (), "obj_class")
         mats = fr.rows(rec.obj_transform, (4, 4), "obj_transform")
         d = fr.folder(cdir, "obj_pose_rt")
-        fr.write(d, [np.concatenate([[c], m.reshape(16)]) for c, m in zip(cls, mats)], parse_h2o_obj_pose_rt_strict)
+        fr.write(
+            d, [np.concatenate([[c], m.reshape(16)]) for c, m in zip(cls, mats)], h2o_io.parse_h2o_obj_pose_rt_strict
+        )
     simple = (
-        ("hand_pose", rec.hand_pose, (128,), parse_h2o_hand_pose),
-        ("obj_pose", rec.obj_pose, (64,), parse_h2o_obj_pose),
-        ("action_label", rec.action_label, (), parse_h2o_action_label),
-        ("verb_label", rec.verb_label, (), parse_h2o_verb_label),
+        ("hand_pose", rec.hand_pose, (128,), h2o_io.parse_h2o_hand_pose),
+        ("obj_pose", rec.obj_pose, (64,), h2o_io.parse_h2o_obj_pose),
+        ("action_label", rec.action_label, (), h2o_io.parse_h2o_action_label),
+        ("verb_label", rec.verb_label, (), h2o_io.parse_h2o_verb_label),
     )
     for modality, arr, shape, parser in simple:
         if arr is None:
@@ -177,7 +167,9 @@ def write_h2o_sequence(
     for cam, rec in cameras.items():
         cdir = seq_dir / f"cam{int(cam)}"
         cdir.mkdir(parents=True, exist_ok=True)
-        _write_line(cdir / H2O_CAM_INTRINSICS_FILE, rec.intrinsics.to_array(), precision, parse_h2o_cam_intrinsics)
+        _write_line(
+            cdir / h2o_io.H2O_CAM_INTRINSICS_FILE, rec.intrinsics.to_array(), precision, h2o_io.parse_h2o_cam_intrinsics
+        )
         _write_labels(fr, cdir, rec)
         if rec.rgb is not None or placeholder_rgb:
             _write_rgb(fr, cdir, rec)

@@ -26,7 +26,6 @@ unless the run was resumed first or ``overwrite=True``.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -42,7 +41,6 @@ from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, s
 from hogsa_loader.gaussians.checkpoint import read_manifest
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
-from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_data import MASK_MODES, FrameSelection, HogsData, ViewSample, dilate_mask
@@ -50,13 +48,12 @@ from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
 from hogsa_loader.train.losses import hogs_loss
 from hogsa_loader.train.run_folder import (
-    RunExistsError,
-    clear_run,
     commit_checkpoint,
-    has_checkpoints,
     latest_checkpoint,
     read_trainer_state,
     save_trainer_state,
+    start_run,
+    write_json,
 )
 
 __all__ = ["HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
@@ -325,16 +322,7 @@ class HogsTrainer:
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
         cfg = self.cfg
-        if not self.resumed and has_checkpoints(self.out):
-            if not overwrite:
-                raise RunExistsError(
-                    self.out,
-                    "holds a training run (checkpoints/); resume it (--resume) or "
-                    "start it again with overwrite (--overwrite)",
-                )
-            clear_run(self.out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        _write_json(self.out / "config.json", cfg.to_json())
+        start_run(self.out, resumed=self.resumed, overwrite=overwrite, config=cfg.to_json())
         if self.step == 0 and not self.evals:
             self.evals.append(_summary(self.evaluate()))
         bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
@@ -482,7 +470,7 @@ class HogsTrainer:
             "device": str(self.device),
             "timings": {**self.timings, "train_s": self._train_time, "s_per_iter": self._train_time / n_train},
         }
-        _write_json(self.out / "metrics.json", metrics)
+        write_json(self.out / "metrics.json", metrics)
         return metrics
 
     @torch.no_grad()
@@ -521,7 +509,3 @@ class HogsTrainer:
 
 def _summary(ev: dict[str, Any]) -> dict[str, Any]:
     return {"step": ev["step"], "psnr": ev["psnr"], "ssim": ev["ssim"], "alpha_outside": ev["alpha_outside"]}
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    atomic_write(path, (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode())

@@ -33,6 +33,8 @@ __all__ = [
     "TRAINER_STATE",
     "check_run_folder",
     "clear_run",
+    "start_run",
+    "write_json",
     "has_checkpoints",
     "commit_checkpoint",
     "latest_checkpoint",
@@ -96,6 +98,29 @@ def clear_run(out: PathLike) -> None:
             shutil.rmtree(entry)
         else:
             entry.unlink()
+
+
+def start_run(out: Path, *, resumed: bool, overwrite: bool, config: Mapping[str, Any]) -> None:
+    """Make ``out`` ready for a training run and write its ``config.json``.
+
+    A folder holding checkpoints that this run did not resume is refused
+    (:class:`RunExistsError`), or emptied with ``overwrite``.
+    """
+    if not resumed and has_checkpoints(out):
+        if not overwrite:
+            raise RunExistsError(
+                out,
+                "holds a training run (checkpoints/); resume it (--resume) or "
+                "start it again with overwrite (--overwrite)",
+            )
+        clear_run(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "config.json", config)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Write ``obj`` as indented JSON (no NaN) atomically."""
+    atomic_write(path, (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode())
 
 
 def commit_checkpoint(folder: Path, step: int) -> None:

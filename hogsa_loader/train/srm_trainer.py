@@ -49,7 +49,6 @@ or ``overwrite=True``.
 from __future__ import annotations
 
 import copy
-import json
 import sys
 import time
 from pathlib import Path
@@ -62,7 +61,6 @@ from torch import Tensor
 from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
-from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
 from hogsa_loader.srm.io import load_srm, save_srm
 from hogsa_loader.srm.losses import (
@@ -78,13 +76,12 @@ from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
 from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
 from hogsa_loader.train.losses import box_of, psnr, ssim_map
 from hogsa_loader.train.run_folder import (
-    RunExistsError,
-    clear_run,
     commit_checkpoint,
-    has_checkpoints,
     latest_checkpoint,
     read_trainer_state,
     save_trainer_state,
+    start_run,
+    write_json,
 )
 from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
@@ -394,16 +391,7 @@ class SRMTrainer:
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
         cfg = self.cfg
-        if not self.resumed and has_checkpoints(self.out):
-            if not overwrite:
-                raise RunExistsError(
-                    self.out,
-                    "holds a training run (checkpoints/); resume it (--resume) or "
-                    "start it again with overwrite (--overwrite)",
-                )
-            clear_run(self.out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        _write_json(self.out / "config.json", cfg.to_json())
+        start_run(self.out, resumed=self.resumed, overwrite=overwrite, config=cfg.to_json())
         if self.step == 0 and not self.evals:
             self.evals.append(self._eval_point(self.evaluate()))
         bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="srm", dynamic_ncols=True)
@@ -657,7 +645,7 @@ class SRMTrainer:
             "torch_threads": torch.get_num_threads(),
             "timings": {**self.timings, "train_s": self._train_time, "s_per_iter": self._train_time / n},
         }
-        _write_json(self.out / "metrics.json", metrics)
+        write_json(self.out / "metrics.json", metrics)
         return metrics
 
     @torch.no_grad()
@@ -735,7 +723,3 @@ def _summary(ev: dict[str, Any]) -> dict[str, Any]:
         "ssim_without_srm": ev["without_srm"]["ssim"],
         "ssim_with_srm": ev["with_srm"]["ssim"],
     }
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    atomic_write(path, (json.dumps(obj, indent=1, allow_nan=False) + "\n").encode())
