@@ -274,14 +274,6 @@ class GaussianPart(nn.Module):
         out.update(self._extra_config)
         return out
 
-    def disable_seam_welding(self) -> None:
-        """Give every binding vertex its own offset (``weld_seams=False``): for continuing a run
-        whose checkpoint was trained without it (``weld_seams`` false or absent in its config)."""
-        self.weld_seams = False
-        if isinstance(self.splats, MeshGaussians):
-            self.splats.weld_group = None
-            self.splats.weld_count = None
-
     def canonical_vertices(self) -> Tensor:
         """(V, 3) binding-mesh template (+ offsets for mesh-bound variants)."""
         if isinstance(self.splats, MeshGaussians):

@@ -38,7 +38,6 @@ from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
-from hogsa_loader.gaussians.checkpoint import read_manifest
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.objects.template import ObjectTemplate
@@ -413,8 +412,6 @@ class HogsTrainer:
                         f"{k} has shape {tuple(v.shape)}, the model's parameter {tuple(p.shape)}",
                     )
         for name, part in self.parts.items():
-            if not read_manifest(folder / name)["config"].get("weld_seams", False) and part.weld_seams:
-                part.disable_seam_welding()  # checkpointed before seam welding: go on as it was trained
             load_state(part, folder / name)
         if self.model.light is not None:
             load_light(folder / LIGHT_DIR, into=self.model.light)
