@@ -1,8 +1,8 @@
 """Eight views of two Gaussian hands holding a Gaussian textured object (visual check + timing).
 
-Builds the synthetic hand pair (:func:`hogsa_loader.hands.synthetic_hand_pair`) as Gaussian
+Builds the synthetic hand pair (:func:`hogsa_loader.synthetic.hand.synthetic_hand_pair`) as Gaussian
 parts in a grasp pose (:func:`hogsa_loader.hands.anatomy.named_articulation`), a procedural
-textured object (:func:`hogsa_loader.objects.make_object`), places the hands on opposite
+textured object (:func:`hogsa_loader.synthetic.objects.procedural.make_object`), places the hands on opposite
 sides of the object with their palms towards it, composes the scene and renders 8 views on a
 ring around the vertical axis with the CPU Gaussian rasteriser. Writes a 2 x 4 PNG grid (a
 third row of per-part masks with ``--masks``) and prints sizes and timings: the first

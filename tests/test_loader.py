@@ -410,7 +410,9 @@ def test_bundle_keeps_the_runs_light(bundle_dir, tiny_world, tmp_path):
     shutil.rmtree(tmp_path / "c")
     shutil.copytree(bundle_dir, tmp_path / "c")
     (tmp_path / "c" / "manifest.json").write_text(json.dumps({**man, "schema_version": 1}))
-    with pytest.raises(AssetError, match="(?s)invalid bundle.*unsupported schema_version 1; this reader supports 2"):
+    with pytest.raises(
+        AssetError, match="(?s)invalid bundle.*unsupported schema_version 1; this reader supports 2; rebuild"
+    ):
         load_bundle(tmp_path / "c")
 
 

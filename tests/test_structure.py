@@ -98,3 +98,12 @@ def test_dataset_constructor_is_small():
 
     params = [p for p in inspect.signature(HOGSADataset.__init__).parameters if p != "self"]
     assert len(params) <= 8, params
+
+
+def test_every_library_folder_is_a_package_that_installs():
+    """``find_packages`` (what ``setup.cfg`` installs) reaches every folder holding modules."""
+    from setuptools import find_packages
+
+    installed = set(find_packages(str(ROOT), include=["hogsa_loader", "hogsa_loader.*"]))
+    folders = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "hogsa_loader").rglob("*.py")}
+    assert folders - installed == set()

@@ -251,7 +251,10 @@ def check_header(raw: Any, path: Path, fmt: ManifestFormat) -> dict[str, Any]:
         raise AssetError(path, f"schema_version must be an integer, got {version!r}")
     if version != fmt.version:
         newer = " (written by a newer hogsa-loader)" if version > fmt.version else ""
-        raise AssetError(path, f"unsupported schema_version {version}{newer}; this reader supports {fmt.version}")
+        older = "; rebuild or retrain it with this version" if version < fmt.version else ""
+        raise AssetError(
+            path, f"unsupported schema_version {version}{newer}; this reader supports {fmt.version}{older}"
+        )
     if fmt.library_version and not isinstance(raw.get("library_version"), str):
         raise AssetError(path, "required key 'library_version' is missing or not a string")
     if fmt.tensors_file is None:

@@ -220,7 +220,7 @@ def perceptual_loss(vgg_weights: Optional[PathLike], *, resize: Optional[int] = 
     if vgg_weights:
         return VGGPerceptualLoss(load_vgg19_features(vgg_weights), resize=resize)
     msg = (
-        "no VGG19 weights given (--vgg-weights PATH to a local torchvision vgg19 state dict): "
+        "no VGG19 weights given (--loss-vgg-weights PATH to a local torchvision vgg19 state dict): "
         "the perceptual term uses the Laplacian-pyramid L1 SUBSTITUTE instead of the VGG loss "
         f"(default weight {PERCEPTUAL_DEFAULT_WEIGHT['laplacian']} instead of {PERCEPTUAL_DEFAULT_WEIGHT['vgg']})"
     )

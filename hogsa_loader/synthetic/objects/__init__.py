@@ -1,0 +1,1 @@
+"""Procedural textured articulated objects under ARCTIC's object names."""
