@@ -92,6 +92,32 @@ def tiny_world(tmp_path_factory) -> Path:
     return out
 
 
+def tiny_hogs_config(data, out, **overrides):
+    """A HOGS training config small enough for tests: s01/box at 64 px, 4 steps, no periodic
+    evaluation or checkpoints (``overrides`` are flat ``config.json`` keys)."""
+    from hogsa_loader.train import HogsConfig
+
+    base = dict(
+        data=str(data),
+        subject="s01",
+        object="box",
+        out=str(out),
+        iters=4,
+        image_size=64,
+        frame_stride=4,
+        eval_every_frame=2,
+        max_eval=3,
+        eval_every=0,
+        ckpt_every=0,
+        lr_scale=10.0,
+        k=1,
+        sh_degree=1,
+        sh_warmup=0,
+        strip_views=2,
+    )
+    return HogsConfig.from_json({**base, **overrides})
+
+
 def tiny_srm(folder: Path, scale: int = 1) -> Path:
     """A small untrained SRM saved in ``folder``."""
     from hogsa_loader.srm import SRM, save_srm

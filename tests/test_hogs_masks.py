@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_hogs_config
 
 from hogsa_loader.compose.part_masks import inside_image, pose_meshes, render_part_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
@@ -152,26 +153,7 @@ def _maskless_root(world: Path, tmp: Path) -> Path:
 
 
 def _cfg(data, out, **kw) -> HogsConfig:
-    base = dict(
-        data=str(data),
-        subject="s01",
-        object="box",
-        out=str(out),
-        iters=16,
-        image_size=64,
-        frame_stride=4,
-        eval_every_frame=2,
-        max_eval=3,
-        eval_every=0,
-        ckpt_every=0,
-        lr_scale=10.0,
-        k=1,
-        sh_degree=1,
-        sh_warmup=0,
-        strip_views=2,
-    )
-    base.update(kw)
-    return HogsConfig.from_json(base)
+    return tiny_hogs_config(data, out, **{"iters": 16, **kw})
 
 
 def test_training_with_rendered_masks(tiny_world, tmp_path):

@@ -10,11 +10,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import tiny_hogs_config
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.hogs_model import HogsModel
-from hogsa_loader.train import HogsConfig, HogsTrainer
+from hogsa_loader.train import HogsTrainer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,27 +52,7 @@ FAST = [
 ]
 
 
-def _cfg(world, out, **kw) -> HogsConfig:
-    base = dict(
-        data=str(world),
-        subject="s01",
-        object="box",
-        out=str(out),
-        iters=4,
-        image_size=64,
-        frame_stride=4,
-        eval_every_frame=2,
-        max_eval=3,
-        eval_every=0,
-        ckpt_every=0,
-        lr_scale=10.0,
-        k=1,
-        sh_degree=1,
-        sh_warmup=0,
-        strip_views=2,
-    )
-    base.update(kw)
-    return HogsConfig.from_json(base)
+_cfg = tiny_hogs_config
 
 
 @pytest.fixture(scope="module")

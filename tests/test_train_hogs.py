@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import tiny_hogs_config
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.conventions import project, transform
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import load_part
-from hogsa_loader.train import FrameSelection, HogsConfig, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
+from hogsa_loader.train import FrameSelection, HogsTrainer, dilate_mask, hogs_loss, load_hogs_data
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,27 +28,7 @@ def _cli():
     return mod
 
 
-def _cfg(world, out, **kw) -> HogsConfig:
-    base = dict(
-        data=str(world),
-        subject="s01",
-        object="box",
-        out=str(out),
-        iters=4,
-        image_size=64,
-        frame_stride=4,
-        eval_every_frame=2,
-        max_eval=3,
-        eval_every=0,
-        ckpt_every=0,
-        lr_scale=10.0,
-        k=1,
-        sh_degree=1,
-        sh_warmup=0,
-        strip_views=2,
-    )
-    base.update(kw)
-    return HogsConfig.from_json(base)
+_cfg = tiny_hogs_config
 
 
 def _photo(trainer: HogsTrainer, samples) -> float:
