@@ -34,6 +34,7 @@ from hogsa_loader.hands.mano_io import load_mano
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import load_object_template
 from hogsa_loader.synthetic.world import PRESETS, SequencePlan, SubjectPlan, generate_world
+from hogsa_loader.synthetic.world.grasp import grasp_specs, styled_spec
 
 MASK_IDS = {"background": 0, "right": 1, "left": 2, "object_top": 3, "object_bottom": 4}
 HAND_ID = {"right": 1, "left": 2}
@@ -583,6 +584,11 @@ def _to_part_frame(points: np.ndarray, obj: np.ndarray, part: int) -> np.ndarray
 
 @pytest.fixture(scope="module")
 def contact_stats(world) -> dict:
+    return _contact_stats(world)
+
+
+def _contact_stats(world: World) -> dict:
+    """Per sequence and hand: deepest penetration into the object and nearest surface distance, per frame."""
     out = {}
     for sid, seq in world.seqs:
         _, obj, _ = world.raw(sid, seq)
@@ -608,6 +614,10 @@ def contact_stats(world) -> dict:
 
 
 def test_hands_touch_without_deep_penetration(world, contact_stats):
+    _check_contact(contact_stats)
+
+
+def _check_contact(contact_stats: dict) -> None:
     lines = []
     for (sid, seq), (res, _) in contact_stats.items():
         for side, r in res.items():
@@ -701,6 +711,57 @@ def _micro_preset():
         grasp_iters=60,
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"),)),),
     )
+
+
+def test_styled_spec_stays_within_its_bounds():
+    spec = grasp_specs("box", "grab")["right"]
+    rng0, rng1 = np.random.default_rng(1), np.random.default_rng(1)
+    assert styled_spec(spec, 0.0, rng0) == spec
+    for _ in range(20):
+        s = styled_spec(spec, 1.0, rng1)
+        p0, p1 = np.asarray(spec.point), np.asarray(s.point)
+        assert p1[2] == p0[2] == 1.0  # stays on its face
+        assert 0 < np.abs(p1 - p0).max() <= 0.35 + 1e-12
+        n0, n1 = (np.asarray(v) / np.linalg.norm(v) for v in (spec.normal, s.normal))
+        assert np.degrees(np.arccos(np.clip(n0 @ n1, -1, 1))) <= 8.0 + 1e-9
+        f0, f1 = np.asarray(spec.fingers, float), np.asarray(s.fingers)
+        assert np.degrees(np.arccos(np.clip(f0 @ f1 / np.linalg.norm(f0) / np.linalg.norm(f1), -1, 1))) <= 25.0 + 1e-9
+        assert 0.05 <= s.curl <= spec.curl + 0.2
+    rng0.random(19 * 7)  # seven draws per call whatever the amount
+    assert rng0.random() == rng1.random()
+
+
+def test_grasp_style_gives_each_subject_its_own_grasp(tmp_path):
+    """With ``grasp_style`` two subjects hold the same object differently, still touching it
+    without penetrating; the style has its own random stream, so the rest of the motion (the
+    rest poses of the first frame) is the same as without it."""
+    seqs = (SequencePlan("box", "grab"),)
+    base = dataclasses.replace(
+        _micro_preset(), subjects=(SubjectPlan("s01", "train", seqs), SubjectPlan("s02", "train", seqs))
+    )
+    spread, first = {}, {}
+    for style in (0.0, 1.0):
+        root = tmp_path / f"style{style}"
+        preset = dataclasses.replace(base, grasp_style=style)
+        generate_world(root, preset, seed=3, progress=False, process_splits=False, preview=False)
+        w = World(root)
+        assert w.meta["grasp_style"] == style
+        mid = preset.num_frames // 2  # both hands hold the box
+        wrist = {}
+        for sid in ("s01", "s02"):
+            _, obj, _ = w.raw(sid, "box_grab_01")
+            R = Rotation.from_rotvec(obj[mid, 1:4].astype(np.float64)).as_matrix()
+            joints = w.posed(sid, "box_grab_01")
+            # wrists in the box's frame: where on the box each hand holds it
+            wrist[sid] = np.stack([(joints[f"joints_{s}"][mid, 0] - obj[mid, 4:7] / 1000.0) @ R for s in HAND_ID])
+        spread[style] = np.linalg.norm(wrist["s01"] - wrist["s02"], axis=-1).min()
+        a = w.raw("s01", "box_grab_01")[0]
+        first[style] = np.concatenate([a[s]["pose"][0] for s in HAND_ID])
+        if style:
+            _check_contact(_contact_stats(w))
+    # Measured: the nearer hand's wrists 11 mm apart without the style (hand shapes differ), 27 mm with it.
+    assert spread[1.0] > 2 * spread[0.0], spread
+    np.testing.assert_array_equal(first[0.0], first[1.0])
 
 
 def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):

@@ -5,7 +5,7 @@ Subcommands:
     hogsa assets --out DIR         synthetic MANO-format hands, procedural ARCTIC-format objects,
                                    and PNG previews of both
     hogsa convert-mano SRC DST     one-shot MANO .pkl -> chumpy-free, pickle-free .npz
-    hogsa world --out DIR --preset tiny|demo|small [--seed N]
+    hogsa world --out DIR --preset tiny|demo|small|small_styles [--seed N]
                                    a synthetic ARCTIC-format world (raw_seqs, misc, cropped
                                    images, masks, splits) rendered with the mesh rasteriser
     hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
@@ -340,7 +340,8 @@ def _world_parser(sub: argparse._SubParsersAction) -> None:
     w.add_argument(
         "--preset",
         default="tiny",
-        help="tiny (< 1 min, tests), demo (what hogsa demo uses) or small (ARCTIC image sizes)",
+        help="tiny (< 1 min, tests), demo (what hogsa demo uses), small (ARCTIC image sizes) or small_styles "
+        "(small, each subject holding the objects its own way)",
     )
     w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")

@@ -11,10 +11,11 @@ orientation, ``J0`` its wrist joint); right-handed metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
@@ -33,6 +34,7 @@ __all__ = [
     "fit_part_boxes",
     "object_sdf",
     "grasp_specs",
+    "styled_spec",
     "optimise_grasp",
     "placement_rotation",
     "rot_z_matrix",
@@ -232,6 +234,49 @@ def grasp_specs(obj: str, action: str) -> dict[str, GraspSpec]:
         "right": GraspSpec(BOTTOM, (0.0, 1.0, 1.0), (0, -0.5, -0.87), (1, 0, 0), 0.4, _ALL),
         "left": GraspSpec(BOTTOM, (0.0, 1.0, -1.0), (0, -0.5, 0.87), (1, 0, 0), 0.4, _ALL),
     }
+
+
+def styled_spec(spec: GraspSpec, amount: float, rng: np.random.Generator) -> GraspSpec:
+    """One subject's own way of taking a designed grasp (people differ in where and how they hold).
+
+    The palm target slides along the face it is on (every box fraction below 1 moves by up to
+    ``0.35 * amount``), the fingers turn about the palm normal (up to ``25° * amount``), the
+    palm tilts (up to ``8° * amount``) and the initial curl changes (``-0.1 .. +0.2 rad`` times
+    ``amount``). The grasp optimisation then fits the hand to the surface as for the design.
+    The same seven numbers are drawn whatever ``amount`` is.
+
+    Args:
+        spec: the designed grasp.
+        amount: 0 keeps the design exactly; 1 is the full variation.
+        rng: the subject's stream for this sequence.
+    """
+    slide = rng.uniform(-0.35, 0.35, 3)
+    turn, tilt_angle, tilt_dir, curl = (
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(0, 2 * np.pi),
+        rng.uniform(-0.1, 0.2),
+    )
+    if amount == 0.0:
+        return spec
+    point = np.asarray(spec.point, np.float64)
+    free = np.abs(point) < 0.999
+    point[free] = np.clip(point[free] + amount * slide[free], -0.9, 0.9)
+    n = np.asarray(spec.normal, np.float64)
+    n /= np.linalg.norm(n)
+    fingers = np.asarray(spec.fingers, np.float64)
+    fingers = Rotation.from_rotvec(n * np.deg2rad(25.0) * amount * turn).apply(fingers)
+    side = np.cross(n, fingers)
+    side /= np.linalg.norm(side)
+    axis = np.cos(tilt_dir) * side + np.sin(tilt_dir) * np.cross(n, side)
+    n = Rotation.from_rotvec(axis * np.deg2rad(8.0) * amount * tilt_angle).apply(n)
+    return replace(
+        spec,
+        point=tuple(point.tolist()),
+        normal=tuple(n.tolist()),
+        fingers=tuple(fingers.tolist()),
+        curl=float(max(0.05, spec.curl + amount * curl)),
+    )
 
 
 # --------------------------------------------------------------------------------------

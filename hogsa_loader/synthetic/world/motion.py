@@ -20,6 +20,7 @@ from hogsa_loader.synthetic.world.grasp import (
     optimise_grasp,
     placement_rotation,
     rot_z_matrix,
+    styled_spec,
 )
 from hogsa_loader.synthetic.world.stage import TABLE_Z, WORKSPACE
 
@@ -328,6 +329,8 @@ def build_motion(
     betas: np.ndarray,
     rng: np.random.Generator,
     grasp_iters: int = 140,
+    grasp_style: float = 0.0,
+    style_rng: np.random.Generator | None = None,
 ) -> SequenceMotion:
     """Generate one sequence: rest, reach, grasp, manipulate, release, rest.
 
@@ -353,12 +356,19 @@ def build_motion(
         betas: (10,) subject shape.
         rng: sequence random stream.
         grasp_iters: optimisation steps per grasp.
+        grasp_style: how far the subject's grasps stray from the designs (:func:`styled_spec`).
+        style_rng: the subject's grasp-style stream for this sequence (needed when
+            ``grasp_style`` > 0; a separate stream, so ``rng`` draws the same either way).
     """
     theta, Rs, ts, (R_rest, t_rest) = _object_track(F, action, template, rng)
     boxes = fit_part_boxes(template)
     table_n = R_rest.T @ np.array([0.0, 0.0, 1.0])
     table_off = TABLE_Z - t_rest[2]
     specs = grasp_specs(obj, action)
+    if grasp_style > 0.0:
+        if style_rng is None:
+            raise ValueError("grasp_style > 0 needs the subject's style_rng")
+        specs = {side: styled_spec(specs[side], grasp_style, style_rng) for side in SIDES}
     hands, attached, grasps = {}, {}, {}
     rest_verts = template.verts.astype(np.float64) @ R_rest.T + t_rest
     half_width = float(np.abs(rest_verts[:, 0] - WORKSPACE[0]).max())

@@ -4,7 +4,7 @@ A preset is a plain frozen dataclass so tests can shrink one with ``dataclasses.
 Sequence names follow ARCTIC (``<object>_<grab|use>_<NN>``); subject ids and the held-out
 validation subject follow ARCTIC's protocol (val = s05, test = s03).
 
-``small`` and ``demo`` (the three sequences ``hogsa demo`` uses) have ARCTIC's image sizes, so
+``small``, ``small_styles`` and ``demo`` (the three sequences ``hogsa demo`` uses) have ARCTIC's image sizes, so
 ARCTIC's own loader reads them as ARCTIC. ``tiny``
 keeps 256-px crops and ego images × 0.1 to stay fast: the project's reader takes the sizes
 from ``meta/hogsa_world.json``, while ARCTIC's loader, which hard-codes 1000 px and 0.3,
@@ -14,7 +14,7 @@ would cut the wrong patches; readers asked for ARCTIC-exact samples refuse it
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE
 from hogsa_loader.synthetic.world.grasp import GRASP_DESIGNS
@@ -89,6 +89,9 @@ class WorldPreset:
         jpeg_quality: OpenCV JPEG quality of the cropped images.
         grasp_iters: optimisation steps per grasp.
         preview_frames: frames per row of ``world_preview.png``.
+        grasp_style: how much each subject's grasps differ from the designed ones (0: every
+            subject holds an object the same way, up to its hand shape; 1: each subject slides,
+            turns, tilts and curls its hands its own way, drawn per subject and sequence).
     """
 
     name: str
@@ -100,6 +103,7 @@ class WorldPreset:
     jpeg_quality: int = 95
     grasp_iters: int = 140
     preview_frames: int = 5
+    grasp_style: float = 0.0
 
     def __post_init__(self) -> None:
         if self.num_frames <= 51:
@@ -109,6 +113,8 @@ class WorldPreset:
             raise ValueError(f"subject ids must be unique and non-empty: {sids}")
         if self.cropped_size < 16 or not 0.0 < self.ego_image_scale <= 1.0:
             raise ValueError("cropped_size must be >= 16 and ego_image_scale in (0, 1]")
+        if not 0.0 <= self.grasp_style <= 1.0:
+            raise ValueError(f"grasp_style must be in [0, 1], got {self.grasp_style}")
 
     @property
     def objects(self) -> tuple[str, ...]:
@@ -172,6 +178,10 @@ PRESETS: dict[str, WorldPreset] = {
         ego_image_scale=0.3,
     ),
 }
+
+# `small` with subjects that hold the objects their own way: the held-out subject's grasps are
+# not the training subjects' (as in ARCTIC, where every subject has its own motions).
+PRESETS["small_styles"] = replace(PRESETS["small"], name="small_styles", grasp_style=1.0)
 
 
 def get_preset(name: str) -> WorldPreset:

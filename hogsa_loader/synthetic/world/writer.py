@@ -164,7 +164,16 @@ def _write_annotations(data: Path, preset: WorldPreset, seed: int, kits: dict, t
         for seq in plan.sequences:
             rng = _rng(seed, plan.sid, seq.name)
             motion = build_motion(
-                F, seq.object, seq.action, templates[seq.object], kits, subj.betas, rng, grasp_iters=preset.grasp_iters
+                F,
+                seq.object,
+                seq.action,
+                templates[seq.object],
+                kits,
+                subj.betas,
+                rng,
+                grasp_iters=preset.grasp_iters,
+                grasp_style=preset.grasp_style,
+                style_rng=_rng(seed, plan.sid, seq.name, "grasp-style"),
             )
             R_ego, T_ego = ego_trajectory(F, rng, motion.focus)
             mano = {side: motion.hands[side] for side in ("right", "left")}
@@ -483,6 +492,7 @@ def _world_record(preset: WorldPreset, seed: int, subjects: list, records: list[
         "num_frames": preset.num_frames,
         "cropped_size": preset.cropped_size,
         "ego_image_scale": preset.ego_image_scale,
+        "grasp_style": preset.grasp_style,
         "ego_image_size": list(EGO_IMAGE_SIZE),
         "ego_cropped_size": list(preset.ego_size),
         "mask_dir": MASK_DIR,
