@@ -33,10 +33,12 @@ bundle (HOGS for every training (subject, object), ContactNet, pose bank, SRM) a
 
 Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run
 (``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``) —
-a finished run is reused when its settings are unchanged, so an interrupted command
-continues where it stopped; ``downstream.json`` (per seed, mean ± std, paired differences
-real+HOGSA − real per seed), ``downstream.md`` (tables) and ``downstream.png`` (validation
-curves per arm, metric bars with the seed spread).
+a finished run is reused when its settings are unchanged, and an unfinished one continues
+from its last saved state (``checkpoints/``, every ``--train-checkpoint-every`` steps) on
+exactly the batches it would have seen, so an interrupted command continues where it
+stopped; ``downstream.json`` (per seed, mean ± std, paired differences real+HOGSA − real
+per seed), ``downstream.md`` (tables) and ``downstream.png`` (validation curves per arm,
+metric bars with the seed spread).
 
 Usage::
 
@@ -59,6 +61,7 @@ import hashlib
 import json
 import os
 import platform
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -79,12 +82,14 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages
+from hogsa_loader.errors import AssetError
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
-from hogsa_loader.loader.mixing import MixedLoader, MixMode
+from hogsa_loader.loader.mixing import MixedLoader, MixMode, added_synthetic, num_synthetic
 from hogsa_loader.synthetic.world import get_preset
 from hogsa_loader.system import available_cores
+from hogsa_loader.train.run_folder import commit_checkpoint, read_trainer_state, save_trainer_state
 from hogsa_loader.view.pictures import demo_photographs
 
 ARMS = ("real", "hogsa", "hogsa_no_pom", "hogsa_no_srm", "hogsa_free", "real_low", "hogsa_low")
@@ -110,7 +115,7 @@ METRICS = {
     "aae": ("AAE (°)", True),
     "success_rate/0.05": ("Success (%)", False),
 }
-RESULT_VERSION = 1
+RESULT_VERSION = 2
 
 
 @dataclass
@@ -182,6 +187,13 @@ class TrainSettings:
     workers: int = field(default=1, metadata={"help": "DataLoader workers per loader"})
     evals: int = field(default=3, metadata={"help": "validation points on the curve (the last is the full eval)"})
     eval_stride: int = field(default=8, metadata={"help": "every k-th val frame for the curve points"})
+    checkpoint_every: int = field(
+        default=50,
+        metadata={
+            "help": "save a run's state every this many steps (0: never); an interrupted run resumes from its "
+            "last one and finishes as if unbroken"
+        },
+    )
 
 
 @dataclass
@@ -489,27 +501,33 @@ def _single_thread(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def _loader(
-    ds: Any, batch_size: Optional[int], seed: int, workers: int, drop_last: bool = True, shuffle: bool = True
-) -> DataLoader:
+def _loader(ds: Any, batch_size: Optional[int], order: Optional[np.ndarray], workers: int) -> DataLoader:
+    """Samples of ``ds`` in ``order`` (None: in index order), batched unless ``batch_size`` is None."""
     return DataLoader(
         ds,
         batch_size=batch_size,
-        shuffle=shuffle,
-        drop_last=drop_last if batch_size else False,
+        sampler=None if order is None else order.tolist(),
         num_workers=workers,
         worker_init_fn=_single_thread if workers else None,
-        generator=torch.Generator().manual_seed(seed),
+        generator=torch.Generator().manual_seed(0),  # workers' base seed; samples draw from (seed, epoch, index)
     )
 
 
-def _synthetic_stream(ds: Any, seed: int, workers: int) -> Iterator[Any]:
-    """Endless single samples of an export, reshuffled and re-augmented each pass."""
-    epoch = 0
+def epoch_order(n: int, seed: int, epoch: int, stream: int) -> np.ndarray:
+    """The shuffled order of one pass over ``n`` samples: a fixed draw per (seed, epoch, stream),
+    so a run can start anywhere in it (stream 0: real frames, 1: synthetic frames)."""
+    return np.random.default_rng([seed, epoch, stream]).permutation(n)
+
+
+def _synthetic_stream(ds: Any, seed: int, workers: int, start: int = 0) -> Iterator[Any]:
+    """Endless single samples of an export, reshuffled and re-augmented each pass, from the
+    ``start``-th sample of the stream on."""
+    n = len(ds)
+    epoch, offset = divmod(start, n)
     while True:
         ds.set_epoch(epoch)
-        yield from _loader(ds, None, seed * 1000 + epoch, workers)
-        epoch += 1
+        yield from _loader(ds, None, epoch_order(n, seed, epoch, 1)[offset:], workers)
+        epoch, offset = epoch + 1, 0
 
 
 def low_data_indices(n: int, fraction: float) -> list[int]:
@@ -518,30 +536,54 @@ def low_data_indices(n: int, fraction: float) -> list[int]:
     return sorted(np.random.default_rng(20250125).permutation(n)[:k].tolist())
 
 
-def train_batches(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> Iterator[Any]:
-    """Endless training batches of an arm: real epochs, mixed with synthetic samples when the arm has them."""
+def batch_composition(arm: str, cfg: DownstreamConfig) -> tuple[int, int]:
+    """(real, synthetic) samples in each training batch of an arm."""
+    B = cfg.train.batch_size
+    if ARM_SPECS[arm][1] is None:
+        return B, 0
+    if cfg.synthetic.mix == "add":
+        return B, added_synthetic(cfg.synthetic.share, B)
+    n_syn = num_synthetic(cfg.synthetic.share, B)
+    return B - n_syn, n_syn
+
+
+def train_batches(
+    arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path, start: int = 0
+) -> Iterator[Any]:
+    """Endless training batches of an arm from batch ``start`` on (0-based): real epochs, mixed
+    with synthetic samples when the arm has them.
+
+    Every batch is a function of (arm, seed, its index) only: each real epoch takes the real
+    loader's whole batches (``--train-batch-size``, the last incomplete one dropped) of a fixed
+    shuffle, :func:`epoch_order`, and the mixed batches use those real samples in order; the
+    synthetic samples are one endless shuffled stream, ``n_syn`` per batch. So a resumed run
+    starts its stream at batch ``start`` without loading the batches before it.
+    """
     share, variant = ARM_SPECS[arm]
     acfg = ArcticConfig(img_res=cfg.model.img_res)
     real = ArcticDataset(setup["data"], split="p1_train", seed=seed, config=acfg)
     real_part: Any = real if share == "all" else Subset(real, low_data_indices(len(real), cfg.low_data))
-    syn = None
+    B, (n_real, n_syn) = cfg.train.batch_size, batch_composition(arm, cfg)
+    usable = len(real_part) // B * B  # the real loader drops its last incomplete batch
+    per_epoch = usable // n_real
+    if per_epoch == 0:
+        raise RuntimeError(f"{arm}: the real training set ({len(real_part)} frames) is smaller than one batch")
+    epoch, offset = divmod(start, per_epoch)
+    syn_stream = None
     if variant is not None:
         syn = SynthShardSamples(export_dir(variant, cfg, setup, out), seed=seed, cfg=acfg)
-        syn_stream = _synthetic_stream(syn, seed, cfg.train.workers)
-    epoch = 0
+        syn_stream = _synthetic_stream(syn, seed, cfg.train.workers, start=start * n_syn)
     while True:
         real.set_epoch(epoch)
-        loader = _loader(real_part, cfg.train.batch_size, seed * 1000 + epoch, cfg.train.workers)
+        order = epoch_order(len(real_part), seed, epoch, 0)[offset * n_real : usable]
+        loader = _loader(real_part, B, order, cfg.train.workers)
         source: Any = (
-            loader if syn is None else MixedLoader(loader, syn_stream, cfg.synthetic.share, mode=cfg.synthetic.mix)
+            loader
+            if syn_stream is None
+            else MixedLoader(loader, syn_stream, cfg.synthetic.share, mode=cfg.synthetic.mix)
         )
-        n = 0
-        for batch in source:
-            n += 1
-            yield batch
-        if n == 0:
-            raise RuntimeError(f"{arm}: the real training set is smaller than one batch")
-        epoch += 1
+        yield from source
+        epoch, offset = epoch + 1, 0
 
 
 def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
@@ -561,14 +603,7 @@ def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers:
     )
     pool = list(range(len(real))) if ARM_SPECS[arm][0] == "all" else low_data_indices(len(real), cfg.low_data)
     pick = np.random.default_rng(7).permutation(len(pool))[: cfg.model.camera_prior]
-    loader = _loader(
-        Subset(real, [pool[i] for i in sorted(pick)]),
-        cfg.train.batch_size,
-        0,
-        cfg.train.workers,
-        drop_last=False,
-        shuffle=False,
-    )
+    loader = _loader(Subset(real, [pool[i] for i in sorted(pick)]), cfg.train.batch_size, None, cfg.train.workers)
     return mean_cameras(loader, layers, cfg.model.img_res, cfg.device)
 
 
@@ -583,9 +618,7 @@ def val_dataset(cfg: DownstreamConfig, setup: dict[str, Any]) -> tuple[Any, list
 def val_batches(cfg: DownstreamConfig, val: tuple[Any, list[int]], stride: int) -> tuple[DataLoader, int]:
     """Every ``stride``-th frame of :func:`val_dataset` in temporal order."""
     order = val[1][::stride]
-    return _loader(
-        Subset(val[0], order), cfg.train.batch_size, 0, cfg.train.workers, drop_last=False, shuffle=False
-    ), len(order)
+    return _loader(Subset(val[0], order), cfg.train.batch_size, None, cfg.train.workers), len(order)
 
 
 def eval_steps(cfg: DownstreamConfig) -> list[int]:
@@ -616,7 +649,7 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
         "variant": variant and variant_options(variant, cfg, setup),
         "synthetic": syn,
         "model": model_key(cfg),
-        "train": asdict(cfg.train),
+        "train": {k: v for k, v in asdict(cfg.train).items() if k != "checkpoint_every"},
         "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None,
     }
 
@@ -639,8 +672,45 @@ def finished_run(
     return old if old.get("key") == _key(run_settings(arm, seed, cfg, setup)) else None
 
 
+def _save_progress(folder: Path, step: int, model: Any, opt: torch.optim.Optimizer, state: dict[str, Any]) -> None:
+    """Write ``checkpoints/step_N`` (network, Adam moments, progress) and point ``latest.json`` at it."""
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
+    for i, p in enumerate(opt.param_groups[0]["params"]):
+        for name, v in opt.state.get(p, {}).items():
+            tensors[f"adam.{i}.{name}"] = torch.as_tensor(v).detach().cpu().contiguous()
+    tensors["rng.torch"] = torch.get_rng_state()
+    ck = folder / "checkpoints" / f"step_{step:07d}"
+    save_trainer_state(ck, tensors, {**state, "step": step})
+    commit_checkpoint(ck, step)
+
+
+def _load_progress(folder: Path, key: str, model: Any, opt: torch.optim.Optimizer) -> Optional[dict[str, Any]]:
+    """Restore the last saved state of a run with this ``key`` into ``model`` and ``opt``; None
+    when there is none (or it belongs to other settings)."""
+    latest = folder / "checkpoints" / "latest.json"
+    if not latest.is_file():
+        return None
+    rec = json.loads(latest.read_text())
+    state, tensors = read_trainer_state(folder / "checkpoints" / str(rec["folder"]), required=("rng.torch",))
+    if state.get("key") != key:
+        return None
+    net = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
+    missing = set(model.network_state_dict()) - set(net)
+    if missing:
+        raise AssetError(latest, f"the saved network lacks {sorted(missing)[:3]}")
+    model.load_state_dict(net, strict=False)
+    for i, p in enumerate(opt.param_groups[0]["params"]):
+        st = {k.split(".", 2)[2]: v.to(p.device) for k, v in tensors.items() if k.startswith(f"adam.{i}.")}
+        if st:
+            st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
+            opt.state[p] = st
+    torch.set_rng_state(tensors["rng.torch"])
+    return state
+
+
 def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
-    """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same settings."""
+    """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same
+    settings, and continue an interrupted one from its last saved state (``checkpoints/``)."""
     folder = run_dir(arm, seed, cfg, out)
     settings = run_settings(arm, seed, cfg, setup)
     key = _key(settings)
@@ -662,15 +732,25 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
             + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items())
         )
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
-    batches = train_batches(arm, seed, cfg, setup, out)
+    progress = _load_progress(folder, key, model, opt)
+    state: dict[str, Any] = progress or {
+        "key": key,
+        "step": 0,
+        "history": [],  # per step: {"loss", loss terms...}
+        "evals": [],  # the curve
+        "train_time_s": 0.0,
+        "eval_time_s": 0.0,
+    }
+    done = int(state["step"])
+    if done:
+        _say(f"[{arm} seed {seed}] resumed after step {done}")
+    batches = train_batches(arm, seed, cfg, setup, out, start=done)
     val = val_dataset(cfg, setup)
     points = eval_steps(cfg)
-    curve, losses, terms = [], [], []
-    t0 = time.perf_counter()
-    t_eval = 0.0
-    bar = tqdm(total=cfg.train.steps, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
+    t0 = time.perf_counter() - state["train_time_s"] - state["eval_time_s"]
+    bar = tqdm(total=cfg.train.steps, initial=done, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
     final: dict[str, Any] = {}
-    for step in range(1, cfg.train.steps + 1):
+    for step in range(done + 1, cfg.train.steps + 1):
         try:
             rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
         except FloatingPointError as exc:  # recorded as diverged; the other runs go on
@@ -681,13 +761,12 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
                 "settings": settings,
                 "diverged": step,
                 "summary": {m: None for m in METRICS},
-                "curve": curve,
+                "curve": state["evals"],
                 "val_frames": 0,
             }
             _atomic_json(res_path, result)
             return result
-        losses.append(rec["loss"])
-        terms.append({k: float(v) for k, v in rec.items() if k != "loss"})
+        state["history"].append({k: float(v) for k, v in rec.items()})
         bar.update(1)
         bar.set_postfix(loss=f"{rec['loss']:.3f}")
         if step in points:
@@ -695,33 +774,41 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
             last = step == points[-1]
             loader, n = val_batches(cfg, val, 1 if last else cfg.train.eval_stride)
             ev = evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=last)
-            t_eval += time.perf_counter() - te
-            curve.append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})
+            state["eval_time_s"] += time.perf_counter() - te
+            state["evals"].append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})
             if last:
                 final = ev
             bar.write(
                 f"[{arm} seed {seed}] step {step}: MPJPE_h {ev['summary'].get('mpjpe/ra/h', float('nan')):.2f} mm,"
                 f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)"
             )
+        state["train_time_s"] = time.perf_counter() - t0 - state["eval_time_s"]
+        every = cfg.train.checkpoint_every
+        if every and step % every == 0 and step < cfg.train.steps:
+            _save_progress(folder, step, model, opt, state)
     bar.close()
-    state = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
+    net = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
     write_tensors_and_manifest(
-        folder, "model.safetensors", state, "model.json", {"kind": "arcticnet_sf", "settings": settings}
+        folder, "model.safetensors", net, "model.json", {"kind": "arcticnet_sf", "settings": settings}
     )
+    losses = [h["loss"] for h in state["history"]]
+    terms = [{k: v for k, v in h.items() if k != "loss"} for h in state["history"]]
     result = {
         "key": key,
         "settings": settings,
         "summary": {k: _num(v) for k, v in final["summary"].items()},
         "val_frames": final["frames"],
-        "curve": curve,
+        "curve": state["evals"],
         "loss_first": losses[0],
         "loss_last": losses[-1],
         "loss_curve": [float(np.mean(losses[i : i + 10])) for i in range(0, len(losses), 10)],
         "loss_terms_last": {k: float(np.mean([t.get(k, np.nan) for t in terms[-20:]])) for k in terms[-1]},
-        "train_seconds": round(time.perf_counter() - t0 - t_eval, 1),
-        "eval_seconds": round(t_eval, 1),
+        "train_seconds": round(state["train_time_s"], 1),
+        "eval_seconds": round(state["eval_time_s"], 1),
+        "resumed_at": [done] if done else [],
     }
     _atomic_json(res_path, result)
+    shutil.rmtree(folder / "checkpoints", ignore_errors=True)
     return result
 
 
