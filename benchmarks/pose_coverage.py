@@ -1,0 +1,124 @@
+"""How near the held-out subject's hands come to the training hands, and to a pose bank's.
+
+For every frame of the ``p1`` validation sequences and each hand: the mean distance of its 21
+root-relative joints, posed with the mean hand shape (articulation only), to the nearest
+training frame's hand, to the nearest pose-bank grasp's, and to the nearer of the two. Frames
+are split into *held* (the object is being moved: its translation more than 1 mm from the
+sequence's first frame) and *rest* (hands before and after the grasp, alike for every
+subject). Reads annotations only, in seconds.
+
+Usage::
+
+    python benchmarks/pose_coverage.py DATA [--bank BANK_DIR] [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.pom.bank import load_pose_bank
+
+SIDES = ("right", "left")
+HELD_MM = 1.0
+
+
+def articulated_joints(layer: torch.nn.Module, pose: np.ndarray) -> np.ndarray:
+    """(F, 21, 3) root-relative joints (m) of (F, 45) MANO poses, mean shape, no global pose."""
+    p = torch.as_tensor(pose, dtype=torch.float64)
+    zeros = torch.zeros(len(p), 3, dtype=torch.float64)
+    with torch.no_grad():
+        j = layer(global_orient=zeros, hand_pose=p, betas=torch.zeros(len(p), 10, dtype=torch.float64), transl=zeros)
+    joints = j.joints.numpy()
+    return joints - joints[:, :1]
+
+
+def held_frames(obj: np.ndarray) -> np.ndarray:
+    """(F,) True where the object (F, 7) [θ, axis-angle, translation mm] has left its first frame's place."""
+    return np.linalg.norm(obj[:, 4:7] - obj[:1, 4:7], axis=1) > HELD_MM
+
+
+def nearest_distance(query: np.ndarray, pool: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(Q,) mean joint distance (mm) from each hand of ``query`` (Q, J, 3) to its nearest in ``pool`` (N, J, 3)."""
+    out = []
+    for i in range(0, len(query), chunk):
+        d = np.linalg.norm(query[i : i + chunk, None] - pool[None], axis=-1).mean(-1)
+        out.append(d.min(1))
+    return np.concatenate(out) * 1000.0
+
+
+def split_hands(root: ArcticRoot, split: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Articulated joints per side of every frame of a ``p1`` split, and which frames are held."""
+    layers = root.mano_layers(torch.float64)
+    joints: dict[str, list[np.ndarray]] = {s: [] for s in SIDES}
+    held = []
+    for key in root.protocol("p1")[split]:
+        raw = root.raw_sequence(*key.split("/", 1))
+        held.append(held_frames(raw.object))
+        for s in SIDES:
+            joints[s].append(articulated_joints(layers[s], raw.mano[s]["pose"]))
+    return {s: np.concatenate(v) for s, v in joints.items()}, np.concatenate(held)
+
+
+def coverage(data: Path, bank: Optional[Path] = None) -> dict:
+    """Mean nearest distances (mm) per side, pool (train, bank, train+bank) and frame kind."""
+    root = ArcticRoot(data)
+    train, _ = split_hands(root, "train")
+    val, held = split_hands(root, "val")
+    pools = {"train": train}
+    if bank is not None:
+        state = load_pose_bank(bank).state
+        layers = root.mano_layers(torch.float64)
+        pools["bank"] = {s: articulated_joints(layers[s], state.hands[s].pose.double().numpy()) for s in SIDES}
+        pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
+    rec: dict = {"val_frames": int(len(held)), "held_share": float(held.mean()), "pool_sizes": {}, "mm": {}}
+    for name, pool in pools.items():
+        rec["pool_sizes"][name] = int(len(pool["right"]))
+        for s in SIDES:
+            d = nearest_distance(val[s], pool[s])
+            rec["mm"][f"{name}/{s}"] = {
+                "held": float(d[held].mean()) if held.any() else None,
+                "rest": float(d[~held].mean()) if (~held).any() else None,
+                "all": float(d.mean()),
+            }
+    return rec
+
+
+def markdown(rec: dict) -> str:
+    """The table: one row per (pool, side), columns held / rest / all (mm)."""
+    lines = [
+        f"{rec['val_frames']} held-out frames, {rec['held_share']:.0%} held; pools: "
+        + ", ".join(f"{k} {v}" for k, v in rec["pool_sizes"].items()),
+        "",
+        "| nearest of | hand | held (mm) | rest (mm) | all (mm) |",
+        "|---|---|---|---|---|",
+    ]
+    for key, v in rec["mm"].items():
+        pool, side = key.rsplit("/", 1)
+        cells = " | ".join("—" if v[k] is None else f"{v[k]:.1f}" for k in ("held", "rest", "all"))
+        lines.append(f"| {pool} | {side} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data", help="an ARCTIC(-format) data root")
+    ap.add_argument("--bank", help="a pose bank folder (hogsa train bank)")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args(argv)
+    rec = coverage(Path(args.data), Path(args.bank) if args.bank else None)
+    print(markdown(rec), end="")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rec, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

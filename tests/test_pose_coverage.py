@@ -1,0 +1,47 @@
+"""benchmarks/pose_coverage.py: nearest-hand distances and the held / rest split."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("pose_coverage_bench", ROOT / "benchmarks" / "pose_coverage.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["pose_coverage_bench"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_nearest_distance_is_the_mean_joint_distance_to_the_closest():
+    pc = _bench()
+    rng = np.random.default_rng(0)
+    pool = rng.normal(size=(50, 21, 3))
+    query = pool[[3, 17]].copy()
+    np.testing.assert_allclose(pc.nearest_distance(query, pool, chunk=1), 0.0)
+    query[0, 5] += [0.003, 0.0, 0.0]  # one of 21 joints 3 mm off
+    assert np.isclose(pc.nearest_distance(query, pool)[0], 3.0 / 21)
+
+
+def test_held_frames_are_where_the_object_has_moved():
+    pc = _bench()
+    obj = np.zeros((6, 7))
+    obj[2:5, 4:7] = [[0.5, 0, 0], [3.0, 0, 0], [0, 0, 2.0]]  # mm
+    obj[:, 0] = 0.3  # articulation alone does not count
+    assert pc.held_frames(obj).tolist() == [False, False, False, True, True, False]
+
+
+def test_coverage_of_the_tiny_world(tiny_world):
+    pc = _bench()
+    rec = pc.coverage(tiny_world / "arctic_data" / "data")
+    assert rec["val_frames"] == 64 and 0.0 < rec["held_share"] < 1.0
+    assert set(rec["mm"]) == {"train/right", "train/left"}
+    for v in rec["mm"].values():
+        assert 0.0 < v["rest"] < v["held"] < 50.0  # grasps differ more than hands at rest
+    assert "| train | right |" in pc.markdown(rec)
