@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import sys
@@ -16,6 +17,15 @@ from hogsa_loader.hands.mano_io import write_mano_pickle
 from hogsa_loader.synthetic.hand import synthetic_hand_pair
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+
+def load_script(relpath: str, name: str) -> types.ModuleType:
+    """Import a script of the repository that is not in the package (``benchmarks/x.py``) as ``name``."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / relpath)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
 
 
 @pytest.fixture(scope="session")

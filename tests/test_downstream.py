@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -13,18 +11,13 @@ from typing import Literal, Optional
 import numpy as np
 import pytest
 import torch
+from conftest import load_script
 
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args, flag_name
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _downstream():
-    spec = importlib.util.spec_from_file_location("downstream_bench", ROOT / "benchmarks" / "downstream.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["downstream_bench"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/downstream.py", "downstream_bench")
 
 
 @dataclass

@@ -2,21 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
-
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import load_script
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("pose_coverage_bench", ROOT / "benchmarks" / "pose_coverage.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["pose_coverage_bench"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/pose_coverage.py", "pose_coverage_bench")
 
 
 def test_nearest_distance_is_the_mean_joint_distance_to_the_closest():
