@@ -210,7 +210,34 @@ def _cam_init_mlp(feat_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(feat_dim, 512), nn.ReLU(), nn.Linear(512, 512), nn.ReLU(), nn.Linear(512, 3))
 
 
-class HandHMR(nn.Module):
+class _HMRHead(nn.Module):
+    """Regressor of the state vectors ``SPECS``: an initial state made from the pooled
+    features (the camera by ``cam_init``), refined by :class:`HMRLayer`.
+
+    Args:
+        feat_dim: backbone channels C; n_iter: refinement steps.
+    """
+
+    SPECS: dict[str, int] = {}
+
+    def __init__(self, feat_dim: int, n_iter: int = 3):
+        super().__init__()
+        self.hmr_layer = HMRLayer(feat_dim, 1024, self.SPECS)
+        self.cam_init = _cam_init_mlp(feat_dim)
+        self.n_iter = n_iter
+
+    def initial_state(self, feat: Tensor, cam0: Tensor) -> dict[str, Tensor]:
+        """``{name: (B, size)}`` start of the refinement, in the refine input order."""
+        raise NotImplementedError
+
+    def refine(self, features: Tensor) -> tuple[dict[str, Tensor], Tensor]:
+        """features: (B, C, h, w) -> the refined state and the initial camera (B, 3)."""
+        feat = features.mean(dim=(2, 3))
+        cam0 = self.cam_init(feat)
+        return self.hmr_layer(feat, self.initial_state(feat, cam0), self.n_iter), cam0
+
+
+class HandHMR(_HMRHead):
     """Hand regressor: 16 joint rotations (6D), 10 betas, weak-perspective camera.
 
     The initial state is the identity pose, zero betas and ``cam_init(feat)``; the
@@ -222,22 +249,16 @@ class HandHMR(nn.Module):
 
     SPECS = {"pose_6d": 6 * 16, "cam_t/wp": 3, "shape": 10}
 
-    def __init__(self, feat_dim: int, n_iter: int = 3):
-        super().__init__()
-        self.hmr_layer = HMRLayer(feat_dim, 1024, self.SPECS)
-        self.cam_init = _cam_init_mlp(feat_dim)
-        self.n_iter = n_iter
+    def initial_state(self, feat: Tensor, cam0: Tensor) -> dict[str, Tensor]:
+        B = feat.shape[0]
+        eye6 = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=feat.dtype, device=feat.device)
+        return {"pose_6d": eye6.repeat(B, 16), "shape": feat.new_zeros(B, 10), "cam_t/wp": cam0}
 
     def forward(self, features: Tensor) -> dict[str, Tensor]:
         """features: (B, C, h, w) -> ``pose`` (B, 16, 3, 3), ``pose_6d`` (B, 96),
         ``shape`` (B, 10), ``cam_t.wp`` (B, 3), ``cam_t.wp.init`` (B, 3)."""
-        feat = features.mean(dim=(2, 3))
-        B = feat.shape[0]
-        eye6 = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0], dtype=feat.dtype, device=feat.device)
-        cam0 = self.cam_init(feat)
-        init = {"pose_6d": eye6.repeat(B, 16), "shape": feat.new_zeros(B, 10), "cam_t/wp": cam0}
-        out = self.hmr_layer(feat, init, self.n_iter)
-        pose = rotation_6d_to_matrix(out["pose_6d"].reshape(B, 16, 6))
+        out, cam0 = self.refine(features)
+        pose = rotation_6d_to_matrix(out["pose_6d"].reshape(features.shape[0], 16, 6))
         return {
             "pose_6d": out["pose_6d"],
             "shape": out["shape"],
@@ -247,7 +268,7 @@ class HandHMR(nn.Module):
         }
 
 
-class ObjectHMR(nn.Module):
+class ObjectHMR(_HMRHead):
     """Object regressor: axis-angle rotation (3), articulation angle (1), camera (3).
 
     The initial state is zero rotation and angle and ``cam_init(feat)``; the refine
@@ -259,20 +280,14 @@ class ObjectHMR(nn.Module):
 
     SPECS = {"rot": 3, "cam_t/wp": 3, "radian": 1}
 
-    def __init__(self, feat_dim: int, n_iter: int = 3):
-        super().__init__()
-        self.hmr_layer = HMRLayer(feat_dim, 1024, self.SPECS)
-        self.cam_init = _cam_init_mlp(feat_dim)
-        self.n_iter = n_iter
+    def initial_state(self, feat: Tensor, cam0: Tensor) -> dict[str, Tensor]:
+        B = feat.shape[0]
+        return {"rot": feat.new_zeros(B, 3), "radian": feat.new_zeros(B, 1), "cam_t/wp": cam0}
 
     def forward(self, features: Tensor) -> dict[str, Tensor]:
         """features: (B, C, h, w) -> ``rot`` (B, 3), ``radian`` (B, 1), ``cam_t.wp`` (B, 3),
         ``cam_t.wp.init`` (B, 3)."""
-        feat = features.mean(dim=(2, 3))
-        B = feat.shape[0]
-        cam0 = self.cam_init(feat)
-        init = {"rot": feat.new_zeros(B, 3), "radian": feat.new_zeros(B, 1), "cam_t/wp": cam0}
-        out = self.hmr_layer(feat, init, self.n_iter)
+        out, cam0 = self.refine(features)
         return {"rot": out["rot"], "radian": out["radian"], "cam_t.wp": out["cam_t/wp"], "cam_t.wp.init": cam0}
 
 

@@ -29,6 +29,7 @@ import torch
 
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError, PathLike, UsageError
+from hogsa_loader.io.atomic import creation_problem
 from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
 
 __all__ = [
@@ -130,13 +131,9 @@ def torch_device(text: str) -> str:
 
 def _writable_parent(p: Path, flag: str) -> None:
     """The nearest existing ancestor of a path to create must be a writable folder."""
-    anc = p.absolute().parent
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if not anc.is_dir():
-        raise UsageError(f"{flag} {p}: cannot be created, {anc} is a file")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise UsageError(f"{flag} {p}: cannot be created, {anc} is not writable")
+    problem = creation_problem(p)
+    if problem is not None:
+        raise UsageError(f"{flag} {p}: {problem}")
 
 
 def output_dir(path: PathLike, flag: str = "--out", must_not_exist: bool = False) -> Path:

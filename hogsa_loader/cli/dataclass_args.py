@@ -79,26 +79,17 @@ def _add_leaf(
             help=f"{helptext} (default: {' '.join(map(str, default or ())) or 'none'})",
         )
         return
-    conv = convert or (kind if kind in (int, float, str) else str)
     if f.metadata.get("required"):  # no default: argparse reports the flag missing
-        group.add_argument(
-            flag,
-            dest=_dest(path),
-            type=conv,
-            required=True,
-            choices=choices,
-            metavar=None if choices else path[-1].upper(),
-            help=f"{helptext} (required)",
-        )
-        return
+        given: dict[str, Any] = dict(required=True, help=f"{helptext} (required)")
+    else:
+        given = dict(default=default, help=f"{helptext} (default: {default}{', optional' if optional else ''})")
     group.add_argument(
         flag,
         dest=_dest(path),
-        type=conv,
-        default=default,
+        type=convert or (kind if kind in (int, float, str) else str),
         choices=choices,
         metavar=None if choices else path[-1].upper(),
-        help=f"{helptext} (default: {default}{', optional' if optional else ''})",
+        **given,
     )
 
 

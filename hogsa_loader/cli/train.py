@@ -14,7 +14,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import torch
 
@@ -119,6 +119,19 @@ def _guarded(prog: str, build: Callable[[], object]) -> tuple[object, Optional[i
         return None, checks.report(prog, UsageError(str(exc)))
 
 
+def _build_and_train(prog: str, build: Callable[[], Any], overwrite: bool) -> tuple[Optional[dict], int]:
+    """``(trainer.train() metrics, 0)`` for the trainer ``build()`` returns, or ``(None, exit
+    status)`` with the error reported: building fails as :func:`_guarded`; during training
+    files and data give status 1 (they are not usage errors)."""
+    trainer, rc = _guarded(prog, build)
+    if rc is not None:
+        return None, rc
+    try:
+        return trainer.train(overwrite=overwrite), 0  # type: ignore[attr-defined]
+    except (HogsaError, OSError) as exc:
+        return None, checks.report(prog, exc)
+
+
 def run_hogs(cfg: HogsConfig, *, resume: bool = False, overwrite: bool = False, quiet: bool = False) -> int:
     """Check, build (and resume) the trainer, train; the exit status."""
 
@@ -129,13 +142,9 @@ def run_hogs(cfg: HogsConfig, *, resume: bool = False, overwrite: bool = False, 
             print(f"resumed {cfg.run.out} at step {trainer.step}")
         return trainer
 
-    trainer, rc = _guarded("train_hogs", build)
-    if rc is not None:
+    m, rc = _build_and_train("train_hogs", build, overwrite)
+    if m is None:
         return rc
-    try:
-        m = trainer.train(overwrite=overwrite)  # type: ignore[union-attr]
-    except (HogsaError, OSError) as exc:  # errors during training are not usage errors
-        return checks.report("train_hogs", exc)
     if not quiet:
         print(json.dumps({k: m[k] for k in ("psnr", "ssim", "iters")} | {"s_per_iter": m["timings"]["s_per_iter"]}))
     return 0
@@ -213,13 +222,9 @@ def run_srm(cfg: SRMTrainConfig, *, resume: bool = False, overwrite: bool = Fals
                 print(f"train_srm: nothing to resume in {cfg.run.out}; starting fresh", file=sys.stderr)
         return trainer
 
-    trainer, rc = _guarded("train_srm", build)
-    if rc is not None:
+    m, rc = _build_and_train("train_srm", build, overwrite)
+    if m is None:
         return rc
-    try:
-        m = trainer.train(overwrite=overwrite)  # type: ignore[union-attr]
-    except (HogsaError, OSError) as exc:
-        return checks.report("train_srm", exc)
     _print_srm_summary(m)
     return 0
 

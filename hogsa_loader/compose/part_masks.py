@@ -18,12 +18,12 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.datasets.conventions import MASK_IDS
-from hogsa_loader.datasets.types import SequenceData
+from hogsa_loader.datasets.types import CameraTrack, SequenceData
 from hogsa_loader.objects.articulated import articulate
 from hogsa_loader.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.render.mesh_raster import MeshPart, render_meshes
 
-__all__ = ["PosedMeshes", "object_part_meshes", "pose_meshes", "render_part_mask", "inside_image"]
+__all__ = ["PosedMeshes", "object_part_meshes", "pose_meshes", "render_part_mask", "render_camera_mask", "inside_image"]
 
 _F32 = torch.float32
 
@@ -180,3 +180,30 @@ def render_part_mask(
     )
     mask = out.part_id.numpy().astype(np.uint8)
     return mask * inside_image(K_render, K_full, full_size[0], full_size[1], size)
+
+
+def render_camera_mask(
+    posed: PosedMeshes, cam: CameraTrack, frame: int, K_render: np.ndarray, size: int, supersample: int = 1
+) -> np.ndarray:
+    """(size, size) uint8 part mask of ``frame`` seen by the dataset camera ``cam``.
+
+    :func:`render_part_mask` with the camera's extrinsics, full-image intrinsics and size
+    of that frame.
+
+    Args:
+        posed: meshes from :func:`pose_meshes`.
+        cam: the view's camera track.
+        frame: sequence frame index (must be among the posed frames).
+        K_render: (3, 3) render intrinsics at (size, size).
+        supersample: s ≥ 1 samples per pixel side.
+    """
+    return render_part_mask(
+        posed,
+        frame,
+        cam.world2cam[frame],
+        K_render,
+        size,
+        K_full=cam.K[frame],
+        full_size=(cam.width, cam.height),
+        supersample=supersample,
+    )

@@ -31,7 +31,7 @@ from typing import Callable, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
-from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
+from hogsa_loader.compose.part_masks import pose_meshes, render_camera_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics, render_intrinsics
@@ -169,16 +169,7 @@ def _foreground(seq, view: int, frame: int, resized: int, crop: int, cfg: PlateC
     Ks = np.diag([resized / crop, resized / crop, 1.0]) @ K_crop
     if "posed" not in cache:
         cache["posed"] = cache["pose"]()
-    mask = render_part_mask(
-        cache["posed"],
-        frame,
-        cam.world2cam[frame],
-        Ks,
-        resized,
-        K_full=cam.K[frame],
-        full_size=(cam.width, cam.height),
-        supersample=2,
-    )
+    mask = render_camera_mask(cache["posed"], cam, frame, Ks, resized, supersample=2)
     return mask > 0
 
 

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as nnf
 from torch import Tensor
 
+from hogsa_loader.geometry.quaternion import quat_multiply
 from hogsa_loader.objects.articulated import TOP_ID
 
 __all__ = ["ObjectTensors32", "mano_forward", "object_forward", "rot_to_camera"]
@@ -105,21 +106,6 @@ def mano_forward(
 # ----------------------------------------------------------------------------------------
 # Quaternions (common/rot.py conversions, float32)
 # ----------------------------------------------------------------------------------------
-def _qmul(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product (w, x, y, z), every term in the written order."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        -1,
-    )
-
-
 def _quat_from_rotvec(rotvec: Tensor) -> Tensor:
     """(..., 3) axis-angle → (..., 4) ``(cos θ/2, v · sin(θ/2)/θ)`` (Taylor for θ < 1e-6)."""
     theta = torch.norm(rotvec, p=2, dim=-1, keepdim=True)
@@ -135,7 +121,7 @@ def _quat_rotate(q: Tensor, points: Tensor) -> Tensor:
     """``q ⊗ (0, p) ⊗ q*`` → (..., 3)."""
     pq = torch.cat((points.new_zeros(points.shape[:-1] + (1,)), points), -1)
     conj = q * q.new_tensor([1, -1, -1, -1])
-    return _qmul(_qmul(q, pq), conj)[..., 1:]
+    return quat_multiply(quat_multiply(q, pq), conj)[..., 1:]
 
 
 def _quat_from_matrix(R: Tensor) -> Tensor:
@@ -185,7 +171,7 @@ def rot_to_camera(rotvec: Tensor, world2cam: Tensor) -> Tensor:
         (B, 3) float32 camera-frame axis-angle (the product quaternion is taken with a
         non-negative real part, so the angle is in [0, π]).
     """
-    q = _qmul(_quat_from_matrix(world2cam[:, :3, :3]), _quat_from_rotvec(rotvec))
+    q = quat_multiply(_quat_from_matrix(world2cam[:, :3, :3]), _quat_from_rotvec(rotvec))
     q = torch.where(q[..., 0:1] < 0, -q, q)
     return _rotvec_from_quat(q)
 

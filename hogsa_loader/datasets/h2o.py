@@ -308,6 +308,15 @@ def _parse_world(world: str) -> Optional[int]:
     return int(m.group(1))
 
 
+def _class_records(
+    recs: Sequence[tuple[int, np.ndarray]], item_shape: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame ``(class id, array)`` records → class ids (F,) int64 and arrays (F, *item_shape)."""
+    cls = np.array([c for c, _ in recs], dtype=np.int64)
+    arrays = np.stack([a for _, a in recs]) if recs else np.zeros((0, *item_shape))
+    return cls, arrays
+
+
 class H2ORoot:
     """An H2O dataset root (the folder holding ``subject1``, ``subject2``...).
 
@@ -481,9 +490,7 @@ class H2ORoot:
     ) -> tuple[np.ndarray, np.ndarray]:
         """``obj_pose_rt`` of the given frames: class ids (F,) int64 and (F, 4, 4) object-to-camera."""
         recs = self._read_frames(subject, scene, seq, cam, "obj_pose_rt", frames, parse_h2o_obj_pose_rt_strict)
-        cls = np.array([c for c, _ in recs], dtype=np.int64)
-        mats = np.stack([m for _, m in recs]) if recs else np.zeros((0, 4, 4))
-        return cls, mats
+        return _class_records(recs, (4, 4))
 
     def read_hand_joints(self, subject: str, scene: str, seq: SeqId, cam: int, frames: Sequence[int]) -> H2OHandJoints:
         """``hand_pose`` of the given frames: valid (F, 2) and joints (F, 2, 21, 3), left first."""
@@ -497,9 +504,7 @@ class H2ORoot:
     ) -> tuple[np.ndarray, np.ndarray]:
         """``obj_pose`` of the given frames: class ids (F,) and box points (F, 21, 3)."""
         recs = self._read_frames(subject, scene, seq, cam, "obj_pose", frames, parse_h2o_obj_pose)
-        cls = np.array([c for c, _ in recs], dtype=np.int64)
-        pts = np.stack([b for _, b in recs]) if recs else np.zeros((0, 21, 3))
-        return cls, pts
+        return _class_records(recs, (21, 3))
 
     def read_labels(
         self, subject: str, scene: str, seq: SeqId, cam: int, frames: Sequence[int], kind: str = "action_label"

@@ -22,7 +22,6 @@ __all__ = [
     "skin_vertices",
     "Skinning",
     "skin_template",
-    "lbs",
 ]
 
 
@@ -158,35 +157,7 @@ def skin_template(
     weights: Tensor,
     pose_is_rotmat: bool = False,
 ) -> Skinning:
-    """:func:`lbs` that also returns the intermediate per-vertex quantities.
-
-    Arguments as :func:`lbs`; returns :class:`Skinning` (vertex transforms are what
-    free-point Gaussians are skinned with).
-    """
-    B = betas.shape[0]
-    J = parents.shape[0]
-    v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
-    rest_joints = regress_joints(J_regressor, v_shaped)
-    rot_mats = pose if pose_is_rotmat else axis_angle_to_matrix(pose.reshape(B, J, 3))
-    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), posedirs)
-    joints, transforms = kinematic_chain(rot_mats, rest_joints, parents)
-    rot, trans = vertex_transforms(weights, transforms)
-    vertices = torch.einsum("bvrc,bvc->bvr", rot, v_posed) + trans
-    return Skinning(vertices, joints, rot_mats, v_posed, rot, trans)
-
-
-def lbs(
-    betas: Tensor,
-    pose: Tensor,
-    v_template: Tensor,
-    shapedirs: Tensor,
-    posedirs: Tensor,
-    J_regressor: Tensor,
-    parents: Tensor,
-    weights: Tensor,
-    pose_is_rotmat: bool = False,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Shape, pose-correct, and skin a template (SMPL/MANO-style LBS).
+    """Shape, pose-correct, and skin a template (SMPL/MANO-style LBS, smplx's ``lbs``).
 
     Args:
         betas: (B, S) shape coefficients.
@@ -200,9 +171,17 @@ def lbs(
         weights: (V, J) skinning weights.
 
     Returns:
-        vertices: (B, V, 3) posed vertices.
-        joints: (B, J, 3) posed joints.
-        rot_mats: (B, J, 3, 3) local joint rotations.
+        :class:`Skinning`: posed vertices and joints, local joint rotations and the
+        intermediate per-vertex quantities (vertex transforms are what free-point
+        Gaussians are skinned with).
     """
-    out = skin_template(betas, pose, v_template, shapedirs, posedirs, J_regressor, parents, weights, pose_is_rotmat)
-    return out.vertices, out.joints, out.rot_mats
+    B = betas.shape[0]
+    J = parents.shape[0]
+    v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
+    rest_joints = regress_joints(J_regressor, v_shaped)
+    rot_mats = pose if pose_is_rotmat else axis_angle_to_matrix(pose.reshape(B, J, 3))
+    v_posed = v_shaped + torch.einsum("bp,vcp->bvc", pose_features(rot_mats), posedirs)
+    joints, transforms = kinematic_chain(rot_mats, rest_joints, parents)
+    rot, trans = vertex_transforms(weights, transforms)
+    vertices = torch.einsum("bvrc,bvc->bvr", rot, v_posed) + trans
+    return Skinning(vertices, joints, rot_mats, v_posed, rot, trans)

@@ -1,7 +1,8 @@
 """Atomic file writes: a temporary file in the target's folder, fsync, ``os.replace``.
 
 A reader never sees a half-written file: it finds the old content or the new one. A failed
-write removes its temporary file and leaves the target as it was.
+write removes its temporary file and leaves the target as it was. :func:`creation_problem`
+says, before anything is written, why a new output path could not be created.
 """
 
 from __future__ import annotations
@@ -11,11 +12,28 @@ import os
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Iterator, Optional
 
 from hogsa_loader.errors import PathLike
 
-__all__ = ["atomic_open", "atomic_write", "atomic_write_json"]
+__all__ = ["atomic_open", "atomic_write", "atomic_write_json", "creation_problem"]
+
+
+def creation_problem(path: Path) -> Optional[str]:
+    """Why a path that does not exist yet cannot be created (None when it can): its nearest
+    existing ancestor must be a writable folder. Nothing is created.
+
+    Returns:
+        ``"cannot be created, <ancestor> is a file"`` / ``"... is not writable"``, or None.
+    """
+    anc = path.absolute().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        return f"cannot be created, {anc} is a file"
+    if not os.access(anc, os.W_OK | os.X_OK):
+        return f"cannot be created, {anc} is not writable"
+    return None
 
 
 def _temp_name(path: Path) -> Path:

@@ -12,20 +12,17 @@ into an array.
 
 from __future__ import annotations
 
-import codecs
 import copyreg
 import io
 import math
 import os
-import pickle
-from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING
 from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
-from hogsa_loader.io.pickle_caps import check_unpickled, nested_shape
+from hogsa_loader.io.pickle_caps import CappedUnpickler, nested_shape, numpy_globals
 
 __all__ = ["MAX_DENSE_ELEMENTS", "MAX_LIST_ELEMENTS", "ChumpyStub", "RestrictedUnpickler", "as_array"]
 
@@ -74,23 +71,16 @@ def _chumpy_stub(module: str, name: str) -> type:
 
 
 def _allowed_globals() -> dict[tuple[str, str], Any]:
-    reconstruct = np.ndarray.__reduce__(np.zeros(1))[0]
-    scalar = np.float64(0).__reduce__()[0]
-    allowed: dict[tuple[str, str], Any] = {
-        ("copyreg", "_reconstructor"): copyreg._reconstructor,
-        ("builtins", "object"): object,
-        ("builtins", "set"): set,
-        ("builtins", "frozenset"): frozenset,
-        ("builtins", "slice"): slice,
-        ("_codecs", "encode"): codecs.encode,
-        ("numpy", "ndarray"): np.ndarray,
-        ("numpy", "dtype"): np.dtype,
-    }
-    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        allowed[(mod, "_reconstruct")] = reconstruct
-        allowed[(mod, "scalar")] = scalar
-    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
-        allowed[(mod, "_frombuffer")] = _frombuffer
+    allowed = numpy_globals(_frombuffer)
+    allowed.update(
+        {
+            ("copyreg", "_reconstructor"): copyreg._reconstructor,
+            ("builtins", "object"): object,
+            ("builtins", "set"): set,
+            ("builtins", "frozenset"): frozenset,
+            ("builtins", "slice"): slice,
+        }
+    )
     for fmt, cls in (("csc", sp.csc_matrix), ("csr", sp.csr_matrix), ("coo", sp.coo_matrix)):
         # a fresh subclass per unpickler: pickle's BUILD can set attributes on a class it was
         # handed, and must never reach scipy's own classes (or a later load's)
@@ -104,7 +94,7 @@ def _frombuffer(buf: bytes, dtype: Any, shape: tuple, order: str) -> np.ndarray:
     return np.frombuffer(buf, dtype=dtype).reshape(shape, order=order)
 
 
-class RestrictedUnpickler(pickle.Unpickler):
+class RestrictedUnpickler(CappedUnpickler):
     """Unpickler that resolves only numpy / scipy.sparse / copyreg globals and chumpy stubs.
 
     Any other global (``os.system``, ``builtins.eval``, a user class, ...) raises
@@ -113,27 +103,17 @@ class RestrictedUnpickler(pickle.Unpickler):
     :func:`~hogsa_loader.io.pickle_caps.check_unpickled` (:class:`AssetError`).
     """
 
+    file_kind = "a MANO model file"
+
     def __init__(self, file: io.BufferedIOBase, path: PathLike = "<pickle>") -> None:
-        super().__init__(file, encoding="latin1", fix_imports=True)
-        self._path = os.fspath(path)
-        self._allowed = _allowed_globals()
         try:
-            self._file_size = os.fstat(file.fileno()).st_size
+            file_size = os.fstat(file.fileno()).st_size
         except (AttributeError, OSError, ValueError):  # an in-memory stream
-            self._file_size = len(file.getbuffer()) if isinstance(file, io.BytesIO) else 0
+            file_size = len(file.getbuffer()) if isinstance(file, io.BytesIO) else 0
+        super().__init__(file, path, file_size)
+        self._allowed = _allowed_globals()
 
-    def load(self) -> Any:
-        """Unpickle, then count what was built (:func:`~hogsa_loader.io.pickle_caps.check_unpickled`)."""
-        obj = super().load()
-        check_unpickled(obj, self._path, self._file_size)
-        return obj
-
-    def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
-        # Python-2 names (copy_reg, __builtin__) -> Python 3, as pickle's fix_imports does
-        if (module, name) in NAME_MAPPING:
-            module, name = NAME_MAPPING[(module, name)]
-        elif module in IMPORT_MAPPING:
-            module = IMPORT_MAPPING[module]
+    def resolve(self, module: str, name: str) -> Any:
         if module == "chumpy" or module.startswith("chumpy."):
             return _chumpy_stub(module, name)
         try:
@@ -144,9 +124,6 @@ class RestrictedUnpickler(pickle.Unpickler):
                 f"refusing to load global '{module}.{name}': only numpy, scipy.sparse and "
                 "chumpy data may appear in a MANO model file",
             ) from None
-
-    def persistent_load(self, pid: Any) -> Any:
-        raise UnsafePickleError(self._path, "persistent ids are not allowed in a MANO model file")
 
 
 #: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,

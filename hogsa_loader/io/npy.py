@@ -17,12 +17,8 @@ global (``os.system``, ``builtins.exec``, a class) raises
 from __future__ import annotations
 
 import ast
-import codecs
 import io
 import math
-import os
-import pickle
-from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING
 from pathlib import Path
 from typing import Any, Optional
 
@@ -30,7 +26,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 
 from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
-from hogsa_loader.io.pickle_caps import check_unpickled
+from hogsa_loader.io.pickle_caps import CappedUnpickler, numpy_globals
 
 __all__ = ["MAX_NPY_HEADER", "NpyUnpickler", "read_npy"]
 
@@ -40,22 +36,8 @@ MAX_NPY_HEADER = 10000
 
 def _npy_allowed_globals() -> dict[tuple[str, str], Any]:
     """The only globals an ARCTIC ``.npy`` pickle may reference (numpy array rebuilding)."""
-    probe = np.zeros(1)
-    reconstruct = probe.__reduce_ex__(4)[0]  # numpy._core.multiarray._reconstruct
-    frombuffer = probe.__reduce_ex__(5)[0]  # numpy._core.numeric._frombuffer (protocol 5)
-    scalar = np.float64(0).__reduce__()[0]  # numpy._core.multiarray.scalar
-    allowed: dict[tuple[str, str], Any] = {
-        ("numpy", "ndarray"): np.ndarray,
-        ("numpy", "dtype"): np.dtype,
-        # protocol <= 2 pickles written by Python 3 encode bytes as _codecs.encode(str, "latin1")
-        ("_codecs", "encode"): codecs.encode,
-    }
-    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
-        allowed[(mod, "_reconstruct")] = reconstruct
-        allowed[(mod, "scalar")] = scalar
-    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
-        allowed[(mod, "_frombuffer")] = frombuffer
-    return allowed
+    frombuffer = np.zeros(1).__reduce_ex__(5)[0]  # numpy._core.numeric._frombuffer (protocol 5)
+    return numpy_globals(frombuffer)
 
 
 class _PickledCSR:
@@ -127,7 +109,7 @@ def _rebuild_sparse(obj: Any, path: Path, memo: Optional[dict[int, Any]] = None)
     return out
 
 
-class NpyUnpickler(pickle.Unpickler):
+class NpyUnpickler(CappedUnpickler):
     """Unpickler for the object payload of ``np.save``-d dicts/arrays.
 
     Resolves only numpy's array/dtype/scalar reconstructors; dicts, lists, tuples, strings
@@ -137,22 +119,12 @@ class NpyUnpickler(pickle.Unpickler):
     (``file_size``: the file's size in bytes, which raises the element cap to it).
     """
 
+    file_kind = "an ARCTIC .npy file"
+
     def __init__(self, file: Any, path: PathLike = "<npy>", file_size: int = 0) -> None:
-        super().__init__(file, encoding="latin1", fix_imports=True)
-        self._path = os.fspath(path)
-        self._file_size = int(file_size)
+        super().__init__(file, path, file_size)
 
-    def load(self) -> Any:
-        """Unpickle, then count what was built (:func:`~hogsa_loader.io.pickle_caps.check_unpickled`)."""
-        obj = super().load()
-        check_unpickled(obj, self._path, self._file_size)
-        return obj
-
-    def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
-        if (module, name) in NAME_MAPPING:
-            module, name = NAME_MAPPING[(module, name)]
-        elif module in IMPORT_MAPPING:
-            module = IMPORT_MAPPING[module]
+    def resolve(self, module: str, name: str) -> Any:
         try:
             return _NPY_ALLOWED[(module, name)]
         except KeyError:
@@ -161,9 +133,6 @@ class NpyUnpickler(pickle.Unpickler):
                 f"refusing to load global '{module}.{name}': only numpy arrays, numbers, "
                 "strings, lists and dicts may appear in an ARCTIC .npy file (nothing was executed)",
             ) from None
-
-    def persistent_load(self, pid: Any) -> Any:
-        raise UnsafePickleError(self._path, "persistent ids are not allowed in an ARCTIC .npy file")
 
 
 class _CappedReader:

@@ -3,18 +3,23 @@
 A pickle can reference one container many times (its memo), so a file of a few hundred
 bytes can describe a nested list of 10⁹ numbers that only becomes large when it is turned
 into an array. :func:`check_unpickled` counts what an unpickler built before anything is
-converted and refuses it past the caps.
+converted and refuses it past the caps; :class:`CappedUnpickler` is the base of the
+restricted unpicklers that apply it.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import codecs
+import os
+import pickle
+from _compat_pickle import IMPORT_MAPPING, NAME_MAPPING
+from typing import Any, BinaryIO, Callable
 
 import numpy as np
 
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
 
-__all__ = ["MAX_ELEMENTS", "MAX_DEPTH", "check_unpickled", "nested_shape"]
+__all__ = ["MAX_ELEMENTS", "MAX_DEPTH", "CappedUnpickler", "check_unpickled", "nested_shape", "numpy_globals"]
 
 #: Default cap of the elements an unpickled object may expand to (a file larger than this
 #: many bytes raises the cap to its size).
@@ -137,3 +142,76 @@ def nested_shape(value: Any, max_depth: int = MAX_DEPTH) -> tuple[int, ...]:
     if isinstance(node, np.ndarray):
         shape.extend(node.shape)
     return tuple(shape)
+
+
+def numpy_globals(frombuffer: Callable[..., np.ndarray]) -> dict[tuple[str, str], Any]:
+    """The globals a pickle needs to rebuild numpy arrays, dtypes and scalars.
+
+    Both module spellings (``numpy.core`` before numpy 2, ``numpy._core`` after) map to the
+    same reconstructors; ``_codecs.encode`` is how protocol <= 2 pickles written by Python 3
+    encode bytes (``encode(str, "latin1")``).
+
+    Args:
+        frombuffer: what ``numpy._core.numeric._frombuffer`` (protocol 5 arrays) resolves to.
+
+    Returns:
+        ``{(module, name): object}``.
+    """
+    probe = np.zeros(1)
+    reconstruct = probe.__reduce_ex__(4)[0]  # numpy._core.multiarray._reconstruct
+    scalar = np.float64(0).__reduce__()[0]  # numpy._core.multiarray.scalar
+    allowed: dict[tuple[str, str], Any] = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        ("_codecs", "encode"): codecs.encode,
+    }
+    for mod in ("numpy.core.multiarray", "numpy._core.multiarray"):
+        allowed[(mod, "_reconstruct")] = reconstruct
+        allowed[(mod, "scalar")] = scalar
+    for mod in ("numpy.core.numeric", "numpy._core.numeric"):
+        allowed[(mod, "_frombuffer")] = frombuffer
+    return allowed
+
+
+class CappedUnpickler(pickle.Unpickler):
+    """Base of the restricted unpicklers: Python-2 pickles (``latin1``), globals resolved
+    only by :meth:`resolve`, no persistent ids, and :meth:`load` refusing data past the caps
+    of :func:`check_unpickled` (:class:`AssetError`).
+
+    Subclasses set :attr:`file_kind` and implement :meth:`resolve`.
+
+    Args:
+        file: the binary stream holding the pickle.
+        path: the file, named in errors.
+        file_size: the file's size in bytes (raises the element cap to it).
+    """
+
+    #: What the file is, in error messages ("a MANO model file").
+    file_kind = "this file"
+
+    def __init__(self, file: BinaryIO, path: PathLike, file_size: int = 0) -> None:
+        super().__init__(file, encoding="latin1", fix_imports=True)
+        self._path = os.fspath(path)
+        self._file_size = int(file_size)
+
+    def load(self) -> Any:
+        """Unpickle, then count what was built (:func:`check_unpickled`)."""
+        obj = super().load()
+        check_unpickled(obj, self._path, self._file_size)
+        return obj
+
+    def find_class(self, module: str, name: str) -> Any:  # noqa: D401 - pickle API
+        # Python-2 names (copy_reg, __builtin__) -> Python 3, as pickle's fix_imports does
+        if (module, name) in NAME_MAPPING:
+            module, name = NAME_MAPPING[(module, name)]
+        elif module in IMPORT_MAPPING:
+            module = IMPORT_MAPPING[module]
+        return self.resolve(module, name)
+
+    def resolve(self, module: str, name: str) -> Any:
+        """The object a (Python 3) global stands for; raises :class:`UnsafePickleError` for
+        one that is not allowed."""
+        raise UnsafePickleError(self._path, f"refusing to load global '{module}.{name}'")
+
+    def persistent_load(self, pid: Any) -> Any:
+        raise UnsafePickleError(self._path, f"persistent ids are not allowed in {self.file_kind}")

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from hogsa_loader.errors import AssetError
-from hogsa_loader.loader.poses import PoseBatch, PoseContext, register_pose_source, split_sequences
+from hogsa_loader.loader.poses import FrameTables, PoseBatch, PoseContext, register_pose_source, split_sequences
 from hogsa_loader.pom.contactnet import load_contactnet
 from hogsa_loader.pom.hands import hand_infos
 from hogsa_loader.pom.objects import ObjectSet
@@ -43,7 +43,7 @@ __all__ = ["OnlinePoses"]
 _HAND_KEYS = ("rot", "pose", "betas", "trans")
 
 
-class OnlinePoses:
+class OnlinePoses(FrameTables):
     """POM-optimised grasps made on the fly (see module docstring).
 
     Args:
@@ -60,6 +60,7 @@ class OnlinePoses:
     """
 
     name = "online"
+    table_kind = "contact frames"
 
     def __init__(
         self,
@@ -103,15 +104,9 @@ class OnlinePoses:
                 f"no contact frames for (subject, object) {missing} in {context.protocol} {context.split}",
             )
 
-    @property
-    def keys(self) -> list[tuple[str, str]]:
-        return sorted(self.frames)
-
     def sample(self, key: tuple[str, str], rngs: Sequence[np.random.Generator]) -> PoseBatch:
         """Source frames (un-optimised) and per-sample perturbation seeds."""
-        if key not in self.frames:
-            raise KeyError(f"no contact frames for (subject, object) {key}; have {self.keys}")
-        fr = self.frames[key]
+        fr = self.table(key)
         rows = [int(rng.integers(fr.state.batch)) for rng in rngs]
         seeds = [int(rng.integers(2**62)) for rng in rngs]
         prov = []

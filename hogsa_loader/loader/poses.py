@@ -38,6 +38,7 @@ __all__ = [
     "PoseContext",
     "PoseSource",
     "PerturbPoses",
+    "FrameTables",
     "POSE_SOURCES",
     "register_pose_source",
     "make_pose_source",
@@ -110,7 +111,27 @@ def split_sequences(root: ArcticRoot, protocol: str, split: str) -> list[str]:
         return root.sequences()
 
 
-class PerturbPoses:
+class FrameTables:
+    """Base of the pose sources that keep a table of usable frames per (subject, object)
+    in ``frames``: :attr:`keys` lists the pairs, :meth:`table` looks one up."""
+
+    frames: dict[tuple[str, str], Any]
+    #: What a table holds, named in the error for a pair without one.
+    table_kind = "frames"
+
+    @property
+    def keys(self) -> list[tuple[str, str]]:
+        """The (subject, object) pairs with at least one usable frame."""
+        return sorted(self.frames)
+
+    def table(self, key: tuple[str, str]) -> Any:
+        """The table of ``key``; KeyError naming the pairs there are."""
+        if key not in self.frames:
+            raise KeyError(f"no {self.table_kind} for (subject, object) {key}; have {self.keys}")
+        return self.frames[key]
+
+
+class PerturbPoses(FrameTables):
     """Annotated training frames with small perturbations.
 
     Args:
@@ -124,6 +145,7 @@ class PerturbPoses:
     """
 
     name = "perturb"
+    table_kind = "'perturb' frames"
 
     def __init__(
         self,
@@ -160,15 +182,8 @@ class PerturbPoses:
                 self.sequences[key] = seqs
                 self.frames[key] = np.concatenate(frames, axis=0)
 
-    @property
-    def keys(self) -> list[tuple[str, str]]:
-        """The (subject, object) pairs with at least one usable frame."""
-        return sorted(self.frames)
-
     def sample(self, key: tuple[str, str], rngs: Sequence[np.random.Generator]) -> PoseBatch:
-        if key not in self.frames:
-            raise KeyError(f"no {self.name!r} frames for (subject, object) {key}; have {self.keys}")
-        table = self.frames[key]
+        table = self.table(key)
         cols: dict[str, list[np.ndarray]] = {}
         prov = []
 

@@ -240,12 +240,16 @@ def _haar_filters() -> Tensor:
     return torch.stack([ll, lh, hl, hh])[:, None]
 
 
-class HaarTransform(nn.Module):
-    """DWT: (B, C, H, W) → (B, 4C, H/2, W/2), channels ordered band-major ``[LL·C, LH·C, HL·C, HH·C]``."""
+class _Haar(nn.Module):
+    """Holds the (4, 1, 2, 2) Haar filters of :func:`_haar_filters` (buffer ``filters``, not saved)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.register_buffer("filters", _haar_filters(), persistent=False)
+
+
+class HaarTransform(_Haar):
+    """DWT: (B, C, H, W) → (B, 4C, H/2, W/2), channels ordered band-major ``[LL·C, LH·C, HL·C, HH·C]``."""
 
     def forward(self, x: Tensor) -> Tensor:
         b, c, h, w = x.shape
@@ -254,12 +258,8 @@ class HaarTransform(nn.Module):
         return y.reshape(b, c, 4, h // 2, w // 2).transpose(1, 2).reshape(b, 4 * c, h // 2, w // 2)
 
 
-class InverseHaarTransform(nn.Module):
+class InverseHaarTransform(_Haar):
     """IWT: (B, 4C, H, W) → (B, C, 2H, 2W); exact inverse of :class:`HaarTransform`."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("filters", _haar_filters(), persistent=False)
 
     def forward(self, x: Tensor) -> Tensor:
         b, c4, h, w = x.shape

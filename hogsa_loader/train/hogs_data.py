@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.compose.part_masks import pose_meshes, render_part_mask
+from hogsa_loader.compose.part_masks import pose_meshes, render_camera_mask
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, project, render_intrinsics, transform
@@ -487,14 +487,5 @@ def _view_sample(
     else:
         image = _read_image(ip, size, win)
         native = crop if win is None else win[2]
-        mask = render_part_mask(
-            posed,
-            f,
-            cam.world2cam[f],
-            Ks,
-            size,
-            K_full=cam.K[f],
-            full_size=(cam.width, cam.height),
-            supersample=mask_supersample(native, size),
-        )
+        mask = render_camera_mask(posed, cam, f, Ks, size, supersample=mask_supersample(native, size))
     return ViewSample(si, f, v, image, mask, cam.world2cam[f].astype(np.float64), Ks)

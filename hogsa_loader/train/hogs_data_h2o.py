@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 import torch
 
-from hogsa_loader.compose.part_masks import PosedMeshes, pose_meshes, render_part_mask
+from hogsa_loader.compose.part_masks import PosedMeshes, pose_meshes, render_camera_mask
 from hogsa_loader.datasets.conventions import (
     BBOX_PIXELS_PER_SCALE,
     CROP_ENLARGE,
@@ -258,14 +258,5 @@ def _crop_sample(
     Ks = render_intrinsics(cropped_intrinsics(cam.K[f], box, size))
     full = read_h2o_rgb(seq.image_paths[v][f], expected_size=(cam.width, cam.height))
     side = CROP_ENLARGE * BBOX_PIXELS_PER_SCALE * box[2]
-    mask = render_part_mask(
-        posed,
-        f,
-        cam.world2cam[f],
-        Ks,
-        size,
-        K_full=cam.K[f],
-        full_size=(cam.width, cam.height),
-        supersample=mask_supersample(side, size),
-    )
+    mask = render_camera_mask(posed, cam, f, Ks, size, supersample=mask_supersample(side, size))
     return ViewSample(si, f, v, crop_image(full, box, size), mask, cam.world2cam[f].astype(np.float64), Ks)

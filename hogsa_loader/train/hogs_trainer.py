@@ -34,7 +34,6 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
@@ -45,15 +44,9 @@ from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_data import MASK_MODES, FrameSelection, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples
 from hogsa_loader.train.hogs_source import open_hogs_source
+from hogsa_loader.train.loop import StepLoop
 from hogsa_loader.train.losses import hogs_loss
-from hogsa_loader.train.run_folder import (
-    commit_checkpoint,
-    latest_checkpoint,
-    read_trainer_state,
-    save_trainer_state,
-    start_run,
-    write_json,
-)
+from hogsa_loader.train.run_folder import write_json
 
 __all__ = ["HogsTrainer", "BASE_LRS", "PART_NAMES", "POSITION_PARAMS"]
 
@@ -134,8 +127,10 @@ def _object_subdivide_levels(template: ObjectTemplate, levels: Optional[int], mi
     return levels
 
 
-class HogsTrainer:
+class HogsTrainer(StepLoop):
     """Builds the parts and data of one (subject, object) and trains them."""
+
+    desc = "hogs"
 
     def __init__(self, cfg: HogsConfig, *, progress: bool = True) -> None:
         _check_config(cfg)
@@ -320,36 +315,26 @@ class HogsTrainer:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        cfg = self.cfg
-        start_run(self.out, resumed=self.resumed, overwrite=overwrite, config=cfg.to_json())
-        if self.step == 0 and not self.evals:
-            self.evals.append(_summary(self.evaluate()))
-        bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="hogs", dynamic_ncols=True)
-        while self.step < cfg.optim.iters:
-            if cfg.run.max_minutes is not None and self._train_time >= 60.0 * cfg.run.max_minutes:
-                bar.write(f"time budget of {cfg.run.max_minutes} min reached at step {self.step}")
-                break
-            t0 = time.perf_counter()
-            terms = self.train_step()
-            self._train_time += time.perf_counter() - t0
-            self.history.append(terms)
-            bar.update(1)
-            bar.set_postfix(loss=f"{terms['loss']:.4f}", l1=f"{terms['l1']:.4f}")
-            if cfg.run.eval_every > 0 and self.step % cfg.run.eval_every == 0 and self.step < cfg.optim.iters:
-                ev = self.evaluate()
-                self.evals.append(_summary(ev))
-                bar.write(f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB SSIM {ev['ssim']:.4f}")
-            if cfg.run.ckpt_every > 0 and self.step % cfg.run.ckpt_every == 0 and self.step < cfg.optim.iters:
-                self.save_checkpoint()
-        bar.close()
-        final = self.evaluate()
-        if not self.evals or self.evals[-1]["step"] != self.step:
-            self.evals.append(_summary(final))
-        self.save_checkpoint()
+        final = self.run_steps(overwrite)
         self._save_parts(self.out)
         metrics = self.write_metrics(final)
         self.write_pngs()
         return metrics
+
+    def _eval_point(self, ev: dict[str, Any]) -> dict[str, Any]:
+        return _summary(ev)
+
+    def _postfix(self, terms: dict[str, float]) -> dict[str, str]:
+        return {"loss": f"{terms['loss']:.4f}", "l1": f"{terms['l1']:.4f}"}
+
+    def _eval_message(self, ev: dict[str, Any]) -> str:
+        return f"step {self.step}: held-out PSNR {ev['psnr']:.2f} dB SSIM {ev['ssim']:.4f}"
+
+    def _out_of_time(self) -> Optional[str]:
+        minutes = self.cfg.run.max_minutes
+        if minutes is not None and self._train_time >= 60.0 * minutes:
+            return f"time budget of {minutes} min reached at step {self.step}"
+        return None
 
     # ------------------------------------------------------------------ checkpoints
     def _source(self) -> dict[str, str]:
@@ -374,34 +359,18 @@ class HogsTrainer:
         d = fwd.mean(0)
         return (d / max(np.linalg.norm(d), 1e-9)).tolist()
 
-    def save_checkpoint(self) -> Path:
-        """Write ``checkpoints/step_N`` then point ``latest.json`` at it; older ones are removed."""
-        ck = self.out / "checkpoints"
-        folder = ck / f"step_{self.step:07d}"
-        folder.mkdir(parents=True, exist_ok=True)
+    def _save_state(self, folder: Path) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """The parts (and light) into ``folder``; RNG states and Adam moments as tensors."""
         self._save_parts(folder)
         tensors: dict[str, Tensor] = {"rng.sampler": self.gen.get_state(), "rng.torch": torch.get_rng_state()}
         for group in self.optimizer.param_groups:
             st = self.optimizer.state.get(group["params"][0], {})
             for key, val in st.items():
                 tensors[f"adam.{group['name']}.{key}"] = torch.as_tensor(val).detach().cpu().contiguous()
-        state = {"step": self.step, "history": self.history, "evals": self.evals, "train_time_s": self._train_time}
-        save_trainer_state(folder, tensors, state)
-        commit_checkpoint(folder, self.step)
-        return folder
+        return tensors, {}
 
-    def resume(self) -> bool:
-        """Load the latest checkpoint of the run folder; False when there is none.
-
-        Raises:
-            ValueError: the run's saved settings differ (outside ``HogsConfig.RESUMABLE``).
-            AssetError: a malformed, torn or corrupt checkpoint file (named), including
-                optimiser moments that do not fit the model.
-        """
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), HogsConfig.RESUMABLE, HogsConfig.defaults())
-        if folder is None:
-            return False
-        state, tensors = read_trainer_state(folder)
+    def _load_state(self, folder: Path, state: dict[str, Any], tensors: dict[str, Tensor]) -> None:
+        """Parts, light, RNG states and Adam moments (moments that do not fit the model: AssetError)."""
         for group in self.optimizer.param_groups:
             p = group["params"][0]
             prefix = f"adam.{group['name']}."
@@ -427,12 +396,6 @@ class HogsTrainer:
             if st:
                 st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
                 self.optimizer.state[p] = st
-        self.step = int(state["step"])
-        self.history = state["history"]
-        self.evals = state["evals"]
-        self._train_time = float(state["train_time_s"])
-        self.resumed = True
-        return True
 
     # ------------------------------------------------------------------ reports
     def write_metrics(self, final: dict[str, Any]) -> dict[str, Any]:

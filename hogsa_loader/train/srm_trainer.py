@@ -58,7 +58,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-from tqdm import tqdm
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.srm.discriminator import ConditionalDiscriminator
@@ -74,15 +73,9 @@ from hogsa_loader.srm.losses import (
 from hogsa_loader.srm.model import SRM, dihedral
 from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
 from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
+from hogsa_loader.train.loop import StepLoop
 from hogsa_loader.train.losses import box_of, psnr, ssim_map
-from hogsa_loader.train.run_folder import (
-    commit_checkpoint,
-    latest_checkpoint,
-    read_trainer_state,
-    save_trainer_state,
-    start_run,
-    write_json,
-)
+from hogsa_loader.train.run_folder import write_json
 from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 
@@ -123,8 +116,10 @@ def _load_adam(
     opt.load_state_dict({"state": state, "param_groups": groups})
 
 
-class SRMTrainer:
+class SRMTrainer(StepLoop):
     """Builds the data (all runs) and networks; :meth:`train` runs the loop."""
+
+    desc = "srm"
 
     def __init__(self, cfg: SRMTrainConfig, *, progress: bool = True, log=None) -> None:
         if cfg.model.scale not in (1, 2):
@@ -390,34 +385,7 @@ class SRMTrainer:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
-        cfg = self.cfg
-        start_run(self.out, resumed=self.resumed, overwrite=overwrite, config=cfg.to_json())
-        if self.step == 0 and not self.evals:
-            self.evals.append(self._eval_point(self.evaluate()))
-        bar = tqdm(total=cfg.optim.iters, initial=self.step, disable=not self.progress, desc="srm", dynamic_ncols=True)
-        while self.step < cfg.optim.iters:
-            t0 = time.perf_counter()
-            terms = self.train_step()
-            self._train_time += time.perf_counter() - t0
-            self.history.append(terms)
-            bar.update(1)
-            bar.set_postfix(l1=f"{terms['l1']:.4f}", perc=f"{terms['perc']:.4f}", gan=f"{terms.get('gan', 0):.3f}")
-            if cfg.run.eval_every > 0 and self.step % cfg.run.eval_every == 0 and self.step < cfg.optim.iters:
-                ev = self.evaluate()
-                self.evals.append(self._eval_point(ev))
-                val = f", validation {self.evals[-1]['val_with_srm']:.2f} dB" if self.use_val else ""
-                bar.write(
-                    f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} "
-                    "dB, "
-                    f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}{val}"
-                )
-            if cfg.run.ckpt_every > 0 and self.step % cfg.run.ckpt_every == 0 and self.step < cfg.optim.iters:
-                self.save_checkpoint()
-        bar.close()
-        last = self.evaluate()
-        if not self.evals or self.evals[-1]["step"] != self.step:
-            self.evals.append(self._eval_point(last))
-        self.save_checkpoint()
+        last = self.run_steps(overwrite)
         model, final, step = self.g_ema, last, self.step
         if self.use_val:
             assert self.best is not None
@@ -427,6 +395,17 @@ class SRMTrainer:
         save_srm(model, self.out, extra=self._provenance(final, step))
         self.write_pngs(model)
         return metrics
+
+    def _postfix(self, terms: dict[str, float]) -> dict[str, str]:
+        return {"l1": f"{terms['l1']:.4f}", "perc": f"{terms['perc']:.4f}", "gan": f"{terms.get('gan', 0):.3f}"}
+
+    def _eval_message(self, ev: dict[str, Any]) -> str:
+        val = f", validation {self.evals[-1]['val_with_srm']:.2f} dB" if self.use_val else ""
+        return (
+            f"step {self.step}: held-out PSNR {ev['without_srm']['psnr']:.2f} -> {ev['with_srm']['psnr']:.2f} "
+            "dB, "
+            f"SSIM {ev['without_srm']['ssim']:.4f} -> {ev['with_srm']['ssim']:.4f}{val}"
+        )
 
     def _eval_point(self, ev: dict[str, Any]) -> dict[str, Any]:
         """Summary of a held-out evaluation at the current step; with validation views also
@@ -496,11 +475,9 @@ class SRMTrainer:
             d["selection"] = {"val_views": list(self.cfg.data.val_views or []), "best": self.best}
         return d
 
-    def save_checkpoint(self) -> Path:
-        """``checkpoints/step_N/`` then ``latest.json`` (atomic); older step folders are removed."""
-        ck = self.out / "checkpoints"
-        folder = ck / f"step_{self.step:07d}"
-        folder.mkdir(parents=True, exist_ok=True)
+    def _save_state(self, folder: Path) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """The generators (and the best validated one) into ``folder``; RNG states, Adam
+        moments and the discriminator as tensors."""
         targets = self.targets()
         save_srm(self.g, folder / "g", extra={"step": self.step, "targets": targets})
         save_srm(self.g_ema, folder / "g_ema", extra={"step": self.step, "targets": targets})
@@ -516,31 +493,11 @@ class SRMTrainer:
             t, groups_d = _adam_state(self.opt_d, "adam_d")
             tensors.update(t)
             tensors.update({f"d.{k}": v.detach().cpu().contiguous() for k, v in self.d.state_dict().items()})
-        state = {
-            "step": self.step,
-            "history": self.history,
-            "evals": self.evals,
-            "train_time_s": self._train_time,
-            "adam_g_groups": groups_g,
-            "adam_d_groups": groups_d,
-            "best": self.best,
-        }
-        save_trainer_state(folder, tensors, state)
-        commit_checkpoint(folder, self.step)
-        return folder
+        return tensors, {"adam_g_groups": groups_g, "adam_d_groups": groups_d, "best": self.best}
 
-    def resume(self) -> bool:
-        """Load the latest checkpoint of the run folder (exact continuation); False if none.
-
-        Raises:
-            ValueError: the run's saved settings differ (outside ``SRMTrainConfig.RESUMABLE``).
-            AssetError: a malformed, torn or corrupt checkpoint file (named), including
-                optimiser or discriminator state that does not fit the networks.
-        """
-        folder = latest_checkpoint(self.out, self.cfg.to_json(), SRMTrainConfig.RESUMABLE, SRMTrainConfig.defaults())
-        if folder is None:
-            return False
-        state, tensors = read_trainer_state(folder)
+    def _load_state(self, folder: Path, state: dict[str, Any], tensors: dict[str, Tensor]) -> None:
+        """Generators, optimisers, discriminator, best model and RNG states (state that does not
+        fit the networks: AssetError)."""
         tpath = folder / "trainer.safetensors"
         if not isinstance(state.get("adam_g_groups"), list) or not isinstance(state.get("adam_d_groups", []), list):
             raise AssetError(folder / "trainer.json", "'adam_g_groups' / 'adam_d_groups' must be lists")
@@ -580,12 +537,6 @@ class SRMTrainer:
                 torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
         except (RuntimeError, TypeError) as exc:
             raise AssetError(tpath, f"unusable RNG state ({exc})") from None
-        self.resumed = True
-        self.step = int(state["step"])
-        self.history = state["history"]
-        self.evals = state["evals"]
-        self._train_time = float(state["train_time_s"])
-        return True
 
     # ------------------------------------------------------------------ reports
     def write_metrics(self, final: dict[str, Any], last: Optional[dict[str, Any]] = None) -> dict[str, Any]:

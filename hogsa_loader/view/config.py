@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Literal, Optional
 
 from hogsa_loader.errors import UsageError
+from hogsa_loader.io.atomic import creation_problem
 
 __all__ = ["ViewConfig", "ViewError", "check_view_config", "parse_item"]
 
@@ -100,13 +101,9 @@ def _check_writable(out: Path) -> None:
         if not os.access(out, os.W_OK | os.X_OK):
             raise ViewError(f"--out {out}: folder is not writable")
         return
-    anc = out.absolute().parent
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if not anc.is_dir():
-        raise ViewError(f"--out {out}: cannot be created, {anc} is a file")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise ViewError(f"--out {out}: cannot be created, {anc} is not writable")
+    problem = creation_problem(out)
+    if problem is not None:
+        raise ViewError(f"--out {out}: {problem}")
 
 
 def check_view_config(cfg: ViewConfig) -> None:
