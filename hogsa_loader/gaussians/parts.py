@@ -28,7 +28,6 @@ from hogsa_loader.gaussians.gaussian_set import GaussianSet
 from hogsa_loader.gaussians.mesh_bound import MeshGaussians
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.geometry.texture import sample_texture
-from hogsa_loader.hands.lbs import skin_template
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.hands.manohd import subdivide_mesh, subdivide_model
@@ -109,7 +108,7 @@ def mano_skinning(
     betas: Optional[Tensor] = None,
     transl: Optional[Tensor] = None,
 ) -> HandSkinning:
-    """:class:`MANOLayer` posing of an arbitrary template (same steps as ``lbs``).
+    """:class:`MANOLayer` posing of an arbitrary template (:meth:`MANOLayer.skin`).
 
     Args:
         layer: provides blend shapes, regressor, weights, tree and pose conventions
@@ -122,22 +121,13 @@ def mano_skinning(
         :class:`HandSkinning`.
     """
     full_pose, betas = layer.full_pose_and_betas(global_orient, hand_pose, betas, transl)
-    out = skin_template(
-        betas,
-        full_pose,
-        v_template,
-        layer.shapedirs[..., : betas.shape[-1]],
-        layer.posedirs,
-        layer.J_regressor,
-        layer.parents,
-        layer.lbs_weights,
-    )
-    verts, joints, rot, trans, v_posed = out.vertices, out.joints, out.vertex_rot, out.vertex_trans, out.v_posed
+    out = layer.skin(full_pose, betas, v_template)
+    verts, joints, trans = out.vertices, out.joints, out.vertex_trans
     if transl is not None:
         verts = verts + transl[:, None]
         joints = joints + transl[:, None]
         trans = trans + transl[:, None]
-    return HandSkinning(verts, joints, rot, trans, v_posed - v_template[None], full_pose)
+    return HandSkinning(verts, joints, out.vertex_rot, trans, out.v_posed - v_template[None], full_pose)
 
 
 # --------------------------------------------------------------------------------------

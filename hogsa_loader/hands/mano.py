@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from hogsa_loader.errors import PathLike
-from hogsa_loader.hands.lbs import lbs
+from hogsa_loader.hands.lbs import Skinning, skin_template
 from hogsa_loader.hands.mano_io import ManoModelData, load_mano
 
 __all__ = ["MANOLayer", "ManoOutput", "NUM_MANO_JOINTS"]
@@ -157,6 +157,28 @@ class MANOLayer(nn.Module):
             raise ValueError(f"hand_pose must have {self.num_pca_comps} values, got {tuple(hand_pose.shape)}")
         return torch.cat([global_orient, self.articulation(hand_pose)], dim=-1), betas
 
+    def skin(self, full_pose: Tensor, betas: Tensor, v_template: Optional[Tensor] = None) -> Skinning:
+        """LBS of a template with this layer's blend shapes, joint regressor, tree and weights.
+
+        Args:
+            full_pose: (B, 48) axis-angle, root first (:meth:`full_pose_and_betas`).
+            betas: (B, S) shape, S <= ``num_betas``.
+            v_template: (V, 3) rest template; default the model's.
+
+        Returns:
+            :class:`~hogsa_loader.hands.lbs.Skinning` without translation.
+        """
+        return skin_template(
+            betas,
+            full_pose,
+            self.v_template if v_template is None else v_template,
+            self.shapedirs[..., : betas.shape[-1]],
+            self.posedirs,
+            self.J_regressor,
+            self.parents,
+            self.lbs_weights,
+        )
+
     def forward(
         self,
         global_orient: Optional[Tensor] = None,
@@ -176,18 +198,10 @@ class MANOLayer(nn.Module):
             :class:`ManoOutput`.
         """
         full_pose, betas = self.full_pose_and_betas(global_orient, hand_pose, betas, transl)
-        verts, joints, rot_mats = lbs(
-            betas,
-            full_pose,
-            self.v_template,
-            self.shapedirs[..., : betas.shape[-1]],
-            self.posedirs,
-            self.J_regressor,
-            self.parents,
-            self.lbs_weights,
-        )
-        joints = torch.cat([joints, verts[:, self.tip_ids]], dim=1)
+        out = self.skin(full_pose, betas)
+        verts = out.vertices
+        joints = torch.cat([out.joints, verts[:, self.tip_ids]], dim=1)
         if transl is not None:
             verts = verts + transl[:, None]
             joints = joints + transl[:, None]
-        return ManoOutput(vertices=verts, joints=joints, full_pose=full_pose, rot_mats=rot_mats)
+        return ManoOutput(vertices=verts, joints=joints, full_pose=full_pose, rot_mats=out.rot_mats)
