@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 import torch
 
-from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, compose, render_scene
+from hogsa_loader.gaussians import BindingConfig, HandGaussians, ObjectGaussians, compose, render_scene
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
 from hogsa_loader.hands import ManoModelData, named_articulation
 from hogsa_loader.hands.anatomy import derive_joint_axes, rest_joints
@@ -124,8 +124,9 @@ def main() -> None:
 
     t0 = time.perf_counter()
     common = dict(variant=args.variant, k=args.k, sh_degree=args.sh_degree)
-    hands = [HandGaussians(m, subdivide_levels=args.hand_levels, flat_hand_mean=True, **common) for m in (right, left)]
-    obj = ObjectGaussians(template, subdivide_levels=args.object_levels, **common)
+    hand_binding = BindingConfig(subdivide_levels=args.hand_levels, **common)
+    hands = [HandGaussians(m, hand_binding, flat_hand_mean=True) for m in (right, left)]
+    obj = ObjectGaussians(template, BindingConfig(subdivide_levels=args.object_levels, **common))
     t_build = time.perf_counter() - t0
 
     # object: bottom part centred at the origin, lid opened by --angle

@@ -14,6 +14,7 @@ import torch
 
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians import (
+    BindingConfig,
     FreeGaussians,
     GaussianSet,
     HandGaussians,
@@ -361,7 +362,7 @@ def _hand_pose(B: int, seed: int) -> dict:
 
 @pytest.mark.parametrize("levels", [0, 1])
 def test_hand_gaussians_equal_recomputation_from_mano_layer(right_hand, levels):
-    hand = HandGaussians(right_hand, subdivide_levels=levels, k=2, sh_degree=1)
+    hand = HandGaussians(right_hand, BindingConfig(subdivide_levels=levels, k=2, sh_degree=1))
     model = subdivide_model(right_hand, levels) if levels else right_hand
     assert hand.splats.num_faces == model.faces.shape[0] == right_hand.faces.shape[0] * 4**levels
     pose = _hand_pose(2, 0)
@@ -382,7 +383,7 @@ def test_hand_gaussians_equal_recomputation_from_mano_layer(right_hand, levels):
 
 
 def test_hand_offsets_are_added_before_lbs_and_regularised(right_hand):
-    hand = HandGaussians(right_hand, k=1, sh_degree=0)
+    hand = HandGaussians(right_hand, BindingConfig(k=1, sh_degree=0))
     assert hand.offset_regulariser().item() == 0.0
     g = torch.Generator().manual_seed(4)
     with torch.no_grad():
@@ -404,7 +405,7 @@ def test_hand_offsets_are_added_before_lbs_and_regularised(right_hand):
 def test_left_hand_part_and_layer_input(hand_pair):
     left = hand_pair[1]
     layer = MANOLayer(left, flat_hand_mean=True)
-    hand = HandGaussians(layer, variant="avatars", k=1, sh_degree=0)
+    hand = HandGaussians(layer, BindingConfig(variant="avatars", k=1, sh_degree=0))
     assert hand.part_type == "hand_left" and hand.part_id == 1 and hand.layer is layer
     assert hand.config()["flat_hand_mean"] is True
     gs = hand(hand_pose=torch.zeros(1, 45))
@@ -421,7 +422,7 @@ def test_left_hand_part_and_layer_input(hand_pair):
 
 @pytest.mark.parametrize("variant", ["games", "free"])
 def test_object_top_part_rotates_with_angle_bottom_does_not(box_template, variant):
-    obj = ObjectGaussians(box_template, variant=variant, k=1, sh_degree=0, dtype=D64)
+    obj = ObjectGaussians(box_template, BindingConfig(variant=variant, k=1, sh_degree=0), dtype=D64)
     assert obj.binding_mesh == "mesh_tex as is" and obj.part_id == 2
     if variant == "games":
         top = obj.binding_is_top[obj.binding_faces].all(1).repeat_interleave(obj.k)
@@ -449,7 +450,7 @@ def test_object_top_part_rotates_with_angle_bottom_does_not(box_template, varian
 
 
 def test_object_subdivided_texture_binding_keeps_geometry(box_template):
-    obj = ObjectGaussians(box_template, subdivide_levels=1, k=1, sh_degree=0)
+    obj = ObjectGaussians(box_template, BindingConfig(subdivide_levels=1, k=1, sh_degree=0))
     assert obj.binding_mesh == "mesh_tex subdivide_mesh levels=1"
     assert obj.splats.num_faces == 4 * box_template.tex_faces.shape[0]
     assert obj.template_hash == template_hash(box_template.verts, box_template.faces)
@@ -469,7 +470,7 @@ def test_object_subdivided_texture_binding_keeps_geometry(box_template):
 def test_object_uv_seam_copies_share_their_offset(box_template, levels):
     """The textured binding mesh repeats vertices along UV seams; their offsets are tied
     (one mean offset per position), so optimised offsets never open the seams."""
-    obj = ObjectGaussians(box_template, subdivide_levels=levels, k=1, sh_degree=0, dtype=D64)
+    obj = ObjectGaussians(box_template, BindingConfig(subdivide_levels=levels, k=1, sh_degree=0), dtype=D64)
     m = obj.splats
     tpl = m.template
     assert m.weld_group is not None and int(m.weld_count.max()) > 1  # the box has seam copies
@@ -494,7 +495,7 @@ def test_object_uv_seam_copies_share_their_offset(box_template, levels):
 def test_checkpoints_without_weld_seams_are_refused(box_template, tmp_path):
     """New checkpoints record ``weld_seams`` and load welded; a pre-1.0 checkpoint whose config
     lacks it (trained with one free offset per vertex) is refused with a clear error."""
-    obj = ObjectGaussians(box_template, k=1, sh_degree=0)
+    obj = ObjectGaussians(box_template, BindingConfig(k=1, sh_degree=0))
     with torch.no_grad():
         obj.splats.offsets.copy_(
             1e-3 * torch.randn(obj.splats.offsets.shape, generator=torch.Generator().manual_seed(1))
@@ -511,7 +512,7 @@ def test_checkpoints_without_weld_seams_are_refused(box_template, tmp_path):
     with pytest.raises(AssetError, match=r"manifest.json: config.weld_seams is missing from the checkpoint.*train"):
         load_part(tmp_path / "old", box_template)
     with pytest.raises(AssetError, match=r"config.weld_seams is missing from the checkpoint"):
-        load_state(ObjectGaussians(box_template, k=1, sh_degree=0), tmp_path / "old")
+        load_state(ObjectGaussians(box_template, BindingConfig(k=1, sh_degree=0)), tmp_path / "old")
 
 
 # --------------------------------------------------------------------------------------
@@ -520,7 +521,7 @@ def test_checkpoints_without_weld_seams_are_refused(box_template, tmp_path):
 
 
 def test_free_hand_follows_mano_and_moves_rigidly(right_hand):
-    hand = HandGaussians(right_hand, variant="free", flat_hand_mean=True, sh_degree=0)
+    hand = HandGaussians(right_hand, BindingConfig(variant="free", sh_degree=0), flat_hand_mean=True)
     assert hand.num_gaussians == right_hand.num_verts  # one per vertex, bound to it
     assert torch.equal(hand.splats.binding, torch.arange(right_hand.num_verts))
     layer = MANOLayer(right_hand, flat_hand_mean=True)
@@ -547,8 +548,8 @@ def test_free_hand_follows_mano_and_moves_rigidly(right_hand):
 
 
 def test_free_faces_init_matches_games_at_rest(box_template):
-    games = ObjectGaussians(box_template, variant="games", k=2, sh_degree=0)
-    free = ObjectGaussians(box_template, variant="free", free_init="faces", k=2, sh_degree=0)
+    games = ObjectGaussians(box_template, BindingConfig(variant="games", k=2, sh_degree=0))
+    free = ObjectGaussians(box_template, BindingConfig(variant="free", free_init="faces", k=2, sh_degree=0))
     a = games(torch.zeros(1), torch.zeros(1, 3))
     b = free(torch.zeros(1), torch.zeros(1, 3))
     assert torch.allclose(a.means, b.means, atol=1e-6)
@@ -641,7 +642,9 @@ def test_hogs_model_headlight_without_learned_light():
 
     r, l = synthetic_hand_pair()
     m = HogsModel(
-        HandGaussians(r, sh_degree=0), HandGaussians(l, sh_degree=0), ObjectGaussians(make_object("phone"), sh_degree=0)
+        HandGaussians(r, BindingConfig(sh_degree=0)),
+        HandGaussians(l, BindingConfig(sh_degree=0)),
+        ObjectGaussians(make_object("phone"), BindingConfig(sh_degree=0)),
     )
     assert m.light is None
     poses = {
@@ -674,7 +677,7 @@ def test_hogs_model_headlight_without_learned_light():
 
 def test_render_textured_cube_matches_analytic_projection():
     half, dist, f, size = 0.05, 0.5, 160.0, 64
-    cube = ObjectGaussians(cube_template(half), k=2, sh_degree=0)
+    cube = ObjectGaussians(cube_template(half), BindingConfig(k=2, sh_degree=0))
     scene = compose([cube(torch.zeros(1), torch.zeros(1, 3))])
     vm, K = _head_on_camera(dist, f, size)
     out = render_scene(scene, vm, K, size, size)
@@ -703,8 +706,8 @@ def test_two_overlapping_parts_nearer_one_wins():
     dist, f, size = 0.6, 150.0, 64
     red = {k: (0.9, 0.1, 0.1) for k in CUBE_COLOURS}
     green = {k: (0.1, 0.8, 0.2) for k in CUBE_COLOURS}
-    far = ObjectGaussians(cube_template(0.05, 12, red, "far"), k=2, sh_degree=0, part_id=0)
-    near = ObjectGaussians(cube_template(0.03, 8, green, "near"), k=2, sh_degree=1, part_id=1)
+    far = ObjectGaussians(cube_template(0.05, 12, red, "far"), BindingConfig(k=2, sh_degree=0), part_id=0)
+    near = ObjectGaussians(cube_template(0.03, 8, green, "near"), BindingConfig(k=2, sh_degree=1), part_id=1)
     zero = torch.zeros(1, 3)
     scene = compose(
         [
@@ -755,7 +758,7 @@ def _state_bytes(part) -> dict[str, bytes]:
 
 @pytest.mark.parametrize("variant", ["games", "avatars", "free"])
 def test_checkpoint_round_trip_is_bit_exact(tmp_path, right_hand, variant):
-    hand = HandGaussians(right_hand, variant=variant, k=1, sh_degree=1)
+    hand = HandGaussians(right_hand, BindingConfig(variant=variant, k=1, sh_degree=1))
     _perturb(hand, 0)
     folder = save_part(
         hand,
@@ -781,7 +784,7 @@ def test_checkpoint_round_trip_is_bit_exact(tmp_path, right_hand, variant):
 
 def test_checkpoint_object_round_trip_and_sh_degree_zero(tmp_path):
     tpl = cube_template(0.05, 3)
-    obj = ObjectGaussians(tpl, variant="avatars", subdivide_levels=1, k=1, sh_degree=0)
+    obj = ObjectGaussians(tpl, BindingConfig(variant="avatars", subdivide_levels=1, k=1, sh_degree=0))
     _perturb(obj, 1)
     save_part(obj, tmp_path / "obj")
     loaded = load_part(tmp_path / "obj", tpl)
@@ -816,7 +819,7 @@ def _edit_manifest(folder: Path, **changes) -> None:
 
 def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
     right, left = hand_pair
-    hand = HandGaussians(right, k=1, sh_degree=0)
+    hand = HandGaussians(right, BindingConfig(k=1, sh_degree=0))
     ref = save_part(hand, tmp_path / "ref")
 
     def fresh(name: str) -> Path:
@@ -826,7 +829,7 @@ def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
 
     def expect(folder: Path, filename: str, words: str, fn=None):
         with pytest.raises(AssetError) as info:
-            (fn or (lambda: load_state(HandGaussians(right, k=1, sh_degree=0), folder)))()
+            (fn or (lambda: load_state(HandGaussians(right, BindingConfig(k=1, sh_degree=0)), folder)))()
         assert filename in str(info.value) and words in str(info.value), str(info.value)
         assert Path(info.value.path).name == filename
 
@@ -849,13 +852,13 @@ def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
     # wrong part type: a right-hand checkpoint for the left hand / for an object
     d = fresh("side")
     expect(d, MANIFEST_FILE, "part_type", lambda: load_part(d, left))
-    expect(d, MANIFEST_FILE, "part_type", lambda: load_state(HandGaussians(left, k=1, sh_degree=0), d))
+    expect(d, MANIFEST_FILE, "part_type", lambda: load_state(HandGaussians(left, BindingConfig(k=1, sh_degree=0)), d))
     expect(d, MANIFEST_FILE, "object", lambda: load_part(d, right, expected_part_type="object"))
     # template hash mismatch
     bent = right.replace(v_template=right.v_template + 1e-4)
     expect(d, MANIFEST_FILE, "template hash mismatch", lambda: load_part(d, bent))
     # settings that do not match the model the caller built
-    expect(d, MANIFEST_FILE, "k is 1", lambda: load_state(HandGaussians(right, k=2, sh_degree=0), d))
+    expect(d, MANIFEST_FILE, "k is 1", lambda: load_state(HandGaussians(right, BindingConfig(k=2, sh_degree=0)), d))
     # tensor shape mismatch (manifest kept consistent)
     d = fresh("shape")
     _rewrite_tensors(d, lambda t: t.__setitem__("opacity_logits", t["opacity_logits"][:-1].clone()))
@@ -895,7 +898,7 @@ def test_checkpoint_validation_errors_name_the_file(tmp_path, hand_pair):
     _edit_manifest(d, tensors_sha256=hashlib.sha256(blob).hexdigest())
     expect(d, TENSORS_FILE, "safetensors")
     # the untouched checkpoint still loads
-    load_state(HandGaussians(right, k=1, sh_degree=0), ref)
+    load_state(HandGaussians(right, BindingConfig(k=1, sh_degree=0)), ref)
 
 
 def test_hand_checkpoint_refuses_a_renumbered_hand(tmp_path, hand_pair):
@@ -903,14 +906,14 @@ def test_hand_checkpoint_refuses_a_renumbered_hand(tmp_path, hand_pair):
     from hogsa_loader.hands.mano_io import reorder_vertices
 
     right = hand_pair[0]
-    folder = save_part(HandGaussians(right, k=1, sh_degree=0), tmp_path / "right")
+    folder = save_part(HandGaussians(right, BindingConfig(k=1, sh_degree=0)), tmp_path / "right")
     renumbered = reorder_vertices(right, np.roll(np.arange(right.num_verts), 1))
     with pytest.raises(AssetError, match="template hash mismatch.*vertices in their order.*trained again"):
         load_part(folder, renumbered)
 
 
 def test_checkpoint_save_is_all_or_nothing_for_bad_metadata(tmp_path, right_hand):
-    hand = HandGaussians(right_hand, k=1, sh_degree=0)
+    hand = HandGaussians(right_hand, BindingConfig(k=1, sh_degree=0))
     with pytest.raises(ValueError):
         save_part(hand, tmp_path / "x", extra={"loss": float("nan")})
     assert not (tmp_path / "x").exists()  # nothing written, not even the folder

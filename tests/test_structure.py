@@ -22,13 +22,6 @@ LONG_FUNCTIONS_ALLOWED = {
     "hogsa_loader/render/splat_kernels.py composite_forward": "numba kernel: one pixel loop, like shade",
     "hogsa_loader/render/splat_kernels.py composite_backward": "numba kernel: one pixel loop, like shade",
 }
-#: Parameter lists still shared by two functions (open work, named so that a new one fails).
-REPEATED_PARAMS_ALLOWED = {
-    (
-        "hogsa_loader/gaussians/parts.py __init__",
-        "hogsa_loader/gaussians/parts.py __init__",
-    ): "hand and object parts take the same Gaussian-binding keywords, recorded flat in checkpoints"
-}
 
 
 def _where(function: str) -> str:
@@ -90,7 +83,7 @@ def test_no_function_over_the_line_limit(scanned):
 
 def test_no_parameter_list_repeated(scanned):
     pairs = [(_where(a), _where(b)) for a, b, _ in structure.repeated_parameter_lists(scanned)]
-    assert [p for p in pairs if p not in REPEATED_PARAMS_ALLOWED] == []
+    assert pairs == []
 
 
 def test_dataset_constructor_is_small():

@@ -151,17 +151,17 @@ def test_align_wrists_without_betas_change_is_identity(pom, transferred):
 
 def _parts(root):
     from hogsa_loader.gaussians.hogs_model import HogsModel
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+    from hogsa_loader.gaussians.parts import BindingConfig, HandGaussians, ObjectGaussians
     from hogsa_loader.gaussians.shading import DirectionalLight
 
     layers, templates = root.mano_layers(), root.object_templates()
-    kw = {"k": 1, "sh_degree": 0}
+    binding = BindingConfig(k=1, sh_degree=0)
 
     def model(light):
         return HogsModel(
-            HandGaussians(layers["right"], **kw),
-            HandGaussians(layers["left"], **kw),
-            ObjectGaussians(templates["box"], **kw),
+            HandGaussians(layers["right"], binding),
+            HandGaussians(layers["left"], binding),
+            ObjectGaussians(templates["box"], binding),
             light=light,
         )
 
@@ -198,7 +198,7 @@ def two_subject_bundle(tiny_world, tmp_path_factory):
     from hogsa_loader.bundle import write_bundle
     from hogsa_loader.datasets.arctic import ArcticRoot
     from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
+    from hogsa_loader.gaussians.parts import BindingConfig, HandGaussians, ObjectGaussians
     from hogsa_loader.gaussians.shading import DirectionalLight, save_light
     from hogsa_loader.pom import save_pose_bank
     from hogsa_loader.pom.state import load_frames
@@ -209,10 +209,10 @@ def two_subject_bundle(tiny_world, tmp_path_factory):
     runs = []
     for sid in ("s01", "s05"):
         run = out / "runs" / f"{sid}_box"
-        kw = {"k": 1, "sh_degree": 0}
-        save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject=sid)
-        save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject=sid)
-        save_part(ObjectGaussians(templates["box"], **kw), run / "object", dataset="arctic", subject=sid)
+        binding = BindingConfig(k=1, sh_degree=0)
+        save_part(HandGaussians(layers["right"], binding), run / "hand_right", dataset="arctic", subject=sid)
+        save_part(HandGaussians(layers["left"], binding), run / "hand_left", dataset="arctic", subject=sid)
+        save_part(ObjectGaussians(templates["box"], binding), run / "object", dataset="arctic", subject=sid)
         if sid == "s05":
             save_light(DirectionalLight((0.0, 0.0, -1.0), 0.4, 0.6), run / "light")
         runs.append(run)

@@ -1,11 +1,13 @@
 """HOGS Gaussian models: mesh-bound (GaMeS / GaussianAvatars) and free (3DGS) Gaussians of
 hands and articulated objects, scene composition and checkpoints.
 
-Data flow: part template -> :class:`HandGaussians` / :class:`ObjectGaussians` (posed for B
-samples) -> :class:`GaussianSet` -> :func:`compose` -> :func:`render_scene`
-(:func:`hogsa_loader.render.gaussians.render_gaussians` with per-part alpha).
+Data flow: part template + :class:`BindingConfig` -> :class:`HandGaussians` /
+:class:`ObjectGaussians` (posed for B samples) -> :class:`GaussianSet` -> :func:`compose` ->
+:func:`render_scene` (:func:`hogsa_loader.render.gaussians.render_gaussians` with per-part
+alpha).
 """
 
+from hogsa_loader.gaussians.binding import ALL_VARIANTS, BindingConfig
 from hogsa_loader.gaussians.checkpoint import (
     MANIFEST_FILE,
     SCHEMA_VERSION,
@@ -29,7 +31,6 @@ from hogsa_loader.gaussians.mesh_bound import (
     spread_barycentrics,
 )
 from hogsa_loader.gaussians.parts import (
-    ALL_VARIANTS,
     DEFAULT_PART_IDS,
     PART_TYPES,
     GaussianPart,
@@ -44,6 +45,7 @@ from hogsa_loader.geometry.quaternion import matrix_to_quat, quat_multiply, quat
 
 __all__ = [
     "ALL_VARIANTS",
+    "BindingConfig",
     "DEFAULT_COVERAGE",
     "DEFAULT_OPACITY",
     "DEFAULT_PART_IDS",

@@ -22,7 +22,9 @@ template_hash       sha256 of the caller's template mesh (float32 vertices then 
                     faces, little endian; :func:`~hogsa_loader.gaussians.parts.template_hash`)
 binding_hash        the same hash of the binding mesh the Gaussians live on
 binding_mesh        how the binding mesh was made (e.g. ``"subdivide_model levels=1"``)
-config              the part's constructor settings (rebuilds it in :func:`load_part`)
+config              the part's constructor settings, flat: its
+                    :class:`~hogsa_loader.gaussians.binding.BindingConfig` (without
+                    ``init_opacity``) then its own (rebuilds it in :func:`load_part`)
 source              ``{"dataset", "subject", "sequence"}`` (strings or null)
 extra               free-form JSON object
 ==================  ==================================================================
@@ -40,7 +42,8 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError, PathLike
-from hogsa_loader.gaussians.parts import ALL_VARIANTS, PART_TYPES, GaussianPart, HandGaussians, ObjectGaussians
+from hogsa_loader.gaussians.binding import ALL_VARIANTS, BindingConfig
+from hogsa_loader.gaussians.parts import PART_TYPES, GaussianPart, HandGaussians, ObjectGaussians
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.io.tensors import ManifestFormat, read_tensors, save_checkpoint
@@ -286,12 +289,12 @@ def load_part(
     ptype = raw["part_type"]
     if expected_part_type is not None and ptype != expected_part_type:
         raise AssetError(mpath, f"checkpoint is for part_type {ptype!r}, expected {expected_part_type!r}")
-    cfg = dict(raw["config"])
     try:
+        binding, cfg = BindingConfig.from_recorded(raw["config"])
         if ptype == "object":
             if not isinstance(template, ObjectTemplate):
                 raise AssetError(mpath, f"checkpoint is for an object, got a {type(template).__name__} template")
-            part: GaussianPart = ObjectGaussians(template, part_id=part_id, dtype=dtype, **cfg)
+            part: GaussianPart = ObjectGaussians(template, binding, part_id=part_id, dtype=dtype, **cfg)
         else:
             if not isinstance(template, (ManoModelData, MANOLayer)):
                 raise AssetError(mpath, f"checkpoint is for a hand, got a {type(template).__name__} template")
@@ -301,7 +304,7 @@ def load_part(
             if isinstance(template, MANOLayer):
                 for key in ("flat_hand_mean", "use_pca", "num_pca_comps", "num_betas", "fix_left_shapedirs"):
                     cfg.pop(key, None)
-            part = HandGaussians(template, part_id=part_id, dtype=dtype, **cfg)
+            part = HandGaussians(template, binding, part_id=part_id, dtype=dtype, **cfg)
     except TypeError as exc:  # unknown / missing constructor settings
         raise AssetError(mpath, f"config cannot rebuild the part ({exc})") from exc
     except ValueError as exc:

@@ -1,6 +1,6 @@
 """Gaussian models of the scene parts: a MANO(-HD) hand and an ARCTIC articulated object.
 
-Every part wraps one Gaussian model (``variant``):
+Every part wraps one Gaussian model (``BindingConfig.variant``):
 
 * ``"games"`` / ``"avatars"``: :class:`~hogsa_loader.gaussians.mesh_bound.MeshGaussians`
   on a *binding mesh*; posing = posing the binding mesh (its template plus the learnable
@@ -22,13 +22,12 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from hogsa_loader.gaussians.free import FREE_INITS, FreeGaussians, surface_samples
+from hogsa_loader.gaussians.binding import ALL_VARIANTS, BindingConfig
+from hogsa_loader.gaussians.free import FreeGaussians, surface_samples
 from hogsa_loader.gaussians.gaussian_set import GaussianSet
-from hogsa_loader.gaussians.mesh_bound import DEFAULT_OPACITY, MeshGaussians
-from hogsa_loader.gaussians.mesh_bound import VARIANTS as MESH_VARIANTS
+from hogsa_loader.gaussians.mesh_bound import MeshGaussians
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.geometry.texture import sample_texture
-from hogsa_loader.hands.lbs import skin_template
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.hands.mano_io import ManoModelData
 from hogsa_loader.hands.manohd import subdivide_mesh, subdivide_model
@@ -38,6 +37,7 @@ from hogsa_loader.objects.template import TOP, ObjectTemplate
 __all__ = [
     "PART_TYPES",
     "ALL_VARIANTS",
+    "BindingConfig",
     "DEFAULT_PART_IDS",
     "DEFAULT_SKIN_RGB",
     "DEFAULT_OBJECT_RGB",
@@ -51,8 +51,6 @@ __all__ = [
 
 #: Part types written to checkpoints.
 PART_TYPES = ("hand_right", "hand_left", "object")
-#: Gaussian model variants of a part.
-ALL_VARIANTS = MESH_VARIANTS + ("free",)
 #: Default part index of each part type in a composed scene.
 DEFAULT_PART_IDS = {"hand_right": 0, "hand_left": 1, "object": 2}
 #: Skin colour used when a hand model has no vertex colours (the synthetic hand's tone).
@@ -110,7 +108,7 @@ def mano_skinning(
     betas: Optional[Tensor] = None,
     transl: Optional[Tensor] = None,
 ) -> HandSkinning:
-    """:class:`MANOLayer` posing of an arbitrary template (same steps as ``lbs``).
+    """:class:`MANOLayer` posing of an arbitrary template (:meth:`MANOLayer.skin`).
 
     Args:
         layer: provides blend shapes, regressor, weights, tree and pose conventions
@@ -123,22 +121,13 @@ def mano_skinning(
         :class:`HandSkinning`.
     """
     full_pose, betas = layer.full_pose_and_betas(global_orient, hand_pose, betas, transl)
-    out = skin_template(
-        betas,
-        full_pose,
-        v_template,
-        layer.shapedirs[..., : betas.shape[-1]],
-        layer.posedirs,
-        layer.J_regressor,
-        layer.parents,
-        layer.lbs_weights,
-    )
-    verts, joints, rot, trans, v_posed = out.vertices, out.joints, out.vertex_rot, out.vertex_trans, out.v_posed
+    out = layer.skin(full_pose, betas, v_template)
+    verts, joints, trans = out.vertices, out.joints, out.vertex_trans
     if transl is not None:
         verts = verts + transl[:, None]
         joints = joints + transl[:, None]
         trans = trans + transl[:, None]
-    return HandSkinning(verts, joints, rot, trans, v_posed - v_template[None], full_pose)
+    return HandSkinning(verts, joints, out.vertex_rot, trans, out.v_posed - v_template[None], full_pose)
 
 
 # --------------------------------------------------------------------------------------
@@ -172,79 +161,47 @@ class GaussianPart(nn.Module):
     Attributes:
         splats: the Gaussian model (:class:`MeshGaussians` or :class:`FreeGaussians`);
             its ``state_dict`` is what checkpoints store.
+        binding: the :class:`BindingConfig` the part was built with.
+        variant, k, sh_degree: those of ``binding`` (the checkpoint's top-level settings).
         part_type: ``"hand_right"``, ``"hand_left"`` or ``"object"``.
         part_id: index given to this part's Gaussians in a scene.
-        variant: ``"games"``, ``"avatars"`` or ``"free"``.
         template_hash: :func:`template_hash` of the caller's template mesh.
         binding_hash: :func:`template_hash` of the binding mesh.
         binding_mesh: how the binding mesh was made, in words.
     """
 
     splats: Union[MeshGaussians, FreeGaussians]
+    binding: BindingConfig
+    variant: str
+    k: int
+    sh_degree: int
     binding_verts: Tensor
     binding_faces: Tensor
-    subdivide_levels: int
     _extra_config: dict[str, Any]
     part_type: str
     part_id: int
-    variant: str
     template_hash: str
     binding_hash: str
     binding_mesh: str
 
-    def _build_splats(
-        self,
-        verts: Tensor,
-        faces: Tensor,
-        color_fn: ColorFn,
-        *,
-        variant: str,
-        k: int,
-        sh_degree: int,
-        free_init: str,
-        init_opacity: float,
-        normal_eps: float,
-        weld_seams: bool,
-        dtype: torch.dtype,
-    ) -> None:
-        if variant not in ALL_VARIANTS:
-            raise ValueError(f"variant must be one of {ALL_VARIANTS}, got {variant!r}")
-        if free_init not in FREE_INITS:
-            raise ValueError(f"free_init must be one of {FREE_INITS}, got {free_init!r}")
-        self.variant = variant
-        self.k = int(k)
-        self.sh_degree = int(sh_degree)
-        self.free_init = free_init
-        self.normal_eps = float(normal_eps)
-        self.weld_seams = bool(weld_seams)
+    def __init__(self, binding: BindingConfig) -> None:
+        super().__init__()
+        self.binding = binding
+        self.variant, self.k, self.sh_degree = binding.variant, binding.k, binding.sh_degree
+
+    def _build_splats(self, verts: Tensor, faces: Tensor, color_fn: ColorFn, dtype: torch.dtype) -> None:
+        """Gaussians of :attr:`binding` on the binding mesh ``verts`` (V, 3), ``faces`` (F, 3),
+        coloured by ``color_fn`` at each Gaussian's surface point."""
+        b = self.binding
         self.binding_hash = template_hash(verts, faces)
-        if variant == "free":
-            face_idx, bary = surface_samples(faces, verts.shape[0], free_init, self.k)
+        common = dict(k=b.k, sh_degree=b.sh_degree, init_opacity=b.init_opacity, normal_eps=b.normal_eps, dtype=dtype)
+        if b.variant == "free":
+            face_idx, bary = surface_samples(faces, verts.shape[0], b.free_init, b.k)
             colors = color_fn(face_idx, bary).clamp(0.0, 1.0)
-            self.splats = FreeGaussians(
-                verts,
-                faces,
-                init=free_init,
-                k=self.k,
-                sh_degree=sh_degree,
-                colors=colors,
-                init_opacity=init_opacity,
-                normal_eps=normal_eps,
-                dtype=dtype,
-            )
+            self.splats = FreeGaussians(verts, faces, init=b.free_init, colors=colors, **common)
         else:
-            self.splats = MeshGaussians(
-                verts,
-                faces,
-                k=self.k,
-                sh_degree=sh_degree,
-                variant=variant,
-                init_opacity=init_opacity,
-                normal_eps=normal_eps,
-                weld_seams=weld_seams,
-                dtype=dtype,
-            )
-            face_idx, bary = surface_samples(faces, verts.shape[0], "faces", self.k)  # = init_bary, float64
+            self.splats = MeshGaussians(verts, faces, variant=b.variant, weld_seams=b.weld_seams, **common)
+            face_idx, bary = surface_samples(faces, verts.shape[0], "faces", b.k)  # = init_bary, float64
             colors = color_fn(face_idx, bary).clamp(0.0, 1.0)
             self.splats.set_colors_(colors)
 
@@ -261,18 +218,9 @@ class GaussianPart(nn.Module):
         return self.splats.offset_regulariser()
 
     def config(self) -> dict[str, Any]:
-        """JSON-able constructor settings (stored in checkpoints to rebuild the part)."""
-        out = {
-            "variant": self.variant,
-            "k": self.k,
-            "sh_degree": self.sh_degree,
-            "subdivide_levels": self.subdivide_levels,
-            "free_init": self.free_init,
-            "normal_eps": self.normal_eps,
-            "weld_seams": self.weld_seams,
-        }
-        out.update(self._extra_config)
-        return out
+        """JSON-able constructor settings (stored in checkpoints to rebuild the part):
+        :meth:`BindingConfig.recorded` then the part's own settings."""
+        return self.binding.recorded() | self._extra_config
 
     def canonical_vertices(self) -> Tensor:
         """(V, 3) binding-mesh template (+ offsets for mesh-bound variants)."""
@@ -298,29 +246,21 @@ class HandGaussians(GaussianPart):
     """Gaussians of one MANO-schema hand.
 
     The binding mesh is the model's mesh or its MANO-HD subdivision
-    (:func:`~hogsa_loader.hands.manohd.subdivide_model`). Posing is MANO's LBS
-    (:mod:`hogsa_loader.hands.lbs`) with the offsets added to ``v_template`` *before* shape
-    blend shapes, joint regression, pose correctives and skinning (so the offsets also move
-    the regressed joints), exactly like a :class:`~hogsa_loader.hands.mano.MANOLayer` built on
-    a model whose ``v_template`` is ``template + offsets``. Initial colours: the model's
-    ``vertex_colors`` (skin albedo) interpolated at each Gaussian, else a constant skin tone.
+    (:func:`~hogsa_loader.hands.manohd.subdivide_model`, ``binding.subdivide_levels``).
+    Posing is MANO's LBS (:mod:`hogsa_loader.hands.lbs`) with the offsets added to
+    ``v_template`` *before* shape blend shapes, joint regression, pose correctives and
+    skinning (so the offsets also move the regressed joints), exactly like a
+    :class:`~hogsa_loader.hands.mano.MANOLayer` built on a model whose ``v_template`` is
+    ``template + offsets``. Initial colours: the model's ``vertex_colors`` (skin albedo)
+    interpolated at each Gaussian, else a constant skin tone.
 
     Args:
         model: a :class:`ManoModelData` or a :class:`MANOLayer` (its settings are kept;
             a new layer is built when subdividing).
-        variant: ``"games"``, ``"avatars"`` or ``"free"``.
-        k: Gaussians per face (mesh-bound, and free with ``free_init="faces"``).
-        sh_degree: 0..3.
-        subdivide_levels: 0 (the model's mesh) or 1, 2 (MANO-HD).
-        free_init: ``"vertices"`` or ``"faces"`` (free variant only).
+        binding: the Gaussian model and its binding (:class:`BindingConfig`).
         part_id: scene part index; default 0 for a right hand, 1 for a left hand.
         albedo: initial colour, (3,) or (V, 3) on the *original* model's vertices;
             default the model's ``vertex_colors``, else :data:`DEFAULT_SKIN_RGB`.
-        init_opacity: initial opacity.
-        normal_eps: thickness of mesh-bound Gaussians.
-        weld_seams: coincident binding vertices share one offset (see
-            :class:`~hogsa_loader.gaussians.mesh_bound.MeshGaussians`); checkpoints written
-            before this setting existed load with False, as they were trained.
         flat_hand_mean, use_pca, num_pca_comps, num_betas, fix_left_shapedirs: the
             :class:`MANOLayer` settings when ``model`` is a :class:`ManoModelData`.
         dtype: parameter dtype (a given :class:`MANOLayer` imposes its own).
@@ -329,17 +269,10 @@ class HandGaussians(GaussianPart):
     def __init__(
         self,
         model: Union[ManoModelData, MANOLayer],
+        binding: BindingConfig = BindingConfig(),
         *,
-        variant: str = "games",
-        k: int = 2,
-        sh_degree: int = 3,
-        subdivide_levels: int = 0,
-        free_init: str = "vertices",
         part_id: Optional[int] = None,
         albedo: Optional[Union[Sequence[float], np.ndarray, Tensor]] = None,
-        init_opacity: float = DEFAULT_OPACITY,
-        normal_eps: float = 1e-8,
-        weld_seams: bool = True,
         flat_hand_mean: bool = False,
         use_pca: bool = False,
         num_pca_comps: int = 45,
@@ -347,7 +280,7 @@ class HandGaussians(GaussianPart):
         fix_left_shapedirs: bool = False,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        super().__init__()
+        super().__init__(binding)
         if isinstance(model, MANOLayer):
             data = model.data
             dtype = model.v_template.dtype  # the layer's buffers set the dtype
@@ -367,23 +300,21 @@ class HandGaussians(GaussianPart):
                 num_betas=num_betas,
                 fix_left_shapedirs=fix_left_shapedirs,
             )
-        if subdivide_levels not in (0, 1, 2):
-            raise ValueError(f"subdivide_levels must be 0, 1 or 2, got {subdivide_levels}")
         self._extra_config: dict[str, Any] = dict(settings)
-        self.subdivide_levels = int(subdivide_levels)
         self.part_type = f"hand_{data.side}"
         self.part_id = DEFAULT_PART_IDS[self.part_type] if part_id is None else int(part_id)
         self.template_hash = template_hash(data.v_template, data.faces)
 
+        levels = binding.subdivide_levels
         colors = self._albedo(data, albedo)
-        if subdivide_levels:
-            bind = subdivide_model(data.replace(vertex_colors=colors), levels=subdivide_levels)
+        if levels:
+            bind = subdivide_model(data.replace(vertex_colors=colors), levels=levels)
             colors = bind.vertex_colors
-            self.binding_mesh = f"subdivide_model levels={subdivide_levels}"
+            self.binding_mesh = f"subdivide_model levels={levels}"
         else:
             bind = data
             self.binding_mesh = "model mesh"
-        if isinstance(model, MANOLayer) and not subdivide_levels:
+        if isinstance(model, MANOLayer) and not levels:
             self.layer = model
         else:
             self.layer = MANOLayer(bind, dtype=dtype, **settings)
@@ -392,19 +323,7 @@ class HandGaussians(GaussianPart):
         self.register_buffer("binding_verts", verts, persistent=False)
         self.register_buffer("binding_faces", faces, persistent=False)
         color_fn = _vertex_color_fn(faces, torch.as_tensor(colors, dtype=torch.float64))
-        self._build_splats(
-            verts,
-            faces,
-            color_fn,
-            variant=variant,
-            k=k,
-            sh_degree=sh_degree,
-            free_init=free_init,
-            init_opacity=init_opacity,
-            normal_eps=normal_eps,
-            weld_seams=weld_seams,
-            dtype=dtype,
-        )
+        self._build_splats(verts, faces, color_fn, dtype)
 
     @staticmethod
     def _albedo(data: ManoModelData, albedo: Any) -> np.ndarray:
@@ -458,23 +377,20 @@ class ObjectGaussians(GaussianPart):
 
     The binding mesh is the textured mesh (``tex_verts``/``tex_faces``, charts not
     welded) when the template has one, optionally midpoint-subdivided
-    (:func:`~hogsa_loader.hands.manohd.subdivide_mesh`) for texture detail; the original
-    ``verts``/``faces`` stay the geometry (hash, :meth:`ObjectGaussians.posed_geometry`).
+    (:func:`~hogsa_loader.hands.manohd.subdivide_mesh`, ``binding.subdivide_levels``) for
+    texture detail; the original ``verts``/``faces`` stay the geometry (hash,
+    :meth:`ObjectGaussians.posed_geometry`).
     The top part (``parts == 0``) articulates by ``R_z(-theta)`` and then every point gets the
     global pose (:func:`~hogsa_loader.objects.articulated.articulate`). Initial colours: the
     texture sampled at each Gaussian's uv (bilinear, OBJ convention), else a constant grey.
 
     Args:
         template: the object template (metres, canonical frame, hinge = z axis).
-        variant: ``"games"``, ``"avatars"`` or ``"free"``.
-        k: Gaussians per face.
-        sh_degree: 0..3.
+        binding: the Gaussian model and its binding (:class:`BindingConfig`).
         use_texture_mesh: bind to the textured mesh when the template has one.
-        subdivide_levels: midpoint subdivisions of the binding mesh (0, 1 or 2).
-        free_init: ``"vertices"`` or ``"faces"`` (free variant only).
         part_id: scene part index (default 2).
         color: colour used without a texture (default :data:`DEFAULT_OBJECT_RGB`).
-        init_opacity, normal_eps, weld_seams, dtype: as :class:`HandGaussians`.
+        dtype: parameter dtype.
     """
 
     binding_is_top: Tensor
@@ -485,27 +401,17 @@ class ObjectGaussians(GaussianPart):
     def __init__(
         self,
         template: ObjectTemplate,
+        binding: BindingConfig = BindingConfig(),
         *,
-        variant: str = "games",
-        k: int = 2,
-        sh_degree: int = 3,
         use_texture_mesh: bool = True,
-        subdivide_levels: int = 0,
-        free_init: str = "vertices",
         part_id: Optional[int] = None,
         color: Sequence[float] = DEFAULT_OBJECT_RGB,
-        init_opacity: float = DEFAULT_OPACITY,
-        normal_eps: float = 1e-8,
-        weld_seams: bool = True,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        super().__init__()
-        if subdivide_levels not in (0, 1, 2):
-            raise ValueError(f"subdivide_levels must be 0, 1 or 2, got {subdivide_levels}")
+        super().__init__(binding)
         self.name = template.name
         self.part_type = "object"
         self.part_id = DEFAULT_PART_IDS["object"] if part_id is None else int(part_id)
-        self.subdivide_levels = int(subdivide_levels)
         self.template_hash = template_hash(template.verts, template.faces)
         textured = bool(use_texture_mesh and template.has_texture)
         self._extra_config = {"use_texture_mesh": bool(use_texture_mesh)}
@@ -523,12 +429,13 @@ class ObjectGaussians(GaussianPart):
             faces = np.asarray(template.faces, dtype=np.int64)
             uv = np.zeros((verts.shape[0], 2))
             is_top = template.parts == TOP
-        for _ in range(self.subdivide_levels):
+        levels = binding.subdivide_levels
+        for _ in range(levels):
             faces, op = subdivide_mesh(faces, verts.shape[0])
             verts, uv = op @ verts, op @ uv
             is_top = (op @ is_top.astype(np.float64)) > 0.75  # a midpoint is top if both ends are
         source = "mesh_tex" if textured else "mesh"
-        how = f"subdivide_mesh levels={self.subdivide_levels}" if self.subdivide_levels else "as is"
+        how = f"subdivide_mesh levels={levels}" if levels else "as is"
         self.binding_mesh = f"{source} {how}"
 
         verts_t = torch.as_tensor(verts, dtype=dtype)
@@ -545,19 +452,7 @@ class ObjectGaussians(GaussianPart):
         else:
             const = torch.tensor(color, dtype=torch.float64).expand(verts.shape[0], 3)
             color_fn = _vertex_color_fn(faces_t, const)
-        self._build_splats(
-            verts_t,
-            faces_t,
-            color_fn,
-            variant=variant,
-            k=k,
-            sh_degree=sh_degree,
-            free_init=free_init,
-            init_opacity=init_opacity,
-            normal_eps=normal_eps,
-            weld_seams=weld_seams,
-            dtype=dtype,
-        )
+        self._build_splats(verts_t, faces_t, color_fn, dtype)
 
     def posed_vertices(self, angle: Tensor, global_orient: Tensor, transl: Optional[Tensor] = None) -> Tensor:
         """(B, V, 3) posed binding-mesh vertices (offsets included)."""

@@ -158,12 +158,15 @@ class MANOLayer(nn.Module):
         return torch.cat([global_orient, self.articulation(hand_pose)], dim=-1), betas
 
     def skin(self, full_pose: Tensor, betas: Tensor, v_template: Optional[Tensor] = None) -> Skinning:
-        """:func:`~hogsa_loader.hands.lbs.skin_template` with this layer's blend shapes,
-        regressor, tree and weights.
+        """LBS of a template with this layer's blend shapes, joint regressor, tree and weights.
 
         Args:
-            full_pose: (B, 3 + 45) axis-angle, root first; betas: (B, S), S <= num_betas.
-            v_template: (V, 3) rest template (default the layer's own).
+            full_pose: (B, 48) axis-angle, root first (:meth:`full_pose_and_betas`).
+            betas: (B, S) shape, S <= ``num_betas``.
+            v_template: (V, 3) rest template; default the model's.
+
+        Returns:
+            :class:`~hogsa_loader.hands.lbs.Skinning` without translation.
         """
         return skin_template(
             betas,

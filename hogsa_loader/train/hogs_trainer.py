@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians import HandGaussians, ObjectGaussians, load_state, save_part
+from hogsa_loader.gaussians import BindingConfig, HandGaussians, ObjectGaussians, load_state, save_part
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.objects.template import ObjectTemplate
@@ -190,11 +190,12 @@ class HogsTrainer(StepLoop):
         layers = self.source.mano_layers
         template = self.source.object_templates[self.cfg.data.object]
         levels = _object_subdivide_levels(template, model.object_subdivide, model.min_object_faces)
-        common = dict(variant=variant, k=model.k, sh_degree=model.sh_degree)
+        binding = BindingConfig(variant=variant, k=model.k, sh_degree=model.sh_degree)
+        hands = replace(binding, subdivide_levels=model.hand_subdivide)
         return HogsModel(
-            HandGaussians(layers["right"], subdivide_levels=model.hand_subdivide, **common),
-            HandGaussians(layers["left"], subdivide_levels=model.hand_subdivide, **common),
-            ObjectGaussians(template, subdivide_levels=levels, **common),
+            HandGaussians(layers["right"], hands),
+            HandGaussians(layers["left"], hands),
+            ObjectGaussians(template, replace(binding, subdivide_levels=levels)),
             source=self._source(),
         ).to(self.device)
 

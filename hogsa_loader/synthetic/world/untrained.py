@@ -13,6 +13,7 @@ from typing import Optional
 from hogsa_loader.bundle import write_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import PathLike
+from hogsa_loader.gaussians.binding import BindingConfig
 from hogsa_loader.gaussians.checkpoint import save_part
 from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
 
@@ -42,8 +43,8 @@ def write_untrained_bundle(
     root = ArcticRoot(data_root)
     layers, templates = root.mano_layers(), root.object_templates()
     run = Path(out) / "runs" / f"{subject}_{obj}"
-    kw = dict(k=gaussians_per_face, sh_degree=0)
-    save_part(HandGaussians(layers["right"], **kw), run / "hand_right", dataset="arctic", subject=subject)
-    save_part(HandGaussians(layers["left"], **kw), run / "hand_left", dataset="arctic", subject=subject)
-    save_part(ObjectGaussians(templates[obj], **kw), run / "object", dataset="arctic", subject=subject)
+    binding = BindingConfig(k=gaussians_per_face, sh_degree=0)
+    save_part(HandGaussians(layers["right"], binding), run / "hand_right", dataset="arctic", subject=subject)
+    save_part(HandGaussians(layers["left"], binding), run / "hand_left", dataset="arctic", subject=subject)
+    save_part(ObjectGaussians(templates[obj], binding), run / "object", dataset="arctic", subject=subject)
     return write_bundle(Path(out) / "bundle", data_root, [run], srm=srm)
