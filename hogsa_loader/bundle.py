@@ -1,44 +1,9 @@
 """Bundles: everything the synthetic loader needs, in one validated folder.
 
-A bundle is what ``pretrain/build_bundle.py`` writes and what
-:class:`~hogsa_loader.loader.dataset.HOGSADataset` reads::
-
-    BUNDLE/
-      manifest.json
-      hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
-      hogs/<subject>_<object>/light/   the run's learned light, when it was trained with one
-      srm/<name>/               optional SRM checkpoint folder (save_srm / a train_srm.py run)
-      contactnet/<name>/        optional ContactNet checkpoint folder
-      pose_banks/<name>/        optional pose-bank folders
-
-Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
-run's ``checkpoints/`` history and caches stay behind.
-
-``manifest.json`` (the shared header of :mod:`hogsa_loader.io.tensors`, without tensors):
-
-================  =========================================================================
-key               value
-================  =========================================================================
-format            ``"hogsa-bundle"``
-schema_version    2
-library_version   ``hogsa_loader.__version__`` of the writer
-dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
-                  (``root`` is informational: the loader takes the data root as an argument)
-hand_model        ``{"source": str, "right": {"template_hash", "num_verts"},
-                  "left": {...}}`` — the MANO(-schema) models the hands were trained on
-objects           ``{name: {"template_hash", "num_verts"}}`` — the object templates used
-hogs              list of ``{"subject", "object", "path", "num_gaussians",
-                  "parts": {part: {"template_hash", "tensors_sha256", "manifest_sha256"}},
-                  "light": null | {"tensors_sha256", "manifest_sha256"}}``
-srm, contactnet   ``null`` or ``{"path", "files": {relative path: sha256}}``
-pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}`` (unique names)
-================  =========================================================================
-
-:func:`load_bundle` checks every entry — paths relative and inside the bundle (no ``..``,
-no absolute path, no symbolic link leading out), files present, hashes equal, part checkpoints
-readable and made for the recorded hand model / object templates, and (given a data root)
-that the data root's hand model and templates are the ones recorded; the SRM, ContactNet and
-pose banks are read as checkpoints — and raises **one**
+:func:`write_bundle` (used by ``pretrain/build_bundle.py``) writes a bundle; :func:`load_bundle`
+validates one and returns a :class:`Bundle`, which
+:class:`~hogsa_loader.loader.dataset.HOGSADataset` reads. :class:`Bundle` describes the folder
+layout and the ``manifest.json`` keys. :func:`load_bundle` checks every entry and raises **one**
 :class:`~hogsa_loader.errors.AssetError` listing every problem it found.
 """
 
@@ -127,7 +92,7 @@ class ExtraEntry:
 
 @dataclass
 class Bundle:
-    """A validated bundle (see module docstring); build it with :func:`load_bundle`.
+    """A validated bundle; build it with :func:`load_bundle`.
 
     Attributes:
         path: bundle folder.
@@ -135,6 +100,39 @@ class Bundle:
         hogs: ``{(subject, object): HogsEntry}``.
         srm, contactnet: optional checkpoint folders.
         pose_banks: ``{name: ExtraEntry}``.
+
+    The bundle folder (what :class:`~hogsa_loader.loader.dataset.HOGSADataset` reads)::
+
+        BUNDLE/
+          manifest.json
+          hogs/<subject>_<object>/{hand_right,hand_left,object}/   one HOGS run per (subject, object)
+          hogs/<subject>_<object>/light/   the run's learned light, when it was trained with one
+          srm/<name>/               optional SRM checkpoint folder (save_srm / a train_srm.py run)
+          contactnet/<name>/        optional ContactNet checkpoint folder
+          pose_banks/<name>/        optional pose-bank folders
+
+    Of a folder, only its top-level files are copied (manifest, tensors, metrics): a training
+    run's ``checkpoints/`` history and caches stay behind.
+
+    ``manifest.json`` (the shared header of :mod:`hogsa_loader.io.tensors`, without tensors):
+
+    ================  =========================================================================
+    key               value
+    ================  =========================================================================
+    format            ``"hogsa-bundle"``
+    schema_version    2
+    library_version   ``hogsa_loader.__version__`` of the writer
+    dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
+                      (``root`` is informational: the loader takes the data root as an argument)
+    hand_model        ``{"source": str, "right": {"template_hash", "num_verts"},
+                      "left": {...}}`` — the MANO(-schema) models the hands were trained on
+    objects           ``{name: {"template_hash", "num_verts"}}`` — the object templates used
+    hogs              list of ``{"subject", "object", "path", "num_gaussians",
+                      "parts": {part: {"template_hash", "tensors_sha256", "manifest_sha256"}},
+                      "light": null | {"tensors_sha256", "manifest_sha256"}}``
+    srm, contactnet   ``null`` or ``{"path", "files": {relative path: sha256}}``
+    pose_banks        list of ``{"name", "path", "files": {relative path: sha256}}`` (unique names)
+    ================  =========================================================================
     """
 
     path: Path
@@ -392,7 +390,7 @@ def write_bundle(
     pose_banks: Sequence[PathLike] = (),
     dataset: str = "arctic",
 ) -> Path:
-    """Write a bundle folder (see module docstring) and return its path.
+    """Write a bundle folder (layout: :class:`Bundle`) and return its path.
 
     Every HOGS run is validated against the data root's hand model and object templates
     before anything is copied (its ``(subject, object)`` comes from the object part's
@@ -692,7 +690,8 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
     manifest files (and its light's, when it has one) equal to the recorded sha256
     (``verify_hashes``); optional SRM, ContactNet and pose-bank files present with matching
     sha256 and readable as checkpoints; with ``data_root``, the data root's hand model and
-    object templates equal the recorded ones.
+    object templates equal the recorded ones. Every path in the manifest must be relative and
+    stay inside the bundle (no ``..``, no absolute path, no symbolic link leading out).
 
     Args:
         path: bundle folder.

@@ -1,18 +1,13 @@
 """Argument checks shared by every ``hogsa`` command and ``pretrain/`` script.
 
-Checks run before any work starts. Two kinds:
-
-* argparse converters (``type=``): :func:`positive_int`, :func:`non_negative_int`,
-  :func:`positive_float`, :func:`non_negative_float`, :func:`unit_float`, :func:`torch_device`; they raise
-  ``argparse.ArgumentTypeError`` and the parser reports ``PROG: error: argument --x: ...``;
-* checks of whole paths and combinations of arguments: :func:`output_dir`,
-  :func:`output_file`, :func:`input_dir`, :func:`input_file`, :func:`multiple_of`,
-  :func:`procedural_objects`, :func:`data_root_pairs`; they raise
-  :class:`~hogsa_loader.errors.UsageError` naming the argument and the problem.
-
-:func:`one_line_errors` makes a parser (and its sub-commands) print argparse's errors as one
-``PROG: error: ...`` line without the usage block; :func:`report` prints any
-:class:`~hogsa_loader.errors.HogsaError` or ``OSError`` in that form and returns the exit
+Checks run before any work starts. The argparse converters (``type=``) :func:`positive_int`, :func:`non_negative_int`,
+:func:`positive_float`, :func:`non_negative_float`, :func:`unit_float` and :func:`torch_device` raise
+``argparse.ArgumentTypeError``, and the parser reports ``PROG: error: argument --x: ...``. The checks of whole paths
+and combinations of arguments, :func:`output_dir`, :func:`output_file`, :func:`input_dir`, :func:`input_file`,
+:func:`multiple_of`, :func:`procedural_objects` and :func:`data_root_pairs`, raise
+:class:`~hogsa_loader.errors.UsageError` naming the argument and the problem. :func:`one_line_errors` makes a parser
+(and its sub-commands) print argparse's errors as one ``PROG: error: ...`` line without the usage block;
+:func:`report` prints any :class:`~hogsa_loader.errors.HogsaError` or ``OSError`` in that form and returns the exit
 status (2 for a usage error, 1 for a problem met while working).
 """
 

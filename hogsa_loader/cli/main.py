@@ -1,27 +1,8 @@
 """The ``hogsa`` command line.
 
-Subcommands:
-    hogsa --version
-    hogsa assets --out DIR         synthetic MANO-format hands, procedural ARCTIC-format objects,
-                                   and PNG previews of both
-    hogsa convert-mano SRC DST     one-shot MANO .pkl -> chumpy-free, pickle-free .npz
-    hogsa world --out DIR --preset tiny|demo|small|small_styles [--seed N]
-                                   a synthetic ARCTIC-format world (raw_seqs, misc, cropped
-                                   images, masks, splits) rendered with the mesh rasteriser
-    hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
-                 [--coco-root C] ...
-                                   offline synthetic frames as WebDataset tar shards
-                                   (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
-    hogsa plates --data ROOT --out DIR [--subjects S ...] [--views V ...]
-                                   clean background plates of the static cameras, made from
-                                   the dataset's own frames (for --background-folder)
-    hogsa view --bundle B --data ROOT --subject S --object O --out DIR [--frame SEQ:IDX ...]
-               [--pose-bank NAME:I ...] [--orbit N] [--transfer-to S2 ...]
-                                   360° orbit sheets and animations (with and without SRM)
-                                   and a pose-transfer grid of a bundle's models
-
-Environment: CPU renders set glibc's allocator to keep its memory (HOGSA_KEEP_MEMORY=0 leaves it alone;
-see README).
+:func:`main` runs it; :func:`build_parser` builds the parser with every sub-command (its
+docstring lists the main ones). Environment: CPU renders set glibc's allocator to keep its
+memory (HOGSA_KEEP_MEMORY=0 leaves it alone; see README).
 """
 
 from __future__ import annotations
@@ -489,7 +470,29 @@ def _plates_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``hogsa`` parser with every sub-command."""
+    """The ``hogsa`` parser with every sub-command.
+
+    Among the subcommands::
+
+        hogsa --version
+        hogsa assets --out DIR         synthetic MANO-format hands, procedural ARCTIC-format objects,
+                                       and PNG previews of both
+        hogsa convert-mano SRC DST     one-shot MANO .pkl -> chumpy-free, pickle-free .npz
+        hogsa world --out DIR --preset tiny|demo|small|small_styles [--seed N]
+                                       a synthetic ARCTIC-format world (raw_seqs, misc, cropped
+                                       images, masks, splits) rendered with the mesh rasteriser
+        hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
+                     [--coco-root C] ...
+                                       offline synthetic frames as WebDataset tar shards
+                                       (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
+        hogsa plates --data ROOT --out DIR [--subjects S ...] [--views V ...]
+                                       clean background plates of the static cameras, made from
+                                       the dataset's own frames (for --background-folder)
+        hogsa view --bundle B --data ROOT --subject S --object O --out DIR [--frame SEQ:IDX ...]
+                   [--pose-bank NAME:I ...] [--orbit N] [--transfer-to S2 ...]
+                                       360° orbit sheets and animations (with and without SRM)
+                                       and a pose-transfer grid of a bundle's models
+    """
     p = argparse.ArgumentParser(prog="hogsa", description="HOGSA augmentation loader tools")
     p.add_argument("--version", action="version", version=f"hogsa-loader {__version__}")
     sub = p.add_subparsers(dest="command")

@@ -1,15 +1,10 @@
 """Backgrounds and alpha compositing of synthetic hand-object renders.
 
-* :mod:`~hogsa_loader.compose.backgrounds` — :func:`make_backgrounds` and the sources
-  (:class:`CocoBackgrounds` via pycocotools in :mod:`~hogsa_loader.compose.coco`,
-  :class:`FolderBackgrounds` and the base class in :mod:`~hogsa_loader.compose.sources`,
-  the :class:`ProceduralBackgrounds` fallback in :mod:`~hogsa_loader.compose.procedural`),
-  all ``sample(n, H, W, generator)`` → ``(n, H, W, 3)`` float32 in [0, 1], deterministic
-  given the generator.
-* :mod:`~hogsa_loader.compose.alpha` — :func:`composite` (premultiplied "over"),
-  :class:`AlphaComposite`, optional :func:`harmonize` / :class:`Harmonize`.
-
-Example::
+:func:`make_backgrounds` (:mod:`~hogsa_loader.compose.backgrounds`) picks a source, all ``sample(n, H, W, generator)`` →
+``(n, H, W, 3)`` float32 in [0, 1], deterministic given the generator: :class:`CocoBackgrounds` (pycocotools,
+:mod:`~hogsa_loader.compose.coco`), :class:`FolderBackgrounds` (base class in :mod:`~hogsa_loader.compose.sources`),
+:class:`ProceduralBackgrounds` (fallback, :mod:`~hogsa_loader.compose.procedural`). :mod:`~hogsa_loader.compose.alpha`
+has :func:`composite` (premultiplied "over"), :class:`AlphaComposite`, optional :func:`harmonize` / :class:`Harmonize`::
 
     from hogsa_loader.compose import AlphaComposite, make_backgrounds
     bgs = make_backgrounds(coco_root="/data/coco", categories=["dining table"], exclude_person=True)

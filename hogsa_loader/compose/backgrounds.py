@@ -1,21 +1,11 @@
 """Background sources for compositing synthetic hand-object crops, and the loader's choice.
 
-Every source draws ``n`` backgrounds of a requested size from an explicit
+:func:`make_backgrounds` picks a source from the loader's arguments (its docstring describes
+each source). Every source draws ``n`` backgrounds of a requested size from an explicit
 :class:`torch.Generator`, so the same generator state gives the same images, whatever the
-cache holds or which DataLoader worker asks:
-
-* :class:`~hogsa_loader.compose.coco.CocoBackgrounds` — a real COCO folder read through
-  ``pycocotools``: random image (optionally only images showing given categories,
-  optionally without people), random crop of random scale, optional horizontal flip;
-* :class:`~hogsa_loader.compose.sources.FolderBackgrounds` — any folder of ``.jpg``/``.png``
-  images, same crops;
-* :class:`~hogsa_loader.compose.procedural.ProceduralBackgrounds` — the documented fallback
-  when no image is given: gradients, multi-octave value noise, stripes/checkers, soft blobs
-  and "table top" planes with lighting falloff and sensor grain.
-
-:func:`make_backgrounds` picks one from the loader's arguments. The base class, the crop
-settings and the decoded-image cache live in :mod:`~hogsa_loader.compose.sources`; this
-module re-exports the public names.
+cache holds or which DataLoader worker asks. The base class, the crop settings and the
+decoded-image cache live in :mod:`~hogsa_loader.compose.sources`; this module re-exports the
+public names.
 """
 
 from __future__ import annotations
@@ -66,6 +56,17 @@ def make_backgrounds(
 
     Raises:
         AssetError: missing or malformed files (see the classes).
+
+    The sources:
+
+    * :class:`~hogsa_loader.compose.coco.CocoBackgrounds` — a real COCO folder read through
+      ``pycocotools``: random image (optionally only images showing given categories,
+      optionally without people), random crop of random scale, optional horizontal flip;
+    * :class:`~hogsa_loader.compose.sources.FolderBackgrounds` — any folder of ``.jpg``/``.png``
+      images, same crops;
+    * :class:`~hogsa_loader.compose.procedural.ProceduralBackgrounds` — the documented fallback
+      when no image is given: gradients, multi-octave value noise, stripes/checkers, soft blobs
+      and "table top" planes with lighting falloff and sensor grain.
     """
     global _FALLBACK_WARNED
     if (coco_root is not None or coco_ann is not None) and folder is not None:

@@ -1,20 +1,10 @@
 """Clean background plates of a dataset's static cameras, assembled from its own frames.
 
 A synthetic sample composited on photographs differs from the dataset's real frames in its
-background long before its hands do (colour, brightness, floor, perspective). For ARCTIC's
-static allocentric cameras, the backdrop of every view can be recovered from the dataset:
-each cropped image shows the square of side ``1.5 · 200 · scale`` around its box centre,
-so it maps back into the full camera frame by a scale and a shift. With the annotated
-hands and object masked out (the dataset's ``masks/`` when it has them, else rasterised
-from the posed MANO and object meshes), every plate pixel takes the per-pixel median of
-the frames that saw background there. Only hands and object are masked: whatever else
-stays in place in most frames (on real ARCTIC, parts of the subject's arms and body) stays
-in the plate.
-
-:func:`build_plates` writes one PNG per (subject, view) plus ``plates.json`` into a folder
-that :class:`~hogsa_loader.compose.sources.FolderBackgrounds` reads directly. Plates are
-cut to the region the crops covered; holes inside it are filled by OpenCV's inpainting and
-their share is recorded per plate.
+background long before its hands do (colour, brightness, floor, perspective).
+:func:`build_plates` (settings: :class:`PlateConfig`) writes one PNG per (subject, view) plus
+``plates.json`` into a folder that :class:`~hogsa_loader.compose.sources.FolderBackgrounds`
+reads directly; its docstring describes how the plates are made.
 """
 
 # ruff: noqa: UP045  (Optional[...] fields: hogsa_loader.cli.dataclass_args reads typing.Optional)
@@ -317,6 +307,16 @@ def _remove_old_plates(out: Path, plates: Sequence[dict]) -> None:
 
 def build_plates(cfg: PlateConfig, log: Optional[Callable[[str], None]] = None) -> dict:
     """Write a clean plate per (subject, allocentric view) of a data root.
+
+    For ARCTIC's static allocentric cameras, the backdrop of every view can be recovered from
+    the dataset: each cropped image shows the square of side ``1.5 · 200 · scale`` around its
+    box centre, so it maps back into the full camera frame by a scale and a shift. With the
+    annotated hands and object masked out (the dataset's ``masks/`` when it has them, else
+    rasterised from the posed MANO and object meshes), every plate pixel takes the per-pixel
+    median of the frames that saw background there. Only hands and object are masked: whatever
+    else stays in place in most frames (on real ARCTIC, parts of the subject's arms and body)
+    stays in the plate. Plates are cut to the region the crops covered; holes inside it are
+    filled by OpenCV's inpainting and their share is recorded per plate.
 
     Args:
         cfg: settings; ``cfg.data`` and ``cfg.out`` are required.

@@ -1,25 +1,10 @@
 """Background-source base classes: image cache, random crops, image lists, folders.
 
-Every source draws ``n`` backgrounds of a requested size from an explicit
-:class:`torch.Generator`, so the same generator state gives the same images, whatever the
-cache holds or which DataLoader worker asks (:class:`BackgroundSource`). Image sources
-(:class:`FolderBackgrounds` here, :class:`~hogsa_loader.compose.coco.CocoBackgrounds`)
-share :class:`_ImageListSource`: a random image, a random crop of random scale
-(:class:`CropSpec`), an optional horizontal flip; decoded images are kept in a per-process
-LRU cache bounded in bytes (:class:`ImageCache`), decoded with OpenCV, COCO images at a
-reduced JPEG scale (``IMREAD_REDUCED_COLOR_{2,4,8}``) when the crop is large enough that
-full resolution is wasted (chosen from the image size known at construction and the drawn
-crop, never from the cache or what was decoded before, so results are deterministic).
-An unreadable image is skipped for the next readable one in list order (with the same crop
-draws), so a bad file changes only the draws that land on it; only a list with no readable
-image at all raises.
-
-Sources are picklable (they hold paths and sizes, not open handles), so they can live in
-DataLoader workers; each worker then has its own cache.
-
-Throughput notes (1 CPU thread, measured on a shared 2-core EPYC): a COCO/folder draw
-from the cache is a crop + resize + float conversion (≈ 1–3 ms at 336²); a cache miss adds
-reading and decoding the JPEG (≈ 3–8 ms for a 640×480 image, less at reduced scale).
+Every source subclasses :class:`BackgroundSource` (draws from an explicit generator, so
+results are deterministic; picklable for DataLoader workers). Image sources
+(:class:`FolderBackgrounds` here, :class:`~hogsa_loader.compose.coco.CocoBackgrounds`) share
+:class:`_ImageListSource` (random crops with :class:`CropSpec`, decoding, the per-process
+:class:`ImageCache`).
 """
 
 from __future__ import annotations
@@ -147,6 +132,13 @@ class BackgroundSource:
 
     The output depends only on the generator's state (and on the files, for image
     sources); the generator is advanced by the draws.
+
+    Every source draws ``n`` backgrounds of a requested size from an explicit
+    :class:`torch.Generator`, so the same generator state gives the same images, whatever the
+    cache holds or which DataLoader worker asks.
+
+    Sources are picklable (they hold paths and sizes, not open handles), so they can live in
+    DataLoader workers; each worker then has its own cache.
     """
 
     #: short name for logs and benchmark reports
@@ -295,7 +287,23 @@ def _crop_resize(
 
 
 class _ImageListSource(BackgroundSource):
-    """Shared crop/decode logic of sources backed by a list of image files."""
+    """Shared crop/decode logic of sources backed by a list of image files.
+
+    Image sources (:class:`FolderBackgrounds` here,
+    :class:`~hogsa_loader.compose.coco.CocoBackgrounds`) share it: a random image, a random crop
+    of random scale (:class:`CropSpec`), an optional horizontal flip; decoded images are kept in
+    a per-process LRU cache bounded in bytes (:class:`ImageCache`), decoded with OpenCV, COCO
+    images at a reduced JPEG scale (``IMREAD_REDUCED_COLOR_{2,4,8}``) when the crop is large
+    enough that full resolution is wasted (chosen from the image size known at construction and
+    the drawn crop, never from the cache or what was decoded before, so results are
+    deterministic). An unreadable image is skipped for the next readable one in list order (with
+    the same crop draws), so a bad file changes only the draws that land on it; only a list with
+    no readable image at all raises.
+
+    Throughput notes (1 CPU thread, measured on a shared 2-core EPYC): a COCO/folder draw
+    from the cache is a crop + resize + float conversion (≈ 1–3 ms at 336²); a cache miss adds
+    reading and decoding the JPEG (≈ 3–8 ms for a 640×480 image, less at reduced scale).
+    """
 
     def __init__(
         self,

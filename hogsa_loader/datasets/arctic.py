@@ -1,29 +1,9 @@
 """Reader of a real ARCTIC data root.
 
-``ArcticRoot(data_root)`` takes ARCTIC's ``./data`` folder, i.e. the folder holding
-
-```
-data_root/
-  arctic_data/data/
-    meta/misc.json, meta/object_meta.json, meta/object_vtemplates/<obj>/...
-    meta/hogsa_world.json                      (optional, written by our world generator)
-    raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy
-    splits_json/protocol_<p>.json, splits/<p>_<split>.npy
-    cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg   (optional)
-    images/<sid>/<seq>/<view>/<frame:05d>.jpg           (optional)
-    masks/<sid>/<seq>/<view>/<frame:05d>.png            (optional, generated worlds)
-  body_models/mano/MANO_{RIGHT,LEFT}.pkl
-```
-
-and exposes every sequence as a dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`
-(metres, axis-angle, ``p_cam = R p_world + T``).
-
-Every missing or malformed file raises :class:`~hogsa_loader.errors.AssetError` naming the
-file and the problem (``misc.json: subject s02 has 7 world2cam matrices, expected 8``).
-The pickled ``raw_seqs/*.npy`` and ``splits/*.npy`` files are read with
-:func:`~hogsa_loader.io.npy.read_npy` (restricted unpickler, never
-``np.load(allow_pickle=True)``); the values used are then checked to be numeric arrays of
-the expected shapes and finite.
+Start with :class:`ArcticRoot` (its docstring shows the folder layout it reads), which exposes
+every sequence as a dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`
+(metres, axis-angle, ``p_cam = R p_world + T``). Every missing or malformed file raises
+:class:`~hogsa_loader.errors.AssetError` naming the file and the problem.
 """
 
 from __future__ import annotations
@@ -350,6 +330,29 @@ class RawSequence:
 # ----------------------------------------------------------------------------------------
 class ArcticRoot:
     """A real (or generated, same format) ARCTIC data root.
+
+    ``ArcticRoot(data_root)`` takes ARCTIC's ``./data`` folder, i.e. the folder holding::
+
+        data_root/
+          arctic_data/data/
+            meta/misc.json, meta/object_meta.json, meta/object_vtemplates/<obj>/...
+            meta/hogsa_world.json                      (optional, written by our world generator)
+            raw_seqs/<sid>/<seq>.{mano,object,egocam.dist}.npy
+            splits_json/protocol_<p>.json, splits/<p>_<split>.npy
+            cropped_images/<sid>/<seq>/<view>/<frame:05d>.jpg   (optional)
+            images/<sid>/<seq>/<view>/<frame:05d>.jpg           (optional)
+            masks/<sid>/<seq>/<view>/<frame:05d>.png            (optional, generated worlds)
+          body_models/mano/MANO_{RIGHT,LEFT}.pkl
+
+    and exposes every sequence as a dataset-independent :class:`~hogsa_loader.datasets.types.SequenceData`
+    (metres, axis-angle, ``p_cam = R p_world + T``).
+
+    Every missing or malformed file raises :class:`~hogsa_loader.errors.AssetError` naming the
+    file and the problem (``misc.json: subject s02 has 7 world2cam matrices, expected 8``).
+    The pickled ``raw_seqs/*.npy`` and ``splits/*.npy`` files are read with
+    :func:`~hogsa_loader.io.npy.read_npy` (restricted unpickler, never
+    ``np.load(allow_pickle=True)``); the values used are then checked to be numeric arrays of
+    the expected shapes and finite.
 
     Args:
         data_root: ARCTIC's ``./data`` folder (holding ``arctic_data/data`` and

@@ -1,19 +1,7 @@
 """Encoding of one :class:`~hogsa_loader.loader.frame.SynthFrame` as WebDataset tar members.
 
-A sample with key ``K`` (no dot in it; the WebDataset convention splits member names at
-the first dot of the base name) is stored as consecutive tar members:
-
-* ``K.jpg`` — the composited crop, JPEG quality 95 (``K.png`` when written losslessly);
-* ``K.alpha.png`` — the rendered opacity, single-channel PNG, uint8 (``round(255 α)``) or
-  uint16 (``round(65535 α)``);
-* ``K.parts.png`` — per-part opacity (right hand, left hand, object) as a 3-channel PNG
-  of the same depth (R, G, B = right, left, object);
-* ``K.labels.npz`` — every label array (``np.savez``, no object arrays: it loads with
-  ``allow_pickle=False``), dtypes kept, so labels round-trip bit-exactly;
-* ``K.json`` — ``imgname``, ``meta``, ``bbox``, ``K_full``, ``image_size``, object
-  name, the global sample index, the shard, the image/alpha encodings, the format version.
-
-:func:`encode_frame` / :func:`decode_frame` are the two directions.
+:func:`encode_frame` / :func:`decode_frame` are the two directions; :func:`encode_frame` lists
+the members of a sample.
 """
 
 from __future__ import annotations
@@ -113,6 +101,19 @@ def encode_frame(
     parts: bool = True,
 ) -> dict[str, bytes]:
     """Tar members of one frame: ``{member name: bytes}`` in writing order.
+
+    A sample with key ``K`` (no dot in it; the WebDataset convention splits member names at
+    the first dot of the base name) is stored as consecutive tar members:
+
+    * ``K.jpg`` — the composited crop, JPEG quality 95 (``K.png`` when written losslessly);
+    * ``K.alpha.png`` — the rendered opacity, single-channel PNG, uint8 (``round(255 α)``) or
+      uint16 (``round(65535 α)``);
+    * ``K.parts.png`` — per-part opacity (right hand, left hand, object) as a 3-channel PNG
+      of the same depth (R, G, B = right, left, object);
+    * ``K.labels.npz`` — every label array (``np.savez``, no object arrays: it loads with
+      ``allow_pickle=False``), dtypes kept, so labels round-trip bit-exactly;
+    * ``K.json`` — ``imgname``, ``meta``, ``bbox``, ``K_full``, ``image_size``, object
+      name, the global sample index, the shard, the image/alpha encodings, the format version.
 
     Args:
         frame: the frame.

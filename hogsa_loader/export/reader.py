@@ -1,32 +1,8 @@
 """Reading exported shards back: :class:`SynthShardDataset` (torch ``IterableDataset``).
 
-Reads the tar shards of :mod:`hogsa_loader.export.writer` with the standard library's
-``tarfile`` (streaming; no extra dependency). Names follow the ``webdataset`` package's
-conventions (key = member name up to the first dot of its base name, a sample's members
-consecutive), so the same shards also open with ``webdataset.WebDataset(urls)``, and
-shard lists may be given as WebDataset brace patterns (``"synth-{000000..000009}.tar"``).
-
-Each item is either the stored :class:`~hogsa_loader.loader.frame.SynthFrame`, or, with
-``arctic_samples=True``, ArcticNet-SF's ``(inputs, targets, meta_info)`` built by
-:func:`~hogsa_loader.datasets.sample.make_arctic_sample` with ARCTIC's augmentation drawn
-from ``numpy.random.default_rng([seed, epoch, index, 3])`` — ``index`` is the global
-sample index stored with the frame, ``seed``/``epoch`` default to the frame's own
-(``meta["seed"]``, ``meta["epoch"]``) — which is the augmentation stream of
-:class:`~hogsa_loader.loader.dataset.HOGSADataset`
-(:func:`~hogsa_loader.loader.plan.sample_rng`, stream 3). So by default a sample read
-back equals the one the live loader made with the same seed; it does not depend on the
-worker count; and batches collate exactly like real ARCTIC ones.
-
-A folder written by :func:`~hogsa_loader.export.writer.write_shards` is read as its
-``index.json`` says: only the shards it lists as complete, in shard order (other ``*.tar``
-files in the folder are ignored); an incomplete export is refused unless ``incomplete=True``
-asks for its complete shards. When a shard's own index records ``members_sha256``, every
-member is checked against it while reading (a flipped byte in an image is an
-:class:`~hogsa_loader.errors.AssetError`, not a silently different sample).
-
-Work is split over ``world_size × num_workers`` readers (rank from the arguments or
-``torch.distributed``; worker from ``get_worker_info``): whole shards round-robin when
-there are at least as many shards as readers, otherwise samples round-robin.
+Start with :class:`SynthShardDataset` (streams the shards; its docstring describes the shard
+format, the items, the checks and how work is split) or :class:`SynthShardSamples` (a
+map-style dataset of the same samples); :func:`expand_shards` resolves shard lists.
 """
 
 from __future__ import annotations
@@ -266,6 +242,34 @@ def frame_to_arctic_sample(
 
 class SynthShardDataset(IterableDataset):
     """Iterate exported synthetic frames (or ArcticNet-SF samples made from them).
+
+    Reads the tar shards of :mod:`hogsa_loader.export.writer` with the standard library's
+    ``tarfile`` (streaming; no extra dependency). Names follow the ``webdataset`` package's
+    conventions (key = member name up to the first dot of its base name, a sample's members
+    consecutive), so the same shards also open with ``webdataset.WebDataset(urls)``, and
+    shard lists may be given as WebDataset brace patterns (``"synth-{000000..000009}.tar"``).
+
+    Each item is either the stored :class:`~hogsa_loader.loader.frame.SynthFrame`, or, with
+    ``arctic_samples=True``, ArcticNet-SF's ``(inputs, targets, meta_info)`` built by
+    :func:`~hogsa_loader.datasets.sample.make_arctic_sample` with ARCTIC's augmentation drawn
+    from ``numpy.random.default_rng([seed, epoch, index, 3])`` — ``index`` is the global
+    sample index stored with the frame, ``seed``/``epoch`` default to the frame's own
+    (``meta["seed"]``, ``meta["epoch"]``) — which is the augmentation stream of
+    :class:`~hogsa_loader.loader.dataset.HOGSADataset`
+    (:func:`~hogsa_loader.loader.plan.sample_rng`, stream 3). So by default a sample read
+    back equals the one the live loader made with the same seed; it does not depend on the
+    worker count; and batches collate exactly like real ARCTIC ones.
+
+    A folder written by :func:`~hogsa_loader.export.writer.write_shards` is read as its
+    ``index.json`` says: only the shards it lists as complete, in shard order (other ``*.tar``
+    files in the folder are ignored); an incomplete export is refused unless ``incomplete=True``
+    asks for its complete shards. When a shard's own index records ``members_sha256``, every
+    member is checked against it while reading (a flipped byte in an image is an
+    :class:`~hogsa_loader.errors.AssetError`, not a silently different sample).
+
+    Work is split over ``world_size × num_workers`` readers (rank from the arguments or
+    ``torch.distributed``; worker from ``get_worker_info``): whole shards round-robin when
+    there are at least as many shards as readers, otherwise samples round-robin.
 
     Args:
         paths: shard folder, glob, brace pattern, file, or a list of them.

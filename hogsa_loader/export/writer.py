@@ -1,28 +1,10 @@
 """Resumable, multi-process export of synthetic frames into WebDataset tar shards.
 
-Layout of ``out_dir`` for ``num`` samples in shards of ``S``:
-
-* ``synth-000000.tar`` … — shard ``i`` holds global samples ``[i·S, min((i+1)·S, num))``
-  under the keys ``"%010d" % index`` (members: see :mod:`hogsa_loader.export.codec`);
-* ``synth-000000.index.json`` … — per shard: keys, first/last index, count, bytes,
-  seconds, writer rank, and ``members_sha256`` (``{member name: sha256}``, checked by the
-  readers);
-* ``index.json`` — the whole export: parameters, caller's ``info`` and every complete
-  shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
-  (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.
-
-Shards go to ranks round-robin (``shard % world_size == rank``). Each shard is written
-under a hidden temporary name and renamed when complete (after its index file), so an
-interrupted export is resumed by running it again: complete shards are skipped,
-partial ones are rewritten. A failed shard leaves no temporary file behind, and an export
-that failed before completing any shard leaves no ``index.json`` (nor a folder it created).
-
-A shard counts as complete only if its index file records this export's sample range
-(first, last) and *settings* (image format, JPEG quality, alpha bits, parts, and a hash of
-``info`` without its ``world_size`` / ``rank`` keys). Running an export into a folder whose
-shards were written with other settings (another seed, ``--num``, ``--shard-size``...)
-raises :class:`ExportMismatchError` naming the shard and the difference, as do shard files
-beyond this export's last shard; ``overwrite=True`` rewrites (or removes) them instead.
+Start with :func:`write_shards` and :func:`dataset_frames_for_shard`, which feeds it from a
+:class:`~hogsa_loader.loader.dataset.HOGSADataset`. The folder layout is described by :func:`shard_range`
+(the tar shards), :func:`_write_shard` (per-shard index files, temporary names and resuming) and
+:func:`rebuild_index` (``index.json``); :func:`shards_of_rank` shares the shards among ranks and
+:class:`ExportMismatchError` says when a folder of another export is refused.
 """
 
 from __future__ import annotations
@@ -66,7 +48,15 @@ _INFO_IGNORED = ("world_size", "rank")
 
 
 class ExportMismatchError(ValueError):
-    """The output folder holds shards of a different export (settings, range or count)."""
+    """The output folder holds shards of a different export (settings, range or count).
+
+    A shard counts as complete only if its index file records this export's sample range
+    (first, last) and *settings* (image format, JPEG quality, alpha bits, parts, and a hash of
+    ``info`` without its ``world_size`` / ``rank`` keys). Running an export into a folder whose
+    shards were written with other settings (another seed, ``--num``, ``--shard-size``...)
+    raises :class:`ExportMismatchError` naming the shard and the difference, as do shard files
+    beyond this export's last shard; ``overwrite=True`` rewrites (or removes) them instead.
+    """
 
 
 def export_settings(
@@ -100,13 +90,21 @@ def num_shards(num: int, shard_size: int) -> int:
 
 
 def shard_range(shard: int, num: int, shard_size: int) -> range:
-    """Global sample indices of ``shard``."""
+    """Global sample indices of ``shard``.
+
+    An export of ``num`` samples in shards of ``S`` writes the tar files ``synth-000000.tar`` …
+    into its folder: shard ``i`` holds global samples ``[i·S, min((i+1)·S, num))`` under the
+    keys ``"%010d" % index`` (members: see :func:`hogsa_loader.export.codec.encode_frame`).
+    """
     lo = int(shard) * int(shard_size)
     return range(lo, min(lo + int(shard_size), int(num)))
 
 
 def shards_of_rank(n_shards: int, rank: int, world_size: int) -> list[int]:
-    """Round-robin assignment: the shards ``rank`` writes."""
+    """Round-robin assignment: the shards ``rank`` writes.
+
+    Shards go to ranks round-robin (``shard % world_size == rank``).
+    """
     if not 0 <= rank < world_size:
         raise ValueError(f"rank {rank} outside [0, {world_size})")
     return list(range(int(rank), int(n_shards), int(world_size)))
@@ -191,6 +189,10 @@ def rebuild_index(
 
     A shard is listed when it is whole, holds its range of this ``num`` / ``shard_size``
     and (given ``settings``, see :func:`export_settings`) was written with them.
+
+    ``index.json`` describes the whole export: parameters, caller's ``info`` and every complete
+    shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
+    (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.
     """
     out = Path(out_dir)
     n = num_shards(num, shard_size)
@@ -349,7 +351,18 @@ def _write_shard(
     settings: dict[str, Any],
     bar: Optional[Any],
 ) -> int:
-    """Write one shard under a temporary name, then its index file, then rename it; returns its sample count."""
+    """Write one shard under a temporary name, then its index file, then rename it; returns its sample count.
+
+    The index file (``synth-000000.index.json`` …) records per shard: keys, first/last index,
+    count, bytes, seconds, writer rank, and ``members_sha256`` (``{member name: sha256}``,
+    checked by the readers).
+
+    Each shard is written under a hidden temporary name and renamed when complete (after its
+    index file), so an interrupted export is resumed by running it again: complete shards are
+    skipped, partial ones are rewritten. A failed shard leaves no temporary file behind, and an
+    export that failed before completing any shard leaves no ``index.json`` (nor a folder it
+    created).
+    """
     name = shard_name(shard, prefix)
     for stale in out.glob(f".{name}.tmp.*"):
         stale.unlink()
@@ -438,8 +451,8 @@ def write_shards(
         info: JSON-able description of the export (bundle, seed, ...) for ``index.json``;
             everything in it except ``world_size`` / ``rank`` must be equal for a resume.
         prefix: shard file prefix.
-        overwrite: rewrite shards of another export found in ``out_dir`` (see module
-            docstring) and remove shard files beyond this export's last one.
+        overwrite: rewrite shards of another export found in ``out_dir`` (see
+            :class:`ExportMismatchError`) and remove shard files beyond this export's last one.
 
     Returns:
         ``{"written": [...], "skipped": [...], "samples": n, "seconds": t, "index": path}``.

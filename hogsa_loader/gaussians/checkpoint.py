@@ -1,36 +1,10 @@
 """Checkpoints of Gaussian parts: safetensors tensors plus a JSON manifest, no pickle.
 
-A checkpoint is a folder::
-
-    <folder>/gaussians.safetensors   the part's learnable state (``part.splats.state_dict()``)
-    <folder>/manifest.json           what the tensors are and what they belong to
-
-The manifest is the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: ``format``
-``"hogsa-gaussians"``, ``schema_version`` 1, ``library_version``, ``tensors``,
-``tensors_file``, ``tensors_sha256``) plus these keys, every one required:
-
-==================  ==================================================================
-key                 value
-==================  ==================================================================
-part_type           ``"hand_right"``, ``"hand_left"`` or ``"object"``
-variant             ``"games"``, ``"avatars"`` or ``"free"``
-k, sh_degree        Gaussians per face, SH degree
-num_verts,          binding-mesh vertices / faces, number of Gaussians
-num_faces,
-num_gaussians
-template_hash       sha256 of the caller's template mesh (float32 vertices then int64
-                    faces, little endian; :func:`~hogsa_loader.gaussians.parts.template_hash`)
-binding_hash        the same hash of the binding mesh the Gaussians live on
-binding_mesh        how the binding mesh was made (e.g. ``"subdivide_model levels=1"``)
-config              the part's constructor settings, flat: its
-                    :class:`~hogsa_loader.gaussians.binding.BindingConfig` (without
-                    ``init_opacity``) then its own (rebuilds it in :func:`load_part`)
-source              ``{"dataset", "subject", "sequence"}`` (strings or null)
-extra               free-form JSON object
-==================  ==================================================================
-
-Loading validates everything and raises :class:`~hogsa_loader.errors.AssetError` naming the
-offending file and the problem.
+:func:`save_part` writes a part's checkpoint folder (its docstring lists the files and the
+manifest keys); :func:`load_part` rebuilds a part from one, :func:`load_state` loads one into
+an existing part and :func:`read_manifest` reads the manifest alone. Loading validates
+everything and raises :class:`~hogsa_loader.errors.AssetError` naming the offending file and
+the problem.
 """
 
 from __future__ import annotations
@@ -105,6 +79,35 @@ def save_part(
     extra: Optional[Mapping[str, Any]] = None,
 ) -> Path:
     """Write a part's Gaussians as a checkpoint folder (created if needed).
+
+    A checkpoint is a folder::
+
+        <folder>/gaussians.safetensors   the part's learnable state (``part.splats.state_dict()``)
+        <folder>/manifest.json           what the tensors are and what they belong to
+
+    The manifest is the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: ``format``
+    ``"hogsa-gaussians"``, ``schema_version`` 1, ``library_version``, ``tensors``,
+    ``tensors_file``, ``tensors_sha256``) plus these keys, every one required:
+
+    ==================  ==================================================================
+    key                 value
+    ==================  ==================================================================
+    part_type           ``"hand_right"``, ``"hand_left"`` or ``"object"``
+    variant             ``"games"``, ``"avatars"`` or ``"free"``
+    k, sh_degree        Gaussians per face, SH degree
+    num_verts,          binding-mesh vertices / faces, number of Gaussians
+    num_faces,
+    num_gaussians
+    template_hash       sha256 of the caller's template mesh (float32 vertices then int64
+                        faces, little endian; :func:`~hogsa_loader.gaussians.parts.template_hash`)
+    binding_hash        the same hash of the binding mesh the Gaussians live on
+    binding_mesh        how the binding mesh was made (e.g. ``"subdivide_model levels=1"``)
+    config              the part's constructor settings, flat: its
+                        :class:`~hogsa_loader.gaussians.binding.BindingConfig` (without
+                        ``init_opacity``) then its own (rebuilds it in :func:`load_part`)
+    source              ``{"dataset", "subject", "sequence"}`` (strings or null)
+    extra               free-form JSON object
+    ==================  ==================================================================
 
     Args:
         part: a :class:`HandGaussians` or :class:`ObjectGaussians`.

@@ -1,19 +1,9 @@
 """One HOGS model: the right-hand, left-hand and object Gaussians of one (subject, object).
 
 :class:`HogsModel` is what ``pretrain/train_hogs.py`` trains and what everything
-downstream (render-quality benchmark, SRM training, the synthetic loader) renders. A
-trained run folder holds one checkpoint per part (``hand_right/``, ``hand_left/``,
-``object/``, each ``gaussians.safetensors`` + ``manifest.json``);
-:meth:`HogsModel.from_run` rebuilds the parts on the caller's MANO layers and object
-template (their hashes are checked by :func:`~hogsa_loader.gaussians.checkpoint.load_part`).
-
-Poses use the keys of :meth:`hogsa_loader.train.hogs_data.HogsData.poses` — the ARCTIC
-world frame, exactly as ``SequenceData`` stores them:
-
-* ``{side}_rot`` (B, 3), ``{side}_pose`` (B, 45), ``{side}_betas`` (B, 10),
-  ``{side}_trans`` (B, 3) for ``side`` in ``right``/``left``;
-* ``obj_arti`` (B, 1) articulation (rad), ``obj_rot`` (B, 3) axis-angle,
-  ``obj_trans`` (B, 3) metres.
+downstream (render-quality benchmark, SRM training, the synthetic loader) renders.
+:meth:`HogsModel.from_run` loads a trained run folder; :meth:`HogsModel.render` poses and
+renders it (the pose keys, :data:`POSE_KEYS`, are listed in :meth:`HogsModel.scene`).
 """
 
 from __future__ import annotations
@@ -92,6 +82,11 @@ class HogsModel(nn.Module):
     ) -> "HogsModel":
         """Load a trained run folder.
 
+        A trained run folder holds one checkpoint per part (``hand_right/``, ``hand_left/``,
+        ``object/``, each ``gaussians.safetensors`` + ``manifest.json``);
+        :meth:`HogsModel.from_run` rebuilds the parts on the caller's MANO layers and object
+        template (their hashes are checked by :func:`~hogsa_loader.gaussians.checkpoint.load_part`).
+
         Args:
             folder: run folder with ``hand_right/``, ``hand_left/`` and ``object/``.
             mano_layers: ``{"right": MANOLayer, "left": MANOLayer}`` (e.g.
@@ -155,8 +150,16 @@ class HogsModel(nn.Module):
     ) -> GaussianSet:
         """Posed, composed Gaussians of B frames.
 
+        Poses use the keys of :meth:`hogsa_loader.train.hogs_data.HogsData.poses` — the ARCTIC
+        world frame, exactly as ``SequenceData`` stores them:
+
+        * ``{side}_rot`` (B, 3), ``{side}_pose`` (B, 45), ``{side}_betas`` (B, 10),
+          ``{side}_trans`` (B, 3) for ``side`` in ``right``/``left``;
+        * ``obj_arti`` (B, 1) articulation (rad), ``obj_rot`` (B, 3) axis-angle,
+          ``obj_trans`` (B, 3) metres.
+
         Args:
-            poses: the :data:`POSE_KEYS` tensors (see module docstring), batch B.
+            poses: the :data:`POSE_KEYS` tensors (see above), batch B.
             sh_degree: keep SH bands up to this degree (default: all).
             keep_normals: keep the shading normals without a learned light too (headlight
                 shading needs them; with a light they are always kept).

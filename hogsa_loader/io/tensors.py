@@ -1,22 +1,11 @@
 """Checkpoints as a safetensors file plus a JSON manifest, no pickle.
 
 Every checkpoint kind of the library (Gaussian parts, light, SRM, ContactNet, pose bank)
-writes the same header into its ``manifest.json``, described by a :class:`ManifestFormat`:
-
-=====================  ===============================================================
-key                    value
-=====================  ===============================================================
-``format``/``schema``  the kind's name (``"hogsa-srm"``, ``"hogsa.pose_bank"``...)
-schema_version         the kind's schema version (an int)
-library_version        ``hogsa_loader.__version__`` of the writer (kinds that record it)
-tensors                ``{name: {"shape": [...], "dtype": "float32"}}`` or ``{name: [...]}``
-tensors file key       the tensors file name (``tensors_file``, ``tensor_file`` or ``weights``)
-tensors_sha256         sha256 of the tensors file (a torn or mismatched pair is refused)
-=====================  ===============================================================
-
-Each kind adds its own keys and checks. Both files are written atomically, tensors first and
-manifest last; :func:`read_manifest` and :func:`read_tensors` validate them and raise
-:class:`~hogsa_loader.errors.AssetError` naming the offending file and the problem.
+writes the same header into its ``manifest.json``, described by a :class:`ManifestFormat`
+(its docstring lists the keys). Each kind adds its own keys and checks. Both files are written
+atomically, tensors first and manifest last (:func:`save_checkpoint`,
+:func:`write_tensors_and_manifest`); :func:`read_manifest` and :func:`read_tensors` validate
+them and raise :class:`~hogsa_loader.errors.AssetError` naming the offending file and the problem.
 """
 
 from __future__ import annotations
@@ -75,6 +64,19 @@ class ManifestFormat:
         header_metadata: whether the tensors file's own header repeats ``format`` and
             ``schema_version``.
         manifest_file: the manifest file name.
+
+    Header keys:
+
+    =====================  ===============================================================
+    key                    value
+    =====================  ===============================================================
+    ``format``/``schema``  the kind's name (``"hogsa-srm"``, ``"hogsa.pose_bank"``...)
+    schema_version         the kind's schema version (an int)
+    library_version        ``hogsa_loader.__version__`` of the writer (kinds that record it)
+    tensors                ``{name: {"shape": [...], "dtype": "float32"}}`` or ``{name: [...]}``
+    tensors file key       the tensors file name (``tensors_file``, ``tensor_file`` or ``weights``)
+    tensors_sha256         sha256 of the tensors file (a torn or mismatched pair is refused)
+    =====================  ===============================================================
     """
 
     name: str
@@ -228,7 +230,7 @@ def _check_specs(raw: Mapping[str, Any], path: Path, fmt: ManifestFormat) -> Non
 
 
 def check_header(raw: Any, path: Path, fmt: ManifestFormat) -> dict[str, Any]:
-    """Check the shared header of a parsed manifest (see module docstring).
+    """Check the shared header of a parsed manifest (see :class:`ManifestFormat`).
 
     Args:
         raw: the parsed JSON.

@@ -1,19 +1,9 @@
 """Cameras of synthetic samples: novel viewpoints around the hands and object, or the
 dataset's own cameras.
 
-:class:`CameraSampler` draws, per sample, either
-
-* a **novel** camera on a sphere around the interaction centre: azimuth over the full
-  360°, elevation and distance in configurable ranges, looking at the centre (plus a small
-  target jitter) with a random roll; its full-image intrinsics are a *virtual* camera like
-  the dataset's (same focal length, principal point at the image centre, the dataset's
-  most common image size); or
-* one of the subject's **dataset** camera poses (world→camera, K and image size as
-  recorded in ``misc.json``), with probability ``dataset_prob``.
-
-Defaults are derived from the dataset's cameras of the subject (see :class:`CameraConfig`)
-so that objects appear at the same pixel scale as in the real images (the ARCTIC crop box
-depends on it: 1.7 × the projected object extent, at least 600 px).
+:class:`CameraSampler` draws the cameras of one subject (its docstring describes the two
+kinds and how defaults are derived), configured by :class:`CameraConfig`; :func:`look_at`
+builds world→camera matrices.
 
 Conventions: OpenCV cameras (``p_cam = R p + t``, x right, y down, z forward), metres.
 """
@@ -122,6 +112,20 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, roll_rad: np.nd
 
 class CameraSampler:
     """Draws cameras for samples of one subject.
+
+    It draws, per sample, either
+
+    * a **novel** camera on a sphere around the interaction centre: azimuth over the full
+      360°, elevation and distance in configurable ranges, looking at the centre (plus a small
+      target jitter) with a random roll; its full-image intrinsics are a *virtual* camera like
+      the dataset's (same focal length, principal point at the image centre, the dataset's
+      most common image size); or
+    * one of the subject's **dataset** camera poses (world→camera, K and image size as
+      recorded in ``misc.json``), with probability ``dataset_prob``.
+
+    Defaults are derived from the dataset's cameras of the subject (see :class:`CameraConfig`)
+    so that objects appear at the same pixel scale as in the real images (the ARCTIC crop box
+    depends on it: 1.7 × the projected object extent, at least 600 px).
 
     Args:
         world2cam: (V, 4, 4) the subject's dataset cameras (the protocol's views).

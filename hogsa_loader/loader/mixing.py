@@ -1,20 +1,7 @@
 """``MixedLoader``: real ARCTIC batches with an exact share of synthetic samples.
 
-With the default ``mode="replace"``, every yielded batch of size B holds exactly
-``n_syn = floor(ratio·B + 0.5)`` synthetic samples (round half up) after ``B − n_syn`` real
-ones, collated exactly like the real batches: the synthetic samples go through the real
-loader's ``collate_fn`` and are concatenated with the real part along the batch dimension
-(tensors with ``torch.cat``, lists of strings by concatenation, dicts / tuples recursively).
-
-No real sample is wasted: the real samples a mixed batch does not use are kept for the
-next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
-covers the real epoch (the last real samples that cannot fill a batch are dropped when
-``drop_last`` is True, else they form a smaller last batch with its own rounded share).
-
-``mode="add"`` instead keeps every real batch as the real loader yields it (its own
-``drop_last`` applies) and appends ``n_syn = added_synthetic(ratio, b)`` synthetic samples to
-a batch of b real ones, so that a training run sees the same real batches as without
-synthetic data (larger batches, synthetic share ``n_syn / (b + n_syn)`` ≈ ratio).
+Start with :class:`MixedLoader` (its docstring describes the ``"replace"`` and ``"add"``
+modes); :func:`num_synthetic` and :func:`added_synthetic` give the synthetic count per batch.
 """
 
 from __future__ import annotations
@@ -26,7 +13,7 @@ from torch.utils.data import default_collate
 
 __all__ = ["MixedLoader", "MixMode", "num_synthetic", "added_synthetic", "batch_size_of"]
 
-#: How synthetic samples enter a real batch (see the module docstring).
+#: How synthetic samples enter a real batch (see :class:`MixedLoader`).
 MixMode = Literal["replace", "add"]
 
 
@@ -98,6 +85,22 @@ def _cat(parts: list[Any]) -> Any:
 class MixedLoader:
     """Real batches with exactly ``round(ratio·B)`` synthetic samples each (``mode="replace"``),
     or real batches with ``added_synthetic(ratio, b)`` synthetic samples appended (``"add"``).
+
+    With the default ``mode="replace"``, every yielded batch of size B holds exactly
+    ``n_syn = floor(ratio·B + 0.5)`` synthetic samples (round half up) after ``B − n_syn`` real
+    ones, collated exactly like the real batches: the synthetic samples go through the real
+    loader's ``collate_fn`` and are concatenated with the real part along the batch dimension
+    (tensors with ``torch.cat``, lists of strings by concatenation, dicts / tuples recursively).
+
+    No real sample is wasted: the real samples a mixed batch does not use are kept for the
+    next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
+    covers the real epoch (the last real samples that cannot fill a batch are dropped when
+    ``drop_last`` is True, else they form a smaller last batch with its own rounded share).
+
+    ``mode="add"`` instead keeps every real batch as the real loader yields it (its own
+    ``drop_last`` applies) and appends ``n_syn = added_synthetic(ratio, b)`` synthetic samples to
+    a batch of b real ones, so that a training run sees the same real batches as without
+    synthetic data (larger batches, synthetic share ``n_syn / (b + n_syn)`` ≈ ratio).
 
     Args:
         real_loader: the real DataLoader (collated ``(inputs, targets, meta_info)`` batches,

@@ -1,23 +1,8 @@
 """``poses="online"``: POM inside the loader — perturb an annotated grasp and optimise it per batch.
 
-For every sample, :meth:`OnlinePoses.sample` draws an annotated *contact* frame of the
-(subject, object)'s training sequences (a hand within 5 mm of the object) and a
-perturbation seed, both from the sample's own generator; :meth:`OnlinePoses.optimize`
-then applies the paper's perturbation (:func:`~hogsa_loader.pom.perturb.perturb`, one
-generator per sample; the annotated articulation θ kept) and optimises the whole render batch at once with
-:func:`~hogsa_loader.pom.optimize.optimise_grasps` (object fixed, both hands; the bundle's
-ContactNet), on the loader's device. The loader times this as the ``pom`` stage.
-
-Samples POM drops (non-finite, still penetrating, implausible articulation) are marked in
-their provenance (``"dropped": "pom"``) and the loader drops and counts them.
-
-Determinism: a sample's frame and perturbation come from its own seed; the object point
-subset the losses use is drawn from the batch's first sample, and the optimisation runs
-batched. The stream is therefore reproducible for the same seed and batch size (the same
-render batches), while :meth:`HOGSADataset.sample` regenerating one sample alone may give a
-slightly different grasp (another point subset).
-Cost: ``iters`` (200, the paper's) Adam steps per render batch — meant for CUDA; on a CPU
-prefer ``poses="bank"`` (the same optimisation, done offline).
+:class:`OnlinePoses` is the pose source (its docstring describes the sampling, the
+optimisation, dropped samples, determinism and cost). On a CPU prefer ``poses="bank"``
+(the same optimisation, done offline).
 """
 
 from __future__ import annotations
@@ -44,7 +29,27 @@ _HAND_KEYS = ("rot", "pose", "betas", "trans")
 
 
 class OnlinePoses(FrameTables):
-    """POM-optimised grasps made on the fly (see module docstring).
+    """POM-optimised grasps made on the fly.
+
+    For every sample, :meth:`OnlinePoses.sample` draws an annotated *contact* frame of the
+    (subject, object)'s training sequences (a hand within 5 mm of the object) and a
+    perturbation seed, both from the sample's own generator; :meth:`OnlinePoses.optimize`
+    then applies the paper's perturbation (:func:`~hogsa_loader.pom.perturb.perturb`, one
+    generator per sample; the annotated articulation θ kept) and optimises the whole render batch at once with
+    :func:`~hogsa_loader.pom.optimize.optimise_grasps` (object fixed, both hands; the bundle's
+    ContactNet), on the loader's device. The loader times this as the ``pom`` stage.
+
+    Samples POM drops (non-finite, still penetrating, implausible articulation) are marked in
+    their provenance (``"dropped": "pom"``) and the loader drops and counts them.
+
+    Determinism: a sample's frame and perturbation come from its own seed; the object point
+    subset the losses use is drawn from the batch's first sample, and the optimisation runs
+    batched. The stream is therefore reproducible for the same seed and batch size (the same
+    render batches), while :meth:`HOGSADataset.sample` regenerating one sample alone may give a
+    slightly different grasp (another point subset).
+
+    Cost: ``iters`` (200, the paper's) Adam steps per render batch — meant for CUDA; on a CPU
+    prefer ``poses="bank"`` (the same optimisation, done offline).
 
     Args:
         context: the loader's :class:`PoseContext` (its bundle's ContactNet is used unless

@@ -1,23 +1,8 @@
 """Pose sources of the synthetic loader: where the hand and object poses of a sample come from.
 
-A pose source turns one random generator per sample into the posing parameters of a
-:class:`~hogsa_loader.gaussians.hogs_model.HogsModel` (ARCTIC world frame, the keys of
-:data:`~hogsa_loader.gaussians.hogs_model.POSE_KEYS`). Sources are pluggable:
-
-* ``"perturb"`` (:class:`PerturbPoses`): a random annotated frame of the (subject, object)'s
-  training sequences, with Gaussian noise on the finger articulation (and optionally on
-  the object articulation and the hands' placement);
-* further sources register a factory with :func:`register_pose_source` — the extension
-  point for a pose bank (``"bank"``) and online pose optimisation (``"online"``)::
-
-      def make_bank(context: PoseContext, **options) -> PoseSource: ...
-      register_pose_source("bank", make_bank)
-
-  A source may also define ``optimize(key, batch) -> PoseBatch`` (e.g. POM refinement);
-  the loader times it separately as the ``pom`` stage.
-
-Randomness: :meth:`PoseSource.sample` must draw everything for sample i from ``rngs[i]``
-only, so samples are reproducible from (seed, sample index).
+:class:`PoseSource` is the protocol (its docstring gives the contract and the extension
+point); :class:`PerturbPoses` (``"perturb"``) is the built-in source,
+:func:`register_pose_source` adds others and :func:`make_pose_source` builds one by name.
 """
 
 from __future__ import annotations
@@ -93,7 +78,27 @@ class PoseContext:
 
 @runtime_checkable
 class PoseSource(Protocol):
-    """A pose source (see module docstring)."""
+    """A pose source.
+
+    A pose source turns one random generator per sample into the posing parameters of a
+    :class:`~hogsa_loader.gaussians.hogs_model.HogsModel` (ARCTIC world frame, the keys of
+    :data:`~hogsa_loader.gaussians.hogs_model.POSE_KEYS`). Sources are pluggable:
+
+    * ``"perturb"`` (:class:`PerturbPoses`): a random annotated frame of the (subject, object)'s
+      training sequences, with Gaussian noise on the finger articulation (and optionally on
+      the object articulation and the hands' placement);
+    * further sources register a factory with :func:`register_pose_source` — the extension
+      point for a pose bank (``"bank"``) and online pose optimisation (``"online"``)::
+
+          def make_bank(context: PoseContext, **options) -> PoseSource: ...
+          register_pose_source("bank", make_bank)
+
+      A source may also define ``optimize(key, batch) -> PoseBatch`` (e.g. POM refinement);
+      the loader times it separately as the ``pom`` stage.
+
+    Randomness: :meth:`PoseSource.sample` must draw everything for sample i from ``rngs[i]``
+    only, so samples are reproducible from (seed, sample index).
+    """
 
     name: str
 

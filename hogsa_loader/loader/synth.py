@@ -1,23 +1,10 @@
 """The synthetic pipeline: one render batch of one HOGS model → SynthFrames.
 
-:class:`SynthPipeline` renders a :class:`~hogsa_loader.loader.plan.BatchPlan` (seed,
-epoch, model, sample indices) through named stages, each a method:
-
-1. ``poses`` — the pose source's B poses (world frame), its optional POM ``optimize``
-   step, and the labels' 3D points from the MANO and object layers;
-2. ``views`` — cameras, the ARCTIC crop box and validity flags; samples behind the camera
-   or with NaN poses are dropped here, before rendering;
-3. ``render`` — ONE :meth:`HogsModel.render` call straight into the ``S × S`` crop (laid
-   out like ARCTIC's cropped images), lens distortion resampled where the view has one;
-4. ``refine`` — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
-   (B, S, S, 1));
-5. ``composite`` — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`);
-6. ``labels`` and ``checks`` — the camera-frame labels of each sample, then the sanity
-   checks (dropped samples are counted by reason in :class:`SynthStats`) and the frame.
-
-:func:`frame_to_sample` then applies ARCTIC's augmentation and target construction through
-:func:`~hogsa_loader.datasets.sample.make_arctic_sample`, the function real samples go
-through. Every random draw comes from the streams of :mod:`~hogsa_loader.loader.plan`.
+:class:`SynthPipeline` renders a :class:`~hogsa_loader.loader.plan.BatchPlan` through named
+stages (listed in its docstring). :func:`frame_to_sample` then applies ARCTIC's augmentation
+and target construction through :func:`~hogsa_loader.datasets.sample.make_arctic_sample`,
+the function real samples go through. Every random draw comes from the streams of
+:mod:`~hogsa_loader.loader.plan`.
 """
 
 from __future__ import annotations
@@ -296,7 +283,22 @@ class _Pixels:
 
 
 class SynthPipeline:
-    """Synthetic frames of the bundle's HOGS models (see module docstring).
+    """Synthetic frames of the bundle's HOGS models.
+
+    It renders a :class:`~hogsa_loader.loader.plan.BatchPlan` (seed,
+    epoch, model, sample indices) through named stages, each a method:
+
+    1. ``poses`` — the pose source's B poses (world frame), its optional POM ``optimize``
+       step, and the labels' 3D points from the MANO and object layers;
+    2. ``views`` — cameras, the ARCTIC crop box and validity flags; samples behind the camera
+       or with NaN poses are dropped here, before rendering;
+    3. ``render`` — ONE :meth:`HogsModel.render` call straight into the ``S × S`` crop (laid
+       out like ARCTIC's cropped images), lens distortion resampled where the view has one;
+    4. ``refine`` — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
+       (B, S, S, 1));
+    5. ``composite`` — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`);
+    6. ``labels`` and ``checks`` — the camera-frame labels of each sample, then the sanity
+       checks (dropped samples are counted by reason in :class:`SynthStats`) and the frame.
 
     Args:
         root: the data root (MANO layers, object templates).

@@ -1,25 +1,8 @@
 """Where a synthetic sample is seen from, and where its labels land: per-protocol view geometry.
 
-:func:`allocentric_views` (ARCTIC protocol ``p1``)
-    cameras from the :class:`~hogsa_loader.loader.cameras.CameraSampler`; the crop box from
-    the projected object vertices (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`);
-    an ``S × S`` render laid out like ARCTIC's cropped images (box enlarged 1.5×).
-
-:func:`egocentric_views` (``p2``)
-    the subject's head-mounted camera (:class:`EgoCameras`: the camera of the pose's source
-    frame, else a random frame of the subject); the whole ``W × H`` frame scaled by
-    ``e = S / W`` (ARCTIC's egocentric "cropped" image is the whole frame scaled by 0.3; the
-    crop box is the whole frame, side ``W``). With ``distortion=True`` (default) the pixels
-    go through the camera's lens distortion like ARCTIC's egocentric images (rendered
-    undistorted with a margin, then resampled, see
-    :func:`~hogsa_loader.datasets.conventions.undistort_map`), while the 2D labels stay in the
-    **undistorted** space as ARCTIC's view-0 targets do; validity flags use the distorted
-    2D in the whole image, as ARCTIC's processing does. ``distortion=False`` renders a
-    pinhole image whose pixels match the labels exactly.
-
-Both return a :class:`ViewGeometry`; the pipeline renders with ``K_render`` at
-``render_hw``, applies ``warp`` when present, and checks labels against the pixels at
-``pix2d`` inside ``check_box``.
+:func:`allocentric_views` (ARCTIC protocol ``p1``) and :func:`egocentric_views` (``p2``,
+with :class:`EgoCameras`) both return a :class:`ViewGeometry`, which says how the pipeline
+renders the sample and checks its labels.
 """
 
 from __future__ import annotations
@@ -68,6 +51,9 @@ class ViewGeometry:
             the render into the output image.
         check_box: (x0, y0, x1, y1) region of the output image where labels are checked.
         egocentric: True for ``p2``; dist: (B, 8) lens distortion (ego) or None.
+
+    The pipeline renders with ``K_render`` at ``render_hw``, applies ``warp`` when present, and
+    checks labels against the pixels at ``pix2d`` inside ``check_box``.
     """
 
     world2cam: np.ndarray
@@ -98,6 +84,10 @@ def allocentric_views(
         geo: world-frame points ``verts`` (B, V, 3), ``joints.right/left`` (B, 21, 3), ...
         rngs: one camera generator per sample.
         size: side S of the rendered crop.
+
+    Cameras from the :class:`~hogsa_loader.loader.cameras.CameraSampler`; the crop box from
+    the projected object vertices (:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`);
+    an ``S × S`` render laid out like ARCTIC's cropped images (box enlarged 1.5×).
     """
     centres = np.stack([geo["verts"].mean(1), geo["joints.right"].mean(1), geo["joints.left"].mean(1)]).mean(0)
     cams = sampler.sample(centres, rngs)
@@ -186,7 +176,7 @@ def egocentric_views(
     size: int,
     distortion: bool = True,
 ) -> ViewGeometry:
-    """The subject's egocentric camera and ARCTIC's whole-frame box (``p2``, see module docstring).
+    """The subject's egocentric camera and ARCTIC's whole-frame box (``p2``).
 
     Args:
         ego: the subject's :class:`EgoCameras`.
@@ -195,6 +185,17 @@ def egocentric_views(
         rngs: one camera generator per sample.
         size: output width (the frame is scaled by ``size / W``).
         distortion: apply the lens distortion to the pixels (labels stay undistorted).
+
+    The subject's head-mounted camera (:class:`EgoCameras`: the camera of the pose's source
+    frame, else a random frame of the subject); the whole ``W × H`` frame scaled by
+    ``e = S / W`` (ARCTIC's egocentric "cropped" image is the whole frame scaled by 0.3; the
+    crop box is the whole frame, side ``W``). With ``distortion=True`` (default) the pixels
+    go through the camera's lens distortion like ARCTIC's egocentric images (rendered
+    undistorted with a margin, then resampled, see
+    :func:`~hogsa_loader.datasets.conventions.undistort_map`), while the 2D labels stay in the
+    **undistorted** space as ARCTIC's view-0 targets do; validity flags use the distorted
+    2D in the whole image, as ARCTIC's processing does. ``distortion=False`` renders a
+    pinhole image whose pixels match the labels exactly.
     """
     picks = [ego.pick(p, r) for p, r in zip(provenance, rngs)]
     w2c = np.stack([p[0] for p in picks])

@@ -1,35 +1,7 @@
 """Pose bank: optimised bimanual grasps on disk (safetensors + JSON manifest).
 
-A bank is a folder::
-
-    BANK/
-      poses.safetensors   tensors, first dimension N (one row per entry)
-      manifest.json       the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: schema
-                          ``"hogsa.pose_bank"``, schema_version, tensors, tensor_file,
-                          tensors_sha256) plus count, convention, entries (sources), info
-
-Tensors (float32; the same convention as :class:`~hogsa_loader.datasets.types.SequenceData`:
-ARCTIC world frame, axis-angle, metres, finger pose relative to the MANO mean,
-``flat_hand_mean=False``):
-
-========================  ========  ==============================================
-key                       shape     meaning
-========================  ========  ==============================================
-``right_rot``/``left_rot``    (N, 3)    global orientation
-``right_pose``/``left_pose``  (N, 45)   articulation (relative to the mean)
-``right_trans``/...           (N, 3)    MANO ``transl`` (m)
-``right_betas``/...           (N, 10)   shape
-``obj_arti``                  (N,)      articulation θ (rad)
-``obj_rot``                   (N, 3)    object axis-angle
-``obj_trans``                 (N, 3)    object translation (m)
-``penetration_depth``         (N,)      metres (ray parity)
-``intersection``              (N,)      m³ (5 mm voxels)
-``contact_ratio``             (N,)      fraction of hand vertices within 5 mm
-``accept``                    (N,)      1.0 / 0.0 GraspTTA acceptance
-========================  ========  ==============================================
-
-The manifest's ``entries`` list gives, per row, ``{"subject", "sequence", "frame",
-"object"}`` — the source frame (``frame`` = index into the sequence's GT frames).
+:func:`save_pose_bank` writes a bank folder (its docstring lists the files, the tensors and
+their convention); :func:`load_pose_bank` reads and validates one into a :class:`PoseBank`.
 """
 
 from __future__ import annotations
@@ -86,7 +58,7 @@ class PoseBank:
     Attributes:
         state: the N grasps as a :class:`GraspState` (float32, CPU).
         sources: N ``(subject, sequence, frame)``.
-        metrics: key -> (N,) tensor (see module docstring).
+        metrics: key -> (N,) tensor (see :func:`save_pose_bank`).
         info: the manifest's provenance fields (``config``, ``contactnet``...).
     """
 
@@ -120,7 +92,38 @@ def save_pose_bank(
     metrics: Mapping[str, Any],
     info: Optional[dict] = None,
 ) -> Path:
-    """Write a bank folder (see module docstring).
+    """Write a bank folder.
+
+    A bank is a folder::
+
+        BANK/
+          poses.safetensors   tensors, first dimension N (one row per entry)
+          manifest.json       the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: schema
+                              ``"hogsa.pose_bank"``, schema_version, tensors, tensor_file,
+                              tensors_sha256) plus count, convention, entries (sources), info
+
+    Tensors (float32; the same convention as :class:`~hogsa_loader.datasets.types.SequenceData`:
+    ARCTIC world frame, axis-angle, metres, finger pose relative to the MANO mean,
+    ``flat_hand_mean=False``):
+
+    ========================  ========  ==============================================
+    key                       shape     meaning
+    ========================  ========  ==============================================
+    ``right_rot``/``left_rot``    (N, 3)    global orientation
+    ``right_pose``/``left_pose``  (N, 45)   articulation (relative to the mean)
+    ``right_trans``/...           (N, 3)    MANO ``transl`` (m)
+    ``right_betas``/...           (N, 10)   shape
+    ``obj_arti``                  (N,)      articulation θ (rad)
+    ``obj_rot``                   (N, 3)    object axis-angle
+    ``obj_trans``                 (N, 3)    object translation (m)
+    ``penetration_depth``         (N,)      metres (ray parity)
+    ``intersection``              (N,)      m³ (5 mm voxels)
+    ``contact_ratio``             (N,)      fraction of hand vertices within 5 mm
+    ``accept``                    (N,)      1.0 / 0.0 GraspTTA acceptance
+    ========================  ========  ==============================================
+
+    The manifest's ``entries`` list gives, per row, ``{"subject", "sequence", "frame",
+    "object"}`` — the source frame (``frame`` = index into the sequence's GT frames).
 
     Args:
         path: output folder (created).

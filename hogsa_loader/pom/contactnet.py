@@ -1,20 +1,10 @@
 """ContactNet: per-object-point contact from an object point cloud and one hand's vertices.
 
-GraspTTA's ContactNet fuses the two PointNet outputs with a
-``Conv1d(3778 -> 3000)`` over point indices, which fixes 3000 object points and 778 MANO
-vertices. This variant works for any hand topology and any object point count:
-
-* object branch: a shared per-point MLP (PointNet) -> local feature ``f_o`` (64) and a
-  max-pooled global feature ``g_o``;
-* hand branch: a shared per-vertex MLP on (xyz, prior-contact flag, side) -> max-pooled
-  global feature ``g_h`` (any vertex count; a strided subset of at most ``hand_points``);
-* nearest-hand features: for each object point its ``k`` nearest hand vertices give
-  (offset, distance, GraspTTA map of the distance, prior flag) -> shared MLP -> max over
-  the k neighbours -> ``f_n``;
-* head: shared MLP on ``[f_o ; g_o ; g_h ; f_n ; side]`` -> sigmoid contact in (0, 1).
-
-Coordinates are expected in the object's canonical frame (metres); they are scaled by
-:data:`COORD_SCALE` inside. Targets are GraspTTA's map :func:`contact_map`.
+:class:`ContactNet` (its docstring describes the architecture, which works for any hand
+topology and object point count) with :class:`ContactNetConfig`; :func:`save_contactnet` and
+:func:`load_contactnet` store it. Coordinates are expected in the object's canonical frame
+(metres); they are scaled by :data:`COORD_SCALE` inside. Targets are GraspTTA's map
+:func:`contact_map`.
 """
 
 from __future__ import annotations
@@ -103,7 +93,20 @@ class ContactNetConfig:
 
 
 class ContactNet(nn.Module):
-    """Topology-free ContactNet (see module docstring).
+    """Topology-free ContactNet.
+
+    GraspTTA's ContactNet fuses the two PointNet outputs with a
+    ``Conv1d(3778 -> 3000)`` over point indices, which fixes 3000 object points and 778 MANO
+    vertices. This variant works for any hand topology and any object point count:
+
+    * object branch: a shared per-point MLP (PointNet) -> local feature ``f_o`` (64) and a
+      max-pooled global feature ``g_o``;
+    * hand branch: a shared per-vertex MLP on (xyz, prior-contact flag, side) -> max-pooled
+      global feature ``g_h`` (any vertex count; a strided subset of at most ``hand_points``);
+    * nearest-hand features: for each object point its ``k`` nearest hand vertices give
+      (offset, distance, GraspTTA map of the distance, prior flag) -> shared MLP -> max over
+      the k neighbours -> ``f_n``;
+    * head: shared MLP on ``[f_o ; g_o ; g_h ; f_n ; side]`` -> sigmoid contact in (0, 1).
 
     Args:
         config: :class:`ContactNetConfig` (defaults when None).

@@ -1,19 +1,13 @@
 """The one public Gaussian-splatting entry point, :func:`render`, with two backends.
 
-* ``"torch"``: :func:`hogsa_loader.render.gaussians.render_gaussians`, the CPU rasteriser
-  (PyTorch, with compiled compositing kernels on the CPU; any device, float32 or float64,
-  differentiable).
-* ``"gsplat"``: gsplat 1.5.3's CUDA ``rasterization()`` (CUDA float32 tensors only; see
-  :mod:`hogsa_loader.render.gsplat_backend`).
-* ``"auto"``: ``"gsplat"`` when the tensors are CUDA float32 and gsplat's CUDA extension
-  loads, otherwise ``"torch"``. The choice is in ``RenderOutput.meta["backend"]`` (and
-  why, in ``meta["backend_reason"]``).
-
-Both backends take one :class:`~hogsa_loader.render.settings.SplatInputs` (the tensors
-and the image size, batched) and one
-:class:`~hogsa_loader.render.settings.RenderSettings`, follow gsplat 1.5.3's conventions
-(listed in the docstring of :mod:`hogsa_loader.render.gaussians`), and agree up to
-float32 rounding.
+``"torch"`` is :func:`hogsa_loader.render.gaussians.render_gaussians`, the CPU rasteriser (PyTorch, with compiled
+compositing kernels on the CPU; any device, float32 or float64, differentiable). ``"gsplat"`` is gsplat 1.5.3's CUDA
+``rasterization()`` (CUDA float32 tensors only; see :mod:`hogsa_loader.render.gsplat_backend`). ``"auto"`` picks
+``"gsplat"`` when the tensors are CUDA float32 and gsplat's CUDA extension loads, otherwise ``"torch"``; the choice is
+in ``RenderOutput.meta["backend"]`` (and why, in ``meta["backend_reason"]``). Both backends take one
+:class:`~hogsa_loader.render.settings.SplatInputs` (the tensors and the image size, batched) and one
+:class:`~hogsa_loader.render.settings.RenderSettings`, follow gsplat 1.5.3's conventions (listed where they apply in
+:mod:`hogsa_loader.render.gaussians`), and agree up to float32 rounding.
 """
 
 from __future__ import annotations

@@ -1,77 +1,14 @@
 """CPU 3D Gaussian splatting rasteriser with gsplat 1.5.3 conventions.
 
-One public entry point, :func:`render_gaussians`, which runs on any device (it is written
-for the CPU, where gsplat's CUDA kernels cannot run) and is differentiable with respect to
-``means``, ``quats``, ``scales``, ``opacities`` and ``colors`` (RGB or SH coefficients).
-Projection, colours and tiling are PyTorch (autograd). Compositing has two
-implementations with the same results within float rounding: vectorised PyTorch
-(autograd; any device and dtype) and compiled CPU kernels
-(:mod:`hogsa_loader.render.splat_kernels`, numba, with a hand-written backward pass).
-
-Notation: B samples (scenes), C cameras per sample, N Gaussians per sample (a dense,
-padded tensor), I = B * C images, K (Gaussian, tile) intersections, P = tile_size**2
-pixels per tile, D Gaussians per compositing chunk, F feature channels.
-
-Conventions (each one checked against the gsplat 1.5.3 sources; paths are relative to
-the ``gsplat`` package)
-------------------------------------------------------------------------------------------
-* Camera: ``viewmats`` are world->camera, OpenCV (x right, y down, z forward);
-  ``p_cam = R p + t``. Intrinsics ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; the skew
-  ``K[0, 1]`` is ignored, as in the CUDA kernel (``cuda/include/Utils.cuh: persp_proj``).
-* Projection (``cuda/include/Utils.cuh: persp_proj``, ``cuda/_torch_impl.py: _persp_proj``):
-  ``means2d = (fx x/z + cx, fy y/z + cy)``; EWA Jacobian evaluated at x/z, y/z clamped to
-  ``[-(cx/fx + 0.3 tan_fovx), (W - cx)/fx + 0.3 tan_fovx]`` (tan_fovx = W / (2 fx); same
-  for y), ``cov2d = J R Sigma R^T J^T + eps2d I`` (``Utils.cuh: add_blur``),
-  ``Sigma = (R_q S)(R_q S)^T`` with the quaternion (w, x, y, z) normalised
-  (``Utils.cuh: quat_to_rotmat``, ``_torch_impl.py: _quat_scale_to_covar_preci``).
-* Culling (``cuda/csrc/ProjectionEWA3DGSFused.cu: projection_ewa_3dgs_fused_fwd_kernel``, as
-  called by ``rendering.py: rasterization``, which passes the opacities): a Gaussian is
-  dropped from a camera when ``z < near`` or ``z > far``, when ``det(cov2d) <= 0``, when
-  ``opacity < 1/255``, or when its box lies outside the image.
-* Radius (same kernel): per axis ``r_x = ceil(e sqrt(cov2d_xx))``, ``r_y = ceil(e
-  sqrt(cov2d_yy))`` with the opacity-aware extent ``e = min(3.33, sqrt(2 ln(255 o)))``.
-  gsplat's pure-torch ``_fully_fused_projection`` uses ``e = 3.33`` (it gets no
-  opacities); :func:`project_gaussians` does that too when ``opacities`` is None.
-* Tiles (``cuda/csrc/IntersectTile.cu: intersect_tile_kernel``): tile range
-  ``[floor(m/ts - r/ts), ceil(m/ts + r/ts))`` clamped to the grid, in float32. The
-  intersections are sorted by (image, tile, float32 depth bits) with a *stable* sort of
-  keys laid out in (image, Gaussian) order, like gsplat's CUB radix sort, so exact
-  depth ties keep the Gaussian index order.
-* Compositing (``cuda/csrc/RasterizeToPixels3DGSFwd.cu``): pixel (row i, col j) is sampled
-  at ``(j + 0.5, i + 0.5)``; ``alpha = min(0.999, o exp(-sigma))`` with
-  ``sigma = 0.5 (A dx^2 + C dy^2) + B dx dy`` (conic ``(A, B, C)`` = inverse cov2d);
-  samples with ``alpha < 1/255`` are skipped; a pixel stops *before* the Gaussian whose
-  ``next_T = T (1 - alpha)`` would be ``<= 1e-4`` (that Gaussian is excluded);
-  ``rgb = sum_i c_i alpha_i T_i + T_final bg``, ``alpha = 1 - T_final``.
-* Depth is gsplat's "ED" mode (``rendering.py: rasterization``): the camera-space z is
-  composited like a colour channel (background 0) and divided by
-  ``max(alpha, 1e-10)``; pixels with ``alpha == 0`` get depth 0.
-* SH colours (``rendering.py: rasterization``, ``cuda/csrc/SphericalHarmonicsCUDA.cu``,
-  ``_torch_impl.py: _spherical_harmonics``): view direction ``mean - camera centre`` with
-  the centre ``inv(viewmat)[:3, 3]``, normalised; real SH basis of degree <= 4, index
-  ``l^2 + l + m``; colour ``= max(SH(dir) + 0.5, 0)``. Plain colours (``sh_degree=None``)
-  are used as given, with no offset and no clamp, like gsplat.
-
-Known, deliberate differences from gsplat's CUDA kernels (all at float32 rounding level)
-------------------------------------------------------------------------------------------
-* ``log(o) - sigma`` is evaluated as a quadratic polynomial in tile-local pixel
-  coordinates (one matmul per chunk; the compiled compositor evaluates it per pixel), and
-  ``alpha = exp(log o - sigma)`` instead of ``o * __expf(-sigma)``; within a chunk of D
-  Gaussians the transmittance is a ``cumprod`` times the transmittance before the chunk
-  (gsplat and the compiled compositor: one running product).
-  The cut-off keeps ``alpha > 1/255`` (gsplat: ``>=``). Decisions taken exactly at a
-  threshold (``alpha`` = 1/255, ``next_T`` = 1e-4) can therefore flip in rare cases.
-* gsplat also skips a sample when ``sigma < 0``; for a positive-definite conic that only
-  happens by rounding, and it is not reproduced.
-* Gradients come from autograd, and for compositing by the compiled compositor from its
-  backward pass (the same rules). As in gsplat's backward kernels, nothing flows through
-  the 0.999 clamp (``RasterizeToPixels3DGSBwd.cu``: ``if (opac * vis <= 0.999f)``), the
-  1/255 cut-off, the termination test or the integer radii; the clamped Jacobian and the
-  SH view direction (into ``means``) are differentiated like gsplat's VJPs do. Gradients
-  into ``viewmats`` / ``Ks`` may flow but are not tested.
-
-Padding: samples with fewer than N Gaussians should pass ``valid`` (B, N) False for the
-padding, or set their opacity to 0 (``opacity < 1/255`` is culled, as in gsplat).
+One public entry point, :func:`render_gaussians`, which runs on any device (it is written for the CPU, where gsplat's
+CUDA kernels cannot run) and is differentiable with respect to ``means``, ``quats``, ``scales``, ``opacities`` and
+``colors`` (RGB or SH coefficients). Projection, colours and tiling are PyTorch (autograd). Compositing has two
+implementations with the same results within float rounding: vectorised PyTorch (autograd; any device and dtype) and
+compiled CPU kernels (:mod:`hogsa_loader.render.splat_kernels`, numba, with a hand-written backward pass). Every
+gsplat convention, checked against the gsplat 1.5.3 sources (paths relative to the ``gsplat`` package), is stated
+where it applies: :func:`project_gaussians` (camera, projection, culling; radii and tiles in its helpers),
+:func:`camera_colors` (SH colours), :class:`RenderOutput` (compositing, depth and the known differences from gsplat's
+CUDA kernels).
 """
 
 from __future__ import annotations
@@ -133,6 +70,34 @@ class RenderOutput:
             before ``backward`` to read its gradient, as gsplat's densification does),
             ``depths`` (B, C, N), ``conics`` (B, C, N, 3), ``colors`` (B, C, N, D) (after SH),
             ``n_isects`` (int), ``tile_width``, ``tile_height``, ``tile_size``.
+
+    * Compositing (``cuda/csrc/RasterizeToPixels3DGSFwd.cu``): pixel (row i, col j) is sampled
+      at ``(j + 0.5, i + 0.5)``; ``alpha = min(0.999, o exp(-sigma))`` with
+      ``sigma = 0.5 (A dx^2 + C dy^2) + B dx dy`` (conic ``(A, B, C)`` = inverse cov2d);
+      samples with ``alpha < 1/255`` are skipped; a pixel stops *before* the Gaussian whose
+      ``next_T = T (1 - alpha)`` would be ``<= 1e-4`` (that Gaussian is excluded);
+      ``rgb = sum_i c_i alpha_i T_i + T_final bg``, ``alpha = 1 - T_final``.
+    * Depth is gsplat's "ED" mode (``rendering.py: rasterization``): the camera-space z is
+      composited like a colour channel (background 0) and divided by
+      ``max(alpha, 1e-10)``; pixels with ``alpha == 0`` get depth 0.
+
+    Known, deliberate differences from gsplat's CUDA kernels (all at float32 rounding level):
+
+    * ``log(o) - sigma`` is evaluated as a quadratic polynomial in tile-local pixel
+      coordinates (one matmul per chunk; the compiled compositor evaluates it per pixel), and
+      ``alpha = exp(log o - sigma)`` instead of ``o * __expf(-sigma)``; within a chunk of D
+      Gaussians the transmittance is a ``cumprod`` times the transmittance before the chunk
+      (gsplat and the compiled compositor: one running product).
+      The cut-off keeps ``alpha > 1/255`` (gsplat: ``>=``). Decisions taken exactly at a
+      threshold (``alpha`` = 1/255, ``next_T`` = 1e-4) can therefore flip in rare cases.
+    * gsplat also skips a sample when ``sigma < 0``; for a positive-definite conic that only
+      happens by rounding, and it is not reproduced.
+    * Gradients come from autograd, and for compositing by the compiled compositor from its
+      backward pass (the same rules). As in gsplat's backward kernels, nothing flows through
+      the 0.999 clamp (``RasterizeToPixels3DGSBwd.cu``: ``if (opac * vis <= 0.999f)``), the
+      1/255 cut-off, the termination test or the integer radii; the clamped Jacobian and the
+      SH view direction (into ``means``) are differentiated like gsplat's VJPs do. Gradients
+      into ``viewmats`` / ``Ks`` may flow but are not tested.
     """
 
     rgb: Tensor
@@ -174,6 +139,20 @@ def project_gaussians(
     opacities: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """EWA projection of 3D Gaussians (gsplat ``fully_fused_projection``, pinhole).
+
+    * Camera: ``viewmats`` are world->camera, OpenCV (x right, y down, z forward);
+      ``p_cam = R p + t``. Intrinsics ``K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; the skew
+      ``K[0, 1]`` is ignored, as in the CUDA kernel (``cuda/include/Utils.cuh: persp_proj``).
+    * Projection (``cuda/include/Utils.cuh: persp_proj``, ``cuda/_torch_impl.py: _persp_proj``):
+      ``means2d = (fx x/z + cx, fy y/z + cy)``; EWA Jacobian evaluated at x/z, y/z clamped to
+      ``[-(cx/fx + 0.3 tan_fovx), (W - cx)/fx + 0.3 tan_fovx]`` (tan_fovx = W / (2 fx); same
+      for y), ``cov2d = J R Sigma R^T J^T + eps2d I`` (``Utils.cuh: add_blur``),
+      ``Sigma = (R_q S)(R_q S)^T`` with the quaternion (w, x, y, z) normalised
+      (``Utils.cuh: quat_to_rotmat``, ``_torch_impl.py: _quat_scale_to_covar_preci``).
+    * Culling (``cuda/csrc/ProjectionEWA3DGSFused.cu: projection_ewa_3dgs_fused_fwd_kernel``, as
+      called by ``rendering.py: rasterization``, which passes the opacities): a Gaussian is
+      dropped from a camera when ``z < near`` or ``z > far``, when ``det(cov2d) <= 0``, when
+      ``opacity < 1/255``, or when its box lies outside the image.
 
     Args:
         means: (B, N, 3) world positions.
@@ -257,6 +236,12 @@ def _radii(
         opacities: (B, N) for the opacity-aware extent (and ``opacity < 1/255`` culls),
             or None for the extent 3.33.
         width, height: image size; a Gaussian whose box misses the image is culled.
+
+    * Radius (``cuda/csrc/ProjectionEWA3DGSFused.cu: projection_ewa_3dgs_fused_fwd_kernel``):
+      per axis ``r_x = ceil(e sqrt(cov2d_xx))``, ``r_y = ceil(e sqrt(cov2d_yy))`` with the
+      opacity-aware extent ``e = min(3.33, sqrt(2 ln(255 o)))``. gsplat's pure-torch
+      ``_fully_fused_projection`` uses ``e = 3.33`` (it gets no opacities);
+      :func:`project_gaussians` does that too when ``opacities`` is None.
     """
     if opacities is None:
         extent = torch.full_like(z, RADIUS_EXTENT)
@@ -370,6 +355,12 @@ def camera_colors(colors: Tensor, sh_degree: int | None, means: Tensor, viewmats
 
     ``colors`` is (B, N, D) / (B, C, N, D) when ``sh_degree`` is None, else (B, N, K, 3) /
     (B, C, N, K, 3). SH colours get gsplat's ``clamp_min(sh + 0.5, 0)``.
+
+    * SH colours (``rendering.py: rasterization``, ``cuda/csrc/SphericalHarmonicsCUDA.cu``,
+      ``_torch_impl.py: _spherical_harmonics``): view direction ``mean - camera centre`` with
+      the centre ``inv(viewmat)[:3, 3]``, normalised; real SH basis of degree <= 4, index
+      ``l^2 + l + m``; colour ``= max(SH(dir) + 0.5, 0)``. Plain colours (``sh_degree=None``)
+      are used as given, with no offset and no clamp, like gsplat.
     """
     B, C = viewmats.shape[:2]
     N = means.shape[1]
@@ -404,6 +395,12 @@ def _intersect_tiles(
         flat_ids (K,) int64 index into I * N, tile_ids (K,) int64 global tile index
         ``image * tile_h * tile_w + ty * tile_w + tx`` (non-decreasing), and
         tile_counts (I * tile_h * tile_w,) int64.
+
+    * Tiles (``cuda/csrc/IntersectTile.cu: intersect_tile_kernel``): tile range
+      ``[floor(m/ts - r/ts), ceil(m/ts + r/ts))`` clamped to the grid, in float32. The
+      intersections are sorted by (image, tile, float32 depth bits) with a *stable* sort of
+      keys laid out in (image, Gaussian) order, like gsplat's CUB radix sort, so exact
+      depth ties keep the Gaussian index order.
     """
     n_img, n = depths.shape
     n_tiles = tile_h * tile_w
@@ -713,7 +710,15 @@ class _CompiledComposite(torch.autograd.Function):
 
 class _Layout(NamedTuple):
     """Sizes of one call: B samples, C cameras, N Gaussians, the W x H image cut into
-    ``tile_w`` x ``tile_h`` tiles of ``tile_size`` px, and the dtype / device of the images."""
+    ``tile_w`` x ``tile_h`` tiles of ``tile_size`` px, and the dtype / device of the images.
+
+    Notation: B samples (scenes), C cameras per sample, N Gaussians per sample (a dense,
+    padded tensor), I = B * C images, K (Gaussian, tile) intersections, P = tile_size**2
+    pixels per tile, D Gaussians per compositing chunk, F feature channels.
+
+    Padding: samples with fewer than N Gaussians should pass ``valid`` (B, N) False for the
+    padding, or set their opacity to 0 (``opacity < 1/255`` is culled, as in gsplat).
+    """
 
     B: int
     C: int
@@ -732,7 +737,7 @@ class _Layout(NamedTuple):
 
 
 def render_gaussians(inputs: SplatInputs, settings: RenderSettings | None = None) -> RenderOutput:
-    """Render 3D Gaussians into B x C images with gsplat 1.5.3 conventions (see module doc).
+    """Render 3D Gaussians into B x C images with gsplat 1.5.3 conventions.
 
     Args:
         inputs: :class:`~hogsa_loader.render.settings.SplatInputs` in the batched layout:

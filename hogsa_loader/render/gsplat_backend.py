@@ -5,28 +5,8 @@ gsplat is imported lazily, and only for CUDA tensors: on a CPU-only machine this
 never touches gsplat's CUDA extension (importing ``gsplat.cuda._backend`` starts a JIT
 build of the extension when it finds a CUDA toolkit).
 
-Facts about gsplat 1.5.3 this module relies on (read in ``gsplat/rendering.py`` and
-``gsplat/cuda/_wrapper.py`` of the installed 1.5.3 sources):
-
-* ``rasterization()`` accepts leading batch dimensions: ``means [..., N, 3]``,
-  ``viewmats [..., C, 4, 4]`` and renders all ``prod(...) * C`` images in one call, in
-  packed or unpacked mode, returning ``render_colors [..., C, H, W, X]`` and
-  ``render_alphas [..., C, H, W, 1]`` (float32) and a ``meta`` dict. So B samples go
-  in as one leading dimension; no loop.
-* ``render_mode="RGB+ED"`` / ``"RGB+D"`` append the (expected / accumulated) camera z as
-  the *last* channel of ``render_colors``; ED is ``sum(w z) / max(alpha, 1e-10)``.
-* With ``packed=True`` *and* ``backgrounds``, ``rasterize_to_pixels`` asserts
-  ``backgrounds.shape == image_dims + (channels,)`` where ``image_dims`` is ``()`` for
-  packed inputs, so any ``[..., C, D]`` background fails. This backend therefore never
-  passes ``backgrounds`` to gsplat and composites it itself as
-  ``rgb + (1 - alpha) * background``, which is the kernel's ``T_final * background``
-  (``alpha = 1 - T_final``), differentiable through ``render_alphas``.
-* The kernels are float32 only (``data_ptr<float>``), and ``Ks`` gets no gradient.
-* With ``sh_degree`` set, colours go through gsplat's 3-channel SH kernel. When part
-  channels are requested the SH colours are evaluated here first, with the torch backend's
-  :func:`hogsa_loader.render.gaussians.camera_colors` (same convention:
-  ``max(SH(mean - camera centre) + 0.5, 0)``), and the one-hot part channels are
-  rendered as extra plain colour features next to them.
+Start with :func:`render_gsplat` (its docstring lists the facts about gsplat 1.5.3 this
+backend relies on) and :func:`gsplat_unavailable_reason`.
 """
 
 from __future__ import annotations
@@ -122,6 +102,29 @@ def render_gsplat(inputs: SplatInputs, settings: RenderSettings) -> RenderOutput
     ``valid`` (B, N) False is applied as opacity 0, which gsplat culls (< 1/255), the same
     result as the torch backend's ``valid``. Returns a :class:`RenderOutput` whose ``meta``
     is gsplat's ``meta`` dict plus ``gsplat_version``.
+
+    Facts about gsplat 1.5.3 this module relies on (read in ``gsplat/rendering.py`` and
+    ``gsplat/cuda/_wrapper.py`` of the installed 1.5.3 sources):
+
+    * ``rasterization()`` accepts leading batch dimensions: ``means [..., N, 3]``,
+      ``viewmats [..., C, 4, 4]`` and renders all ``prod(...) * C`` images in one call, in
+      packed or unpacked mode, returning ``render_colors [..., C, H, W, X]`` and
+      ``render_alphas [..., C, H, W, 1]`` (float32) and a ``meta`` dict. So B samples go
+      in as one leading dimension; no loop.
+    * ``render_mode="RGB+ED"`` / ``"RGB+D"`` append the (expected / accumulated) camera z as
+      the *last* channel of ``render_colors``; ED is ``sum(w z) / max(alpha, 1e-10)``.
+    * With ``packed=True`` *and* ``backgrounds``, ``rasterize_to_pixels`` asserts
+      ``backgrounds.shape == image_dims + (channels,)`` where ``image_dims`` is ``()`` for
+      packed inputs, so any ``[..., C, D]`` background fails. This backend therefore never
+      passes ``backgrounds`` to gsplat and composites it itself as
+      ``rgb + (1 - alpha) * background``, which is the kernel's ``T_final * background``
+      (``alpha = 1 - T_final``), differentiable through ``render_alphas``.
+    * The kernels are float32 only (``data_ptr<float>``), and ``Ks`` gets no gradient.
+    * With ``sh_degree`` set, colours go through gsplat's 3-channel SH kernel. When part
+      channels are requested the SH colours are evaluated here first, with the torch backend's
+      :func:`hogsa_loader.render.gaussians.camera_colors` (same convention:
+      ``max(SH(mean - camera centre) + 0.5, 0)``), and the one-hot part channels are
+      rendered as extra plain colour features next to them.
 
     Raises:
         BackendUnavailableError: gsplat cannot run on these tensors or tiles.

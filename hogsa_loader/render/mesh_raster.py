@@ -5,39 +5,9 @@ memory-bounded chunks (any device), and compiled CPU kernels that loop over pixe
 (:mod:`hogsa_loader.render.raster_kernels`, numba; same fragments bit for bit, shading within
 float rounding), chosen by ``backend``. It never uses Gaussian splatting.
 
-Notation: V vertices, F faces, H x W image, N covered pixels, P triangle-pixel pairs.
-
-Conventions
------------
-* Camera: OpenCV. ``p_cam = R @ p_world + t`` with ``world2cam = [[R, t], [0, 1]]`` (4, 4);
-  x right, y down, z forward (metres).
-* Projection: pinhole with the full intrinsics ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``
-  (skew ``s`` allowed): ``u = fx x/z + s y/z + cx``, ``v = fy y/z + cy``.
-* Pixels: pixel (row i, col j) has its centre at ``(u, v) = (j + 0.5, i + 0.5)``; the image
-  spans ``[0, W] x [0, H]`` in continuous coordinates.
-* Coverage: a pixel is covered by a triangle when its centre is inside the projected
-  triangle. Centres exactly on an edge follow the top-left rule (in the y-down image:
-  the pixel belongs to the triangle lying to the right of the edge, or below it for a
-  horizontal edge), evaluated on canonically ordered edges so that the two triangles
-  sharing an edge see bit-identical edge functions: a mesh has no cracks and no pixel
-  drawn twice, whatever the winding of its triangles.
-* Near plane: a triangle with any vertex at ``z <= near`` is dropped entirely (no
-  clipping). Degenerate (zero screen area) and non-finite triangles are dropped too.
-* Culling: off by default. With ``cull_backfaces`` a triangle is drawn only when it is
-  counter-clockwise seen from the camera, i.e. ``cross(v1 - v0, v2 - v0)`` points toward
-  the camera (OpenGL's front face).
-* Barycentrics are perspective correct: ``bary`` interpolates camera-space attributes, and
-  ``depth`` is the camera-space z (metres) of the visible surface, ``+inf`` on background.
-* Z-buffer: the nearest surface wins; exact ties go to the lowest face index (depths are
-  compared at float32 precision, also for float64 input).
-* Textures: OBJ convention, ``uv = (0, 0)`` is the bottom-left corner of the texture image,
-  sampled bilinearly (``grid_sample``, ``align_corners=False``); coordinates outside
-  ``[0, 1]`` are clamped to the border.
-* Supersampling by ``s``: the image is rasterised at ``(s H, s W)`` with
-  ``K' = diag(s, s, 1) @ K`` (so ``u' = s u``: a point lands in the same place in
-  continuous image coordinates) and reduced over ``s x s`` blocks: ``rgb`` and ``alpha``
-  are averaged; ``depth``, ``part_id`` and ``normal`` come from the block's nearest sample
-  (first in raster order on exact ties, deterministic on CPU).
+Start with :func:`render_meshes` (shaded, textured meshes of a scene) or :func:`rasterize`
+(fragments of one camera-space mesh); :func:`rasterize` lists the camera, pixel and coverage
+conventions, :func:`render_meshes` those of textures and supersampling.
 """
 
 from __future__ import annotations
@@ -845,8 +815,31 @@ def rasterize(
 ) -> Fragments:
     """Rasterise a camera-space triangle mesh with a z-buffer.
 
-    See the module docstring for the conventions (pixel centres, top-left rule, near
-    plane, tie breaking).
+    Notation: V vertices, F faces, H x W image, N covered pixels, P triangle-pixel pairs.
+
+    Conventions (shared by both backends and by :func:`render_meshes`):
+
+    * Camera: OpenCV. ``p_cam = R @ p_world + t`` with ``world2cam = [[R, t], [0, 1]]`` (4, 4);
+      x right, y down, z forward (metres).
+    * Projection: pinhole with the full intrinsics ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``
+      (skew ``s`` allowed): ``u = fx x/z + s y/z + cx``, ``v = fy y/z + cy``.
+    * Pixels: pixel (row i, col j) has its centre at ``(u, v) = (j + 0.5, i + 0.5)``; the image
+      spans ``[0, W] x [0, H]`` in continuous coordinates.
+    * Coverage: a pixel is covered by a triangle when its centre is inside the projected
+      triangle. Centres exactly on an edge follow the top-left rule (in the y-down image:
+      the pixel belongs to the triangle lying to the right of the edge, or below it for a
+      horizontal edge), evaluated on canonically ordered edges so that the two triangles
+      sharing an edge see bit-identical edge functions: a mesh has no cracks and no pixel
+      drawn twice, whatever the winding of its triangles.
+    * Near plane: a triangle with any vertex at ``z <= near`` is dropped entirely (no
+      clipping). Degenerate (zero screen area) and non-finite triangles are dropped too.
+    * Culling: off by default. With ``cull_backfaces`` a triangle is drawn only when it is
+      counter-clockwise seen from the camera, i.e. ``cross(v1 - v0, v2 - v0)`` points toward
+      the camera (OpenGL's front face).
+    * Barycentrics are perspective correct: ``bary`` interpolates camera-space attributes, and
+      ``depth`` is the camera-space z (metres) of the visible surface, ``+inf`` on background.
+    * Z-buffer: the nearest surface wins; exact ties go to the lowest face index (depths are
+      compared at float32 precision, also for float64 input).
 
     Args:
         verts_cam: (V, 3) camera-space vertices (float32 or float64; sets the dtype).
@@ -1238,7 +1231,7 @@ def render_meshes(
         height, width: output size.
         light: directional light in camera coordinates.
         background: RGB triple, (3,) tensor or (H, W, 3) image in [0, 1].
-        supersample: s >= 1; rasterise at (s H, s W) and reduce (see module docstring).
+        supersample: s >= 1; rasterise at (s H, s W) and reduce (see below).
         near: near plane (triangles with a vertex at ``z <= near`` are dropped).
         smooth_normals: interpolate vertex normals (else flat face normals).
         backend: as in :func:`rasterize`; the compiled shading agrees with the PyTorch
@@ -1247,6 +1240,17 @@ def render_meshes(
 
     Returns:
         MeshRender at (height, width).
+
+    Conventions besides those of :func:`rasterize`:
+
+    * Textures: OBJ convention, ``uv = (0, 0)`` is the bottom-left corner of the texture image,
+      sampled bilinearly (``grid_sample``, ``align_corners=False``); coordinates outside
+      ``[0, 1]`` are clamped to the border.
+    * Supersampling by ``s``: the image is rasterised at ``(s H, s W)`` with
+      ``K' = diag(s, s, 1) @ K`` (so ``u' = s u``: a point lands in the same place in
+      continuous image coordinates) and reduced over ``s x s`` blocks: ``rgb`` and ``alpha``
+      are averaged; ``depth``, ``part_id`` and ``normal`` come from the block's nearest sample
+      (first in raster order on exact ties, deterministic on CPU).
     """
     _check_render_inputs(parts, world2cam, K, height, width, supersample)
     dtype, device = parts[0].verts.dtype, parts[0].verts.device

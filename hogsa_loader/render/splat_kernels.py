@@ -1,19 +1,8 @@
 """Compiled CPU kernels of the Gaussian compositor (numba): forward and backward per tile.
 
-The forward pass walks each tile's depth-sorted Gaussians front to back and updates only
-the pixels of each Gaussian's box (its 2D radius plus half a pixel), with gsplat's per-pixel
-rules: ``alpha = min(0.999, exp(log o - sigma))``, samples with ``alpha <= 1/255``
-skipped, a pixel stopping before the Gaussian whose ``next_T`` would be ``<= 1e-4``. It
-records, per pixel, how many list entries it used, which the backward pass replays back to
-front (transmittance recovered by division, as gsplat's backward kernel does).
-
-Gradients are those of the vectorised PyTorch compositor: nothing flows through the 0.999
-clamp, the 1/255 cut-off or the stop. They are written per intersection (each belongs to
-one tile, so tiles run on several threads without write races) and summed per Gaussian by
-the caller.
-
-Notation: M table rows (image, Gaussian), F feature channels, K intersections, nb busy
-tiles, P = tile_size**2 pixels per tile.
+:func:`composite_forward` composites the busy tiles with gsplat's per-pixel rules and
+:func:`composite_backward` replays them back to front for the gradients; the caller is
+:func:`hogsa_loader.render.gaussians.render_gaussians` (``compositor="numba"``).
 """
 
 from __future__ import annotations
@@ -89,6 +78,16 @@ def composite_forward(
     done,
 ):  # pragma: no cover
     """Composite the busy tiles ``sel`` front to back.
+
+    The forward pass walks each tile's depth-sorted Gaussians front to back and updates only
+    the pixels of each Gaussian's box (its 2D radius plus half a pixel), with gsplat's per-pixel
+    rules: ``alpha = min(0.999, exp(log o - sigma))``, samples with ``alpha <= 1/255``
+    skipped, a pixel stopping before the Gaussian whose ``next_T`` would be ``<= 1e-4``. It
+    records, per pixel, how many list entries it used, which the backward pass replays back to
+    front (transmittance recovered by division, as gsplat's backward kernel does).
+
+    Notation: M table rows (image, Gaussian), F feature channels, K intersections, nb busy
+    tiles, P = tile_size**2 pixels per tile.
 
     Args:
         sel: (ns,) int64 rows of the busy-tile arrays this call handles.
@@ -175,6 +174,11 @@ def composite_backward(
     scratch,
 ):  # pragma: no cover
     """Gradients of :func:`composite_forward`'s outputs, per intersection.
+
+    Gradients are those of the vectorised PyTorch compositor: nothing flows through the 0.999
+    clamp, the 1/255 cut-off or the stop. They are written per intersection (each belongs to
+    one tile, so tiles run on several threads without write races) and summed per Gaussian by
+    the caller.
 
     Args:
         sel ... consts: as in :func:`composite_forward`.

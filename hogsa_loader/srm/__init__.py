@@ -1,14 +1,10 @@
 """SRM: StyleUNet refinement of splat renders (HOGSA's super-resolution module).
 
-* :mod:`~hogsa_loader.srm.stylegan` — StyleGAN2 / wavelet building blocks;
-* :mod:`~hogsa_loader.srm.styleunet` — the StyleUNet generator;
-* :mod:`~hogsa_loader.srm.discriminator` — conditional wavelet discriminator;
-* :mod:`~hogsa_loader.srm.losses` — L1, VGG19 (or Laplacian-pyramid substitute), GAN, R1;
-* :mod:`~hogsa_loader.srm.model` — :class:`SRM` with ``refine(rgb, alpha)``;
-* :mod:`~hogsa_loader.srm.io` — :func:`save_srm` / :func:`load_srm`;
-* the trainer behind ``pretrain/train_srm.py`` is :mod:`hogsa_loader.train.srm_trainer`.
-
-Typical use::
+Modules: :mod:`~hogsa_loader.srm.stylegan` (StyleGAN2 / wavelet building blocks), :mod:`~hogsa_loader.srm.styleunet`
+(the StyleUNet generator), :mod:`~hogsa_loader.srm.discriminator` (conditional wavelet discriminator),
+:mod:`~hogsa_loader.srm.losses` (L1, VGG19 or Laplacian-pyramid substitute, GAN, R1), :mod:`~hogsa_loader.srm.model`
+(:class:`SRM` with ``refine(rgb, alpha)``), :mod:`~hogsa_loader.srm.io` (:func:`save_srm` / :func:`load_srm`); the
+trainer behind ``pretrain/train_srm.py`` is :mod:`hogsa_loader.train.srm_trainer`. Typical use::
 
     from hogsa_loader.srm import load_srm
     srm = load_srm("runs/srm", device="cuda")

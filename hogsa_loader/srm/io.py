@@ -1,21 +1,9 @@
 """SRM checkpoints: ``srm.safetensors`` + ``manifest.json``, no pickle.
 
-The manifest is the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: ``format``
-``"hogsa-srm"``, ``schema_version`` 1, ``library_version``, ``tensors``, ``tensors_file``,
-``tensors_sha256``) plus these keys, every one required:
-
-==================  ==================================================================
-architecture        ``"styleunet"``
-config              :class:`~hogsa_loader.srm.styleunet.StyleUNetConfig` as JSON
-io                  ``{"input": "premultiplied RGB (B,H,W,3) in [0,1] + alpha", "scale": s}``
-extra               free-form JSON (training provenance, metrics); ``train_srm.py`` records
-                    ``targets``: per HOGS run, subject, object and the views the SRM was
-                    trained (``views``) and selected (``val_views``) on (:func:`seen_views`)
-==================  ==================================================================
-
-:func:`load_srm` validates everything and raises :class:`~hogsa_loader.errors.AssetError`
-naming the offending file. It accepts the checkpoint folder itself or a training run folder
-(``pretrain/train_srm.py --out RUN`` writes the final EMA generator at ``RUN/``).
+:func:`save_srm` writes one (its docstring lists the manifest keys); :func:`load_srm` validates
+everything and raises :class:`~hogsa_loader.errors.AssetError` naming the offending file. It
+accepts the checkpoint folder itself or a training run folder (``pretrain/train_srm.py --out
+RUN`` writes the final EMA generator at ``RUN/``). :func:`seen_views` reads the views an SRM saw.
 """
 
 from __future__ import annotations
@@ -57,6 +45,19 @@ _REQUIRED: dict[str, type | tuple[type, ...]] = {"architecture": str, "config": 
 
 def save_srm(model: SRM, folder: PathLike, *, extra: Optional[Mapping[str, Any]] = None) -> Path:
     """Write ``model`` to ``folder`` (created if needed) as safetensors + manifest.
+
+    The manifest is the shared checkpoint header (:mod:`hogsa_loader.io.tensors`: ``format``
+    ``"hogsa-srm"``, ``schema_version`` 1, ``library_version``, ``tensors``, ``tensors_file``,
+    ``tensors_sha256``) plus these keys, every one required:
+
+    ==================  ==================================================================
+    architecture        ``"styleunet"``
+    config              :class:`~hogsa_loader.srm.styleunet.StyleUNetConfig` as JSON
+    io                  ``{"input": "premultiplied RGB (B,H,W,3) in [0,1] + alpha", "scale": s}``
+    extra               free-form JSON (training provenance, metrics); ``train_srm.py`` records
+                        ``targets``: per HOGS run, subject, object and the views the SRM was
+                        trained (``views``) and selected (``val_views``) on (:func:`seen_views`)
+    ==================  ==================================================================
 
     Args:
         model: an :class:`SRM`.

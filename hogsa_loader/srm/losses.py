@@ -1,23 +1,9 @@
 """SRM losses: L1, VGG19 perceptual loss (or a documented substitute), GAN, lazy R1.
 
-Images are (B, 3, H, W) in [−1, 1] (StyleUNet's convention).
-
-* :class:`VGGPerceptualLoss` — torchvision's ``vgg19().features`` architecture rebuilt
-  here (no torchvision needed) and filled from a **local** torchvision-format state dict
-  (``features.N.weight`` / ``features.N.bias`` keys, ``.pth`` read with
-  ``weights_only=True`` or ``.safetensors``); slices [0,2), [2,7), [7,12), [12,21), [21,30)
-  (≈ relu1_1 … relu5_1), weight 1 each, L1 between features summed; inputs stay in
-  [−1, 1] without ImageNet normalisation (as StyleUNet does). Nothing is downloaded.
-* :class:`LaplacianPyramidL1` — the substitute when no VGG weights are given:
-  ``Σ_j mean |L_j(x) − L_j(y)|`` over a 5-level Laplacian pyramid (L_j: band-pass level j,
-  the last level the low-pass residual), every band weighted 1 so the fine bands (edges,
-  print, skin texture) count as much as the colour/low-pass error. It rewards sharp edges
-  and correct mid-frequency texture like a perceptual loss, but has no learned features.
-* :func:`perceptual_loss` picks one and **warns** (``UserWarning`` + stderr) when it
-  has to use the substitute; :data:`PERCEPTUAL_DEFAULT_WEIGHT` gives the default weight of
-  each (0.03 for VGG as in StyleUNet; 1.0 for the substitute, whose values are pixel-scale).
-* :func:`g_nonsaturating`, :func:`d_logistic`: softplus(−D(fake)); softplus(−D(real)) + softplus(D(fake)).
-* :func:`r1_penalty`: E‖∇ₓD(x_real)‖² (apply every 16 D steps with weight γ/2·16, γ = 10).
+Images are (B, 3, H, W) in [−1, 1] (StyleUNet's convention). :func:`perceptual_loss` gives
+:class:`VGGPerceptualLoss` (from local weights) or its substitute :class:`LaplacianPyramidL1`;
+:func:`l1_loss`, :func:`g_nonsaturating` (``softplus(−D(fake))``), :func:`d_logistic`
+(``softplus(−D(real)) + softplus(D(fake))``) and :func:`r1_penalty` are the other terms.
 """
 
 from __future__ import annotations
@@ -141,6 +127,13 @@ def load_vgg19_features(path: PathLike) -> nn.Sequential:
 class VGGPerceptualLoss(nn.Module):
     """Σ_slices mean |φ_s(x) − φ_s(y)| with frozen VGG19 features.
 
+    Torchvision's ``vgg19().features`` architecture rebuilt here (no torchvision needed) and
+    filled from a **local** torchvision-format state dict (``features.N.weight`` /
+    ``features.N.bias`` keys, ``.pth`` read with ``weights_only=True`` or ``.safetensors``);
+    slices [0,2), [2,7), [7,12), [12,21), [21,30) (≈ relu1_1 … relu5_1), weight 1 each, L1
+    between features summed; inputs stay in [−1, 1] without ImageNet normalisation (as StyleUNet
+    does). Nothing is downloaded.
+
     Args:
         features: VGG19 ``features`` (see :func:`load_vgg19_features`).
         resize: bilinearly resize both images to this square size first (StyleUNet: 512;
@@ -183,6 +176,12 @@ def _gauss_down(x: Tensor) -> Tensor:
 class LaplacianPyramidL1(nn.Module):
     """``Σ_j mean |L_j(x) − L_j(y)|`` over a ``levels``-level Laplacian pyramid.
 
+    The substitute for the VGG loss when no VGG weights are given (:func:`perceptual_loss`
+    uses 5 levels; L_j: band-pass level j, the last level the low-pass residual), every
+    band weighted 1 so the fine bands (edges,
+    print, skin texture) count as much as the colour/low-pass error. It rewards sharp edges
+    and correct mid-frequency texture like a perceptual loss, but has no learned features.
+
     L_j = G_j − up(G_{j+1}) (Gaussian 5-tap pyramid, bilinear up), the last level is the
     low-pass G_{levels−1}. Levels stop early when the image gets smaller than 8 px.
     """
@@ -216,7 +215,12 @@ class LaplacianPyramidL1(nn.Module):
 def perceptual_loss(vgg_weights: Optional[PathLike], *, resize: Optional[int] = None, warn: bool = True) -> nn.Module:
     """The perceptual term: VGG19 from ``vgg_weights``, or (None) the Laplacian-pyramid
     substitute with a loud :class:`SubstituteWarning`. The returned module has ``.kind``
-    (``"vgg"`` or ``"laplacian"``)."""
+    (``"vgg"`` or ``"laplacian"``).
+
+    Picks one and **warns** (``UserWarning`` + stderr) when it has to use the substitute;
+    :data:`PERCEPTUAL_DEFAULT_WEIGHT` gives the default weight of each (0.03 for VGG as in
+    StyleUNet; 1.0 for the substitute, whose values are pixel-scale).
+    """
     if vgg_weights:
         return VGGPerceptualLoss(load_vgg19_features(vgg_weights), resize=resize)
     msg = (
@@ -247,6 +251,8 @@ def d_logistic(real_logits: Tensor, fake_logits: Tensor) -> Tensor:
 
 def r1_penalty(d_fn: Callable[[Tensor], Tensor], real: Tensor) -> tuple[Tensor, Tensor]:
     """R1: ``E_b ‖∇ₓ D(x_b)‖²`` at the real images (differentiable w.r.t. D's weights).
+
+    Apply it every 16 D steps with weight γ/2·16, γ = 10 (lazy R1).
 
     Args:
         d_fn: image (B, 3, H, W) → logits (B,) (the condition already bound).

@@ -1,36 +1,9 @@
 """Training data of one HOGS model: the (frame, view) images of one subject + object.
 
-For every selected sequence of the subject that shows the object, every allocentric view
-and frame becomes a :class:`ViewSample`: the cropped image and its part mask (resized to
-the training resolution), the camera (world→camera and *render* intrinsics of the crop)
-and the annotated poses of that frame. Crop boxes are recomputed exactly as ARCTIC's
-processing does (object-template vertices posed by the object layer, projected, then
-:func:`~hogsa_loader.datasets.conventions.allocentric_bbox`), and the intrinsics are
-``render_intrinsics(cropped_intrinsics(K, bbox, cropped_size))`` scaled to the training
-resolution, so rendered pixels line up with the labels.
-
-Masks (``masks``): ``"files"`` reads the generated world's ``masks/`` images; ``"render"``
-rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.compose.part_masks`),
-for real ARCTIC, which ships none; ``"auto"`` (default) uses the files of a sequence when
-every used image has one, else renders. With mask files the background is removed at the
-native resolution before resizing (:func:`_read_foreground`). With rendered masks the
-image is kept as it is, real background included (the mask is an estimate from the
-annotations, not a segmentation of the picture): the trainer and the evaluation multiply
-the image by the mask at the training resolution, so no pixel outside the mask is ever a
-colour target (see :meth:`~hogsa_loader.train.hogs_trainer.HogsTrainer.targets`).
-
-Window (``window``): ``"crop"`` (default) trains on the whole cropped image (1.5× the
-ARCTIC box); ``"fg"`` on a square window around the posed hands and object of each frame
-(their projected vertices' extent plus ``window_margin`` each side, rounded up to a whole
-multiple of the training resolution, kept inside the cropped image), so the same training
-resolution spends more of its pixels on the hands and the object: on the small world's
-s01/box and s02/notebook at 128 px the window is on average 1.33–1.38× smaller than the
-crop (1.0–1.95×; the hands often reach far out). The intrinsics of each sample follow its
-window exactly (translation then scale of the render intrinsics).
-
-Split: ``eval_views`` (camera views never used in training) and every ``eval_every_frame``-th
-frame are held out; evaluation uses held-out views × held-out frames. H2O has its own
-loader with the same split rules (:mod:`hogsa_loader.train.hogs_data_h2o`).
+Start with :func:`load_hogs_data`, which returns a :class:`HogsData` (its docstring describes the
+``masks`` and ``window`` options) of :class:`ViewSample` training and held-out samples (how a
+sample is made: :class:`ViewSample`; the split: :func:`split_role`). H2O has its own loader with
+the same split rules (:mod:`hogsa_loader.train.hogs_data_h2o`).
 """
 
 from __future__ import annotations
@@ -107,6 +80,15 @@ class ViewSample:
         seq_index: index into :attr:`HogsData.sequences`; frame: frame index; view: view.
         image: (H, W, 3) uint8 RGB; mask: (H, W) uint8 part mask (0 = background).
         world2cam: (4, 4) float64; K: (3, 3) float64 render intrinsics at (H, W).
+
+    For every selected sequence of the subject that shows the object, every allocentric view
+    and frame becomes a :class:`ViewSample`: the cropped image and its part mask (resized to
+    the training resolution), the camera (world→camera and *render* intrinsics of the crop)
+    and the annotated poses of that frame. Crop boxes are recomputed exactly as ARCTIC's
+    processing does (object-template vertices posed by the object layer, projected, then
+    :func:`~hogsa_loader.datasets.conventions.allocentric_bbox`), and the intrinsics are
+    ``render_intrinsics(cropped_intrinsics(K, bbox, cropped_size))`` scaled to the training
+    resolution, so rendered pixels line up with the labels.
     """
 
     seq_index: int
@@ -120,7 +102,27 @@ class ViewSample:
 
 @dataclass
 class HogsData:
-    """Training and held-out samples of one subject + object."""
+    """Training and held-out samples of one subject + object.
+
+    Masks (``masks``): ``"files"`` reads the generated world's ``masks/`` images; ``"render"``
+    rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.compose.part_masks`),
+    for real ARCTIC, which ships none; ``"auto"`` (default) uses the files of a sequence when
+    every used image has one, else renders. With mask files the background is removed at the
+    native resolution before resizing (:func:`_read_foreground`). With rendered masks the
+    image is kept as it is, real background included (the mask is an estimate from the
+    annotations, not a segmentation of the picture): the trainer and the evaluation multiply
+    the image by the mask at the training resolution, so no pixel outside the mask is ever a
+    colour target (see :meth:`~hogsa_loader.train.hogs_trainer.HogsTrainer.targets`).
+
+    Window (``window``): ``"crop"`` (default) trains on the whole cropped image (1.5× the
+    ARCTIC box); ``"fg"`` on a square window around the posed hands and object of each frame
+    (their projected vertices' extent plus ``window_margin`` each side, rounded up to a whole
+    multiple of the training resolution, kept inside the cropped image), so the same training
+    resolution spends more of its pixels on the hands and the object: on the small world's
+    s01/box and s02/notebook at 128 px the window is on average 1.33–1.38× smaller than the
+    crop (1.0–1.95×; the hands often reach far out). The intrinsics of each sample follow its
+    window exactly (translation then scale of the render intrinsics).
+    """
 
     subject: str
     object_name: str
@@ -306,6 +308,9 @@ def split_role(
     Frames at positions ``i % eval_every_frame == eval_every_frame // 2`` are held out
     (``eval_every_frame`` 0: none); held-out frames of the eval views are evaluated, the
     other frames of the training views are trained on.
+
+    Split: ``eval_views`` (camera views never used in training) and every ``eval_every_frame``-th
+    frame are held out; evaluation uses held-out views × held-out frames.
     """
     is_eval_frame = eval_every_frame > 0 and i % eval_every_frame == eval_every_frame // 2
     if view in eval_views and is_eval_frame:
@@ -365,8 +370,8 @@ def load_hogs_data(
         root: the ARCTIC(-format) root.
         selection: frames, views and resolution (default views: allocentric 1..8, view 8
             held out; default size: the cropped size).
-        masks: ``"auto"``, ``"files"`` or ``"render"`` (module docstring).
-        window: ``"crop"`` or ``"fg"`` (module docstring); window_margin: its margin.
+        masks: ``"auto"``, ``"files"`` or ``"render"`` (see :class:`HogsData`).
+        window: ``"crop"`` or ``"fg"`` (see :class:`HogsData`); window_margin: its margin.
     """
     if masks not in MASK_MODES:
         raise ValueError(f"masks must be one of {MASK_MODES}, got {masks!r}")

@@ -1,29 +1,7 @@
 """HOGS training data from H2O: full frames cropped around the annotated hands and object.
 
-H2O has full 1280×720 frames (no ARCTIC crops) and no masks. For every selected sequence
-of the subject showing the object, every used camera and frame becomes a
-:class:`~hogsa_loader.train.hogs_data.ViewSample`:
-
-* **Crop.** The annotated meshes (both MANO hands, the object mesh posed by
-  ``obj_pose_rt``) are projected; the square box centred on their 2D extent, of side
-  ``crop_enlarge`` × the larger extent, is expressed as an ARCTIC box ``(cx, cy, scale)``,
-  so the crop intrinsics are ARCTIC's
-  ``render_intrinsics(cropped_intrinsics(K, box, image_size))``
-  (:mod:`hogsa_loader.datasets.conventions`). The image is warped into that crop
-  (crop pixel i shows label coordinate ``origin + i · side / size``, black outside the
-  frame, like ARCTIC's padding), supersampled and box-filtered when the crop shrinks.
-* **Mask.** Always rendered from the annotated meshes at the training resolution
-  (:mod:`hogsa_loader.compose.part_masks`); the object is rigid, so it is all part id 4.
-  The image keeps its real background (see :mod:`hogsa_loader.train.hogs_data`).
-* **Views.** ``views`` default the static cameras 0–3; the egocentric camera 4 (moving,
-  head-mounted) is used only when listed. ``eval_views`` default camera 3, held out.
-* **Frames.** Every ``frame_stride``-th frame of the label camera's files; a frame is used
-  only where both hands and the object are annotated (``valid``), its image exists and
-  every mesh vertex is in front of the camera. The held-out frames follow
-  :func:`~hogsa_loader.train.hogs_data.split_role`.
-
-``HogsData.crop_size`` (the resolution the trainer's ``margin`` is given at) is
-:data:`H2O_CROP_SIZE`.
+Start with :func:`load_h2o_hogs_data` (its docstring describes the crops, masks, views and
+frames); :func:`select_h2o_sequences`, :func:`square_box` and :func:`crop_image` are its steps.
 """
 
 from __future__ import annotations
@@ -159,6 +137,31 @@ def load_h2o_hogs_data(
     crop_enlarge: float = CROP_ENLARGE_H2O,
 ) -> HogsData:
     """Load every training and held-out (frame, view) of an H2O ``subject`` + ``object_name``.
+
+    H2O has full 1280×720 frames (no ARCTIC crops) and no masks. For every selected sequence
+    of the subject showing the object, every used camera and frame becomes a
+    :class:`~hogsa_loader.train.hogs_data.ViewSample`:
+
+    * **Crop.** The annotated meshes (both MANO hands, the object mesh posed by
+      ``obj_pose_rt``) are projected; the square box centred on their 2D extent, of side
+      ``crop_enlarge`` × the larger extent, is expressed as an ARCTIC box ``(cx, cy, scale)``,
+      so the crop intrinsics are ARCTIC's
+      ``render_intrinsics(cropped_intrinsics(K, box, image_size))``
+      (:mod:`hogsa_loader.datasets.conventions`). The image is warped into that crop
+      (crop pixel i shows label coordinate ``origin + i · side / size``, black outside the
+      frame, like ARCTIC's padding), supersampled and box-filtered when the crop shrinks.
+    * **Mask.** Always rendered from the annotated meshes at the training resolution
+      (:mod:`hogsa_loader.compose.part_masks`); the object is rigid, so it is all part id 4.
+      The image keeps its real background (see :func:`~hogsa_loader.train.hogs_data.load_hogs_data`).
+    * **Views.** ``views`` default the static cameras 0–3; the egocentric camera 4 (moving,
+      head-mounted) is used only when listed. ``eval_views`` default camera 3, held out.
+    * **Frames.** Every ``frame_stride``-th frame of the label camera's files; a frame is used
+      only where both hands and the object are annotated (``valid``), its image exists and
+      every mesh vertex is in front of the camera. The held-out frames follow
+      :func:`~hogsa_loader.train.hogs_data.split_role`.
+
+    ``HogsData.crop_size`` (the resolution the trainer's ``margin`` is given at) is
+    :data:`H2O_CROP_SIZE`.
 
     Args:
         root: the H2O root.

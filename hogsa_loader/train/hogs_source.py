@@ -1,22 +1,8 @@
 """Where a HOGS run's images, hands and object come from: an ARCTIC(-format) or an H2O root.
 
-:func:`open_hogs_source` gives one :class:`HogsSource` for both datasets, so the trainer
-and ``benchmarks/render_quality.py`` build the same split and the same models:
-
-=============  ==========================================  ================================
-               ``arctic``                                  ``h2o``
-=============  ==========================================  ================================
-data           ARCTIC ``./data`` (or the generated world)  H2O root (``subjectN/...``)
-MANO           ``body_models/mano`` of the root            ``mano_dir`` (required)
-object         ``meta/object_vtemplates/<object>``         ``object_mesh_dir`` (required),
-                                                           :mod:`~hogsa_loader.objects.h2o_meshes`
-views          allocentric 1–8, held out: 8                static cameras 0–3, held out: 3
-masks          ``masks/`` files, else rendered              always rendered
-=============  ==========================================  ================================
-
-MANO layers are built with ``flat_hand_mean=False`` for both (the
-:class:`~hogsa_loader.datasets.types.HandTrack` convention; H2O's flat-mean labels are
-converted by :class:`~hogsa_loader.datasets.h2o.H2ORoot`).
+:func:`open_hogs_source` gives one :class:`HogsSource` for both datasets (its docstring
+compares them), so the trainer and ``benchmarks/render_quality.py`` build the same split
+and the same models; :func:`load_run_data` reopens a run's dataset from its ``config.json``.
 """
 
 from __future__ import annotations
@@ -79,7 +65,7 @@ class HogsSource:
             selection: frames, views and resolution (unset or empty views / eval_views: the
                 dataset's defaults).
             masks: ``"auto"``, ``"files"`` or ``"render"`` (H2O: never files).
-            window: ``"crop"`` or ``"fg"`` (ARCTIC only, see :mod:`~hogsa_loader.train.hogs_data`).
+            window: ``"crop"`` or ``"fg"`` (ARCTIC only, see :func:`~hogsa_loader.train.hogs_data.load_hogs_data`).
         """
         sel = selection or FrameSelection()
         sel = replace(sel, views=tuple(sel.views or self.views), eval_views=tuple(sel.eval_views or self.eval_views))
@@ -114,7 +100,24 @@ def open_hogs_source(
     mano_dir: Optional[PathLike] = None,
     object_mesh_dir: Optional[PathLike] = None,
 ) -> HogsSource:
-    """Open a dataset root for a run on ``object_name`` (see the module table).
+    """Open a dataset root for a run on ``object_name``.
+
+    The two datasets:
+
+    =============  ==========================================  ================================
+                   ``arctic``                                  ``h2o``
+    =============  ==========================================  ================================
+    data           ARCTIC ``./data`` (or the generated world)  H2O root (``subjectN/...``)
+    MANO           ``body_models/mano`` of the root            ``mano_dir`` (required)
+    object         ``meta/object_vtemplates/<object>``         ``object_mesh_dir`` (required),
+                                                               :mod:`~hogsa_loader.objects.h2o_meshes`
+    views          allocentric 1–8, held out: 8                static cameras 0–3, held out: 3
+    masks          ``masks/`` files, else rendered              always rendered
+    =============  ==========================================  ================================
+
+    MANO layers are built with ``flat_hand_mean=False`` for both (the
+    :class:`~hogsa_loader.datasets.types.HandTrack` convention; H2O's flat-mean labels are
+    converted by :class:`~hogsa_loader.datasets.h2o.H2ORoot`).
 
     Raises:
         ValueError: unknown dataset, an H2O option given for ARCTIC, a missing H2O option,

@@ -1,27 +1,9 @@
 """HOGS training of one (subject, object): right hand, left hand and object Gaussians jointly.
 
-Each step renders a random batch of training (frame, view) crops with the annotated poses
-and minimises :func:`~hogsa_loader.train.losses.hogs_loss` against the image with its
-background masked to black, inside the hand/object mask dilated by ``margin`` px; outside
-that region the rendered alpha is pushed to 0. The data comes from an ARCTIC(-format) or
-an H2O root (:mod:`hogsa_loader.train.hogs_source`), the masks from the dataset's files
-or rendered from the annotated meshes (``masks``, :mod:`hogsa_loader.train.hogs_data`).
-Adam with per-parameter learning rates (GaMeS table; ``lr_scale`` multiplies all but the
-position rates), SH degree raised every ``sh_warmup`` steps.
-
-Run folder::
-
-    config.json                       the settings (resume refuses different ones)
-    checkpoints/latest.json           {"step", "folder"}, written last (atomic)
-    checkpoints/step_XXXXXXX/         hand_right/, hand_left/, object/ (save_part),
-                                      trainer.safetensors (Adam moments + RNG state),
-                                      trainer.json (step, history, sha256 of the tensors)
-    hand_right/, hand_left/, object/  final parts
-    metrics.json, strip.png, curves.png
-
-No pickle anywhere; every file is written atomically. :meth:`HogsTrainer.train` refuses to
-start from step 0 in a folder that holds checkpoints (:class:`~hogsa_loader.train.run_folder.RunExistsError`)
-unless the run was resumed first or ``overwrite=True``.
+Start with :class:`HogsTrainer` (built from a ``HogsConfig``); :meth:`HogsTrainer.train`
+runs the loop and writes the run folder (described there); :meth:`HogsTrainer.train_step`
+describes one step. The data comes from an ARCTIC(-format) or an H2O root
+(:mod:`hogsa_loader.train.hogs_source`).
 """
 
 from __future__ import annotations
@@ -271,6 +253,17 @@ class HogsTrainer(StepLoop):
         return sum(part.offset_regulariser() for part in self.parts.values()) / len(self.parts)
 
     def train_step(self) -> dict[str, float]:
+        """One training step.
+
+        Each step renders a random batch of training (frame, view) crops with the annotated poses
+        and minimises :func:`~hogsa_loader.train.losses.hogs_loss` against the image with its
+        background masked to black, inside the hand/object mask dilated by ``margin`` px; outside
+        that region the rendered alpha is pushed to 0. The data comes from an ARCTIC(-format) or
+        an H2O root (:mod:`hogsa_loader.train.hogs_source`), the masks from the dataset's files
+        or rendered from the annotated meshes (``masks``, :func:`~hogsa_loader.train.hogs_data.load_hogs_data`).
+        Adam with per-parameter learning rates (GaMeS table; ``lr_scale`` multiplies all but the
+        position rates), SH degree raised every ``sh_warmup`` steps.
+        """
         idx = torch.randint(len(self.data.train), (self.cfg.optim.batch_size,), generator=self.gen).tolist()
         samples = [self.data.train[i] for i in idx]
         gt, mask, region = self.targets(samples)
@@ -315,6 +308,20 @@ class HogsTrainer(StepLoop):
         Args:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
+
+        Run folder::
+
+            config.json                       the settings (resume refuses different ones)
+            checkpoints/latest.json           {"step", "folder"}, written last (atomic)
+            checkpoints/step_XXXXXXX/         hand_right/, hand_left/, object/ (save_part),
+                                              trainer.safetensors (Adam moments + RNG state),
+                                              trainer.json (step, history, sha256 of the tensors)
+            hand_right/, hand_left/, object/  final parts
+            metrics.json, strip.png, curves.png
+
+        No pickle anywhere; every file is written atomically. :meth:`HogsTrainer.train` refuses to
+        start from step 0 in a folder that holds checkpoints (:class:`~hogsa_loader.train.run_folder.RunExistsError`)
+        unless the run was resumed first or ``overwrite=True``.
         """
         final = self.run_steps(overwrite)
         self._save_parts(self.out)

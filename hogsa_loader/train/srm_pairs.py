@@ -1,28 +1,8 @@
 """SRM training pairs: HOGS renders (inputs) and ground-truth crops (targets) of each run.
 
-For every finished HOGS run (``find_runs``) the training (frame, view) samples are selected
-exactly as its HOGS training did (its ``config.json`` rebuilt by
-:func:`~hogsa_loader.train.hogs_source.load_run_data`: views, masks, window, frames), so
-held-out views and frames are never seen. Inputs are frozen renders (final SH degree, premultiplied on black + alpha) at
-``image_size / scale``, cached under ``cache_dir`` keyed by the checkpoints' hashes.
-
-Where the inputs come from (``mode``):
-
-* ``"own"`` — the run renders its own training views. Those are views the HOGS model was
-  fitted to, so their errors are far smaller than on views it never saw (the small world:
-  42.8 dB vs 38.3 dB full-image PSNR), and an SRM trained on them learns almost nothing
-  that transfers to novel views (measured: +0.01 dB held-out after 1000 steps).
-* ``"cross"`` — *view folds*: extra HOGS runs of the same (subject, object) trained on
-  subsets of the training views (``cross_runs``, e.g. views {1,3,5,7} and {2,4,6}). Each
-  training sample is rendered by a fold that did **not** see its view, so the inputs carry
-  genuine novel-view errors — the situation the loader is in when it renders new
-  viewpoints. A fold that trained on one of the run's held-out views is refused.
-* ``"both"`` — the two sets together.
-
-Validation (``val_views``): training views whose pairs are kept out of SRM training and used
-only to choose the SRM's training length (best checkpoint) — the run's held-out views must
-stay unseen, so they cannot serve. Validation inputs are the fold renders of those views
-(novel-view errors, like the held-out renders) when folds are used, else the run's own.
+Start with :func:`find_runs` (the finished HOGS runs of a folder), :func:`fold_runs` (their
+view-fold runs) and :func:`load_pairs`, which returns a run's :class:`PairSet`; its docstring
+describes how samples are selected, where the inputs come from (``mode``) and validation.
 """
 
 from __future__ import annotations
@@ -161,6 +141,31 @@ class PairSet:
         val_rgb / val_alpha / val_rows: validation renders (uint8) and their ``data.train``
             samples (empty without ``val_views``).
         cache_files: the render-cache files these renders were read from or written to.
+
+    For every finished HOGS run (``find_runs``) the training (frame, view) samples are selected
+    exactly as its HOGS training did (its ``config.json`` rebuilt by
+    :func:`~hogsa_loader.train.hogs_source.load_run_data`: views, masks, window, frames), so
+    held-out views and frames are never seen. Inputs are frozen renders (final SH degree,
+    premultiplied on black + alpha) at ``image_size / scale``, cached under ``cache_dir`` keyed
+    by the checkpoints' hashes.
+
+    Where the inputs come from (``mode``):
+
+    * ``"own"`` — the run renders its own training views. Those are views the HOGS model was
+      fitted to, so their errors are far smaller than on views it never saw (the small world:
+      42.8 dB vs 38.3 dB full-image PSNR), and an SRM trained on them learns almost nothing
+      that transfers to novel views (measured: +0.01 dB held-out after 1000 steps).
+    * ``"cross"`` — *view folds*: extra HOGS runs of the same (subject, object) trained on
+      subsets of the training views (``cross_runs``, e.g. views {1,3,5,7} and {2,4,6}). Each
+      training sample is rendered by a fold that did **not** see its view, so the inputs carry
+      genuine novel-view errors — the situation the loader is in when it renders new
+      viewpoints. A fold that trained on one of the run's held-out views is refused.
+    * ``"both"`` — the two sets together.
+
+    Validation (``val_views``): training views whose pairs are kept out of SRM training and used
+    only to choose the SRM's training length (best checkpoint) — the run's held-out views must
+    stay unseen, so they cannot serve. Validation inputs are the fold renders of those views
+    (novel-view errors, like the held-out renders) when folds are used, else the run's own.
     """
 
     name: str
@@ -350,14 +355,14 @@ def load_pairs(
     log: Callable[[str], None] = print,
     val_views: Sequence[int] = (),
 ) -> PairSet:
-    """Load one run's split and its coarse renders (see module docstring).
+    """Load one run's split and its coarse renders (made as :class:`PairSet` describes).
 
     Args:
         data_root: the dataset root the runs were trained on; run: the HOGS run folder;
         cache_dir: render cache; image_size: GT resolution (default: the run's);
         scale: output / input resolution factor; mode: ``"own"``, ``"cross"`` or ``"both"``;
         folds: view-fold runs of this run (:func:`fold_runs`; needed by ``cross``/``both``);
-        val_views: training views kept out of training for validation (see module docstring).
+        val_views: training views kept out of training for validation (see :class:`PairSet`).
 
     Raises:
         ValueError: a validation view is not a training view of the run, or they are all.

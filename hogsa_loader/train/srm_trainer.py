@@ -1,49 +1,9 @@
 """SRM training: one StyleUNet for every finished HOGS run of a runs folder.
 
-Data (:mod:`hogsa_loader.train.srm_pairs`). Every finished HOGS run under ``data.hogs`` (a folder
-with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
-its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
-views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
-alpha) at ``image_size / scale`` — by the run itself (``pairs="own"``), by view-fold runs
-under ``data.cross_hogs`` that did not see the sample's view (``"cross"``), or both; targets
-are the ground-truth crops at ``image_size`` with the background masked to black (as HOGS
-training does). Renders are cached under ``RUN/cache/`` or ``cache`` (a folder several SRM
-runs may share: entries are keyed by the HOGS run's weights, the samples with their labels and
-cameras, the body model and the resolution).
-Evaluation always uses the run's own renders of its held-out views.
-
-Model selection. The SRM over-fits its training pairs when trained long (small world, 4
-folds: held-out gain +0.29 dB at 4000 steps, −0.02 dB at 8000; with ``augment="d4"`` the
-gain still rose at 10000 steps, +0.36 dB, so ``d4`` is the default; in a 400-step run it
-gains less than no augmentation, +0.06 against +0.24 dB). With ``val_views`` the
-pairs of those *training* views are kept out of training; every ``eval_every`` steps the EMA
-generator is scored on them (fold renders: novel-view errors) and the best one is kept. The
-final model is that best one, so the held-out views play no part in choosing it. Refitting
-on every training view for the selected number of steps then gives those views back
-(d4, all 7 training views: +0.44 dB at 10000 steps and +0.51 dB at 16000, the lengths the
-validated runs chose with those budgets).
-
-Step. Random ``crop``-sized windows (full images when ``crop`` = 0) of a random batch:
-D step (logistic loss against real = GT clipped to the rendered alpha, the closest image the
-generator can reach; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
-G step ``λ_L1·L1 + λ_P·perceptual + λ_GAN·softplus(−D(G))`` (all in [−1, 1]), then EMA.
-Adam(lr·r, betas (0, 0.99^r)) with r = 4/5 (G) and 16/17 (D) as in StyleUNet.
-
-Run folder::
-
-    config.json, metrics.json, samples.png (coarse | refined | GT), curves.png
-    manifest.json + srm.safetensors      the final EMA generator (load_srm(RUN)); with
-                                         val_views, the one with the best validation PSNR
-    checkpoints/latest.json              {"step", "folder"} (written last)
-    checkpoints/step_N/{g, g_ema}/       save_srm folders (+ g_best with val_views)
-    checkpoints/step_N/trainer.safetensors   D weights, Adam states, RNG states
-    checkpoints/step_N/trainer.json      step, history, evals, Adam param groups, sha256 of
-                                         trainer.safetensors (checked on resuming)
-    cache/                               coarse renders (unless ``cache`` names another folder)
-
-:meth:`SRMTrainer.train` refuses to start from step 0 in a folder that holds checkpoints
-(:class:`~hogsa_loader.train.run_folder.RunExistsError`) unless the run was resumed first
-or ``overwrite=True``.
+Start with :class:`SRMTrainer` (built from an ``SRMTrainConfig``; its docstring describes the
+training data, :mod:`hogsa_loader.train.srm_pairs`, and model selection);
+:meth:`SRMTrainer.train` runs the loop and writes the run folder (described there), and
+:meth:`SRMTrainer.train_step` describes one step.
 """
 
 from __future__ import annotations
@@ -117,7 +77,31 @@ def _load_adam(
 
 
 class SRMTrainer(StepLoop):
-    """Builds the data (all runs) and networks; :meth:`train` runs the loop."""
+    """Builds the data (all runs) and networks; :meth:`train` runs the loop.
+
+    Data (:mod:`hogsa_loader.train.srm_pairs`). Every finished HOGS run under ``data.hogs`` (a folder
+    with ``hand_right/``, ``hand_left/``, ``object/`` manifests and ``config.json``) contributes
+    its training (frame, view) samples, selected exactly as its HOGS training did, so held-out
+    views and frames are never seen. Inputs are frozen HOGS renders (premultiplied on black +
+    alpha) at ``image_size / scale`` — by the run itself (``pairs="own"``), by view-fold runs
+    under ``data.cross_hogs`` that did not see the sample's view (``"cross"``), or both; targets
+    are the ground-truth crops at ``image_size`` with the background masked to black (as HOGS
+    training does). Renders are cached under ``RUN/cache/`` or ``cache`` (a folder several SRM
+    runs may share: entries are keyed by the HOGS run's weights, the samples with their labels and
+    cameras, the body model and the resolution).
+    Evaluation always uses the run's own renders of its held-out views.
+
+    Model selection. The SRM over-fits its training pairs when trained long (small world, 4
+    folds: held-out gain +0.29 dB at 4000 steps, −0.02 dB at 8000; with ``augment="d4"`` the
+    gain still rose at 10000 steps, +0.36 dB, so ``d4`` is the default; in a 400-step run it
+    gains less than no augmentation, +0.06 against +0.24 dB). With ``val_views`` the
+    pairs of those *training* views are kept out of training; every ``eval_every`` steps the EMA
+    generator is scored on them (fold renders: novel-view errors) and the best one is kept. The
+    final model is that best one, so the held-out views play no part in choosing it. Refitting
+    on every training view for the selected number of steps then gives those views back
+    (d4, all 7 training views: +0.44 dB at 10000 steps and +0.51 dB at 16000, the lengths the
+    validated runs chose with those budgets).
+    """
 
     desc = "srm"
 
@@ -243,6 +227,14 @@ class SRMTrainer(StepLoop):
 
     # ------------------------------------------------------------------ training
     def train_step(self) -> dict[str, float]:
+        """One training step.
+
+        Random ``crop``-sized windows (full images when ``crop`` = 0) of a random batch:
+        D step (logistic loss against real = GT clipped to the rendered alpha, the closest image the
+        generator can reach; lazy R1 every ``r1_every`` steps with weight γ/2·r1_every), then
+        G step ``λ_L1·L1 + λ_P·perceptual + λ_GAN·softplus(−D(G))`` (all in [−1, 1]), then EMA.
+        Adam(lr·r, betas (0, 0.99^r)) with r = 4/5 (G) and 16/17 (D) as in StyleUNet.
+        """
         cfg = self.cfg
         rgb, alpha, gt = self.batch()
         real = gt * 2.0 - 1.0
@@ -384,6 +376,22 @@ class SRMTrainer(StepLoop):
         Args:
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
+
+        Run folder::
+
+            config.json, metrics.json, samples.png (coarse | refined | GT), curves.png
+            manifest.json + srm.safetensors      the final EMA generator (load_srm(RUN)); with
+                                                 val_views, the one with the best validation PSNR
+            checkpoints/latest.json              {"step", "folder"} (written last)
+            checkpoints/step_N/{g, g_ema}/       save_srm folders (+ g_best with val_views)
+            checkpoints/step_N/trainer.safetensors   D weights, Adam states, RNG states
+            checkpoints/step_N/trainer.json      step, history, evals, Adam param groups, sha256 of
+                                                 trainer.safetensors (checked on resuming)
+            cache/                               coarse renders (unless ``cache`` names another folder)
+
+        :meth:`SRMTrainer.train` refuses to start from step 0 in a folder that holds checkpoints
+        (:class:`~hogsa_loader.train.run_folder.RunExistsError`) unless the run was resumed first
+        or ``overwrite=True``.
         """
         last = self.run_steps(overwrite)
         model, final, step = self.g_ema, last, self.step
