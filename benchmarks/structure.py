@@ -7,6 +7,8 @@ Reads the source with :mod:`ast` (nothing is imported) and prints
 * every import placed inside a function, with the reason written on its line
   (``# deferred: <reason>``);
 * every function over the line limit;
+* every module docstring over the line limit (reference material belongs in the
+  docstrings of the classes and functions it describes);
 * parameter lists that repeat (two functions sharing many parameter names);
 * which production packages import the generated-world package ``hogsa_loader.synthetic``.
 
@@ -31,6 +33,8 @@ PACKAGE = "hogsa_loader"
 ENTRY_POINTS = ("cli", "demo")
 SYNTHETIC = "synthetic"
 MAX_FUNCTION_LINES = 80
+#: A module docstring says what the module is for and where to start, in at most this many lines.
+MAX_MODULE_DOC_LINES = 15
 #: Two parameter lists sharing this many names (besides self/cls) count as a repeated list
 #: (numba kernels are left out: they take flat arrays by necessity).
 REPEATED_PARAMS = 10
@@ -56,6 +60,7 @@ class Structure:
     deferred_edges: dict[str, list[str]] = field(default_factory=dict)  #: package -> packages imported in functions
     deferred: list[DeferredImport] = field(default_factory=list)
     long_functions: list[tuple[int, str]] = field(default_factory=list)
+    long_module_docs: list[tuple[int, str]] = field(default_factory=list)  #: (lines, module path)
     params: dict[str, list[str]] = field(default_factory=dict)  #: function -> parameter names
     cycles: list[list[str]] = field(default_factory=list)
 
@@ -97,6 +102,10 @@ def _scan_file(path: Path, out: Structure) -> None:
     lines = path.read_text(encoding="utf-8").splitlines()
     out.modules[str(path.relative_to(ROOT))] = len(lines)
     tree = ast.parse("\n".join(lines), filename=str(path))
+    doc = ast.get_docstring(tree, clean=False)
+    n_doc = len(doc.strip().splitlines()) if doc else 0
+    if n_doc > MAX_MODULE_DOC_LINES:
+        out.long_module_docs.append((n_doc, str(path.relative_to(ROOT))))
     package = _top_package(module)
     edges = set(out.edges.get(package, []))
     mod_edges: set[str] = set()
@@ -175,6 +184,7 @@ def scan(root: Path = ROOT / PACKAGE) -> Structure:
     for path in sorted(root.rglob("*.py")):
         _scan_file(path, out)
     out.long_functions.sort(reverse=True)
+    out.long_module_docs.sort(reverse=True)
     out.cycles = _cycles(out.edges)
     return out
 
@@ -205,6 +215,7 @@ def violations(s: Structure) -> dict[str, list[str]]:
         "package cycles": [" <-> ".join(c) for c in s.cycles],
         "deferred import without a reason": [d.where for d in s.deferred if not d.reason],
         "pom/srm above gaussians": [p for p in ("pom", "srm") if "gaussians" in s.edges.get(p, [])],
+        "long module docstring": [where for _, where in s.long_module_docs],
     }
 
 
@@ -227,6 +238,8 @@ def report(s: Structure) -> str:
     out += [f"{d.where}  {', '.join(d.names)}  -- {d.reason or 'NO REASON'}" for d in s.deferred]
     out += ["", f"# functions over {MAX_FUNCTION_LINES} lines: {len(s.long_functions)}"]
     out += [f"{n:4d}  {where}" for n, where in s.long_functions]
+    out += ["", f"# module docstrings over {MAX_MODULE_DOC_LINES} lines: {len(s.long_module_docs)}"]
+    out += [f"{n:4d}  {where}" for n, where in s.long_module_docs]
     rep = repeated_parameter_lists(s)
     out += ["", f"# repeated parameter lists (>= {REPEATED_PARAMS} shared names): {len(rep)}"]
     out += [f"{a} ~ {b} ({n})" for a, b, n in rep]

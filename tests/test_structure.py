@@ -41,14 +41,16 @@ def test_scanner_sees_imports_cycles_and_deferred_reasons(tmp_path, monkeypatch)
     (pkg / "b").mkdir()
     (pkg / "synthetic").mkdir()
     (pkg / "__init__.py").write_text("")
-    (pkg / "a" / "__init__.py").write_text("from hogsa_loader.b import x\n")
+    (pkg / "a" / "__init__.py").write_text(
+        '"""' + "\n".join(f"line {i}" for i in range(16)) + '\n"""\nfrom hogsa_loader.b import x\n'
+    )
     (pkg / "b" / "__init__.py").write_text(
         "from hogsa_loader.a import y\n"
         "def g():\n    from hogsa_loader.synthetic import z  # deferred: test\n"
         "def f():\n    import numpy  # deferred: optional\n    import cv2\n"
         + "".join(f"    v{i} = {i}\n" for i in range(80))
     )
-    (pkg / "synthetic" / "__init__.py").write_text("")
+    (pkg / "synthetic" / "__init__.py").write_text('"""' + "\n".join(f"line {i}" for i in range(15)) + '"""\n')
     monkeypatch.setattr(structure, "ROOT", tmp_path)
     s = structure.scan(pkg)
     v = structure.violations(s)
@@ -57,6 +59,8 @@ def test_scanner_sees_imports_cycles_and_deferred_reasons(tmp_path, monkeypatch)
     assert v["deferred import without a reason"] == ["hogsa_loader/b/__init__.py:6"]
     assert [d.reason for d in s.deferred] == ["test", "optional", None]
     assert [n for n, _ in s.long_functions] == [83]
+    assert s.long_module_docs == [(16, "hogsa_loader/a/__init__.py")]
+    assert v["long module docstring"] == ["hogsa_loader/a/__init__.py"]
 
 
 def test_no_production_module_imports_the_generated_world(scanned):
@@ -79,6 +83,12 @@ def test_pom_and_srm_do_not_sit_above_gaussians(scanned):
 def test_no_function_over_the_line_limit(scanned):
     over = [where for _, where in scanned.long_functions if _where(where) not in LONG_FUNCTIONS_ALLOWED]
     assert over == []
+
+
+def test_module_docstrings_are_short(scanned):
+    """A module docstring says what the module is for and where to start; reference material
+    (formats, conventions, equations) lives in the docstrings of the classes and functions it describes."""
+    assert structure.violations(scanned)["long module docstring"] == []
 
 
 def test_no_parameter_list_repeated(scanned):
