@@ -61,6 +61,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import shutil
 import sys
 import time
@@ -82,7 +83,7 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages
-from hogsa_loader.errors import AssetError
+from hogsa_loader.errors import AssetError, read_json
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
@@ -191,7 +192,7 @@ class TrainSettings:
         default=50,
         metadata={
             "help": "save a run's state every this many steps (0: never); an interrupted run resumes from its "
-            "last one and finishes as if unbroken"
+            "last one on the same batches (bit for bit on the CPU; on a GPU as far as its kernels are deterministic)"
         },
     )
 
@@ -266,6 +267,12 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.train.workers >= 0 and cfg.threads >= 0, "--train-workers and --threads must be >= 0"),
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
+        (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
+        (
+            cfg.synthetic.mix == "add"
+            or num_synthetic(cfg.synthetic.share, cfg.train.batch_size) < cfg.train.batch_size,
+            "--synthetic-share leaves no real sample in a batch of --train-batch-size",
+        ),
         (
             (cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
             "--setup-bundle needs --setup-data",
@@ -679,6 +686,9 @@ def _save_progress(folder: Path, step: int, model: Any, opt: torch.optim.Optimiz
         for name, v in opt.state.get(p, {}).items():
             tensors[f"adam.{i}.{name}"] = torch.as_tensor(v).detach().cpu().contiguous()
     tensors["rng.torch"] = torch.get_rng_state()
+    device = opt.param_groups[0]["params"][0].device
+    if device.type == "cuda":  # dropout on a GPU draws from its own generator
+        tensors["rng.cuda"] = torch.cuda.get_rng_state(device)
     ck = folder / "checkpoints" / f"step_{step:07d}"
     save_trainer_state(ck, tensors, {**state, "step": step})
     commit_checkpoint(ck, step)
@@ -690,9 +700,13 @@ def _load_progress(folder: Path, key: str, model: Any, opt: torch.optim.Optimize
     latest = folder / "checkpoints" / "latest.json"
     if not latest.is_file():
         return None
-    rec = json.loads(latest.read_text())
-    state, tensors = read_trainer_state(folder / "checkpoints" / str(rec["folder"]), required=("rng.torch",))
+    rec = read_json(latest)
+    name = rec.get("folder") if isinstance(rec, dict) else None
+    if not isinstance(name, str) or not re.fullmatch(r"step_[0-9]+", name):
+        raise AssetError(latest, f'must hold {{"step", "folder": "step_N"}}, got {str(rec)[:80]}')
+    state, tensors = read_trainer_state(folder / "checkpoints" / name, required=("rng.torch",))
     if state.get("key") != key:
+        _say(f"[{folder}] the saved state (step {state['step']}) belongs to other settings: starting again")
         return None
     net = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
     missing = set(model.network_state_dict()) - set(net)
@@ -705,6 +719,11 @@ def _load_progress(folder: Path, key: str, model: Any, opt: torch.optim.Optimize
             st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
             opt.state[p] = st
     torch.set_rng_state(tensors["rng.torch"])
+    p = opt.param_groups[0]["params"][0]
+    if p.is_cuda:
+        if "rng.cuda" not in tensors:
+            raise AssetError(latest, "the saved state has no CUDA generator state (saved by a CPU run)")
+        torch.cuda.set_rng_state(tensors["rng.cuda"], p.device)
     return state
 
 
@@ -740,10 +759,12 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         "evals": [],  # the curve
         "train_time_s": 0.0,
         "eval_time_s": 0.0,
+        "resumed_at": [],
     }
     done = int(state["step"])
     if done:
         _say(f"[{arm} seed {seed}] resumed after step {done}")
+        state["resumed_at"] = [*state.get("resumed_at", []), done]
     batches = train_batches(arm, seed, cfg, setup, out, start=done)
     val = val_dataset(cfg, setup)
     points = eval_steps(cfg)
@@ -765,6 +786,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
                 "val_frames": 0,
             }
             _atomic_json(res_path, result)
+            shutil.rmtree(folder / "checkpoints", ignore_errors=True)
             return result
         state["history"].append({k: float(v) for k, v in rec.items()})
         bar.update(1)
@@ -805,7 +827,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         "loss_terms_last": {k: float(np.mean([t.get(k, np.nan) for t in terms[-20:]])) for k in terms[-1]},
         "train_seconds": round(state["train_time_s"], 1),
         "eval_seconds": round(state["eval_time_s"], 1),
-        "resumed_at": [done] if done else [],
+        "resumed_at": state["resumed_at"],
     }
     _atomic_json(res_path, result)
     shutil.rmtree(folder / "checkpoints", ignore_errors=True)
@@ -1037,8 +1059,12 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
                 done = finished_run(arm, seed, cfg, setup, out)
                 if done is not None:
                     results.setdefault(arm, {})[seed] = done
+                elif (run_dir(arm, seed, cfg, out) / "result.json").is_file():
+                    _say(f"[{arm} seed {seed}] its result was made with other settings or an older version: left out")
                 continue
             results.setdefault(arm, {})[seed] = run_arm(arm, seed, cfg, setup, out)
+    if cfg.report_only and not results:
+        raise SystemExit(f"downstream: error: no finished run in {out} matches these settings; nothing rewritten")
     agg = aggregate(results)
     machine = machine_description(cfg)
     record = {

@@ -5,7 +5,7 @@ root-relative joints, posed with the mean hand shape (articulation only), to the
 training frame's hand, to the nearest pose-bank grasp's, and to the nearer of the two. Frames
 are split into *held* (the object is being moved: its translation more than 1 mm from the
 sequence's first frame) and *rest* (hands before and after the grasp, alike for every
-subject). Reads annotations only, in seconds.
+subject). Reads annotations only.
 
 Usage::
 
@@ -45,8 +45,12 @@ def held_frames(obj: np.ndarray) -> np.ndarray:
     return np.linalg.norm(obj[:, 4:7] - obj[:1, 4:7], axis=1) > HELD_MM
 
 
-def nearest_distance(query: np.ndarray, pool: np.ndarray, chunk: int = 256) -> np.ndarray:
-    """(Q,) mean joint distance (mm) from each hand of ``query`` (Q, J, 3) to its nearest in ``pool`` (N, J, 3)."""
+def nearest_distance(query: np.ndarray, pool: np.ndarray, chunk: int = 0) -> np.ndarray:
+    """(Q,) mean joint distance (mm) from each hand of ``query`` (Q, J, 3) to its nearest in ``pool`` (N, J, 3).
+
+    ``chunk`` query hands at a time; 0 picks as many as keep one step's differences near 64 MB.
+    """
+    chunk = chunk or max(1, (1 << 26) // max(1, pool[0].size * len(pool) * 8))
     out = []
     for i in range(0, len(query), chunk):
         d = np.linalg.norm(query[i : i + chunk, None] - pool[None], axis=-1).mean(-1)

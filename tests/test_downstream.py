@@ -102,6 +102,8 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--synthetic-share", "1.0"], "synthetic-share"),
         (["--train-batch-size", "1"], "batch-size"),
         (["--setup-bundle", "b"], "needs --setup-data"),
+        (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
+        (["--train-checkpoint-every", "-1"], "checkpoint-every"),
     ],
 )
 def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
@@ -288,13 +290,13 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
 
 
 class _Shuffled:
-    """A stand-in synthetic export: the held-out frames, with ``set_epoch`` like the shard reader."""
+    """A stand-in synthetic export: the held-out frames, augmented per (seed, epoch, index) like the shard reader."""
 
     def __init__(self, root: Path, seed: int) -> None:
         from hogsa_loader.datasets.arctic_dataset import ArcticDataset
         from hogsa_loader.datasets.augment import ArcticConfig
 
-        self.ds = ArcticDataset(root, "p1_val", seed=seed, config=ArcticConfig(img_res=32))
+        self.ds = ArcticDataset(root, "p1_val", seed=seed, augment=True, config=ArcticConfig(img_res=32))
 
     def set_epoch(self, epoch: int) -> None:
         self.ds.set_epoch(epoch)
@@ -345,14 +347,17 @@ def test_training_stream_starts_at_any_batch(tiny_world, monkeypatch, mix):
 
 
 def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkeypatch):
-    """A run stopped after a saved state and started again ends with the weights, curve and
-    metrics of the unbroken run; its saved states are removed when it finishes."""
+    """A run with synthetic samples stopped after a saved state and started again ends with the
+    weights, curve and metrics of the unbroken run; its saved states are removed when it finishes."""
     ds = _downstream()
+    monkeypatch.setattr(ds, "SynthShardSamples", lambda folder, seed, cfg: _Shuffled(tiny_world, seed))
+    monkeypatch.setattr(ds, "export_dir", lambda *a: Path("/unused"))
+    monkeypatch.setattr(ds, "variant_options", lambda *a: {"bundle": "/unused"})
     cfg = _tiny_cfg(ds, steps=5, evals=2, eval_stride=8, checkpoint_every=2)
-    setup = {"data": tiny_world, "fingerprints": _prints("w0", "b0", "a0")}
+    setup = {"data": tiny_world, "bundle": Path("/unused"), "fingerprints": _prints("w0", "b0", "a0")}
     val_dataset = ds.val_dataset
     monkeypatch.setattr(ds, "val_dataset", lambda *a: (lambda v: (v[0], v[1][:24]))(val_dataset(*a)))  # a short val
-    unbroken = ds.run_arm("real_low", 0, cfg, setup, tmp_path / "a")
+    unbroken = ds.run_arm("hogsa_low", 0, cfg, setup, tmp_path / "a")
 
     step = ds.training_step
     calls = []
@@ -365,17 +370,17 @@ def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkey
 
     monkeypatch.setattr(ds, "training_step", stop_at_five)
     with pytest.raises(KeyboardInterrupt):
-        ds.run_arm("real_low", 0, cfg, setup, tmp_path / "b")
-    folder = ds.run_dir("real_low", 0, cfg, tmp_path / "b")
+        ds.run_arm("hogsa_low", 0, cfg, setup, tmp_path / "b")
+    folder = ds.run_dir("hogsa_low", 0, cfg, tmp_path / "b")
     assert json.loads((folder / "checkpoints" / "latest.json").read_text())["step"] == 4
     monkeypatch.setattr(ds, "training_step", step)
-    resumed = ds.run_arm("real_low", 0, cfg, setup, tmp_path / "b")
+    resumed = ds.run_arm("hogsa_low", 0, cfg, setup, tmp_path / "b")
     assert resumed["resumed_at"] == [4] and unbroken["resumed_at"] == []
     assert not (folder / "checkpoints").exists()
     assert resumed["curve"] == unbroken["curve"] and resumed["summary"] == unbroken["summary"]
     assert resumed["loss_curve"] == unbroken["loss_curve"]
     from safetensors.torch import load_file
 
-    a = load_file(ds.run_dir("real_low", 0, cfg, tmp_path / "a") / "model.safetensors")
+    a = load_file(ds.run_dir("hogsa_low", 0, cfg, tmp_path / "a") / "model.safetensors")
     b = load_file(folder / "model.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

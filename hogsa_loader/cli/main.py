@@ -322,7 +322,7 @@ def _world_parser(sub: argparse._SubParsersAction) -> None:
         "--preset",
         default="tiny",
         help="tiny (< 1 min, tests), demo (what hogsa demo uses), small (ARCTIC image sizes) or small_styles "
-        "(small, each subject holding the objects its own way)",
+        "(small, each subject and sequence with its own grasps)",
     )
     w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")

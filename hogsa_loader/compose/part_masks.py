@@ -195,6 +195,7 @@ def render_camera_mask(
         cam: the view's camera track.
         frame: sequence frame index (must be among the posed frames).
         K_render: (3, 3) render intrinsics at (size, size).
+        size: side of the square mask in pixels.
         supersample: s ≥ 1 samples per pixel side.
     """
     return render_part_mask(

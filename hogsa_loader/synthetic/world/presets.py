@@ -179,7 +179,7 @@ PRESETS: dict[str, WorldPreset] = {
     ),
 }
 
-# `small` with subjects that hold the objects their own way: the held-out subject's grasps are
+# `small` with every grasp moved from its design, drawn per subject and sequence: the held-out subject's grasps are
 # not the training subjects' (as in ARCTIC, where every subject has its own motions).
 PRESETS["small_styles"] = replace(PRESETS["small"], name="small_styles", grasp_style=1.0)
 
