@@ -14,6 +14,7 @@ Submodule and output names are ARCTIC's, so a released ArcticNet-SF checkpoint l
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, Literal, Mapping, Sequence, Union
 
 import torch
@@ -210,7 +211,7 @@ def _cam_init_mlp(feat_dim: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(feat_dim, 512), nn.ReLU(), nn.Linear(512, 512), nn.ReLU(), nn.Linear(512, 3))
 
 
-class _HMRHead(nn.Module):
+class _HMRHead(nn.Module, ABC):
     """Regressor of the state vectors ``SPECS``: an initial state made from the pooled
     features (the camera by ``cam_init``), refined by :class:`HMRLayer`.
 
@@ -226,6 +227,7 @@ class _HMRHead(nn.Module):
         self.cam_init = _cam_init_mlp(feat_dim)
         self.n_iter = n_iter
 
+    @abstractmethod
     def initial_state(self, feat: Tensor, cam0: Tensor) -> dict[str, Tensor]:
         """``{name: (B, size)}`` start of the refinement, in the refine input order."""
         raise NotImplementedError

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, Optional
 
@@ -20,7 +21,7 @@ from hogsa_loader.train.run_folder import (
 __all__ = ["StepLoop"]
 
 
-class StepLoop:
+class StepLoop(ABC):
     """Base of a trainer that trains step by step in a run folder with checkpoints.
 
     :meth:`run_steps` starts (or continues) the run folder, evaluates at step 0, trains up to
@@ -40,23 +41,28 @@ class StepLoop:
     #: Progress-bar label.
     desc = "train"
 
+    @abstractmethod
     def _eval_point(self, ev: dict[str, Any]) -> dict[str, Any]:
         """What :attr:`evals` keeps of an evaluation."""
         raise NotImplementedError
 
+    @abstractmethod
     def _postfix(self, terms: dict[str, float]) -> dict[str, str]:
         """Progress-bar figures of a step's loss terms."""
         raise NotImplementedError
 
+    @abstractmethod
     def _eval_message(self, ev: dict[str, Any]) -> str:
         """The line written after an evaluation during training (``evals`` holds its point)."""
         raise NotImplementedError
 
+    @abstractmethod
     def _save_state(self, folder: Path) -> tuple[dict[str, Tensor], dict[str, Any]]:
         """Write the models into a checkpoint folder; the tensors (optimiser moments, RNG
         states) and JSON-able state the trainer adds to the loop's."""
         raise NotImplementedError
 
+    @abstractmethod
     def _load_state(self, folder: Path, state: dict[str, Any], tensors: dict[str, Tensor]) -> None:
         """Restore what :meth:`_save_state` kept from a checkpoint folder and its trainer state."""
         raise NotImplementedError
