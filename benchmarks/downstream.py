@@ -87,6 +87,7 @@ from hogsa_loader.errors import AssetError, read_json
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
+from hogsa_loader.loader.cameras import CameraConfig
 from hogsa_loader.loader.mixing import MixedLoader, MixMode, added_synthetic, num_synthetic
 from hogsa_loader.synthetic.world import get_preset
 from hogsa_loader.system import available_cores
@@ -149,11 +150,20 @@ class SyntheticSettings:
     )
     render_batch: int = field(default=8, metadata={"help": "samples per render call (one model per call)"})
     seed: int = field(default=1000, metadata={"help": "seed of the exported frames"})
-    backgrounds: Literal["plates", "photos"] = field(
+    backgrounds: Literal["plates", "camera_plates", "photos"] = field(
         default="plates",
         metadata={
             "help": "plates: the world's own studio, cleaned of hands and objects (hogsa plates) from the "
-            "training subjects' frames; photos: scikit-image's colour photographs (a COCO stand-in)"
+            "training subjects' frames, a random crop of a random plate; camera_plates: the same plates, and a "
+            "frame seen through a dataset camera gets that camera's own plate cut by its crop box; photos: "
+            "scikit-image's colour photographs (a COCO stand-in)"
+        },
+    )
+    cameras: Literal["novel", "dataset"] = field(
+        default="novel",
+        metadata={
+            "help": "novel: viewpoints drawn around the hands and object, the subject's own cameras a quarter of the "
+            "time (the loader's default); dataset: the training subjects' own capture cameras only"
         },
     )
 
@@ -377,6 +387,8 @@ def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str,
     syn = asdict(cfg.synthetic)
     if syn["backgrounds"] == "photos":
         del syn["backgrounds"]
+    if syn["cameras"] == "novel":
+        del syn["cameras"]
     if frames_only or syn["mix"] == "replace":
         del syn["mix"]
     return syn
@@ -461,6 +473,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
     shard = s.render_batch * max(1, 256 // s.render_batch)
     config = with_options(
         background_folder=setup["backgrounds"],
+        camera_plates=s.backgrounds == "camera_plates",
         poses=opts["poses"],
         pose_options=opts.get("pose_options") or {},
         srm=opts["srm"],
@@ -470,6 +483,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         num_samples=s.frames,
         split="train",
         arctic=ArcticConfig(img_res=cfg.model.img_res),
+        cameras=CameraConfig(dataset_prob=1.0) if s.cameras == "dataset" else CameraConfig(),
     )
     ds = HOGSADataset(opts["bundle"], setup["data"], config)
     info = {

@@ -257,6 +257,35 @@ def test_appended_synthetic_samples_key_the_runs_not_the_frames(tmp_path):
     assert ds.finished_run("hogsa", 0, add, setup, tmp_path) is None  # ... is not an add run
 
 
+def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, monkeypatch):
+    """--synthetic-cameras dataset renders every frame from a training subject's own camera
+    (its own export and run keys); the default keeps the keys runs had before the choice."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    rig = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, cameras="dataset"))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    assert "cameras" not in ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]
+    assert ds.run_settings("hogsa", 0, rig, setup)["synthetic"]["cameras"] == "dataset"
+    assert ds.export_dir("full", rig, setup, tmp_path) != ds.export_dir("full", cfg, setup, tmp_path)
+    assert ds.run_settings("real", 0, rig, setup) == ds.run_settings("real", 0, cfg, setup)
+    seen = []
+
+    class _Recorder:
+        def __init__(self, bundle, data, config):
+            seen.append(config.cameras)
+
+        def total_stats(self):
+            return ds.argparse.Namespace(dropped={})
+
+    monkeypatch.setattr(ds, "HOGSADataset", _Recorder)
+    monkeypatch.setattr(ds, "dataset_frames_for_shard", lambda *a: iter(()))
+    monkeypatch.setattr(ds, "write_shards", lambda *a, **k: {"samples": 0, "written": [], "skipped": []})
+    setup = dict(setup, backgrounds=tmp_path)
+    for c in (cfg, rig):
+        ds.export_variant("full", c, setup, tmp_path)
+    assert [c.dataset_prob for c in seen] == [ds.CameraConfig().dataset_prob, 1.0]
+
+
 def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path, monkeypatch):
     """Plates (the default) are built from the world once and reused; the background choice
     is part of each synthetic export's name, so photo and plate frames never mix."""
@@ -284,8 +313,8 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
-    # photo runs keep the keys they had before backgrounds (and the mix) could be chosen
-    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix")}
+    # photo runs keep the keys they had before backgrounds (and the mix, and the cameras) could be chosen
+    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix", "cameras")}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
 
 

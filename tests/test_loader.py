@@ -32,6 +32,7 @@ from hogsa_loader.loader import (
     parse_synthetic_imgname,
     with_options,
 )
+from hogsa_loader.loader.cameras import NOVEL_VIEW
 from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
 
@@ -783,3 +784,36 @@ def test_export_info_is_the_config_with_the_first_exports_keys():
     )
     assert info["exclude_person"] is True and info["srm_tta"] == 8 and info["cameras"]["roll_deg"] == 0.0
     assert "device" not in info and "num_samples" not in info
+
+
+def test_dataset_camera_samples_sit_on_their_own_plate(bundle_dir, tiny_world, tmp_path):
+    """With camera plates, a sample rendered through a dataset camera is composited on that
+    camera's plate cut by the sample's own crop box (its labels' box), pixel for pixel."""
+    from hogsa_loader.compose import PlateBackgrounds
+    from hogsa_loader.compose.plates import PlateConfig, build_plates
+    from hogsa_loader.datasets.conventions import full_to_cropped
+
+    build_plates(PlateConfig(data=str(tiny_world), out=str(tmp_path), width=240, frames_per_sequence=2, quiet=True))
+    src = PlateBackgrounds(tmp_path)
+    calls = []
+    plate_of = src.camera_plate
+
+    def recorded(subject, view, box, size):
+        out = plate_of(subject, view, box, size)
+        calls.append((subject, view, np.array(box), out))
+        return out
+
+    src.camera_plate = recorded
+    ds = _dataset(bundle_dir, tiny_world, backgrounds=src, cameras=CameraConfig(dataset_prob=1.0), num_samples=4)
+    frames = [f for f in ds.frames(0) if f is not None]
+    assert frames and calls
+    for f in frames:
+        assert f.meta["view"] != NOVEL_VIEW
+        bg = f.alpha == 0
+        assert bg.mean() > 0.2
+        match = [c for c in calls if c[3] is not None and np.array_equal(f.image[bg], c[3][bg])]
+        assert len(match) >= 1 and match[0][:2] == (f.meta["subject"], f.meta["view"])
+        # the plate was cut by this sample's crop box: its labels are the full-image joints cropped by it
+        full2d = f.right.j3d_full @ f.K_full.T
+        full2d = full2d[:, :2] / full2d[:, 2:]
+        np.testing.assert_allclose(full_to_cropped(full2d, match[0][2], f.image.shape[0]), f.right.j2d, atol=1e-3)

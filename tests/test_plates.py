@@ -219,3 +219,42 @@ def test_rendered_foreground_matches_mask_files(tiny_world) -> None:
             files = _foreground(seq, view, f, res, crop, PlateConfig(masks="files"), cache)
             ious.append((rendered & files).sum() / max(1, (rendered | files).sum()))
     assert min(ious) > 0.9, ious
+
+
+def test_camera_plate_is_the_backdrop_of_its_camera(plates, tiny_world) -> None:
+    """``PlateBackgrounds.camera_plate`` cut by a real frame's box equals that frame's
+    background pixels; the other view's plate does not; random draws equal the folder's."""
+    import torch
+
+    from hogsa_loader.compose import PlateBackgrounds
+
+    cfg, _ = plates
+    src = PlateBackgrounds(cfg.out)
+    assert src.has_plate("s01", 1) and not src.has_plate("s01", 2) and not src.has_plate("s02", 1)
+    assert src.camera_plate("s01", 2, np.array([100.0, 100.0, 1.0]), 64) is None
+    g0, g1 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    assert torch.equal(src.sample(2, 48, 48, g0), FolderBackgrounds(cfg.out).sample(2, 48, 48, g1))
+    root = ArcticRoot(tiny_world)
+    size, checked = 96, 0
+    for sid_seq in root.sequences("s01"):
+        seq = root.sequence("s01", sid_seq.split("/", 1)[1])
+        boxes = crop_boxes(root, seq, (1, 4))
+        for view, other in ((1, 4), (4, 1)):
+            for f in _frames(seq.num_frames, cfg.frames_per_sequence)[:2]:
+                box = boxes[view][f]
+                img = cv2.cvtColor(cv2.imread(str(seq.image_paths[view][f])), cv2.COLOR_BGR2RGB)
+                bg = (cv2.imread(str(seq.mask_paths[view][f]), cv2.IMREAD_UNCHANGED) == 0) & (img.sum(-1) > 0)
+                small = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA).astype(float)
+                bg = cv2.resize(bg.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) >= 1.0
+                bg = cv2.erode(bg.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                own = src.camera_plate("s01", view, box, size)
+                wrong = src.camera_plate("s01", other, box, size)
+                assert own.shape == (size, size, 3) and own.dtype == np.uint8
+                err, err_wrong = (float(np.abs(p.astype(float) - small)[bg].mean()) for p in (own, wrong))
+                assert err < 6.0 and err_wrong > 2.0 * err, (sid_seq, view, f, err, err_wrong)
+                checked += 1
+    assert checked >= 4
+    # beyond the full frame the crop is black, as the dataset's crops are
+    W = root.sequence("s01", root.sequences("s01")[0].split("/", 1)[1]).cameras[1].width
+    edge = src.camera_plate("s01", 1, np.array([W - 1.0, 300.0, 2.0]), 64)
+    assert (edge[:, -20:] == 0).all() and edge[:, :20].sum() > 0

@@ -3,7 +3,9 @@
 :func:`make_backgrounds` (:mod:`~hogsa_loader.compose.backgrounds`) picks a source, all ``sample(n, H, W, generator)`` →
 ``(n, H, W, 3)`` float32 in [0, 1], deterministic given the generator: :class:`CocoBackgrounds` (pycocotools,
 :mod:`~hogsa_loader.compose.coco`), :class:`FolderBackgrounds` (base class in :mod:`~hogsa_loader.compose.sources`),
-:class:`ProceduralBackgrounds` (fallback, :mod:`~hogsa_loader.compose.procedural`). :mod:`~hogsa_loader.compose.alpha`
+:class:`PlateBackgrounds` (a dataset's clean plates, each sample on its own camera's,
+:mod:`~hogsa_loader.compose.plate_backgrounds`), :class:`ProceduralBackgrounds` (fallback,
+:mod:`~hogsa_loader.compose.procedural`). :mod:`~hogsa_loader.compose.alpha`
 has :func:`composite` (premultiplied "over"), :class:`AlphaComposite`, optional :func:`harmonize` / :class:`Harmonize`::
 
     from hogsa_loader.compose import AlphaComposite, make_backgrounds
@@ -24,6 +26,7 @@ from hogsa_loader.compose.backgrounds import (
     ProceduralBackgrounds,
     make_backgrounds,
 )
+from hogsa_loader.compose.plate_backgrounds import PlateBackgrounds
 
 __all__ = [
     "AlphaComposite",
@@ -35,6 +38,7 @@ __all__ = [
     "Harmonize",
     "IMAGE_EXTENSIONS",
     "ImageCache",
+    "PlateBackgrounds",
     "ProceduralBackgrounds",
     "composite",
     "harmonize",

@@ -14,6 +14,7 @@ import warnings
 from typing import Optional, Sequence, Union
 
 from hogsa_loader.compose.coco import COCO_PERSON, CocoBackgrounds, default_cache_dir
+from hogsa_loader.compose.plate_backgrounds import PlateBackgrounds
 from hogsa_loader.compose.procedural import ProceduralBackgrounds
 from hogsa_loader.compose.sources import IMAGE_EXTENSIONS, BackgroundSource, CropSpec, FolderBackgrounds, ImageCache
 from hogsa_loader.errors import PathLike
@@ -44,12 +45,15 @@ def make_backgrounds(
     crop: CropSpec = CropSpec(),
     cache_bytes: int = 512 * 2**20,
     index_cache: Union[bool, PathLike, None] = True,
+    camera_plates: bool = False,
 ) -> BackgroundSource:
     """The background source the loader's arguments ask for.
 
     * ``coco_root`` and/or ``coco_ann`` → :class:`CocoBackgrounds` (``categories``,
       ``exclude_person``, ``image_dir`` and ``index_cache`` apply);
-    * else ``folder`` → :class:`FolderBackgrounds`;
+    * else ``folder`` → :class:`FolderBackgrounds`, or with ``camera_plates`` (a folder of
+      ``hogsa plates``) :class:`~hogsa_loader.compose.plate_backgrounds.PlateBackgrounds`,
+      which gives a sample seen through a dataset camera that camera's own plate;
     * else → :class:`ProceduralBackgrounds`, with a one-time warning (per process).
 
     Giving both a COCO source and a folder is an error.
@@ -84,7 +88,11 @@ def make_backgrounds(
         )
     if categories is not None or exclude_person or image_dir is not None:
         raise ValueError("categories, exclude_person and image_dir apply to COCO images; give coco_root/coco_ann")
+    if camera_plates and folder is None:
+        raise ValueError("camera_plates needs a folder of plates (hogsa plates)")
     if folder is not None:
+        if camera_plates:
+            return PlateBackgrounds(folder, crop=crop, cache_bytes=cache_bytes)
         return FolderBackgrounds(folder, crop=crop, cache_bytes=cache_bytes)
     if not _FALLBACK_WARNED:
         _FALLBACK_WARNED = True

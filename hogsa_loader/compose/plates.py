@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from hogsa_loader.compose.part_masks import pose_meshes, render_camera_mask
+from hogsa_loader.compose.plate_backgrounds import PLATES_MANIFEST, crop_to_plate
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_processing import crop_boxes
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics, render_intrinsics
@@ -29,8 +30,6 @@ from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.io.atomic import atomic_write
 
 __all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate", "data_fingerprint"]
-
-PLATES_MANIFEST = "plates.json"
 
 
 @dataclass
@@ -67,34 +66,6 @@ class PlateConfig:
         bad = [v for v in self.views if not 1 <= v <= 8]
         if bad or not self.views:
             raise UsageError(f"--views must be allocentric (static) views 1..8, got {list(self.views)}")
-
-
-def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float) -> np.ndarray:
-    """(2, 3) affine from a resized cropped image's pixels to plate pixels (OpenCV coordinates).
-
-    The cropped image is the dataset's crop of the full image
-    (:func:`~hogsa_loader.datasets.conventions.cropped_intrinsics`), resized to ``resized``
-    pixels; the plate is the full image scaled by ``gain``. Resizing scales coordinates
-    whose pixel centres sit at ``j + 0.5``, so the scales are applied in those.
-
-    Args:
-        bbox: (3,) ``(cx, cy, scale)`` of the frame in the full image.
-        cropped_size: side of the dataset's cropped images.
-        resized: side of the resized crop.
-        gain: plate width / full image width.
-    """
-    half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])  # OpenCV -> centres at j + 0.5
-    full_to_crop = cropped_intrinsics(np.eye(3), np.asarray(bbox, np.float64), cropped_size)
-    M = (
-        np.linalg.inv(half)
-        @ np.diag([gain, gain, 1.0])
-        @ half
-        @ np.linalg.inv(full_to_crop)
-        @ np.linalg.inv(half)
-        @ np.diag([cropped_size / resized, cropped_size / resized, 1.0])
-        @ half
-    )
-    return M[:2]
 
 
 def _frames(num: int, k: int) -> list[int]:

@@ -64,6 +64,14 @@ class BackgroundConfig:
         default=None,
         metadata={"help": "COCO image folder (default under --coco-root)", "name": "coco_image_dir", **_IF_SET},
     )
+    camera_plates: bool = field(
+        default=False,
+        metadata={
+            "help": "--background-folder holds plates (hogsa plates): a sample seen through a dataset camera gets "
+            "that camera's own plate, cut by its crop box",
+            **_IF_SET,
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.categories is not None:

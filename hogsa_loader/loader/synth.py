@@ -18,13 +18,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.compose import composite
+from hogsa_loader.compose import BackgroundSource, composite
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, CROPPED_SIZE, EGO_IMAGE_SCALE
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from hogsa_loader.loader.cameras import CameraSampler
+from hogsa_loader.loader.cameras import NOVEL_VIEW, CameraSampler
 from hogsa_loader.loader.config import SampleChecks
 from hogsa_loader.loader.frame import SynthFrame
 from hogsa_loader.loader.plan import STREAM_AUG, BatchPlan, sample_rng
@@ -512,7 +512,8 @@ class SynthPipeline:
             bgs = []
             for b in viewed.keep:
                 g = torch.Generator().manual_seed(int(plan.rng(b, "background").integers(2**62)))
-                bgs.append(self.backgrounds.sample(1, Ho, Wo, g))
+                plate = self._camera_plate(plan, viewed.vg, b)
+                bgs.append(self.backgrounds.sample(1, Ho, Wo, g) if plate is None else plate)
             bg = torch.cat(bgs, 0).to(device=dev, dtype=rgb.dtype)
             img = composite(rgb, alpha, bg, clamp=True)
             return _Pixels(
@@ -521,6 +522,18 @@ class SynthPipeline:
                 parts=part_alpha.float().cpu().numpy(),
                 rgb_finite=torch.isfinite(rgb.reshape(len(viewed.keep), -1)).all(1).cpu().numpy(),
             )
+
+    def _camera_plate(self, plan: BatchPlan, vg: ViewGeometry, b: int) -> Optional[Tensor]:
+        """Sample ``b``'s own camera backdrop (1, H, W, 3) in [0, 1] when the background source
+        has one for its dataset camera (:class:`~hogsa_loader.compose.PlateBackgrounds`), else None."""
+        plates = getattr(self.backgrounds, "camera_plate", None)
+        if plates is None or vg.box_full is None or int(vg.view[b]) == NOVEL_VIEW:
+            return None
+        Ho, Wo = vg.out_hw
+        if Ho != Wo:
+            return None
+        img = plates(plan.key[0], int(vg.view[b]), vg.box_full[b], Ho)
+        return None if img is None else BackgroundSource._finish(img[None], None, None)
 
     def _labels(
         self, plan: BatchPlan, b: int, posed: _Posed, viewed: _Viewed

@@ -44,6 +44,8 @@ class ViewGeometry:
         pix2d: key → (B, N, 2) where the output pixels show those points (differs from
             ``label2d`` only under lens distortion).
         box_img: (B, 3) ARCTIC crop box in output-image pixels.
+        box_full: (B, 3) the same box ``(cx, cy, scale)`` in full-image pixels (allocentric:
+            the output image is the ``1.5 · 200 · scale`` square around its centre).
         flags: ``(is_valid, right_valid, left_valid)``, each (B,).
         K_render: (B, 3, 3) render intrinsics (render convention) at ``render_hw``.
         render_hw, out_hw: (H, W) of the render and of the output image.
@@ -68,6 +70,7 @@ class ViewGeometry:
     K_render: np.ndarray
     render_hw: tuple[int, int]
     out_hw: tuple[int, int]
+    box_full: Optional[np.ndarray] = None
     warp: Optional[Tensor] = None
     check_box: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     egocentric: bool = False
@@ -106,6 +109,7 @@ def allocentric_views(
         label2d=crop2d,
         pix2d=crop2d,
         box_img=cropped_bbox(box_full, size),
+        box_full=box_full,
         flags=flags,
         K_render=render_intrinsics(cropped_intrinsics(cams.K, box_full, size)),
         render_hw=(size, size),
