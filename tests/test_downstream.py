@@ -272,7 +272,7 @@ def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, mo
 
     class _Recorder:
         def __init__(self, bundle, data, config):
-            seen.append(config.cameras)
+            seen.append((config.cameras, config.backgrounds.camera_plates))
 
         def total_stats(self):
             return ds.argparse.Namespace(dropped={})
@@ -281,9 +281,15 @@ def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, mo
     monkeypatch.setattr(ds, "dataset_frames_for_shard", lambda *a: iter(()))
     monkeypatch.setattr(ds, "write_shards", lambda *a, **k: {"samples": 0, "written": [], "skipped": []})
     setup = dict(setup, backgrounds=tmp_path)
-    for c in (cfg, rig):
+    plates = ds.replace(rig, synthetic=ds.replace(rig.synthetic, backgrounds="camera_plates"))
+    assert ds.export_dir("full", plates, setup, tmp_path) != ds.export_dir("full", rig, setup, tmp_path)
+    for c in (cfg, rig, plates):
         ds.export_variant("full", c, setup, tmp_path)
-    assert [c.dataset_prob for c in seen] == [ds.CameraConfig().dataset_prob, 1.0]
+    assert [(c.dataset_prob, p) for c, p in seen] == [
+        (ds.CameraConfig().dataset_prob, False),
+        (1.0, False),
+        (1.0, True),
+    ]
 
 
 def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_path, monkeypatch):

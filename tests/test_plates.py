@@ -235,26 +235,63 @@ def test_camera_plate_is_the_backdrop_of_its_camera(plates, tiny_world) -> None:
     g0, g1 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
     assert torch.equal(src.sample(2, 48, 48, g0), FolderBackgrounds(cfg.out).sample(2, 48, 48, g1))
     root = ArcticRoot(tiny_world)
+    crop = root.world_meta().cropped_size
     size, checked = 96, 0
+    f2o = np.array([[size / crop, 0.0, 0.0], [0.0, size / crop, 0.0]])  # the dataset's crop → output pixels
+
+    def to_output(img: np.ndarray, shift: float = 0.0) -> np.ndarray:
+        sigma = 0.5 * crop / size  # anti-aliased, then sampled with the dataset's pixel convention
+        M = f2o.copy()
+        M[0, 2] += shift
+        return cv2.warpAffine(cv2.GaussianBlur(img, (0, 0), sigma), M, (size, size), flags=cv2.INTER_LINEAR)
+
     for sid_seq in root.sequences("s01"):
         seq = root.sequence("s01", sid_seq.split("/", 1)[1])
         boxes = crop_boxes(root, seq, (1, 4))
         for view, other in ((1, 4), (4, 1)):
             for f in _frames(seq.num_frames, cfg.frames_per_sequence)[:2]:
                 box = boxes[view][f]
-                img = cv2.cvtColor(cv2.imread(str(seq.image_paths[view][f])), cv2.COLOR_BGR2RGB)
+                img = cv2.cvtColor(cv2.imread(str(seq.image_paths[view][f])), cv2.COLOR_BGR2RGB).astype(np.float32)
                 bg = (cv2.imread(str(seq.mask_paths[view][f]), cv2.IMREAD_UNCHANGED) == 0) & (img.sum(-1) > 0)
-                small = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA).astype(float)
-                bg = cv2.resize(bg.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) >= 1.0
-                bg = cv2.erode(bg.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                bg = cv2.warpAffine(bg.astype(np.float32), f2o, (size, size), flags=cv2.INTER_NEAREST) > 0
+                bg = cv2.erode(bg.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
                 own = src.camera_plate("s01", view, box, size)
                 wrong = src.camera_plate("s01", other, box, size)
                 assert own.shape == (size, size, 3) and own.dtype == np.uint8
-                err, err_wrong = (float(np.abs(p.astype(float) - small)[bg].mean()) for p in (own, wrong))
-                assert err < 6.0 and err_wrong > 2.0 * err, (sid_seq, view, f, err, err_wrong)
+                errs = [float(np.abs(own - to_output(img, shift))[bg].mean()) for shift in (0.0, 1.0, -1.0)]
+                err_wrong = float(np.abs(wrong - to_output(img))[bg].mean())
+                assert errs[0] < 1.0 and min(errs[1:]) > 4 * errs[0] and err_wrong > 10 * errs[0], (view, f, errs)
                 checked += 1
     assert checked >= 4
-    # beyond the full frame the crop is black, as the dataset's crops are
+    # beyond the full frame the crop is black, as the dataset's crops are: output column j shows
+    # full-image x = j / k + (cx - side / 2), and the frame's last pixel centre is W - 1
     W = root.sequence("s01", root.sequences("s01")[0].split("/", 1)[1]).cameras[1].width
-    edge = src.camera_plate("s01", 1, np.array([W - 1.0, 300.0, 2.0]), 64)
-    assert (edge[:, -20:] == 0).all() and edge[:, :20].sum() > 0
+    box = np.array([W - 1.0, 300.0, 2.0])
+    edge = src.camera_plate("s01", 1, box, 64)
+    k = 64 / (1.5 * 200.0 * 2.0)
+    last = int(np.floor((W - 0.5 - (box[0] - 300.0)) * k))  # the last column whose centre is inside the frame
+    assert edge[:, last + 1 :].max() == 0 and edge[:, last].min() > 0
+
+
+def test_camera_plates_refuse_folders_without_a_manifest(plates, tmp_path) -> None:
+    from hogsa_loader.compose import PlateBackgrounds, make_backgrounds
+    from hogsa_loader.errors import AssetError
+
+    cfg, _ = plates
+    for p in Path(cfg.out).glob("*.png"):
+        shutil.copy(p, tmp_path / p.name)
+    with pytest.raises(AssetError, match="plates.json"):
+        PlateBackgrounds(tmp_path)
+    manifest = json.loads((Path(cfg.out) / "plates.json").read_text())
+    manifest["plates"][0]["file"] = "gone.png"
+    (tmp_path / "plates.json").write_text(json.dumps(manifest))
+    with pytest.raises(AssetError, match="gone.png"):
+        PlateBackgrounds(tmp_path)
+    del manifest["plates"][0]["full_size"]
+    manifest["plates"][0]["file"] = manifest["plates"][1]["file"]
+    (tmp_path / "plates.json").write_text(json.dumps(manifest))
+    with pytest.raises(AssetError, match="not a plate manifest"):
+        PlateBackgrounds(tmp_path)
+    with pytest.raises(ValueError, match="camera_plates"):
+        make_backgrounds(coco_root=tmp_path, camera_plates=True)
+    assert isinstance(make_backgrounds(folder=cfg.out, camera_plates=True), PlateBackgrounds)

@@ -75,6 +75,8 @@ def make_backgrounds(
     global _FALLBACK_WARNED
     if (coco_root is not None or coco_ann is not None) and folder is not None:
         raise ValueError("give either a COCO source (coco_root/coco_ann) or a folder, not both")
+    if camera_plates and folder is None:
+        raise ValueError("camera_plates needs a folder of plates (hogsa plates)")
     if coco_root is not None or coco_ann is not None:
         return CocoBackgrounds(
             coco_root,
@@ -88,8 +90,6 @@ def make_backgrounds(
         )
     if categories is not None or exclude_person or image_dir is not None:
         raise ValueError("categories, exclude_person and image_dir apply to COCO images; give coco_root/coco_ann")
-    if camera_plates and folder is None:
-        raise ValueError("camera_plates needs a folder of plates (hogsa plates)")
     if folder is not None:
         if camera_plates:
             return PlateBackgrounds(folder, crop=crop, cache_bytes=cache_bytes)

@@ -54,11 +54,12 @@ class PlateBackgrounds(FolderBackgrounds):
     """Background plates, each the backdrop of one dataset camera.
 
     :meth:`sample` draws random crops of random plates exactly as :class:`FolderBackgrounds`
-    over the same folder does. :meth:`camera_plate` gives a sample rendered through a dataset
-    camera that camera's own backdrop instead: its plate cut by the sample's crop box as the
-    dataset cuts its cropped images (the square of side ``1.5 · 200 · scale`` around the box
+    over the same (flat) folder does. :meth:`camera_plate` gives a sample rendered through a
+    dataset camera that camera's own backdrop instead: its plate cut by the sample's crop box as
+    the dataset cuts its cropped images (the square of side ``1.5 · 200 · scale`` around the box
     centre), so table, floor and walls stand where the real frames of that view have them;
-    pixels beyond the full frame are black, as in the dataset's crops.
+    pixels beyond the full frame are black, as in the dataset's crops, and pixels inside the
+    frame but beyond the region the plate covers repeat the plate's edge.
 
     Args:
         folder: a plate folder (PNGs and ``plates.json``: per plate its subject, view, full
@@ -79,18 +80,23 @@ class PlateBackgrounds(FolderBackgrounds):
             raise AssetError(manifest, "is missing: camera plates need the manifest written by `hogsa plates`")
         super().__init__(folder, recursive=False, crop=crop, cache_bytes=cache_bytes)
         rec = read_json(manifest)
-        try:
-            width = float(rec["settings"]["width"])
-            plates = {(str(p["subject"]), int(p["view"])): p for p in rec["plates"]}
-        except (KeyError, TypeError, ValueError) as e:
-            raise AssetError(manifest, f"is not a plate manifest ({e!r})") from e
         index = {p.name: i for i, p in enumerate(self.paths)}
         self._plates: dict[tuple[str, int], tuple[int, float, tuple[int, int], tuple[float, float]]] = {}
-        for key, p in plates.items():
-            if p["file"] not in index:
-                raise AssetError(folder / p["file"], f"is named by {PLATES_MANIFEST} but missing")
-            full_w, full_h = (int(v) for v in p["full_size"])
-            self._plates[key] = (index[p["file"]], width / full_w, (full_w, full_h), (p["box"][0], p["box"][1]))
+        try:
+            width = float(rec["settings"]["width"])
+            for p in rec["plates"]:
+                if p["file"] not in index:
+                    raise AssetError(folder / p["file"], f"is named by {PLATES_MANIFEST} but missing")
+                full_w, full_h = (int(v) for v in p["full_size"])
+                where = (float(p["box"][0]), float(p["box"][1]))
+                self._plates[(str(p["subject"]), int(p["view"]))] = (
+                    index[p["file"]],
+                    width / full_w,
+                    (full_w, full_h),
+                    where,
+                )
+        except (KeyError, IndexError, TypeError, ValueError) as e:
+            raise AssetError(manifest, f"is not a plate manifest ({e!r})") from e
 
     def has_plate(self, subject: str, view: int) -> bool:
         """Whether the folder has the plate of (``subject``, ``view``)."""
@@ -106,6 +112,12 @@ class PlateBackgrounds(FolderBackgrounds):
 
         Returns:
             (size, size, 3) uint8 RGB, or None when the folder has no plate of that camera.
+            Output pixel ``j`` (OpenCV convention: integer coordinates are pixel centres) shows
+            full-image pixel ``j · 1.5 · 200 · scale / size + (cx − 0.75 · 200 · scale)``, the
+            dataset's crop mapping, so labels made with it land on the plate where they should.
+
+        Raises:
+            AssetError: the plate image cannot be read.
         """
         entry = self._plates.get((str(subject), int(view)))
         if entry is None:
@@ -127,9 +139,8 @@ class PlateBackgrounds(FolderBackgrounds):
             out = cv2.resize(out, (int(size), int(size)), interpolation=cv2.INTER_AREA)
         # the full frame's extent in output pixels: black beyond it
         k = size / side
-        ox, oy = box[0] - side / 2.0, box[1] - side / 2.0
-        cols = (np.arange(size) + 0.5) / k + ox - 0.5
-        rows = (np.arange(size) + 0.5) / k + oy - 0.5
+        cols = np.arange(size) / k + box[0] - side / 2.0  # output pixel j shows full-image x = j / k + origin
+        rows = np.arange(size) / k + box[1] - side / 2.0
         out[:, (cols < -0.5) | (cols > full_w - 0.5)] = 0
         out[(rows < -0.5) | (rows > full_h - 0.5)] = 0
         return np.ascontiguousarray(out)
