@@ -194,6 +194,13 @@ class TrainSettings:
         metadata={"help": "samples per step (real + synthetic; the real ones only with --synthetic-mix add)"},
     )
     lr: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
+    lr_schedule: Literal["constant", "linear"] = field(
+        default="constant",
+        metadata={
+            "help": "constant: --train-lr throughout; linear: decayed linearly to 0 at the last step (steadier "
+            "final weights, so a run's final metrics depend less on where its last steps happened to go)"
+        },
+    )
     grad_clip: float = field(default=150.0, metadata={"help": "gradient-norm clip (ARCTIC: 150)"})
     workers: int = field(default=1, metadata={"help": "DataLoader workers per loader"})
     evals: int = field(default=3, metadata={"help": "validation points on the curve (the last is the full eval)"})
@@ -656,6 +663,24 @@ def model_key(cfg: DownstreamConfig) -> dict[str, Any]:
     return model
 
 
+def train_key(cfg: DownstreamConfig) -> dict[str, Any]:
+    """The optimisation settings in cache keys (a constant learning rate keeps the keys runs had
+    before the schedule could be chosen; how often a run saves its state changes nothing)."""
+    train = asdict(cfg.train)
+    del train["checkpoint_every"]
+    if train["lr_schedule"] == "constant":
+        del train["lr_schedule"]
+    return train
+
+
+def learning_rate(step: int, cfg: DownstreamConfig) -> float:
+    """The learning rate of optimisation step ``step`` (1-based): a function of the step alone, so
+    a resumed run continues on the same schedule."""
+    if cfg.train.lr_schedule == "linear":
+        return cfg.train.lr * (cfg.train.steps - step + 1) / cfg.train.steps
+    return cfg.train.lr
+
+
 def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, Any]:
     """What a run's result depends on (its cache key)."""
     _, variant = ARM_SPECS[arm]
@@ -670,7 +695,7 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
         "variant": variant and variant_options(variant, cfg, setup),
         "synthetic": syn,
         "model": model_key(cfg),
-        "train": {k: v for k, v in asdict(cfg.train).items() if k != "checkpoint_every"},
+        "train": train_key(cfg),
         "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None,
     }
 
@@ -786,6 +811,8 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     bar = tqdm(total=cfg.train.steps, initial=done, desc=f"{arm} seed {seed}", unit="step", dynamic_ncols=True)
     final: dict[str, Any] = {}
     for step in range(done + 1, cfg.train.steps + 1):
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(step, cfg)
         try:
             rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
         except FloatingPointError as exc:  # recorded as diverged; the other runs go on

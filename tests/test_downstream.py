@@ -419,3 +419,19 @@ def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkey
     a = load_file(ds.run_dir("hogsa_low", 0, cfg, tmp_path / "a") / "model.safetensors")
     b = load_file(folder / "model.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_linear_schedule_keys_its_runs_and_ends_near_zero():
+    """--train-lr-schedule linear: the rate falls from lr to lr/steps, as a function of the step
+    alone; constant runs keep their keys."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    lin = ds.replace(cfg, train=ds.replace(cfg.train, lr_schedule="linear", steps=4))
+    assert [ds.learning_rate(k, lin) for k in (1, 2, 3, 4)] == pytest.approx([3e-4, 2.25e-4, 1.5e-4, 0.75e-4])
+    assert ds.learning_rate(3, cfg) == cfg.train.lr
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    assert "lr_schedule" not in ds.run_settings("real", 0, cfg, setup)["train"]
+    assert "checkpoint_every" not in ds.run_settings("real", 0, cfg, setup)["train"]
+    long = ds.replace(lin, train=ds.replace(lin.train, steps=cfg.train.steps))
+    assert ds.run_settings("real", 0, long, setup)["train"]["lr_schedule"] == "linear"
+    assert ds.run_settings("real", 0, long, setup) != ds.run_settings("real", 0, cfg, setup)
