@@ -153,6 +153,12 @@ class BackgroundSource:
         """One image: ``(H, W, 3)`` uint8 RGB and optional (3,) float32 channel gains."""
         raise NotImplementedError
 
+    def camera_plate(self, subject: str, view: int, box_full: np.ndarray, size: int) -> Optional[np.ndarray]:
+        """The backdrop dataset camera (``subject``, ``view``) sees inside the crop box
+        ``box_full`` ((3,) ``(cx, cy, scale)`` in its full-image pixels), as (size, size, 3) uint8
+        RGB, for sources that know the dataset's cameras; None (here): draw with :meth:`sample`."""
+        return None
+
     @staticmethod
     def _finish(arr: np.ndarray, gains: Optional[np.ndarray], device: Optional[torch.device]) -> torch.Tensor:
         """uint8 ``(n, H, W, 3)`` → float32 in [0, 1] on ``device`` (same arithmetic everywhere)."""

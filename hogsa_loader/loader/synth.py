@@ -525,14 +525,11 @@ class SynthPipeline:
 
     def _camera_plate(self, plan: BatchPlan, vg: ViewGeometry, b: int) -> Optional[Tensor]:
         """Sample ``b``'s own camera backdrop (1, H, W, 3) in [0, 1] when the background source
-        has one for its dataset camera (:class:`~hogsa_loader.compose.PlateBackgrounds`), else None."""
-        plates = getattr(self.backgrounds, "camera_plate", None)
-        if plates is None or vg.box_full is None or int(vg.view[b]) == NOVEL_VIEW:
-            return None
+        has one for its dataset camera (:meth:`BackgroundSource.camera_plate`), else None."""
         Ho, Wo = vg.out_hw
-        if Ho != Wo:
+        if vg.box_full is None or int(vg.view[b]) == NOVEL_VIEW or Ho != Wo:
             return None
-        img = plates(plan.key[0], int(vg.view[b]), vg.box_full[b], Ho)
+        img = self.backgrounds.camera_plate(plan.key[0], int(vg.view[b]), vg.box_full[b], Ho)
         return None if img is None else BackgroundSource._finish(img[None], None, None)
 
     def _labels(
