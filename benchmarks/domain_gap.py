@@ -88,8 +88,9 @@ def export_drops(downstream: Path, variant: str) -> dict[str, Any]:
     exp = json.loads(rec.read_text()).get("exports", {}).get(variant, {})
     return (
         {
-            "requested": exp.get("settings", {}).get("frames"),
+            "requested": exp.get("requested", exp.get("settings", {}).get("frames")),
             "written": exp.get("samples"),
+            "dropped": exp.get("dropped_total"),
             **(exp.get("dropped") or {}),
         }
         if exp

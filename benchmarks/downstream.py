@@ -24,6 +24,11 @@ its real arm; ``add``, each HOGSA batch is its real arm's batch, whole, with syn
 samples appended (larger batches, the same real samples in the same order); its HOGSA runs
 are kept apart from the replace runs (``runs/<arm>+add/``).
 
+Runs start from random weights (every head's camera at the mean training camera), or, with
+``--model-init``, from a whole ArcticNet-SF checkpoint per seed: ARCTIC's released one, or
+this script's own real-only models (``OUT/runs/real/seed{seed}/model.safetensors``), so
+that real + HOGSA is compared with real data alone as a fine-tuning of the same model.
+
 Synthetic frames are rendered once per variant with ``hogsa export``'s writer
 (``OUT/synthetic/<variant>/``, resumable) and read back shuffled
 (:class:`~hogsa_loader.export.SynthShardSamples`) with fresh ARCTIC augmentation per epoch,
@@ -74,7 +79,7 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
+from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
@@ -175,6 +180,14 @@ class ModelSettings:
     backbone: Literal["resnet18", "resnet50"] = field(default="resnet18", metadata={"help": "image backbone"})
     img_res: int = field(default=96, metadata={"help": "patch side in pixels (ARCTIC: 224)"})
     weights: Optional[str] = field(default=None, metadata={"help": "local backbone weights (.pth/.safetensors)"})
+    init: Optional[str] = field(
+        default=None,
+        metadata={
+            "help": "start every run from this whole ArcticNet-SF checkpoint instead of random weights "
+            "(fine-tuning, as the paper does): ARCTIC's released .ckpt or a run's model.safetensors; '{seed}' in the "
+            "path becomes the run's seed, so each seed continues its own model; the camera prior is not applied"
+        },
+    )
     camera_prior: int = field(
         default=256,
         metadata={
@@ -285,6 +298,7 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
         (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
+        (not (cfg.model.init and cfg.model.weights), "--model-init and --model-weights exclude each other"),
         (
             cfg.synthetic.mix == "add"
             or num_synthetic(cfg.synthetic.share, cfg.train.batch_size) < cfg.train.batch_size,
@@ -298,6 +312,9 @@ def validate(cfg: DownstreamConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise SystemExit(f"downstream: error: {msg}")
+    missing = [str(init_path(cfg, s)) for s in cfg.seeds if cfg.model.init and not init_path(cfg, s).is_file()]
+    if missing:
+        raise SystemExit(f"downstream: error: --model-init: no checkpoint file {', '.join(missing)}")
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
 
@@ -501,25 +518,61 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "img_res": cfg.model.img_res,
         "setup": setup["fingerprints"][reads(variant)],
     }
+    folder = export_dir(variant, cfg, setup, out)
     t0 = time.perf_counter()
     rec = write_shards(
-        dataset_frames_for_shard(ds, s.frames, shard),
-        export_dir(variant, cfg, setup, out),
+        counting_drops(dataset_frames_for_shard(ds, s.frames, shard), ds, folder),
+        folder,
         s.frames,
         shard,
         info=info,
         progress=True,
     )
-    stats = ds.total_stats()
+    index = read_json(Path(rec["index"]))
+    kept = int(index["num_samples_written"])
     return {
         "variant": variant,
-        "samples": rec["samples"],
+        "requested": s.frames,
+        "samples": kept,
         "seconds": round(time.perf_counter() - t0, 1),
         "written": len(rec["written"]),
         "skipped": len(rec["skipped"]),
-        "dropped": dict(stats.dropped),
+        "dropped": export_drops(folder, [int(sh["shard"]) for sh in index["shards"]]),
+        "dropped_total": s.frames - kept if index["complete"] else None,
         "settings": info,
     }
+
+
+DROPS_FILE = "drops.json"
+
+
+def counting_drops(frames_for_shard: Any, ds: Any, folder: Path) -> Any:
+    """``frames_for_shard`` that records, once a shard's frames are drawn, the samples the
+    dataset dropped for it by reason (``folder/drops.json``), so a resumed export still
+    reports the drops of the shards an earlier pass wrote."""
+
+    def frames(shard: int) -> Iterator[Any]:
+        before = dict(ds.total_stats().dropped)
+        yield from frames_for_shard(shard)
+        after = dict(ds.total_stats().dropped)
+        drops = {k: int(v - before.get(k, 0)) for k, v in after.items() if v - before.get(k, 0)}
+        path = folder / DROPS_FILE
+        table = read_json(path) if path.is_file() else {}
+        table[str(shard)] = drops
+        _atomic_json(path, table)
+
+    return frames
+
+
+def export_drops(folder: Path, shards: list[int]) -> dict[str, int]:
+    """Samples dropped at export, by reason, summed over ``shards`` (those complete on disk)."""
+    path = folder / DROPS_FILE
+    table = read_json(path) if path.is_file() else {}
+    total: dict[str, int] = {}
+    for shard in shards:
+        for reason, n in table.get(str(shard), {}).items():
+            total[reason] = total.get(reason, 0) + int(n)
+    return total
 
 
 # ----------------------------------------------------------------------------- one run
@@ -623,6 +676,25 @@ def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
     return model
 
 
+def start_weights(
+    model: torch.nn.Module, arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], layers: Any
+) -> None:
+    """A run's starting point: the ``--model-init`` checkpoint of its seed, else the random
+    weights with every head's camera started at the arm's :func:`camera_prior`."""
+    tag = f"[{arm} seed {seed}]"
+    if cfg.model.init is not None:
+        path = init_path(cfg, seed)
+        load_arctic_checkpoint(model, path)
+        _say(f"{tag} started from {path}")
+    elif cfg.model.camera_prior > 0:
+        prior = camera_prior(arm, cfg, setup, layers)
+        model.init_cameras(prior)
+        _say(
+            f"{tag} camera prior (s, tx, ty): "
+            + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items())
+        )
+
+
 def camera_prior(arm: str, cfg: DownstreamConfig, setup: dict[str, Any], layers: Any) -> dict[str, torch.Tensor]:
     """Mean target camera of ``cfg.model.camera_prior`` real training frames of the arm (a fixed
     draw, unaugmented: the same for every seed, and for the real and HOGSA arms of one real share)."""
@@ -654,11 +726,39 @@ def eval_steps(cfg: DownstreamConfig) -> list[int]:
     return sorted({max(1, round(steps * (i + 1) / n)) for i in range(n)})
 
 
-def model_key(cfg: DownstreamConfig) -> dict[str, Any]:
-    """The model settings in cache keys (runs with a random camera start keep the keys they
-    had before the camera prior existed)."""
+def init_path(cfg: DownstreamConfig, seed: int) -> Path:
+    """The checkpoint a run of ``seed`` starts from (``--model-init`` with ``{seed}`` replaced)."""
+    assert cfg.model.init is not None
+    return Path(cfg.model.init.replace("{seed}", str(seed)))
+
+
+_DIGESTS: dict[tuple[str, int, int], str] = {}
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes (remembered per path, size and modification time)."""
+    st = path.stat()
+    tag = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if tag not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        _DIGESTS[tag] = h.hexdigest()
+    return _DIGESTS[tag]
+
+
+def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
+    """The model settings in a run's cache key. Runs from random weights keep the keys they had
+    before ``--model-init`` existed, and those with a random camera start the keys they had before
+    the camera prior existed; a run from a checkpoint is keyed by the file's bytes, not its path."""
     model = asdict(cfg.model)
-    if model["camera_prior"] == 0:
+    init = model.pop("init")
+    if init is not None:
+        path = init_path(cfg, seed)
+        model["init"] = {"file": str(path), "sha256": file_digest(path)}
+        del model["camera_prior"]  # not applied to a checkpoint
+    elif model["camera_prior"] == 0:
         del model["camera_prior"]
     return model
 
@@ -694,7 +794,7 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
         "bundle": str(setup["bundle"]) if variant else None,
         "variant": variant and variant_options(variant, cfg, setup),
         "synthetic": syn,
-        "model": model_key(cfg),
+        "model": model_key(cfg, seed),
         "train": train_key(cfg),
         "low_data": cfg.low_data if ARM_SPECS[arm][0] == "low" else None,
     }
@@ -782,13 +882,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     torch.manual_seed(seed)
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
     model = build_model(cfg, layers).to(cfg.device)
-    if cfg.model.camera_prior > 0:
-        prior = camera_prior(arm, cfg, setup, layers)
-        model.init_cameras(prior)
-        _say(
-            f"[{arm} seed {seed}] camera prior (s, tx, ty): "
-            + ", ".join(f"{k} {[round(float(x), 3) for x in v]}" for k, v in prior.items())
-        )
+    start_weights(model, arm, seed, cfg, setup, layers)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     progress = _load_progress(folder, key, model, opt)
     state: dict[str, Any] = progress or {

@@ -104,6 +104,8 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--setup-bundle", "b"], "needs --setup-data"),
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
+        (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
+        (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "0", "2"], "/nowhere/seed2/m.safetensors"),
     ],
 )
 def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
@@ -279,7 +281,11 @@ def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, mo
 
     monkeypatch.setattr(ds, "HOGSADataset", _Recorder)
     monkeypatch.setattr(ds, "dataset_frames_for_shard", lambda *a: iter(()))
-    monkeypatch.setattr(ds, "write_shards", lambda *a, **k: {"samples": 0, "written": [], "skipped": []})
+    index = tmp_path / "index.json"
+    index.write_text(json.dumps({"num_samples_written": 0, "complete": False, "shards": []}))
+    monkeypatch.setattr(
+        ds, "write_shards", lambda *a, **k: {"samples": 0, "written": [], "skipped": [], "index": str(index)}
+    )
     setup = dict(setup, backgrounds=tmp_path)
     plates = ds.replace(rig, synthetic=ds.replace(rig.synthetic, backgrounds="camera_plates"))
     assert ds.export_dir("full", plates, setup, tmp_path) != ds.export_dir("full", rig, setup, tmp_path)
@@ -435,3 +441,90 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
     long = ds.replace(lin, train=ds.replace(lin.train, steps=cfg.train.steps))
     assert ds.run_settings("real", 0, long, setup)["train"]["lr_schedule"] == "linear"
     assert ds.run_settings("real", 0, long, setup) != ds.run_settings("real", 0, cfg, setup)
+
+
+def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
+    """--model-init: each seed's run is keyed by the bytes of its own checkpoint ('{seed}' in the
+    path), without the camera prior it does not use; runs from random weights keep their keys."""
+    import hashlib
+
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    for k in (0, 1):
+        (tmp_path / f"seed{k}").mkdir()
+        (tmp_path / f"seed{k}" / "m.safetensors").write_bytes(b"weights of seed %d" % k)
+    init = ds.replace(cfg, model=ds.replace(cfg.model, init=str(tmp_path / "seed{seed}" / "m.safetensors")))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    assert set(ds.run_settings("real", 0, cfg, setup)["model"]) == {"backbone", "img_res", "weights", "camera_prior"}
+    m0, m1 = (ds.run_settings("hogsa", k, init, setup)["model"] for k in (0, 1))
+    assert m0["init"] == {
+        "file": str(tmp_path / "seed0" / "m.safetensors"),
+        "sha256": hashlib.sha256(b"weights of seed 0").hexdigest(),
+    }
+    assert m1["init"]["sha256"] == hashlib.sha256(b"weights of seed 1").hexdigest()
+    assert "camera_prior" not in m0
+    before = ds._key(ds.run_settings("real", 0, init, setup))
+    (tmp_path / "seed0" / "m.safetensors").write_bytes(b"other weights, longer")
+    assert ds._key(ds.run_settings("real", 0, init, setup)) != before
+
+
+def test_a_run_starts_from_its_seeds_checkpoint(tiny_world, tmp_path, monkeypatch):
+    """start_weights loads the whole network of the seed's checkpoint (a run's model.safetensors)
+    and skips the camera prior; a checkpoint missing a tensor is refused, naming the file."""
+    from hogsa_loader.baselines.engine import BodyLayers
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.errors import AssetError
+    from hogsa_loader.io.tensors import write_tensors_and_manifest
+
+    ds = _downstream()
+    cfg = _tiny_cfg(ds)
+    layers = BodyLayers.from_root(ArcticRoot(tiny_world))
+    torch.manual_seed(5)
+    saved = {k: v.detach().clone() for k, v in ds.build_model(cfg, layers).network_state_dict().items()}
+    write_tensors_and_manifest(tmp_path / "seed3", "model.safetensors", saved, "model.json", {"kind": "arcticnet_sf"})
+    init = ds.replace(cfg, model=ds.replace(cfg.model, init=str(tmp_path / "seed{seed}" / "model.safetensors")))
+    monkeypatch.setattr(ds, "camera_prior", lambda *a: pytest.fail("the camera prior is not for a checkpoint"))
+    torch.manual_seed(6)
+    model = ds.build_model(cfg, layers)
+    assert not all(torch.equal(v, saved[k]) for k, v in model.network_state_dict().items())
+    ds.start_weights(model, "real", 3, init, {"data": tiny_world}, layers)
+    loaded = model.network_state_dict()
+    assert loaded.keys() == saved.keys() and all(torch.equal(loaded[k], saved[k]) for k in saved)
+
+    dropped = dict(saved)
+    dropped.pop(sorted(k for k in saved if k.startswith("head_o."))[0])
+    write_tensors_and_manifest(tmp_path / "seed4", "model.safetensors", dropped, "model.json", {"kind": "arcticnet_sf"})
+    with pytest.raises(AssetError, match="seed4"):
+        ds.start_weights(ds.build_model(cfg, layers), "real", 4, init, {"data": tiny_world}, layers)
+
+
+def test_export_drops_survive_a_resumed_export(tmp_path):
+    """Drops are recorded per shard as its frames are drawn, so an export finished by a second
+    pass (a fresh dataset, counters at zero) reports the drops of both passes' shards, and only
+    those of shards that exist."""
+    ds = _downstream()
+
+    class _Counting:  # a dataset whose counters grow as frames are drawn
+        def __init__(self):
+            self.dropped = {"labels_out_of_crop": 0, "empty_render": 0}
+
+        def total_stats(self):
+            return ds.argparse.Namespace(dropped=dict(self.dropped))
+
+    plan = {0: {"labels_out_of_crop": 3}, 1: {"labels_out_of_crop": 1, "empty_render": 2}}
+
+    def frames_of(data):
+        def frames(shard):
+            for reason, n in plan[shard].items():
+                data.dropped[reason] += n
+                yield f"frame of shard {shard}"
+
+        return frames
+
+    first = _Counting()
+    assert list(ds.counting_drops(frames_of(first), first, tmp_path)(0)) == ["frame of shard 0"]
+    second = _Counting()  # the resumed pass skips shard 0
+    list(ds.counting_drops(frames_of(second), second, tmp_path)(1))
+    assert ds.export_drops(tmp_path, [0, 1]) == {"labels_out_of_crop": 4, "empty_render": 2}
+    assert ds.export_drops(tmp_path, [1]) == {"labels_out_of_crop": 1, "empty_render": 2}
+    assert ds.export_drops(tmp_path / "none", [0]) == {}
