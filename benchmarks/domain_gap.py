@@ -17,6 +17,12 @@ Reads the folder of ``benchmarks/downstream.py`` (its world in ``setup/`` and it
 * **object articulation** — the range of the object's articulation angle per set.
 * **labels** — the synthetic samples dropped at export, by reason (a sample whose 2D labels
   do not lie on its rendered pixels is never exported).
+* **the task model's view** — ARCTIC's metrics of a trained ArcticNet-SF (by default the
+  downstream real arm's seed-0 model) on its own training frames, on the held-out subject and
+  on each variant's frames. Synthetic frames it handles as well as its training frames hold
+  little it has not learned; much worse, new content (poses, views) or a gap it does not
+  bridge. Its training-frame error against its held-out error tells an underfit model (both
+  high: more data cannot help yet) from an overfit one.
 
 Outputs in ``--out`` (default: ``DOWNSTREAM/analysis``): ``domain_gap.json``,
 ``domain_gap.md`` and ``domain_gap.png`` (patches of each source side by side).
@@ -59,6 +65,14 @@ class GapConfig:
     batch_size: int = field(default=32, metadata={"help": "classifier batch (half per class)"})
     seed: int = field(default=0, metadata={"help": "draws of patches and classifier initialisation"})
     threads: int = field(default=0, metadata={"help": "torch threads (0: all available cores)"})
+    model: Optional[str] = field(
+        default=None,
+        metadata={
+            "help": "a downstream run's model.safetensors (with its model.json) for the task model's view "
+            "(default: DOWNSTREAM/runs/real/seed0/model.safetensors when it exists; 'none' skips it)"
+        },
+    )
+    model_frames: int = field(default=256, metadata={"help": "frames per source for the task model's view"})
 
 
 # ----------------------------------------------------------------------------- sources
@@ -132,6 +146,60 @@ def patches(ds: Any, idx: Sequence[int]) -> tuple[torch.Tensor, list[dict[str, A
         imgs.append(inputs["img"])
         targets.append(t)
     return torch.stack(imgs), targets
+
+
+# ----------------------------------------------------------------------------- the task model's view
+
+TASK_METRICS = ("mpjpe/ra/h", "cdev/ho", "mrrpe/r/l", "aae")
+
+
+def task_model_path(downstream: Path, given: Optional[str]) -> Optional[Path]:
+    """The model of the task model's view: ``given`` (None for 'none'), else the real arm's
+    seed-0 model of the downstream folder when it exists."""
+    if given is not None:
+        return None if given == "none" else Path(given)
+    default = downstream / "runs" / "real" / "seed0" / "model.safetensors"
+    return default if default.is_file() else None
+
+
+def load_task_model(path: Path, root: Path) -> tuple[nn.Module, Any, int]:
+    """The ArcticNet-SF of a downstream run (``model.safetensors`` beside its ``model.json``),
+    its body layers and patch side.
+
+    Raises:
+        AssetError: naming the file when the manifest or a tensor is missing or wrong.
+    """
+    from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
+    from hogsa_loader.baselines.engine import BodyLayers
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.errors import AssetError, read_json
+
+    manifest = read_json(path.with_name("model.json"))
+    try:
+        settings = manifest["settings"]["model"]  # type: ignore[index]
+        backbone, img_res = str(settings["backbone"]), int(settings["img_res"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise AssetError(path.with_name("model.json"), f"no settings.model.backbone / img_res ({exc!r})") from exc
+    layers = BodyLayers.from_root(ArcticRoot(root))
+    model = ArcticNetSF(backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=img_res)
+    load_arctic_checkpoint(model, path)
+    return model.eval(), layers, img_res
+
+
+def task_view(
+    model: nn.Module, layers: Any, img_res: int, sources: dict[str, Any], n: int, seed: int
+) -> dict[str, dict[str, float]]:
+    """ARCTIC's metrics of ``model`` on ``n`` frames (a fixed draw) of each source dataset."""
+    from torch.utils.data import DataLoader, Subset
+
+    from hogsa_loader.baselines.engine import evaluate
+
+    out = {}
+    for name, ds in sources.items():
+        idx = draw(ds, n, np.random.default_rng([seed, 7]))
+        ev = evaluate(model, DataLoader(Subset(ds, idx), batch_size=32), layers, img_res, "cpu", temporal=False)
+        out[name] = {"frames": len(idx), **{k: float(ev["summary"][k]) for k in TASK_METRICS}}
+    return out
 
 
 # ----------------------------------------------------------------------------- domain gap
@@ -299,6 +367,20 @@ def markdown(rec: dict[str, Any]) -> str:
     lines += ["", "| set | object articulation (rad): min | median | max |", "|---|---|---|---|"]
     for name, a in rec["articulation"].items():
         lines.append(f"| {name} | {a['min']:.3f} | {a['median']:.3f} | {a['max']:.3f} |")
+    if rec.get("task_model"):
+        tm = rec["task_model"]
+        lines += [
+            "",
+            f"The task model's view (`{tm['model']}`; {tm['img_res']}² frames, no augmentation):",
+            "",
+            "| frames | n | MPJPE_h (mm) | CDev_ho (mm) | MRRPE_rl (mm) | AAE (°) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, m in tm["metrics"].items():
+            lines.append(
+                f"| {name} | {m['frames']} | {m['mpjpe/ra/h']:.1f} | {m['cdev/ho']:.1f} | {m['mrrpe/r/l']:.1f} "
+                f"| {m['aae']:.2f} |"
+            )
     if rec.get("dropped"):
         lines += [
             "",
@@ -406,6 +488,21 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         cover(f"real_train + synthetic_{v}", np.concatenate([j_tr, j_syn]))
         arti(f"synthetic_{v}", ts)
     coverage["(validation hands)"] = {"hands": int(len(j_va)), "mean_mm": 0.0, "median_mm": 0.0, "p90_mm": 0.0}
+    task_model = None
+    mpath = task_model_path(downstream, cfg.model)
+    if mpath is not None:
+        model, mlayers, mres = load_task_model(mpath, root)
+        if mres != cfg.img_res:
+            raise SystemExit(f"domain_gap: error: {mpath} takes {mres}² patches; run with --img-res {mres}")
+        sets = {"real_train": real_dataset(root, "p1_train", mres), "real_val": real_dataset(root, "p1_val", mres)}
+        sets.update({f"synthetic_{v}": synthetic_dataset(Path(exports[v]), mres) for v in cfg.variants})
+        task_model = {
+            "model": str(mpath),
+            "img_res": mres,
+            "metrics": task_view(model, mlayers, mres, sets, cfg.model_frames, cfg.seed),
+        }
+        for name, m in task_model["metrics"].items():
+            print(f"[domain_gap] task model on {name}: MPJPE_h {m['mpjpe/ra/h']:.1f} mm", flush=True)
     rec = {
         "config": asdict(cfg),
         "world": str(root),
@@ -415,6 +512,7 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         "coverage": coverage,
         "articulation": articulation,
         "dropped": dropped,
+        "task_model": task_model,
         "seconds": round(time.perf_counter() - t0, 1),
     }
     (out / "domain_gap.json").write_text(json.dumps(rec, indent=1) + "\n")

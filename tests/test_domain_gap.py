@@ -1,0 +1,71 @@
+"""benchmarks/domain_gap.py: the task model's view of real and synthetic frames."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import load_script
+
+from hogsa_loader.errors import AssetError
+
+
+def _gap():
+    return load_script("benchmarks/domain_gap.py", "domain_gap_bench")
+
+
+def _save_model(folder, backbone: str, manifest_backbone: str, img_res: int, root) -> dict:
+    from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
+    from hogsa_loader.baselines.engine import BodyLayers
+    from hogsa_loader.datasets.arctic import ArcticRoot
+    from hogsa_loader.io.tensors import write_tensors_and_manifest
+
+    layers = BodyLayers.from_root(ArcticRoot(root))
+    torch.manual_seed(3)
+    net = ArcticNetSF(backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=img_res)
+    state = {k: v.detach().clone().contiguous() for k, v in net.network_state_dict().items()}
+    settings = {"model": {"backbone": manifest_backbone, "img_res": img_res}}
+    write_tensors_and_manifest(folder, "model.safetensors", state, "model.json", {"settings": settings})
+    return state
+
+
+def test_task_model_is_a_downstream_runs_model_loaded_whole(tiny_world, tmp_path):
+    """The default model is the real arm's seed-0 model; it loads with the backbone and patch
+    side its manifest names, every tensor as saved; 'none' and a folder without runs skip it."""
+    gap = _gap()
+    folder = tmp_path / "runs" / "real" / "seed0"
+    state = _save_model(folder, "resnet18", "resnet18", 32, tiny_world)
+    assert gap.task_model_path(tmp_path, None) == folder / "model.safetensors"
+    assert gap.task_model_path(tmp_path, "none") is None
+    assert gap.task_model_path(tmp_path / "elsewhere", None) is None
+    model, _, res = gap.load_task_model(folder / "model.safetensors", tiny_world)
+    assert res == 32 and not model.training
+    got = model.network_state_dict()
+    assert got.keys() == state.keys() and all(torch.equal(got[k], state[k]) for k in state)
+
+
+def test_task_model_files_that_do_not_fit_are_refused_by_name(tiny_world, tmp_path):
+    gap = _gap()
+    _save_model(tmp_path / "a", "resnet18", "resnet50", 32, tiny_world)  # manifest says another backbone
+    with pytest.raises(AssetError, match="a/model.safetensors"):
+        gap.load_task_model(tmp_path / "a" / "model.safetensors", tiny_world)
+    _save_model(tmp_path / "b", "resnet18", "resnet18", 32, tiny_world)
+    (tmp_path / "b" / "model.json").unlink()
+    with pytest.raises(AssetError, match="b/model.json"):
+        gap.load_task_model(tmp_path / "b" / "model.safetensors", tiny_world)
+
+
+def test_task_view_measures_each_source_on_a_fixed_draw(tiny_world, tmp_path):
+    """Each source is measured on ``n`` frames of a fixed draw: the same frames give the same
+    metrics under any name, the training and held-out splits give their own."""
+    gap = _gap()
+    _save_model(tmp_path, "resnet18", "resnet18", 32, tiny_world)
+    model, layers, res = gap.load_task_model(tmp_path / "model.safetensors", tiny_world)
+    train = gap.real_dataset(tiny_world, "p1_train", res)
+    sources = {"real_train": train, "again": train, "real_val": gap.real_dataset(tiny_world, "p1_val", res)}
+    view = gap.task_view(model, layers, res, sources, 6, seed=0)
+    assert set(view) == set(sources) and all(m["frames"] == 6 for m in view.values())
+    assert view["real_train"] == view["again"]
+    assert view["real_val"]["mpjpe/ra/h"] != view["real_train"]["mpjpe/ra/h"]
+    assert all(math.isfinite(m[k]) for m in view.values() for k in ("mpjpe/ra/h", "mrrpe/r/l", "aae"))
