@@ -37,7 +37,8 @@ bundle (HOGS for every training (subject, object), ContactNet, pose bank, SRM) a
 ``hogsa demo``'s cached stages in ``OUT/setup``.
 
 Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run
-(``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``) —
+(``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``, ``+ft`` appended for runs
+from ``--model-init``) —
 a finished run is reused when its settings are unchanged, and an unfinished one continues
 from its last saved state (``checkpoints/``, every ``--train-checkpoint-every`` steps) on
 exactly the batches it would have seen, so an interrupted command continues where it
@@ -315,6 +316,14 @@ def validate(cfg: DownstreamConfig) -> None:
     missing = [str(init_path(cfg, s)) for s in cfg.seeds if cfg.model.init and not init_path(cfg, s).is_file()]
     if missing:
         raise SystemExit(f"downstream: error: --model-init: no checkpoint file {', '.join(missing)}")
+    own = [
+        str(init_path(cfg, s))
+        for s in cfg.seeds
+        for a in cfg.arms
+        if cfg.model.init and init_path(cfg, s).resolve().parent == run_dir(a, s, cfg, Path(cfg.out)).resolve()
+    ]
+    if own:
+        raise SystemExit(f"downstream: error: --model-init {own[0]} is the model that its own run would replace")
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
 
@@ -802,9 +811,11 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
 
 def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     """Folder of one (arm, seed) run: HOGSA arms with appended synthetic samples apart from
-    the replace runs, so that both mixes can share one OUT (and its exports)."""
+    the replace runs, and runs from a checkpoint (``+ft``) apart from those from random weights,
+    so that all of them can share one OUT (and its exports)."""
     add = ARM_SPECS[arm][1] is not None and cfg.synthetic.mix == "add"
-    return out / "runs" / (f"{arm}+add" if add else arm) / f"seed{seed}"
+    name = f"{arm}+add" if add else arm
+    return out / "runs" / (name + "+ft" if cfg.model.init is not None else name) / f"seed{seed}"
 
 
 def finished_run(

@@ -463,6 +463,8 @@ def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
     }
     assert m1["init"]["sha256"] == hashlib.sha256(b"weights of seed 1").hexdigest()
     assert "camera_prior" not in m0
+    assert ds.run_dir("hogsa", 1, init, tmp_path) == tmp_path / "runs" / "hogsa+ft" / "seed1"
+    assert ds.run_dir("real", 1, cfg, tmp_path) == tmp_path / "runs" / "real" / "seed1"
     before = ds._key(ds.run_settings("real", 0, init, setup))
     (tmp_path / "seed0" / "m.safetensors").write_bytes(b"other weights, longer")
     assert ds._key(ds.run_settings("real", 0, init, setup)) != before
@@ -528,3 +530,15 @@ def test_export_drops_survive_a_resumed_export(tmp_path):
     assert ds.export_drops(tmp_path, [0, 1]) == {"labels_out_of_crop": 4, "empty_render": 2}
     assert ds.export_drops(tmp_path, [1]) == {"labels_out_of_crop": 1, "empty_render": 2}
     assert ds.export_drops(tmp_path / "none", [0]) == {}
+
+
+def test_a_checkpoint_its_own_run_would_replace_is_refused(tmp_path):
+    """Fine-tuning runs live in their own folders (``+ft``), and a --model-init that is the
+    model file of the very run it starts is refused before any work."""
+    ds = _downstream()
+    ft = tmp_path / "o" / "runs" / "real+ft" / "seed0"
+    ft.mkdir(parents=True)
+    (ft / "model.safetensors").write_bytes(b"x")
+    argv = ["--out", str(tmp_path / "o"), "--arms", "real", "--seeds", "0"]
+    with pytest.raises(SystemExit, match="its own run would replace"):
+        ds.main(argv + ["--model-init", str(tmp_path / "o" / "runs" / "real+ft" / "seed{seed}" / "model.safetensors")])
