@@ -94,22 +94,19 @@ def find_export(downstream: Path, variant: str, img_res: int) -> Path:
     return max(found)[1]
 
 
-def export_drops(downstream: Path, variant: str) -> dict[str, Any]:
-    """Drop counts of ``variant``'s export as ``downstream.json`` recorded them (empty if absent)."""
-    rec = downstream / "downstream.json"
-    if not rec.is_file():
-        return {}
-    exp = json.loads(rec.read_text()).get("exports", {}).get(variant, {})
-    return (
-        {
-            "requested": exp.get("requested", exp.get("settings", {}).get("frames")),
-            "written": exp.get("samples"),
-            "dropped": exp.get("dropped_total"),
-            **(exp.get("dropped") or {}),
-        }
-        if exp
-        else {}
-    )
+def export_drops(export: Path) -> dict[str, Any]:
+    """What an export folder records of its samples: requested, written and dropped (in all,
+    and by reason where the writer recorded the reason per shard in ``drops.json``)."""
+    index = json.loads((export / "index.json").read_text())
+    written = int(index.get("num_samples_written", 0))
+    rec: dict[str, Any] = {"requested": index.get("num"), "written": written}
+    if index.get("complete") and index.get("num") is not None:
+        rec["dropped"] = int(index["num"]) - written
+    drops = json.loads((export / "drops.json").read_text()) if (export / "drops.json").is_file() else {}
+    for shard in index.get("shards", []):
+        for reason, n in drops.get(str(shard["shard"]), {}).items():
+            rec[reason] = rec.get(reason, 0) + int(n)
+    return rec
 
 
 def world_root(downstream: Path) -> Path:
@@ -198,7 +195,8 @@ def task_view(
     for name, ds in sources.items():
         idx = draw(ds, n, np.random.default_rng([seed, 7]))
         ev = evaluate(model, DataLoader(Subset(ds, idx), batch_size=32), layers, img_res, "cpu", temporal=False)
-        out[name] = {"frames": len(idx), **{k: float(ev["summary"][k]) for k in TASK_METRICS}}
+        values = {k: float(ev["summary"][k]) for k in TASK_METRICS}
+        out[name] = {"frames": len(idx), **{k: (v if np.isfinite(v) else None) for k, v in values.items()}}
     return out
 
 
@@ -377,10 +375,8 @@ def markdown(rec: dict[str, Any]) -> str:
             "|---|---|---|---|---|---|",
         ]
         for name, m in tm["metrics"].items():
-            lines.append(
-                f"| {name} | {m['frames']} | {m['mpjpe/ra/h']:.1f} | {m['cdev/ho']:.1f} | {m['mrrpe/r/l']:.1f} "
-                f"| {m['aae']:.2f} |"
-            )
+            cells = [("—" if m[k] is None else f"{m[k]:.1f}") for k in TASK_METRICS]
+            lines.append(f"| {name} | {m['frames']} | " + " | ".join(cells) + " |")
     if rec.get("dropped"):
         lines += [
             "",
@@ -423,6 +419,11 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         k = min(cfg.test_per_class, len(imgs) // 4)
         return imgs[k:], imgs[:k]
 
+    mpath = task_model_path(downstream, cfg.model)
+    if mpath is not None:
+        model, mlayers, mres = load_task_model(mpath, root)  # before any work: a wrong file stops here
+        if mres != cfg.img_res:
+            raise SystemExit(f"domain_gap: error: {mpath} takes {mres}² patches; run with --img-res {mres}")
     print(f"[domain_gap] world {root}", flush=True)
     real_tr = real_dataset(root, "p1_train", cfg.img_res)
     real_va = real_dataset(root, "p1_val", cfg.img_res)
@@ -437,7 +438,7 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         imgs, _ = patches(ds, rng.permutation(draw(ds, n, rng)))
         sources[f"synthetic_{v}"] = imgs
         exports[v] = str(exp)
-        dropped[v] = export_drops(downstream, v)
+        dropped[v] = export_drops(exp)
         print(f"[domain_gap] {v}: {len(ds)} frames in {exp}", flush=True)
     stats = {name: image_statistics(imgs) for name, imgs in sources.items()}
     a = split_sets(imgs_tr)
@@ -489,11 +490,7 @@ def run(cfg: GapConfig) -> dict[str, Any]:
         arti(f"synthetic_{v}", ts)
     coverage["(validation hands)"] = {"hands": int(len(j_va)), "mean_mm": 0.0, "median_mm": 0.0, "p90_mm": 0.0}
     task_model = None
-    mpath = task_model_path(downstream, cfg.model)
     if mpath is not None:
-        model, mlayers, mres = load_task_model(mpath, root)
-        if mres != cfg.img_res:
-            raise SystemExit(f"domain_gap: error: {mpath} takes {mres}² patches; run with --img-res {mres}")
         sets = {"real_train": real_dataset(root, "p1_train", mres), "real_val": real_dataset(root, "p1_val", mres)}
         sets.update({f"synthetic_{v}": synthetic_dataset(Path(exports[v]), mres) for v in cfg.variants})
         task_model = {

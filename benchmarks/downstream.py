@@ -37,8 +37,8 @@ bundle (HOGS for every training (subject, object), ContactNet, pose bank, SRM) a
 ``hogsa demo``'s cached stages in ``OUT/setup``.
 
 Outputs in ``OUT``: ``runs/<arm>/seed<k>/result.json`` (+ ``model.safetensors``) per run
-(``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``, ``+ft`` appended for runs
-from ``--model-init``) —
+(``runs/<arm>+add/`` for HOGSA arms with ``--synthetic-mix add``, ``+ft-<hash>`` appended for
+runs from a ``--model-init``) —
 a finished run is reused when its settings are unchanged, and an unfinished one continues
 from its last saved state (``checkpoints/``, every ``--train-checkpoint-every`` steps) on
 exactly the batches it would have seen, so an interrupted command continues where it
@@ -73,7 +73,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterator, Literal, Optional
+from typing import Any, Callable, Iterable, Iterator, Literal, Optional
 
 import numpy as np
 import torch
@@ -313,17 +313,7 @@ def validate(cfg: DownstreamConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise SystemExit(f"downstream: error: {msg}")
-    missing = [str(init_path(cfg, s)) for s in cfg.seeds if cfg.model.init and not init_path(cfg, s).is_file()]
-    if missing:
-        raise SystemExit(f"downstream: error: --model-init: no checkpoint file {', '.join(missing)}")
-    own = [
-        str(init_path(cfg, s))
-        for s in cfg.seeds
-        for a in cfg.arms
-        if cfg.model.init and init_path(cfg, s).resolve().parent == run_dir(a, s, cfg, Path(cfg.out)).resolve()
-    ]
-    if own:
-        raise SystemExit(f"downstream: error: --model-init {own[0]} is the model that its own run would replace")
+    _validate_init(cfg)
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
 
@@ -337,6 +327,26 @@ def _atomic_json(path: Path, obj: Any) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(obj, indent=1, allow_nan=False, default=str) + "\n")
     os.replace(tmp, path)
+
+
+def _validate_init(cfg: DownstreamConfig) -> None:
+    """Refuse a ``--model-init`` whose file is missing for a seed."""
+    if cfg.model.init is None:
+        return
+    for seed in cfg.seeds:
+        if not init_path(cfg, seed).is_file():
+            raise SystemExit(f"downstream: error: --model-init: no checkpoint file {init_path(cfg, seed)}")
+
+
+def check_inits(cfg: DownstreamConfig, setup: dict[str, Any]) -> None:
+    """Load every seed's ``--model-init`` into the configured network once, before any export or
+    training, so that a checkpoint of another backbone or a damaged file stops the command at
+    once (an :class:`~hogsa_loader.errors.AssetError` naming the file)."""
+    if cfg.model.init is None:
+        return
+    model = build_model(cfg, BodyLayers.from_root(ArcticRoot(setup["data"])))
+    for seed in cfg.seeds:
+        load_arctic_checkpoint(model, init_path(cfg, seed))
 
 
 def _say(msg: str) -> None:
@@ -555,7 +565,9 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
 DROPS_FILE = "drops.json"
 
 
-def counting_drops(frames_for_shard: Any, ds: Any, folder: Path) -> Any:
+def counting_drops(
+    frames_for_shard: Callable[[int], Iterable[Any]], ds: Any, folder: Path
+) -> Callable[[int], Iterator[Any]]:
     """``frames_for_shard`` that records, once a shard's frames are drawn, the samples the
     dataset dropped for it by reason (``folder/drops.json``), so a resumed export still
     reports the drops of the shards an earlier pass wrote."""
@@ -758,14 +770,13 @@ def file_digest(path: Path) -> str:
 
 
 def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
-    """The model settings in a run's cache key. Runs from random weights keep the keys they had
-    before ``--model-init`` existed, and those with a random camera start the keys they had before
-    the camera prior existed; a run from a checkpoint is keyed by the file's bytes, not its path."""
+    """The model settings in a run's cache key: backbone, patch side and backbone weights; the
+    sha256 of the seed's ``--model-init`` file (its bytes, wherever it lies) for a run from a
+    checkpoint, else the camera prior when it is on (absent for a random camera start)."""
     model = asdict(cfg.model)
     init = model.pop("init")
     if init is not None:
-        path = init_path(cfg, seed)
-        model["init"] = {"file": str(path), "sha256": file_digest(path)}
+        model["init_sha256"] = file_digest(init_path(cfg, seed))
         del model["camera_prior"]  # not applied to a checkpoint
     elif model["camera_prior"] == 0:
         del model["camera_prior"]
@@ -811,11 +822,13 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
 
 def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     """Folder of one (arm, seed) run: HOGSA arms with appended synthetic samples apart from
-    the replace runs, and runs from a checkpoint (``+ft``) apart from those from random weights,
-    so that all of them can share one OUT (and its exports)."""
+    the replace runs, and runs from each ``--model-init`` (``+ft-<hash of the option>``) apart
+    from those from random weights, so that all of them can share one OUT (and its exports)."""
     add = ARM_SPECS[arm][1] is not None and cfg.synthetic.mix == "add"
     name = f"{arm}+add" if add else arm
-    return out / "runs" / (name + "+ft" if cfg.model.init is not None else name) / f"seed{seed}"
+    if cfg.model.init is not None:  # one folder per --model-init, so fine-tunings of several models coexist
+        name += "+ft-" + hashlib.sha256(cfg.model.init.encode()).hexdigest()[:8]
+    return out / "runs" / name / f"seed{seed}"
 
 
 def finished_run(
@@ -974,6 +987,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         "train_seconds": round(state["train_time_s"], 1),
         "eval_seconds": round(state["eval_time_s"], 1),
         "resumed_at": state["resumed_at"],
+        "init_file": str(init_path(cfg, seed)) if cfg.model.init is not None else None,
     }
     _atomic_json(res_path, result)
     shutil.rmtree(folder / "checkpoints", ignore_errors=True)
@@ -1063,7 +1077,8 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
         f"{cfg.train.steps} steps of {cfg.train.batch_size}"
         f"{' real + synthetic appended' if cfg.synthetic.mix == 'add' else ''}, "
         f"synthetic share {cfg.synthetic.share}, "
-        f"{cfg.synthetic.frames} synthetic frames per variant; {machine}.",
+        f"{cfg.synthetic.frames} synthetic frames per variant; {machine}."
+        + (f" Every run fine-tuned from `{cfg.model.init}`." if cfg.model.init is not None else ""),
         "",
         "**Table 1** (p1, held-out subject)",
         "",
@@ -1185,6 +1200,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
         )
     setup = build_setup(cfg, out)
     setup["fingerprints"] = setup_fingerprints(cfg, setup)
+    check_inits(cfg, setup)
     skipped: dict[str, str] = {}
     exports: dict[str, Any] = dict(previous.get("exports", {})) if cfg.report_only else {}
     for arm in cfg.arms:

@@ -69,3 +69,36 @@ def test_task_view_measures_each_source_on_a_fixed_draw(tiny_world, tmp_path):
     assert view["real_train"] == view["again"]
     assert view["real_val"]["mpjpe/ra/h"] != view["real_train"]["mpjpe/ra/h"]
     assert all(math.isfinite(m[k]) for m in view.values() for k in ("mpjpe/ra/h", "mrrpe/r/l", "aae"))
+
+
+def test_the_report_shows_the_task_model_and_the_exports_drops(tmp_path):
+    """The markdown carries the task model's table (an undefined metric as a dash), and an export
+    folder's drops are read from its own index and per-shard record, complete shards only."""
+    import json
+
+    gap = _gap()
+    rec = {
+        "world": "w",
+        "config": {"img_res": 96, "per_class": 1, "test_per_class": 1, "steps": 1},
+        "statistics": {"real_train": {"sharpness": 1.0, "sharpness_std": 0.0, "saturation": 1.0, "brightness": 1.0}},
+        "classifier": {},
+        "coverage": {},
+        "articulation": {},
+        "task_model": {
+            "model": "m.safetensors",
+            "img_res": 96,
+            "metrics": {"real_val": {"frames": 8, "mpjpe/ra/h": 47.75, "cdev/ho": None, "mrrpe/r/l": 84.2, "aae": 3.2}},
+        },
+    }
+    assert "| real_val | 8 | 47.8 | — | 84.2 | 3.2 |" in gap.markdown(rec)
+    index = {"num": 30, "complete": True, "num_samples_written": 25, "shards": [{"shard": 0}, {"shard": 2}]}
+    (tmp_path / "index.json").write_text(json.dumps(index))
+    drops = {"0": {"empty_render": 2}, "1": {"empty_render": 7}, "2": {"labels_out_of_crop": 3}}
+    (tmp_path / "drops.json").write_text(json.dumps(drops))
+    assert gap.export_drops(tmp_path) == {
+        "requested": 30,
+        "written": 25,
+        "dropped": 5,
+        "empty_render": 2,
+        "labels_out_of_crop": 3,
+    }

@@ -105,7 +105,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
         (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
-        (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "0", "2"], "/nowhere/seed2/m.safetensors"),
+        (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2", "3"], "/nowhere/seed2/m.safetensors"),
     ],
 )
 def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
@@ -445,8 +445,10 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
 
 def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
     """--model-init: each seed's run is keyed by the bytes of its own checkpoint ('{seed}' in the
-    path), without the camera prior it does not use; runs from random weights keep their keys."""
+    path), wherever the file lies, without the camera prior it does not use; runs from random
+    weights keep their keys; each --model-init has its own run folders."""
     import hashlib
+    import os
 
     ds = _downstream()
     cfg = ds.DownstreamConfig()
@@ -457,17 +459,27 @@ def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert set(ds.run_settings("real", 0, cfg, setup)["model"]) == {"backbone", "img_res", "weights", "camera_prior"}
     m0, m1 = (ds.run_settings("hogsa", k, init, setup)["model"] for k in (0, 1))
-    assert m0["init"] == {
-        "file": str(tmp_path / "seed0" / "m.safetensors"),
-        "sha256": hashlib.sha256(b"weights of seed 0").hexdigest(),
-    }
-    assert m1["init"]["sha256"] == hashlib.sha256(b"weights of seed 1").hexdigest()
+    assert m0["init_sha256"] == hashlib.sha256(b"weights of seed 0").hexdigest()
+    assert m1["init_sha256"] == hashlib.sha256(b"weights of seed 1").hexdigest()
     assert "camera_prior" not in m0
-    assert ds.run_dir("hogsa", 1, init, tmp_path) == tmp_path / "runs" / "hogsa+ft" / "seed1"
+    moved = ds.replace(init, model=ds.replace(init.model, init=os.path.relpath(init.model.init)))
+    assert ds.run_settings("hogsa", 0, moved, setup) == ds.run_settings("hogsa", 0, init, setup)
+
+    folder = ds.run_dir("hogsa", 1, init, tmp_path)
+    assert folder.parent.name.startswith("hogsa+ft-") and folder.name == "seed1"
+    add = ds.replace(init, synthetic=ds.replace(init.synthetic, mix="add"))
+    assert ds.run_dir("hogsa", 1, add, tmp_path).parent.name.startswith("hogsa+add+ft-")
     assert ds.run_dir("real", 1, cfg, tmp_path) == tmp_path / "runs" / "real" / "seed1"
+    chained = ds.replace(cfg, model=ds.replace(cfg.model, init=str(folder.parent / "seed{seed}" / "model.safetensors")))
+    assert ds.run_dir("hogsa", 1, chained, tmp_path) != folder  # fine-tuning a fine-tuned model never overwrites it
+
     before = ds._key(ds.run_settings("real", 0, init, setup))
-    (tmp_path / "seed0" / "m.safetensors").write_bytes(b"other weights, longer")
+    path = tmp_path / "seed0" / "m.safetensors"
+    stat = path.stat()
+    path.write_bytes(b"weights of seed 9")  # the same length; only the modification time tells
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1))
     assert ds._key(ds.run_settings("real", 0, init, setup)) != before
+    ds._validate_init(ds.replace(init, seeds=(0, 1)))  # both seeds' files exist: accepted
 
 
 def test_a_run_starts_from_its_seeds_checkpoint(tiny_world, tmp_path, monkeypatch):
@@ -498,47 +510,80 @@ def test_a_run_starts_from_its_seeds_checkpoint(tiny_world, tmp_path, monkeypatc
     write_tensors_and_manifest(tmp_path / "seed4", "model.safetensors", dropped, "model.json", {"kind": "arcticnet_sf"})
     with pytest.raises(AssetError, match="seed4"):
         ds.start_weights(ds.build_model(cfg, layers), "real", 4, init, {"data": tiny_world}, layers)
+    with pytest.raises(AssetError, match="seed4"):  # found before any export or training
+        ds.check_inits(ds.replace(init, seeds=(3, 4)), {"data": tiny_world})
+
+    # a Lightning checkpoint as ARCTIC releases it: weights under "model.", plain hyper-parameters beside
+    lightning = {"state_dict": {f"model.{k}": v for k, v in saved.items()}, "hyper_parameters": {"lr": 1e-5}}
+    torch.save(lightning, tmp_path / "arctic.ckpt")
+    arctic = ds.replace(cfg, model=ds.replace(cfg.model, init=str(tmp_path / "arctic.ckpt")))
+    model = ds.build_model(cfg, layers)
+    ds.start_weights(model, "real", 0, arctic, {"data": tiny_world}, layers)
+    assert all(torch.equal(model.network_state_dict()[k], saved[k]) for k in saved)
 
 
-def test_export_drops_survive_a_resumed_export(tmp_path):
+def test_export_drops_survive_a_resumed_export(tmp_path, monkeypatch):
     """Drops are recorded per shard as its frames are drawn, so an export finished by a second
     pass (a fresh dataset, counters at zero) reports the drops of both passes' shards, and only
-    those of shards that exist."""
+    those of shards that exist; export_variant reports the whole export."""
     ds = _downstream()
+    plan = {0: {"labels_out_of_crop": 3}, 1: {"labels_out_of_crop": 1, "empty_render": 2}, 2: {"empty_render": 1}}
 
     class _Counting:  # a dataset whose counters grow as frames are drawn
-        def __init__(self):
+        def __init__(self, bundle=None, data=None, config=None):
             self.dropped = {"labels_out_of_crop": 0, "empty_render": 0}
 
         def total_stats(self):
             return ds.argparse.Namespace(dropped=dict(self.dropped))
 
-    plan = {0: {"labels_out_of_crop": 3}, 1: {"labels_out_of_crop": 1, "empty_render": 2}}
-
-    def frames_of(data):
+    def frames_of(data, *_):
         def frames(shard):
             for reason, n in plan[shard].items():
                 data.dropped[reason] += n
-                yield f"frame of shard {shard}"
+            yield from [f"frame {shard}.{i}" for i in range(2)]
 
         return frames
 
-    first = _Counting()
-    assert list(ds.counting_drops(frames_of(first), first, tmp_path)(0)) == ["frame of shard 0"]
-    second = _Counting()  # the resumed pass skips shard 0
-    list(ds.counting_drops(frames_of(second), second, tmp_path)(1))
-    assert ds.export_drops(tmp_path, [0, 1]) == {"labels_out_of_crop": 4, "empty_render": 2}
+    first = _Counting()  # one pass draws shards 0 and 1 from one dataset
+    assert list(ds.counting_drops(frames_of(first), first, tmp_path)(0)) == ["frame 0.0", "frame 0.1"]
+    list(ds.counting_drops(frames_of(first), first, tmp_path)(1))
+    second = _Counting()  # the resumed pass draws shard 2 only
+    list(ds.counting_drops(frames_of(second), second, tmp_path)(2))
+    assert ds.export_drops(tmp_path, [0, 1, 2]) == {"labels_out_of_crop": 4, "empty_render": 3}
     assert ds.export_drops(tmp_path, [1]) == {"labels_out_of_crop": 1, "empty_render": 2}
     assert ds.export_drops(tmp_path / "none", [0]) == {}
 
+    # export_variant over two passes: the second finds shards 0 and 1 written and draws shard 2
+    out = tmp_path / "ds"
+    cfg = ds.DownstreamConfig()
+    cfg = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, frames=15, render_batch=5))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0"), "backgrounds": out}
+    monkeypatch.setattr(ds, "HOGSADataset", _Counting)
+    monkeypatch.setattr(ds, "dataset_frames_for_shard", frames_of)
+    passes = iter([[0, 1], [2]])
 
-def test_a_checkpoint_its_own_run_would_replace_is_refused(tmp_path):
-    """Fine-tuning runs live in their own folders (``+ft``), and a --model-init that is the
-    model file of the very run it starts is refused before any work."""
-    ds = _downstream()
-    ft = tmp_path / "o" / "runs" / "real+ft" / "seed0"
-    ft.mkdir(parents=True)
-    (ft / "model.safetensors").write_bytes(b"x")
-    argv = ["--out", str(tmp_path / "o"), "--arms", "real", "--seeds", "0"]
-    with pytest.raises(SystemExit, match="its own run would replace"):
-        ds.main(argv + ["--model-init", str(tmp_path / "o" / "runs" / "real+ft" / "seed{seed}" / "model.safetensors")])
+    def write_shards(frames_for_shard, folder, num, shard, **_):
+        todo = next(passes)
+        done = [0, 1, 2][: todo[-1] + 1]
+        for sh in todo:
+            list(frames_for_shard(sh))
+        folder.mkdir(parents=True, exist_ok=True)
+        index = {
+            "num_samples_written": 2 * len(done),
+            "complete": len(done) == 3,
+            "shards": [{"shard": d} for d in done],
+        }
+        (folder / "index.json").write_text(json.dumps(index))
+        return {
+            "samples": 2 * len(todo),
+            "written": todo,
+            "skipped": [d for d in done if d not in todo],
+            "index": str(folder / "index.json"),
+        }
+
+    monkeypatch.setattr(ds, "write_shards", write_shards)
+    a = ds.export_variant("full", cfg, setup, out)
+    assert (a["samples"], a["dropped_total"], a["dropped"]) == (4, None, {"labels_out_of_crop": 4, "empty_render": 2})
+    b = ds.export_variant("full", cfg, setup, out)
+    assert (b["requested"], b["samples"], b["written"], b["skipped"]) == (15, 6, 1, 2)
+    assert b["dropped_total"] == 9 and b["dropped"] == {"labels_out_of_crop": 4, "empty_render": 3}
