@@ -91,6 +91,7 @@ from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages
 from hogsa_loader.errors import AssetError, read_json
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
+from hogsa_loader.io.hashing import sha256_file
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
 from hogsa_loader.loader.cameras import CameraConfig
@@ -761,11 +762,7 @@ def file_digest(path: Path) -> str:
     st = path.stat()
     tag = (str(path.resolve()), st.st_size, st.st_mtime_ns)
     if tag not in _DIGESTS:
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-        _DIGESTS[tag] = h.hexdigest()
+        _DIGESTS[tag] = sha256_file(path)
     return _DIGESTS[tag]
 
 

@@ -9,7 +9,6 @@ layout and the ``manifest.json`` keys. :func:`load_bundle` checks every entry an
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -24,6 +23,7 @@ from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
 from hogsa_loader.gaussians.parts import template_hash
 from hogsa_loader.gaussians.shading import LIGHT_MANIFEST, LIGHT_TENSORS
 from hogsa_loader.io.atomic import atomic_write_json
+from hogsa_loader.io.hashing import sha256_file
 from hogsa_loader.io.tensors import ManifestFormat, check_header
 from hogsa_loader.pom.bank import load_pose_bank
 from hogsa_loader.pom.contactnet import load_contactnet
@@ -183,22 +183,14 @@ class Bundle:
 # --------------------------------------------------------------------------------------
 
 
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _hash_tree(path: Path) -> dict[str, str]:
     """``{relative posix path: sha256}`` of a file or of every file under a folder."""
     if path.is_file():
-        return {path.name: _sha256_file(path)}
+        return {path.name: sha256_file(path)}
     out = {}
     for p in sorted(path.rglob("*")):
         if p.is_file():
-            out[p.relative_to(path).as_posix()] = _sha256_file(p)
+            out[p.relative_to(path).as_posix()] = sha256_file(p)
     return out
 
 
@@ -368,13 +360,13 @@ def _copy_run(run: Path, out: Path, rel: str) -> tuple[dict[str, dict[str, str]]
         man = json.loads((out / rel / part / MANIFEST_FILE).read_text(encoding="utf-8"))
         parts[part] = {
             "template_hash": man["template_hash"],
-            "tensors_sha256": _sha256_file(out / rel / part / TENSORS_FILE),
-            "manifest_sha256": _sha256_file(out / rel / part / MANIFEST_FILE),
+            "tensors_sha256": sha256_file(out / rel / part / TENSORS_FILE),
+            "manifest_sha256": sha256_file(out / rel / part / MANIFEST_FILE),
         }
     light = None
     if (run / LIGHT_DIR).is_dir():  # the learned light the run's colours were fitted under
         _copy(run / LIGHT_DIR, out / rel / LIGHT_DIR)
-        light = {f"{k}_sha256": _sha256_file(out / rel / LIGHT_DIR / f) for k, f in _LIGHT_FILES.items()}
+        light = {f"{k}_sha256": sha256_file(out / rel / LIGHT_DIR / f) for k, f in _LIGHT_FILES.items()}
     elif (out / rel / LIGHT_DIR).exists():
         shutil.rmtree(out / rel / LIGHT_DIR)
     return parts, light
@@ -492,7 +484,7 @@ def _check_files(base: Path, what: str, rec: Any, problems: list[str]) -> Option
             problems.append(f"{what}: file {rel!r} is not a relative path inside the bundle")
         elif not f.is_file():
             problems.append(f"{what}: file {f} is missing")
-        elif _sha256_file(f) != sha:
+        elif sha256_file(f) != sha:
             problems.append(f"{what}: file {f} does not match its sha256 in the manifest")
     return ExtraEntry(name=str(rec.get("name", what)), path=path, files=dict(rec["files"]))
 
@@ -566,7 +558,7 @@ def _check_part(
             f = folder / fname
             if not f.is_file():
                 problems.append(f"{what}: {f} is missing")
-            elif _sha256_file(f) != rec_part.get(hkey):
+            elif sha256_file(f) != rec_part.get(hkey):
                 problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
     return True
 
@@ -588,7 +580,7 @@ def _check_light(what: str, run: Path, rec: Mapping[str, Any], verify_hashes: bo
         if not f.is_file():
             problems.append(f"{what}: {f} is missing")
             ok = False
-        elif verify_hashes and _sha256_file(f) != light.get(f"{k}_sha256"):
+        elif verify_hashes and sha256_file(f) != light.get(f"{k}_sha256"):
             problems.append(f"{what}: {f} does not match its sha256 in the bundle manifest")
     return ok
 
