@@ -95,17 +95,15 @@ def find_export(downstream: Path, variant: str, img_res: int) -> Path:
 
 
 def export_drops(export: Path) -> dict[str, Any]:
-    """What an export folder records of its samples: requested, written and dropped (in all,
-    and by reason where the writer recorded the reason per shard in ``drops.json``)."""
+    """What an export folder's ``index.json`` records of its samples: requested, written and
+    dropped (in all once complete, and by reason where every shard recorded its reasons)."""
     index = json.loads((export / "index.json").read_text())
     written = int(index.get("num_samples_written", 0))
     rec: dict[str, Any] = {"requested": index.get("num"), "written": written}
     if index.get("complete") and index.get("num") is not None:
         rec["dropped"] = int(index["num"]) - written
-    drops = json.loads((export / "drops.json").read_text()) if (export / "drops.json").is_file() else {}
-    for shard in index.get("shards", []):
-        for reason, n in drops.get(str(shard["shard"]), {}).items():
-            rec[reason] = rec.get(reason, 0) + int(n)
+    for reason, n in (index.get("dropped") or {}).items():
+        rec[reason] = int(n)
     return rec
 
 

@@ -73,7 +73,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Literal, Optional
+from typing import Any, Iterator, Literal, Optional
 
 import numpy as np
 import torch
@@ -540,14 +540,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
     }
     folder = export_dir(variant, cfg, setup, out)
     t0 = time.perf_counter()
-    rec = write_shards(
-        counting_drops(dataset_frames_for_shard(ds, s.frames, shard), ds, folder),
-        folder,
-        s.frames,
-        shard,
-        info=info,
-        progress=True,
-    )
+    rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), folder, s.frames, shard, info=info, progress=True)
     index = read_json(Path(rec["index"]))
     kept = int(index["num_samples_written"])
     return {
@@ -557,44 +550,10 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "seconds": round(time.perf_counter() - t0, 1),
         "written": len(rec["written"]),
         "skipped": len(rec["skipped"]),
-        "dropped": export_drops(folder, [int(sh["shard"]) for sh in index["shards"]]),
+        "dropped": index.get("dropped") or {},
         "dropped_total": s.frames - kept if index["complete"] else None,
         "settings": info,
     }
-
-
-DROPS_FILE = "drops.json"
-
-
-def counting_drops(
-    frames_for_shard: Callable[[int], Iterable[Any]], ds: Any, folder: Path
-) -> Callable[[int], Iterator[Any]]:
-    """``frames_for_shard`` that records, once a shard's frames are drawn, the samples the
-    dataset dropped for it by reason (``folder/drops.json``), so a resumed export still
-    reports the drops of the shards an earlier pass wrote."""
-
-    def frames(shard: int) -> Iterator[Any]:
-        before = dict(ds.total_stats().dropped)
-        yield from frames_for_shard(shard)
-        after = dict(ds.total_stats().dropped)
-        drops = {k: int(v - before.get(k, 0)) for k, v in after.items() if v - before.get(k, 0)}
-        path = folder / DROPS_FILE
-        table = read_json(path) if path.is_file() else {}
-        table[str(shard)] = drops
-        _atomic_json(path, table)
-
-    return frames
-
-
-def export_drops(folder: Path, shards: list[int]) -> dict[str, int]:
-    """Samples dropped at export, by reason, summed over ``shards`` (those complete on disk)."""
-    path = folder / DROPS_FILE
-    table = read_json(path) if path.is_file() else {}
-    total: dict[str, int] = {}
-    for shard in shards:
-        for reason, n in table.get(str(shard), {}).items():
-            total[reason] = total.get(reason, 0) + int(n)
-    return total
 
 
 # ----------------------------------------------------------------------------- one run

@@ -91,10 +91,14 @@ def test_the_report_shows_the_task_model_and_the_exports_drops(tmp_path):
         },
     }
     assert "| real_val | 8 | 47.8 | — | 84.2 | 3.2 |" in gap.markdown(rec)
-    index = {"num": 30, "complete": True, "num_samples_written": 25, "shards": [{"shard": 0}, {"shard": 2}]}
+    index = {
+        "num": 30,
+        "complete": True,
+        "num_samples_written": 25,
+        "dropped": {"empty_render": 2, "labels_out_of_crop": 3},
+        "shards": [{"shard": 0}, {"shard": 2}],
+    }
     (tmp_path / "index.json").write_text(json.dumps(index))
-    drops = {"0": {"empty_render": 2}, "1": {"empty_render": 7}, "2": {"labels_out_of_crop": 3}}
-    (tmp_path / "drops.json").write_text(json.dumps(drops))
     assert gap.export_drops(tmp_path) == {
         "requested": 30,
         "written": 25,

@@ -523,67 +523,51 @@ def test_a_run_starts_from_its_seeds_checkpoint(tiny_world, tmp_path, monkeypatc
 
 
 def test_export_drops_survive_a_resumed_export(tmp_path, monkeypatch):
-    """Drops are recorded per shard as its frames are drawn, so an export finished by a second
-    pass (a fresh dataset, counters at zero) reports the drops of both passes' shards, and only
-    those of shards that exist; export_variant reports the whole export."""
-    ds = _downstream()
-    plan = {0: {"labels_out_of_crop": 3}, 1: {"labels_out_of_crop": 1, "empty_render": 2}, 2: {"empty_render": 1}}
+    """export_variant reports the whole export, also when a second pass (a fresh dataset,
+    counters at zero) finishes what an interrupted one began: samples from ``index.json``,
+    drops in all and by reason from every shard's record."""
+    from test_export import make_frame
 
-    class _Counting:  # a dataset whose counters grow as frames are drawn
+    ds = _downstream()
+    reasons = {1: "labels_out_of_crop", 300: "labels_out_of_crop", 520: "empty_render"}
+
+    class _Counting:  # HOGSADataset's frames(g) / batch_size / total_stats
+        batch_size = 128
+
         def __init__(self, bundle=None, data=None, config=None):
             self.dropped = {"labels_out_of_crop": 0, "empty_render": 0}
+
+        def frames(self, g):
+            span = range(128 * g, 128 * g + 128)
+            for i in span:
+                if i in reasons:
+                    self.dropped[reasons[i]] += 1
+            return [None if i in reasons else make_frame(i) for i in span]
 
         def total_stats(self):
             return ds.argparse.Namespace(dropped=dict(self.dropped))
 
-    def frames_of(data, *_):
-        def frames(shard):
-            for reason, n in plan[shard].items():
-                data.dropped[reason] += n
-            yield from [f"frame {shard}.{i}" for i in range(2)]
-
-        return frames
-
-    first = _Counting()  # one pass draws shards 0 and 1 from one dataset
-    assert list(ds.counting_drops(frames_of(first), first, tmp_path)(0)) == ["frame 0.0", "frame 0.1"]
-    list(ds.counting_drops(frames_of(first), first, tmp_path)(1))
-    second = _Counting()  # the resumed pass draws shard 2 only
-    list(ds.counting_drops(frames_of(second), second, tmp_path)(2))
-    assert ds.export_drops(tmp_path, [0, 1, 2]) == {"labels_out_of_crop": 4, "empty_render": 3}
-    assert ds.export_drops(tmp_path, [1]) == {"labels_out_of_crop": 1, "empty_render": 2}
-    assert ds.export_drops(tmp_path / "none", [0]) == {}
-
-    # export_variant over two passes: the second finds shards 0 and 1 written and draws shard 2
     out = tmp_path / "ds"
     cfg = ds.DownstreamConfig()
-    cfg = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, frames=15, render_batch=5))
+    cfg = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, frames=600, render_batch=128))  # shards of 256
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0"), "backgrounds": out}
     monkeypatch.setattr(ds, "HOGSADataset", _Counting)
-    monkeypatch.setattr(ds, "dataset_frames_for_shard", frames_of)
-    passes = iter([[0, 1], [2]])
+    real_frames = ds.dataset_frames_for_shard
 
-    def write_shards(frames_for_shard, folder, num, shard, **_):
-        todo = next(passes)
-        done = [0, 1, 2][: todo[-1] + 1]
-        for sh in todo:
-            list(frames_for_shard(sh))
-        folder.mkdir(parents=True, exist_ok=True)
-        index = {
-            "num_samples_written": 2 * len(done),
-            "complete": len(done) == 3,
-            "shards": [{"shard": d} for d in done],
-        }
-        (folder / "index.json").write_text(json.dumps(index))
-        return {
-            "samples": 2 * len(todo),
-            "written": todo,
-            "skipped": [d for d in done if d not in todo],
-            "index": str(folder / "index.json"),
-        }
+    def interrupted(data, num, size):  # the first pass stops at the third shard
+        frames = real_frames(data, num, size)
 
-    monkeypatch.setattr(ds, "write_shards", write_shards)
-    a = ds.export_variant("full", cfg, setup, out)
-    assert (a["samples"], a["dropped_total"], a["dropped"]) == (4, None, {"labels_out_of_crop": 4, "empty_render": 2})
+        def shard(k):
+            if k == 2:
+                raise KeyboardInterrupt
+            return frames(k)
+
+        return shard
+
+    monkeypatch.setattr(ds, "dataset_frames_for_shard", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ds.export_variant("full", cfg, setup, out)
+    monkeypatch.setattr(ds, "dataset_frames_for_shard", real_frames)
     b = ds.export_variant("full", cfg, setup, out)
-    assert (b["requested"], b["samples"], b["written"], b["skipped"]) == (15, 6, 1, 2)
-    assert b["dropped_total"] == 9 and b["dropped"] == {"labels_out_of_crop": 4, "empty_render": 3}
+    assert (b["requested"], b["samples"], b["written"], b["skipped"]) == (600, 597, 1, 2)
+    assert b["dropped_total"] == 3 and b["dropped"] == {"labels_out_of_crop": 2, "empty_render": 1}

@@ -384,6 +384,9 @@ def test_gaps_from_dropped_samples_and_dataset_adapter(tmp_path):
     assert res["samples"] == NUM - 1 and res["complete"]
     per = json.loads((out / "synth-000000.index.json").read_text())
     assert per["keys"] == ["0000000000", "0000000001", "0000000003"] and per["expected"] == 4
+    assert "dropped" not in per  # (a dataset without statistics: the count only)
+    index = json.loads((out / "index.json").read_text())
+    assert index["num_dropped"] == 1 and index["dropped"] is None
     back = list(SynthShardDataset(out))
     assert [f.meta["index"] for f in back] == [0, 1, 3, 4, 5, 6]
     for f in back:
@@ -394,6 +397,57 @@ def test_gaps_from_dropped_samples_and_dataset_adapter(tmp_path):
 
     with pytest.raises(ValueError, match="outside"):
         write_shards(wrong, tmp_path / "w", NUM, SHARD, progress=False)
+
+
+def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
+    """Each shard's index file keeps the reasons its samples were dropped for, so the export's
+    ``index.json`` sums them over all shards, also those written by an earlier, interrupted pass."""
+    import types
+
+    from hogsa_loader.export import dataset_frames_for_shard
+
+    reasons = {1: "nan", 4: "out_of_crop", 5: "out_of_crop"}
+
+    class Counting:  # HOGSADataset's frames(g) / batch_size / total_stats interface
+        batch_size = 2
+
+        def __init__(self):
+            self.dropped = {"nan": 0, "out_of_crop": 0}
+            self.drawn = []
+
+        def frames(self, g):
+            self.drawn.append(g)
+            out = []
+            for i in (2 * g, 2 * g + 1):
+                if i in reasons:
+                    self.dropped[reasons[i]] += 1
+                out.append(None if i in reasons else make_frame(i))
+            return out
+
+        def total_stats(self):
+            return types.SimpleNamespace(dropped=dict(self.dropped))
+
+    out = tmp_path / "resumed"
+    first = Counting()
+
+    def interrupted(shard):
+        if shard == 1:
+            raise RuntimeError("interrupted")
+        return dataset_frames_for_shard(first, 7, 4)(shard)
+
+    with pytest.raises(RuntimeError):
+        write_shards(interrupted, out, 7, 4, progress=False)
+    index = json.loads((out / "index.json").read_text())
+    assert not index["complete"] and index["dropped"] == {"nan": 1} and index["num_dropped"] == 1
+    second = Counting()  # the resumed pass: a fresh dataset draws shard 1 only
+    res = write_shards(dataset_frames_for_shard(second, 7, 4), out, 7, 4, progress=False)
+    assert res["skipped"] == [0] and second.drawn == [2, 3]
+    per = json.loads((out / "synth-000001.index.json").read_text())
+    assert per["dropped"] == {"out_of_crop": 2} and per["count"] == 1
+    index = json.loads((out / "index.json").read_text())
+    assert index["complete"] and index["num_samples_written"] == 4 and index["num_dropped"] == 3
+    assert index["dropped"] == {"nan": 1, "out_of_crop": 2}
+    assert [s.get("dropped") for s in index["shards"]] == [{"nan": 1}, {"out_of_crop": 2}]
 
 
 def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):

@@ -1,6 +1,7 @@
 """Offline export of synthetic frames as WebDataset tar shards, and reading them back.
 
-* :func:`write_shards` — resumable, rank-sharded writer (``hogsa export`` uses it);
+* :func:`write_shards` — resumable, rank-sharded writer (``hogsa export`` uses it), fed from a
+  dataset by :func:`dataset_frames_for_shard` (each shard's drops by reason kept in its index);
 * :class:`SynthShardSamples` — the same samples as a map-style dataset (shuffled reading);
 * :class:`SynthShardDataset` — torch ``IterableDataset`` over the shards yielding
   :class:`~hogsa_loader.loader.frame.SynthFrame` or, with ``arctic_samples=True``,
@@ -19,6 +20,7 @@ from hogsa_loader.export.reader import (
 from hogsa_loader.export.writer import (
     INDEX_NAME,
     ExportMismatchError,
+    ShardFrames,
     dataset_frames_for_shard,
     export_settings,
     num_shards,
@@ -34,6 +36,7 @@ __all__ = [
     "FORMAT_VERSION",
     "INDEX_NAME",
     "ExportMismatchError",
+    "ShardFrames",
     "SynthShardDataset",
     "SynthShardSamples",
     "dataset_frames_for_shard",

@@ -32,6 +32,7 @@ __all__ = [
     "export_settings",
     "write_shards",
     "dataset_frames_for_shard",
+    "ShardFrames",
     "shard_name",
     "shard_range",
     "shards_of_rank",
@@ -191,7 +192,9 @@ def rebuild_index(
     and (given ``settings``, see :func:`export_settings`) was written with them.
 
     ``index.json`` describes the whole export: parameters, caller's ``info`` and every complete
-    shard, ``complete`` true once all shards exist. Rebuilt by every rank after it finishes
+    shard, ``complete`` true once all shards exist, ``num_dropped`` (samples of the complete
+    shards that are missing) and ``dropped`` (those by reason, when every complete shard recorded
+    them, else null). Rebuilt by every rank after it finishes
     (under an ``fcntl`` lock where available), so the last rank to finish leaves it full.
     """
     out = Path(out_dir)
@@ -202,7 +205,10 @@ def rebuild_index(
             if _shard_state(out, s, prefix, shard_range(s, num, shard_size), settings) == "complete":
                 with open(_index_path(out, s, prefix), "r", encoding="utf-8") as fh:
                     rec = json.load(fh)
-                shards.append({k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")})
+                entry = {k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")}
+                if isinstance(rec.get("dropped"), dict):
+                    entry["dropped"] = rec["dropped"]
+                shards.append(entry)
         if info is None and (out / INDEX_NAME).is_file():
             try:
                 with open(out / INDEX_NAME, "r", encoding="utf-8") as fh:
@@ -218,11 +224,24 @@ def rebuild_index(
             "settings": settings,
             "complete": len(shards) == n,
             "num_samples_written": int(sum(s["count"] for s in shards)),
+            "num_dropped": int(sum(s["last"] - s["first"] + 1 - s["count"] for s in shards)),
+            "dropped": _dropped_by_reason(shards),
             "shards": shards,
             "info": info or {},
         }
         _atomic_write_json(out / INDEX_NAME, index)
     return index
+
+
+def _dropped_by_reason(shards: list[dict[str, Any]]) -> Optional[dict[str, int]]:
+    """Drops by reason summed over ``shards`` (None unless every shard recorded its reasons)."""
+    if not shards or not all(isinstance(s.get("dropped"), dict) for s in shards):
+        return None
+    total: dict[str, int] = {}
+    for s in shards:
+        for reason, n in s["dropped"].items():
+            total[reason] = total.get(reason, 0) + int(n)
+    return total
 
 
 def _frame_index(frame: SynthFrame, rng: range, position: int, last: int, shard: int) -> int:
@@ -236,23 +255,50 @@ def _frame_index(frame: SynthFrame, rng: range, position: int, last: int, shard:
     return idx
 
 
-def dataset_frames_for_shard(dataset: Any, num: int, shard_size: int) -> Callable[[int], Iterator[SynthFrame]]:
+class ShardFrames:
+    """The kept frames of one shard drawn from a dataset, and what it dropped meanwhile.
+
+    Iterating renders the batches ``g`` covering global samples ``[lo, hi)``
+    (``dataset.frames(g)``) and yields the kept frames of that range. Once the iteration is
+    complete, :attr:`dropped` holds the samples the dataset dropped meanwhile, by reason (the
+    change of ``dataset.total_stats().dropped``; ``None`` before, or for a dataset without
+    statistics). :func:`write_shards` stores it in the shard's index file.
+    """
+
+    def __init__(self, dataset: Any, lo: int, hi: int) -> None:
+        self.dataset, self.lo, self.hi = dataset, int(lo), int(hi)
+        self.dropped: Optional[dict[str, int]] = None
+
+    def _drop_counts(self) -> Optional[dict[str, int]]:
+        stats = getattr(self.dataset, "total_stats", None)
+        return None if stats is None else {k: int(v) for k, v in stats().dropped.items()}
+
+    def __iter__(self) -> Iterator[SynthFrame]:
+        B = int(self.dataset.batch_size)
+        before = self._drop_counts()
+        for g in range(self.lo // B, (self.hi - 1) // B + 1):
+            for f in self.dataset.frames(g):
+                if f is not None and self.lo <= int(f.meta["index"]) < self.hi:
+                    yield f
+        after = self._drop_counts()
+        if before is not None and after is not None:
+            self.dropped = {k: v - before.get(k, 0) for k, v in after.items() if v != before.get(k, 0)}
+
+
+def dataset_frames_for_shard(dataset: Any, num: int, shard_size: int) -> Callable[[int], ShardFrames]:
     """``frames_for_shard`` over a :class:`~hogsa_loader.loader.dataset.HOGSADataset`.
 
     Shard ``i`` gets the kept frames of global indices ``[i·S, min((i+1)·S, num))``: the
     render batches ``g`` covering that range (``dataset.frames(g)``, batches of
-    ``dataset.batch_size`` consecutive indices), filtered to the range. Dropped samples
-    leave gaps (the shard index records ``count`` < ``expected``); choose ``S`` a multiple
-    of the batch size so no batch is rendered for two shards.
+    ``dataset.batch_size`` consecutive indices), filtered to the range, as a
+    :class:`ShardFrames`. Dropped samples leave gaps (the shard index records ``count`` <
+    ``expected``, and the drops by reason). Choose ``S`` a multiple of the batch size, so no
+    batch is rendered for two shards and each shard's reasons are its own.
     """
-    S, B = int(shard_size), int(dataset.batch_size)
+    S = int(shard_size)
 
-    def frames_for_shard(shard: int) -> Iterator[SynthFrame]:
-        lo, hi = shard * S, min((shard + 1) * S, int(num))
-        for g in range(lo // B, (hi - 1) // B + 1):
-            for f in dataset.frames(g):
-                if f is not None and lo <= int(f.meta["index"]) < hi:
-                    yield f
+    def frames_for_shard(shard: int) -> ShardFrames:
+        return ShardFrames(dataset, shard * S, min((shard + 1) * S, int(num)))
 
     return frames_for_shard
 
@@ -354,8 +400,9 @@ def _write_shard(
     """Write one shard under a temporary name, then its index file, then rename it; returns its sample count.
 
     The index file (``synth-000000.index.json`` …) records per shard: keys, first/last index,
-    count, bytes, seconds, writer rank, and ``members_sha256`` (``{member name: sha256}``,
-    checked by the readers).
+    count, expected count, bytes, seconds, writer rank, ``members_sha256`` (``{member name:
+    sha256}``, checked by the readers) and, when ``frames`` reports them (a :class:`ShardFrames`),
+    the samples dropped by reason.
 
     Each shard is written under a hidden temporary name and renamed when complete (after its
     index file), so an interrupted export is resumed by running it again: complete shards are
@@ -385,6 +432,9 @@ def _write_shard(
             "settings": settings,
             "members_sha256": digests,
         }
+        dropped = getattr(frames, "dropped", None)
+        if dropped is not None:
+            rec["dropped"] = dropped
         _atomic_write_json(_index_path(out, shard, prefix), rec)
         os.replace(tmp, out / name)
     finally:
