@@ -741,9 +741,11 @@ def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
 
 def train_key(cfg: DownstreamConfig) -> dict[str, Any]:
     """The optimisation settings in cache keys (a constant learning rate keeps the keys runs had
-    before the schedule could be chosen; how often a run saves its state changes nothing)."""
+    before the schedule could be chosen; how often a run saves its state, and how many
+    processes load its batches, change nothing: ``workers`` is keyed as its default, 1)."""
     train = asdict(cfg.train)
     del train["checkpoint_every"]
+    train["workers"] = 1
     if train["lr_schedule"] == "constant":
         del train["lr_schedule"]
     return train

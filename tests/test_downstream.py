@@ -387,6 +387,25 @@ def test_training_stream_starts_at_any_batch(tiny_world, monkeypatch, mix):
                 assert torch.equal(a[0]["img"], b[0]["img"])
 
 
+def test_loader_workers_change_no_batch_nor_run_key(tiny_world, monkeypatch):
+    """The batches are the same whether one process loads them or several, so the worker count
+    is not part of a run's key."""
+    ds = _downstream()
+    monkeypatch.setattr(ds, "SynthShardSamples", lambda folder, seed, cfg: _Shuffled(tiny_world, seed))
+    monkeypatch.setattr(ds, "export_dir", lambda *a: Path("/unused"))
+    setup = {"data": tiny_world}
+    batches = {}
+    for workers in (0, 2):
+        cfg = _tiny_cfg(ds, workers=workers)
+        it = ds.train_batches("hogsa_low", 3, cfg, setup, Path("/unused"), start=1)
+        batches[workers] = [next(it) for _ in range(4)]
+    for a, b in zip(batches[0], batches[2]):
+        assert list(a[2]["imgname"]) == list(b[2]["imgname"])
+        assert torch.equal(a[0]["img"], b[0]["img"])
+    assert ds.train_key(_tiny_cfg(ds, workers=0)) == ds.train_key(_tiny_cfg(ds, workers=6))
+    assert ds.train_key(_tiny_cfg(ds, workers=0)) != ds.train_key(_tiny_cfg(ds, lr=1e-4))
+
+
 def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkeypatch):
     """A run with synthetic samples stopped after a saved state and started again ends with the
     weights, curve and metrics of the unbroken run; its saved states are removed when it finishes."""
