@@ -550,7 +550,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "seconds": round(time.perf_counter() - t0, 1),
         "written": len(rec["written"]),
         "skipped": len(rec["skipped"]),
-        "dropped": index.get("dropped") or {},
+        "dropped": index.get("dropped"),  # by reason; None where a shard did not record its reasons
         "dropped_total": s.frames - kept if index["complete"] else None,
         "settings": info,
     }
@@ -740,9 +740,8 @@ def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
 
 
 def train_key(cfg: DownstreamConfig) -> dict[str, Any]:
-    """The optimisation settings in cache keys (a constant learning rate keeps the keys runs had
-    before the schedule could be chosen; how often a run saves its state, and how many
-    processes load its batches, change nothing: ``workers`` is keyed as its default, 1)."""
+    """The optimisation settings in cache keys: ``checkpoint_every`` left out, a constant
+    ``lr_schedule`` left out, ``workers`` keyed as 1 (the batches do not depend on it)."""
     train = asdict(cfg.train)
     del train["checkpoint_every"]
     train["workers"] = 1

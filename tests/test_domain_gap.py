@@ -106,3 +106,5 @@ def test_the_report_shows_the_task_model_and_the_exports_drops(tmp_path):
         "empty_render": 2,
         "labels_out_of_crop": 3,
     }
+    (tmp_path / "index.json").write_text(json.dumps({**index, "dropped": None}))  # reasons not recorded
+    assert gap.export_drops(tmp_path) == {"requested": 30, "written": 25, "dropped": 5}

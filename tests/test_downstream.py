@@ -398,11 +398,12 @@ def test_loader_workers_change_no_batch_nor_run_key(tiny_world, monkeypatch):
     for workers in (0, 2):
         cfg = _tiny_cfg(ds, workers=workers)
         it = ds.train_batches("hogsa_low", 3, cfg, setup, Path("/unused"), start=1)
-        batches[workers] = [next(it) for _ in range(4)]
+        batches[workers] = [next(it) for _ in range(8)]  # across a real epoch and a synthetic pass
     for a, b in zip(batches[0], batches[2]):
         assert list(a[2]["imgname"]) == list(b[2]["imgname"])
         assert torch.equal(a[0]["img"], b[0]["img"])
     assert ds.train_key(_tiny_cfg(ds, workers=0)) == ds.train_key(_tiny_cfg(ds, workers=6))
+    assert ds.train_key(_tiny_cfg(ds, workers=0))["workers"] == 1  # the default's: earlier runs keep their keys
     assert ds.train_key(_tiny_cfg(ds, workers=0)) != ds.train_key(_tiny_cfg(ds, lr=1e-4))
 
 

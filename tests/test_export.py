@@ -401,12 +401,13 @@ def test_gaps_from_dropped_samples_and_dataset_adapter(tmp_path):
 
 def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     """Each shard's index file keeps the reasons its samples were dropped for, so the export's
-    ``index.json`` sums them over all shards, also those written by an earlier, interrupted pass."""
+    ``index.json`` sums them over all shards, also those written by an earlier, interrupted pass;
+    reasons that do not explain a shard's gaps are not kept."""
     import types
 
     from hogsa_loader.export import dataset_frames_for_shard
 
-    reasons = {1: "nan", 4: "out_of_crop", 5: "out_of_crop"}
+    reasons = {1: "nan", 4: "out_of_crop", 5: "out_of_crop"}  # none in shard 2 (samples 8, 9)
 
     class Counting:  # HOGSADataset's frames(g) / batch_size / total_stats interface
         batch_size = 2
@@ -433,21 +434,41 @@ def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     def interrupted(shard):
         if shard == 1:
             raise RuntimeError("interrupted")
-        return dataset_frames_for_shard(first, 7, 4)(shard)
+        return dataset_frames_for_shard(first, 10, 4)(shard)
 
     with pytest.raises(RuntimeError):
-        write_shards(interrupted, out, 7, 4, progress=False)
+        write_shards(interrupted, out, 10, 4, progress=False)
     index = json.loads((out / "index.json").read_text())
     assert not index["complete"] and index["dropped"] == {"nan": 1} and index["num_dropped"] == 1
-    second = Counting()  # the resumed pass: a fresh dataset draws shard 1 only
-    res = write_shards(dataset_frames_for_shard(second, 7, 4), out, 7, 4, progress=False)
-    assert res["skipped"] == [0] and second.drawn == [2, 3]
+    second = Counting()  # the resumed pass: a fresh dataset draws shards 1 and 2 only
+    res = write_shards(dataset_frames_for_shard(second, 10, 4), out, 10, 4, progress=False)
+    assert res["skipped"] == [0] and second.drawn == [2, 3, 4]
     per = json.loads((out / "synth-000001.index.json").read_text())
-    assert per["dropped"] == {"out_of_crop": 2} and per["count"] == 1
+    assert per["dropped"] == {"out_of_crop": 2} and per["count"] == 2
+    assert json.loads((out / "synth-000002.index.json").read_text())["dropped"] == {}
     index = json.loads((out / "index.json").read_text())
-    assert index["complete"] and index["num_samples_written"] == 4 and index["num_dropped"] == 3
+    assert index["complete"] and index["num_samples_written"] == 7 and index["num_dropped"] == 3
     assert index["dropped"] == {"nan": 1, "out_of_crop": 2}
-    assert [s.get("dropped") for s in index["shards"]] == [{"nan": 1}, {"out_of_crop": 2}]
+    assert [s.get("dropped") for s in index["shards"]] == [{"nan": 1}, {"out_of_crop": 2}, {}]
+
+    # a shard without reasons (or with a bad record) leaves the sum unknown, not short
+    path = out / "synth-000000.index.json"
+    rec = json.loads(path.read_text())
+    for bad in (None, {"nan": "one"}, [1]):
+        rec["dropped"] = bad
+        path.write_text(json.dumps(rec))
+        index = rebuild_index(out, 10, 4, settings=index["settings"])
+        assert index["dropped"] is None and index["num_dropped"] == 3 and "dropped" not in index["shards"][0]
+
+    # reasons that do not add up to the gaps (a render batch reaching into the next shard) are left out
+    third = Counting()
+    straddle = tmp_path / "straddle"
+    write_shards(dataset_frames_for_shard(third, 10, 5), straddle, 10, 5, progress=False)
+    kept = [json.loads((straddle / f"synth-00000{k}.index.json").read_text()) for k in range(2)]
+    assert [k["count"] for k in kept] == [3, 4] and third.drawn == [0, 1, 2, 2, 3, 4]  # batch 2: samples 4, 5
+    assert [k.get("dropped") for k in kept] == [None, None]
+    index = json.loads((straddle / "index.json").read_text())
+    assert index["dropped"] is None and index["num_dropped"] == 3
 
 
 def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):

@@ -206,7 +206,7 @@ def rebuild_index(
                 with open(_index_path(out, s, prefix), "r", encoding="utf-8") as fh:
                     rec = json.load(fh)
                 entry = {k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")}
-                if isinstance(rec.get("dropped"), dict):
+                if _reason_counts(rec.get("dropped")):
                     entry["dropped"] = rec["dropped"]
                 shards.append(entry)
         if info is None and (out / INDEX_NAME).is_file():
@@ -231,6 +231,13 @@ def rebuild_index(
         }
         _atomic_write_json(out / INDEX_NAME, index)
     return index
+
+
+def _reason_counts(dropped: Any) -> bool:
+    """Whether a shard record's ``dropped`` is ``{reason: count}`` with whole, non-negative counts."""
+    return isinstance(dropped, dict) and all(
+        isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0 for k, v in dropped.items()
+    )
 
 
 def _dropped_by_reason(shards: list[dict[str, Any]]) -> Optional[dict[str, int]]:
@@ -262,7 +269,9 @@ class ShardFrames:
     (``dataset.frames(g)``) and yields the kept frames of that range. Once the iteration is
     complete, :attr:`dropped` holds the samples the dataset dropped meanwhile, by reason (the
     change of ``dataset.total_stats().dropped``; ``None`` before, or for a dataset without
-    statistics). :func:`write_shards` stores it in the shard's index file.
+    statistics). The counts cover whole render batches: a batch that reaches beyond the shard
+    counts its drops there too. :func:`write_shards` stores them in the shard's index file when
+    they add up to the samples missing from it.
     """
 
     def __init__(self, dataset: Any, lo: int, hi: int) -> None:
@@ -401,8 +410,8 @@ def _write_shard(
 
     The index file (``synth-000000.index.json`` …) records per shard: keys, first/last index,
     count, expected count, bytes, seconds, writer rank, ``members_sha256`` (``{member name:
-    sha256}``, checked by the readers) and, when ``frames`` reports them (a :class:`ShardFrames`),
-    the samples dropped by reason.
+    sha256}``, checked by the readers) and, when ``frames`` reports them (a :class:`ShardFrames`)
+    and they add up to the samples missing from the shard, the samples dropped by reason.
 
     Each shard is written under a hidden temporary name and renamed when complete (after its
     index file), so an interrupted export is resumed by running it again: complete shards are
@@ -433,7 +442,7 @@ def _write_shard(
             "members_sha256": digests,
         }
         dropped = getattr(frames, "dropped", None)
-        if dropped is not None:
+        if dropped is not None and sum(dropped.values()) == len(rng) - len(keys):  # reasons that explain the gaps
             rec["dropped"] = dropped
         _atomic_write_json(_index_path(out, shard, prefix), rec)
         os.replace(tmp, out / name)
