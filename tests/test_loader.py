@@ -817,3 +817,54 @@ def test_dataset_camera_samples_sit_on_their_own_plate(bundle_dir, tiny_world, t
         full2d = f.right.j3d_full @ f.K_full.T
         full2d = full2d[:, :2] / full2d[:, 2:]
         np.testing.assert_allclose(full_to_cropped(full2d, match[0][2], f.image.shape[0]), f.right.j2d, atol=1e-3)
+
+
+def test_an_annotated_pose_through_its_own_camera_carries_the_real_frames_labels(bundle_dir, tiny_world):
+    """A synthetic sample of an annotated training pose seen through that frame's own capture
+    camera carries exactly the targets of the real frame of the same (sequence, frame, view):
+    3D joints and object keypoints in the camera frame, MANO parameters, articulation, and the
+    2D joints and keypoints in the crop (the dataset's crop box)."""
+    ds = _dataset(
+        bundle_dir,
+        tiny_world,
+        poses="perturb",
+        pose_options={"finger_std": 0.0},
+        cameras=CameraConfig(dataset_prob=1.0),
+        augment=False,
+        num_samples=8,
+        batch_size=8,
+    )
+    real = ArcticDataset(tiny_world, split="p1_train", augment=False, seed=0, config=CFG)
+    misc = ArcticRoot(tiny_world).misc()
+    by_name = {}
+    for i, name in enumerate(real.imgnames):
+        sid, seq, view, stem = name.split("/")[-4:]
+        by_name[(sid, seq, int(view), int(stem.split(".")[0]))] = i
+    keys = [
+        "mano.j3d.full.r",
+        "mano.j3d.full.l",
+        "object.kp3d.full.b",
+        "object.bbox3d.full.t",
+        "mano.pose.r",
+        "mano.pose.l",
+        "mano.beta.r",
+        "object.radian",
+        "object.rot",
+        "mano.j2d.norm.r",
+        "mano.j2d.norm.l",
+        "object.kp2d.norm.b",
+    ]
+    compared = 0
+    for frame in ds.frames(0):
+        if frame is None:
+            continue
+        sid, seq = frame.meta["sequence"].split("/")
+        key = (sid, seq, int(frame.meta["view"]), int(frame.meta["frame"]) + misc[sid].ioi_offset)
+        if key not in by_name:  # a frame outside the split's range
+            continue
+        _, syn, _ = ds.sample(int(frame.meta["index"]))
+        _, ref, _ = real[by_name[key]]
+        for k in keys:
+            np.testing.assert_allclose(np.asarray(syn[k]), np.asarray(ref[k]), atol=1e-5, err_msg=f"{k} of {key}")
+        compared += 1
+    assert compared >= 4
