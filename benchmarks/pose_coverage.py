@@ -5,7 +5,8 @@ root-relative joints, posed with the mean hand shape (articulation only), to the
 training frame's hand, to the nearest pose-bank grasp's, and to the nearer of the two. Frames
 are split into *held* (the object is being moved: its translation more than 1 mm from the
 sequence's first frame) and *rest* (hands before and after the grasp, alike for every
-subject). Reads annotations only.
+subject). With a bank, also how far POM moved each grasp: the same distance from a bank grasp to
+the annotated frame it was made from. Reads annotations only.
 
 Usage::
 
@@ -71,18 +72,35 @@ def split_hands(root: ArcticRoot, split: str) -> tuple[dict[str, np.ndarray], np
     return {s: np.concatenate(v) for s, v in joints.items()}, np.concatenate(held)
 
 
+def bank_moves(root: ArcticRoot, sources: list[tuple[str, str, int]], bank: dict[str, np.ndarray]) -> dict:
+    """Per side, the mean and median distance (mm) of each bank grasp (N, 21, 3) from the
+    annotated hand of the frame ``sources[i]`` = (subject, sequence, frame) it was made from."""
+    layers = root.mano_layers(torch.float64)
+    raws: dict[tuple[str, str], object] = {}
+    out = {}
+    for s in SIDES:
+        source = []
+        for sid, seq, frame in sources:
+            raw = raws.setdefault((sid, seq), root.raw_sequence(sid, seq))
+            source.append(raw.mano[s]["pose"][frame])  # type: ignore[attr-defined]
+        d = np.linalg.norm(bank[s] - articulated_joints(layers[s], np.stack(source)), axis=-1).mean(-1) * 1000.0
+        out[s] = {"mean": float(d.mean()), "median": float(np.median(d))}
+    return out
+
+
 def coverage(data: Path, bank: Optional[Path] = None) -> dict:
     """Mean nearest distances (mm) per side, pool (train, bank, train+bank) and frame kind."""
     root = ArcticRoot(data)
     train, _ = split_hands(root, "train")
     val, held = split_hands(root, "val")
     pools = {"train": train}
-    if bank is not None:
-        state = load_pose_bank(bank).state
-        layers = root.mano_layers(torch.float64)
-        pools["bank"] = {s: articulated_joints(layers[s], state.hands[s].pose.double().numpy()) for s in SIDES}
-        pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
     rec: dict = {"val_frames": int(len(held)), "held_share": float(held.mean()), "pool_sizes": {}, "mm": {}}
+    if bank is not None:
+        poses = load_pose_bank(bank)
+        layers = root.mano_layers(torch.float64)
+        pools["bank"] = {s: articulated_joints(layers[s], poses.state.hands[s].pose.double().numpy()) for s in SIDES}
+        pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
+        rec["bank_moved_mm"] = bank_moves(root, poses.sources, pools["bank"])
     for name, pool in pools.items():
         rec["pool_sizes"][name] = int(len(pool["right"]))
         for s in SIDES:
@@ -108,6 +126,13 @@ def markdown(rec: dict) -> str:
         pool, side = key.rsplit("/", 1)
         cells = " | ".join("—" if v[k] is None else f"{v[k]:.1f}" for k in ("held", "rest", "all"))
         lines.append(f"| {pool} | {side} | {cells} |")
+    if "bank_moved_mm" in rec:
+        moved = rec["bank_moved_mm"]
+        lines += [
+            "",
+            "POM moved each grasp from its annotated frame by (mean / median, mm): "
+            + ", ".join(f"{s} {moved[s]['mean']:.1f} / {moved[s]['median']:.1f}" for s in SIDES),
+        ]
     return "\n".join(lines) + "\n"
 
 

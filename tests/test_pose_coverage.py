@@ -36,3 +36,26 @@ def test_coverage_of_the_tiny_world(tiny_world):
     for v in rec["mm"].values():
         assert 0.0 < v["rest"] < v["held"] < 50.0  # grasps differ more than hands at rest
     assert "| train | right |" in pc.markdown(rec)
+
+
+def test_bank_moves_measure_each_grasp_from_its_source_frame(tiny_world):
+    """A bank grasp equal to its source frame's hand moved 0 mm; one with a joint 3 mm off
+    moved 3/21 mm; sources index the raw sequence's frames."""
+    import torch
+
+    from hogsa_loader.datasets.arctic import ArcticRoot
+
+    pc = _bench()
+    root = ArcticRoot(tiny_world / "arctic_data" / "data")
+    sid, seq = root.protocol("p1")["train"][0].split("/", 1)
+    raw = root.raw_sequence(sid, seq)
+    layers = root.mano_layers(torch.float64)
+    sources = [(sid, seq, 5), (sid, seq, 20)]
+    bank = {s: pc.articulated_joints(layers[s], raw.mano[s]["pose"][[5, 20]]) for s in pc.SIDES}
+    moved = pc.bank_moves(root, sources, bank)
+    assert all(moved[s]["mean"] < 1e-9 for s in pc.SIDES)
+    bank["right"][1, 4] += [0.0, 0.003, 0.0]
+    moved = pc.bank_moves(root, sources, bank)
+    assert np.isclose(moved["right"]["mean"], 3.0 / 21 / 2) and moved["left"]["mean"] < 1e-9
+    swapped = pc.bank_moves(root, sources[::-1], {s: bank[s] for s in pc.SIDES})
+    assert swapped["left"]["mean"] > 0.1  # another frame's hand is not the source's
