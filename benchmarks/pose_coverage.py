@@ -76,13 +76,10 @@ def bank_moves(root: ArcticRoot, sources: list[tuple[str, str, int]], bank: dict
     """Per side, the mean and median distance (mm) of each bank grasp (N, 21, 3) from the
     annotated hand of the frame ``sources[i]`` = (subject, sequence, frame) it was made from."""
     layers = root.mano_layers(torch.float64)
-    raws: dict[tuple[str, str], object] = {}
+    raws = {key: root.raw_sequence(*key) for key in dict.fromkeys((sid, seq) for sid, seq, _ in sources)}
     out = {}
     for s in SIDES:
-        source = []
-        for sid, seq, frame in sources:
-            raw = raws.setdefault((sid, seq), root.raw_sequence(sid, seq))
-            source.append(raw.mano[s]["pose"][frame])  # type: ignore[attr-defined]
+        source = [raws[(sid, seq)].mano[s]["pose"][frame] for sid, seq, frame in sources]
         d = np.linalg.norm(bank[s] - articulated_joints(layers[s], np.stack(source)), axis=-1).mean(-1) * 1000.0
         out[s] = {"mean": float(d.mean()), "median": float(np.median(d))}
     return out

@@ -454,7 +454,7 @@ def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     # a shard without reasons (or with a bad record) leaves the sum unknown, not short
     path = out / "synth-000000.index.json"
     rec = json.loads(path.read_text())
-    for bad in (None, {"nan": "one"}, [1]):
+    for bad in (None, {"nan": "one"}, [1], {"nan": 2}, {"nan": 2, "out_of_crop": -1}):  # (shard 0 lacks 1 sample)
         rec["dropped"] = bad
         path.write_text(json.dumps(rec))
         index = rebuild_index(out, 10, 4, settings=index["settings"])

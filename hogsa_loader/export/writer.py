@@ -206,7 +206,7 @@ def rebuild_index(
                 with open(_index_path(out, s, prefix), "r", encoding="utf-8") as fh:
                     rec = json.load(fh)
                 entry = {k: rec[k] for k in ("shard", "file", "count", "first", "last", "bytes")}
-                if _reason_counts(rec.get("dropped")):
+                if _explains_gaps(rec.get("dropped"), rec["last"] - rec["first"] + 1 - rec["count"]):
                     entry["dropped"] = rec["dropped"]
                 shards.append(entry)
         if info is None and (out / INDEX_NAME).is_file():
@@ -233,10 +233,15 @@ def rebuild_index(
     return index
 
 
-def _reason_counts(dropped: Any) -> bool:
-    """Whether a shard record's ``dropped`` is ``{reason: count}`` with whole, non-negative counts."""
-    return isinstance(dropped, dict) and all(
-        isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0 for k, v in dropped.items()
+def _explains_gaps(dropped: Any, gaps: int) -> bool:
+    """Whether ``dropped`` is ``{reason: count}`` with whole, non-negative counts that add up to
+    the ``gaps`` (samples missing from the shard)."""
+    return (
+        isinstance(dropped, dict)
+        and all(
+            isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool) and v >= 0 for k, v in dropped.items()
+        )
+        and sum(dropped.values()) == gaps
     )
 
 
@@ -442,7 +447,7 @@ def _write_shard(
             "members_sha256": digests,
         }
         dropped = getattr(frames, "dropped", None)
-        if dropped is not None and sum(dropped.values()) == len(rng) - len(keys):  # reasons that explain the gaps
+        if _explains_gaps(dropped, len(rng) - len(keys)):
             rec["dropped"] = dropped
         _atomic_write_json(_index_path(out, shard, prefix), rec)
         os.replace(tmp, out / name)
