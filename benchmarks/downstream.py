@@ -541,8 +541,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
     folder = export_dir(variant, cfg, setup, out)
     t0 = time.perf_counter()
     rec = write_shards(dataset_frames_for_shard(ds, s.frames, shard), folder, s.frames, shard, info=info, progress=True)
-    index = read_json(Path(rec["index"]))
-    kept = int(index["num_samples_written"])
+    kept = int(rec["num_samples_written"])
     return {
         "variant": variant,
         "requested": s.frames,
@@ -550,8 +549,8 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "seconds": round(time.perf_counter() - t0, 1),
         "written": len(rec["written"]),
         "skipped": len(rec["skipped"]),
-        "dropped": index.get("dropped"),  # by reason; None where a shard did not record its reasons
-        "dropped_total": s.frames - kept if index["complete"] else None,
+        "dropped": rec["dropped"],  # by reason; None where a shard did not record its reasons
+        "dropped_total": rec["num_dropped"] if rec["complete"] else None,
         "settings": info,
     }
 

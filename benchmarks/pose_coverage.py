@@ -72,10 +72,12 @@ def split_hands(root: ArcticRoot, split: str) -> tuple[dict[str, np.ndarray], np
     return {s: np.concatenate(v) for s, v in joints.items()}, np.concatenate(held)
 
 
-def bank_moves(root: ArcticRoot, sources: list[tuple[str, str, int]], bank: dict[str, np.ndarray]) -> dict:
+def bank_moves(
+    root: ArcticRoot, layers: dict, sources: list[tuple[str, str, int]], bank: dict[str, np.ndarray]
+) -> dict:
     """Per side, the mean and median distance (mm) of each bank grasp (N, 21, 3) from the
-    annotated hand of the frame ``sources[i]`` = (subject, sequence, frame) it was made from."""
-    layers = root.mano_layers(torch.float64)
+    annotated hand of the frame ``sources[i]`` = (subject, sequence, frame) it was made from
+    (``layers``: the root's float64 MANO layers per side)."""
     raws = {key: root.raw_sequence(*key) for key in dict.fromkeys((sid, seq) for sid, seq, _ in sources)}
     out = {}
     for s in SIDES:
@@ -97,7 +99,7 @@ def coverage(data: Path, bank: Optional[Path] = None) -> dict:
         layers = root.mano_layers(torch.float64)
         pools["bank"] = {s: articulated_joints(layers[s], poses.state.hands[s].pose.double().numpy()) for s in SIDES}
         pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
-        rec["bank_moved_mm"] = bank_moves(root, poses.sources, pools["bank"])
+        rec["bank_moved_mm"] = bank_moves(root, layers, poses.sources, pools["bank"])
     for name, pool in pools.items():
         rec["pool_sizes"][name] = int(len(pool["right"]))
         for s in SIDES:

@@ -282,9 +282,9 @@ def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, mo
     monkeypatch.setattr(ds, "HOGSADataset", _Recorder)
     monkeypatch.setattr(ds, "dataset_frames_for_shard", lambda *a: iter(()))
     index = tmp_path / "index.json"
-    index.write_text(json.dumps({"num_samples_written": 0, "complete": False, "shards": []}))
+    done = {"samples": 0, "written": [], "skipped": [], "index": str(index), "complete": False}
     monkeypatch.setattr(
-        ds, "write_shards", lambda *a, **k: {"samples": 0, "written": [], "skipped": [], "index": str(index)}
+        ds, "write_shards", lambda *a, **k: {**done, "num_samples_written": 0, "num_dropped": 0, "dropped": None}
     )
     setup = dict(setup, backgrounds=tmp_path)
     plates = ds.replace(rig, synthetic=ds.replace(rig.synthetic, backgrounds="camera_plates"))

@@ -449,6 +449,7 @@ def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     index = json.loads((out / "index.json").read_text())
     assert index["complete"] and index["num_samples_written"] == 7 and index["num_dropped"] == 3
     assert index["dropped"] == {"nan": 1, "out_of_crop": 2}
+    assert (res["num_samples_written"], res["num_dropped"], res["dropped"]) == (7, 3, index["dropped"])
     assert [s.get("dropped") for s in index["shards"]] == [{"nan": 1}, {"out_of_crop": 2}, {}]
 
     # a shard without reasons (or with a bad record) leaves the sum unknown, not short

@@ -52,10 +52,10 @@ def test_bank_moves_measure_each_grasp_from_its_source_frame(tiny_world):
     layers = root.mano_layers(torch.float64)
     sources = [(sid, seq, 5), (sid, seq, 20)]
     bank = {s: pc.articulated_joints(layers[s], raw.mano[s]["pose"][[5, 20]]) for s in pc.SIDES}
-    moved = pc.bank_moves(root, sources, bank)
+    moved = pc.bank_moves(root, layers, sources, bank)
     assert all(moved[s]["mean"] < 1e-9 for s in pc.SIDES)
     bank["right"][1, 4] += [0.0, 0.003, 0.0]
-    moved = pc.bank_moves(root, sources, bank)
+    moved = pc.bank_moves(root, layers, sources, bank)
     assert np.isclose(moved["right"]["mean"], 3.0 / 21 / 2) and moved["left"]["mean"] < 1e-9
-    swapped = pc.bank_moves(root, sources[::-1], {s: bank[s] for s in pc.SIDES})
+    swapped = pc.bank_moves(root, layers, sources[::-1], {s: bank[s] for s in pc.SIDES})
     assert swapped["left"]["mean"] > 0.1  # another frame's hand is not the source's

@@ -201,14 +201,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
         print(f"hogsa: error: {exc}", file=sys.stderr)
         return 2
     st = ds.stats.as_dict()
-    with open(res["index"], "r", encoding="utf-8") as fh:
-        index = json.load(fh)
-    reasons = ", ".join(f"{k} {v}" for k, v in (index.get("dropped") or {}).items() if v)
+    reasons = ", ".join(f"{k} {v}" for k, v in (res["dropped"] or {}).items() if v)
     say(
         f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
         f"{st['num_dropped']} dropped), skipped {len(res['skipped'])} complete shards, "
         f"{res['seconds']:.1f} s; index: {res['index']} ({'complete' if res['complete'] else 'incomplete'}: "
-        f"{index['num_samples_written']} samples, {index['num_dropped']} dropped{f' ({reasons})' if reasons else ''})"
+        f"{res['num_samples_written']} samples, {res['num_dropped']} dropped{f' ({reasons})' if reasons else ''})"
     )
     return 0
 

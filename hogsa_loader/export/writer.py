@@ -519,7 +519,9 @@ def write_shards(
             :class:`ExportMismatchError`) and remove shard files beyond this export's last one.
 
     Returns:
-        ``{"written": [...], "skipped": [...], "samples": n, "seconds": t, "index": path}``.
+        ``{"written": [...], "skipped": [...], "samples": n, "seconds": t, "index": path,
+        "complete": bool}`` for this call, and the whole export's ``num_samples_written``,
+        ``num_dropped`` and ``dropped`` (by reason or None) as ``index.json`` records them.
 
     Raises:
         ExportMismatchError: ``out_dir`` holds shards of another export and not ``overwrite``.
@@ -555,7 +557,7 @@ def write_shards(
         "samples": written_samples,
         "seconds": time.perf_counter() - t_all,
         "index": str(out / INDEX_NAME),
-        "complete": index["complete"],
+        **{k: index[k] for k in ("complete", "num_samples_written", "num_dropped", "dropped")},
     }
 
 
