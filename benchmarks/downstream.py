@@ -140,6 +140,13 @@ class SetupSettings:
     srm_iters: int = field(default=400, metadata={"help": "SRM steps when building"})
     contactnet_iters: int = field(default=120, metadata={"help": "ContactNet steps when building"})
     bank_per_sequence: int = field(default=6, metadata={"help": "POM frames per sequence in the pose bank"})
+    bank_finger_scale: float = field(
+        default=0.0,
+        metadata={
+            "help": "finger noise of the pose bank's POM starts, in standard deviations of the training hands along "
+            "their 6 principal directions (0: the paper's perturbation alone)"
+        },
+    )
 
 
 @dataclass
@@ -395,6 +402,7 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
         srm_iters=s.srm_iters,
         contactnet_iters=s.contactnet_iters,
         bank_per_sequence=s.bank_per_sequence,
+        bank_finger_scale=s.bank_finger_scale,
     )
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
     data, bundle = Path(data).resolve(), Path(bundle).resolve()  # one name per setup, also through links
@@ -458,9 +466,11 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
     s = asdict(cfg.setup)
+    if not s["bank_finger_scale"]:  # keys of setups made before the option
+        del s["bank_finger_scale"]
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
-    no_bank = {k: v for k, v in s.items() if k not in ("bank_per_sequence", "free_bundle")}
+    no_bank = {k: v for k, v in s.items() if k not in ("bank_per_sequence", "bank_finger_scale", "free_bundle")}
     return {
         "world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
         "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),

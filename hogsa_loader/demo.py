@@ -31,6 +31,7 @@ from hogsa_loader.loader.mixing import MixedLoader
 from hogsa_loader.loader.viz import sample_grid
 from hogsa_loader.pom.job_config import (
     BankDataConfig,
+    BankPOMConfig,
     BankRunConfig,
     ContactNetDataConfig,
     ContactNetJobConfig,
@@ -73,7 +74,8 @@ class DemoConfig:
         hogs_window: ``"fg"`` trains on a window around the hands and object of each frame
             (on average 1.35× the linear resolution on them at the same cost; ``"crop"``:
             whole cropped images).
-        contactnet_iters: ContactNet steps; bank_per_sequence: POM frames per sequence.
+        contactnet_iters: ContactNet steps; bank_per_sequence: POM frames per sequence;
+            bank_finger_scale: finger noise of the pose bank's starts (``BankPOMConfig.finger_scale``).
         srm_iters, srm_crop, srm_augment: brief SRM training (crop = training window side;
             augment: ``none``/``flip``/``d4``). Its coarse renders are cached in
             ``OUT/cache/srm`` (keyed by the HOGS weights and labels), so a rebuild of the SRM
@@ -102,6 +104,7 @@ class DemoConfig:
     hogs_window: str = "fg"
     contactnet_iters: int = 120
     bank_per_sequence: int = 6
+    bank_finger_scale: float = 0.0
     srm_iters: int = 400
     srm_crop: int = 64
     srm_augment: str = (
@@ -290,11 +293,13 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
     """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, asdict(KEEP_ARTICULATION))  # the start perturbation
+    start = [asdict(KEEP_ARTICULATION)] + ([{"finger_scale": cfg.bank_finger_scale}] if cfg.bank_finger_scale else [])
+    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbation
     bank_cfg = PoseBankConfig(
         data=BankDataConfig(
             root=str(data), contactnet=str(cn), sequences=tuple(seqs), per_sequence=cfg.bank_per_sequence
         ),
+        pom=BankPOMConfig(finger_scale=cfg.bank_finger_scale),
         run=BankRunConfig(out=str(bank), seed=cfg.seed),
     )
     return _StageNode(

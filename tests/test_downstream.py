@@ -176,6 +176,15 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
     assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
+    # the keys of runs made before --setup-bank-finger-scale existed (its default adds nothing)
+    assert first == {"world": "7829384198a2f0f3", "bundle": "70c63df39baf3bf5", "all": "cacbad1012974482"} | {
+        "free": "39022538e5ffdfd9"
+    }
+    cfg.setup.bank_finger_scale = 0.5  # another pose bank: only the runs that draw from it change
+    fingers = ds.setup_fingerprints(cfg, setup)
+    assert {k: v for k, v in fingers.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
+    assert fingers["all"] != first["all"]
+    cfg.setup.bank_finger_scale = 0.0
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "2"}}]}))
     bank = ds.setup_fingerprints(cfg, setup)  # a new pose bank
     assert bank["world"] == first["world"] and bank["bundle"] == first["bundle"] and bank["all"] != first["all"]

@@ -17,6 +17,7 @@ from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.pom import (
     ContactNet,
+    FingerNoise,
     GraspState,
     HandParams,
     ObjectSet,
@@ -203,6 +204,55 @@ def test_perturbation_scale_zero_keeps_rotation(scene):
     )
     assert float(rec.angles["right"].abs().max()) == 0.0
     assert torch.equal(new.obj_arti, state.obj_arti)
+
+
+def _planted_poses(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, 45) poses varying along two orthonormal directions (std 0.3 and 0.1 rad) plus
+    1e-3 isotropic noise, and those (2, 45) directions."""
+    g = torch.Generator().manual_seed(seed)
+    dirs, _ = torch.linalg.qr(torch.randn(45, 2, generator=g, dtype=torch.float64))
+    coef = torch.randn(n, 2, generator=g, dtype=torch.float64) * torch.tensor([0.3, 0.1], dtype=torch.float64)
+    mean = torch.randn(45, generator=g, dtype=torch.float64) * 0.2
+    return mean + coef @ dirs.T + 1e-3 * torch.randn(n, 45, generator=g, dtype=torch.float64), dirs.T
+
+
+def test_finger_noise_follows_the_annotated_hands_principal_directions():
+    poses, dirs = _planted_poses(4000, 0)
+    noise = FingerNoise.fit({"right": poses, "left": poses[:, torch.randperm(45)]}, components=2, scale=0.5)
+    basis = noise.basis["right"]
+    assert basis.shape == (2, 45) and noise.basis["left"].shape == (2, 45)
+    cos = torch.nn.functional.cosine_similarity(basis, dirs, dim=1).abs()
+    assert bool((cos > 0.999).all()), cos
+    torch.testing.assert_close(basis.norm(dim=1), torch.tensor([0.3, 0.1], dtype=torch.float64), rtol=0.05, atol=0)
+    x = noise.sample("right", 20000, torch.Generator().manual_seed(1), torch.float64)
+    assert x.shape == (20000, 45) and x.dtype == torch.float64
+    # nothing outside the two directions; along them, 0.5 x the poses' own spread
+    residual = x - (x @ dirs.T) @ dirs
+    assert float(residual.abs().max()) < 0.002
+    torch.testing.assert_close((x @ dirs.T).std(0), torch.tensor([0.15, 0.05], dtype=torch.float64), rtol=0.05, atol=0)
+    assert torch.equal(x, noise.sample("right", 20000, torch.Generator().manual_seed(1), torch.float64))
+    with pytest.raises(ValueError, match="right finger poses"):
+        FingerNoise.fit({"right": poses[:2]}, components=2)
+    with pytest.raises(ValueError, match=r"\(100, 44\)"):
+        FingerNoise.fit({"right": poses[:100, :44]}, components=2)
+
+
+def test_finger_noise_changes_only_the_fingers(scene):
+    infos, objects = scene
+    state = _state(infos, {"right": (-0.05, 0.05, 0.1), "left": (-0.08, -0.02, -0.12)}, B=5)
+    noise = FingerNoise.fit({s: _planted_poses(200, i)[0] for i, s in enumerate(SIDES)}, components=2, scale=1.0)
+    plain, rec0 = perturb(state, infos, objects, torch.Generator().manual_seed(3))
+    noisy, rec = perturb(state, infos, objects, torch.Generator().manual_seed(3), fingers=noise)
+    assert rec0.fingers is None
+    assert torch.equal(noisy.obj_trans, plain.obj_trans) and torch.equal(noisy.obj_arti, plain.obj_arti)
+    for s in SIDES:
+        for k in ("rot", "trans", "betas"):
+            assert torch.equal(getattr(noisy.hands[s], k), getattr(plain.hands[s], k)), (s, k)
+        torch.testing.assert_close(noisy.hands[s].pose - state.hands[s].pose, rec.fingers[s])
+        assert float(rec.fingers[s].abs().max()) > 0.05
+        basis = noise.basis[s].to(torch.float32)
+        coef = torch.linalg.lstsq(basis.T, rec.fingers[s].T).solution  # in the span of the directions
+        torch.testing.assert_close(coef.T @ basis, rec.fingers[s], atol=1e-5, rtol=0)
 
 
 # --------------------------------------------------------------------------------------
@@ -568,6 +618,51 @@ def test_pose_bank_keeps_the_annotated_articulation(tiny_world, tmp_path):
     build_pose_bank(cfg("paper", arti_range=(0.3, 0.4)), progress=False)
     drawn = load_pose_bank(tmp_path / "paper").state.obj_arti
     assert bool(((drawn >= 0.3) & (drawn <= 0.4)).all())
+
+
+@pytest.mark.slow
+def test_pose_bank_finger_noise_moves_fingers_along_the_annotated_directions(tiny_world, tmp_path):
+    """With ``finger_scale`` (and no optimisation steps) a bank grasp's fingers are its source
+    frame's plus noise in the span of the sequences' principal directions; without, the
+    source frame's."""
+    from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.job_config import BankDataConfig, BankPOMConfig, BankRunConfig, PoseBankConfig
+    from hogsa_loader.pom.jobs import bank_finger_noise, build_pose_bank
+
+    torch.manual_seed(0)
+    save_contactnet(ContactNet().eval(), tmp_path / "cn", {})
+    root = ArcticRoot(tiny_world)
+    seq = root.sequences()[0]
+    sid, name = seq.split("/")
+    annotated = root.sequence(sid, name)
+
+    def cfg(out, finger_scale) -> PoseBankConfig:
+        return PoseBankConfig(
+            data=BankDataConfig(
+                root=str(tiny_world), contactnet=str(tmp_path / "cn"), sequences=(seq,), per_sequence=4
+            ),
+            pom=BankPOMConfig(iters=0, keep_rejected=True, finger_scale=finger_scale, finger_components=3),
+            run=BankRunConfig(out=str(tmp_path / out)),
+        )
+
+    build_pose_bank(cfg("plain", 0.0), progress=False)
+    build_pose_bank(cfg("fingers", 0.5), progress=False)
+    assert bank_finger_noise(root, [seq], cfg("plain", 0.0)) is None
+    noise = bank_finger_noise(root, [seq], cfg("fingers", 0.5))
+    info = json.loads((tmp_path / "fingers" / "manifest.json").read_text())["info"]["finger_noise"]
+    assert info["scale"] == 0.5 and info["components"] == 3
+    np.testing.assert_allclose(info["std"]["left"], noise.basis["left"].norm(dim=1).numpy(), rtol=1e-6)
+    assert json.loads((tmp_path / "plain" / "manifest.json").read_text())["info"]["finger_noise"] is None
+    plain, noisy = load_pose_bank(tmp_path / "plain"), load_pose_bank(tmp_path / "fingers")
+    assert plain.sources == noisy.sources and len(noisy.sources) > 0
+    for side in SIDES:
+        source = np.stack([getattr(annotated, side).pose[f] for _, _, f in noisy.sources])
+        np.testing.assert_allclose(plain.state.hands[side].pose.numpy(), source, atol=1e-6)
+        delta = noisy.state.hands[side].pose.double() - torch.as_tensor(source, dtype=torch.float64)
+        basis = noise.basis[side]
+        assert float(delta.abs().max()) > 0.01
+        coef = torch.linalg.lstsq(basis.T, delta.T).solution
+        torch.testing.assert_close(coef.T @ basis, delta, atol=1e-5, rtol=0)
 
 
 # --------------------------------------------------------------------------------------

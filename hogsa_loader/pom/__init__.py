@@ -2,7 +2,7 @@
 
 * :mod:`~hogsa_loader.pom.contactnet` — topology-free ContactNet, GraspTTA's contact map,
   safetensors checkpoints;
-* :mod:`~hogsa_loader.pom.perturb` — the paper's perturbation (seeded);
+* :mod:`~hogsa_loader.pom.perturb` — the paper's perturbation (seeded), optional finger noise;
 * :mod:`~hogsa_loader.pom.losses` — L_C, L_H, L_P, pose prior;
 * :mod:`~hogsa_loader.pom.optimize` — batched bimanual optimisation;
 * :mod:`~hogsa_loader.pom.metrics` — penetration depth, intersection volume, contact,
@@ -18,7 +18,7 @@ from hogsa_loader.pom.hands import HandInfo, hand_infos
 from hogsa_loader.pom.metrics import diversity, grasp_metrics, summarize
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig, POMResult, optimise_grasps
-from hogsa_loader.pom.perturb import KEEP_ARTICULATION, PerturbConfig, PerturbRecord, perturb
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION, FingerNoise, PerturbConfig, PerturbRecord, perturb
 from hogsa_loader.pom.state import GraspState, HandParams, load_frames
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "ObjectSet",
     "PerturbConfig",
     "KEEP_ARTICULATION",
+    "FingerNoise",
     "PerturbRecord",
     "perturb",
     "POMConfig",

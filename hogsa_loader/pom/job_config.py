@@ -117,6 +117,17 @@ class BankPOMConfig:
         ),
     )
     keep_rejected: bool = field(default=False, metadata=_opt("also keep grasps that fail acceptance"))
+    finger_scale: float = field(
+        default=0.0,
+        metadata=_opt(
+            "finger-pose noise added to each start, in standard deviations of the selected sequences' annotated hands "
+            "along their principal directions (0: none)",
+            "non_negative_float",
+        ),
+    )
+    finger_components: int = field(
+        default=6, metadata=_opt("principal directions of the finger noise per hand", "positive_int")
+    )
 
     def __post_init__(self) -> None:
         self.arti_range = _tuple(self.arti_range)

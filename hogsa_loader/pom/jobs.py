@@ -22,17 +22,17 @@ from tqdm import tqdm
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.pom.bank import save_pose_bank
 from hogsa_loader.pom.contactnet import ContactNet, load_contactnet, save_contactnet
-from hogsa_loader.pom.hands import HandInfo, hand_infos
+from hogsa_loader.pom.hands import SIDES, HandInfo, hand_infos
 from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
 from hogsa_loader.pom.metrics import grasp_metrics
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig
-from hogsa_loader.pom.perturb import KEEP_ARTICULATION, PerturbConfig
+from hogsa_loader.pom.perturb import KEEP_ARTICULATION, FingerNoise, PerturbConfig
 from hogsa_loader.pom.pipeline import augment, contact_frames
-from hogsa_loader.pom.state import GraspState
+from hogsa_loader.pom.state import GraspState, load_frames
 from hogsa_loader.pom.train import ContactData, TrainConfig, build_contact_data, evaluate_contactnet, train_contactnet
 
-__all__ = ["fit_contactnet", "build_pose_bank", "save_contactnet_curve", "variant_seed"]
+__all__ = ["fit_contactnet", "build_pose_bank", "bank_finger_noise", "save_contactnet_curve", "variant_seed"]
 
 
 def save_contactnet_curve(path: Path, hist: dict) -> None:
@@ -225,6 +225,7 @@ def _optimise_sequences(
     pert: PerturbConfig,
     cfg: PoseBankConfig,
     progress: bool,
+    fingers: Optional[FingerNoise] = None,
 ) -> _BankParts:
     """Perturb and optimise ``cfg.data.variants`` times the contact frames of every sequence."""
     infos = hand_infos(root.mano_layers())
@@ -245,10 +246,21 @@ def _optimise_sequences(
                 batch=cfg.pom.batch,
                 perturb_config=pert,
                 device=cfg.run.device,
+                fingers=fingers,
             )
             m = grasp_metrics(aug.result, infos, objects, frames.active)
             parts.add(frames, aug, m, cfg.pom.keep_rejected)
     return parts
+
+
+def bank_finger_noise(root: ArcticRoot, seqs: list[str], cfg: PoseBankConfig) -> Optional[FingerNoise]:
+    """The bank's finger noise: principal directions of every annotated frame of ``seqs``
+    (None when ``cfg.pom.finger_scale`` is 0)."""
+    if cfg.pom.finger_scale == 0:
+        return None
+    state, _ = load_frames(root, seqs)
+    poses = {side: state.hands[side].pose for side in SIDES}
+    return FingerNoise.fit(poses, cfg.pom.finger_components, cfg.pom.finger_scale)
 
 
 def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, Any]:
@@ -258,7 +270,10 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
     id, variant)`` (:func:`variant_seed`). The start perturbation keeps the annotated
     articulation (:data:`~hogsa_loader.pom.perturb.KEEP_ARTICULATION`: the paper's ranges,
     annotated θ kept, so the bank's θ follows the data's) unless ``cfg.pom.arti_range`` asks
-    for a uniform draw.
+    for a uniform draw. With ``cfg.pom.finger_scale`` the start fingers also get
+    :class:`~hogsa_loader.pom.perturb.FingerNoise` along the principal directions of the
+    selected sequences' annotated hands (:func:`bank_finger_noise`); the manifest's
+    ``finger_noise`` records its scale and the standard deviation of each direction.
 
     Args:
         cfg: data root, ContactNet, selection of sequences and frames; POM settings; bank
@@ -276,7 +291,9 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
     pom = POMConfig(iters=cfg.pom.iters)
     pert = KEEP_ARTICULATION if cfg.pom.arti_range is None else PerturbConfig(arti_range=tuple(cfg.pom.arti_range))
     t0 = time.perf_counter()
-    parts = _optimise_sequences(root, _bank_sequences(root, cfg), net, pom, pert, cfg, progress)
+    seqs = _bank_sequences(root, cfg)
+    fingers = bank_finger_noise(root, seqs, cfg)
+    parts = _optimise_sequences(root, seqs, net, pom, pert, cfg, progress, fingers)
     if not parts.states:
         raise ValueError(
             f"no contact frame found in {root.data_root} (subjects {list(cfg.data.subjects or []) or 'all'})"
@@ -292,6 +309,13 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
         "dropped": parts.dropped,
         "config": {k: getattr(pom, k) for k in pom.__dataclass_fields__},
         "perturbation": asdict(pert),
+        "finger_noise": None
+        if fingers is None
+        else {
+            "scale": fingers.scale,
+            "components": cfg.pom.finger_components,
+            "std": {side: b.norm(dim=1).tolist() for side, b in fingers.basis.items()},
+        },
         "seconds": time.perf_counter() - t0,
     }
     path = save_pose_bank(

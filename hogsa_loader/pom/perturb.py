@@ -14,7 +14,15 @@ from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.objects import ObjectSet, to_world
 from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
 
-__all__ = ["PerturbConfig", "KEEP_ARTICULATION", "PerturbRecord", "perturb", "euler_xyz_matrix", "random_directions"]
+__all__ = [
+    "PerturbConfig",
+    "KEEP_ARTICULATION",
+    "FingerNoise",
+    "PerturbRecord",
+    "perturb",
+    "euler_xyz_matrix",
+    "random_directions",
+]
 
 
 @dataclass(frozen=True)
@@ -41,6 +49,53 @@ KEEP_ARTICULATION = PerturbConfig(arti_range=None)
 """The paper's rotation, root and jitter ranges; θ stays the annotated angle."""
 
 
+@dataclass(frozen=True)
+class FingerNoise:
+    """Gaussian noise on the 45 finger values of each hand, along the principal directions
+    of annotated hands: a finger pose moves the way the annotated grasps vary (fingers
+    closing together, a thumb swinging), never along directions no hand takes.
+
+    Attributes:
+        basis: side -> (K, 45) principal directions of annotated finger poses, each scaled
+            by the standard deviation of the poses along it (rad).
+        scale: standard deviation of the noise along each direction, in units of the
+            poses' own (0 adds nothing).
+    """
+
+    basis: Mapping[str, Tensor]
+    scale: float = 0.5
+
+    @classmethod
+    def fit(cls, poses: Mapping[str, Tensor], components: int = 6, scale: float = 0.5) -> "FingerNoise":
+        """Principal directions of annotated finger poses.
+
+        Args:
+            poses: side -> (N, 45) finger poses (axis-angle, rad), N > ``components``.
+            components: K directions kept per side (those of the largest variance).
+            scale: see the class attributes.
+
+        Raises:
+            ValueError: fewer than ``components + 1`` poses of a side, or poses not (N, 45).
+        """
+        basis = {}
+        for side, x in poses.items():
+            x = torch.as_tensor(x, dtype=torch.float64)
+            if x.ndim != 2 or x.shape[1] != 45 or x.shape[0] <= components:
+                raise ValueError(
+                    f"{side} finger poses: need (N, 45) with N > {components} to fit {components} directions, "
+                    f"got {tuple(x.shape)}"
+                )
+            _, sv, vt = torch.linalg.svd(x - x.mean(0), full_matrices=False)
+            basis[side] = vt[:components] * (sv[:components, None] / math.sqrt(x.shape[0] - 1))
+        return cls(basis, scale)
+
+    def sample(self, side: str, n: int, generator: torch.Generator, dtype: torch.dtype = torch.float32) -> Tensor:
+        """(n, 45) noise for ``side``: ``scale · z @ basis``, z ~ N(0, I_K)."""
+        b = self.basis[side].to(torch.float64)
+        z = torch.randn(n, b.shape[0], generator=generator, dtype=torch.float64)
+        return (self.scale * z @ b).to(dtype)
+
+
 @dataclass
 class PerturbRecord:
     """What :func:`perturb` drew.
@@ -52,6 +107,7 @@ class PerturbRecord:
         wrist_before: side -> (B, 3) original wrist joint (m).
         center: (B, 3) object centre used for the root move (m).
         arti: (B,) new θ.
+        fingers: side -> (B, 45) finger noise added (None: no :class:`FingerNoise`).
     """
 
     angles: dict[str, Tensor]
@@ -60,6 +116,7 @@ class PerturbRecord:
     wrist_before: dict[str, Tensor]
     center: Tensor
     arti: Tensor
+    fingers: Optional[dict[str, Tensor]] = None
 
 
 def euler_xyz_matrix(angles: Tensor) -> Tensor:
@@ -94,6 +151,7 @@ def perturb(
     objects: ObjectSet,
     generator: torch.Generator,
     config: PerturbConfig = PerturbConfig(),
+    fingers: Optional[FingerNoise] = None,
 ) -> tuple[GraspState, PerturbRecord]:
     """Perturb B grasps as in the HOGSA paper.
 
@@ -106,7 +164,10 @@ def perturb(
        (the centroid of the object's surface samples, original object pose);
     3. each hand and the object get a translation jitter: uniform direction, length uniform in
        [0, 6 cm];
-    4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects), or kept.
+    4. the articulation angle θ is drawn uniformly in [0.01π, 0.2π] (ARCTIC objects), or kept;
+    5. with ``fingers`` (not in the paper), each hand's finger pose gets
+       :class:`FingerNoise`. It is drawn after everything above, so steps 1–4 draw the
+       same values with and without it.
 
     The paper's θ draw never gives a closed object (θ = 0), although most annotated frames
     hold one; a model trained on such grasps learns a biased θ. :data:`KEEP_ARTICULATION`
@@ -121,6 +182,7 @@ def perturb(
         objects: object geometry (for the object centre).
         generator: seeded CPU generator (all draws).
         config: ranges.
+        fingers: finger-pose noise (None: fingers kept).
 
     Returns:
         the perturbed state (new tensors) and the :class:`PerturbRecord`.
@@ -155,5 +217,10 @@ def perturb(
             arti = _uniform(B, config.arti_range[0], config.arti_range[1], generator, dtype).to(device)
         else:
             arti = state.obj_arti.clone()
+        rec_fingers = None
+        if fingers is not None:
+            rec_fingers = {s: fingers.sample(s, B, generator, dtype).to(device) for s in SIDES}
+            for s in SIDES:
+                hands[s].pose = hands[s].pose + rec_fingers[s]
     new = GraspState(hands, list(state.obj_names), arti, state.obj_rot.clone(), state.obj_trans + ojit)
-    return new, PerturbRecord(rec_angles, rec_shift, rec_jit, rec_wrist, center, arti)
+    return new, PerturbRecord(rec_angles, rec_shift, rec_jit, rec_wrist, center, arti, rec_fingers)

@@ -17,7 +17,7 @@ from hogsa_loader.pom.contactnet import ContactNet
 from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig, optimise_grasps
-from hogsa_loader.pom.perturb import PerturbConfig, perturb
+from hogsa_loader.pom.perturb import FingerNoise, PerturbConfig, perturb
 from hogsa_loader.pom.state import GraspState, contact_flags, load_frames
 
 __all__ = ["ContactFrames", "contact_frames", "Augmented", "augment"]
@@ -92,10 +92,13 @@ def augment(
     batch: int = 16,
     perturb_config: PerturbConfig = PerturbConfig(),
     device: str | torch.device = "cpu",
+    fingers: Optional[FingerNoise] = None,
 ) -> Augmented:
-    """Perturb (seeded) and optimise every frame, ``batch`` samples per optimiser call."""
+    """Perturb (seeded; ``fingers``: finger-pose noise too) and optimise every frame,
+    ``batch`` samples per optimiser call. The pose prior and the contact sets stay those of
+    the annotated frames."""
     gen = torch.Generator().manual_seed(seed)
-    start, _ = perturb(frames.state, infos, objects, gen, perturb_config)
+    start, _ = perturb(frames.state, infos, objects, gen, perturb_config, fingers)
     outs, keeps, secs = [], [], 0.0
     dropped = {"nonfinite": 0, "implausible": 0, "penetration": 0}
     B = start.batch
