@@ -144,7 +144,7 @@ class SetupSettings:
         default=0.0,
         metadata={
             "help": "finger noise of the pose bank's POM starts, in standard deviations of the training hands along "
-            "their 6 principal directions (0: the paper's perturbation alone)"
+            "their principal directions (BankPOMConfig.finger_scale; 0: the paper's perturbation alone)"
         },
     )
 
@@ -306,6 +306,7 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.train.workers >= 0 and cfg.threads >= 0, "--train-workers and --threads must be >= 0"),
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
+        (cfg.setup.bank_finger_scale >= 0, "--setup-bank-finger-scale must be >= 0"),
         (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
         (not (cfg.model.init and cfg.model.weights), "--model-init and --model-weights exclude each other"),
         (
@@ -466,7 +467,7 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
     s = asdict(cfg.setup)
-    if not s["bank_finger_scale"]:  # keys of setups made before the option
+    if not s["bank_finger_scale"]:  # 0 adds nothing to the keys
         del s["bank_finger_scale"]
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"

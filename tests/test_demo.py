@@ -93,6 +93,21 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 
+def test_bank_stage_key_holds_the_finger_noise_only_when_asked(tiny_world):
+    from dataclasses import replace
+    from pathlib import Path
+
+    from hogsa_loader.demo import _bank_node
+
+    cfg = DemoConfig(data=str(tiny_world), pairs=(("s01", "box"),), bank_per_sequence=2)
+
+    def key(c: DemoConfig) -> str:
+        return _bank_node(c, Path("/x/bank"), Path(tiny_world), Path("/x/cn"), "k").key
+
+    assert key(cfg) == "ab3c5614fe8f89ef"  # pinned: the default finger scale (0) adds nothing to the key
+    assert key(replace(cfg, bank_finger_scale=0.5)) not in (key(cfg), key(replace(cfg, bank_finger_scale=0.25)))
+
+
 def test_unbatch_inverts_default_collate():
     from torch.utils.data import default_collate
 

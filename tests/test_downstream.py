@@ -176,7 +176,7 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
     assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
-    # the keys of runs made before --setup-bank-finger-scale existed (its default adds nothing)
+    # pinned: the default --setup-bank-finger-scale (0) adds nothing to the keys
     assert first == {"world": "7829384198a2f0f3", "bundle": "70c63df39baf3bf5", "all": "cacbad1012974482"} | {
         "free": "39022538e5ffdfd9"
     }

@@ -235,6 +235,13 @@ def test_finger_noise_follows_the_annotated_hands_principal_directions():
         FingerNoise.fit({"right": poses[:2]}, components=2)
     with pytest.raises(ValueError, match=r"\(100, 44\)"):
         FingerNoise.fit({"right": poses[:100, :44]}, components=2)
+    for bad in ({"components": 0}, {"components": 46}, {"scale": -0.1}):
+        with pytest.raises(ValueError, match="components|scale"):
+            FingerNoise.fit({"right": poses}, **bad)
+    from hogsa_loader.pom.job_config import BankPOMConfig
+
+    with pytest.raises(ValueError, match="finger_scale"):
+        BankPOMConfig(finger_scale=-1.0)
 
 
 def test_finger_noise_changes_only_the_fingers(scene):

@@ -131,6 +131,11 @@ class BankPOMConfig:
 
     def __post_init__(self) -> None:
         self.arti_range = _tuple(self.arti_range)
+        if self.finger_scale < 0 or not 1 <= self.finger_components <= 45:
+            raise ValueError(
+                f"finger_scale must be >= 0 and finger_components in 1..45, got {self.finger_scale} and "
+                f"{self.finger_components}"
+            )
 
 
 @dataclass

@@ -49,17 +49,17 @@ KEEP_ARTICULATION = PerturbConfig(arti_range=None)
 """The paper's rotation, root and jitter ranges; θ stays the annotated angle."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FingerNoise:
     """Gaussian noise on the 45 finger values of each hand, along the principal directions
-    of annotated hands: a finger pose moves the way the annotated grasps vary (fingers
-    closing together, a thumb swinging), never along directions no hand takes.
+    of annotated hands: a finger pose moves only the ways the annotated hands vary, by a
+    set fraction of how much they vary.
 
     Attributes:
         basis: side -> (K, 45) principal directions of annotated finger poses, each scaled
             by the standard deviation of the poses along it (rad).
         scale: standard deviation of the noise along each direction, in units of the
-            poses' own (0 adds nothing).
+            poses' own standard deviation along it (0 adds nothing).
     """
 
     basis: Mapping[str, Tensor]
@@ -71,15 +71,23 @@ class FingerNoise:
 
         Args:
             poses: side -> (N, 45) finger poses (axis-angle, rad), N > ``components``.
-            components: K directions kept per side (those of the largest variance).
-            scale: see the class attributes.
+            components: K directions kept per side (those of the largest variance), 1 to 45.
+            scale: see the class attributes (>= 0).
+
+        Returns:
+            the noise, its basis on the CPU in float64.
 
         Raises:
-            ValueError: fewer than ``components + 1`` poses of a side, or poses not (N, 45).
+            ValueError: ``components`` outside 1..45, a negative ``scale``, fewer than
+                ``components + 1`` poses of a side, or poses not (N, 45).
         """
+        if not 1 <= components <= 45:
+            raise ValueError(f"components must be in 1..45, got {components}")
+        if scale < 0:
+            raise ValueError(f"scale must be >= 0, got {scale}")
         basis = {}
         for side, x in poses.items():
-            x = torch.as_tensor(x, dtype=torch.float64)
+            x = torch.as_tensor(x).to("cpu", torch.float64)
             if x.ndim != 2 or x.shape[1] != 45 or x.shape[0] <= components:
                 raise ValueError(
                     f"{side} finger poses: need (N, 45) with N > {components} to fit {components} directions, "
@@ -90,8 +98,9 @@ class FingerNoise:
         return cls(basis, scale)
 
     def sample(self, side: str, n: int, generator: torch.Generator, dtype: torch.dtype = torch.float32) -> Tensor:
-        """(n, 45) noise for ``side``: ``scale · z @ basis``, z ~ N(0, I_K)."""
-        b = self.basis[side].to(torch.float64)
+        """(n, 45) noise for ``side`` on the CPU: ``scale · z @ basis``, z ~ N(0, I_K) drawn
+        from ``generator`` (a CPU generator)."""
+        b = self.basis[side].to("cpu", torch.float64)
         z = torch.randn(n, b.shape[0], generator=generator, dtype=torch.float64)
         return (self.scale * z @ b).to(dtype)
 
