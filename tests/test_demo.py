@@ -93,7 +93,7 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 
-def test_bank_stage_key_holds_the_finger_noise_only_when_asked(tiny_world):
+def test_bank_stage_key_holds_the_finger_noise_only_when_asked(tiny_world, monkeypatch):
     from dataclasses import replace
     from pathlib import Path
 
@@ -106,6 +106,11 @@ def test_bank_stage_key_holds_the_finger_noise_only_when_asked(tiny_world):
 
     assert key(cfg) == "ab3c5614fe8f89ef"  # pinned: the default finger scale (0) adds nothing to the key
     assert key(replace(cfg, bank_finger_scale=0.5)) not in (key(cfg), key(replace(cfg, bank_finger_scale=0.25)))
+    # and the stage builds its bank with that scale
+    seen = []
+    monkeypatch.setattr("hogsa_loader.demo.build_pose_bank", lambda c, progress: seen.append(c.pom.finger_scale))
+    _bank_node(replace(cfg, bank_finger_scale=0.5), Path("/x/bank"), Path(tiny_world), Path("/x/cn"), "k").build()
+    assert seen == [0.5]
 
 
 def test_unbatch_inverts_default_collate():

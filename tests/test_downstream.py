@@ -104,6 +104,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--setup-bundle", "b"], "needs --setup-data"),
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
+        (["--setup-bank-finger-scale", "-0.5"], "finger-scale"),
         (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
         (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2", "3"], "/nowhere/seed2/m.safetensors"),
     ],
@@ -113,6 +114,22 @@ def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
     with pytest.raises(SystemExit, match=message):
         ds.main(argv + ["--out", str(tmp_path / "o")])
     assert not (tmp_path / "o").exists()
+
+
+def test_setup_builds_its_pose_bank_with_the_finger_scale(tmp_path, monkeypatch):
+    ds = _downstream()
+    seen = []
+
+    def stages(out, demo, log):
+        seen.append(demo)
+        return tmp_path, tmp_path, {}
+
+    monkeypatch.setattr(ds, "build_bundle_stages", stages)
+    monkeypatch.setattr(ds, "background_folder", lambda cfg, data, out: data)
+    cfg = ds.DownstreamConfig()
+    cfg.setup.bank_finger_scale, cfg.setup.bank_per_sequence = 0.5, 64
+    ds.build_setup(cfg, tmp_path)
+    assert seen[0].bank_finger_scale == 0.5 and seen[0].bank_per_sequence == 64
 
 
 def test_low_data_subset_is_fixed_and_sized():

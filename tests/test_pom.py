@@ -260,6 +260,8 @@ def test_finger_noise_changes_only_the_fingers(scene):
         basis = noise.basis[s].to(torch.float32)
         coef = torch.linalg.lstsq(basis.T, rec.fingers[s].T).solution  # in the span of the directions
         torch.testing.assert_close(coef.T @ basis, rec.fingers[s], atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="a basis for each"):
+        perturb(state, infos, objects, torch.Generator(), fingers=FingerNoise({"right": noise.basis["right"]}))
 
 
 # --------------------------------------------------------------------------------------

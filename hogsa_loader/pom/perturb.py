@@ -196,6 +196,8 @@ def perturb(
     Returns:
         the perturbed state (new tensors) and the :class:`PerturbRecord`.
     """
+    if fingers is not None and set(SIDES) - set(fingers.basis):
+        raise ValueError(f"finger noise needs a basis for each of {SIDES}, has {sorted(fingers.basis)}")
     B = state.batch
     dtype = state.obj_trans.dtype
     device = state.obj_trans.device
