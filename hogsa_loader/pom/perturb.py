@@ -154,6 +154,20 @@ def object_centers(state: GraspState, objects: ObjectSet) -> Tensor:
     return to_world(c, state.obj_rot, state.obj_trans)[:, 0]
 
 
+def _add_finger_noise(
+    hands: dict[str, HandParams], fingers: FingerNoise, generator: torch.Generator
+) -> dict[str, Tensor]:
+    """Add ``fingers`` noise to each hand's (B, 45) pose in place; the noise per side."""
+    if set(SIDES) - set(fingers.basis):
+        raise ValueError(f"finger noise needs a basis for each of {SIDES}, has {sorted(fingers.basis)}")
+    noise = {}
+    for s in SIDES:
+        pose = hands[s].pose
+        noise[s] = fingers.sample(s, pose.shape[0], generator, pose.dtype).to(pose.device)
+        hands[s].pose = pose + noise[s]
+    return noise
+
+
 def perturb(
     state: GraspState,
     infos: Mapping[str, HandInfo],
@@ -196,8 +210,6 @@ def perturb(
     Returns:
         the perturbed state (new tensors) and the :class:`PerturbRecord`.
     """
-    if fingers is not None and set(SIDES) - set(fingers.basis):
-        raise ValueError(f"finger noise needs a basis for each of {SIDES}, has {sorted(fingers.basis)}")
     B = state.batch
     dtype = state.obj_trans.dtype
     device = state.obj_trans.device
@@ -228,10 +240,6 @@ def perturb(
             arti = _uniform(B, config.arti_range[0], config.arti_range[1], generator, dtype).to(device)
         else:
             arti = state.obj_arti.clone()
-        rec_fingers = None
-        if fingers is not None:
-            rec_fingers = {s: fingers.sample(s, B, generator, dtype).to(device) for s in SIDES}
-            for s in SIDES:
-                hands[s].pose = hands[s].pose + rec_fingers[s]
+        rec_fingers = None if fingers is None else _add_finger_noise(hands, fingers, generator)
     new = GraspState(hands, list(state.obj_names), arti, state.obj_rot.clone(), state.obj_trans + ojit)
     return new, PerturbRecord(rec_angles, rec_shift, rec_jit, rec_wrist, center, arti, rec_fingers)
