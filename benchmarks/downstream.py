@@ -91,7 +91,7 @@ from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.demo import DemoConfig, build_bundle_stages
 from hogsa_loader.errors import AssetError, read_json
 from hogsa_loader.export import SynthShardSamples, dataset_frames_for_shard, write_shards
-from hogsa_loader.io.hashing import sha256_file
+from hogsa_loader.io.hashing import keyed_settings, settings_key, sha256_file
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.loader import HOGSADataset, with_options
 from hogsa_loader.loader.cameras import CameraConfig
@@ -140,6 +140,9 @@ class SetupSettings:
     srm_iters: int = field(default=400, metadata={"help": "SRM steps when building"})
     contactnet_iters: int = field(default=120, metadata={"help": "ContactNet steps when building"})
     bank_per_sequence: int = field(default=6, metadata={"help": "POM frames per sequence in the pose bank"})
+    bank_variants: int = field(
+        default=1, metadata={"help": "perturbed POM starts per frame in the pose bank (BankDataConfig.variants)"}
+    )
     bank_finger_scale: float = field(
         default=0.0,
         metadata={
@@ -307,6 +310,7 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
         (cfg.setup.bank_finger_scale >= 0, "--setup-bank-finger-scale must be >= 0"),
+        (cfg.setup.bank_variants >= 1, "--setup-bank-variants must be >= 1"),
         (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
         (not (cfg.model.init and cfg.model.weights), "--model-init and --model-weights exclude each other"),
         (
@@ -327,8 +331,7 @@ def validate(cfg: DownstreamConfig) -> None:
         raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
 
 
-def _key(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+_key = settings_key
 
 
 def _atomic_json(path: Path, obj: Any) -> None:
@@ -403,6 +406,7 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
         srm_iters=s.srm_iters,
         contactnet_iters=s.contactnet_iters,
         bank_per_sequence=s.bank_per_sequence,
+        bank_variants=s.bank_variants,
         bank_finger_scale=s.bank_finger_scale,
     )
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
@@ -437,14 +441,14 @@ def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str,
     """The synthetic settings in cache keys (photo backgrounds and the replace mix keep the
     keys they had before these choices existed; ``frames_only``: without the mix, which the
     exported frames do not depend on)."""
-    syn = asdict(cfg.synthetic)
-    if syn["backgrounds"] == "photos":
-        del syn["backgrounds"]
-    if syn["cameras"] == "novel":
-        del syn["cameras"]
-    if frames_only or syn["mix"] == "replace":
-        del syn["mix"]
+    syn = keyed_settings(asdict(cfg.synthetic), {"backgrounds": "photos", "cameras": "novel", "mix": "replace"})
+    if frames_only:
+        syn.pop("mix", None)
     return syn
+
+
+#: Setup settings keyed only when they differ from these defaults.
+SETUP_LATE_DEFAULTS = {"bank_finger_scale": 0.0, "bank_variants": 1}
 
 
 def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:
@@ -466,12 +470,10 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
-    s = asdict(cfg.setup)
-    if not s["bank_finger_scale"]:  # 0 adds nothing to the keys
-        del s["bank_finger_scale"]
+    s = keyed_settings(asdict(cfg.setup), SETUP_LATE_DEFAULTS)
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
-    no_bank = {k: v for k, v in s.items() if k not in ("bank_per_sequence", "bank_finger_scale", "free_bundle")}
+    no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}
     return {
         "world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
         "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
@@ -752,11 +754,9 @@ def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
 def train_key(cfg: DownstreamConfig) -> dict[str, Any]:
     """The optimisation settings in cache keys: ``checkpoint_every`` left out, a constant
     ``lr_schedule`` left out, ``workers`` keyed as 1 (the batches do not depend on it)."""
-    train = asdict(cfg.train)
+    train = keyed_settings(asdict(cfg.train), {"lr_schedule": "constant"})
     del train["checkpoint_every"]
     train["workers"] = 1
-    if train["lr_schedule"] == "constant":
-        del train["lr_schedule"]
     return train
 
 

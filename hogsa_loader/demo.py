@@ -7,7 +7,6 @@ DataLoader and writes ``samples.png``, ``batch.npz`` and ``demo.json``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -25,6 +24,7 @@ from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.errors import PathLike
+from hogsa_loader.io.hashing import keyed_settings, settings_key
 from hogsa_loader.loader.config import LoaderConfig, with_options
 from hogsa_loader.loader.dataset import HOGSADataset
 from hogsa_loader.loader.mixing import MixedLoader
@@ -75,6 +75,7 @@ class DemoConfig:
             (on average 1.35× the linear resolution on them at the same cost; ``"crop"``:
             whole cropped images).
         contactnet_iters: ContactNet steps; bank_per_sequence: POM frames per sequence;
+            bank_variants: perturbed starts per frame (``BankDataConfig.variants``);
             bank_finger_scale: finger noise of the pose bank's starts (``BankPOMConfig.finger_scale``).
         srm_iters, srm_crop, srm_augment: brief SRM training (crop = training window side;
             augment: ``none``/``flip``/``d4``). Its coarse renders are cached in
@@ -104,6 +105,7 @@ class DemoConfig:
     hogs_window: str = "fg"
     contactnet_iters: int = 120
     bank_per_sequence: int = 6
+    bank_variants: int = 1
     bank_finger_scale: float = 0.0
     srm_iters: int = 400
     srm_crop: int = 64
@@ -125,7 +127,7 @@ class DemoConfig:
 
 
 def _key(*parts: Any) -> str:
-    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return settings_key(parts)
 
 
 class _Stages:
@@ -289,15 +291,24 @@ def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _St
     return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters), [cn], contactnet)
 
 
+#: Pose-bank settings keyed only when they differ from these defaults.
+_BANK_LATE_DEFAULTS = {"finger_scale": 0.0, "variants": 1}
+
+
 def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> _StageNode:
     """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    start = [asdict(KEEP_ARTICULATION)] + ([{"finger_scale": cfg.bank_finger_scale}] if cfg.bank_finger_scale else [])
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbation
+    late = keyed_settings({"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants}, _BANK_LATE_DEFAULTS)
+    start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])
+    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbations
     bank_cfg = PoseBankConfig(
         data=BankDataConfig(
-            root=str(data), contactnet=str(cn), sequences=tuple(seqs), per_sequence=cfg.bank_per_sequence
+            root=str(data),
+            contactnet=str(cn),
+            sequences=tuple(seqs),
+            per_sequence=cfg.bank_per_sequence,
+            variants=cfg.bank_variants,
         ),
         pom=BankPOMConfig(finger_scale=cfg.bank_finger_scale),
         run=BankRunConfig(out=str(bank), seed=cfg.seed),

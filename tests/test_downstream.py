@@ -105,6 +105,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
         (["--setup-bank-finger-scale", "-0.5"], "finger-scale"),
+        (["--setup-bank-variants", "0"], "bank-variants"),
         (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
         (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2", "3"], "/nowhere/seed2/m.safetensors"),
     ],
@@ -127,9 +128,9 @@ def test_setup_builds_its_pose_bank_with_the_finger_scale(tmp_path, monkeypatch)
     monkeypatch.setattr(ds, "build_bundle_stages", stages)
     monkeypatch.setattr(ds, "background_folder", lambda cfg, data, out: data)
     cfg = ds.DownstreamConfig()
-    cfg.setup.bank_finger_scale, cfg.setup.bank_per_sequence = 0.5, 64
+    cfg.setup.bank_finger_scale, cfg.setup.bank_per_sequence, cfg.setup.bank_variants = 0.5, 64, 3
     ds.build_setup(cfg, tmp_path)
-    assert seen[0].bank_finger_scale == 0.5 and seen[0].bank_per_sequence == 64
+    assert (seen[0].bank_finger_scale, seen[0].bank_per_sequence, seen[0].bank_variants) == (0.5, 64, 3)
 
 
 def test_low_data_subset_is_fixed_and_sized():
@@ -193,7 +194,7 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
     assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
-    # pinned: the default --setup-bank-finger-scale (0) adds nothing to the keys
+    # pinned: the default --setup-bank-finger-scale (0) and --setup-bank-variants (1) add nothing to the keys
     assert first == {"world": "7829384198a2f0f3", "bundle": "70c63df39baf3bf5", "all": "cacbad1012974482"} | {
         "free": "39022538e5ffdfd9"
     }
@@ -201,7 +202,11 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     fingers = ds.setup_fingerprints(cfg, setup)
     assert {k: v for k, v in fingers.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
     assert fingers["all"] != first["all"]
-    cfg.setup.bank_finger_scale = 0.0
+    cfg.setup.bank_variants = 4
+    variants = ds.setup_fingerprints(cfg, setup)
+    assert {k: v for k, v in variants.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
+    assert variants["all"] not in (first["all"], fingers["all"])
+    cfg.setup.bank_finger_scale, cfg.setup.bank_variants = 0.0, 1
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "2"}}]}))
     bank = ds.setup_fingerprints(cfg, setup)  # a new pose bank
     assert bank["world"] == first["world"] and bank["bundle"] == first["bundle"] and bank["all"] != first["all"]

@@ -244,6 +244,14 @@ def test_finger_noise_follows_the_annotated_hands_principal_directions():
         BankPOMConfig(finger_scale=-1.0)
 
 
+@pytest.mark.parametrize("bad", [{"per_sequence": 0}, {"variants": 0}])
+def test_bank_data_config_refuses_no_frames_or_no_starts(bad):
+    from hogsa_loader.pom.job_config import BankDataConfig
+
+    with pytest.raises(ValueError, match="per_sequence and variants must be >= 1"):
+        BankDataConfig(root="r", contactnet="c", **bad)
+
+
 def test_finger_noise_changes_only_the_fingers(scene):
     infos, objects = scene
     state = _state(infos, {"right": (-0.05, 0.05, 0.1), "left": (-0.08, -0.02, -0.12)}, B=5)

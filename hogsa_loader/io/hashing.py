@@ -1,9 +1,11 @@
-"""Content digests of files."""
+"""Content digests of files and cache keys of settings."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
+from typing import Any
 
 
 def sha256_file(path: Path) -> str:
@@ -13,3 +15,18 @@ def sha256_file(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def settings_key(obj: Any) -> str:
+    """16 hex digits of the sha256 of ``obj`` as JSON with sorted keys (values JSON cannot
+    hold are written with ``str``): the cache key of a set of settings."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def keyed_settings(values: dict[str, Any], late: dict[str, Any]) -> dict[str, Any]:
+    """``values`` less each entry named in ``late`` that holds the default ``late`` gives it.
+
+    Settings added after cache keys were first written are keyed this way only when they
+    differ from their default, so what was cached before they existed keeps its key.
+    """
+    return {k: v for k, v in values.items() if k not in late or v != late[k]}

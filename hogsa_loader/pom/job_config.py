@@ -100,6 +100,8 @@ class BankDataConfig:
 
     def __post_init__(self) -> None:
         self.subjects, self.sequences = _tuple(self.subjects), _tuple(self.sequences)
+        if self.per_sequence < 1 or self.variants < 1:
+            raise ValueError(f"per_sequence and variants must be >= 1, got {self.per_sequence} and {self.variants}")
 
 
 @dataclass
