@@ -789,12 +789,16 @@ def run_settings(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, An
 
 def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     """Folder of one (arm, seed) run: HOGSA arms with appended synthetic samples apart from
-    the replace runs, and runs from each ``--model-init`` (``+ft-<hash of the option>``) apart
-    from those from random weights, so that all of them can share one OUT (and its exports)."""
+    the replace runs, runs from each ``--model-init`` (``+ft-<hash of the option>``) apart
+    from those from random weights, and runs with the linear learning-rate schedule
+    (``+linear``) apart from those at a constant rate, so that all of them can share one OUT
+    (and its exports)."""
     add = ARM_SPECS[arm][1] is not None and cfg.synthetic.mix == "add"
     name = f"{arm}+add" if add else arm
     if cfg.model.init is not None:  # one folder per --model-init, so fine-tunings of several models coexist
         name += "+ft-" + hashlib.sha256(cfg.model.init.encode()).hexdigest()[:8]
+    if cfg.train.lr_schedule != "constant":
+        name += "+" + cfg.train.lr_schedule
     return out / "runs" / name / f"seed{seed}"
 
 

@@ -480,7 +480,7 @@ def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkey
 
 def test_linear_schedule_keys_its_runs_and_ends_near_zero():
     """--train-lr-schedule linear: the rate falls from lr to lr/steps, as a function of the step
-    alone; constant runs keep their keys."""
+    alone; constant runs keep their keys and folders."""
     ds = _downstream()
     cfg = ds.DownstreamConfig()
     lin = ds.replace(cfg, train=ds.replace(cfg.train, lr_schedule="linear", steps=4))
@@ -492,6 +492,9 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
     long = ds.replace(lin, train=ds.replace(lin.train, steps=cfg.train.steps))
     assert ds.run_settings("real", 0, long, setup)["train"]["lr_schedule"] == "linear"
     assert ds.run_settings("real", 0, long, setup) != ds.run_settings("real", 0, cfg, setup)
+    # in their own folders: a linear run never overwrites a constant one
+    assert ds.run_dir("real", 0, long, Path("/o")) == Path("/o/runs/real+linear/seed0")
+    assert ds.run_dir("real", 0, cfg, Path("/o")) == Path("/o/runs/real/seed0")
 
 
 def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
