@@ -310,7 +310,10 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.model.img_res >= 32, "--model-img-res must be >= 32"),
         (cfg.model.camera_prior >= 0, "--model-camera-prior must be >= 0"),
         (cfg.setup.bank_finger_scale >= 0, "--setup-bank-finger-scale must be >= 0"),
-        (cfg.setup.bank_variants >= 1, "--setup-bank-variants must be >= 1"),
+        (
+            cfg.setup.bank_per_sequence >= 1 and cfg.setup.bank_variants >= 1,
+            "--setup-bank-per-sequence and --setup-bank-variants must be >= 1",
+        ),
         (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
         (not (cfg.model.init and cfg.model.weights), "--model-init and --model-weights exclude each other"),
         (
@@ -438,17 +441,17 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
 
 
 def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str, Any]:
-    """The synthetic settings in cache keys (photo backgrounds and the replace mix keep the
-    keys they had before these choices existed; ``frames_only``: without the mix, which the
-    exported frames do not depend on)."""
+    """The synthetic settings in cache keys: photo backgrounds, novel cameras and the replace
+    mix add nothing; ``frames_only``: without the mix, which the exported frames do not depend
+    on."""
     syn = keyed_settings(asdict(cfg.synthetic), {"backgrounds": "photos", "cameras": "novel", "mix": "replace"})
     if frames_only:
         syn.pop("mix", None)
     return syn
 
 
-#: Setup settings keyed only when they differ from these defaults.
-SETUP_LATE_DEFAULTS = {"bank_finger_scale": 0.0, "bank_variants": 1}
+#: Setup settings keyed only when they hold other values than these.
+_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1}
 
 
 def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:
@@ -470,10 +473,10 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
-    s = keyed_settings(asdict(cfg.setup), SETUP_LATE_DEFAULTS)
+    s = keyed_settings(asdict(cfg.setup), _SETUP_UNKEYED)
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
-    no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}
+    no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}  # bank_*: the banks
     return {
         "world": _key([{"preset": s["preset"], "data": s["data"]}, world]),
         "bundle": _key([no_bank, world, digest(manifest, drop=("pose_banks",))]),
@@ -802,15 +805,36 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     return out / "runs" / name / f"seed{seed}"
 
 
+def _result_at(res_path: Path, key: str) -> Optional[dict[str, Any]]:
+    """The result saved at ``res_path`` when its key is ``key``, else None."""
+    if not res_path.is_file():
+        return None
+    old = json.loads(res_path.read_text())
+    return old if old.get("key") == key else None
+
+
 def finished_run(
     arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path
 ) -> Optional[dict[str, Any]]:
     """The saved result of (arm, seed) when it was run with the current settings, else None."""
-    res_path = run_dir(arm, seed, cfg, out) / "result.json"
-    if not res_path.is_file():
-        return None
-    old = json.loads(res_path.read_text())
-    return old if old.get("key") == _key(run_settings(arm, seed, cfg, setup)) else None
+    return _result_at(run_dir(arm, seed, cfg, out) / "result.json", _key(run_settings(arm, seed, cfg, setup)))
+
+
+def adopt_shared_folder_runs(cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> None:
+    """Move finished linear-schedule runs that sit in the constant-rate folder of their (arm,
+    seed) -- where such runs were written before they had folders of their own -- to their own
+    folder; a result is moved only when its key is the current run's."""
+    if cfg.train.lr_schedule == "constant":
+        return
+    shared = replace(cfg, train=replace(cfg.train, lr_schedule="constant"))
+    for arm in cfg.arms:
+        for seed in cfg.seeds:
+            own, there = run_dir(arm, seed, cfg, out), run_dir(arm, seed, shared, out)
+            if own.exists() or _result_at(there / "result.json", _key(run_settings(arm, seed, cfg, setup))) is None:
+                continue
+            own.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(there, own)
+            _say(f"[{arm} seed {seed}] linear-schedule run moved from {there} to {own}")
 
 
 def _save_progress(folder: Path, step: int, model: Any, opt: torch.optim.Optimizer, state: dict[str, Any]) -> None:
@@ -1172,6 +1196,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     setup = build_setup(cfg, out)
     setup["fingerprints"] = setup_fingerprints(cfg, setup)
     check_inits(cfg, setup)
+    adopt_shared_folder_runs(cfg, setup, out)
     skipped: dict[str, str] = {}
     exports: dict[str, Any] = dict(previous.get("exports", {})) if cfg.report_only else {}
     for arm in cfg.arms:

@@ -291,15 +291,15 @@ def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _St
     return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters), [cn], contactnet)
 
 
-#: Pose-bank settings keyed only when they differ from these defaults.
-_BANK_LATE_DEFAULTS = {"finger_scale": 0.0, "variants": 1}
+#: Pose-bank settings keyed only when they hold other values than these.
+_BANK_UNKEYED = {"finger_scale": 0.0, "variants": 1}
 
 
 def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> _StageNode:
     """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    late = keyed_settings({"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants}, _BANK_LATE_DEFAULTS)
+    late = keyed_settings({"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants}, _BANK_UNKEYED)
     start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbations
     bank_cfg = PoseBankConfig(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -106,6 +107,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
         (["--setup-bank-finger-scale", "-0.5"], "finger-scale"),
         (["--setup-bank-variants", "0"], "bank-variants"),
+        (["--setup-bank-per-sequence", "0"], "bank-per-sequence"),
         (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
         (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2", "3"], "/nowhere/seed2/m.safetensors"),
     ],
@@ -201,7 +203,7 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     cfg.setup.bank_finger_scale = 0.5  # another pose bank: only the runs that draw from it change
     fingers = ds.setup_fingerprints(cfg, setup)
     assert {k: v for k, v in fingers.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
-    assert fingers["all"] != first["all"]
+    assert fingers["all"] == "6acbc5b369094571"  # pinned: the key the finger-noise setups were made with
     cfg.setup.bank_variants = 4
     variants = ds.setup_fingerprints(cfg, setup)
     assert {k: v for k, v in variants.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
@@ -495,6 +497,53 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
     # in their own folders: a linear run never overwrites a constant one
     assert ds.run_dir("real", 0, long, Path("/o")) == Path("/o/runs/real+linear/seed0")
     assert ds.run_dir("real", 0, cfg, Path("/o")) == Path("/o/runs/real/seed0")
+    ft = ds.replace(
+        long, model=ds.replace(cfg.model, init="/m{seed}.pt"), synthetic=ds.replace(cfg.synthetic, mix="add")
+    )
+    assert re.fullmatch(r"hogsa\+add\+ft-[0-9a-f]{8}\+linear", ds.run_dir("hogsa", 0, ft, Path("/o")).parent.name)
+
+
+def test_run_keys_are_pinned():
+    """Run keys of the defaults and of the non-default synthetic and schedule choices, as
+    cached runs hold them."""
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    other = ds.replace(
+        cfg,
+        synthetic=ds.replace(cfg.synthetic, mix="add", backgrounds="camera_plates", cameras="dataset"),
+        train=ds.replace(cfg.train, lr_schedule="linear"),
+    )
+    keys = [
+        [ds._key(ds.run_settings(arm, 0, c, setup)) for arm in ("real", "hogsa", "hogsa_no_pom")] for c in (cfg, other)
+    ]
+    assert keys == [
+        ["37ca71391b1e6a9e", "b275e8cb0de1d4f0", "dbd36c200dbc12e7"],
+        ["f95d64c947ad36ea", "b85389724c5e741a", "149f667b5b888d84"],
+    ]
+
+
+def test_linear_runs_in_the_shared_folder_move_to_their_own(tmp_path, monkeypatch):
+    ds = _downstream()
+    cfg = ds.DownstreamConfig(arms=("real", "hogsa"), seeds=(0, 1))
+    lin = ds.replace(cfg, train=ds.replace(cfg.train, lr_schedule="linear"))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+
+    def save(arm, seed, c):  # a finished run of c, in the folder it is looked for in today
+        folder = ds.run_dir(arm, seed, c, tmp_path)
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps({"key": ds._key(ds.run_settings(arm, seed, c, setup))}))
+        return folder
+
+    shared = save("real", 0, cfg)  # a linear run written where the constant runs live
+    (shared / "result.json").write_text(json.dumps({"key": ds._key(ds.run_settings("real", 0, lin, setup))}))
+    constant = save("hogsa", 0, cfg)  # a constant-rate run: stays
+    ds.adopt_shared_folder_runs(lin, setup, tmp_path)
+    assert ds.finished_run("real", 0, lin, setup, tmp_path) is not None and not shared.exists()
+    assert ds.finished_run("hogsa", 0, cfg, setup, tmp_path) is not None and constant.exists()
+    assert not ds.run_dir("hogsa", 0, lin, tmp_path).exists()
+    ds.adopt_shared_folder_runs(cfg, setup, tmp_path)  # constant settings move nothing
+    assert ds.finished_run("hogsa", 0, cfg, setup, tmp_path) is not None
 
 
 def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):

@@ -23,10 +23,11 @@ def settings_key(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def keyed_settings(values: dict[str, Any], late: dict[str, Any]) -> dict[str, Any]:
-    """``values`` less each entry named in ``late`` that holds the default ``late`` gives it.
+def keyed_settings(values: dict[str, Any], unkeyed: dict[str, Any]) -> dict[str, Any]:
+    """``values`` without each entry whose value is the one ``unkeyed`` gives for its name.
 
-    Settings added after cache keys were first written are keyed this way only when they
-    differ from their default, so what was cached before they existed keeps its key.
+    A setting added after cache keys were first written is keyed this way only when it holds
+    another value than the one that reproduces the behaviour from before it existed, so what
+    was cached before keeps its key.
     """
-    return {k: v for k, v in values.items() if k not in late or v != late[k]}
+    return {k: v for k, v in values.items() if k not in unkeyed or v != unkeyed[k]}
