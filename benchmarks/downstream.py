@@ -150,6 +150,13 @@ class SetupSettings:
             "their principal directions (BankPOMConfig.finger_scale; 0: the paper's perturbation alone)"
         },
     )
+    bank_frames: Literal["contact", "all"] = field(
+        default="contact",
+        metadata={
+            "help": "frames the pose bank starts from (BankDataConfig.frames): contact, frames where a hand touches "
+            "the object (grasps only); all, every frame, so that hands away from the object keep their share"
+        },
+    )
 
 
 @dataclass
@@ -411,6 +418,7 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
         bank_per_sequence=s.bank_per_sequence,
         bank_variants=s.bank_variants,
         bank_finger_scale=s.bank_finger_scale,
+        bank_frames=s.bank_frames,
     )
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
     data, bundle = Path(data).resolve(), Path(bundle).resolve()  # one name per setup, also through links
@@ -451,7 +459,7 @@ def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str,
 
 
 #: Setup settings keyed only when they hold other values than these.
-_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1}
+_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1, "bank_frames": "contact"}
 
 
 def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:

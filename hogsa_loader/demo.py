@@ -76,7 +76,9 @@ class DemoConfig:
             whole cropped images).
         contactnet_iters: ContactNet steps; bank_per_sequence: POM frames per sequence;
             bank_variants: perturbed starts per frame (``BankDataConfig.variants``);
-            bank_finger_scale: finger noise of the pose bank's starts (``BankPOMConfig.finger_scale``).
+            bank_finger_scale: finger noise of the pose bank's starts (``BankPOMConfig.finger_scale``);
+            bank_frames: ``"contact"`` (grasps only) or ``"all"`` (frames without contact keep
+            their share; ``BankDataConfig.frames``).
         srm_iters, srm_crop, srm_augment: brief SRM training (crop = training window side;
             augment: ``none``/``flip``/``d4``). Its coarse renders are cached in
             ``OUT/cache/srm`` (keyed by the HOGS weights and labels), so a rebuild of the SRM
@@ -107,6 +109,7 @@ class DemoConfig:
     bank_per_sequence: int = 6
     bank_variants: int = 1
     bank_finger_scale: float = 0.0
+    bank_frames: str = "contact"
     srm_iters: int = 400
     srm_crop: int = 64
     srm_augment: str = (
@@ -292,14 +295,16 @@ def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _St
 
 
 #: Pose-bank settings keyed only when they hold other values than these.
-_BANK_UNKEYED = {"finger_scale": 0.0, "variants": 1}
+_BANK_UNKEYED = {"finger_scale": 0.0, "variants": 1, "frames": "contact"}
 
 
 def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> _StageNode:
     """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
     root = ArcticRoot(data)
     seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    late = keyed_settings({"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants}, _BANK_UNKEYED)
+    late = keyed_settings(
+        {"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants, "frames": cfg.bank_frames}, _BANK_UNKEYED
+    )
     start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])
     k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbations
     bank_cfg = PoseBankConfig(
@@ -309,6 +314,7 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
             sequences=tuple(seqs),
             per_sequence=cfg.bank_per_sequence,
             variants=cfg.bank_variants,
+            frames=cfg.bank_frames,
         ),
         pom=BankPOMConfig(finger_scale=cfg.bank_finger_scale),
         run=BankRunConfig(out=str(bank), seed=cfg.seed),

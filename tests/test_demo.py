@@ -93,7 +93,7 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 
-def test_bank_stage_key_holds_finger_noise_and_variants_only_when_asked(tiny_world, monkeypatch):
+def test_bank_stage_key_holds_finger_noise_variants_and_frames_only_when_asked(tiny_world, monkeypatch):
     from dataclasses import replace
     from pathlib import Path
 
@@ -104,21 +104,31 @@ def test_bank_stage_key_holds_finger_noise_and_variants_only_when_asked(tiny_wor
     def key(c: DemoConfig) -> str:
         return _bank_node(c, Path("/x/bank"), Path(tiny_world), Path("/x/cn"), "k").key
 
-    # pinned: the default finger scale (0) and variants (1) add nothing to the key
+    # pinned: the default finger scale (0), variants (1) and frames ("contact") add nothing to the key
     assert key(cfg) == "ab3c5614fe8f89ef"
     # pinned: the key of a finger scale alone is the one it had before variants were keyed
     assert key(replace(cfg, bank_finger_scale=0.5)) == "016c705d9236287a"
-    keys = {key(replace(cfg, bank_finger_scale=f, bank_variants=v)) for f in (0.0, 0.25, 0.5) for v in (1, 3)}
-    assert len(keys) == 6
+    keys = {
+        key(replace(cfg, bank_finger_scale=f, bank_variants=v, bank_frames=w))
+        for f in (0.0, 0.25, 0.5)
+        for v in (1, 3)
+        for w in ("contact", "all")
+    }
+    assert len(keys) == 12
     # and the stage builds its bank with them
     seen = []
     monkeypatch.setattr(
-        "hogsa_loader.demo.build_pose_bank", lambda c, progress: seen.append((c.pom.finger_scale, c.data.variants))
+        "hogsa_loader.demo.build_pose_bank",
+        lambda c, progress: seen.append((c.pom.finger_scale, c.data.variants, c.data.frames)),
     )
     _bank_node(
-        replace(cfg, bank_finger_scale=0.5, bank_variants=3), Path("/x/bank"), Path(tiny_world), Path("/x/cn"), "k"
+        replace(cfg, bank_finger_scale=0.5, bank_variants=3, bank_frames="all"),
+        Path("/x/bank"),
+        Path(tiny_world),
+        Path("/x/cn"),
+        "k",
     ).build()
-    assert seen == [(0.5, 3)]
+    assert seen == [(0.5, 3, "all")]
 
 
 def test_unbatch_inverts_default_collate():

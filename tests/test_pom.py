@@ -250,6 +250,8 @@ def test_bank_data_config_refuses_no_frames_or_no_starts(bad):
 
     with pytest.raises(ValueError, match="per_sequence and variants must be >= 1"):
         BankDataConfig(root="r", contactnet="c", **bad)
+    with pytest.raises(ValueError, match="frames must be 'contact' or 'all'"):
+        BankDataConfig(root="r", contactnet="c", frames="grasps")
 
 
 def test_finger_noise_changes_only_the_fingers(scene):
@@ -314,6 +316,18 @@ def test_metrics_far_and_inside(scene):
     assert inside["penetration_depth"][0] > 0.005
     assert inside["intersection"][0] > 4e-6 and not inside["accept"][0]
     assert inside["contact_right"][0] and not inside["contact_left"][0]
+
+
+def test_metrics_accept_a_frame_without_contact_on_intersection_alone(scene):
+    """A frame whose source has no touching hand needs no contact, only a small intersection;
+    a frame with a touching source hand still needs that hand to touch."""
+    infos, objects = scene
+    none = {s: torch.tensor([False]) for s in SIDES}
+    right = {"right": torch.tensor([True]), "left": torch.tensor([False])}
+    far = _state(infos, FAR)
+    assert grasp_metrics(far, infos, objects, none)["accept"][0]
+    assert not grasp_metrics(far, infos, objects, right)["accept"][0]
+    assert not grasp_metrics(_state(infos, INSIDE), infos, objects, none)["accept"][0]
 
 
 def test_optimisation_reduces_penetration(scene):
@@ -602,6 +616,57 @@ def test_tiny_world_frames_to_bank(tiny_world, tmp_path):
     bank = load_pose_bank(tmp_path / "bank")
     assert bank.sources == frames.sources
     torch.testing.assert_close(bank.state.hands["right"].trans, aug.result.hands["right"].trans)
+
+
+def test_frames_all_keeps_the_frames_without_contact(tiny_world):
+    """``frames="all"``: every frame of the sequence (evenly spaced with ``per_sequence``),
+    those without a touching hand included; ``"contact"``: the frames where a hand touches."""
+    from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.pipeline import contact_frames
+
+    root = ArcticRoot(tiny_world)
+    infos = hand_infos(root.mano_layers())
+    objects = ObjectSet(root.object_templates(load_texture=False), n_points=512, sdf_voxel=0.004)
+    seq = root.sequences()[0]
+    n = len(root.sequence(*seq.split("/")).right.pose)
+    every = contact_frames(root, [seq], infos, objects, frames="all")
+    grasps = contact_frames(root, [seq], infos, objects)
+    assert [f for *_, f in every.sources] == list(range(n))
+    touching = (every.active["right"] | every.active["left"]).tolist()
+    assert 0 < sum(touching) < n
+    assert [f for *_, f in grasps.sources] == [f for (*_, f), t in zip(every.sources, touching) if t]
+    spaced = contact_frames(root, [seq], infos, objects, per_sequence=5, frames="all")
+    assert [f for *_, f in spaced.sources] == np.linspace(0, n - 1, 5).round().astype(int).tolist()
+
+
+@pytest.mark.slow
+def test_pose_bank_over_all_frames_keeps_frames_without_contact(tiny_world, tmp_path):
+    """A bank built with ``frames="all"`` keeps grasps whose source frame has no touching hand
+    (accepted on intersection alone) and records its frame selection."""
+    from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.pom.job_config import BankDataConfig, BankPOMConfig, BankRunConfig, PoseBankConfig
+    from hogsa_loader.pom.jobs import build_pose_bank
+    from hogsa_loader.pom.pipeline import contact_frames
+
+    torch.manual_seed(0)
+    save_contactnet(ContactNet().eval(), tmp_path / "cn", {})
+    root = ArcticRoot(tiny_world)
+    seq = root.sequences()[0]
+    cfg = PoseBankConfig(
+        data=BankDataConfig(
+            root=str(tiny_world), contactnet=str(tmp_path / "cn"), sequences=(seq,), per_sequence=8, frames="all"
+        ),
+        pom=BankPOMConfig(iters=0),
+        run=BankRunConfig(out=str(tmp_path / "bank")),
+    )
+    build_pose_bank(cfg, progress=False)
+    infos = hand_infos(root.mano_layers())
+    objects = ObjectSet(root.object_templates(load_texture=False))
+    every = contact_frames(root, [seq], infos, objects, frames="all")
+    free = {f for (*_, f), r, l in zip(every.sources, every.active["right"], every.active["left"]) if not (r or l)}
+    kept = {f for *_, f in load_pose_bank(tmp_path / "bank").sources}
+    assert kept & free and kept - free
+    assert json.loads((tmp_path / "bank" / "manifest.json").read_text())["info"]["frames"] == "all"
 
 
 @pytest.mark.slow

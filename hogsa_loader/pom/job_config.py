@@ -10,7 +10,7 @@ from them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 __all__ = [
     "BankDataConfig",
@@ -95,13 +95,22 @@ class BankDataConfig:
     sequences: Optional[tuple[str, ...]] = field(
         default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all)")
     )
-    per_sequence: int = field(default=16, metadata=_opt("contact frames per sequence (evenly spaced)", "positive_int"))
+    per_sequence: int = field(default=16, metadata=_opt("frames per sequence (evenly spaced)", "positive_int"))
     variants: int = field(default=1, metadata=_opt("perturbations per frame", "positive_int"))
+    frames: Literal["contact", "all"] = field(
+        default="contact",
+        metadata=_opt(
+            "contact: frames where a hand touches the object (grasps); all: every frame, so that frames without "
+            "contact keep their share of the data (POM pulls only the hands touching in the source frame)"
+        ),
+    )
 
     def __post_init__(self) -> None:
         self.subjects, self.sequences = _tuple(self.subjects), _tuple(self.sequences)
         if self.per_sequence < 1 or self.variants < 1:
             raise ValueError(f"per_sequence and variants must be >= 1, got {self.per_sequence} and {self.variants}")
+        if self.frames not in ("contact", "all"):
+            raise ValueError(f"frames must be 'contact' or 'all', got {self.frames!r}")
 
 
 @dataclass

@@ -227,12 +227,12 @@ def _optimise_sequences(
     progress: bool,
     fingers: Optional[FingerNoise] = None,
 ) -> _BankParts:
-    """Perturb and optimise ``cfg.data.variants`` times the contact frames of every sequence."""
+    """Perturb and optimise ``cfg.data.variants`` times the selected frames of every sequence."""
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
     parts = _BankParts()
     for seq in tqdm(seqs, disable=not progress, desc="pose bank"):
-        frames = contact_frames(root, [seq], infos, objects, per_sequence=cfg.data.per_sequence)
+        frames = contact_frames(root, [seq], infos, objects, per_sequence=cfg.data.per_sequence, frames=cfg.data.frames)
         if frames.state.batch == 0:
             continue
         for v in range(cfg.data.variants):
@@ -264,7 +264,7 @@ def bank_finger_noise(root: ArcticRoot, seqs: list[str], cfg: PoseBankConfig) ->
 
 
 def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, Any]:
-    """Optimise perturbed contact frames of every sequence with POM and save the kept grasps.
+    """Optimise perturbed frames of every sequence with POM and save the kept grasps.
 
     Each (sequence, variant) draws from its own seed derived from ``(cfg.run.seed, sequence
     id, variant)`` (:func:`variant_seed`). The start perturbation keeps the annotated
@@ -284,7 +284,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
         a summary (``bank``, ``entries``, ``optimised``, ``dropped`` by reason, ``seconds``).
 
     Raises:
-        ValueError: no contact frame was found.
+        ValueError: no frame was selected.
     """
     root = ArcticRoot(cfg.data.root)
     net = load_contactnet(cfg.data.contactnet, cfg.run.device)
@@ -296,7 +296,8 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
     parts = _optimise_sequences(root, seqs, net, pom, pert, cfg, progress, fingers)
     if not parts.states:
         raise ValueError(
-            f"no contact frame found in {root.data_root} (subjects {list(cfg.data.subjects or []) or 'all'})"
+            f"no {'contact ' if cfg.data.frames == 'contact' else ''}frame found in {root.data_root} "
+            f"(subjects {list(cfg.data.subjects or []) or 'all'})"
         )
     state = GraspState.cat(parts.states)
     info = {
@@ -304,6 +305,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
         "contactnet": str(cfg.data.contactnet),
         "per_sequence": cfg.data.per_sequence,
         "variants": cfg.data.variants,
+        "frames": cfg.data.frames,
         "seed": cfg.run.seed,
         "optimised": parts.total,
         "dropped": parts.dropped,

@@ -89,9 +89,10 @@ def grasp_metrics(
     * ``contact``: per hand, at least one such vertex;
     * ``accept``: GraspTTA's acceptance without its physics test: intersection < 4 cm³ and
       contact (every hand listed as ``active`` — the hands touching the object in the source
-      frame — must touch; at least one hand must touch). GraspTTA also requires a simulated
-      object displacement < 3 cm; no simulator runs here, so that criterion is not
-      applied.
+      frame — must touch; at least one hand must touch, unless ``active`` lists none for that
+      frame: a frame without contact is accepted on intersection alone). GraspTTA also
+      requires a simulated object displacement < 3 cm; no simulator runs here, so that
+      criterion is not applied.
 
     Args:
         state: B grasps; infos: hands; objects: geometry.
@@ -127,10 +128,15 @@ def grasp_metrics(
             n0 += n
         volume[b] = _intersection_count(g, Rt, V, infos) * VOLUME_PITCH**3
     need = np.ones(B, dtype=bool)
+    touches = contact["right"] | contact["left"]
     if active is not None:
+        source_touches = np.zeros(B, dtype=bool)
         for s in SIDES:
-            need &= ~np.asarray(active[s].cpu()) | contact[s]
-    accept = (volume < ACCEPT_VOLUME) & (contact["right"] | contact["left"]) & need
+            a = np.asarray(active[s].cpu())
+            need &= ~a | contact[s]
+            source_touches |= a
+        touches |= ~source_touches  # a frame whose source has no touching hand needs none
+    accept = (volume < ACCEPT_VOLUME) & touches & need
     return {
         "penetration_depth": depth,
         "intersection": volume,

@@ -1,4 +1,4 @@
-"""POM end to end: pick annotated contact frames, perturb them, optimise them in batches.
+"""POM end to end: pick annotated frames, perturb them, optimise them in batches.
 
 Used by ``pretrain/build_pose_bank.py`` and ``benchmarks/pom_quality.py``.
 """
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Mapping, Optional, Sequence
+from typing import Literal, Mapping, Optional, Sequence
 
 import numpy as np
 import torch
@@ -25,7 +25,7 @@ __all__ = ["ContactFrames", "contact_frames", "Augmented", "augment"]
 
 @dataclass
 class ContactFrames:
-    """Annotated frames where at least one hand touches the object.
+    """Annotated frames to optimise, with the hands that touch the object in each.
 
     Attributes:
         state: B grasps; sources: B ``(subject, sequence, frame)``;
@@ -49,12 +49,22 @@ def contact_frames(
     objects: ObjectSet,
     per_sequence: Optional[int] = None,
     threshold: float = 0.005,
+    frames: Literal["contact", "all"] = "contact",
 ) -> ContactFrames:
-    """Contact frames of ``seq_ids``; with ``per_sequence`` at most that many per sequence,
-    evenly spaced over the sequence's contact frames."""
+    """Annotated frames of ``seq_ids`` and their touching hands.
+
+    Args:
+        root: the dataset root; seq_ids: ``sid/seq`` ids; infos, objects: hands and geometry.
+        per_sequence: at most this many frames per sequence, evenly spaced over its
+            candidates (None: all).
+        threshold: a hand within this distance of the object touches it (m).
+        frames: the candidates: ``"contact"``, frames where at least one hand touches the
+            object (grasps); ``"all"``, every frame, so that frames without contact (hands
+            reaching, releasing, away) keep their share of the sequence.
+    """
     state, src = load_frames(root, seq_ids)
     act = contact_flags(state, infos, objects, threshold)
-    ok = (act["right"] | act["left"]).numpy()
+    ok = (act["right"] | act["left"]).numpy() if frames == "contact" else np.ones(state.batch, dtype=bool)
     keep = []
     seqs = np.array([f"{a}/{b}" for a, b, _ in src])
     for sid in dict.fromkeys(seqs):
