@@ -6,7 +6,9 @@ training frame's hand, to the nearest pose-bank grasp's, and to the nearer of th
 are split into *held* (the object is being moved: its translation more than 1 mm from the
 sequence's first frame) and *rest* (hands before and after the grasp, alike for every
 subject). With a bank, also how far POM moved each grasp: the same distance from a bank grasp to
-the annotated frame it was made from. Reads annotations only.
+the annotated frame it was made from; and for every pool the share of held frames (a bank's:
+of the frames its grasps were made from), since a bank of held frames alone teaches a model
+nothing about hands at rest. Reads annotations only.
 
 Usage::
 
@@ -72,6 +74,12 @@ def split_hands(root: ArcticRoot, split: str) -> tuple[dict[str, np.ndarray], np
     return {s: np.concatenate(v) for s, v in joints.items()}, np.concatenate(held)
 
 
+def source_held(root: ArcticRoot, sources: list[tuple[str, str, int]]) -> np.ndarray:
+    """(N,) True where the frame ``sources[i]`` = (subject, sequence, frame) is held."""
+    held = {key: held_frames(root.raw_sequence(*key).object) for key in dict.fromkeys(s[:2] for s in sources)}
+    return np.array([bool(held[(sid, seq)][frame]) for sid, seq, frame in sources], dtype=bool)
+
+
 def bank_moves(
     root: ArcticRoot, layers: dict, sources: list[tuple[str, str, int]], bank: dict[str, np.ndarray]
 ) -> dict:
@@ -90,16 +98,18 @@ def bank_moves(
 def coverage(data: Path, bank: Optional[Path] = None) -> dict:
     """Mean nearest distances (mm) per side, pool (train, bank, train+bank) and frame kind."""
     root = ArcticRoot(data)
-    train, _ = split_hands(root, "train")
+    train, train_held = split_hands(root, "train")
     val, held = split_hands(root, "val")
     pools = {"train": train}
     rec: dict = {"val_frames": int(len(held)), "held_share": float(held.mean()), "pool_sizes": {}, "mm": {}}
+    rec["pool_held_share"] = {"train": float(train_held.mean())}
     if bank is not None:
         poses = load_pose_bank(bank)
         layers = root.mano_layers(torch.float64)
         pools["bank"] = {s: articulated_joints(layers[s], poses.state.hands[s].pose.double().numpy()) for s in SIDES}
         pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
         rec["bank_moved_mm"] = bank_moves(root, layers, poses.sources, pools["bank"])
+        rec["pool_held_share"]["bank"] = float(source_held(root, poses.sources).mean())
     for name, pool in pools.items():
         rec["pool_sizes"][name] = int(len(pool["right"]))
         for s in SIDES:
@@ -114,9 +124,12 @@ def coverage(data: Path, bank: Optional[Path] = None) -> dict:
 
 def markdown(rec: dict) -> str:
     """The table: one row per (pool, side), columns held / rest / all (mm)."""
+    share = rec.get("pool_held_share", {})
     lines = [
         f"{rec['val_frames']} held-out frames, {rec['held_share']:.0%} held; pools: "
-        + ", ".join(f"{k} {v}" for k, v in rec["pool_sizes"].items()),
+        + ", ".join(
+            f"{k} {v}" + (f" ({share[k]:.0%} held)" if k in share else "") for k, v in rec["pool_sizes"].items()
+        ),
         "",
         "| nearest of | hand | held (mm) | rest (mm) | all (mm) |",
         "|---|---|---|---|---|",

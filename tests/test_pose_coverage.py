@@ -32,6 +32,7 @@ def test_coverage_of_the_tiny_world(tiny_world):
     pc = _bench()
     rec = pc.coverage(tiny_world / "arctic_data" / "data")
     assert rec["val_frames"] == 64 and 0.0 < rec["held_share"] < 1.0
+    assert 0.0 < rec["pool_held_share"]["train"] < 1.0
     assert set(rec["mm"]) == {"train/right", "train/left"}
     for v in rec["mm"].values():
         assert 0.0 < v["rest"] < v["held"] < 50.0  # grasps differ more than hands at rest
@@ -59,3 +60,15 @@ def test_bank_moves_measure_each_grasp_from_its_source_frame(tiny_world):
     assert np.isclose(moved["right"]["mean"], 3.0 / 21 / 2) and moved["left"]["mean"] < 1e-9
     swapped = pc.bank_moves(root, layers, sources[::-1], {s: bank[s] for s in pc.SIDES})
     assert swapped["left"]["mean"] > 0.1  # another frame's hand is not the source's
+
+
+def test_source_held_reads_each_source_frames_held_flag(tiny_world):
+    """A bank's held share is that of the frames its grasps were made from."""
+    from hogsa_loader.datasets.arctic import ArcticRoot
+
+    pc = _bench()
+    root = ArcticRoot(tiny_world / "arctic_data" / "data")
+    sid, seq = root.protocol("p1")["train"][0].split("/", 1)
+    held = pc.held_frames(root.raw_sequence(sid, seq).object)
+    frames = [int(np.flatnonzero(held)[0]), int(np.flatnonzero(~held)[0]), int(np.flatnonzero(held)[-1])]
+    assert pc.source_held(root, [(sid, seq, f) for f in frames]).tolist() == [True, False, True]
