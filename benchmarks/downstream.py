@@ -77,12 +77,13 @@ from typing import Any, Iterator, Literal, Optional
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Subset
+from torch.utils.data import DataLoader, Dataset, Subset, default_collate
 from tqdm import tqdm
 
 from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.resnet import load_backbone_weights
+from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
 from hogsa_loader.datasets.arctic import ArcticRoot
@@ -188,6 +189,14 @@ class SyntheticSettings:
         metadata={
             "help": "novel: viewpoints drawn around the hands and object, the subject's own cameras a quarter of the "
             "time (the loader's default); dataset: the training subjects' own capture cameras only"
+        },
+    )
+    supervise: Literal["all", "touching"] = field(
+        default="all",
+        metadata={
+            "help": "which hands of a synthetic frame the loss sees: all; touching, only hands with a vertex within "
+            "5 mm of the object (the others marked invalid, as ARCTIC marks a hand outside the crop), so hands away "
+            "from the object are learnt from real frames alone"
         },
     )
 
@@ -449,12 +458,15 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
 
 
 def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str, Any]:
-    """The synthetic settings in cache keys: photo backgrounds, novel cameras and the replace
-    mix add nothing; ``frames_only``: without the mix, which the exported frames do not depend
-    on."""
-    syn = keyed_settings(asdict(cfg.synthetic), {"backgrounds": "photos", "cameras": "novel", "mix": "replace"})
+    """The synthetic settings in cache keys: photo backgrounds, novel cameras, the replace mix and
+    supervising all hands add nothing; ``frames_only``: without the mix and the supervision,
+    which the exported frames do not depend on."""
+    syn = keyed_settings(
+        asdict(cfg.synthetic), {"backgrounds": "photos", "cameras": "novel", "mix": "replace", "supervise": "all"}
+    )
     if frames_only:
         syn.pop("mix", None)
+        syn.pop("supervise", None)
     return syn
 
 
@@ -615,6 +627,44 @@ def _synthetic_stream(ds: Any, seed: int, workers: int, start: int = 0) -> Itera
         epoch, offset = epoch + 1, 0
 
 
+#: A hand touches the object when one of its vertices is this close to it (m).
+TOUCH_M = 0.005
+
+
+class TouchingHandsOnly(Dataset):
+    """Samples whose hands that do not touch the object are marked invalid (``right_valid`` /
+    ``left_valid`` 0, as ARCTIC marks a hand outside the crop), so that ArcticNet-SF's loss
+    supervises only the touching hands of each sample.
+
+    Args:
+        samples: ``(inputs, targets, meta_info)`` samples (with ``set_epoch``).
+        layers: the layers the targets are prepared with (the hand-object distances).
+        img_res: patch side (px) of the samples.
+    """
+
+    def __init__(self, samples: Any, layers: BodyLayers, img_res: int) -> None:
+        self.samples, self.layers, self.img_res = samples, layers, img_res
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.samples.set_epoch(epoch)
+
+    def __getitem__(self, i: int) -> tuple[dict, dict, dict]:
+        inputs, targets, meta_info = self.samples[i]
+        one_t, one_m = default_collate([targets]), default_collate([meta_info])
+        with torch.no_grad():
+            prepared, _ = prepare_targets(
+                one_t, one_m, self.layers.mano_r, self.layers.mano_l, self.layers.objects, self.img_res, field="hands"
+            )
+        targets = dict(targets)
+        for side, key in (("r", "right_valid"), ("l", "left_valid")):
+            if float(prepared[f"dist.{side}o"].min()) >= TOUCH_M:
+                targets[key] = targets[key] * 0
+        return inputs, targets, meta_info
+
+
 def low_data_indices(n: int, fraction: float) -> list[int]:
     """The fixed subset of the low-data arms (seed-independent, sorted)."""
     k = max(1, int(round(n * fraction)))
@@ -656,7 +706,9 @@ def train_batches(
     epoch, offset = divmod(start, per_epoch)
     syn_stream = None
     if variant is not None:
-        syn = SynthShardSamples(export_dir(variant, cfg, setup, out), seed=seed, cfg=acfg)
+        syn: Any = SynthShardSamples(export_dir(variant, cfg, setup, out), seed=seed, cfg=acfg)
+        if cfg.synthetic.supervise == "touching":
+            syn = TouchingHandsOnly(syn, BodyLayers.from_root(ArcticRoot(setup["data"])), cfg.model.img_res)
         syn_stream = _synthetic_stream(syn, seed, cfg.train.workers, start=start * n_syn)
     while True:
         real.set_epoch(epoch)

@@ -366,7 +366,8 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
     # photo runs keep the keys they had before backgrounds (and the mix, and the cameras) could be chosen
-    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in ("backgrounds", "mix", "cameras")}
+    later = ("backgrounds", "mix", "cameras", "supervise")
+    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in later}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
 
 
@@ -425,6 +426,49 @@ def test_training_stream_starts_at_any_batch(tiny_world, monkeypatch, mix):
             for a, b in zip(whole[start:], later):
                 assert list(a[2]["imgname"]) == list(b[2]["imgname"])
                 assert torch.equal(a[0]["img"], b[0]["img"])
+
+
+def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_world, monkeypatch):
+    """With ``--synthetic-supervise touching`` the synthetic samples' hands with no vertex within
+    5 mm of the object are invalid and the others keep their validity; real frames keep theirs,
+    and the default adds nothing to the keys."""
+    from torch.utils.data import Subset, default_collate
+
+    from hogsa_loader.datasets.arctic import ArcticRoot
+
+    ds = _downstream()
+    layers = ds.BodyLayers.from_root(ArcticRoot(tiny_world))
+    frames = _Shuffled(tiny_world, 3).ds
+    plain = Subset(frames, range(0, len(frames), 4))
+    plain.set_epoch = frames.set_epoch
+    wrapped = ds.TouchingHandsOnly(plain, layers, 32)
+    counts = {"kept": 0, "dropped": 0}
+    for i in range(len(plain)):
+        _, targets, meta = plain[i]
+        t, _ = ds.prepare_targets(
+            default_collate([targets]), default_collate([meta]), layers.mano_r, layers.mano_l, layers.objects, 32
+        )
+        for side, key in (("r", "right_valid"), ("l", "left_valid")):
+            touching = float(t[f"dist.{side}o"].min()) < 0.005
+            assert float(wrapped[i][1][key]) == (float(targets[key]) if touching else 0.0)
+            if float(targets[key]) > 0:
+                counts["kept" if touching else "dropped"] += 1
+    assert counts["kept"] > 0 and counts["dropped"] > 0  # the held-out frames have both kinds of hands
+
+    monkeypatch.setattr(ds, "SynthShardSamples", lambda folder, seed, cfg: _Shuffled(tiny_world, seed))
+    monkeypatch.setattr(ds, "export_dir", lambda *a: Path("/unused"))
+    base = _tiny_cfg(ds)
+    every = ds.replace(base, synthetic=ds.replace(base.synthetic, mix="add"))
+    touch = ds.replace(every, synthetic=ds.replace(every.synthetic, supervise="touching"))
+    n_real, n_syn = ds.batch_composition("hogsa_low", touch)
+    b_every = next(ds.train_batches("hogsa_low", 3, every, {"data": tiny_world}, Path("/unused")))
+    b_touch = next(ds.train_batches("hogsa_low", 3, touch, {"data": tiny_world}, Path("/unused")))
+    assert list(b_every[2]["imgname"]) == list(b_touch[2]["imgname"])
+    for key in ("right_valid", "left_valid"):
+        assert torch.equal(b_every[1][key][:n_real], b_touch[1][key][:n_real])
+    assert (b_touch[1]["right_valid"][n_real:] <= b_every[1]["right_valid"][n_real:]).all()
+    assert "supervise" not in ds.synthetic_key(every) and ds.synthetic_key(touch)["supervise"] == "touching"
+    assert ds.synthetic_key(touch, frames_only=True) == ds.synthetic_key(every, frames_only=True)
 
 
 def test_loader_workers_change_no_batch_nor_run_key(tiny_world, monkeypatch):
