@@ -195,8 +195,8 @@ class SyntheticSettings:
         default="all",
         metadata={
             "help": "which hands of a synthetic frame the loss sees: all; touching, only hands with a vertex within "
-            "5 mm of the object (the others marked invalid, as ARCTIC marks a hand outside the crop), so hands away "
-            "from the object are learnt from real frames alone"
+            "5 mm of an object vertex (the others marked invalid, as ARCTIC marks a hand outside the crop), so hands "
+            "away from the object are learnt from real frames alone"
         },
     )
 
@@ -627,14 +627,16 @@ def _synthetic_stream(ds: Any, seed: int, workers: int, start: int = 0) -> Itera
         epoch, offset = epoch + 1, 0
 
 
-#: A hand touches the object when one of its vertices is this close to it (m).
+#: A hand touches the object when one of its vertices is this close to an object vertex (m;
+#: the nearest-vertex distances of ArcticNet-SF's targets, which CDev_ho also reads).
 TOUCH_M = 0.005
 
 
 class TouchingHandsOnly(Dataset):
     """Samples whose hands that do not touch the object are marked invalid (``right_valid`` /
-    ``left_valid`` 0, as ARCTIC marks a hand outside the crop), so that ArcticNet-SF's loss
-    supervises only the touching hands of each sample.
+    ``left_valid`` and every ``joints_valid_{r,l}`` 0, as ARCTIC marks a hand outside the crop),
+    so that ArcticNet-SF's loss supervises only the touching hands of each sample. As for an
+    out-of-crop hand, the object's translation terms relative to that hand go with it.
 
     Args:
         samples: ``(inputs, targets, meta_info)`` samples (with ``set_epoch``).
@@ -662,6 +664,7 @@ class TouchingHandsOnly(Dataset):
         for side, key in (("r", "right_valid"), ("l", "left_valid")):
             if float(prepared[f"dist.{side}o"].min()) >= TOUCH_M:
                 targets[key] = targets[key] * 0
+                targets[f"joints_valid_{side}"] = targets[f"joints_valid_{side}"] * 0
         return inputs, targets, meta_info
 
 
@@ -854,14 +857,18 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     """Folder of one (arm, seed) run: HOGSA arms with appended synthetic samples apart from
     the replace runs, runs from each ``--model-init`` (``+ft-<hash of the option>``) apart
     from those from random weights, and runs with the linear learning-rate schedule
-    (``+linear``) apart from those at a constant rate, so that all of them can share one OUT
+    (``+linear``) apart from those at a constant rate, and HOGSA runs that supervise only the
+    touching hands (``+touching``) apart from the others, so that all of them can share one OUT
     (and its exports)."""
-    add = ARM_SPECS[arm][1] is not None and cfg.synthetic.mix == "add"
+    synthetic = ARM_SPECS[arm][1] is not None
+    add = synthetic and cfg.synthetic.mix == "add"
     name = f"{arm}+add" if add else arm
     if cfg.model.init is not None:  # one folder per --model-init, so fine-tunings of several models coexist
         name += "+ft-" + hashlib.sha256(cfg.model.init.encode()).hexdigest()[:8]
     if cfg.train.lr_schedule != "constant":
         name += "+" + cfg.train.lr_schedule
+    if synthetic and cfg.synthetic.supervise != "all":
+        name += "+" + cfg.synthetic.supervise
     return out / "runs" / name / f"seed{seed}"
 
 

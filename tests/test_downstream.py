@@ -434,6 +434,7 @@ def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_w
     and the default adds nothing to the keys."""
     from torch.utils.data import Subset, default_collate
 
+    from hogsa_loader.baselines.loss import arcticnet_sf_loss
     from hogsa_loader.datasets.arctic import ArcticRoot
 
     ds = _downstream()
@@ -443,17 +444,37 @@ def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_w
     plain.set_epoch = frames.set_epoch
     wrapped = ds.TouchingHandsOnly(plain, layers, 32)
     counts = {"kept": 0, "dropped": 0}
+    dropped_r: list[int] = []
     for i in range(len(plain)):
         _, targets, meta = plain[i]
         t, _ = ds.prepare_targets(
             default_collate([targets]), default_collate([meta]), layers.mano_r, layers.mano_l, layers.objects, 32
         )
+        got = wrapped[i][1]
         for side, key in (("r", "right_valid"), ("l", "left_valid")):
             touching = float(t[f"dist.{side}o"].min()) < 0.005
-            assert float(wrapped[i][1][key]) == (float(targets[key]) if touching else 0.0)
+            assert float(got[key]) == (float(targets[key]) if touching else 0.0)
+            np.testing.assert_array_equal(got[f"joints_valid_{side}"], targets[f"joints_valid_{side}"] * touching)
             if float(targets[key]) > 0:
                 counts["kept" if touching else "dropped"] += 1
+                if not touching and side == "r":
+                    dropped_r.append(i)
     assert counts["kept"] > 0 and counts["dropped"] > 0  # the held-out frames have both kinds of hands
+
+    # ArcticNet-SF's loss sees nothing of a dropped hand: every right-hand term is 0 on those frames
+    cfg32 = _tiny_cfg(ds)
+    model = ds.build_model(cfg32, layers)
+    batch = default_collate([wrapped[i] for i in dropped_r])
+    inputs, targets, meta = batch
+    targets, meta = ds.prepare_targets(dict(targets), dict(meta), layers.mano_r, layers.mano_l, layers.objects, 32)
+    terms = arcticnet_sf_loss(model(inputs, meta), targets)
+    for name in ("pose", "beta", "kp2d", "kp3d", "cam_t"):
+        assert float(terms[f"loss/mano/{name}/r"]) == 0.0
+    plain_batch = default_collate([plain[i] for i in dropped_r])
+    targets, meta = ds.prepare_targets(
+        dict(plain_batch[1]), dict(plain_batch[2]), layers.mano_r, layers.mano_l, layers.objects, 32
+    )
+    assert float(arcticnet_sf_loss(model(plain_batch[0], meta), targets)["loss/mano/kp3d/r"]) > 0.0
 
     monkeypatch.setattr(ds, "SynthShardSamples", lambda folder, seed, cfg: _Shuffled(tiny_world, seed))
     monkeypatch.setattr(ds, "export_dir", lambda *a: Path("/unused"))
@@ -469,6 +490,9 @@ def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_w
     assert (b_touch[1]["right_valid"][n_real:] <= b_every[1]["right_valid"][n_real:]).all()
     assert "supervise" not in ds.synthetic_key(every) and ds.synthetic_key(touch)["supervise"] == "touching"
     assert ds.synthetic_key(touch, frames_only=True) == ds.synthetic_key(every, frames_only=True)
+    assert ds.run_dir("hogsa", 0, touch, Path("/o")) == Path("/o/runs/hogsa+add+touching/seed0")
+    assert ds.run_dir("hogsa", 0, every, Path("/o")) == Path("/o/runs/hogsa+add/seed0")
+    assert ds.run_dir("real", 0, touch, Path("/o")) == Path("/o/runs/real/seed0")
 
 
 def test_loader_workers_change_no_batch_nor_run_key(tiny_world, monkeypatch):

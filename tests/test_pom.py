@@ -637,6 +637,8 @@ def test_frames_all_keeps_the_frames_without_contact(tiny_world):
     assert [f for *_, f in grasps.sources] == [f for (*_, f), t in zip(every.sources, touching) if t]
     spaced = contact_frames(root, [seq], infos, objects, per_sequence=5, frames="all")
     assert [f for *_, f in spaced.sources] == np.linspace(0, n - 1, 5).round().astype(int).tolist()
+    with pytest.raises(ValueError, match="frames must be 'contact' or 'all'"):
+        contact_frames(root, [seq], infos, objects, frames="grasps")
 
 
 @pytest.mark.slow

@@ -62,6 +62,8 @@ def contact_frames(
             object (grasps); ``"all"``, every frame, so that frames without contact (hands
             reaching, releasing, away) keep their share of the sequence.
     """
+    if frames not in ("contact", "all"):
+        raise ValueError(f"frames must be 'contact' or 'all', got {frames!r}")
     state, src = load_frames(root, seq_ids)
     act = contact_flags(state, infos, objects, threshold)
     ok = (act["right"] | act["left"]).numpy() if frames == "contact" else np.ones(state.batch, dtype=bool)
