@@ -85,6 +85,16 @@ class ContactNetJobConfig:
 # --------------------------------------------------------------------------------------
 
 
+#: The frame selections of a pose bank (:attr:`BankDataConfig.frames`).
+BANK_FRAMES = ("contact", "all")
+
+
+def check_bank_frames(frames: str) -> None:
+    """Refuse a frame selection that is not one of :data:`BANK_FRAMES`."""
+    if frames not in BANK_FRAMES:
+        raise ValueError(f"frames must be 'contact' or 'all', got {frames!r}")
+
+
 @dataclass
 class BankDataConfig:
     """The dataset, the ContactNet and which sequences and frames are optimised."""
@@ -109,8 +119,7 @@ class BankDataConfig:
         self.subjects, self.sequences = _tuple(self.subjects), _tuple(self.sequences)
         if self.per_sequence < 1 or self.variants < 1:
             raise ValueError(f"per_sequence and variants must be >= 1, got {self.per_sequence} and {self.variants}")
-        if self.frames not in ("contact", "all"):
-            raise ValueError(f"frames must be 'contact' or 'all', got {self.frames!r}")
+        check_bank_frames(self.frames)
 
 
 @dataclass

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from hogsa_loader.pom.contactnet import ContactNet
 from hogsa_loader.pom.hands import SIDES, HandInfo
+from hogsa_loader.pom.job_config import check_bank_frames
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig, optimise_grasps
 from hogsa_loader.pom.perturb import FingerNoise, PerturbConfig, perturb
@@ -62,8 +63,7 @@ def contact_frames(
             object (grasps); ``"all"``, every frame, so that frames without contact (hands
             reaching, releasing, away) keep their share of the sequence.
     """
-    if frames not in ("contact", "all"):
-        raise ValueError(f"frames must be 'contact' or 'all', got {frames!r}")
+    check_bank_frames(frames)
     state, src = load_frames(root, seq_ids)
     act = contact_flags(state, infos, objects, threshold)
     ok = (act["right"] | act["left"]).numpy() if frames == "contact" else np.ones(state.batch, dtype=bool)
