@@ -43,8 +43,11 @@ a finished run is reused when its settings are unchanged, and an unfinished one 
 from its last saved state (``checkpoints/``, every ``--train-checkpoint-every`` steps) on
 exactly the batches it would have seen, so an interrupted command continues where it
 stopped; ``downstream.json`` (per seed, mean ± std, paired differences real+HOGSA − real
-per seed), ``downstream.md`` (tables) and ``downstream.png`` (validation curves per arm,
-metric bars with the seed spread).
+per seed, each with its 95 % interval over the validation clips and its range with one clip
+left out), ``downstream.md`` (tables) and ``downstream.png`` (validation curves per arm,
+metric bars with the seed spread). Each result keeps its MPJPE_h and CDev_ho per validation
+clip (one subject, sequence and camera view: ``result.json``'s ``clips``); a result saved
+without them has its model evaluated once more when it is reported.
 
 Usage::
 
@@ -81,6 +84,7 @@ from torch.utils.data import DataLoader, Dataset, Subset, default_collate
 from tqdm import tqdm
 
 from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
+from hogsa_loader.baselines.clips import clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.baselines.targets import prepare_targets
@@ -126,6 +130,10 @@ METRICS = {
     "success_rate/0.05": ("Success (%)", False),
 }
 RESULT_VERSION = 2
+#: Metrics kept per validation clip (subject, sequence, view) for the uncertainty over clips.
+CLIP_METRICS = ("mpjpe/ra/h", "cdev/ho")
+#: Resamples of the validation clips behind each paired difference's interval.
+CLIP_RESAMPLES = 2000
 
 
 @dataclass
@@ -1041,6 +1049,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         "settings": settings,
         "summary": {k: _num(v) for k, v in final["summary"].items()},
         "val_frames": final["frames"],
+        "clips": clip_sums(final, CLIP_METRICS),
         "curve": state["evals"],
         "loss_first": losses[0],
         "loss_last": losses[-1],
@@ -1053,6 +1062,33 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     }
     _atomic_json(res_path, result)
     shutil.rmtree(folder / "checkpoints", ignore_errors=True)
+    return result
+
+
+def with_clips(
+    arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path, result: dict[str, Any]
+) -> dict[str, Any]:
+    """``result`` with its per-clip sums (``clips``): a result saved without them has its model
+    evaluated once more on every validation frame and the sums added to its ``result.json``
+    when they reproduce its MPJPE_h and CDev_ho (to 0.01 mm); otherwise it is returned as is."""
+    folder = run_dir(arm, seed, cfg, out)
+    weights = folder / "model.safetensors"
+    if "clips" in result or result.get("diverged") or not weights.is_file():
+        return result
+    _say(f"[{arm} seed {seed}] per-clip metrics: evaluating the saved model once more")
+    layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
+    model = build_model(cfg, layers).to(cfg.device)
+    load_arctic_checkpoint(model, weights)
+    loader, _ = val_batches(cfg, val_dataset(cfg, setup), 1)
+    clips = clip_sums(evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=False), CLIP_METRICS)
+    for m in CLIP_METRICS:
+        again = sum(c[m][0] for c in clips.values()) / max(sum(c[m][1] for c in clips.values()), 1.0)
+        saved = result["summary"].get(m)
+        if saved is None or abs(again - saved) > 0.01:
+            _say(f"[{arm} seed {seed}] {weights} gives {m} {again:.3f}, its result {saved}: clips not added")
+            return result
+    result = {**result, "clips": clips}
+    _atomic_json(folder / "result.json", result)
     return result
 
 
@@ -1098,6 +1134,12 @@ def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
                 "mean": float(np.mean(v)) if v else None,
                 "std": float(np.std(v, ddof=1)) if len(v) > 1 else None,
             }
+            if m in CLIP_METRICS:
+                diffs[m]["clips"] = clip_uncertainty(
+                    [(r.get("clips"), results[ref][s].get("clips")) for s, r in by_seed.items() if s in d],
+                    m,
+                    CLIP_RESAMPLES,
+                )
         paired[f"{arm} - {ref}"] = diffs
     return {"arms": agg, "paired": paired}
 
@@ -1167,7 +1209,41 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
             )
             cells += [per or "n/a", ms]
         lines.append(f"| {pair} | " + " | ".join(cells) + " |")
+    lines += clip_table(agg)
     return "\n".join(lines) + "\n"
+
+
+def clip_table(agg: dict[str, Any]) -> list[str]:
+    """The paired differences' dependence on the validation clips (:func:`clip_uncertainty`)."""
+    rows = []
+    for pair, d in agg["paired"].items():
+        cells = []
+        for m in CLIP_METRICS:
+            c = d[m].get("clips")
+            if c is None:
+                cells += ["n/a", "n/a"]
+                continue
+            cells.append(f"[{c['ci95'][0]:+.2f}, {c['ci95'][1]:+.2f}]")
+            loo = c.get("leave_one_out")
+            cells.append(
+                f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
+                if loo
+                else "n/a"
+            )
+        rows.append(f"| {pair} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    n = next((d[m]["clips"]["clips"] for d in agg["paired"].values() for m in CLIP_METRICS if d[m].get("clips")), None)
+    return [
+        "",
+        f"**Over validation clips** ({n if n is not None else '?'} clips: subject, sequence, camera view;"
+        " 95 % interval of the seed-mean difference with the clips resampled, and its range when one clip is left out)",
+        "",
+        "| pair | ΔMPJPE_h 95 % interval | ΔMPJPE_h, one clip left out"
+        " | ΔCDev_ho 95 % interval | ΔCDev_ho, one clip left out |",
+        "|---|---|---|---|---|",
+        *rows,
+    ]
 
 
 def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], path: Path) -> None:
@@ -1288,6 +1364,9 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
                     _say(f"[{arm} seed {seed}] its result was made with other settings or an older version: left out")
                 continue
             results.setdefault(arm, {})[seed] = run_arm(arm, seed, cfg, setup, out)
+    for arm, by_seed in results.items():
+        for seed, res in by_seed.items():
+            by_seed[seed] = with_clips(arm, seed, cfg, setup, out, res)
     if cfg.report_only and not results:
         raise SystemExit(f"downstream: error: no finished run in {out} matches these settings; nothing rewritten")
     agg = aggregate(results)

@@ -258,6 +258,33 @@ def test_aggregate_means_stds_and_paired_differences(tmp_path):
     assert (tmp_path / "d.png").stat().st_size > 10_000
 
 
+def _clips(per_clip: dict[str, tuple[float, int]]) -> dict:
+    """Clip sums of runs whose every frame of a clip has the same MPJPE_h and CDev_ho."""
+    return {c: {"mpjpe/ra/h": [v * n, float(n)], "cdev/ho": [2 * v * n, float(n)]} for c, (v, n) in per_clip.items()}
+
+
+def test_paired_differences_carry_their_uncertainty_over_clips():
+    ds = _downstream()
+    names = [f"s05/laptop_grab_01/{v}" for v in range(4)]
+    ref = _clips({c: (40.0, 10) for c in names})
+    arm = _clips({c: (60.0 if c.endswith("/1") else 40.0, 10) for c in names})  # +20 mm on one clip
+    results = {
+        "real": {s: {**_result(40.0, 80.0), "clips": ref} for s in range(2)},
+        "hogsa": {s: {**_result(45.0, 90.0), "clips": arm} for s in range(2)},
+        "hogsa_no_srm": {0: _result(44.0, 88.0), 1: {**_result(45.0, 90.0), "clips": arm}},  # one run without
+    }
+    agg = ds.aggregate(results)
+    rec = agg["paired"]["hogsa - real"]["mpjpe/ra/h"]["clips"]
+    assert rec["estimate"] == pytest.approx(5.0) and rec["leave_one_out"]["min"][1] == "s05/laptop_grab_01/1"
+    assert agg["paired"]["hogsa - real"]["cdev/ho"]["clips"]["estimate"] == pytest.approx(10.0)
+    assert agg["paired"]["hogsa_no_srm - real"]["mpjpe/ra/h"]["clips"] is None
+    md = ds.markdown(agg, ds.DownstreamConfig(), "2 CPU cores", {})
+    lo, hi = rec["ci95"]
+    assert "**Over validation clips** (4 clips" in md
+    assert f"| hogsa - real | [{lo:+.2f}, {hi:+.2f}] | +0.00 (without s05/laptop_grab_01/1) … +6.67" in md
+    assert "| hogsa_no_srm - real | n/a | n/a | n/a | n/a |" in md
+
+
 def test_finished_runs_are_found_only_with_their_settings(tmp_path):
     """``--report-only`` tabulates the runs whose saved key matches the current settings."""
     ds = _downstream()
@@ -553,6 +580,22 @@ def test_interrupted_run_resumes_to_the_same_result(tiny_world, tmp_path, monkey
     a = load_file(ds.run_dir("hogsa_low", 0, cfg, tmp_path / "a") / "model.safetensors")
     b = load_file(folder / "model.safetensors")
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    for m in ds.CLIP_METRICS:  # the per-clip sums form the split's frame-weighted value again
+        sums = np.array([c[m] for c in resumed["clips"].values()])  # (C, 2)
+        assert sums[:, 0].sum() / sums[:, 1].sum() == pytest.approx(resumed["summary"][m], abs=1e-6)
+    saved = json.loads((folder / "result.json").read_text())
+    assert saved["clips"] == resumed["clips"]
+    del saved["clips"]  # a result saved before clips were kept: its model is evaluated once more
+    (folder / "result.json").write_text(json.dumps(saved))
+    again = ds.with_clips("hogsa_low", 0, cfg, setup, tmp_path / "b", saved)
+    assert again["clips"].keys() == resumed["clips"].keys()
+    for clip, rec in again["clips"].items():
+        for m in ds.CLIP_METRICS:
+            assert rec[m][1] == resumed["clips"][clip][m][1]
+            assert rec[m][0] == pytest.approx(resumed["clips"][clip][m][0], rel=1e-4)
+    assert json.loads((folder / "result.json").read_text())["clips"] == again["clips"]
+    saved["summary"] = {**saved["summary"], "mpjpe/ra/h": saved["summary"]["mpjpe/ra/h"] + 1.0}
+    assert "clips" not in ds.with_clips("hogsa_low", 0, cfg, setup, tmp_path / "b", saved)  # weights ≠ result
 
 
 def test_linear_schedule_keys_its_runs_and_ends_near_zero():

@@ -21,6 +21,8 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.datasets.conventions import (
     EGO_IMAGE_SIZE,
     allocentric_bbox,
@@ -784,6 +786,25 @@ def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
         "arctic_data/data/cropped_images/s01/box_use_01/3/00020.jpg",
     ):
         assert must in differ, must
+
+
+def test_a_world_with_more_subjects_keeps_the_first_worlds_files(tmp_path):
+    """Every subject and sequence draws from its own random stream: a preset with a held-out
+    test subject added renders the first preset's sequences byte for byte, and writes the
+    test split, which the dataset reads."""
+    base = _micro_preset()
+    more = dataclasses.replace(
+        base, subjects=(*base.subjects, SubjectPlan("s03", "test", (SequencePlan("box", "grab"),)))
+    )
+    for name, preset in (("a", base), ("b", more)):
+        generate_world(tmp_path / name, preset, seed=0, progress=False, preview=False)
+    a, b = _hash_tree(tmp_path / "a"), _hash_tree(tmp_path / "b")
+    files = [k for k in a if "/cropped_images/" in k or "/raw_seqs/" in k or k.endswith("p1_train.npy")]
+    assert len(files) > 9 * base.num_frames and all(a[k] == b.get(k) for k in files)
+    assert "arctic_data/data/splits/p1_test.npy" not in a
+    test = ArcticDataset(tmp_path / "b", split="p1_test", augment=False, seed=0, config=ArcticConfig(img_res=32))
+    assert {n.split("/")[-4] for n in test.imgnames} == {"s03"} and len(test) == 8 * (base.num_frames - 20)
+    test[0]
 
 
 def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypatch):

@@ -10,6 +10,7 @@ from hogsa_loader.baselines.arcticnet_sf import (
     rotation_6d_to_matrix,
     weak_perspective_to_perspective,
 )
+from hogsa_loader.baselines.clips import clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.loss import ARCTIC_SF_LOSS_WEIGHTS, arcticnet_sf_loss
 from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, summarize
@@ -21,6 +22,8 @@ __all__ = [
     "ArcticNetSF",
     "BodyLayers",
     "arcticnet_sf_loss",
+    "clip_sums",
+    "clip_uncertainty",
     "evaluate",
     "mean_cameras",
     "per_frame_metrics",

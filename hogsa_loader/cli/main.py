@@ -323,8 +323,9 @@ def _world_parser(sub: argparse._SubParsersAction) -> None:
     w.add_argument(
         "--preset",
         default="tiny",
-        help="tiny (< 1 min, tests), demo (what hogsa demo uses), small (ARCTIC image sizes) or small_styles "
-        "(small, each subject and sequence with its own grasps)",
+        help="tiny (< 1 min, tests), demo (what hogsa demo uses), small (ARCTIC image sizes), small_styles "
+        "(small, each subject and sequence with its own grasps) or small_styles_heldout (small_styles with "
+        "five times its held-out sequences, to evaluate on)",
     )
     w.add_argument("--seed", type=checks.non_negative_int, default=0)
     w.add_argument("--no-splits", action="store_true", help="skip ARCTIC processing into splits/")

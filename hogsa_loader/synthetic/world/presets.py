@@ -183,6 +183,30 @@ PRESETS: dict[str, WorldPreset] = {
 # not the training subjects' (as in ARCTIC, where every subject has its own motions).
 PRESETS["small_styles"] = replace(PRESETS["small"], name="small_styles", grasp_style=1.0)
 
+# `small_styles` with five times its held-out sequences, to evaluate models trained on `small_styles`:
+# every subject and sequence draws from its own random stream, so its generated files for
+# `small_styles`' sequences are the same; the held-out subject records a second take of its two
+# sequences and the two designs it lacked, and a subject of the test split records every design once.
+PRESETS["small_styles_heldout"] = replace(
+    PRESETS["small_styles"],
+    name="small_styles_heldout",
+    subjects=(
+        *PRESETS["small_styles"].subjects[:2],
+        SubjectPlan(
+            "s05",
+            "val",
+            (
+                *PRESETS["small_styles"].subjects[2].sequences,
+                SequencePlan("box", "grab"),
+                SequencePlan("notebook", "grab"),
+                SequencePlan("laptop", "grab", 2),
+                SequencePlan("box", "use", 2),
+            ),
+        ),
+        SubjectPlan("s03", "test", _seqs(*GRASP_DESIGNS)),
+    ),
+)
+
 
 def get_preset(name: str) -> WorldPreset:
     """Preset by name (KeyError lists the known ones)."""

@@ -512,14 +512,16 @@ def _world_record(preset: WorldPreset, seed: int, subjects: list, records: list[
 def _write_extras(
     root: Path, preset: WorldPreset, preview: bool, process_splits: bool, progress: bool, timings: dict[str, float]
 ) -> None:
-    """``world_preview.png`` and ARCTIC's processed ``splits/`` (each when asked), timed into ``timings``."""
+    """``world_preview.png`` and ARCTIC's processed ``splits/`` (each when asked; the test split
+    when the preset has a test subject), timed into ``timings``."""
     if preview:
         t0 = time.perf_counter()
         write_world_preview(root, root / "world_preview.png", frames=preset.preview_frames)
         timings["preview_s"] = time.perf_counter() - t0
     if process_splits:
         t0 = time.perf_counter()
-        written = write_processed_splits(root, protocols=("p1", "p2"), splits=("train", "val"), progress=progress)
+        splits = ("train", "val", "test") if any(s.split == "test" for s in preset.subjects) else ("train", "val")
+        written = write_processed_splits(root, protocols=("p1", "p2"), splits=splits, progress=progress)
         add_split_stand_ins(written.values())
         timings["splits_s"] = time.perf_counter() - t0
 

@@ -1,0 +1,125 @@
+"""benchmarks/heldout.py: finished models on a held-out root, with the uncertainty over clips."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from conftest import load_script
+from torch.utils.data import DataLoader, Subset
+
+from hogsa_loader.baselines import ArcticNetSF, BodyLayers, evaluate, load_arctic_checkpoint, temporal_order
+from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.datasets.augment import ArcticConfig
+from hogsa_loader.io.tensors import write_tensors_and_manifest
+
+RES = 32
+
+
+def _heldout():
+    return load_script("benchmarks/heldout.py", "heldout_bench")
+
+
+def _save(folder, root, seed: int) -> None:
+    layers = BodyLayers.from_root(ArcticRoot(root))
+    torch.manual_seed(seed)
+    net = ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=RES)
+    state = {k: v.detach().clone().contiguous() for k, v in net.network_state_dict().items()}
+    settings = {"data": str(root), "model": {"backbone": "resnet18", "img_res": RES}}
+    write_tensors_and_manifest(folder, "model.safetensors", state, "model.json", {"settings": settings})
+
+
+def test_runs_are_evaluated_once_and_paired_over_clips(tiny_world, tmp_path, monkeypatch):
+    """Each label's models are evaluated on the split as ``evaluate`` does; the paired
+    difference is the difference of the summaries, with an interval over the split's clips;
+    a second run reads the cache."""
+    hd = _heldout()
+    for label, seeds in (("real", (1, 2)), ("hogsa", (3, 4))):
+        for s, init in zip((0, 1), seeds):
+            _save(tmp_path / label / f"seed{s}", tiny_world, init)
+    cfg = hd.HeldoutConfig(
+        data=str(tiny_world),
+        runs=(f"real={tmp_path / 'real'}", f"hogsa={tmp_path / 'hogsa'}"),
+        splits=("p1_val",),
+        out=str(tmp_path / "out"),
+        threads=1,
+    )
+    rec = hd.run(cfg)["reports"]["p1_val"]
+    ds = ArcticDataset(tiny_world, split="p1_val", seed=0, augment=False, config=ArcticConfig(img_res=RES))
+    layers = BodyLayers.from_root(ArcticRoot(tiny_world))
+    model = ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=RES)
+    load_arctic_checkpoint(model, tmp_path / "real" / "seed0" / "model.safetensors")
+    loader = DataLoader(Subset(ds, temporal_order(ds.imgnames)), batch_size=32)
+    direct = evaluate(model, loader, layers, RES, temporal=False)["summary"]
+    views = {n.split("/")[-2] for n in ds.imgnames}
+    assert rec["frames"] == len(ds) and rec["clips"] == len(views) > 1
+    saved = json.loads((tmp_path / "out" / "heldout.json").read_text())["reports"]["p1_val"]
+    cached = sorted((tmp_path / "out" / "cache").glob("*-p1_val.json"))
+    assert len(cached) == 4
+    real0 = next(json.loads(p.read_text()) for p in cached if "real/seed0" in json.loads(p.read_text())["model"])
+    assert real0["summary"]["mpjpe/ra/h"] == pytest.approx(direct["mpjpe/ra/h"], rel=1e-5)
+    assert real0["summary"]["cdev/ho"] == pytest.approx(direct["cdev/ho"], rel=1e-5)
+    d = saved["paired"]["hogsa"]["mpjpe/ra/h"]
+    assert d["mean"] == pytest.approx(np.mean(list(d["per_seed"].values())))
+    assert d["clips"]["estimate"] == pytest.approx(d["mean"], abs=1e-4)  # the clip sums form the summaries again
+    assert d["clips"]["ci95"][0] <= d["clips"]["estimate"] <= d["clips"]["ci95"][1]
+    md = (tmp_path / "out" / "heldout.md").read_text()
+    assert f"**p1_val** ({len(ds)} frames, {len(views)} clips)" in md and "| hogsa | " in md
+
+    def no_evaluation(*a, **k):
+        raise AssertionError("evaluated again")
+
+    monkeypatch.setattr(hd, "evaluate", no_evaluation)
+    assert hd.run(cfg)["reports"]["p1_val"]["paired"]["hogsa"]["mpjpe/ra/h"]["mean"] == pytest.approx(d["mean"])
+
+
+def test_two_splits_are_also_reported_together(tiny_world, tmp_path):
+    """Two splits give a third report over the clips of both, frame-weighted."""
+    hd = _heldout()
+    recs = [
+        {"frames": 3, "clips": {"s05/a/1": {"mpjpe/ra/h": [30.0, 3.0], "cdev/ho": [3.0, 3.0]}}},
+        {"frames": 1, "clips": {"s03/a/1": {"mpjpe/ra/h": [50.0, 1.0], "cdev/ho": [0.0, 0.0]}}},
+    ]
+    both = hd.merged(recs)
+    assert both["frames"] == 4 and both["summary"]["mpjpe/ra/h"] == pytest.approx(20.0)
+    assert both["summary"]["cdev/ho"] == pytest.approx(1.0) and len(both["clips"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("runs", "message"),
+    [
+        (("real",), "LABEL=FOLDER"),
+        (("real={empty}",), "no seed<N>/model.safetensors"),
+        (("other={ok}",), "--reference 'real'"),
+        ((), "no runs given"),
+    ],
+)
+def test_bad_runs_are_refused_with_what_is_wrong(tiny_world, tmp_path, capsys, runs, message):
+    hd = _heldout()
+    _save(tmp_path / "ok" / "seed0", tiny_world, 0)
+    (tmp_path / "empty").mkdir()
+    runs = tuple(r.format(empty=tmp_path / "empty", ok=tmp_path / "ok") for r in runs)
+    with pytest.raises(SystemExit, match=message):
+        hd.run(hd.HeldoutConfig(data=str(tiny_world), runs=runs, out=str(tmp_path / "out")))
+
+
+def test_a_missing_split_and_other_bodies_are_refused(tiny_world, tmp_path):
+    hd = _heldout()
+    _save(tmp_path / "real" / "seed0", tiny_world, 0)
+    runs = (f"real={tmp_path / 'real'}",)
+    with pytest.raises(SystemExit, match="p1_test.npy does not exist"):
+        hd.run(hd.HeldoutConfig(data=str(tiny_world), runs=runs, splits=("p1_test",), out=str(tmp_path / "o")))
+    settings = {"data": str(tiny_world)}
+    hd.check_bodies(settings, ArcticRoot(tiny_world), tmp_path / "m", {})  # the same bodies
+    other = tmp_path / "other"
+    shutil.copytree(tiny_world, other, ignore=shutil.ignore_patterns("cropped_images", "masks"))
+    template = next(
+        p for p in sorted((other / "arctic_data" / "data" / "meta" / "object_vtemplates").rglob("*")) if p.is_file()
+    )
+    template.write_bytes(template.read_bytes() + b"\n")
+    with pytest.raises(SystemExit, match="MANO models or object templates differ"):
+        hd.check_bodies(settings, ArcticRoot(other), tmp_path / "m", {})
