@@ -164,21 +164,13 @@ def load_task_model(path: Path, root: Path) -> tuple[nn.Module, Any, int]:
     Raises:
         AssetError: naming the file when the manifest or a tensor is missing or wrong.
     """
-    from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
+    from hogsa_loader.baselines.arcticnet_sf import load_saved_model
     from hogsa_loader.baselines.engine import BodyLayers
     from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.errors import AssetError, read_json
 
-    manifest = read_json(path.with_name("model.json"))
-    try:
-        settings = manifest["settings"]["model"]  # type: ignore[index]
-        backbone, img_res = str(settings["backbone"]), int(settings["img_res"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise AssetError(path.with_name("model.json"), f"no settings.model.backbone / img_res ({exc!r})") from exc
     layers = BodyLayers.from_root(ArcticRoot(root))
-    model = ArcticNetSF(backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=img_res)
-    load_arctic_checkpoint(model, path)
-    return model.eval(), layers, img_res
+    model, settings = load_saved_model(path, layers.mano_r, layers.mano_l, layers.objects)
+    return model, layers, int(settings["model"]["img_res"])
 
 
 def task_view(

@@ -83,8 +83,8 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Subset, default_collate
 from tqdm import tqdm
 
-from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
-from hogsa_loader.baselines.clips import clip_sums, clip_uncertainty
+from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint, load_saved_model
+from hogsa_loader.baselines.clips import CLIP_METRICS, clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.baselines.targets import prepare_targets
@@ -130,8 +130,6 @@ METRICS = {
     "success_rate/0.05": ("Success (%)", False),
 }
 RESULT_VERSION = 2
-#: Metrics kept per validation clip (subject, sequence, view) for the uncertainty over clips.
-CLIP_METRICS = ("mpjpe/ra/h", "cdev/ho")
 #: Resamples of the validation clips behind each paired difference's interval.
 CLIP_RESAMPLES = 2000
 
@@ -1077,10 +1075,10 @@ def with_clips(
         return result
     _say(f"[{arm} seed {seed}] per-clip metrics: evaluating the saved model once more")
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
-    model = build_model(cfg, layers).to(cfg.device)
-    load_arctic_checkpoint(model, weights)
+    model, _ = load_saved_model(weights, layers.mano_r, layers.mano_l, layers.objects)
     loader, _ = val_batches(cfg, val_dataset(cfg, setup), 1)
-    clips = clip_sums(evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=False), CLIP_METRICS)
+    ev = evaluate(model.to(cfg.device), loader, layers, cfg.model.img_res, cfg.device, temporal=False)
+    clips = clip_sums(ev, CLIP_METRICS)
     for m in CLIP_METRICS:
         again = sum(c[m][0] for c in clips.values()) / max(sum(c[m][1] for c in clips.values()), 1.0)
         saved = result["summary"].get(m)

@@ -27,8 +27,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
+import os
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -39,8 +41,8 @@ import torch
 from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
-from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
-from hogsa_loader.baselines.clips import ClipSums, clip_sums, clip_uncertainty
+from hogsa_loader.baselines.arcticnet_sf import load_saved_model
+from hogsa_loader.baselines.clips import CLIP_METRICS, ClipSums, clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, temporal_order
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import data_fingerprint
@@ -48,10 +50,11 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.datasets.augment import ArcticConfig
 from hogsa_loader.errors import AssetError, read_json
+from hogsa_loader.hands.mano_io import load_mano
 from hogsa_loader.io.hashing import sha256_file
 from hogsa_loader.system import available_cores
 
-#: Per-frame metrics reported (ARCTIC's names) and those kept per clip for the intervals.
+#: Per-frame metrics reported (ARCTIC's names).
 METRICS = {
     "mpjpe/ra/h": "MPJPE_h (mm)",
     "cdev/ho": "CDev_ho (mm)",
@@ -59,8 +62,9 @@ METRICS = {
     "aae": "AAE (°)",
     "success_rate/0.05": "Success (%)",
 }
-CLIP_METRICS = ("mpjpe/ra/h", "cdev/ho")
 CACHE_VERSION = 1
+#: Run settings that may differ between the seeds of one label.
+PER_SEED = ("seed", "init_sha256")
 
 
 @dataclass
@@ -73,20 +77,67 @@ class HeldoutConfig:
     )
     runs: tuple[str, ...] = field(
         default=(),
-        metadata={
-            "help": "LABEL=FOLDER, FOLDER holding seed<N>/model.safetensors (a downstream run)",
-            "required": True,
-        },
+        metadata={"help": "LABEL=FOLDER, FOLDER holding seed<N>/ of finished downstream runs", "required": True},
     )
     reference: str = field(default="real", metadata={"help": "label of the runs the others are paired with"})
     splits: tuple[str, ...] = field(default=("p1_val", "p1_test"), metadata={"help": "held-out splits of --data"})
     out: str = field(default="runs/heldout", metadata={"help": "output folder (cache in OUT/cache)"})
     batch_size: int = field(default=32, metadata={"help": "frames per evaluation batch", "type": "positive_int"})
+    device: str = field(default="cpu", metadata={"help": "where the models run", "type": "torch_device"})
     threads: int = field(default=0, metadata={"help": "torch threads (0: every core)", "type": "non_negative_int"})
 
 
+@dataclass
+class _Context:
+    """What every evaluation of one command shares."""
+
+    cfg: HeldoutConfig
+    root: ArcticRoot
+    layers: BodyLayers
+    fingerprints: dict[str, str]  # split -> sha256 of the root's cameras, world record and split file
+    datasets: dict[tuple[str, int], ArcticDataset] = field(default_factory=dict)
+    bodies: dict[str, str] = field(default_factory=dict)  # root path -> bodies_digest
+    unchecked: list[str] = field(default_factory=list)  # models whose training root is gone
+
+
+def _comparable(settings: dict[str, Any]) -> dict[str, Any]:
+    """A run's settings without those that differ from seed to seed."""
+    out = {k: v for k, v in settings.items() if k not in PER_SEED}
+    if isinstance(out.get("model"), dict):
+        out["model"] = {k: v for k, v in out["model"].items() if k not in PER_SEED}
+    return out
+
+
+def finished_models(label: str, folder: Path) -> dict[int, Path]:
+    """seed → model file of the finished runs in ``folder`` (``seed<N>/``): a model counts when
+    its run finished (``result.json`` without ``diverged``) with the settings its ``model.json``
+    records, and every seed's run has the same settings but for the seed and its start file.
+
+    Raises:
+        SystemExit: naming the folder when it holds no finished run or runs of other settings.
+    """
+    seeds: dict[int, Path] = {}
+    settings: dict[int, dict[str, Any]] = {}
+    for path in sorted(folder.glob("seed*/model.safetensors")):
+        suffix = path.parent.name[len("seed") :]
+        result = path.with_name("result.json")
+        if not suffix.isdigit() or not result.is_file():
+            continue
+        res, manifest = read_json(result), read_json(path.with_name("model.json"))
+        if res.get("diverged") or res.get("settings") != manifest.get("settings"):  # type: ignore[union-attr]
+            continue
+        seeds[int(suffix)] = path
+        settings[int(suffix)] = _comparable(manifest["settings"])  # type: ignore[index]
+    if not seeds:
+        raise SystemExit(f"heldout: error: no finished run (seed<N>/ with model and result) in {folder} ({label})")
+    first = next(iter(settings.values()))
+    if any(v != first for v in settings.values()):
+        raise SystemExit(f"heldout: error: the runs in {folder} ({label}) differ in settings beyond their seeds")
+    return seeds
+
+
 def parse_runs(items: tuple[str, ...]) -> dict[str, dict[int, Path]]:
-    """``LABEL=FOLDER`` items → label → seed → model file (every ``seed<N>/model.safetensors``)."""
+    """``LABEL=FOLDER`` items → label → seed → model file (:func:`finished_models`)."""
     runs: dict[str, dict[int, Path]] = {}
     for item in items:
         label, sep, folder = item.partition("=")
@@ -94,96 +145,112 @@ def parse_runs(items: tuple[str, ...]) -> dict[str, dict[int, Path]]:
             raise SystemExit(f"heldout: error: --runs takes LABEL=FOLDER, got {item!r}")
         if label in runs:
             raise SystemExit(f"heldout: error: label {label!r} given twice")
-        seeds = {}
-        for path in sorted(Path(folder).glob("seed*/model.safetensors")):
-            suffix = path.parent.name[len("seed") :]
-            if suffix.isdigit():
-                seeds[int(suffix)] = path
-        if not seeds:
-            raise SystemExit(f"heldout: error: no seed<N>/model.safetensors in {folder} ({label})")
-        runs[label] = seeds
+        runs[label] = finished_models(label, Path(folder))
     return runs
 
 
-def model_settings(path: Path) -> tuple[str, int, dict[str, Any]]:
-    """Backbone, patch side and settings of the model saved at ``path`` (its ``model.json``).
-
-    Raises:
-        AssetError: naming the file when the manifest lacks the model settings.
-    """
-    manifest = read_json(path.with_name("model.json"))
-    try:
-        settings = manifest["settings"]  # type: ignore[index]
-        return str(settings["model"]["backbone"]), int(settings["model"]["img_res"]), settings
-    except (KeyError, TypeError, ValueError) as exc:
-        raise AssetError(path.with_name("model.json"), f"no settings.model.backbone / img_res ({exc!r})") from exc
+def _digest_arrays(h: Any, prefix: str, record: Any, skip: tuple[str, ...] = ()) -> None:
+    for f in dataclasses.fields(record):
+        if f.name.startswith(skip):
+            continue
+        value = getattr(record, f.name)
+        h.update(f"{prefix}.{f.name}".encode())
+        if isinstance(value, np.ndarray):
+            h.update(f"{value.dtype}{value.shape}".encode() + np.ascontiguousarray(value).tobytes())
+        else:
+            h.update(repr(value).encode())
 
 
 def bodies_digest(root: ArcticRoot) -> str:
-    """sha256 over the MANO model files and the object templates of a root (what the model's
-    layers and its targets are built from)."""
+    """sha256 over what a model's layers and targets are built from: both MANO models' arrays
+    (not their file path, metadata or vertex colours) and every object template's geometry,
+    parts, keypoints and diameter (not its texture)."""
     h = hashlib.sha256()
-    for folder in (root.mano_dir, root.meta_dir / "object_vtemplates"):
-        for path in sorted(p for p in folder.rglob("*") if p.is_file()):
-            h.update(str(path.relative_to(folder)).encode())
-            h.update(sha256_file(path).encode())
+    for side in ("right", "left"):
+        _digest_arrays(h, f"mano.{side}", load_mano(root.mano_dir, side=side), skip=("source", "meta", "vertex_colors"))
+    for name, template in sorted(root.object_templates(load_texture=False).items()):
+        _digest_arrays(h, name, template, skip=("tex",))
     return h.hexdigest()
 
 
-def check_bodies(settings: dict[str, Any], root: ArcticRoot, path: Path, checked: dict[str, str]) -> None:
-    """Refuse a model whose training root has other MANO models or object templates than the
-    evaluated ``root`` (a training root no longer on disk is not checked).
+def check_bodies(settings: dict[str, Any], path: Path, ctx: _Context) -> None:
+    """Refuse a model whose training root (``settings["data"]``) has other MANO models or
+    object templates than the evaluated root; a model whose training root is not on disk is
+    listed in ``ctx.unchecked`` instead.
 
-    Args:
-        settings: the model's settings (``data``: its training root).
-        root: the evaluated root.
-        path: the model file (named in the error).
-        checked: digests computed so far, by root path (filled in).
+    Raises:
+        SystemExit: naming the model file and its training root.
     """
     try:
-        train = ArcticRoot(str(settings.get("data", ""))).data_root
+        train = ArcticRoot(str(settings["data"])).data_root if settings.get("data") else None
     except AssetError:
+        train = None
+    if train is None:
+        ctx.unchecked.append(str(path))
         return
-    for r in (root.data_root, train):
-        if str(r) not in checked:
-            checked[str(r)] = bodies_digest(ArcticRoot(r))
-    if checked[str(train)] != checked[str(root.data_root)]:
+    for r in (ctx.root.data_root, train):
+        if str(r) not in ctx.bodies:
+            ctx.bodies[str(r)] = bodies_digest(ArcticRoot(r))
+    if ctx.bodies[str(train)] != ctx.bodies[str(ctx.root.data_root)]:
         raise SystemExit(
             f"heldout: error: {path} was trained on {train}, whose MANO models or object templates differ from --data's"
         )
 
 
-def evaluate_model(path: Path, split: str, cfg: HeldoutConfig, ctx: dict[str, Any]) -> dict[str, Any]:
-    """ARCTIC's per-frame metrics of one model on one split (cached by file digest, root, split)."""
-    digest = sha256_file(path)
-    cache = Path(cfg.out) / "cache" / f"{digest[:16]}-{ctx['fingerprint'][:12]}-{split}.json"
-    if cache.is_file():
-        rec = json.loads(cache.read_text())
-        if rec.get("version") == CACHE_VERSION and rec.get("model_sha256") == digest:
-            return rec
-    backbone, img_res, settings = model_settings(path)
-    layers = ctx["layers"]
-    check_bodies(settings, ctx["root"], path, ctx["checked"])
-    model = ArcticNetSF(backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=img_res)
-    load_arctic_checkpoint(model, path)
-    ds = ctx["datasets"].get((split, img_res))
+def _finite(x: Any) -> Optional[float]:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _read_cache(path: Path, digest: str, fingerprint: str) -> Optional[dict[str, Any]]:
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    ok = rec.get("version") == CACHE_VERSION and rec.get("model_sha256") == digest
+    return rec if ok and rec.get("data_fingerprint") == fingerprint else None
+
+
+def evaluate_model(path: Path, split: str, ctx: _Context) -> dict[str, Any]:
+    """ARCTIC's per-frame metrics of one model on one split, cached in ``OUT/cache`` by the
+    model file's sha256 and the split's fingerprint.
+
+    Returns:
+        ``{"version", "model", "model_sha256", "split", "data_fingerprint", "frames",
+        "summary": {metric: value or None}, "clips": clip_sums}``.
+    """
+    digest, fingerprint = sha256_file(path), ctx.fingerprints[split]
+    cache = Path(ctx.cfg.out) / "cache" / f"{digest[:16]}-{fingerprint[:16]}-{split}.json"
+    rec = _read_cache(cache, digest, fingerprint)
+    if rec is not None:
+        return rec
+    model, settings = load_saved_model(path, ctx.layers.mano_r, ctx.layers.mano_l, ctx.layers.objects)
+    check_bodies(settings, path, ctx)
+    img_res = int(settings["model"]["img_res"])
+    ds = ctx.datasets.get((split, img_res))
     if ds is None:
-        ds = ArcticDataset(cfg.data, split=split, seed=0, augment=False, config=ArcticConfig(img_res=img_res))
-        ctx["datasets"][(split, img_res)] = ds
-    loader = DataLoader(Subset(ds, temporal_order(ds.imgnames)), batch_size=cfg.batch_size)
+        ds = ArcticDataset(ctx.cfg.data, split=split, seed=0, augment=False, config=ArcticConfig(img_res=img_res))
+        ctx.datasets[(split, img_res)] = ds
+    loader = DataLoader(Subset(ds, temporal_order(ds.imgnames)), batch_size=ctx.cfg.batch_size)
     with tqdm(total=len(ds), desc=f"{path.parent.parent.name}/{path.parent.name} {split}", unit="frame") as bar:
-        ev = evaluate(model.eval(), loader, layers, img_res, "cpu", temporal=False, on_batch=bar.update)
+        layers = ctx.layers.to(ctx.cfg.device)
+        ev = evaluate(
+            model.to(ctx.cfg.device), loader, layers, img_res, ctx.cfg.device, temporal=False, on_batch=bar.update
+        )
     rec = {
         "version": CACHE_VERSION,
         "model": str(path),
         "model_sha256": digest,
         "split": split,
+        "data_fingerprint": fingerprint,
         "frames": ev["frames"],
-        "summary": {k: float(ev["summary"][k]) for k in METRICS if k in ev["summary"]},
+        "summary": {k: _finite(ev["summary"][k]) for k in METRICS if k in ev["summary"]},
         "clips": clip_sums(ev, CLIP_METRICS),
     }
     cache.parent.mkdir(parents=True, exist_ok=True)
-    cache.write_text(json.dumps(rec))
+    tmp = cache.with_name(cache.name + ".tmp")
+    tmp.write_text(json.dumps(rec, allow_nan=False))
+    os.replace(tmp, cache)
     return rec
 
 
@@ -194,22 +261,19 @@ def merged(recs: list[dict[str, Any]]) -> dict[str, Any]:
     summary = {}
     for m in CLIP_METRICS:
         n = sum(v[m][1] for v in clips.values())
-        summary[m] = sum(v[m][0] for v in clips.values()) / n if n else float("nan")
+        summary[m] = sum(v[m][0] for v in clips.values()) / n if n else None
     return {"frames": sum(r["frames"] for r in recs), "summary": summary, "clips": clips}
 
 
-def _mean_std(vals: list[float]) -> dict[str, Optional[float]]:
-    vals = [v for v in vals if np.isfinite(v)]
-    return {
-        "mean": float(np.mean(vals)) if vals else None,
-        "std": float(np.std(vals, ddof=1)) if len(vals) > 1 else None,
-    }
+def _mean_std(vals: list[Optional[float]]) -> dict[str, Optional[float]]:
+    xs = [v for v in vals if v is not None]
+    return {"mean": float(np.mean(xs)) if xs else None, "std": float(np.std(xs, ddof=1)) if len(xs) > 1 else None}
 
 
 def report(results: dict[str, dict[int, dict[str, Any]]], reference: str) -> dict[str, Any]:
     """Mean ± std per label and the paired differences against ``reference`` of one split."""
     rows = {
-        label: {m: _mean_std([r["summary"].get(m, float("nan")) for r in by_seed.values()]) for m in METRICS}
+        label: {m: _mean_std([r["summary"].get(m) for r in by_seed.values()]) for m in METRICS}
         for label, by_seed in results.items()
     }
     paired = {}
@@ -218,14 +282,18 @@ def report(results: dict[str, dict[int, dict[str, Any]]], reference: str) -> dic
         if label == reference:
             continue
         seeds = sorted(set(by_seed) & set(ref))
-        paired[label] = {
-            m: {
-                "per_seed": {s: by_seed[s]["summary"][m] - ref[s]["summary"][m] for s in seeds},
-                **_mean_std([by_seed[s]["summary"][m] - ref[s]["summary"][m] for s in seeds]),
+        paired[label] = {}
+        for m in CLIP_METRICS:
+            d = {
+                s: by_seed[s]["summary"][m] - ref[s]["summary"][m]
+                for s in seeds
+                if None not in (by_seed[s]["summary"][m], ref[s]["summary"][m])
+            }
+            paired[label][m] = {
+                "per_seed": d,
+                **_mean_std(list(d.values())),
                 "clips": clip_uncertainty([(by_seed[s]["clips"], ref[s]["clips"]) for s in seeds], m),
             }
-            for m in CLIP_METRICS
-        }
     frames = next((r["frames"] for by_seed in results.values() for r in by_seed.values()), 0)
     clips = next((len(r["clips"]) for by_seed in results.values() for r in by_seed.values()), 0)
     return {"frames": frames, "clips": clips, "arms": rows, "paired": paired}
@@ -236,6 +304,17 @@ def _cell(row: dict[str, Optional[float]], sign: bool = False) -> str:
         return "n/a"
     fmt = "+.2f" if sign else ".2f"
     return f"{row['mean']:{fmt}}" + (f" ± {row['std']:.2f}" if row["std"] is not None else "")
+
+
+def _interval(rec: Optional[dict[str, Any]]) -> str:
+    return "n/a" if rec is None else f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
+
+
+def _left_out(rec: Optional[dict[str, Any]]) -> str:
+    loo = (rec or {}).get("leave_one_out")
+    if not loo:
+        return "n/a"
+    return f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
 
 
 def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
@@ -259,48 +338,43 @@ def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
         for label, d in rep["paired"].items():
             h, c = d["mpjpe/ra/h"], d["cdev/ho"]
             per = ", ".join(f"{v:+.2f}" for v in h["per_seed"].values()) or "n/a"
-
-            def interval(rec: Optional[dict[str, Any]]) -> str:
-                return "n/a" if rec is None else f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
-
-            loo = (h["clips"] or {}).get("leave_one_out")
-            left = (
-                f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
-                if loo
-                else "n/a"
-            )
             lines.append(
-                f"| {label} | {per} | {_cell(h, True)} | {interval(h['clips'])} | {left}"
-                f" | {_cell(c, True)} | {interval(c['clips'])} |"
+                f"| {label} | {per} | {_cell(h, True)} | {_interval(h['clips'])} | {_left_out(h['clips'])}"
+                f" | {_cell(c, True)} | {_interval(c['clips'])} |"
             )
         lines.append("")
     return "\n".join(lines)
 
 
+def _context(cfg: HeldoutConfig) -> _Context:
+    """The root, its layers and the fingerprint of each split (refusing a missing split)."""
+    root = ArcticRoot(cfg.data)
+    base = data_fingerprint(root)
+    fingerprints = {}
+    for split in cfg.splits:
+        protocol, sep, short = split.partition("_")
+        if not sep or not protocol or not short:
+            raise SystemExit(f"heldout: error: --splits takes names like p1_val, got {split!r}")
+        path = root.split_path(protocol, short)
+        if not path.is_file():
+            raise SystemExit(f"heldout: error: {path} does not exist (split {split!r})")
+        fingerprints[split] = hashlib.sha256(f"{base}:{sha256_file(path)}".encode()).hexdigest()
+    return _Context(cfg, root, BodyLayers.from_root(root), fingerprints)
+
+
 def run(cfg: HeldoutConfig) -> dict[str, Any]:
     """Evaluate every run on every split and write ``heldout.json`` and ``heldout.md``."""
     torch.set_num_threads(cfg.threads or available_cores())
+    if len(set(cfg.splits)) != len(cfg.splits):
+        raise SystemExit(f"heldout: error: a split is given twice in --splits {list(cfg.splits)}")
     runs = parse_runs(cfg.runs)
     if not runs:
         raise SystemExit("heldout: error: no runs given (--runs LABEL=FOLDER ...)")
     if cfg.reference not in runs:
         raise SystemExit(f"heldout: error: --reference {cfg.reference!r} is not a label of --runs ({sorted(runs)})")
-    root = ArcticRoot(cfg.data)
-    for split in cfg.splits:
-        setup, short = split.split("_", 1) if "_" in split else ("", "")
-        if not root.split_path(setup, short).is_file():
-            raise SystemExit(f"heldout: error: {root.split_path(setup, short)} does not exist (split {split!r})")
-    ctx = {
-        "root": root,
-        "layers": BodyLayers.from_root(root),
-        "fingerprint": data_fingerprint(root),
-        "datasets": {},
-        "checked": {},
-    }
+    ctx = _context(cfg)
     per_split = {
-        split: {
-            label: {s: evaluate_model(p, split, cfg, ctx) for s, p in seeds.items()} for label, seeds in runs.items()
-        }
+        split: {label: {s: evaluate_model(p, split, ctx) for s, p in seeds.items()} for label, seeds in runs.items()}
         for split in cfg.splits
     }
     reports = {split: report(res, cfg.reference) for split, res in per_split.items()}
@@ -310,10 +384,12 @@ def run(cfg: HeldoutConfig) -> dict[str, Any]:
             for label, seeds in runs.items()
         }
         reports[" + ".join(cfg.splits)] = report(every, cfg.reference)
+    if ctx.unchecked:
+        print(f"[heldout] bodies not checked (training root not on disk): {ctx.unchecked}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    record = {"config": asdict(cfg), "data_fingerprint": ctx["fingerprint"], "reports": reports}
-    (out / "heldout.json").write_text(json.dumps(record, indent=1))
+    record = {"config": asdict(cfg), "fingerprints": ctx.fingerprints, "unchecked": ctx.unchecked, "reports": reports}
+    (out / "heldout.json").write_text(json.dumps(record, indent=1, allow_nan=False))
     (out / "heldout.md").write_text(markdown(reports, cfg.reference))
     print((out / "heldout.md").read_text())
     return record

@@ -45,6 +45,10 @@ def test_clip_uncertainty_names_the_clip_that_carries_a_difference():
     lo, hi = rec["ci95"]
     assert lo == pytest.approx(0.0) and 10.0 <= hi <= 20.0
     assert clip_uncertainty([(arm, ref)], "mpjpe/ra/h") == clip_uncertainty([(arm, ref)], "mpjpe/ra/h")  # fixed draws
+    many = {f"a/s/{k}": (float(k * k), 10) for k in range(20)}
+    flat = {c: (0.0, 10) for c in many}
+    a, b = (clip_uncertainty([(_clips(many), _clips(flat))], "mpjpe/ra/h", seed=k)["ci95"] for k in (0, 1))
+    assert a != b  # the seed draws other resamples
 
 
 def test_clip_uncertainty_averages_seeds_and_weighs_frames():
@@ -65,3 +69,14 @@ def test_clip_uncertainty_needs_the_same_clips_in_every_run():
     assert clip_uncertainty([], "mpjpe/ra/h") is None
     one = clip_uncertainty([(a, _clips({"a/s/1": (3.0, 1)}))], "mpjpe/ra/h")
     assert one["estimate"] == pytest.approx(-2.0) and "leave_one_out" not in one and one["ci95"] == [-2.0, -2.0]
+
+
+def test_clips_without_defined_entries_are_skipped_not_counted_as_no_difference():
+    """CDev is undefined in frames without contact: a draw of such clips only, or leaving out the
+    only clip with contact, says nothing about the difference, and is left out."""
+    ref = {c: {"cdev/ho": [10.0 * n, float(n)]} for c, n in (("a/s/1", 10), ("a/s/2", 0), ("a/s/3", 0))}
+    arm = {c: {"cdev/ho": [12.0 * n, float(n)]} for c, n in (("a/s/1", 10), ("a/s/2", 0), ("a/s/3", 0))}
+    rec = clip_uncertainty([(arm, ref)], "cdev/ho")
+    assert rec["estimate"] == pytest.approx(2.0) and rec["ci95"] == [pytest.approx(2.0), pytest.approx(2.0)]
+    assert rec["leave_one_out"]["min"][0] == pytest.approx(2.0)  # leaving out a/s/1 is undefined, not 0
+    assert clip_uncertainty([(_clips({"a/s/2": (0.0, 0)}), _clips({"a/s/2": (0.0, 0)}))], "mpjpe/ra/h") is None

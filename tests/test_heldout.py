@@ -24,13 +24,14 @@ def _heldout():
     return load_script("benchmarks/heldout.py", "heldout_bench")
 
 
-def _save(folder, root, seed: int) -> None:
+def _save(folder, root, seed: int, **extra) -> None:
     layers = BodyLayers.from_root(ArcticRoot(root))
     torch.manual_seed(seed)
     net = ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=RES)
     state = {k: v.detach().clone().contiguous() for k, v in net.network_state_dict().items()}
-    settings = {"data": str(root), "model": {"backbone": "resnet18", "img_res": RES}}
+    settings = {"data": str(root), "seed": seed, "model": {"backbone": "resnet18", "img_res": RES}, **extra}
     write_tensors_and_manifest(folder, "model.safetensors", state, "model.json", {"settings": settings})
+    (folder / "result.json").write_text(json.dumps({"settings": settings, "summary": {}}))
 
 
 def test_runs_are_evaluated_once_and_paired_over_clips(tiny_world, tmp_path, monkeypatch):
@@ -93,7 +94,7 @@ def test_two_splits_are_also_reported_together(tiny_world, tmp_path):
     ("runs", "message"),
     [
         (("real",), "LABEL=FOLDER"),
-        (("real={empty}",), "no seed<N>/model.safetensors"),
+        (("real={empty}",), "no finished run"),
         (("other={ok}",), "--reference 'real'"),
         ((), "no runs given"),
     ],
@@ -113,13 +114,45 @@ def test_a_missing_split_and_other_bodies_are_refused(tiny_world, tmp_path):
     runs = (f"real={tmp_path / 'real'}",)
     with pytest.raises(SystemExit, match="p1_test.npy does not exist"):
         hd.run(hd.HeldoutConfig(data=str(tiny_world), runs=runs, splits=("p1_test",), out=str(tmp_path / "o")))
-    settings = {"data": str(tiny_world)}
-    hd.check_bodies(settings, ArcticRoot(tiny_world), tmp_path / "m", {})  # the same bodies
+    with pytest.raises(SystemExit, match="names like p1_val"):
+        hd.run(hd.HeldoutConfig(data=str(tiny_world), runs=runs, splits=("val",), out=str(tmp_path / "o")))
     other = tmp_path / "other"
     shutil.copytree(tiny_world, other, ignore=shutil.ignore_patterns("cropped_images", "masks"))
-    template = next(
-        p for p in sorted((other / "arctic_data" / "data" / "meta" / "object_vtemplates").rglob("*")) if p.is_file()
-    )
-    template.write_bytes(template.read_bytes() + b"\n")
+    box = other / "arctic_data" / "data" / "meta" / "object_vtemplates" / "box"
+    (box / "material.jpg").write_bytes(b"another texture")  # a texture is not what the layers read
+    ctx = hd._context(hd.HeldoutConfig(data=str(other), runs=runs, splits=("p1_val",), out=str(tmp_path / "o")))
+    hd.check_bodies({"data": str(tiny_world)}, tmp_path / "m", ctx)
+    hd.check_bodies({"data": str(tmp_path / "gone")}, tmp_path / "m2", ctx)  # a training root not on disk
+    assert ctx.unchecked == [str(tmp_path / "m2")]
+    keypoints = json.loads((box / "top_keypoints_300.json").read_text())
+    (box / "top_keypoints_300.json").write_text(json.dumps(keypoints).replace("0.", "0.0001", 1))
+    ctx = hd._context(hd.HeldoutConfig(data=str(other), runs=runs, splits=("p1_val",), out=str(tmp_path / "o")))
     with pytest.raises(SystemExit, match="MANO models or object templates differ"):
-        hd.check_bodies(settings, ArcticRoot(other), tmp_path / "m", {})
+        hd.check_bodies({"data": str(tiny_world)}, tmp_path / "m", ctx)
+
+
+def test_only_finished_runs_of_one_setting_are_read(tiny_world, tmp_path):
+    """A seed folder whose run diverged, is unfinished or left an older model is skipped; seeds
+    run with other settings are refused."""
+    hd = _heldout()
+    for s in range(4):
+        _save(tmp_path / "a" / f"seed{s}", tiny_world, s)
+    (tmp_path / "a" / "seed1" / "result.json").write_text(json.dumps({"diverged": 3}))
+    (tmp_path / "a" / "seed2" / "result.json").unlink()
+    (tmp_path / "a" / "seed3" / "result.json").write_text(json.dumps({"settings": {"other": 1}}))
+    assert list(hd.finished_models("a", tmp_path / "a")) == [0]
+    _save(tmp_path / "b" / "seed0", tiny_world, 0)
+    _save(tmp_path / "b" / "seed1", tiny_world, 1, train={"steps": 5})
+    with pytest.raises(SystemExit, match="differ in settings beyond their seeds"):
+        hd.finished_models("b", tmp_path / "b")
+
+
+def test_a_cache_entry_is_used_only_for_its_model_and_split_data(tmp_path):
+    hd = _heldout()
+    path = tmp_path / "c.json"
+    rec = {"version": hd.CACHE_VERSION, "model_sha256": "m", "data_fingerprint": "d", "summary": {}}
+    path.write_text(json.dumps(rec))
+    assert hd._read_cache(path, "m", "d") == rec
+    assert hd._read_cache(path, "m", "other data") is None and hd._read_cache(path, "other model", "d") is None
+    path.write_text(json.dumps(rec)[:20])  # an interrupted write
+    assert hd._read_cache(path, "m", "d") is None

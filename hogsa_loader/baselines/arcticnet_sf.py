@@ -15,6 +15,7 @@ Submodule and output names are ARCTIC's, so a released ArcticNet-SF checkpoint l
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from pathlib import Path
 from typing import Any, Literal, Mapping, Sequence, Union
 
 import torch
@@ -23,7 +24,7 @@ from torch import Tensor, nn
 
 from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys, read_state_dict
 from hogsa_loader.datasets.augment import normalize_kp2d
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
 from hogsa_loader.hands.mano import MANOLayer
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
@@ -39,6 +40,7 @@ __all__ = [
     "ObjectHMR",
     "arctic_key_map",
     "load_arctic_checkpoint",
+    "load_saved_model",
     "matrix_to_rotation_6d",
     "patch_intrinsics_wp",
     "perspective_to_weak_perspective",
@@ -581,3 +583,33 @@ def load_arctic_checkpoint(model: ArcticNetSF, path: PathLike, weights_only: boo
     left = [k for k in result.missing_keys if k.startswith(NETWORK_PREFIXES) and not k.endswith("num_batches_tracked")]
     if left or result.unexpected_keys:
         raise AssetError(path, f"incomplete load: missing {left}, unexpected {result.unexpected_keys}")
+
+
+def load_saved_model(
+    path: PathLike, mano_r: MANOLayer, mano_l: MANOLayer, objects: ArticulatedObjectLayer
+) -> tuple[ArcticNetSF, dict[str, Any]]:
+    """The ArcticNet-SF a training run saved, in eval mode, and the run's settings.
+
+    Args:
+        path: ``model.safetensors`` of a run, its manifest ``model.json`` beside it (written
+            with :func:`~hogsa_loader.io.tensors.write_tensors_and_manifest`; ``settings.model``
+            names the backbone and the patch side ``img_res``).
+        mano_r, mano_l, objects: the layers the model is built on (those it was trained with).
+
+    Returns:
+        ``(model, settings)``; the focal length is ARCTIC's 1000 px.
+
+    Raises:
+        AssetError: naming ``model.json`` when it lacks ``settings.model.backbone`` /
+            ``img_res``, or the weights file when a tensor is missing or mis-shaped.
+    """
+    manifest = Path(path).with_name("model.json")
+    raw = read_json(manifest)
+    try:
+        settings = dict(raw["settings"])  # type: ignore[index]
+        backbone, img_res = str(settings["model"]["backbone"]), int(settings["model"]["img_res"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise AssetError(manifest, f"no settings.model.backbone / img_res ({exc!r})") from exc
+    model = ArcticNetSF(backbone, mano_r, mano_l, objects, focal_length=1000.0, img_res=img_res)
+    load_arctic_checkpoint(model, path)
+    return model.eval(), settings

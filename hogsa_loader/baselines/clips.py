@@ -17,7 +17,10 @@ import numpy as np
 
 from hogsa_loader.datasets.arctic_dataset import parse_imgname
 
-__all__ = ["ClipSums", "clip_sums", "clip_uncertainty"]
+__all__ = ["CLIP_METRICS", "ClipSums", "clip_sums", "clip_uncertainty"]
+
+#: The metrics kept per clip by the benchmarks: ARCTIC's MPJPE_h and CDev_ho.
+CLIP_METRICS = ("mpjpe/ra/h", "cdev/ho")
 
 #: ``{"subject/sequence/view": {metric: [sum, count]}}``
 ClipSums = dict[str, dict[str, list[float]]]
@@ -32,9 +35,9 @@ def clip_sums(ev: Mapping[str, Any], keys: Iterable[str]) -> ClipSums:
         keys: per-frame metrics to keep (e.g. ``"mpjpe/ra/h"``, ``"cdev/ho"``).
 
     Returns:
-        ``{"subject/sequence/view": {metric: [sum, count]}}`` in order of first frame; the
-        sum of ``sum`` over clips divided by the sum of ``count`` is the split-level value
-        (ARCTIC's frame-weighted nan-mean).
+        ``{"subject/sequence/view": {metric: [sum, count]}}`` in order of first frame (nan
+        entries left out); the sum of ``sum`` over clips divided by the sum of ``count`` is
+        the split-level value (ARCTIC's frame-weighted nan-mean).
     """
     clips = np.array(["/".join(str(x) for x in parse_imgname(n)[:3]) for n in ev["imgnames"]])
     out: ClipSums = {}
@@ -43,7 +46,7 @@ def clip_sums(ev: Mapping[str, Any], keys: Iterable[str]) -> ClipSums:
         out[clip] = {}
         for k in keys:
             v = np.asarray(ev["per_frame"][k], dtype=np.float64)[rows]
-            v = v[np.isfinite(v)]
+            v = v[~np.isnan(v)]
             out[clip][k] = [float(v.sum()), float(v.size)]
     return out
 
@@ -57,8 +60,12 @@ def _arrays(pairs: Sequence[tuple[ClipSums, ClipSums]], metric: str, clips: list
 
 
 def _paired_means(arrays: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Seed-mean paired difference for each row of clip ``weights`` (R, C) → (R,)."""
-    means = [(weights @ arrays[k, 0].T) / np.maximum(weights @ arrays[k, 1].T, 1e-12) for k in (0, 1)]
+    """Seed-mean paired difference for each row of clip ``weights`` (R, C) → (R,); nan for a
+    row whose drawn clips hold no defined entry in some run."""
+    means = []
+    for k in (0, 1):
+        total, count = weights @ arrays[k, 0].T, weights @ arrays[k, 1].T  # (R, S)
+        means.append(np.divide(total, count, out=np.full_like(total, np.nan), where=count > 0))
     return (means[0] - means[1]).mean(axis=1)
 
 
@@ -71,7 +78,8 @@ def clip_uncertainty(
     ``seed``), each run's metric formed again frame-weighted over the drawn clips and the
     paired difference (model − reference) averaged over seeds: its 2.5th and 97.5th
     percentiles are a 95 % interval. Leaving out each clip in turn shows whether one clip
-    carries the difference.
+    carries the difference. Draws (and clips left out) after which a run has no defined
+    entry are skipped, not counted as no difference.
 
     Args:
         pairs: per seed, the :func:`clip_sums` of (model, reference).
@@ -82,25 +90,30 @@ def clip_uncertainty(
     Returns:
         ``{"clips": C, "estimate": d, "ci95": [lo, hi], "leave_one_out": {"min": [value,
         clip], "max": [value, clip]}}`` (``estimate``: the difference over every clip;
-        ``leave_one_out`` only with C > 1); None when a run lacks its clips or the runs
-        differ in clips.
+        ``leave_one_out`` only when some clip can be left out); None when a run lacks its
+        clips, the runs differ in clips or a run has no defined entry at all.
     """
-    if not pairs or any(a is None or r is None for a, r in pairs):
+    runs = [(a, r) for a, r in pairs if a is not None and r is not None]
+    if not runs or len(runs) != len(pairs):
         return None
-    clips = sorted(pairs[0][0])  # type: ignore[arg-type]
-    if any(sorted(a) != clips or sorted(r) != clips for a, r in pairs):  # type: ignore[arg-type]
+    clips = sorted(runs[0][0])
+    if any(sorted(a) != clips or sorted(r) != clips for a, r in runs):
         return None
-    arrays = _arrays(pairs, metric, clips)  # type: ignore[arg-type]
+    arrays = _arrays(runs, metric, clips)
     n = len(clips)
+    estimate = float(_paired_means(arrays, np.ones((1, n)))[0])
+    if not np.isfinite(estimate):
+        return None
     draws = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=resamples).astype(np.float64)
     boot = _paired_means(arrays, draws)
+    boot = boot[np.isfinite(boot)]
     rec: dict[str, Any] = {
         "clips": n,
-        "estimate": float(_paired_means(arrays, np.ones((1, n)))[0]),
+        "estimate": estimate,
         "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
     }
-    if n > 1:
-        loo = _paired_means(arrays, 1.0 - np.eye(n))
-        lo, hi = int(np.argmin(loo)), int(np.argmax(loo))
+    loo = _paired_means(arrays, 1.0 - np.eye(n)) if n > 1 else np.full(0, np.nan)
+    if np.isfinite(loo).any():
+        lo, hi = int(np.nanargmin(loo)), int(np.nanargmax(loo))
         rec["leave_one_out"] = {"min": [float(loo[lo]), clips[lo]], "max": [float(loo[hi]), clips[hi]]}
     return rec
