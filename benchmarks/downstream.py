@@ -84,7 +84,14 @@ from torch.utils.data import DataLoader, Dataset, Subset, default_collate
 from tqdm import tqdm
 
 from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint, load_saved_model
-from hogsa_loader.baselines.clips import CLIP_METRICS, clip_sums, clip_uncertainty
+from hogsa_loader.baselines.clips import (
+    CLIP_METRICS,
+    clip_mean,
+    clip_sums,
+    clip_uncertainty,
+    interval_text,
+    left_out_text,
+)
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.baselines.targets import prepare_targets
@@ -1080,10 +1087,9 @@ def with_clips(
     ev = evaluate(model.to(cfg.device), loader, layers, cfg.model.img_res, cfg.device, temporal=False)
     clips = clip_sums(ev, CLIP_METRICS)
     for m in CLIP_METRICS:
-        again = sum(c[m][0] for c in clips.values()) / max(sum(c[m][1] for c in clips.values()), 1.0)
-        saved = result["summary"].get(m)
-        if saved is None or abs(again - saved) > 0.01:
-            _say(f"[{arm} seed {seed}] {weights} gives {m} {again:.3f}, its result {saved}: clips not added")
+        again, saved = clip_mean(clips, m), result["summary"].get(m)
+        if again is None or saved is None or abs(again - saved) > 0.01:
+            _say(f"[{arm} seed {seed}] {weights} gives {m} {again}, its result {saved}: clips not added")
             return result
     result = {**result, "clips": clips}
     _atomic_json(folder / "result.json", result)
@@ -1215,19 +1221,9 @@ def clip_table(agg: dict[str, Any]) -> list[str]:
     """The paired differences' dependence on the validation clips (:func:`clip_uncertainty`)."""
     rows = []
     for pair, d in agg["paired"].items():
-        cells = []
+        cells: list[str] = []
         for m in CLIP_METRICS:
-            c = d[m].get("clips")
-            if c is None:
-                cells += ["n/a", "n/a"]
-                continue
-            cells.append(f"[{c['ci95'][0]:+.2f}, {c['ci95'][1]:+.2f}]")
-            loo = c.get("leave_one_out")
-            cells.append(
-                f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
-                if loo
-                else "n/a"
-            )
+            cells += [interval_text(d[m].get("clips")), left_out_text(d[m].get("clips"))]
         rows.append(f"| {pair} | " + " | ".join(cells) + " |")
     if not rows:
         return []

@@ -42,7 +42,15 @@ from torch.utils.data import DataLoader, Subset
 from tqdm import tqdm
 
 from hogsa_loader.baselines.arcticnet_sf import load_saved_model
-from hogsa_loader.baselines.clips import CLIP_METRICS, ClipSums, clip_sums, clip_uncertainty
+from hogsa_loader.baselines.clips import (
+    CLIP_METRICS,
+    ClipSums,
+    clip_mean,
+    clip_sums,
+    clip_uncertainty,
+    interval_text,
+    left_out_text,
+)
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, temporal_order
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import data_fingerprint
@@ -258,10 +266,7 @@ def merged(recs: list[dict[str, Any]]) -> dict[str, Any]:
     """One run's results on several splits as one: the clip metrics formed again over all
     clips (frame-weighted), the other metrics left out."""
     clips: ClipSums = {c: v for r in recs for c, v in r["clips"].items()}
-    summary = {}
-    for m in CLIP_METRICS:
-        n = sum(v[m][1] for v in clips.values())
-        summary[m] = sum(v[m][0] for v in clips.values()) / n if n else None
+    summary = {m: clip_mean(clips, m) for m in CLIP_METRICS}
     return {"frames": sum(r["frames"] for r in recs), "summary": summary, "clips": clips}
 
 
@@ -306,17 +311,6 @@ def _cell(row: dict[str, Optional[float]], sign: bool = False) -> str:
     return f"{row['mean']:{fmt}}" + (f" ± {row['std']:.2f}" if row["std"] is not None else "")
 
 
-def _interval(rec: Optional[dict[str, Any]]) -> str:
-    return "n/a" if rec is None else f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
-
-
-def _left_out(rec: Optional[dict[str, Any]]) -> str:
-    loo = (rec or {}).get("leave_one_out")
-    if not loo:
-        return "n/a"
-    return f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
-
-
 def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
     """One section per split: the runs' metrics, then each label against the reference."""
     lines = []
@@ -339,8 +333,8 @@ def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
             h, c = d["mpjpe/ra/h"], d["cdev/ho"]
             per = ", ".join(f"{v:+.2f}" for v in h["per_seed"].values()) or "n/a"
             lines.append(
-                f"| {label} | {per} | {_cell(h, True)} | {_interval(h['clips'])} | {_left_out(h['clips'])}"
-                f" | {_cell(c, True)} | {_interval(c['clips'])} |"
+                f"| {label} | {per} | {_cell(h, True)} | {interval_text(h['clips'])} | {left_out_text(h['clips'])}"
+                f" | {_cell(c, True)} | {interval_text(c['clips'])} |"
             )
         lines.append("")
     return "\n".join(lines)

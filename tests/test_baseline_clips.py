@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hogsa_loader.baselines import clip_sums, clip_uncertainty
+from hogsa_loader.baselines.clips import clip_mean, clip_sums, clip_uncertainty, interval_text, left_out_text
 
 
 def test_clip_sums_form_the_split_value_of_any_set_of_clips():
@@ -80,3 +80,12 @@ def test_clips_without_defined_entries_are_skipped_not_counted_as_no_difference(
     assert rec["estimate"] == pytest.approx(2.0) and rec["ci95"] == [pytest.approx(2.0), pytest.approx(2.0)]
     assert rec["leave_one_out"]["min"][0] == pytest.approx(2.0)  # leaving out a/s/1 is undefined, not 0
     assert clip_uncertainty([(_clips({"a/s/2": (0.0, 0)}), _clips({"a/s/2": (0.0, 0)}))], "mpjpe/ra/h") is None
+
+
+def test_clip_mean_and_the_table_cells():
+    clips = {"a/s/1": {"m": [30.0, 3.0]}, "a/s/2": {"m": [10.0, 1.0]}, "a/s/3": {"m": [0.0, 0.0]}}
+    assert clip_mean(clips, "m") == pytest.approx(10.0) and clip_mean({"a/s/3": {"m": [0.0, 0.0]}}, "m") is None
+    rec = {"ci95": [-1.234, 0.5], "leave_one_out": {"min": [-2.0, "a/s/1"], "max": [0.25, "a/s/2"]}}
+    assert interval_text(rec) == "[-1.23, +0.50]" and interval_text(None) == "n/a"
+    assert left_out_text(rec) == "-2.00 (without a/s/1) … +0.25 (without a/s/2)"
+    assert left_out_text({"ci95": [0.0, 0.0]}) == "n/a"

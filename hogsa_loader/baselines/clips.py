@@ -17,7 +17,7 @@ import numpy as np
 
 from hogsa_loader.datasets.arctic_dataset import parse_imgname
 
-__all__ = ["CLIP_METRICS", "ClipSums", "clip_sums", "clip_uncertainty"]
+__all__ = ["CLIP_METRICS", "ClipSums", "clip_mean", "clip_sums", "clip_uncertainty", "interval_text", "left_out_text"]
 
 #: The metrics kept per clip by the benchmarks: ARCTIC's MPJPE_h and CDev_ho.
 CLIP_METRICS = ("mpjpe/ra/h", "cdev/ho")
@@ -49,6 +49,13 @@ def clip_sums(ev: Mapping[str, Any], keys: Iterable[str]) -> ClipSums:
             v = v[~np.isnan(v)]
             out[clip][k] = [float(v.sum()), float(v.size)]
     return out
+
+
+def clip_mean(clips: ClipSums, metric: str) -> Optional[float]:
+    """The frame-weighted value of ``metric`` over every clip of ``clips`` (None without a
+    defined entry)."""
+    count = sum(c[metric][1] for c in clips.values())
+    return sum(c[metric][0] for c in clips.values()) / count if count else None
 
 
 def _arrays(pairs: Sequence[tuple[ClipSums, ClipSums]], metric: str, clips: list[str]) -> np.ndarray:
@@ -117,3 +124,17 @@ def clip_uncertainty(
         lo, hi = int(np.nanargmin(loo)), int(np.nanargmax(loo))
         rec["leave_one_out"] = {"min": [float(loo[lo]), clips[lo]], "max": [float(loo[hi]), clips[hi]]}
     return rec
+
+
+def interval_text(rec: Optional[dict[str, Any]]) -> str:
+    """``[lo, hi]`` of a :func:`clip_uncertainty` record, signed, in its unit ("n/a" without one)."""
+    return "n/a" if rec is None else f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
+
+
+def left_out_text(rec: Optional[dict[str, Any]]) -> str:
+    """The leave-one-out range of a :func:`clip_uncertainty` record with the clips that give its
+    ends ("n/a" without one)."""
+    loo = (rec or {}).get("leave_one_out")
+    if not loo:
+        return "n/a"
+    return f"{loo['min'][0]:+.2f} (without {loo['min'][1]}) … {loo['max'][0]:+.2f} (without {loo['max'][1]})"
