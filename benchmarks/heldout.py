@@ -119,7 +119,8 @@ def _comparable(settings: dict[str, Any]) -> dict[str, Any]:
 def finished_models(label: str, folder: Path) -> dict[int, Path]:
     """seed → model file of the finished runs in ``folder`` (``seed<N>/``): a model counts when
     its run finished (``result.json`` without ``diverged``) with the settings its ``model.json``
-    records, and every seed's run has the same settings but for the seed and its start file.
+    records and that manifest describes these weights (``tensors_sha256``), and every seed's run
+    has the same settings but for the seed and its start file.
 
     Raises:
         SystemExit: naming the folder when it holds no finished run or runs of other settings.
@@ -131,9 +132,13 @@ def finished_models(label: str, folder: Path) -> dict[int, Path]:
         result = path.with_name("result.json")
         if not suffix.isdigit() or not result.is_file():
             continue
+        if not path.with_name("model.json").is_file():
+            continue
         res, manifest = read_json(result), read_json(path.with_name("model.json"))
         if res.get("diverged") or res.get("settings") != manifest.get("settings"):  # type: ignore[union-attr]
             continue
+        if manifest.get("tensors_sha256") not in (None, sha256_file(path)):  # type: ignore[union-attr]
+            continue  # a manifest of other weights (a save torn between its two files)
         seeds[int(suffix)] = path
         settings[int(suffix)] = _comparable(manifest["settings"])  # type: ignore[index]
     if not seeds:
@@ -183,22 +188,22 @@ def bodies_digest(root: ArcticRoot) -> str:
 
 def check_bodies(settings: dict[str, Any], path: Path, ctx: _Context) -> None:
     """Refuse a model whose training root (``settings["data"]``) has other MANO models or
-    object templates than the evaluated root; a model whose training root is not on disk is
-    listed in ``ctx.unchecked`` instead.
+    object templates than the evaluated root; a model whose training root (or its bodies) is not
+    on disk is listed in ``ctx.unchecked`` instead.
 
     Raises:
         SystemExit: naming the model file and its training root.
     """
     try:
         train = ArcticRoot(str(settings["data"])).data_root if settings.get("data") else None
+        if train is not None and str(train) not in ctx.bodies:
+            ctx.bodies[str(train)] = bodies_digest(ArcticRoot(train))
     except AssetError:
         train = None
     if train is None:
-        ctx.unchecked.append(str(path))
+        if str(path) not in ctx.unchecked:
+            ctx.unchecked.append(str(path))
         return
-    for r in (ctx.root.data_root, train):
-        if str(r) not in ctx.bodies:
-            ctx.bodies[str(r)] = bodies_digest(ArcticRoot(r))
     if ctx.bodies[str(train)] != ctx.bodies[str(ctx.root.data_root)]:
         raise SystemExit(
             f"heldout: error: {path} was trained on {train}, whose MANO models or object templates differ from --data's"
@@ -221,19 +226,20 @@ def _read_cache(path: Path, digest: str, fingerprint: str) -> Optional[dict[str,
 
 def evaluate_model(path: Path, split: str, ctx: _Context) -> dict[str, Any]:
     """ARCTIC's per-frame metrics of one model on one split, cached in ``OUT/cache`` by the
-    model file's sha256 and the split's fingerprint.
+    model file's sha256 and the split's fingerprint (the root's cameras, world record, MANO
+    models, object templates and split file); the model's bodies are checked on every call.
 
     Returns:
         ``{"version", "model", "model_sha256", "split", "data_fingerprint", "frames",
         "summary": {metric: value or None}, "clips": clip_sums}``.
     """
     digest, fingerprint = sha256_file(path), ctx.fingerprints[split]
+    check_bodies(dict(read_json(path.with_name("model.json"))["settings"]), path, ctx)  # type: ignore[index]
     cache = Path(ctx.cfg.out) / "cache" / f"{digest[:16]}-{fingerprint[:16]}-{split}.json"
     rec = _read_cache(cache, digest, fingerprint)
     if rec is not None:
         return rec
     model, settings = load_saved_model(path, ctx.layers.mano_r, ctx.layers.mano_l, ctx.layers.objects)
-    check_bodies(settings, path, ctx)
     img_res = int(settings["model"]["img_res"])
     ds = ctx.datasets.get((split, img_res))
     if ds is None:
@@ -343,7 +349,8 @@ def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
 def _context(cfg: HeldoutConfig) -> _Context:
     """The root, its layers and the fingerprint of each split (refusing a missing split)."""
     root = ArcticRoot(cfg.data)
-    base = data_fingerprint(root)
+    bodies = bodies_digest(root)
+    base = f"{data_fingerprint(root)}:{bodies}"
     fingerprints = {}
     for split in cfg.splits:
         protocol, sep, short = split.partition("_")
@@ -353,7 +360,7 @@ def _context(cfg: HeldoutConfig) -> _Context:
         if not path.is_file():
             raise SystemExit(f"heldout: error: {path} does not exist (split {split!r})")
         fingerprints[split] = hashlib.sha256(f"{base}:{sha256_file(path)}".encode()).hexdigest()
-    return _Context(cfg, root, BodyLayers.from_root(root), fingerprints)
+    return _Context(cfg, root, BodyLayers.from_root(root), fingerprints, bodies={str(root.data_root): bodies})
 
 
 def run(cfg: HeldoutConfig) -> dict[str, Any]:
@@ -383,7 +390,9 @@ def run(cfg: HeldoutConfig) -> dict[str, Any]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     record = {"config": asdict(cfg), "fingerprints": ctx.fingerprints, "unchecked": ctx.unchecked, "reports": reports}
-    (out / "heldout.json").write_text(json.dumps(record, indent=1, allow_nan=False))
+    tmp = out / "heldout.json.tmp"
+    tmp.write_text(json.dumps(record, indent=1, allow_nan=False))
+    os.replace(tmp, out / "heldout.json")
     (out / "heldout.md").write_text(markdown(reports, cfg.reference))
     print((out / "heldout.md").read_text())
     return record

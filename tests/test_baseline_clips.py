@@ -89,3 +89,15 @@ def test_clip_mean_and_the_table_cells():
     assert interval_text(rec) == "[-1.23, +0.50]" and interval_text(None) == "n/a"
     assert left_out_text(rec) == "-2.00 (without a/s/1) … +0.25 (without a/s/2)"
     assert left_out_text({"ci95": [0.0, 0.0]}) == "n/a"
+
+
+def test_an_interval_needs_a_defined_draw():
+    """Only one clip of twenty has an entry: most resamples miss it and are dropped; with three
+    resamples none may be left, and the interval is then None, not an error."""
+    names = [f"a/s/{k}" for k in range(20)]
+    ref = {c: {"m": [10.0, 1.0] if c == "a/s/0" else [0.0, 0.0]} for c in names}
+    arm = {c: {"m": [12.0, 1.0] if c == "a/s/0" else [0.0, 0.0]} for c in names}
+    recs = [clip_uncertainty([(arm, ref)], "m", resamples=3, seed=k) for k in range(20)]
+    assert all(r["estimate"] == pytest.approx(2.0) and r["draws"] <= 3 for r in recs)
+    empty = [r for r in recs if r["draws"] == 0]
+    assert empty and all(r["ci95"] is None and interval_text(r) == "n/a" for r in empty)

@@ -29,7 +29,8 @@ def _save(folder, root, seed: int, **extra) -> None:
     torch.manual_seed(seed)
     net = ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=RES)
     state = {k: v.detach().clone().contiguous() for k, v in net.network_state_dict().items()}
-    settings = {"data": str(root), "seed": seed, "model": {"backbone": "resnet18", "img_res": RES}, **extra}
+    settings = {"data": str(root), "seed": seed, "model": {"backbone": "resnet18", "img_res": RES}}
+    settings.update(extra)
     write_tensors_and_manifest(folder, "model.safetensors", state, "model.json", {"settings": settings})
     (folder / "result.json").write_text(json.dumps({"settings": settings, "summary": {}}))
 
@@ -118,14 +119,14 @@ def test_a_missing_split_and_other_bodies_are_refused(tiny_world, tmp_path):
         hd.run(hd.HeldoutConfig(data=str(tiny_world), runs=runs, splits=("val",), out=str(tmp_path / "o")))
     other = tmp_path / "other"
     shutil.copytree(tiny_world, other, ignore=shutil.ignore_patterns("cropped_images", "masks"))
-    box = other / "arctic_data" / "data" / "meta" / "object_vtemplates" / "box"
-    (box / "material.jpg").write_bytes(b"another texture")  # a texture is not what the layers read
     ctx = hd._context(hd.HeldoutConfig(data=str(other), runs=runs, splits=("p1_val",), out=str(tmp_path / "o")))
     hd.check_bodies({"data": str(tiny_world)}, tmp_path / "m", ctx)
     hd.check_bodies({"data": str(tmp_path / "gone")}, tmp_path / "m2", ctx)  # a training root not on disk
     assert ctx.unchecked == [str(tmp_path / "m2")]
-    keypoints = json.loads((box / "top_keypoints_300.json").read_text())
-    (box / "top_keypoints_300.json").write_text(json.dumps(keypoints).replace("0.", "0.0001", 1))
+    meta = other / "arctic_data" / "data" / "meta" / "object_meta.json"
+    diameters = json.loads(meta.read_text())
+    diameters["box"]["diameter"] = float(diameters["box"]["diameter"]) * 1.01  # the success rate's scale
+    meta.write_text(json.dumps(diameters))
     ctx = hd._context(hd.HeldoutConfig(data=str(other), runs=runs, splits=("p1_val",), out=str(tmp_path / "o")))
     with pytest.raises(SystemExit, match="MANO models or object templates differ"):
         hd.check_bodies({"data": str(tiny_world)}, tmp_path / "m", ctx)
@@ -137,11 +138,15 @@ def test_only_finished_runs_of_one_setting_are_read(tiny_world, tmp_path):
     hd = _heldout()
     for s in range(4):
         _save(tmp_path / "a" / f"seed{s}", tiny_world, s)
-    (tmp_path / "a" / "seed1" / "result.json").write_text(json.dumps({"diverged": 3}))
+    diverged = json.loads((tmp_path / "a" / "seed1" / "result.json").read_text())
+    (tmp_path / "a" / "seed1" / "result.json").write_text(json.dumps({**diverged, "diverged": 3}))
     (tmp_path / "a" / "seed2" / "result.json").unlink()
     (tmp_path / "a" / "seed3" / "result.json").write_text(json.dumps({"settings": {"other": 1}}))
     assert list(hd.finished_models("a", tmp_path / "a")) == [0]
-    _save(tmp_path / "b" / "seed0", tiny_world, 0)
+    _save(tmp_path / "c" / "seed0", tiny_world, 0, model={"backbone": "resnet18", "img_res": RES, "init_sha256": "a"})
+    _save(tmp_path / "c" / "seed1", tiny_world, 1, model={"backbone": "resnet18", "img_res": RES, "init_sha256": "b"})
+    assert list(hd.finished_models("c", tmp_path / "c")) == [0, 1]  # seeds start from their own files
+    _save(tmp_path / "b" / "seed0", tiny_world, 0, train={"steps": 10})
     _save(tmp_path / "b" / "seed1", tiny_world, 1, train={"steps": 5})
     with pytest.raises(SystemExit, match="differ in settings beyond their seeds"):
         hd.finished_models("b", tmp_path / "b")

@@ -35,9 +35,10 @@ def clip_sums(ev: Mapping[str, Any], keys: Iterable[str]) -> ClipSums:
         keys: per-frame metrics to keep (e.g. ``"mpjpe/ra/h"``, ``"cdev/ho"``).
 
     Returns:
-        ``{"subject/sequence/view": {metric: [sum, count]}}`` in order of first frame (nan
-        entries left out); the sum of ``sum`` over clips divided by the sum of ``count`` is
-        the split-level value (ARCTIC's frame-weighted nan-mean).
+        ``{"subject/sequence/view": {metric: [sum, count]}}`` in order of first frame
+        (non-finite entries left out); the sum of ``sum`` over clips divided by the sum of
+        ``count`` is the split-level value (ARCTIC's frame-weighted nan-mean) wherever that is
+        finite.
     """
     clips = np.array(["/".join(str(x) for x in parse_imgname(n)[:3]) for n in ev["imgnames"]])
     out: ClipSums = {}
@@ -46,7 +47,7 @@ def clip_sums(ev: Mapping[str, Any], keys: Iterable[str]) -> ClipSums:
         out[clip] = {}
         for k in keys:
             v = np.asarray(ev["per_frame"][k], dtype=np.float64)[rows]
-            v = v[~np.isnan(v)]
+            v = v[np.isfinite(v)]
             out[clip][k] = [float(v.sum()), float(v.size)]
     return out
 
@@ -95,8 +96,9 @@ def clip_uncertainty(
         seed: seed of the resampling.
 
     Returns:
-        ``{"clips": C, "estimate": d, "ci95": [lo, hi], "leave_one_out": {"min": [value,
-        clip], "max": [value, clip]}}`` (``estimate``: the difference over every clip;
+        ``{"clips": C, "estimate": d, "draws": k, "ci95": [lo, hi], "leave_one_out": {"min":
+        [value, clip], "max": [value, clip]}}`` (``estimate``: the difference over every clip;
+        ``draws``: the resamples with a defined difference, ``ci95`` None without one;
         ``leave_one_out`` only when some clip can be left out); None when a run lacks its
         clips, the runs differ in clips or a run has no defined entry at all.
     """
@@ -117,7 +119,8 @@ def clip_uncertainty(
     rec: dict[str, Any] = {
         "clips": n,
         "estimate": estimate,
-        "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
+        "draws": int(boot.size),
+        "ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))] if boot.size else None,
     }
     loo = _paired_means(arrays, 1.0 - np.eye(n)) if n > 1 else np.full(0, np.nan)
     if np.isfinite(loo).any():
@@ -128,7 +131,9 @@ def clip_uncertainty(
 
 def interval_text(rec: Optional[dict[str, Any]]) -> str:
     """``[lo, hi]`` of a :func:`clip_uncertainty` record, signed, in its unit ("n/a" without one)."""
-    return "n/a" if rec is None else f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
+    if rec is None or rec.get("ci95") is None:
+        return "n/a"
+    return f"[{rec['ci95'][0]:+.2f}, {rec['ci95'][1]:+.2f}]"
 
 
 def left_out_text(rec: Optional[dict[str, Any]]) -> str:
