@@ -649,7 +649,9 @@ class TouchingHandsOnly(Dataset):
     """Samples whose hands that do not touch the object are marked invalid (``right_valid`` /
     ``left_valid`` and every ``joints_valid_{r,l}`` 0, as ARCTIC marks a hand outside the crop),
     so that ArcticNet-SF's loss supervises only the touching hands of each sample. As for an
-    out-of-crop hand, the object's translation terms relative to that hand go with it.
+    out-of-crop hand, the object's translation terms relative to that hand go with it. Whether a
+    hand touches does not depend on the augmentation (which turns hands and object together), so
+    it is worked out once per sample and remembered across epochs.
 
     Args:
         samples: ``(inputs, targets, meta_info)`` samples (with ``set_epoch``).
@@ -659,6 +661,7 @@ class TouchingHandsOnly(Dataset):
 
     def __init__(self, samples: Any, layers: BodyLayers, img_res: int) -> None:
         self.samples, self.layers, self.img_res = samples, layers, img_res
+        self._touching: dict[int, tuple[bool, bool]] = {}
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -666,16 +669,28 @@ class TouchingHandsOnly(Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.samples.set_epoch(epoch)
 
+    def touching(self, i: int, targets: dict, meta_info: dict) -> tuple[bool, bool]:
+        """(right, left) of sample ``i`` touch the object (prepared once per sample)."""
+        if i not in self._touching:
+            one_t, one_m = default_collate([targets]), default_collate([meta_info])
+            with torch.no_grad():
+                prepared, _ = prepare_targets(
+                    one_t,
+                    one_m,
+                    self.layers.mano_r,
+                    self.layers.mano_l,
+                    self.layers.objects,
+                    self.img_res,
+                    field="hands",
+                )
+            self._touching[i] = (float(prepared["dist.ro"].min()) < TOUCH_M, float(prepared["dist.lo"].min()) < TOUCH_M)
+        return self._touching[i]
+
     def __getitem__(self, i: int) -> tuple[dict, dict, dict]:
         inputs, targets, meta_info = self.samples[i]
-        one_t, one_m = default_collate([targets]), default_collate([meta_info])
-        with torch.no_grad():
-            prepared, _ = prepare_targets(
-                one_t, one_m, self.layers.mano_r, self.layers.mano_l, self.layers.objects, self.img_res, field="hands"
-            )
         targets = dict(targets)
-        for side, key in (("r", "right_valid"), ("l", "left_valid")):
-            if float(prepared[f"dist.{side}o"].min()) >= TOUCH_M:
+        for side, key, touches in zip("rl", ("right_valid", "left_valid"), self.touching(i, targets, meta_info)):
+            if not touches:
                 targets[key] = targets[key] * 0
                 targets[f"joints_valid_{side}"] = targets[f"joints_valid_{side}"] * 0
         return inputs, targets, meta_info

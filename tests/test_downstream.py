@@ -487,6 +487,23 @@ def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_w
                 if not touching and side == "r":
                     dropped_r.append(i)
     assert counts["kept"] > 0 and counts["dropped"] > 0  # the held-out frames have both kinds of hands
+    # the flags do not depend on the augmentation: another epoch's draws give the same, and are not prepared again
+    first = dict(wrapped._touching)
+    plain.set_epoch(1)
+    prepare = ds.prepare_targets
+    for i in range(len(plain)):
+        _, targets, meta = plain[i]
+        t, _ = prepare(
+            default_collate([targets]), default_collate([meta]), layers.mano_r, layers.mano_l, layers.objects, 32
+        )
+        assert first[i] == tuple(float(t[f"dist.{s}o"].min()) < 0.005 for s in "rl")
+    monkeypatch.setattr(ds, "prepare_targets", lambda *a, **k: (_ for _ in ()).throw(AssertionError("prepared again")))
+    for i in range(len(plain)):  # epoch 1, every flag from the remembered ones
+        got, raw = wrapped[i][1], plain[i][1]
+        for k, key in enumerate(("right_valid", "left_valid")):
+            assert float(got[key]) == (float(raw[key]) if first[i][k] else 0.0)
+    monkeypatch.setattr(ds, "prepare_targets", prepare)
+    plain.set_epoch(0)
 
     # ArcticNet-SF's loss sees nothing of a dropped hand: every right-hand term is 0 on those frames
     cfg32 = _tiny_cfg(ds)
