@@ -204,6 +204,13 @@ class SyntheticSettings:
             "time (the loader's default); dataset: the training subjects' own capture cameras only"
         },
     )
+    other_hands: float = field(
+        default=0.0,
+        metadata={
+            "help": "share of the synthetic render batches that show another training subject's hands (the "
+            "loader's other_hands: poses, object, cameras and labels unchanged); 0: every model's own hands"
+        },
+    )
     supervise: Literal["all", "touching"] = field(
         default="all",
         metadata={
@@ -332,6 +339,7 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.seeds, "--seeds needs at least one seed"),
         (0.0 < cfg.low_data <= 1.0, "--low-data must be in (0, 1]"),
         (0.0 < cfg.synthetic.share < 1.0, "--synthetic-share must be in (0, 1)"),
+        (0.0 <= cfg.synthetic.other_hands <= 1.0, "--synthetic-other-hands must be in [0, 1]"),
         (cfg.synthetic.frames > 0 and cfg.synthetic.render_batch > 0, "--synthetic-frames/-render-batch must be > 0"),
         (cfg.train.steps > 0 and cfg.train.batch_size > 1, "--train-steps > 0 and --train-batch-size > 1 needed"),
         (cfg.train.evals >= 1 and cfg.train.eval_stride >= 1, "--train-evals and --train-eval-stride must be >= 1"),
@@ -472,10 +480,11 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
 
 def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str, Any]:
     """The synthetic settings in cache keys: photo backgrounds, novel cameras, the replace mix and
-    supervising all hands add nothing; ``frames_only``: without the mix and the supervision,
+    supervising all hands and every model's own hands add nothing; ``frames_only``: without the mix and the supervision,
     which the exported frames do not depend on."""
     syn = keyed_settings(
-        asdict(cfg.synthetic), {"backgrounds": "photos", "cameras": "novel", "mix": "replace", "supervise": "all"}
+        asdict(cfg.synthetic),
+        {"backgrounds": "photos", "cameras": "novel", "mix": "replace", "supervise": "all", "other_hands": 0.0},
     )
     if frames_only:
         syn.pop("mix", None)
@@ -577,6 +586,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         split="train",
         arctic=ArcticConfig(img_res=cfg.model.img_res),
         cameras=CameraConfig(dataset_prob=1.0) if s.cameras == "dataset" else CameraConfig(),
+        other_hands=s.other_hands,
     )
     ds = HOGSADataset(opts["bundle"], setup["data"], config)
     info = {
@@ -886,7 +896,8 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     the replace runs, runs from each ``--model-init`` (``+ft-<hash of the option>``) apart
     from those from random weights, and runs with the linear learning-rate schedule
     (``+linear``) apart from those at a constant rate, and HOGSA runs that supervise only the
-    touching hands (``+touching``) apart from the others, so that all of them can share one OUT
+    touching hands (``+touching``) and those showing other subjects' hands (``+hands<share>``)
+    apart from the others, so that all of them can share one OUT
     (and its exports)."""
     synthetic = ARM_SPECS[arm][1] is not None
     add = synthetic and cfg.synthetic.mix == "add"
@@ -897,6 +908,8 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
         name += "+" + cfg.train.lr_schedule
     if synthetic and cfg.synthetic.supervise != "all":
         name += "+" + cfg.synthetic.supervise
+    if synthetic and cfg.synthetic.other_hands > 0:
+        name += f"+hands{cfg.synthetic.other_hands:g}"
     return out / "runs" / name / f"seed{seed}"
 
 

@@ -393,7 +393,7 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
     # photo runs keep the keys they had before backgrounds (and the mix, and the cameras) could be chosen
-    later = ("backgrounds", "mix", "cameras", "supervise")
+    later = ("backgrounds", "mix", "cameras", "supervise", "other_hands")
     syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in later}
     assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
 
@@ -811,3 +811,35 @@ def test_export_drops_survive_a_resumed_export(tmp_path, monkeypatch):
     b = ds.export_variant("full", cfg, setup, out)
     assert (b["requested"], b["samples"], b["written"], b["skipped"]) == (600, 597, 1, 2)
     assert b["dropped_total"] == 3 and b["dropped"] == {"labels_out_of_crop": 2, "empty_render": 1}
+
+
+def test_other_hands_reach_the_export_and_key_its_frames_and_runs(monkeypatch, tmp_path):
+    """``--synthetic-other-hands`` is the loader's ``other_hands`` of every exported variant; it
+    names the frames' export and the HOGSA runs' folder, and leaves both alone at 0."""
+    ds = _downstream()
+    cfg = ds.replace(ds.DownstreamConfig(), synthetic=ds.replace(ds.DownstreamConfig().synthetic, mix="add"))
+    other = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, other_hands=0.5))
+    setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
+    seen = {}
+
+    class Captured(Exception):
+        pass
+
+    def fake_dataset(bundle, data, config):
+        seen["config"] = config
+        raise Captured
+
+    monkeypatch.setattr(ds, "HOGSADataset", fake_dataset)
+    monkeypatch.setattr(ds, "background_folder", lambda *a: tmp_path)
+    for c, share in ((cfg, 0.0), (other, 0.5)):
+        with pytest.raises(Captured):
+            ds.export_variant("full", c, {**setup, "backgrounds": tmp_path}, tmp_path)
+        assert seen["config"].sample.other_hands == share
+    assert "other_hands" not in ds.synthetic_key(cfg, frames_only=True)
+    assert ds.synthetic_key(other, frames_only=True)["other_hands"] == 0.5
+    assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", other, setup, tmp_path)
+    assert ds.run_dir("hogsa", 0, other, Path("/o")) == Path("/o/runs/hogsa+add+hands0.5/seed0")
+    assert ds.run_dir("hogsa", 0, cfg, Path("/o")) == Path("/o/runs/hogsa+add/seed0")
+    assert ds.run_dir("real", 0, other, Path("/o")) == Path("/o/runs/real/seed0")
+    with pytest.raises(SystemExit, match="other-hands"):
+        ds.validate(ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, other_hands=1.5)))

@@ -33,6 +33,7 @@ from hogsa_loader.loader import (
     with_options,
 )
 from hogsa_loader.loader.cameras import NOVEL_VIEW
+from hogsa_loader.loader.config import export_info
 from hogsa_loader.loader.mixing import added_synthetic
 from hogsa_loader.loader.synth import joints_on_alpha, source_scale
 
@@ -868,3 +869,90 @@ def test_an_annotated_pose_through_its_own_camera_carries_the_real_frames_labels
             np.testing.assert_allclose(np.asarray(syn[k]), np.asarray(ref[k]), atol=1e-5, err_msg=f"{k} of {key}")
         compared += 1
     assert compared >= 4
+
+
+@pytest.fixture(scope="module")
+def two_subject_dir(tiny_world, tmp_path_factory) -> Path:
+    """Untrained runs of s01/box and s05/box whose hands differ only in colour (s05's red)."""
+    from hogsa_loader.synthetic.world.untrained import write_untrained_run
+
+    out = tmp_path_factory.mktemp("two_subjects")
+    runs = [
+        write_untrained_run(tiny_world, out / "runs" / f"{sid}_box", sid, "box", hand_rgb=rgb)
+        for sid, rgb in (("s01", None), ("s05", (0.9, 0.1, 0.1)))
+    ]
+    return write_bundle(out / "bundle", tiny_world, runs)
+
+
+class _S01Poses:
+    """s01's annotated poses for both models (the cameras stay each subject's own)."""
+
+    keys = [("s01", "box"), ("s05", "box")]
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def sample(self, key, rngs):
+        return self.inner.sample(("s01", "box"), rngs)
+
+
+def test_other_hands_change_the_hands_pixels_and_nothing_else(bundle_dir, two_subject_dir, tiny_world):
+    """With ``other_hands=1`` every render batch shows the other subject's hand Gaussians:
+    the labels, the alpha and every pixel away from the hands stay those of the model's own
+    hands, the hands take the other run's colour, and the frame records whose hands it shows."""
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4, seed=5)
+    own = _dataset(two_subject_dir, tiny_world, **kw)
+    other = _dataset(two_subject_dir, tiny_world, other_hands=1.0, **kw)
+    compared = {"s01": 0, "s05": 0}
+    for g in range(2):
+        p0, p1 = own.plan(g), other.plan(g)
+        assert p0.key == p1.key and p0.hands is None
+        assert p1.hands == ("s05" if p1.key[0] == "s01" else "s01", "box")
+        for f0, f1 in zip(own.render(p0), other.render(p1)):
+            if f0 is None or f1 is None:
+                continue
+            assert f1.meta["hands_from"] == "/".join(p1.hands) and "hands_from" not in f0.meta
+            for side in ("right", "left"):
+                np.testing.assert_array_equal(getattr(f1, side).j2d, getattr(f0, side).j2d)
+            np.testing.assert_allclose(f1.alpha, f0.alpha, atol=1e-6)
+            np.testing.assert_allclose(f1.part_alpha, f0.part_alpha, atol=1e-6)
+            hand = f0.part_alpha[..., :2].sum(-1)
+            away = hand < 1e-4
+            diff = np.abs(f1.image.astype(int) - f0.image.astype(int))
+            assert diff[away].max() <= 1  # background and object: the same pixels
+            on = hand > 0.9
+            assert on.sum() > 20
+            red = [f.image[on].astype(float) @ np.array([1.0, -0.5, -0.5]) for f in (f0, f1)]
+            if p1.key[0] == "s01":  # s05's red hands on s01's model
+                assert red[1].mean() > red[0].mean() + 40
+            else:
+                assert red[1].mean() < red[0].mean() - 40
+            compared[p1.key[0]] += 1
+    assert min(compared.values()) > 0
+    index = other.batch_indices(1)[0]
+    again = other.sample(index)
+    streamed = next(s for s in other.samples(1) if s[2]["imgname"] == again[2]["imgname"])
+    torch.testing.assert_close(again[0]["img"], streamed[0]["img"])  # one sample alone: the same hands
+
+
+def test_other_hands_share_is_drawn_per_batch_and_needs_two_subjects(bundle_dir, two_subject_dir, tiny_world):
+    inner = _dataset(bundle_dir, tiny_world)._pose_source
+    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4)
+    half = _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=5, **kw)
+    hands = [half.batch_hands(g, 0) for g in range(400)]
+    swapped = [h is not None for h in hands]
+    assert 0.4 < np.mean(swapped) < 0.6
+    for g, h in enumerate(hands):
+        assert h is None or h[0] != half.batch_key(g, 0)[0]
+    again = _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=5, **kw)
+    assert [again.batch_hands(g, 0) for g in range(400)] == hands  # a function of (seed, epoch, batch)
+    assert [half.batch_hands(g, 1) for g in range(400)] != hands
+    assert [
+        _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=6, **kw).batch_hands(g, 0) for g in range(400)
+    ] != hands
+    with pytest.raises(ValueError, match="one subject"):
+        _dataset(bundle_dir, tiny_world, other_hands=0.5)
+    with pytest.raises(ValueError, match="in \\[0, 1\\]"):
+        _config(other_hands=1.5)
+    assert "other_hands" not in export_info(_config()) and export_info(_config(other_hands=0.25))["other_hands"] == 0.25

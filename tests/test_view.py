@@ -197,25 +197,15 @@ def two_subject_bundle(tiny_world, tmp_path_factory):
     SRM and a two-row pose bank of s01."""
     from hogsa_loader.bundle import write_bundle
     from hogsa_loader.datasets.arctic import ArcticRoot
-    from hogsa_loader.gaussians.checkpoint import save_part
-    from hogsa_loader.gaussians.parts import BindingConfig, HandGaussians, ObjectGaussians
     from hogsa_loader.gaussians.shading import DirectionalLight, save_light
     from hogsa_loader.pom import save_pose_bank
     from hogsa_loader.pom.state import load_frames
+    from hogsa_loader.synthetic.world.untrained import write_untrained_run
 
     root = ArcticRoot(tiny_world)
-    layers, templates = root.mano_layers(), root.object_templates()
     out = tmp_path_factory.mktemp("view_bundle")
-    runs = []
-    for sid in ("s01", "s05"):
-        run = out / "runs" / f"{sid}_box"
-        binding = BindingConfig(k=1, sh_degree=0)
-        save_part(HandGaussians(layers["right"], binding), run / "hand_right", dataset="arctic", subject=sid)
-        save_part(HandGaussians(layers["left"], binding), run / "hand_left", dataset="arctic", subject=sid)
-        save_part(ObjectGaussians(templates["box"], binding), run / "object", dataset="arctic", subject=sid)
-        if sid == "s05":
-            save_light(DirectionalLight((0.0, 0.0, -1.0), 0.4, 0.6), run / "light")
-        runs.append(run)
+    runs = [write_untrained_run(tiny_world, out / "runs" / f"{sid}_box", sid, "box") for sid in ("s01", "s05")]
+    save_light(DirectionalLight((0.0, 0.0, -1.0), 0.4, 0.6), runs[1] / "light")
     state, src = load_frames(root, [root.sequences("s01")[0]], stride=30)
     state, src = state.select([0, 1]), src[:2]
     n = state.batch

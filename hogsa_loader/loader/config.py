@@ -164,10 +164,22 @@ class SampleConfig:
             **_IF_SET,
         },
     )
+    other_hands: float = field(
+        default=0.0,
+        metadata={
+            "help": "share of render batches that show another subject's hands: poses, object, cameras and labels "
+            "stay the batch's own, the hand Gaussians come from another subject of the models, drawn uniformly "
+            "(its run with the same object when it has one); 0: every model's own hands",
+            "type": "unit_float",
+            **_IF_SET,
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.protocol not in ("p1", "p2"):
             raise ValueError(f"protocol must be 'p1' (allocentric) or 'p2' (egocentric), got {self.protocol!r}")
+        if not 0.0 <= float(self.other_hands) <= 1.0:
+            raise ValueError(f"other_hands is a share of the render batches, in [0, 1]; got {self.other_hands!r}")
 
 
 @dataclass(frozen=True)

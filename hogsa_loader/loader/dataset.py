@@ -27,10 +27,11 @@ from hogsa_loader.datasets.arctic import ArcticRoot, protocol_views
 from hogsa_loader.datasets.augment import AugParams, sample_aug_params
 from hogsa_loader.datasets.interfield import interfield_targets
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.gaussians.recombine import hands_run
 from hogsa_loader.loader.cameras import CameraSampler
 from hogsa_loader.loader.config import LoaderConfig, SampleChecks, is_default
 from hogsa_loader.loader.frame import SynthFrame
-from hogsa_loader.loader.plan import STREAM_AUG, BatchPlan, batch_order, sample_rng
+from hogsa_loader.loader.plan import STREAM_AUG, BatchPlan, batch_order, hands_rng, sample_rng
 from hogsa_loader.loader.poses import PoseContext, PoseSource, make_pose_source
 from hogsa_loader.loader.synth import Refiner, SynthPipeline, SynthStats, frame_to_sample
 from hogsa_loader.loader.views import EgoCameras
@@ -69,7 +70,8 @@ class HOGSADataset(IterableDataset):
         The global sample index space is cut into render batches of ``batch_size``
         consecutive indices; batch ``g`` renders one (subject, object) model: the batches
         form blocks of ``len(keys)``, each block uses every model once in an order drawn from
-        ``(seed, epoch, g // len(keys))`` (:meth:`HOGSADataset.batch_key`), and every random
+        ``(seed, epoch, g // len(keys))`` (:meth:`HOGSADataset.batch_key`), its hands too where
+        ``sample.other_hands`` > 0 (:meth:`HOGSADataset.batch_hands`), and every random
         draw of sample ``i`` (pose, camera, background, augmentation) comes from
         ``(seed, epoch, i)`` (the streams of :mod:`~hogsa_loader.loader.plan`); batch ``g`` is
         rendered from its :class:`~hogsa_loader.loader.plan.BatchPlan` (:meth:`plan`).
@@ -171,6 +173,11 @@ class HOGSADataset(IterableDataset):
         self._pipe: Optional[SynthPipeline] = None
         # pose source built eagerly (cheap) so bad configurations fail at construction
         self.keys = self._pose_keys(self._requested_keys(), poses)
+        if sample.other_hands > 0 and len({k[0] for k in self.keys}) < 2:
+            raise ValueError(
+                f"other_hands={sample.other_hands} shows other subjects' hands, but the models used {self.keys} "
+                "are of one subject"
+            )
 
     # ------------------------------------------------------------------ settings
     @property
@@ -392,11 +399,30 @@ class HOGSADataset(IterableDataset):
             stop = min(stop, self.num_samples)
         return list(range(start, max(start, stop)))
 
+    def batch_hands(self, batch_index: int, epoch: Optional[int] = None) -> Optional[tuple[str, str]]:
+        """The run whose hand Gaussians render batch ``batch_index`` shows (at ``epoch``,
+        default the current one): None (the model's own hands), except in a share
+        ``sample.other_hands`` of the batches, drawn from (seed, epoch, batch index)
+        (:func:`~hogsa_loader.loader.plan.hands_rng`), which show the hands of another
+        subject of :attr:`keys`, drawn uniformly: its run with the batch's object when it has
+        one, else its first (:func:`~hogsa_loader.gaussians.recombine.hands_run`)."""
+        share = float(self.config.sample.other_hands)
+        if share <= 0.0:
+            return None
+        ep = self._epoch_or(epoch)
+        sid, obj = self.batch_key(batch_index, ep)
+        rng = hands_rng(self.seed, ep, batch_index)
+        if rng.random() >= share:
+            return None
+        others = sorted({k[0] for k in self.keys} - {sid})
+        return hands_run(self.keys, others[int(rng.integers(len(others)))], obj)
+
     def plan(self, batch_index: int, epoch: Optional[int] = None) -> BatchPlan:
         """The :class:`~hogsa_loader.loader.plan.BatchPlan` of render batch ``batch_index`` at
         ``epoch`` (default the current one)."""
         ep = self._epoch_or(epoch)
-        return BatchPlan(self.seed, ep, self.batch_key(batch_index, ep), tuple(self.batch_indices(batch_index)))
+        indices = tuple(self.batch_indices(batch_index))
+        return BatchPlan(self.seed, ep, self.batch_key(batch_index, ep), indices, self.batch_hands(batch_index, ep))
 
     @property
     def num_batches(self) -> Optional[int]:
@@ -471,7 +497,7 @@ class HOGSADataset(IterableDataset):
         """Regenerate sample ``index`` alone (same seed, epoch and batch size give the same
         sample as the stream did); None if it is dropped. ``epoch``: default the current one."""
         ep = self._epoch_or(epoch)
-        plan = BatchPlan(self.seed, ep, self.batch_key(int(index) // self.batch_size, ep), (int(index),))
+        plan = replace(self.plan(int(index) // self.batch_size, ep), indices=(int(index),))
         frame = self._pipeline().frames(plan)[0]
         return None if frame is None else self._to_sample(frame, int(index), ep)
 

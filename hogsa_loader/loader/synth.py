@@ -23,6 +23,7 @@ from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.augment import ArcticConfig, AugParams
 from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, CROPPED_SIZE, EGO_IMAGE_SCALE
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
+from hogsa_loader.gaussians.recombine import swap_hands
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from hogsa_loader.loader.cameras import NOVEL_VIEW, CameraSampler
 from hogsa_loader.loader.config import SampleChecks
@@ -294,6 +295,7 @@ class SynthPipeline:
        or with NaN poses are dropped here, before rendering;
     3. ``render`` — ONE :meth:`HogsModel.render` call straight into the ``S × S`` crop (laid
        out like ARCTIC's cropped images), lens distortion resampled where the view has one;
+       the plan's model, with another run's hand Gaussians where the plan names one (``hands``);
     4. ``refine`` — optional ``refiner(rgb, alpha) -> rgb`` (premultiplied (B, S, S, 3), alpha
        (B, S, S, 1));
     5. ``composite`` — premultiplied "over" onto backgrounds (:mod:`hogsa_loader.compose`);
@@ -347,6 +349,7 @@ class SynthPipeline:
         self.ego_distortion = bool(ego_distortion)
         self._model_fn = models
         self._models: dict[tuple[str, str], Any] = {}
+        self._swapped: dict[tuple[tuple[str, str], tuple[str, str]], Any] = {}
         self.pose_source = pose_source
         self.cameras = dict(cameras)
         self.backgrounds = backgrounds
@@ -365,11 +368,17 @@ class SynthPipeline:
         wm = root.world_meta()  # the real images' sizes, for the source blur (source_scale)
         self.source_sizes = {"cropped_size": int(wm.cropped_size), "ego_image_scale": float(wm.ego_image_scale)}
 
-    def model(self, key: tuple[str, str]) -> Any:
-        """The (cached) HOGS model of ``key``."""
-        if key not in self._models:
-            self._models[key] = self._model_fn(key)
-        return self._models[key]
+    def model(self, key: tuple[str, str], hands: Optional[tuple[str, str]] = None) -> Any:
+        """The (cached) HOGS model of ``key``; with ``hands``, that model with the hand
+        Gaussians of run ``hands`` (:func:`~hogsa_loader.gaussians.recombine.swap_hands`)."""
+        for k in (key, hands):
+            if k is not None and k not in self._models:
+                self._models[k] = self._model_fn(k)
+        if hands is None or hands == key:
+            return self._models[key]
+        if (key, hands) not in self._swapped:
+            self._swapped[(key, hands)] = swap_hands(self._models[hands], self._models[key])
+        return self._swapped[(key, hands)]
 
     def _drop(self, reason: str) -> None:
         self.stats.dropped[reason] = self.stats.dropped.get(reason, 0) + 1
@@ -481,7 +490,7 @@ class SynthPipeline:
             rgb (b, Ho, Wo, 3) premultiplied on black, alpha (b, Ho, Wo, 1), part alpha
             (b, Ho, Wo, 3), distortion applied where the view has one.
         """
-        model, dev, vg, keep = self.model(plan.key), self.device, viewed.vg, viewed.keep
+        model, dev, vg, keep = self.model(plan.key, plan.hands), self.device, viewed.vg, viewed.keep
         Hr, Wr = vg.render_hw
         with self.stats.timed("render", dev):
             dtype = next(model.parameters()).dtype
@@ -630,6 +639,8 @@ class SynthPipeline:
             "view": view,
             "camera": "egocentric" if vg.egocentric else ("dataset" if view != 100 else "novel"),
         }
+        if plan.hands is not None and plan.hands != plan.key:
+            meta["hands_from"] = "/".join(plan.hands)
         if vg.egocentric:  # read back by the offline export (hogsa_loader.export.reader.frame_to_arctic_sample)
             meta["egocentric"] = True
             meta["dist"] = [float(x) for x in vg.dist[b]]  # type: ignore[index]

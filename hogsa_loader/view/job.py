@@ -18,6 +18,7 @@ from hogsa_loader.bundle import load_bundle
 from hogsa_loader.compose import make_backgrounds
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError
+from hogsa_loader.gaussians.recombine import hands_run
 from hogsa_loader.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.objects.template import load_object_templates
 from hogsa_loader.pom.hands import hand_infos
@@ -82,13 +83,13 @@ def _prepare(cfg: ViewConfig) -> _Setup:
         )
     hands_key = {key[0]: key}
     for sid in cfg.transfer_to:
-        runs = [k for k in bundle.keys if k[0] == sid]
-        if not runs:
+        run = hands_run(bundle.keys, sid, key[1])
+        if run is None:
             raise ViewError(
                 f"--transfer-to {sid}: the bundle has no HOGS model of that subject (subjects: "
                 f"{', '.join(sorted({s for s, _ in bundle.keys}))})"
             )
-        hands_key[sid] = (sid, key[1]) if (sid, key[1]) in runs else runs[0]
+        hands_key[sid] = run
     root = ArcticRoot(cfg.data)  # type: ignore[arg-type]
     for sid in hands_key:
         if sid not in root.subjects():

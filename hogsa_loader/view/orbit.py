@@ -1,9 +1,9 @@
 """360° orbits: look-at cameras on a full circle around the interaction centre, and
 rendering one grasp from them with a HOGS model, with and without the SRM.
 
-A scene may take its hand and object Gaussians from different runs (:func:`swap_hands`,
-used for pose transfer); each part is then shaded by the learned light of its own run
-(:class:`PartLights`).
+A scene may take its hand and object Gaussians from different runs (:func:`swap_hands`
+of :mod:`hogsa_loader.gaussians.recombine`, used for pose transfer); each part is then
+shaded by the learned light of its own run (:class:`PartLights`).
 
 Conventions: ARCTIC world frame, metres, OpenCV cameras (``p_cam = R p + t``); poses as
 :data:`~hogsa_loader.gaussians.hogs_model.POSE_KEYS` tensors, batch first.
@@ -18,12 +18,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from hogsa_loader.datasets.conventions import render_intrinsics
-from hogsa_loader.gaussians.hogs_model import HogsModel
+from hogsa_loader.gaussians.recombine import PartLights, swap_hands
 from hogsa_loader.loader.cameras import look_at
-from hogsa_loader.render.gaussians import sh_colors
 
 __all__ = [
     "OrbitRender",
@@ -169,64 +168,6 @@ def posed_points(
     out["verts.object"] = res["v"][:, :n_o].double().cpu().numpy()
     out["kp3d"] = res["kp3d"].double().cpu().numpy()
     return out
-
-
-class PartLights(nn.Module):
-    """Learned lights of a scene whose parts come from different HOGS runs.
-
-    Each Gaussian is shaded by the light of its part's run
-    (:class:`~hogsa_loader.gaussians.shading.DirectionalLight`); a part without a light
-    keeps its unshaded SH colour. Used as :attr:`HogsModel.light`.
-
-    Args:
-        lights: ``{part_id: DirectionalLight or None}``.
-    """
-
-    def __init__(self, lights: Mapping[int, nn.Module | None]) -> None:
-        super().__init__()
-        self.lights = nn.ModuleDict({str(k): v for k, v in lights.items() if v is not None})
-
-    def forward(self, scene: Any, viewmats: Tensor) -> Tensor:
-        """(B, C, N, 3) colours of the (B, N) scene seen from (B, C) cameras."""
-        campos = torch.linalg.inv(viewmats)[..., :3, 3]
-        dirs = scene.means[:, None] - campos[:, :, None, :]
-        sh = scene.sh[:, None].expand(-1, viewmats.shape[1], -1, -1, -1)
-        base = torch.clamp_min(sh_colors(scene.sh_degree, dirs, sh) + 0.5, 0.0)
-        if scene.normals is None:
-            return base
-        out = base
-        for key, light in self.lights.items():
-            sel = (scene.part_ids == int(key)).to(base.device)[None, None, :, None]
-            out = torch.where(sel, base * light.shade(scene.normals)[:, None], out)
-        return out
-
-
-def swap_hands(hands: Any, obj: Any) -> Any:
-    """A :class:`~hogsa_loader.gaussians.hogs_model.HogsModel` with the hand Gaussians of
-    ``hands`` and the object Gaussians of ``obj`` (two HogsModels; parameters shared, not
-    copied), each part lit by its own run's light (:class:`PartLights`)."""
-    if hands is obj:
-        return hands
-    parts = {
-        "hand_right": hands.parts["hand_right"],
-        "hand_left": hands.parts["hand_left"],
-        "object": obj.parts["object"],
-    }
-    light: nn.Module | None = None
-    if hands.light is not None or obj.light is not None:
-        light = PartLights(
-            {
-                parts["hand_right"].part_id: hands.light,
-                parts["hand_left"].part_id: hands.light,
-                parts["object"].part_id: obj.light,
-            }
-        )
-    source = {
-        **obj.source,
-        "hands_from": hands.source.get("subject", "?"),
-        "object_from": obj.source.get("subject", "?"),
-    }
-    return HogsModel(parts["hand_right"], parts["hand_left"], parts["object"], source=source, light=light).eval()
 
 
 def render_views(

@@ -8,7 +8,9 @@ labels and the file formats are the real ones.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
+
+import torch
 
 from hogsa_loader.bundle import write_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot
@@ -17,7 +19,40 @@ from hogsa_loader.gaussians.binding import BindingConfig
 from hogsa_loader.gaussians.checkpoint import save_part
 from hogsa_loader.gaussians.parts import HandGaussians, ObjectGaussians
 
-__all__ = ["write_untrained_bundle"]
+__all__ = ["write_untrained_bundle", "write_untrained_run"]
+
+
+def write_untrained_run(
+    data_root: PathLike,
+    run: PathLike,
+    subject: str,
+    obj: str,
+    gaussians_per_face: int = 1,
+    hand_rgb: Optional[Sequence[float]] = None,
+) -> Path:
+    """Write one untrained HOGS run ``run/{hand_right,hand_left,object}`` of (subject, object).
+
+    Args:
+        data_root: ARCTIC(-format) data root with MANO and the object templates.
+        run: the run folder.
+        subject, obj: the pair the run stands for (recorded in its manifests).
+        gaussians_per_face: Gaussians per mesh face (``k``), SH degree 0.
+        hand_rgb: one colour in [0, 1] for every hand Gaussian (default: the hand albedo).
+
+    Returns:
+        the run folder.
+    """
+    root = ArcticRoot(data_root)
+    layers, templates = root.mano_layers(), root.object_templates()
+    run = Path(run)
+    binding = BindingConfig(k=gaussians_per_face, sh_degree=0)
+    for side in ("right", "left"):
+        hand = HandGaussians(layers[side], binding)
+        if hand_rgb is not None:
+            hand.splats.set_colors_(torch.tensor([float(c) for c in hand_rgb]))
+        save_part(hand, run / f"hand_{side}", dataset="arctic", subject=subject)
+    save_part(ObjectGaussians(templates[obj], binding), run / "object", dataset="arctic", subject=subject)
+    return run
 
 
 def write_untrained_bundle(
@@ -40,11 +75,5 @@ def write_untrained_bundle(
     Returns:
         the bundle folder.
     """
-    root = ArcticRoot(data_root)
-    layers, templates = root.mano_layers(), root.object_templates()
-    run = Path(out) / "runs" / f"{subject}_{obj}"
-    binding = BindingConfig(k=gaussians_per_face, sh_degree=0)
-    save_part(HandGaussians(layers["right"], binding), run / "hand_right", dataset="arctic", subject=subject)
-    save_part(HandGaussians(layers["left"], binding), run / "hand_left", dataset="arctic", subject=subject)
-    save_part(ObjectGaussians(templates[obj], binding), run / "object", dataset="arctic", subject=subject)
+    run = write_untrained_run(data_root, Path(out) / "runs" / f"{subject}_{obj}", subject, obj, gaussians_per_face)
     return write_bundle(Path(out) / "bundle", data_root, [run], srm=srm)
