@@ -825,16 +825,18 @@ def test_other_hands_reach_the_export_and_key_its_frames_and_runs(monkeypatch, t
     class Captured(Exception):
         pass
 
-    def fake_dataset(bundle, data, config):
-        seen["config"] = config
+    def fake_write(frames, folder, num, shard, info, progress):
+        seen["info"] = info
         raise Captured
 
-    monkeypatch.setattr(ds, "HOGSADataset", fake_dataset)
-    monkeypatch.setattr(ds, "background_folder", lambda *a: tmp_path)
+    monkeypatch.setattr(ds, "HOGSADataset", lambda bundle, data, config: seen.update(config=config))
+    monkeypatch.setattr(ds, "dataset_frames_for_shard", lambda *a: iter(()))
+    monkeypatch.setattr(ds, "write_shards", fake_write)
     for c, share in ((cfg, 0.0), (other, 0.5)):
         with pytest.raises(Captured):
             ds.export_variant("full", c, {**setup, "backgrounds": tmp_path}, tmp_path)
         assert seen["config"].sample.other_hands == share
+        assert seen["info"].get("other_hands") == (share or None)  # the export describes itself
     assert "other_hands" not in ds.synthetic_key(cfg, frames_only=True)
     assert ds.synthetic_key(other, frames_only=True)["other_hands"] == 0.5
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", other, setup, tmp_path)
