@@ -930,6 +930,16 @@ def test_other_hands_change_the_hands_pixels_and_nothing_else(bundle_dir, two_su
                 assert red[1].mean() < red[0].mean() - 40
             compared[p1.key[0]] += 1
     assert min(compared.values()) > 0
+    half = _dataset(two_subject_dir, tiny_world, other_hands=0.5, **{**kw, "num_samples": None})
+    plans = [half.plan(g) for g in range(16)]
+    swapped = next(p for p in plans if p.hands is not None)
+    mixed = [swapped, next(p for p in plans if p.hands is None and p.key == swapped.key)]
+    for plan in mixed:  # one pipeline, both kinds of batch of one model: each renders as its kind's dataset does
+        twin = own if plan.hands is None else other
+        for f, g in zip(half.render(plan), twin.render(plan)):
+            assert (f is None) == (g is None)
+            if f is not None:
+                np.testing.assert_array_equal(f.image, g.image)
     index = other.batch_indices(1)[0]
     again = other.sample(index)
     streamed = next(s for s in other.samples(1) if s[2]["imgname"] == again[2]["imgname"])
@@ -956,3 +966,12 @@ def test_other_hands_share_is_drawn_per_batch_and_needs_two_subjects(bundle_dir,
     with pytest.raises(ValueError, match="in \\[0, 1\\]"):
         _config(other_hands=1.5)
     assert "other_hands" not in export_info(_config()) and export_info(_config(other_hands=0.25))["other_hands"] == 0.25
+
+
+def test_hands_run_prefers_the_same_object_then_the_subjects_first_run():
+    from hogsa_loader.gaussians.recombine import hands_run
+
+    keys = [("s02", "notebook"), ("s01", "laptop"), ("s02", "box"), ("s01", "box")]
+    assert hands_run(keys, "s02", "box") == ("s02", "box")
+    assert hands_run(keys, "s02", "laptop") == ("s02", "box")  # no laptop run: its first in sorted order
+    assert hands_run(keys, "s03", "box") is None

@@ -4,7 +4,9 @@
 shared, not copied), each part shaded by the learned light of its own run
 (:class:`PartLights`); :func:`hands_run` picks the run whose hands stand for a subject.
 Hand Gaussians are bound to the MANO mesh, so they follow any pose and shape: a scene keeps
-its own poses and labels, only the hands' appearance changes.
+its own poses and labels and the hands take the other run's colours, with the other run's
+learnt vertex offsets (a few millimetres, like the scene's own run's), so their outline can
+move that much against the labels.
 """
 
 from __future__ import annotations

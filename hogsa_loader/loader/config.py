@@ -168,8 +168,9 @@ class SampleConfig:
         default=0.0,
         metadata={
             "help": "share of render batches that show another subject's hands: poses, object, cameras and labels "
-            "stay the batch's own, the hand Gaussians come from another subject of the models, drawn uniformly "
-            "(its run with the same object when it has one); 0: every model's own hands",
+            "stay the batch's own, the hand Gaussians (colours and learnt vertex offsets) come from another subject "
+            "of the models, drawn uniformly (its run with the same object when it has one); 0: every model's own "
+            "hands",
             "type": "unit_float",
             **_IF_SET,
         },
@@ -178,8 +179,9 @@ class SampleConfig:
     def __post_init__(self) -> None:
         if self.protocol not in ("p1", "p2"):
             raise ValueError(f"protocol must be 'p1' (allocentric) or 'p2' (egocentric), got {self.protocol!r}")
-        if not 0.0 <= float(self.other_hands) <= 1.0:
+        if isinstance(self.other_hands, bool) or not 0.0 <= float(self.other_hands) <= 1.0:
             raise ValueError(f"other_hands is a share of the render batches, in [0, 1]; got {self.other_hands!r}")
+        object.__setattr__(self, "other_hands", float(self.other_hands))  # 1 and 1.0 record alike
 
 
 @dataclass(frozen=True)

@@ -287,7 +287,7 @@ class SynthPipeline:
     """Synthetic frames of the bundle's HOGS models.
 
     It renders a :class:`~hogsa_loader.loader.plan.BatchPlan` (seed,
-    epoch, model, sample indices) through named stages, each a method:
+    epoch, model, sample indices, hands) through named stages, each a method:
 
     1. ``poses`` — the pose source's B poses (world frame), its optional POM ``optimize``
        step, and the labels' 3D points from the MANO and object layers;
@@ -304,7 +304,8 @@ class SynthPipeline:
 
     Args:
         root: the data root (MANO layers, object templates).
-        models: ``key -> HogsModel`` loader (called once per key, result cached), e.g.
+        models: ``key -> HogsModel`` loader (called once per key, the keys of plans' ``hands``
+            included; result cached), e.g.
             ``lambda key: bundle.load_hogs(key, layers, templates, device)``.
         pose_source: the :class:`~hogsa_loader.loader.poses.PoseSource`.
         cameras: ``subject -> CameraSampler`` (``p1``) or ``EgoCameras`` (``p2``).
