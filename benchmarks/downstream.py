@@ -596,7 +596,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "seed": s.seed,
         "img_res": cfg.model.img_res,
         "setup": setup["fingerprints"][reads(variant)],
-        **({"other_hands": s.other_hands} if s.other_hands > 0 else {}),
+        **keyed_settings({"other_hands": s.other_hands}, {"other_hands": 0.0}),  # recorded when set
     }
     folder = export_dir(variant, cfg, setup, out)
     t0 = time.perf_counter()

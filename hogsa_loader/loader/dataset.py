@@ -406,23 +406,26 @@ class HOGSADataset(IterableDataset):
         (:func:`~hogsa_loader.loader.plan.hands_rng`), which show the hands of another
         subject of :attr:`keys`, drawn uniformly: its run with the batch's object when it has
         one, else its first (:func:`~hogsa_loader.gaussians.recombine.hands_run`)."""
-        share = float(self.config.sample.other_hands)
+        ep = self._epoch_or(epoch)
+        return self._hands(batch_index, ep, self.batch_key(batch_index, ep))
+
+    def _hands(self, batch_index: int, epoch: int, key: tuple[str, str]) -> Optional[tuple[str, str]]:
+        share = self.config.sample.other_hands
         if share <= 0.0:
             return None
-        ep = self._epoch_or(epoch)
-        sid, obj = self.batch_key(batch_index, ep)
-        rng = hands_rng(self.seed, ep, batch_index)
+        rng = hands_rng(self.seed, epoch, batch_index)
         if rng.random() >= share:
             return None
-        others = sorted({k[0] for k in self.keys} - {sid})
-        return hands_run(self.keys, others[int(rng.integers(len(others)))], obj)
+        others = sorted({k[0] for k in self.keys} - {key[0]})
+        return hands_run(self.keys, others[int(rng.integers(len(others)))], key[1])
 
     def plan(self, batch_index: int, epoch: Optional[int] = None) -> BatchPlan:
         """The :class:`~hogsa_loader.loader.plan.BatchPlan` of render batch ``batch_index`` at
         ``epoch`` (default the current one)."""
         ep = self._epoch_or(epoch)
+        key = self.batch_key(batch_index, ep)
         indices = tuple(self.batch_indices(batch_index))
-        return BatchPlan(self.seed, ep, self.batch_key(batch_index, ep), indices, self.batch_hands(batch_index, ep))
+        return BatchPlan(self.seed, ep, key, indices, self._hands(batch_index, ep, key))
 
     @property
     def num_batches(self) -> Optional[int]:

@@ -375,9 +375,9 @@ class SynthPipeline:
         for k in (key, hands):
             if k is not None and k not in self._models:
                 self._models[k] = self._model_fn(k)
-        if hands is None or hands == key:
+        if hands is None:
             return self._models[key]
-        if (key, hands) not in self._swapped:
+        if (key, hands) not in self._swapped:  # swap_hands gives the model itself for its own hands
             self._swapped[(key, hands)] = swap_hands(self._models[hands], self._models[key])
         return self._swapped[(key, hands)]
 
