@@ -366,6 +366,12 @@ def validate(cfg: DownstreamConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise SystemExit(f"downstream: error: {msg}")
+    if cfg.synthetic.other_hands > 0 and cfg.setup.bundle is None:
+        subjects = sorted({sid for sid, _ in setup_pairs(cfg.setup)})
+        if len(subjects) < 2:
+            raise SystemExit(
+                f"downstream: error: --synthetic-other-hands needs two training subjects; the world has {subjects}"
+            )
     _validate_init(cfg)
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("downstream: error: --device cuda but no CUDA device is available")
@@ -420,6 +426,17 @@ def train_pairs(data: Path) -> list[tuple[str, str]]:
     return pairs
 
 
+def setup_pairs(s: SetupSettings) -> list[tuple[str, str]]:
+    """The training (subject, object) pairs the setup builds HOGS for: the preset's training
+    subjects' sequences, or those of ``--setup-data``'s ``p1`` training split."""
+    if s.data is None:
+        preset = get_preset(s.preset)
+        pairs = [(p.sid, q.object) for p in preset.subjects if p.split == "train" for q in p.sequences]
+    else:
+        pairs = train_pairs(Path(s.data))
+    return list(dict.fromkeys(pairs))
+
+
 def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
     if cfg.setup.bundle is not None:
@@ -431,12 +448,7 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
             "stage_seconds": {},
         }
     s = cfg.setup
-    if s.data is None:
-        preset = get_preset(s.preset)
-        pairs = [(p.sid, q.object) for p in preset.subjects if p.split == "train" for q in p.sequences]
-    else:
-        pairs = train_pairs(Path(s.data))
-    pairs = list(dict.fromkeys(pairs))
+    pairs = setup_pairs(s)
     demo = DemoConfig(
         preset=s.preset,
         data=s.data,

@@ -845,3 +845,9 @@ def test_other_hands_reach_the_export_and_key_its_frames_and_runs(monkeypatch, t
     assert ds.run_dir("real", 0, other, Path("/o")) == Path("/o/runs/real/seed0")
     with pytest.raises(SystemExit, match="other-hands"):
         ds.validate(ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, other_hands=1.5)))
+    ds.validate(other)  # the default world trains two subjects
+    one_subject = ds.replace(other, setup=ds.replace(other.setup, preset="tiny"))
+    assert {sid for sid, _ in ds.setup_pairs(one_subject.setup)} == {"s01"}
+    with pytest.raises(SystemExit, match=r"two training subjects; the world has \['s01'\]"):
+        ds.validate(one_subject)  # before any setup is built
+    ds.validate(ds.replace(one_subject, synthetic=cfg.synthetic))  # no other hands: one subject is enough
