@@ -8,7 +8,11 @@ sequence's first frame) and *rest* (hands before and after the grasp, alike for 
 subject). With a bank, also how far POM moved each grasp: the same distance from a bank grasp to
 the annotated frame it was made from; and for every pool the share of held frames (a bank's:
 of the frames its grasps were made from), since a bank of held frames alone teaches a model
-nothing about hands at rest. Reads annotations only.
+nothing about hands at rest. Beside the nearest distances, what a pool teaches on average: its
+*openness* (the mean distance of the five fingertips from the wrist) and the *offset* of its
+mean hand from the held-out mean hand (the mean over the 21 joints of the distance between the
+two joint-wise means); a pool of closed grasps shows as a smaller openness and a larger offset
+than the training frames'. Reads annotations only.
 
 Usage::
 
@@ -31,6 +35,8 @@ from hogsa_loader.pom.bank import load_pose_bank
 
 SIDES = ("right", "left")
 HELD_MM = 1.0
+#: Joints 16..20 of the 21-joint MANO hand: the fingertips (thumb, index, middle, ring, pinky).
+TIPS = slice(16, 21)
 
 
 def articulated_joints(layer: torch.nn.Module, pose: np.ndarray) -> np.ndarray:
@@ -59,6 +65,16 @@ def nearest_distance(query: np.ndarray, pool: np.ndarray, chunk: int = 0) -> np.
         d = np.linalg.norm(query[i : i + chunk, None] - pool[None], axis=-1).mean(-1)
         out.append(d.min(1))
     return np.concatenate(out) * 1000.0
+
+
+def openness(joints: np.ndarray) -> float:
+    """Mean distance (mm) of the fingertips from the wrist over (N, 21, 3) root-relative hands (m)."""
+    return float(np.linalg.norm(joints[:, TIPS], axis=-1).mean() * 1000.0)
+
+
+def mean_offset(pool: np.ndarray, query: np.ndarray) -> float:
+    """Mean over joints of the distance (mm) between the joint-wise means of two sets of (N, 21, 3) hands (m)."""
+    return float(np.linalg.norm(pool.mean(0) - query.mean(0), axis=-1).mean() * 1000.0)
 
 
 def split_hands(root: ArcticRoot, split: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -110,9 +126,11 @@ def coverage(data: Path, bank: Optional[Path] = None) -> dict:
         pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
         rec["bank_moved_mm"] = bank_moves(root, layers, poses.sources, pools["bank"])
         rec["pool_held_share"]["bank"] = float(source_held(root, poses.sources).mean())
+    rec["shape"] = {f"val/{s}": {"openness": openness(val[s]), "offset": 0.0} for s in SIDES}
     for name, pool in pools.items():
         rec["pool_sizes"][name] = int(len(pool["right"]))
         for s in SIDES:
+            rec["shape"][f"{name}/{s}"] = {"openness": openness(pool[s]), "offset": mean_offset(pool[s], val[s])}
             d = nearest_distance(val[s], pool[s])
             rec["mm"][f"{name}/{s}"] = {
                 "held": float(d[held].mean()) if held.any() else None,
@@ -138,6 +156,10 @@ def markdown(rec: dict) -> str:
         pool, side = key.rsplit("/", 1)
         cells = " | ".join("—" if v[k] is None else f"{v[k]:.1f}" for k in ("held", "rest", "all"))
         lines.append(f"| {pool} | {side} | {cells} |")
+    lines += ["", "| pool | hand | openness (mm) | mean hand's offset from val's (mm) |", "|---|---|---|---|"]
+    for key, v in rec["shape"].items():
+        pool, side = key.rsplit("/", 1)
+        lines.append(f"| {pool} | {side} | {v['openness']:.1f} | {v['offset']:.1f} |")
     if "bank_moved_mm" in rec:
         moved = rec["bank_moved_mm"]
         lines += [

@@ -20,6 +20,22 @@ def test_nearest_distance_is_the_mean_joint_distance_to_the_closest():
     assert np.isclose(pc.nearest_distance(query, pool)[0], 3.0 / 21)
 
 
+def test_openness_and_mean_offset_measure_fingertips_and_the_mean_hand():
+    """Openness is the fingertips' (joints 16..20) mean distance from the wrist; the offset is
+    zero for the same distribution and the joint-mean distance for a shifted one."""
+    pc = _bench()
+    hands = np.zeros((2, 21, 3))
+    hands[:, 16:21, 0] = [[0.10], [0.12]]  # fingertips 10 and 12 cm from the wrist
+    hands[:, 1:16, 1] = 0.5  # other joints do not count
+    assert np.isclose(pc.openness(hands), 110.0)
+    rng = np.random.default_rng(1)
+    pool = rng.normal(scale=0.01, size=(40, 21, 3))
+    assert pc.mean_offset(pool, pool[::-1].copy()) < 1e-9
+    shifted = pool.copy()
+    shifted[:, 20] += [0.0, 0.0, 0.021]  # one of 21 joints 21 mm off
+    assert np.isclose(pc.mean_offset(shifted, pool), 1.0)
+
+
 def test_held_frames_are_where_the_object_has_moved():
     pc = _bench()
     obj = np.zeros((6, 7))
@@ -37,6 +53,9 @@ def test_coverage_of_the_tiny_world(tiny_world):
     for v in rec["mm"].values():
         assert 0.0 < v["rest"] < v["held"] < 50.0  # grasps differ more than hands at rest
     assert "| train | right |" in pc.markdown(rec)
+    assert set(rec["shape"]) == {"val/right", "val/left", "train/right", "train/left"}
+    assert rec["shape"]["val/right"]["offset"] == 0.0 and rec["shape"]["train/right"]["offset"] > 0.0
+    assert all(50.0 < v["openness"] < 250.0 for v in rec["shape"].values())  # fingertips a hand's length away
 
 
 def test_bank_moves_measure_each_grasp_from_its_source_frame(tiny_world):
