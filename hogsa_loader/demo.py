@@ -306,7 +306,8 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
         {"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants, "frames": cfg.bank_frames}, _BANK_UNKEYED
     )
     start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, *start)  # the start perturbations
+    margin = {"frame_margin": BankDataConfig().frame_margin}  # which frames a bank may start from
+    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, margin, *start)  # the start perturbations
     bank_cfg = PoseBankConfig(
         data=BankDataConfig(
             root=str(data),

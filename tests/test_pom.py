@@ -619,8 +619,9 @@ def test_tiny_world_frames_to_bank(tiny_world, tmp_path):
 
 
 def test_frames_all_keeps_the_frames_without_contact(tiny_world):
-    """``frames="all"``: every frame of the sequence (evenly spaced with ``per_sequence``),
-    those without a touching hand included; ``"contact"``: the frames where a hand touches."""
+    """``frames="all"``: every frame of the sequence but the first and last 10 (ARCTIC's loaders
+    never use them; evenly spaced with ``per_sequence``), those without a touching hand included;
+    ``"contact"``: the frames where a hand touches; ``frame_margin=0``: the ends too."""
     from hogsa_loader.datasets import ArcticRoot
     from hogsa_loader.pom.pipeline import contact_frames
 
@@ -631,12 +632,14 @@ def test_frames_all_keeps_the_frames_without_contact(tiny_world):
     n = len(root.sequence(*seq.split("/")).right.pose)
     every = contact_frames(root, [seq], infos, objects, frames="all")
     grasps = contact_frames(root, [seq], infos, objects)
-    assert [f for *_, f in every.sources] == list(range(n))
+    assert [f for *_, f in every.sources] == list(range(10, n - 10))
     touching = (every.active["right"] | every.active["left"]).tolist()
-    assert 0 < sum(touching) < n
+    assert 0 < sum(touching) < n - 20
     assert [f for *_, f in grasps.sources] == [f for (*_, f), t in zip(every.sources, touching) if t]
     spaced = contact_frames(root, [seq], infos, objects, per_sequence=5, frames="all")
-    assert [f for *_, f in spaced.sources] == np.linspace(0, n - 1, 5).round().astype(int).tolist()
+    assert [f for *_, f in spaced.sources] == (10 + np.linspace(0, n - 21, 5).round().astype(int)).tolist()
+    ends = contact_frames(root, [seq], infos, objects, frames="all", frame_margin=0)
+    assert [f for *_, f in ends.sources] == list(range(n))
     with pytest.raises(ValueError, match="frames must be 'contact' or 'all'"):
         contact_frames(root, [seq], infos, objects, frames="grasps")
 
@@ -668,7 +671,10 @@ def test_pose_bank_over_all_frames_keeps_frames_without_contact(tiny_world, tmp_
     free = {f for (*_, f), r, l in zip(every.sources, every.active["right"], every.active["left"]) if not (r or l)}
     kept = {f for *_, f in load_pose_bank(tmp_path / "bank").sources}
     assert kept & free and kept - free
-    assert json.loads((tmp_path / "bank" / "manifest.json").read_text())["info"]["frames"] == "all"
+    n = root.sequence(*seq.split("/")).num_frames
+    assert all(10 <= f < n - 10 for f in kept)  # never a frame ARCTIC's loaders leave out
+    info = json.loads((tmp_path / "bank" / "manifest.json").read_text())["info"]
+    assert info["frames"] == "all" and info["frame_margin"] == 10
 
 
 @pytest.mark.slow

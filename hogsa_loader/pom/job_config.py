@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
 
+from hogsa_loader.datasets.arctic_processing import FRAME_MARGIN
+
 __all__ = [
     "BankDataConfig",
     "BankPOMConfig",
@@ -110,8 +112,17 @@ class BankDataConfig:
     frames: Literal["contact", "all"] = field(
         default="contact",
         metadata=_opt(
-            "contact: frames where a hand touches the object (grasps); all: every frame, so that frames without "
-            "contact keep their share of the data (POM pulls only the hands touching in the source frame)"
+            "contact: frames where a hand touches the object (grasps, whose hands are more closed than a "
+            "sequence's on average); all: every frame, so that frames without contact keep their share of the data "
+            "(POM pulls only the hands touching in the source frame)"
+        ),
+    )
+
+    frame_margin: int = field(
+        default=FRAME_MARGIN,
+        metadata=_opt(
+            "frames left out at each end of a sequence (ARCTIC's data loaders never use the first and last 10)",
+            "non_negative_int",
         ),
     )
 

@@ -232,7 +232,15 @@ def _optimise_sequences(
     objects = ObjectSet(root.object_templates(load_texture=False))
     parts = _BankParts()
     for seq in tqdm(seqs, disable=not progress, desc="pose bank"):
-        frames = contact_frames(root, [seq], infos, objects, per_sequence=cfg.data.per_sequence, frames=cfg.data.frames)
+        frames = contact_frames(
+            root,
+            [seq],
+            infos,
+            objects,
+            per_sequence=cfg.data.per_sequence,
+            frames=cfg.data.frames,
+            frame_margin=cfg.data.frame_margin,
+        )
         if frames.state.batch == 0:
             continue
         for v in range(cfg.data.variants):
@@ -306,6 +314,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
         "per_sequence": cfg.data.per_sequence,
         "variants": cfg.data.variants,
         "frames": cfg.data.frames,
+        "frame_margin": cfg.data.frame_margin,
         "seed": cfg.run.seed,
         "optimised": parts.total,
         "dropped": parts.dropped,

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.datasets.arctic_processing import FRAME_MARGIN
 from hogsa_loader.pom.contactnet import ContactNet
 from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.job_config import check_bank_frames
@@ -51,6 +52,7 @@ def contact_frames(
     per_sequence: Optional[int] = None,
     threshold: float = 0.005,
     frames: Literal["contact", "all"] = "contact",
+    frame_margin: int = FRAME_MARGIN,
 ) -> ContactFrames:
     """Annotated frames of ``seq_ids`` and their touching hands.
 
@@ -62,9 +64,11 @@ def contact_frames(
         frames: the candidates: ``"contact"``, frames where at least one hand touches the
             object (grasps); ``"all"``, every frame, so that frames without contact (hands
             reaching, releasing, away) keep their share of the sequence.
+        frame_margin: frames left out at each end of a sequence; ARCTIC's data loaders never
+            use the first and last 10 (their crops and labels are not part of any split).
     """
     check_bank_frames(frames)
-    state, src = load_frames(root, seq_ids)
+    state, src = load_frames(root, seq_ids, margin=frame_margin)
     act = contact_flags(state, infos, objects, threshold)
     ok = (act["right"] | act["left"]).numpy() if frames == "contact" else np.ones(state.batch, dtype=bool)
     keep = []

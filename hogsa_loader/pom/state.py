@@ -100,7 +100,7 @@ class GraspState:
 
 
 def load_frames(
-    root, seq_ids: Sequence[str], stride: int = 1, dtype: torch.dtype = torch.float32
+    root, seq_ids: Sequence[str], stride: int = 1, dtype: torch.dtype = torch.float32, margin: int = 0
 ) -> tuple[GraspState, list[tuple[str, str, int]]]:
     """Annotated frames of ARCTIC sequences as one :class:`GraspState`.
 
@@ -109,6 +109,7 @@ def load_frames(
             ``.sequence(sid, seq)`` returning SequenceData).
         seq_ids: ``"sid/seq"`` ids.
         stride: keep every ``stride``-th frame.
+        margin: frames left out at each end of a sequence.
 
     Returns:
         the state (B = all kept frames) and the source ``(subject, sequence, frame index)``.
@@ -118,7 +119,7 @@ def load_frames(
     for sid_seq in seq_ids:
         sid, seq = sid_seq.split("/")
         sd = root.sequence(sid, seq)
-        keep = np.arange(0, sd.num_frames, stride)
+        keep = np.arange(margin, sd.num_frames - margin, stride)
         keep = keep[sd.right.valid[keep] & sd.left.valid[keep] & sd.object.valid[keep]]
         for side in SIDES:
             h = getattr(sd, side)
