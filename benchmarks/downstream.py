@@ -168,7 +168,8 @@ class SetupSettings:
         default="contact",
         metadata={
             "help": "frames the pose bank starts from (BankDataConfig.frames): contact, frames where a hand touches "
-            "the object (grasps only); all, every frame, so that hands away from the object keep their share"
+            "the object (grasps only); all, every frame but the first and last 10, so that hands away from the object "
+            "keep their share"
         },
     )
 

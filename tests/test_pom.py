@@ -642,6 +642,8 @@ def test_frames_all_keeps_the_frames_without_contact(tiny_world):
     assert [f for *_, f in ends.sources] == list(range(n))
     with pytest.raises(ValueError, match="frames must be 'contact' or 'all'"):
         contact_frames(root, [seq], infos, objects, frames="grasps")
+    with pytest.raises(ValueError, match="margin must be >= 0"):
+        contact_frames(root, [seq], infos, objects, frame_margin=-1)
 
 
 @pytest.mark.slow
@@ -672,7 +674,7 @@ def test_pose_bank_over_all_frames_keeps_frames_without_contact(tiny_world, tmp_
     kept = {f for *_, f in load_pose_bank(tmp_path / "bank").sources}
     assert kept & free and kept - free
     n = root.sequence(*seq.split("/")).num_frames
-    assert all(10 <= f < n - 10 for f in kept)  # never a frame ARCTIC's loaders leave out
+    assert all(10 <= f < n - 10 for f in kept)  # the margin of the loader's annotated ("perturb") poses
     info = json.loads((tmp_path / "bank" / "manifest.json").read_text())["info"]
     assert info["frames"] == "all" and info["frame_margin"] == 10
 

@@ -113,15 +113,16 @@ class BankDataConfig:
         default="contact",
         metadata=_opt(
             "contact: frames where a hand touches the object (grasps, whose hands are more closed than a "
-            "sequence's on average); all: every frame, so that frames without contact keep their share of the data "
-            "(POM pulls only the hands touching in the source frame)"
+            "sequence's on average); all: every frame within the margin, so that frames without contact keep their "
+            "share of the data (POM pulls only the hands touching in the source frame)"
         ),
     )
 
     frame_margin: int = field(
         default=FRAME_MARGIN,
         metadata=_opt(
-            "frames left out at each end of a sequence (ARCTIC's data loaders never use the first and last 10)",
+            "annotated frames left out at each end of a sequence (ARCTIC's data loaders leave out 10 images at "
+            "each end; the loader's perturb poses leave out 10 annotated frames)",
             "non_negative_int",
         ),
     )

@@ -62,10 +62,12 @@ def contact_frames(
             candidates (None: all).
         threshold: a hand within this distance of the object touches it (m).
         frames: the candidates: ``"contact"``, frames where at least one hand touches the
-            object (grasps); ``"all"``, every frame, so that frames without contact (hands
-            reaching, releasing, away) keep their share of the sequence.
-        frame_margin: frames left out at each end of a sequence; ARCTIC's data loaders never
-            use the first and last 10 (their crops and labels are not part of any split).
+            object (grasps); ``"all"``, every frame within the margin, so that frames without
+            contact (hands reaching, releasing, away) keep their share of the sequence.
+        frame_margin: annotated frames left out at each end of a sequence, the rule of the
+            loader's ``"perturb"`` poses. ARCTIC's data loaders leave out the first and last 10
+            images; with a subject's image offset k (``ioi_offset``) those are the annotated
+            frames shifted by k, so the two rules differ by k frames at each end.
     """
     check_bank_frames(frames)
     state, src = load_frames(root, seq_ids, margin=frame_margin)

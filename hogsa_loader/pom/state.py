@@ -109,11 +109,13 @@ def load_frames(
             ``.sequence(sid, seq)`` returning SequenceData).
         seq_ids: ``"sid/seq"`` ids.
         stride: keep every ``stride``-th frame.
-        margin: frames left out at each end of a sequence.
+        margin: annotated frames left out at each end of a sequence (>= 0).
 
     Returns:
         the state (B = all kept frames) and the source ``(subject, sequence, frame index)``.
     """
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
     parts: dict[str, list] = {f"{s}_{k}": [] for s in SIDES for k in HAND_KEYS}
     names, arti, rot, trans, src = [], [], [], [], []
     for sid_seq in seq_ids:
