@@ -126,11 +126,14 @@ def coverage(data: Path, bank: Optional[Path] = None) -> dict:
         pools["train+bank"] = {s: np.concatenate([train[s], pools["bank"][s]]) for s in SIDES}
         rec["bank_moved_mm"] = bank_moves(root, layers, poses.sources, pools["bank"])
         rec["pool_held_share"]["bank"] = float(source_held(root, poses.sources).mean())
-    rec["shape"] = {f"val/{s}": {"openness": openness(val[s]), "offset": 0.0} for s in SIDES}
+    rec["shape"] = {
+        f"{name}/{s}": {"openness": openness(pool[s]), "offset": mean_offset(pool[s], val[s])}
+        for name, pool in {"val": val, **pools}.items()
+        for s in SIDES
+    }
     for name, pool in pools.items():
         rec["pool_sizes"][name] = int(len(pool["right"]))
         for s in SIDES:
-            rec["shape"][f"{name}/{s}"] = {"openness": openness(pool[s]), "offset": mean_offset(pool[s], val[s])}
             d = nearest_distance(val[s], pool[s])
             rec["mm"][f"{name}/{s}"] = {
                 "held": float(d[held].mean()) if held.any() else None,

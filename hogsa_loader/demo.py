@@ -305,9 +305,6 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
     late = keyed_settings(
         {"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants, "frames": cfg.bank_frames}, _BANK_UNKEYED
     )
-    start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])
-    margin = {"frame_margin": BankDataConfig().frame_margin}  # which frames a bank may start from
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, margin, *start)  # the start perturbations
     bank_cfg = PoseBankConfig(
         data=BankDataConfig(
             root=str(data),
@@ -320,6 +317,9 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
         pom=BankPOMConfig(finger_scale=cfg.bank_finger_scale),
         run=BankRunConfig(out=str(bank), seed=cfg.seed),
     )
+    start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])  # the start perturbations
+    margin = {"frame_margin": bank_cfg.data.frame_margin}  # which frames a bank may start from
+    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, margin, *start)
     return _StageNode(
         "bank",
         k_bank,
