@@ -107,11 +107,24 @@ def export_drops(export: Path) -> dict[str, Any]:
     return rec
 
 
-def world_root(downstream: Path) -> Path:
-    for cand in (downstream / "setup" / "world" / "arctic_data" / "data", downstream / "setup" / "world"):
-        if (cand / "splits").is_dir():
-            return cand
-    raise SystemExit(f"domain_gap: error: no world with splits/ under {downstream / 'setup' / 'world'}")
+def _with_splits(world: Path) -> Optional[Path]:
+    """The ARCTIC data root of ``world`` (the world folder or its ``arctic_data/data``) that has
+    ``splits/``; None when neither has."""
+    return next((c for c in (world / "arctic_data" / "data", world) if (c / "splits").is_dir()), None)
+
+
+def world_root(downstream: Path, exports: Sequence[Path] = ()) -> Path:
+    """The ARCTIC data root of a downstream folder: the world it built (``setup/world``), else
+    the root its exports were rendered from (``data`` in their ``index.json``, one root for all:
+    a folder made with ``--setup-data``)."""
+    root = _with_splits(downstream / "setup" / "world")
+    roots = sorted({str(json.loads((e / "index.json").read_text()).get("info", {}).get("data")) for e in exports})
+    if root is None and len(roots) == 1:
+        root = _with_splits(Path(roots[0]))
+    if root is None:
+        where = downstream / "setup" / "world"
+        raise SystemExit(f"domain_gap: error: no world with splits/ under {where}; the exports' data roots: {roots}")
+    return root
 
 
 def real_dataset(root: Path, split: str, img_res: int) -> Any:
@@ -401,7 +414,8 @@ def run(cfg: GapConfig) -> dict[str, Any]:
     downstream = Path(cfg.downstream).resolve()
     out = Path(cfg.out) if cfg.out else downstream / "analysis"
     out.mkdir(parents=True, exist_ok=True)
-    root = world_root(downstream)
+    found = {v: find_export(downstream, v, cfg.img_res) for v in cfg.variants}
+    root = world_root(downstream, list(found.values()))
     rng = np.random.default_rng(cfg.seed)
     n = cfg.per_class + cfg.test_per_class
 
@@ -423,7 +437,7 @@ def run(cfg: GapConfig) -> dict[str, Any]:
     sources = {"real_train": imgs_tr, "real_val": imgs_va}
     exports, dropped = {}, {}
     for v in cfg.variants:
-        exp = find_export(downstream, v, cfg.img_res)
+        exp = found[v]
         ds = synthetic_dataset(exp, cfg.img_res)
         imgs, _ = patches(ds, rng.permutation(draw(ds, n, rng)))
         sources[f"synthetic_{v}"] = imgs

@@ -9,7 +9,9 @@ held-out sequences (``hogsa world --preset small_styles_heldout`` for models tra
 ``small_styles``: the same bodies and training files, five times the held-out sequences, a
 test subject), and reports ARCTIC's per-frame metrics per run and, against a reference, the
 paired difference per seed with its 95 % interval over clips and its range with one clip left
-out (:func:`~hogsa_loader.baselines.clips.clip_uncertainty`), per split and over all of them.
+out (:func:`~hogsa_loader.baselines.clips.clip_uncertainty`), per split and over all of them,
+for MPJPE_h and CDev_ho and for each hand's MPJPE (a change that helps one hand and costs the
+other shows there).
 
 Every model must have been trained with the MANO layers and object templates of the root it
 is evaluated on (checked against its training root when that still exists). Each (model file,
@@ -65,12 +67,18 @@ from hogsa_loader.system import available_cores
 #: Per-frame metrics reported (ARCTIC's names).
 METRICS = {
     "mpjpe/ra/h": "MPJPE_h (mm)",
+    "mpjpe/ra/r": "MPJPE right (mm)",
+    "mpjpe/ra/l": "MPJPE left (mm)",
     "cdev/ho": "CDev_ho (mm)",
     "mrrpe/r/l": "MRRPE_rl (mm)",
     "aae": "AAE (°)",
     "success_rate/0.05": "Success (%)",
 }
-CACHE_VERSION = 1
+#: Each hand's MPJPE (ARCTIC's per-hand terms of MPJPE_h), paired per clip like MPJPE_h.
+HAND_METRICS = ("mpjpe/ra/r", "mpjpe/ra/l")
+#: The metrics kept per clip and paired against the reference.
+PAIRED_METRICS = CLIP_METRICS + HAND_METRICS
+CACHE_VERSION = 2
 #: Run settings that may differ between the seeds of one label.
 PER_SEED = ("seed", "init_sha256")
 
@@ -259,7 +267,7 @@ def evaluate_model(path: Path, split: str, ctx: _Context) -> dict[str, Any]:
         "data_fingerprint": fingerprint,
         "frames": ev["frames"],
         "summary": {k: _finite(ev["summary"][k]) for k in METRICS if k in ev["summary"]},
-        "clips": clip_sums(ev, CLIP_METRICS),
+        "clips": clip_sums(ev, PAIRED_METRICS),
     }
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_name(cache.name + ".tmp")
@@ -272,7 +280,7 @@ def merged(recs: list[dict[str, Any]]) -> dict[str, Any]:
     """One run's results on several splits as one: the clip metrics formed again over all
     clips (frame-weighted), the other metrics left out."""
     clips: ClipSums = {c: v for r in recs for c, v in r["clips"].items()}
-    summary = {m: clip_mean(clips, m) for m in CLIP_METRICS}
+    summary = {m: clip_mean(clips, m) for m in PAIRED_METRICS}
     return {"frames": sum(r["frames"] for r in recs), "summary": summary, "clips": clips}
 
 
@@ -294,7 +302,7 @@ def report(results: dict[str, dict[int, dict[str, Any]]], reference: str) -> dic
             continue
         seeds = sorted(set(by_seed) & set(ref))
         paired[label] = {}
-        for m in CLIP_METRICS:
+        for m in PAIRED_METRICS:
             d = {
                 s: by_seed[s]["summary"][m] - ref[s]["summary"][m]
                 for s in seeds
@@ -317,6 +325,10 @@ def _cell(row: dict[str, Optional[float]], sign: bool = False) -> str:
     return f"{row['mean']:{fmt}}" + (f" ± {row['std']:.2f}" if row["std"] is not None else "")
 
 
+def _per_seed(d: dict[str, Any]) -> str:
+    return ", ".join(f"{v:+.2f}" for v in d["per_seed"].values()) or "n/a"
+
+
 def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
     """One section per split: the runs' metrics, then each label against the reference."""
     lines = []
@@ -337,11 +349,19 @@ def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
         ]
         for label, d in rep["paired"].items():
             h, c = d["mpjpe/ra/h"], d["cdev/ho"]
-            per = ", ".join(f"{v:+.2f}" for v in h["per_seed"].values()) or "n/a"
             lines.append(
-                f"| {label} | {per} | {_cell(h, True)} | {interval_text(h['clips'])} | {left_out_text(h['clips'])}"
-                f" | {_cell(c, True)} | {interval_text(c['clips'])} |"
+                f"| {label} | {_per_seed(h)} | {_cell(h, True)} | {interval_text(h['clips'])}"
+                f" | {left_out_text(h['clips'])} | {_cell(c, True)} | {interval_text(c['clips'])} |"
             )
+        lines += [
+            "",
+            f"| − {reference}, per hand | ΔMPJPE right per seed | mean ± std | 95 % interval over clips"
+            " | ΔMPJPE left per seed | mean ± std | 95 % interval over clips |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for label, d in rep["paired"].items():
+            cells = [f"{_per_seed(d[m])} | {_cell(d[m], True)} | {interval_text(d[m]['clips'])}" for m in HAND_METRICS]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 

@@ -215,8 +215,9 @@ def test_loss_single_invalid_hand_drops_only_its_frames():
 def test_metrics_at_ground_truth():
     t, meta, p = make_sample(contact_offset=0.0)
     m = per_frame_metrics(p, t, meta)
-    assert set(m) == {"mpjpe/ra/h", "mrrpe/r/l", "mrrpe/r/o", "cdev/ho", "aae", "success_rate/0.05"}
-    for k in ("mpjpe/ra/h", "mrrpe/r/l", "mrrpe/r/o", "cdev/ho", "aae"):
+    hands = ("mpjpe/ra/r", "mpjpe/ra/l")
+    assert set(m) == {"mpjpe/ra/h", *hands, "mrrpe/r/l", "mrrpe/r/o", "cdev/ho", "aae", "success_rate/0.05"}
+    for k in ("mpjpe/ra/h", *hands, "mrrpe/r/l", "mrrpe/r/o", "cdev/ho", "aae"):
         np.testing.assert_allclose(m[k], 0.0, atol=1e-9, err_msg=k)
     np.testing.assert_allclose(m["success_rate/0.05"], 100.0)
 
@@ -326,6 +327,8 @@ def test_per_frame_metrics_match_direct_loops():
         ra = {s: [src[f"mano.j3d.cam.{s}"][b].numpy() for src in (p, t)] for s in hands}
         mp = [np.linalg.norm((jp - jp[0]) - (jg - jg[0]), axis=1).mean() for jp, jg in ra.values()]
         assert m["mpjpe/ra/h"][b] == pytest.approx(1000 * np.mean(mp))
+        assert m["mpjpe/ra/r"][b] == pytest.approx(1000 * mp[0])
+        assert (m["mpjpe/ra/l"][b] == pytest.approx(1000 * mp[1])) if b != 2 else np.isnan(m["mpjpe/ra/l"][b])
         cd = []
         for s in hands:
             c = (t[f"dist.{s}o"][b] <= 3e-3).numpy()

@@ -108,3 +108,24 @@ def test_the_report_shows_the_task_model_and_the_exports_drops(tmp_path):
     }
     (tmp_path / "index.json").write_text(json.dumps({**index, "dropped": None}))  # reasons not recorded
     assert gap.export_drops(tmp_path) == {"requested": 30, "written": 25, "dropped": 5}
+
+
+def test_the_world_is_the_setup_world_or_the_one_root_of_the_exports(tiny_world, tmp_path):
+    """A downstream folder made with --setup-data has no setup/world: its exports name the root;
+    exports of two roots, or a root without splits, are refused with the roots found."""
+    import json
+
+    gap = _gap()
+    exports = []
+    for name, data in (("full-a", tiny_world), ("no_srm-b", tiny_world), ("no_pom-c", tmp_path)):
+        (tmp_path / "synthetic" / name).mkdir(parents=True)
+        (tmp_path / "synthetic" / name / "index.json").write_text(json.dumps({"info": {"data": str(data)}}))
+        exports.append(tmp_path / "synthetic" / name)
+    assert gap.world_root(tmp_path, exports[:2]) == gap._with_splits(tiny_world) is not None
+    with pytest.raises(SystemExit, match="data roots"):
+        gap.world_root(tmp_path, exports)
+    with pytest.raises(SystemExit, match="no world with splits/"):
+        gap.world_root(tmp_path, exports[2:])
+    (tmp_path / "setup" / "world").mkdir(parents=True)
+    (tmp_path / "setup" / "world" / "splits").mkdir()
+    assert gap.world_root(tmp_path, exports) == tmp_path / "setup" / "world"

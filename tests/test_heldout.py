@@ -65,12 +65,18 @@ def test_runs_are_evaluated_once_and_paired_over_clips(tiny_world, tmp_path, mon
     real0 = next(json.loads(p.read_text()) for p in cached if "real/seed0" in json.loads(p.read_text())["model"])
     assert real0["summary"]["mpjpe/ra/h"] == pytest.approx(direct["mpjpe/ra/h"], rel=1e-5)
     assert real0["summary"]["cdev/ho"] == pytest.approx(direct["cdev/ho"], rel=1e-5)
+    for hand in ("mpjpe/ra/r", "mpjpe/ra/l"):  # each hand's MPJPE, also paired over clips
+        assert real0["summary"][hand] == pytest.approx(direct[hand], rel=1e-5)
+        dh = saved["paired"]["hogsa"][hand]
+        assert dh["mean"] == pytest.approx(np.mean(list(dh["per_seed"].values())))
+        assert dh["clips"]["estimate"] == pytest.approx(dh["mean"], abs=1e-4)
     d = saved["paired"]["hogsa"]["mpjpe/ra/h"]
     assert d["mean"] == pytest.approx(np.mean(list(d["per_seed"].values())))
     assert d["clips"]["estimate"] == pytest.approx(d["mean"], abs=1e-4)  # the clip sums form the summaries again
     assert d["clips"]["ci95"][0] <= d["clips"]["estimate"] <= d["clips"]["ci95"][1]
     md = (tmp_path / "out" / "heldout.md").read_text()
-    assert f"**p1_val** ({len(ds)} frames, {len(views)} clips)" in md and "| hogsa | " in md
+    assert f"**p1_val** ({len(ds)} frames, {len(views)} clips)" in md and md.count("| hogsa | ") == 3
+    assert "| − real, per hand | ΔMPJPE right per seed |" in md
 
     def no_evaluation(*a, **k):
         raise AssertionError("evaluated again")
@@ -86,8 +92,12 @@ def test_two_splits_are_also_reported_together(tiny_world, tmp_path):
         {"frames": 3, "clips": {"s05/a/1": {"mpjpe/ra/h": [30.0, 3.0], "cdev/ho": [3.0, 3.0]}}},
         {"frames": 1, "clips": {"s03/a/1": {"mpjpe/ra/h": [50.0, 1.0], "cdev/ho": [0.0, 0.0]}}},
     ]
+    hands = ({"mpjpe/ra/r": [24.0, 3.0], "mpjpe/ra/l": [36.0, 3.0]}, {"mpjpe/ra/r": [50.0, 1.0], "mpjpe/ra/l": [0, 0]})
+    for rec, h in zip(recs, hands):
+        next(iter(rec["clips"].values())).update(h)
     both = hd.merged(recs)
     assert both["frames"] == 4 and both["summary"]["mpjpe/ra/h"] == pytest.approx(20.0)
+    assert both["summary"]["mpjpe/ra/r"] == pytest.approx(18.5) and both["summary"]["mpjpe/ra/l"] == pytest.approx(12)
     assert both["summary"]["cdev/ho"] == pytest.approx(1.0) and len(both["clips"]) == 2
 
 

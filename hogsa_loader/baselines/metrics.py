@@ -184,9 +184,9 @@ def per_frame_metrics(pred: Mapping, targets: Mapping, meta_info: Mapping) -> di
         meta_info: ``part_ids`` (B, Vmax) and ``diameter`` (B,) (m).
 
     Returns:
-        ``{key: (B,) float64 array}`` with nan where undefined: ``mpjpe/ra/h``,
-        ``mrrpe/r/l``, ``mrrpe/r/o``, ``cdev/ho`` (mm), ``aae`` (degrees) and
-        ``success_rate/0.05`` (percent).
+        ``{key: (B,) float64 array}`` with nan where undefined: ``mpjpe/ra/h`` (the nan-mean
+        of each hand's ``mpjpe/ra/r`` and ``mpjpe/ra/l``), ``mrrpe/r/l``, ``mrrpe/r/o``,
+        ``cdev/ho`` (mm), ``aae`` (degrees) and ``success_rate/0.05`` (percent).
     """
     jp = {s: _t(pred[f"mano.j3d.cam.{s}"]) for s in "rl"}
     jg = {s: _t(targets[f"mano.j3d.cam.{s}"]) for s in "rl"}
@@ -195,7 +195,7 @@ def per_frame_metrics(pred: Mapping, targets: Mapping, meta_info: Mapping) -> di
     part_ids = torch.as_tensor(meta_info["part_ids"]).cpu()
     frame, rv, lv = _mask(targets["is_valid"]), _hand_valid(targets, "r"), _hand_valid(targets, "l")
 
-    mpjpe = _nanmean_pair(mpjpe_root_aligned(jp["r"], jg["r"], rv), mpjpe_root_aligned(jp["l"], jg["l"], lv))
+    per_hand = {s: mpjpe_root_aligned(jp[s], jg[s], v) for s, v in (("r", rv), ("l", lv))}
     mrrpe_rl = relative_root_error(jp["r"][:, 0], jp["l"][:, 0], jg["r"][:, 0], jg["l"][:, 0], rv & lv)
     root_o_p, root_o_g = object_roots(vo_p, v_len, part_ids), object_roots(vo_g, v_len, part_ids)
     mrrpe_ro = relative_root_error(jp["r"][:, 0], root_o_p, jg["r"][:, 0], root_o_g, rv)
@@ -213,7 +213,9 @@ def per_frame_metrics(pred: Mapping, targets: Mapping, meta_info: Mapping) -> di
     diameter = _t(meta_info["diameter"]).reshape(-1)
     success = success_rate(vo_p, vo_g, v_len, part_ids, diameter, frame)
     out = {
-        "mpjpe/ra/h": 1000.0 * mpjpe,
+        "mpjpe/ra/h": 1000.0 * _nanmean_pair(per_hand["r"], per_hand["l"]),
+        "mpjpe/ra/r": 1000.0 * per_hand["r"],
+        "mpjpe/ra/l": 1000.0 * per_hand["l"],
         "mrrpe/r/l": 1000.0 * mrrpe_rl,
         "mrrpe/r/o": 1000.0 * mrrpe_ro,
         "cdev/ho": 1000.0 * _nanmean_pair(*cdev),
