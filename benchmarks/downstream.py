@@ -152,6 +152,14 @@ class SetupSettings:
     hogs_iters: int = field(default=400, metadata={"help": "HOGS steps per (subject, object) when building"})
     hogs_image_size: int = field(default=128, metadata={"help": "HOGS training resolution when building"})
     srm_iters: int = field(default=400, metadata={"help": "SRM steps when building"})
+    srm_gan: float = field(
+        default=0.0,
+        metadata={
+            "help": "weight of SRM's adversarial term when building (StyleUNet's conditional discriminator; "
+            "0: L1 and perceptual terms only)",
+            "type": "non_negative_float",
+        },
+    )
     contactnet_iters: int = field(default=120, metadata={"help": "ContactNet steps when building"})
     bank_per_sequence: int = field(default=6, metadata={"help": "POM frames per sequence in the pose bank"})
     bank_variants: int = field(
@@ -457,6 +465,7 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
         hogs_iters=s.hogs_iters,
         hogs_image_size=s.hogs_image_size,
         srm_iters=s.srm_iters,
+        srm_gan=s.srm_gan,
         contactnet_iters=s.contactnet_iters,
         bank_per_sequence=s.bank_per_sequence,
         bank_variants=s.bank_variants,
@@ -506,7 +515,7 @@ def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str,
 
 
 #: Setup settings keyed only when they hold other values than these.
-_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1, "bank_frames": "contact"}
+_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1, "bank_frames": "contact", "srm_gan": 0.0}
 
 
 def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:

@@ -80,7 +80,9 @@ class DemoConfig:
             bank_frames: ``"contact"`` (grasps only) or ``"all"`` (frames without contact keep
             their share; ``BankDataConfig.frames``).
         srm_iters, srm_crop, srm_augment: brief SRM training (crop = training window side;
-            augment: ``none``/``flip``/``d4``). Its coarse renders are cached in
+            augment: ``none``/``flip``/``d4``); srm_gan: weight of its adversarial term
+            (StyleUNet's conditional discriminator; 0: L1 and perceptual terms only, a
+            regression to the mean image of a render). Its coarse renders are cached in
             ``OUT/cache/srm`` (keyed by the HOGS weights and labels), so a rebuild of the SRM
             stage alone does not render again; entries the build did not use (older HOGS
             weights) are deleted after it.
@@ -115,6 +117,7 @@ class DemoConfig:
     srm_augment: str = (
         "none"  # 400 steps on the small world: +0.24 dB without, +0.06 dB with d4 (d4 pays off only in long runs)
     )
+    srm_gan: float = 0.0
     samples: int = 64
     batch_size: int = 8
     num_workers: int = 2
@@ -294,6 +297,8 @@ def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _St
     return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters), [cn], contactnet)
 
 
+#: SRM settings keyed only when they hold other values than these.
+_SRM_UNKEYED = {"gan": 0.0}
 #: Pose-bank settings keyed only when they hold other values than these.
 _BANK_UNKEYED = {"finger_scale": 0.0, "variants": 1, "frames": "contact"}
 
@@ -329,23 +334,31 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
     )
 
 
+def _srm_node(cfg: DemoConfig, out: Path, data: Path, hogs: list[_StageNode]) -> _StageNode:
+    """The SRM stage (after the HOGS stages ``hogs``) into ``OUT/runs/srm``."""
+    late = keyed_settings({"gan": cfg.srm_gan}, _SRM_UNKEYED)
+    k_hogs = [n.key for n in hogs]
+    srm = out / "runs" / "srm"
+    return _StageNode(
+        "srm",
+        _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment, *([late] if late else [])),
+        [srm],
+        lambda: _train_srm(_child_cfg(cfg), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
+        needs=tuple(n.name for n in hogs),
+    )
+
+
 def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
     """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle; the data root and bundle."""
     data, k_world = _world_stage(cfg, out, stages, say)
     # the stages between the world and the bundle
     hogs = _hogs_nodes(cfg, out, data, k_world)
     runs, k_hogs = [n.outputs[0] for n in hogs], [n.key for n in hogs]
-    cn, bank, srm = out / "runs" / "contactnet", out / "runs" / "pose_bank", out / "runs" / "srm"
+    cn, bank = out / "runs" / "contactnet", out / "runs" / "pose_bank"
     cn_node = _contactnet_node(cfg, cn, data, k_world)
     bank_node = _bank_node(cfg, bank, data, cn, cn_node.key)
-    k_srm = _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment)
-    srm_node = _StageNode(
-        "srm",
-        k_srm,
-        [srm],
-        lambda: _train_srm(_child_cfg(cfg), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
-        needs=tuple(n.name for n in hogs),
-    )
+    srm_node = _srm_node(cfg, out, data, hogs)
+    srm, k_srm = srm_node.outputs[0], srm_node.key
     _run_stage_graph(stages, [*hogs, cn_node, bank_node, srm_node], cfg, say)
 
     bundle = out / "bundle"
@@ -502,7 +515,7 @@ def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) 
             root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment, cache=str(cache)
         ),
         model=SRMModelConfig(channels=(16, 32, 64, 64, 64)),
-        loss=SRMLossConfig(lambda_gan=0.0),
+        loss=SRMLossConfig(lambda_gan=cfg.srm_gan),
         optim=SRMOptimConfig(iters=cfg.srm_iters),
         run=SRMRunConfig(
             out=str(out), seed=cfg.seed, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters, strip_views=2

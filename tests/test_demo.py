@@ -220,3 +220,35 @@ def test_stage_graph_runs_each_stage_after_what_it_needs(tmp_path):
             DemoConfig(progress=False),
             lambda s: None,
         )
+
+
+def test_srm_stage_key_holds_the_adversarial_weight_only_when_asked(tiny_world, monkeypatch):
+    """Without an adversarial term the SRM stage keeps the key it had before the setting existed
+    (its cached builds stay valid); with one it is another stage, trained with that weight."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from hogsa_loader.demo import _key, _srm_node, _StageNode
+
+    cfg = DemoConfig(data=str(tiny_world), pairs=(("s01", "box"),), srm_iters=4)
+    hogs = [_StageNode("hogs/s01_box", "h1", [Path("/x/hogs/s01_box")], lambda: None)]
+
+    def node(c: DemoConfig) -> _StageNode:
+        return _srm_node(c, Path("/x"), Path(tiny_world), hogs)
+
+    assert node(cfg).key == _key("srm", ["h1"], 4, cfg.srm_crop, cfg.srm_augment)
+    assert node(replace(cfg, srm_gan=1.0)).key not in {node(cfg).key, node(replace(cfg, srm_gan=0.5)).key}
+    seen = []
+
+    class Built(Exception):
+        pass
+
+    def trainer(c, **kwargs):
+        seen.append(c.loss.lambda_gan)
+        raise Built
+
+    monkeypatch.setattr("hogsa_loader.demo.SRMTrainer", trainer)
+    for gan in (0.0, 1.0):
+        with pytest.raises(Built):
+            node(replace(cfg, srm_gan=gan)).build()
+    assert seen == [0.0, 1.0] and node(cfg).needs == ("hogs/s01_box",)

@@ -131,10 +131,11 @@ def test_setup_builds_its_pose_bank_with_the_finger_scale(tmp_path, monkeypatch)
     monkeypatch.setattr(ds, "background_folder", lambda cfg, data, out: data)
     cfg = ds.DownstreamConfig()
     cfg.setup.bank_finger_scale, cfg.setup.bank_per_sequence, cfg.setup.bank_variants = 0.5, 64, 3
-    cfg.setup.bank_frames = "all"
+    cfg.setup.bank_frames, cfg.setup.srm_gan = "all", 1.0
     ds.build_setup(cfg, tmp_path)
     got = seen[0]
     assert (got.bank_finger_scale, got.bank_per_sequence, got.bank_variants, got.bank_frames) == (0.5, 64, 3, "all")
+    assert got.srm_gan == 1.0
 
 
 def test_low_data_subset_is_fixed_and_sized():
@@ -198,8 +199,8 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
     assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
-    # pinned: the default --setup-bank-finger-scale (0), --setup-bank-variants (1) and --setup-bank-frames
-    # (contact) add nothing to the keys
+    # pinned: the default --setup-bank-finger-scale (0), --setup-bank-variants (1), --setup-bank-frames
+    # (contact) and --setup-srm-gan (0) add nothing to the keys
     assert first == {"world": "7829384198a2f0f3", "bundle": "70c63df39baf3bf5", "all": "cacbad1012974482"} | {
         "free": "39022538e5ffdfd9"
     }
@@ -216,6 +217,10 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     assert {k: v for k, v in every.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
     assert every["all"] not in (first["all"], fingers["all"], variants["all"])
     cfg.setup.bank_finger_scale, cfg.setup.bank_variants, cfg.setup.bank_frames = 0.0, 1, "contact"
+    cfg.setup.srm_gan = 1.0  # another SRM: the bundle's runs change, the world's do not
+    gan = ds.setup_fingerprints(cfg, setup)
+    assert gan["world"] == first["world"] and gan["bundle"] != first["bundle"] and gan["all"] != first["all"]
+    cfg.setup.srm_gan = 0.0
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "2"}}]}))
     bank = ds.setup_fingerprints(cfg, setup)  # a new pose bank
     assert bank["world"] == first["world"] and bank["bundle"] == first["bundle"] and bank["all"] != first["all"]
