@@ -375,6 +375,11 @@ def validate(cfg: DownstreamConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise SystemExit(f"downstream: error: {msg}")
+    if cfg.setup.data is not None:
+        try:  # an ARCTIC root with a p1 training split
+            train_pairs(Path(cfg.setup.data))
+        except AssetError as e:
+            raise SystemExit(f"downstream: error: --setup-data {e}") from None
     if cfg.synthetic.other_hands > 0 and cfg.setup.bundle is None:
         subjects = sorted({sid for sid, _ in setup_pairs(cfg.setup)})
         if len(subjects) < 2:

@@ -856,3 +856,12 @@ def test_other_hands_reach_the_export_and_key_its_frames_and_runs(monkeypatch, t
     with pytest.raises(SystemExit, match=r"two training subjects; the world has \['s01'\]"):
         ds.validate(one_subject)  # before any setup is built
     ds.validate(ds.replace(one_subject, synthetic=cfg.synthetic))  # no other hands: one subject is enough
+
+
+def test_a_setup_data_root_that_is_not_one_is_refused_by_name(tiny_world, tmp_path):
+    ds = _downstream()
+    cfg = ds.DownstreamConfig()
+    for data in (tmp_path / "missing", tmp_path):
+        with pytest.raises(SystemExit, match=rf"--setup-data {data}: not an ARCTIC data root"):
+            ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(data))))
+    ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(tiny_world))))  # a world: accepted
