@@ -1,8 +1,9 @@
 #!/usr/bin/env python
 """Why synthetic frames help a baseline or not: domain gap and pose coverage of the downstream data.
 
-Reads the folder of ``benchmarks/downstream.py`` (its world in ``setup/`` and its exports in
-``synthetic/``) and measures, per synthetic variant:
+Reads the folder of ``benchmarks/downstream.py`` (its exports in ``synthetic/`` and the world they
+were rendered from: ``setup/world``, or the ``--setup-data`` root their ``index.json`` names) and
+measures, per synthetic variant:
 
 * **domain gap** — a small CNN trained to tell real training patches from synthetic ones
   (held-out accuracy; 50 % = indistinguishable). The same classifier on real training vs
@@ -114,13 +115,15 @@ def _with_splits(world: Path) -> Optional[Path]:
 
 
 def world_root(downstream: Path, exports: Sequence[Path] = ()) -> Path:
-    """The ARCTIC data root of a downstream folder: the world it built (``setup/world``), else
-    the root its exports were rendered from (``data`` in their ``index.json``, one root for all:
-    a folder made with ``--setup-data``)."""
-    root = _with_splits(downstream / "setup" / "world")
-    roots = sorted({str(json.loads((e / "index.json").read_text()).get("info", {}).get("data")) for e in exports})
-    if root is None and len(roots) == 1:
-        root = _with_splits(Path(roots[0]))
+    """The ARCTIC data root of a downstream folder: the one root its exports were rendered from
+    (``data`` in their ``index.json``; a folder made with ``--setup-data`` has no world of its
+    own), else the world it built (``setup/world``); exports of several roots are refused."""
+    named = {json.loads((e / "index.json").read_text()).get("info", {}).get("data") for e in exports}
+    roots = sorted(str(r) for r in named if r is not None)
+    if len(roots) > 1:
+        raise SystemExit(f"domain_gap: error: the exports were rendered from several data roots: {roots}")
+    root = _with_splits(Path(roots[0])) if roots else None
+    root = root or _with_splits(downstream / "setup" / "world")
     if root is None:
         where = downstream / "setup" / "world"
         raise SystemExit(f"domain_gap: error: no world with splits/ under {where}; the exports' data roots: {roots}")

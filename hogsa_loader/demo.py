@@ -336,7 +336,7 @@ def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> 
 
 def _srm_node(cfg: DemoConfig, out: Path, data: Path, hogs: list[_StageNode]) -> _StageNode:
     """The SRM stage (after the HOGS stages ``hogs``) into ``OUT/runs/srm``."""
-    late = keyed_settings({"gan": cfg.srm_gan}, _SRM_UNKEYED)
+    late = keyed_settings({"gan": float(cfg.srm_gan)}, _SRM_UNKEYED)  # 1 and 1.0 key alike
     k_hogs = [n.key for n in hogs]
     srm = out / "runs" / "srm"
     return _StageNode(

@@ -238,6 +238,7 @@ def test_srm_stage_key_holds_the_adversarial_weight_only_when_asked(tiny_world, 
 
     assert node(cfg).key == _key("srm", ["h1"], 4, cfg.srm_crop, cfg.srm_augment)
     assert node(replace(cfg, srm_gan=1.0)).key not in {node(cfg).key, node(replace(cfg, srm_gan=0.5)).key}
+    assert node(replace(cfg, srm_gan=1)).key == node(replace(cfg, srm_gan=1.0)).key
     seen = []
 
     class Built(Exception):

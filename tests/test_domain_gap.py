@@ -110,22 +110,40 @@ def test_the_report_shows_the_task_model_and_the_exports_drops(tmp_path):
     assert gap.export_drops(tmp_path) == {"requested": 30, "written": 25, "dropped": 5}
 
 
-def test_the_world_is_the_setup_world_or_the_one_root_of_the_exports(tiny_world, tmp_path):
-    """A downstream folder made with --setup-data has no setup/world: its exports name the root;
-    exports of two roots, or a root without splits, are refused with the roots found."""
+def test_the_world_is_the_one_root_of_the_exports_or_the_setup_world(tiny_world, tmp_path, monkeypatch):
+    """The exports name the root they were rendered from (a folder made with --setup-data has no
+    world of its own); exports of two roots, or a root without splits and no setup world, are
+    refused with the roots found; exports that name none read setup/world; run() asks with the
+    exports it found."""
     import json
 
     gap = _gap()
     exports = []
-    for name, data in (("full-a", tiny_world), ("no_srm-b", tiny_world), ("no_pom-c", tmp_path)):
+    for name, data in (("full-a", tiny_world), ("no_srm-b", tiny_world), ("no_pom-c", tmp_path), ("free-d", None)):
         (tmp_path / "synthetic" / name).mkdir(parents=True)
-        (tmp_path / "synthetic" / name / "index.json").write_text(json.dumps({"info": {"data": str(data)}}))
+        info = {"data": str(data)} if data is not None else {}
+        (tmp_path / "synthetic" / name / "index.json").write_text(json.dumps({"info": info}))
         exports.append(tmp_path / "synthetic" / name)
     assert gap.world_root(tmp_path, exports[:2]) == gap._with_splits(tiny_world) is not None
-    with pytest.raises(SystemExit, match="data roots"):
+    with pytest.raises(SystemExit, match="several data roots"):
         gap.world_root(tmp_path, exports)
     with pytest.raises(SystemExit, match="no world with splits/"):
         gap.world_root(tmp_path, exports[2:])
-    (tmp_path / "setup" / "world").mkdir(parents=True)
-    (tmp_path / "setup" / "world" / "splits").mkdir()
-    assert gap.world_root(tmp_path, exports) == tmp_path / "setup" / "world"
+    (tmp_path / "setup" / "world" / "splits").mkdir(parents=True)
+    assert gap.world_root(tmp_path, exports[3:]) == tmp_path / "setup" / "world"
+    assert gap.world_root(tmp_path, exports[:2]) == gap._with_splits(tiny_world)  # what they were rendered from
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def world_root(downstream, found):
+        seen.append(sorted(p.name for p in found))
+        raise Stop
+
+    monkeypatch.setattr(gap, "world_root", world_root)
+    names = {"full": "full-a", "no_srm": "no_srm-b"}
+    monkeypatch.setattr(gap, "find_export", lambda d, v, r: d / "synthetic" / names[v])
+    with pytest.raises(Stop):
+        gap.run(gap.GapConfig(downstream=str(tmp_path), variants=("full", "no_srm"), model="none", threads=1))
+    assert seen == [["full-a", "no_srm-b"]]

@@ -864,4 +864,7 @@ def test_a_setup_data_root_that_is_not_one_is_refused_by_name(tiny_world, tmp_pa
     for data in (tmp_path / "missing", tmp_path):
         with pytest.raises(SystemExit, match=rf"--setup-data {data}: not an ARCTIC data root"):
             ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(data))))
+    (tmp_path / "root" / "arctic_data" / "data").mkdir(parents=True)  # a root without the p1 protocol
+    with pytest.raises(SystemExit, match=r"--setup-data .*protocol_p1.json: file is missing"):
+        ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(tmp_path / "root"))))
     ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(tiny_world))))  # a world: accepted

@@ -77,6 +77,11 @@ def test_runs_are_evaluated_once_and_paired_over_clips(tiny_world, tmp_path, mon
     md = (tmp_path / "out" / "heldout.md").read_text()
     assert f"**p1_val** ({len(ds)} frames, {len(views)} clips)" in md and md.count("| hogsa | ") == 3
     assert "| − real, per hand | ΔMPJPE right per seed |" in md
+    right = saved["paired"]["hogsa"]["mpjpe/ra/r"]["per_seed"].values()
+    lines = md.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| − real, per hand"))
+    hand_row = next(line for line in lines[start:] if line.startswith("| hogsa | "))
+    assert hand_row.startswith("| hogsa | " + ", ".join(f"{v:+.2f}" for v in right) + " | ")
 
     def no_evaluation(*a, **k):
         raise AssertionError("evaluated again")
