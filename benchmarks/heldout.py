@@ -325,6 +325,11 @@ def _cell(row: dict[str, Optional[float]], sign: bool = False) -> str:
     return f"{row['mean']:{fmt}}" + (f" ± {row['std']:.2f}" if row["std"] is not None else "")
 
 
+def _head(cells: list[str]) -> list[str]:
+    """A blank line, then a Markdown table's header row of ``cells`` and its rule."""
+    return ["", "| " + " | ".join(cells) + " |", "|" + "---|" * len(cells)]
+
+
 def _per_seed(d: dict[str, Any]) -> str:
     return ", ".join(f"{v:+.2f}" for v in d["per_seed"].values()) or "n/a"
 
@@ -334,31 +339,24 @@ def markdown(reports: dict[str, dict[str, Any]], reference: str) -> str:
     lines = []
     for split, rep in reports.items():
         metrics = [m for m in METRICS if any(rep["arms"][a][m]["mean"] is not None for a in rep["arms"])]
-        lines += [
-            f"**{split}** ({rep['frames']} frames, {rep['clips']} clips), mean ± std over seeds",
-            "",
-            "| run | " + " | ".join(METRICS[m] for m in metrics) + " |",
-            "|" + "---|" * (len(metrics) + 1),
-        ]
+        lines.append(f"**{split}** ({rep['frames']} frames, {rep['clips']} clips), mean ± std over seeds")
+        lines += _head(["run", *(METRICS[m] for m in metrics)])
         lines += [f"| {a} | " + " | ".join(_cell(row[m]) for m in metrics) + " |" for a, row in rep["arms"].items()]
-        lines += [
-            "",
-            f"| − {reference} | ΔMPJPE_h per seed | mean ± std | 95 % interval over clips | one clip left out"
-            " | ΔCDev_ho mean ± std | 95 % interval over clips |",
-            "|---|---|---|---|---|---|---|",
-        ]
+        interval = "95 % interval over clips"
+        lines += _head(
+            [f"− {reference}", "ΔMPJPE_h per seed", "mean ± std", interval, "one clip left out", "ΔCDev_ho mean ± std"]
+            + [interval]
+        )
         for label, d in rep["paired"].items():
             h, c = d["mpjpe/ra/h"], d["cdev/ho"]
             lines.append(
                 f"| {label} | {_per_seed(h)} | {_cell(h, True)} | {interval_text(h['clips'])}"
                 f" | {left_out_text(h['clips'])} | {_cell(c, True)} | {interval_text(c['clips'])} |"
             )
-        lines += [
-            "",
-            f"| − {reference}, per hand | ΔMPJPE right per seed | mean ± std | 95 % interval over clips"
-            " | ΔMPJPE left per seed | mean ± std | 95 % interval over clips |",
-            "|---|---|---|---|---|---|---|",
-        ]
+        lines += _head(
+            [f"− {reference}, per hand", "ΔMPJPE right per seed", "mean ± std", interval]
+            + ["ΔMPJPE left per seed", "mean ± std", interval]
+        )
         for label, d in rep["paired"].items():
             cells = [f"{_per_seed(d[m])} | {_cell(d[m], True)} | {interval_text(d[m]['clips'])}" for m in HAND_METRICS]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")

@@ -41,12 +41,23 @@ __all__ = [
     "build_split",
     "crop_boxes",
     "image_name",
+    "inner_frames",
     "process_sequence",
     "write_processed_splits",
 ]
 
 #: Frames skipped at each end of a sequence in the split image lists (ARCTIC: 10).
 FRAME_MARGIN = 10
+
+
+def inner_frames(num_frames: int, margin: int = FRAME_MARGIN, stride: int = 1) -> np.ndarray:
+    """The annotated frames of a sequence of ``num_frames`` that its split lists and poses use:
+    all but ``margin`` at each end, every ``stride``-th; (K,) int64."""
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    return np.arange(margin, num_frames - margin, stride)
+
+
 #: Keys of a processed sequence kept in the split files (``--request_keys``).
 REQUEST_KEYS: tuple[str, ...] = ("cam_coord", "2d", "bbox", "params")
 #: Frames posed per batch: ARCTIC's ``DataLoader`` batch (``construct_loader``,
@@ -539,7 +550,7 @@ def build_split(
         data_dict[key] = {k: data[k] for k in REQUEST_KEYS}
         F = int(data["params"]["rot_r"].shape[0])
         _check_offset(root, sid, frame_margin)
-        for frame in range(frame_margin, F - frame_margin):
+        for frame in inner_frames(F, frame_margin).tolist():
             for view in views:
                 imgnames.append(image_name(sid, name, view, frame))
     if len(set(imgnames)) != len(imgnames):

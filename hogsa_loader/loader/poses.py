@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.datasets.arctic_processing import FRAME_MARGIN
+from hogsa_loader.datasets.arctic_processing import FRAME_MARGIN, inner_frames
 from hogsa_loader.datasets.types import SequenceData
 
 __all__ = [
@@ -175,8 +175,7 @@ class PerturbPoses(FrameTables):
                 if name not in allowed or seq_name.split("_", 1)[0] != obj:
                     continue
                 seq = context.root.sequence(sid, seq_name)
-                F = seq.num_frames
-                idx = np.arange(frame_margin, F - frame_margin)
+                idx = inner_frames(seq.num_frames, frame_margin)
                 if require_valid:
                     ok = seq.right.valid[idx] & seq.left.valid[idx] & seq.object.valid[idx]
                     idx = idx[ok.astype(bool)]

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.datasets.arctic_processing import inner_frames
 from hogsa_loader.hands.mano import ManoOutput
 from hogsa_loader.pom.hands import SIDES, HandInfo
 from hogsa_loader.pom.objects import ObjectSet, to_canonical
@@ -114,14 +115,12 @@ def load_frames(
     Returns:
         the state (B = all kept frames) and the source ``(subject, sequence, frame index)``.
     """
-    if margin < 0:
-        raise ValueError(f"margin must be >= 0, got {margin}")
     parts: dict[str, list] = {f"{s}_{k}": [] for s in SIDES for k in HAND_KEYS}
     names, arti, rot, trans, src = [], [], [], [], []
     for sid_seq in seq_ids:
         sid, seq = sid_seq.split("/")
         sd = root.sequence(sid, seq)
-        keep = np.arange(margin, sd.num_frames - margin, stride)
+        keep = inner_frames(sd.num_frames, margin, stride)
         keep = keep[sd.right.valid[keep] & sd.left.valid[keep] & sd.object.valid[keep]]
         for side in SIDES:
             h = getattr(sd, side)
