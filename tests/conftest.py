@@ -12,11 +12,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import settings as hypothesis_settings
 
 from hogsa_loader.hands.mano_io import write_mano_pickle
 from hogsa_loader.synthetic.hand import synthetic_hand_pair
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+# Property tests draw the same examples on every run and machine (``derandomize``: a seed from
+# each test's own code) and keep no example database; ``HOGSA_HYPOTHESIS_PROFILE=random`` draws
+# fresh examples each run. The long randomized reader fuzz is ``benchmarks/fuzz_readers.py``.
+hypothesis_settings.register_profile("suite", derandomize=True, database=None, print_blob=True)
+hypothesis_settings.register_profile("random", database=None, print_blob=True)
+hypothesis_settings.load_profile(os.environ.get("HOGSA_HYPOTHESIS_PROFILE", "suite"))
 
 
 def load_script(relpath: str, name: str) -> types.ModuleType:

@@ -35,7 +35,9 @@ def resources(tiny_world, tmp_path_factory):
     return fz.build_resources(tmp_path_factory.mktemp("fuzz"), tiny_world, log=lambda m: None)
 
 
-@pytest.mark.parametrize("name", ["mano_pickle", "arctic_split", "bundle", "part_checkpoint", "run_folder", "shard"])
+@pytest.mark.parametrize(
+    "name", ["mano_pickle", "arctic_split", "npy_sparse", "bundle", "part_checkpoint", "run_folder", "shard"]
+)
 def test_reader_accepts_or_raises_asset_error(name, resources):
     tally = fz.fuzz(fz.TARGETS[name], resources, CASES, seed=0, trace_memory=False)
     assert tally.failures == []

@@ -156,7 +156,7 @@ def test_crafted_pickles_cannot_patch_scipy_or_escape_the_error_handling(tmp_pat
     loop.__setstate__({"x": loop})
     with pytest.raises(AssetError, match="nested too deeply"):
         model_from_dict({**good, "v_template": loop}, source="loop.pkl")
-    with pytest.raises(AssetError, match="far larger than any MANO array"):
+    with pytest.raises(AssetError, match="larger than 50000000 elements dense"):
         model_from_dict({**good, "J_regressor": sp.csc_matrix((10**6, 10**6))}, source="huge.pkl")
     ref = model_from_dict(good, source="MANO_RIGHT.pkl")  # the real file still loads
     # any in-memory sparse type still densifies (csr_array is not one of the pickled classes)
@@ -239,3 +239,98 @@ def test_unknown_vertex_count_needs_tips(tmp_path, hand_pair):
         4,
         5,
     ]
+
+
+def _crafted_j_regressor(src, dst, tamper) -> None:
+    """Copy the MANO pickle ``src`` to ``dst`` with the bytes of its J_regressor's CSC arrays
+    replaced by ``tamper(indices, indptr)`` (arrays of the same byte length)."""
+    import scipy.sparse as sp
+
+    raw = src.read_bytes()
+    jreg = sp.csc_matrix(load_mano(src).J_regressor)
+    indices, indptr = jreg.indices.copy(), jreg.indptr.copy()
+    new_indices, new_indptr = tamper(indices.copy(), indptr.copy())
+    for old, new in ((indices, new_indices), (indptr, new_indptr)):
+        assert raw.count(old.tobytes()) == 1 and len(new.tobytes()) == len(old.tobytes())
+        raw = raw.replace(old.tobytes(), new.tobytes())
+    dst.write_bytes(raw)
+
+
+def _set(a, value):
+    a[:] = value
+    return a
+
+
+@pytest.mark.parametrize(
+    "tamper, message",
+    [
+        (lambda i, p: (_set(i, 2**30), p), r"'indices' holds indices in \[1073741824, 1073741824\], outside"),
+        (lambda i, p: (_set(i, -5), p), r"'indices' holds indices in \[-5, -5\]"),
+        (lambda i, p: (i, p[::-1].copy()), "'indptr' must start at 0, never decrease"),
+        (lambda i, p: (i, _set(p, 2**30)), "'indptr' must start at 0"),
+    ],
+)
+def test_crafted_sparse_j_regressor_is_refused_not_a_crash(tmp_path, mano_dir, tamper, message):
+    """A MANO pickle whose J_regressor has CSC indices out of range (once an out-of-bounds
+    write in scipy's ``toarray``: SIGSEGV) is refused with an AssetError naming the file and
+    the field, by ``load_mano`` and by ``hogsa convert-mano``; each runs in a child process so
+    that a crash fails this test instead of killing the suite."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "MANO_RIGHT.pkl"
+    _crafted_j_regressor(mano_dir / "MANO_RIGHT.pkl", bad, tamper)
+    code = (
+        "import sys\nfrom hogsa_loader.errors import AssetError\nfrom hogsa_loader.hands.mano_io import load_mano\n"
+        "try:\n    load_mano(sys.argv[1])\nexcept AssetError as exc:\n    print(exc)\n    sys.exit(3)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 3, (run.returncode, run.stderr[-2000:])
+    assert str(bad) in run.stdout and "J_regressor" in run.stdout
+    import re
+
+    assert re.search(message, run.stdout), run.stdout
+    cli = subprocess.run(
+        [sys.executable, "-m", "hogsa_loader.cli.main", "convert-mano", str(bad), str(tmp_path / "out.npz")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert cli.returncode not in (0, -11) and cli.returncode > 0, (cli.returncode, cli.stderr[-2000:])
+    assert str(bad) in cli.stderr + cli.stdout and "J_regressor" in cli.stderr + cli.stdout
+    assert not (tmp_path / "out.npz").exists()
+
+
+def test_sparse_from_state_checks_every_part():
+    import scipy.sparse as sp
+
+    from hogsa_loader.io.sparse import sparse_from_state
+
+    dense = np.array([[0.0, 2.0, 0.0], [1.0, 0.0, 3.0]])
+    for fmt, cls in (("csr", sp.csr_matrix), ("csc", sp.csc_matrix), ("coo", sp.coo_matrix)):
+        state = dict(cls(dense).__dict__)
+        np.testing.assert_array_equal(sparse_from_state(state, fmt, "m.pkl").toarray(), dense)
+    good = dict(sp.csr_matrix(dense).__dict__)
+    cases = [
+        ({"data": good["data"][:-1]}, "lengths differ"),
+        ({"indices": good["indices"].astype(np.float64)}, "'indices' must be a 1-D array"),
+        ({"indices": np.full_like(good["indices"], 3)}, r"outside \[0, 3\)"),
+        ({"indptr": good["indptr"][:-1]}, "'indptr' has 2 entries, the shape needs 3"),
+        ({"indptr": np.array([1, 2, 3])}, "'indptr' must start at 0"),
+        ({"indptr": np.array([0, 2, 1])}, "never decrease and end"),
+        ({"_shape": (2, -3)}, "non-negative"),
+        ({"_shape": (10**6, 10**6)}, "larger than"),
+        ({"_shape": "2x3"}, "not a pair"),
+        ({"data": None}, "'data' is missing"),
+    ]
+    for change, message in cases:
+        state = {**good, **change}
+        with pytest.raises(AssetError, match=message) as info:
+            sparse_from_state(state, "csr", "m.pkl")
+        assert "m.pkl" in str(info.value)
+    coo = dict(sp.coo_matrix(dense).__dict__)
+    row, col = coo["coords"]
+    with pytest.raises(AssetError, match=r"'col' holds indices in \[0, 7\]"):
+        sparse_from_state({**coo, "coords": (row, np.where(col == 2, 7, col))}, "coo", "m.pkl")
+    with pytest.raises(AssetError, match="lengths differ"):
+        sparse_from_state({**coo, "coords": (row[:-1], col)}, "coo", "m.pkl")

@@ -7,7 +7,8 @@ copyreg globals, maps every ``chumpy.*`` class to an inert :class:`ChumpyStub` t
 pickled state, and refuses anything else with :class:`~hogsa_loader.errors.UnsafePickleError`;
 nothing from the file runs. What it builds is held to element and depth caps
 (:func:`~hogsa_loader.io.pickle_caps.check_unpickled`) before :func:`as_array` turns any value
-into an array.
+into an array; a sparse matrix is rebuilt from its checked parts
+(:func:`~hogsa_loader.io.sparse.sparse_from_state`) before scipy's compiled code touches it.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ import scipy.sparse as sp
 
 from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
 from hogsa_loader.io.pickle_caps import CappedUnpickler, nested_shape, numpy_globals
+from hogsa_loader.io.sparse import sparse_from_state
 
-__all__ = ["MAX_DENSE_ELEMENTS", "MAX_LIST_ELEMENTS", "ChumpyStub", "RestrictedUnpickler", "as_array"]
+__all__ = ["MAX_LIST_ELEMENTS", "ChumpyStub", "RestrictedUnpickler", "as_array"]
 
 
 class ChumpyStub:
@@ -70,6 +72,9 @@ def _chumpy_stub(module: str, name: str) -> type:
     return _STUB_CLASSES[full]
 
 
+_SPARSE_FORMATS = (("csc", sp.csc_matrix), ("csr", sp.csr_matrix), ("coo", sp.coo_matrix))
+
+
 def _allowed_globals() -> dict[tuple[str, str], Any]:
     allowed = numpy_globals(_frombuffer)
     allowed.update(
@@ -81,7 +86,7 @@ def _allowed_globals() -> dict[tuple[str, str], Any]:
             ("builtins", "slice"): slice,
         }
     )
-    for fmt, cls in (("csc", sp.csc_matrix), ("csr", sp.csr_matrix), ("coo", sp.coo_matrix)):
+    for fmt, cls in _SPARSE_FORMATS:
         # a fresh subclass per unpickler: pickle's BUILD can set attributes on a class it was
         # handed, and must never reach scipy's own classes (or a later load's)
         private = type(f"Pickled_{fmt}_matrix", (cls,), {})
@@ -126,9 +131,6 @@ class RestrictedUnpickler(CappedUnpickler):
             ) from None
 
 
-#: Largest dense array a MANO file may expand to (elements; the release's largest, posedirs,
-#: has 778·3·135 ≈ 0.3 M; a crafted sparse shape must not allocate terabytes).
-MAX_DENSE_ELEMENTS = 50_000_000
 #: Largest nested Python list turned into an array: 1 M numbers, three times the release's
 #: largest array. MANO files store numpy arrays, which this does not limit; a list of shared
 #: references may stand for up to the unpickler's element cap of 50 M numbers, and
@@ -143,25 +145,11 @@ def as_array(value: Any, where: str, depth: int = 0) -> np.ndarray:
     if isinstance(value, ChumpyStub):
         return value.to_array(where, depth + 1)
     if sp.issparse(value):
-        d = value.__dict__
-        shape = d.get("_shape", d.get("shape"))
-        try:
-            n = int(np.prod([int(x) for x in shape]))
-        except (TypeError, ValueError):
-            raise AssetError(where, f"sparse matrix with an unreadable shape {shape!r:.60}") from None
-        if n > MAX_DENSE_ELEMENTS:
-            raise AssetError(where, f"sparse matrix of shape {tuple(shape)} is far larger than any MANO array")
-        # scipy's own method, looked up on scipy's class (not on the pickled object's class)
-        real = next((c for c in (sp.csc_matrix, sp.csr_matrix, sp.coo_matrix) if isinstance(value, c)), None)
-        if real is None:  # another sparse type: only from an in-memory dict (a pickle cannot name one)
+        fmt = next((f for f, c in _SPARSE_FORMATS if isinstance(value, c)), None)
+        if fmt is None:  # another sparse type: only from an in-memory dict (a pickle cannot name one)
             return np.asarray(value.toarray())
-        try:
-            return np.asarray(real.toarray(value))
-        except Exception:  # old scipy pickles: rebuild from the raw fields
-            if real is sp.coo_matrix:
-                coords = d["coords"] if "coords" in d else (d["row"], d["col"])
-                return sp.coo_matrix((d["data"], tuple(coords)), shape=shape).toarray()
-            return real((d["data"], d["indices"], d["indptr"]), shape=shape).toarray()
+        # the pickled state is checked part by part before scipy's compiled code sees it
+        return np.asarray(sparse_from_state(value.__dict__, fmt, where).toarray())
     if isinstance(value, (str, bytes)):
         raise AssetError(where, f"expected an array, found a string {value!r:.40}")
     if isinstance(value, (list, tuple)):

@@ -9,7 +9,7 @@ built-in containers pickle encodes without globals: dict, list, tuple, str, numb
 holds what it built to element and depth caps (:func:`~hogsa_loader.io.pickle_caps.check_unpickled`:
 shared references count once per use) before any of it is converted. A pickled
 ``scipy.sparse`` CSR matrix (as in a world's ``meta/downsamplers.npy``) is unpickled as
-inert state and rebuilt by scipy's public constructor from its checked arrays. Any other
+inert state and rebuilt from its checked arrays (:func:`~hogsa_loader.io.sparse.sparse_from_state`). Any other
 global (``os.system``, ``builtins.exec``, a class) raises
 :class:`~hogsa_loader.errors.UnsafePickleError` before anything runs.
 """
@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
-from scipy.sparse import csr_matrix
 
 from hogsa_loader.errors import AssetError, PathLike, UnsafePickleError
 from hogsa_loader.io.pickle_caps import CappedUnpickler, numpy_globals
+from hogsa_loader.io.sparse import sparse_from_state
 
 __all__ = ["MAX_NPY_HEADER", "NpyUnpickler", "read_npy"]
 
@@ -56,21 +56,8 @@ for _mod in ("scipy.sparse._csr", "scipy.sparse.csr"):
 
 def _csr_from_state(holder: _PickledCSR, path: Path) -> Any:
     """A ``scipy.sparse.csr_matrix`` from the checked arrays of a pickled one."""
-    state = holder.state[0] if isinstance(holder.state, tuple) else holder.state
-    if not isinstance(state, dict):
-        raise AssetError(path, "a pickled sparse matrix has no state dict")
-    parts = [state.get(k) for k in ("data", "indices", "indptr")]
-    shape = state.get("_shape")
-    if not all(isinstance(a, np.ndarray) and a.ndim == 1 and a.dtype.kind in "fiu" for a in parts) or not (
-        isinstance(shape, tuple) and len(shape) == 2 and all(isinstance(n, int) and n >= 0 for n in shape)
-    ):
-        raise AssetError(path, "a pickled sparse matrix lacks numeric data/indices/indptr or its shape")
-    try:
-        mat = csr_matrix(tuple(parts), shape=shape)
-        mat.check_format(full_check=True)
-    except (ValueError, TypeError) as exc:
-        raise AssetError(path, f"a pickled sparse matrix is inconsistent ({exc})") from None
-    return mat
+    state = holder.state[0] if isinstance(holder.state, tuple) and holder.state else holder.state
+    return sparse_from_state(state, "csr", path)
 
 
 def _rebuild_sparse(obj: Any, path: Path, memo: Optional[dict[int, Any]] = None) -> Any:
