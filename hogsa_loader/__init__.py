@@ -2,16 +2,42 @@
 
 Data flows one way: assets (hand model, object templates) -> models (posed meshes,
 Gaussians) -> render -> compose -> sample.
+
+The main names are here, imported on first use (``import hogsa_loader`` imports no torch):
+
+- :class:`HOGSADataset` — the endless synthetic stream (a torch ``IterableDataset``);
+- :func:`wrap_train_loader` — ARCTIC's training loader with synthetic samples mixed in;
+- :class:`MixedLoader` — real and synthetic batches with an exact synthetic share;
+- :class:`SynthShardDataset` — samples exported as shards (``hogsa export``), read back;
+- :func:`load_bundle` / :func:`write_bundle` / :class:`Bundle` — the trained models of a dataset;
+- :class:`LoaderConfig` and :func:`with_options` — every setting of the stream.
 """
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "Bundle", "load_bundle", "write_bundle"]
+#: public name -> module that defines it
+_EXPORTS = {
+    "Bundle": "hogsa_loader.bundle",
+    "load_bundle": "hogsa_loader.bundle",
+    "write_bundle": "hogsa_loader.bundle",
+    "HOGSADataset": "hogsa_loader.loader.dataset",
+    "MixedLoader": "hogsa_loader.loader.mixing",
+    "LoaderConfig": "hogsa_loader.loader.config",
+    "with_options": "hogsa_loader.loader.config",
+    "SynthShardDataset": "hogsa_loader.export.reader",
+    "wrap_train_loader": "hogsa_loader.integrations.arctic",
+}
+
+__all__ = ["__version__", *_EXPORTS]
 
 
 def __getattr__(name: str):  # lazy: importing the package stays cheap
-    if name in ("Bundle", "load_bundle", "write_bundle"):
-        from hogsa_loader import bundle  # deferred: importing the package stays cheap (no torch)
+    if name in _EXPORTS:
+        import importlib  # deferred: importing the package stays cheap (no torch)
 
-        return getattr(bundle, name)
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
     raise AttributeError(f"module 'hogsa_loader' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

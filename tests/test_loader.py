@@ -116,15 +116,25 @@ def test_keypoints_lie_on_rendered_alpha(frames):
     ds, fr = frames
     assert len(fr) >= 8
     assert ds._pipe.last_backend == "torch"  # what backend="auto" resolved to on the CPU
-    crop_hits, patch_hits = [], []
+    crop_hits, own_hits, patch_hits, swapped_hits = [], [], [], []
+    shifted_hits: dict[tuple[int, int], list] = {}
     for f in fr:
         _, targets, _ = ds.to_sample(f)
-        for h, side in ((f.right, "r"), (f.left, "l")):
+        for h, side, part in ((f.right, "r", 0), (f.left, "l", 1)):
             if not h.valid:
                 continue
             S = f.alpha.shape[0]
             inside = (h.j2d >= 0).all(1) & (h.j2d <= S - 1).all(1)
             crop_hits.extend(joints_on_alpha(h.j2d[inside], f.alpha, radius=0))
+            # each hand's joints on that hand's own opacity or the object's (which hides fingers
+            # behind it), nearest pixel; controls: the other hand's labels, and labels moved 2 px
+            own = np.maximum(f.part_alpha[..., part], f.part_alpha[..., 2])
+            own_hits.extend(joints_on_alpha(h.j2d[inside], own, radius=0))
+            wrong = np.maximum(f.part_alpha[..., 1 - part], f.part_alpha[..., 2])
+            swapped_hits.extend(joints_on_alpha(h.j2d[inside], wrong, radius=0))
+            for d in ((2, 0), (-2, 0), (0, 2), (0, -2)):
+                moved = h.j2d[inside] + np.array(d, dtype=np.float64)
+                shifted_hits.setdefault(d, []).extend(joints_on_alpha(moved, own, radius=0))
             # the same check after ARCTIC's augmentation, in the 64-px patch
             aug = ds.aug_params(f.meta["index"])
             crop_dim = int(aug.sc * f.bbox[2] * 200)
@@ -135,12 +145,20 @@ def test_keypoints_lie_on_rendered_alpha(frames):
             # labels are truncated the HMR way (up to 1 px right/below): look 1 px around
             patch_hits.extend(joints_on_alpha(px[ok], a, radius=1))
     crop_rate, patch_rate = float(np.mean(crop_hits)), float(np.mean(patch_hits))
+    own_rate, swapped_rate = float(np.mean(own_hits)), float(np.mean(swapped_hits))
+    shifted = {d: float(np.mean(v)) for d, v in shifted_hits.items()}
     print(
-        f"joints on alpha: crop {crop_rate:.4f} ({len(crop_hits)} joints), patch {patch_rate:.4f} ({len(patch_hits)})"
+        f"joints on alpha: crop {crop_rate:.4f} ({len(crop_hits)} joints), patch {patch_rate:.4f} "
+        f"({len(patch_hits)}); own hand or object {own_rate:.4f}, left/right swapped {swapped_rate:.4f}, "
+        f"moved 2 px {shifted}"
     )
     assert len(crop_hits) >= 200
     assert crop_rate >= 0.99
     assert patch_rate >= 0.99
+    # the rest are joints behind the other hand (about as many as the other hand's alpha holds)
+    assert own_rate >= 0.92
+    assert swapped_rate <= 0.75  # labels of the wrong hand fail the bound above by far
+    assert max(shifted.values()) < own_rate  # the labels sit where the hand is, not 2 px beside it
 
 
 def test_mixed_loader_exact_ratio(bundle_dir, tiny_world):

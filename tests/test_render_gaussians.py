@@ -8,16 +8,13 @@ import math
 import pytest
 import torch
 
-from hogsa_loader.render.gaussians import (
-    project_gaussians,
-    quat_scale_to_covar,
-    render_gaussians,
-    sh_colors,
-    warm_up_compositor,
-)
+from hogsa_loader.render.gaussians import project_gaussians, quat_scale_to_covar, render_gaussians, sh_colors
 from hogsa_loader.render.settings import RenderSettings, SplatInputs
 
-gsplat_ref = pytest.importorskip("gsplat.cuda._torch_impl")
+
+def _gsplat_ref():
+    """gsplat's pure-torch reference functions (test extra); a test that needs them is skipped without."""
+    return pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat's reference functions (test extra)")
 
 
 @pytest.fixture(autouse=True, params=["torch", "numba"])
@@ -68,8 +65,8 @@ def _brute_force(means, quats, scales, opac, cols, viewmat, K, W, H, bg):
     """Naive reference: gsplat's pure-torch projection, then every Gaussian in stable depth
     order composited onto every pixel (vectorised over pixels only), with the exact rule of
     RasterizeToPixels3DGSFwd.cu. No tiles, no bounding boxes. Float64."""
-    covars, _ = gsplat_ref._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
-    radii, m2d, depths, conics, _ = gsplat_ref._fully_fused_projection(means, covars, viewmat[None], K[None], W, H)
+    covars, _ = _gsplat_ref()._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    radii, m2d, depths, conics, _ = _gsplat_ref()._fully_fused_projection(means, covars, viewmat[None], K[None], W, H)
     radii, m2d, depths, conics = radii[0], m2d[0], depths[0], conics[0]
     use = (radii > 0).all(-1) & (opac >= 1 / 255)
     order = torch.argsort(depths, stable=True)
@@ -134,7 +131,7 @@ def test_covariance_matches_gsplat(dtype):
     g = torch.Generator().manual_seed(0)
     quats = torch.randn(500, 4, generator=g).to(dtype) * 3
     scales = torch.rand(500, 3, generator=g).to(dtype) + 0.01
-    ref, _ = gsplat_ref._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    ref, _ = _gsplat_ref()._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
     tol = 1e-6 if dtype == torch.float32 else 1e-12
     torch.testing.assert_close(quat_scale_to_covar(quats, scales), ref, rtol=tol, atol=tol)
 
@@ -153,8 +150,8 @@ def test_projection_matches_gsplat(dtype):
 
     covars = quat_scale_to_covar(quats, scales)
     radii, m2d, depths, conics = project_gaussians(means, covars, viewmats, Ks, W, H, 0.3, 0.01, 1e10)
-    ref_covars, _ = gsplat_ref._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
-    r_radii, r_m2d, r_depths, r_conics, _ = gsplat_ref._fully_fused_projection(
+    ref_covars, _ = _gsplat_ref()._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    r_radii, r_m2d, r_depths, r_conics, _ = _gsplat_ref()._fully_fused_projection(
         means, ref_covars, viewmats, Ks, W, H, eps2d=0.3, near_plane=0.01, far_plane=1e10
     )
     vis = (r_radii > 0).all(-1)
@@ -191,7 +188,7 @@ def test_sh_matches_gsplat(degree):
     dirs = torch.randn(300, 3, generator=g) * 5
     k = max((degree + 1) ** 2, 16)  # extra coefficients beyond the degree must be ignored
     coeffs = torch.randn(300, k, 3, generator=g)
-    ref = gsplat_ref._spherical_harmonics(degree, dirs, coeffs)
+    ref = _gsplat_ref()._spherical_harmonics(degree, dirs, coeffs)
     torch.testing.assert_close(sh_colors(degree, dirs, coeffs), ref, rtol=1e-5, atol=1e-5)
 
 
@@ -204,7 +201,7 @@ def test_sh_colours_in_render_use_offset_and_view_direction():
     K = _intrinsics(60.0, 16.0, 16.0)
     out = _render1(means, quats, scales, opac, sh, view, K, 32, 32, _settings(sh_degree=2))
     campos = torch.linalg.inv(view)[:3, 3]
-    expect = torch.clamp_min(gsplat_ref._spherical_harmonics(2, means - campos, sh) + 0.5, 0.0)
+    expect = torch.clamp_min(_gsplat_ref()._spherical_harmonics(2, means - campos, sh) + 0.5, 0.0)
     torch.testing.assert_close(out.meta["colors"][0, 0], expect, rtol=1e-5, atol=1e-5)
     assert (expect == 0).any()  # the clamp is exercised
 
@@ -679,5 +676,27 @@ def test_second_order_gradients_are_refused_by_the_kernels():
 
 
 def test_warm_up_runs_under_no_grad():
-    with torch.no_grad():
-        warm_up_compositor()
+    """Called under ``no_grad`` (as a parent process does before forking renderers), the warm-up
+    compiles both the forward and the backward kernel for float32 and leaves grad mode as it
+    was; checked in a fresh process, where nothing else has compiled them."""
+    import subprocess
+    import sys
+
+    from hogsa_loader.render import splat_kernels
+
+    if not splat_kernels.AVAILABLE:
+        pytest.skip("numba is not installed: no compiled compositor to warm up")
+    code = (
+        "import torch\n"
+        "from hogsa_loader.render import splat_kernels as k\n"
+        "from hogsa_loader.render.gaussians import warm_up_compositor\n"
+        "assert not k.composite_forward.signatures and not k.composite_backward.signatures\n"
+        "with torch.no_grad():\n"
+        "    warm_up_compositor()\n"
+        "    assert not torch.is_grad_enabled()\n"
+        "print(len(k.composite_forward.signatures), len(k.composite_backward.signatures))\n"
+        "print(str(k.composite_forward.signatures[0]).count('float32') > 0)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["1", "1", "True"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hogsa_loader.cli.train import JOBS
+from hogsa_loader.cli.registry import HELP
 
 __all__ = ["TRAIN_JOBS", "add_train_commands", "run_train_command"]
 
@@ -25,9 +25,7 @@ def add_train_commands(subparsers: Any) -> None:
     """Add ``hogsa train JOB FLAGS`` to ``subparsers`` (the ``add_subparsers`` action of the
     ``hogsa`` parser); its handler is ``args.func(args)``."""
     t = subparsers.add_parser(
-        "train",
-        help="train a HOGS model, the SRM or ContactNet, or build a pose bank",
-        description="Training jobs; each takes the flags of its pretrain/ script.",
+        "train", help=HELP["train"], description="Training jobs; each takes the flags of its pretrain/ script."
     )
     t.add_argument("job", choices=sorted(TRAIN_JOBS), help="; ".join(f"{k}: {v}" for k, v in TRAIN_JOBS.items()))
     t.add_argument("job_args", nargs=argparse.REMAINDER, help="the job's flags (JOB --help lists them)")
@@ -36,4 +34,6 @@ def add_train_commands(subparsers: Any) -> None:
 
 def run_train_command(args: argparse.Namespace) -> int:
     """Run the ``hogsa train`` job ``args.job`` with ``args.job_args``; its exit status."""
+    from hogsa_loader.cli.train import JOBS  # deferred: the training modules, only when a job runs
+
     return JOBS[args.job](args.job_args)

@@ -18,10 +18,9 @@ import os
 from pathlib import Path
 from typing import Optional, Sequence, Union
 
-from pycocotools.coco import COCO
-
 from hogsa_loader.compose.sources import CropSpec, _ImageListSource
 from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.extras import require
 
 __all__ = ["COCO_PERSON", "CocoBackgrounds", "default_cache_dir"]
 
@@ -54,7 +53,7 @@ def _load_coco(ann_file: Path):
     for i, a in enumerate(data.get("annotations", [])):
         if not isinstance(a, dict) or "id" not in a or "image_id" not in a or "category_id" not in a:
             raise AssetError(ann_file, f"annotations[{i}] lacks 'id', 'image_id' or 'category_id'")
-    coco = COCO()
+    coco = require("pycocotools.coco", "coco", "COCO backgrounds").COCO()
     coco.dataset = data
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # pycocotools prints progress

@@ -15,8 +15,8 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse as sp
 import trimesh
-from skimage.measure import marching_cubes
 
+from hogsa_loader.extras import require
 from hogsa_loader.hands.anatomy import (
     FINGER_JOINTS,
     articulation_from_angles,
@@ -217,7 +217,8 @@ def _mesh_surface(sk: _Skeleton, voxel: float, wrist_cut: float) -> tuple[np.nda
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     sdf = np.concatenate([_field(c, sk)[0] for c in np.array_split(grid, 16)])
     vol = sdf.reshape(n)
-    verts, faces, _, _ = marching_cubes(vol, level=0.0, spacing=(voxel,) * 3, method="lewiner")
+    measure = require("skimage.measure", "demo", "the synthetic MANO-format hand")
+    verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=(voxel,) * 3, method="lewiner")
     verts = verts + lo
     mesh = trimesh.Trimesh(verts, faces, process=True)
     mesh.update_faces(mesh.nondegenerate_faces())

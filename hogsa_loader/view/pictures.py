@@ -9,12 +9,12 @@ from pathlib import Path
 import cv2
 import imageio.v3 as iio
 import numpy as np
-import skimage.data
 import torch
 from torch import Tensor
 
 from hogsa_loader.compose import composite
 from hogsa_loader.errors import PathLike
+from hogsa_loader.extras import require
 from hogsa_loader.loader.viz import draw_skeletons
 from hogsa_loader.render.mesh_raster import save_png
 
@@ -128,7 +128,7 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: float) -> None:
 
 def demo_photographs(out: PathLike) -> Path:
     """Copy scikit-image's bundled colour photographs (:data:`DEMO_PHOTOS`) into ``out``; returns ``out``."""
-    src = Path(skimage.data.__file__).parent
+    src = Path(require("skimage.data", "demo", "the demo's photographs").__file__).parent
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for name in DEMO_PHOTOS:

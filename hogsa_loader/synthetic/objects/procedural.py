@@ -21,10 +21,9 @@ from typing import Callable, Iterable, Optional, Sequence
 
 import cv2
 import numpy as np
-import skimage.data
-import skimage.io
 
 from hogsa_loader.errors import PathLike
+from hogsa_loader.extras import require
 from hogsa_loader.objects.template import (
     BOTTOM,
     OBJECT_NAMES,
@@ -284,8 +283,10 @@ def part_boxes(bottom: Slab, top: Slab, gap: float = GAP_MM) -> dict[int, tuple[
 
 @lru_cache(maxsize=None)
 def _photo_cached(name: str) -> np.ndarray:
-    path = os.path.join(os.path.dirname(skimage.data.__file__), name)
-    img = np.asarray(skimage.io.imread(path))
+    skimage_data = require("skimage.data", "demo", "the generated world's photographic textures")
+    skimage_io = require("skimage.io", "demo", "the generated world's photographic textures")
+    path = os.path.join(os.path.dirname(skimage_data.__file__), name)
+    img = np.asarray(skimage_io.imread(path))
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     img = img[..., :3].astype(np.float32) / 255.0
