@@ -63,9 +63,15 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
     p.add_argument("--protocol", default="p1")
     p.add_argument(
         "--split",
-        default="all",
-        choices=["all", "train", "val", "test"],
-        help="only subjects/sequences of this split of the protocol (default: every sequence)",
+        default="train",
+        choices=["train", "val", "test", "all"],
+        help="subjects/sequences of this split of the protocol (default: train; H2O: train = every subject but "
+        "the held-out subject4). A split with held-out subjects needs --allow-held-out naming them",
+    )
+    p.add_argument(
+        "--allow-held-out",
+        default="",
+        help="comma-separated subjects the protocol holds out (ARCTIC: s03, s05; H2O: subject4) to train on anyway",
     )
     p.add_argument("--subjects", default=None, help="comma-separated subject filter")
     p.add_argument("--objects", default=None, help="comma-separated object filter")
@@ -125,17 +131,33 @@ def list_pairs(root: ArcticRoot, a: argparse.Namespace) -> list[tuple[str, str, 
         if suffixes and suffix not in suffixes:
             continue
         pairs.setdefault((sid, obj), []).append(seq)
+    _check_held_out(root, sorted({sid for sid, _ in pairs}), a)
     return [(sid, obj, sorted(s)) for (sid, obj), s in sorted(pairs.items())]
+
+
+def _check_held_out(root: Any, subjects: list[str], a: argparse.Namespace) -> None:
+    """Refuse (one line, exit 2) a selection with a subject the protocol holds out, unless named
+    in ``--allow-held-out`` (then warn)."""
+    from hogsa_loader.datasets.protocol import training_subjects  # deferred: only when pairs are listed
+
+    allow = [s for s in a.allow_held_out.split(",") if s]
+    try:
+        training_subjects(root, subjects, allow, "train_all_hogs")
+    except UsageError as exc:
+        _usage(str(exc))
 
 
 def list_h2o_pairs(root: Any, a: argparse.Namespace) -> list[tuple[str, str, list[str]]]:
     """Sorted ``(subject, object, ["scene/seq", ...])`` of an H2O root: the object classes each
     sequence's ``obj_pose_rt`` labels show (H2O splits by subject: select with ``--subjects``)."""
     from hogsa_loader.datasets.h2o import H2O_EGO_CAMERA, H2O_OBJECT_NAMES
+    from hogsa_loader.datasets.protocol import held_out_subjects  # deferred: only for H2O roots
 
-    if a.split != "all":
-        _usage("H2O splits by subject; use --subjects instead of --split")
+    if a.split not in ("train", "all"):
+        _usage("H2O splits by subject: --split train (every subject but the held-out ones) or all")
     subjects = set(a.subjects.split(",")) if a.subjects else None
+    if subjects is None and a.split == "train":
+        subjects = set(root.subjects()) - set(held_out_subjects(root))
     objects = set(a.objects.split(",")) if a.objects else None
     pairs: dict[tuple[str, str], list[str]] = {}
     for sid in root.subjects():
@@ -147,6 +169,7 @@ def list_h2o_pairs(root: Any, a: argparse.Namespace) -> list[tuple[str, str, lis
                 obj = H2O_OBJECT_NAMES[c]
                 if not objects or obj in objects:
                     pairs.setdefault((sid, obj), []).append(f"{scene}/{seq}")
+    _check_held_out(root, sorted({sid for sid, _ in pairs}), a)
     return [(sid, obj, sorted(v)) for (sid, obj), v in sorted(pairs.items())]
 
 
@@ -199,6 +222,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if a.gpus:
         gpus = [g for g in a.gpus.split(",") if g]
         base = ["--data", a.data, "--out", a.out, "--protocol", a.protocol, "--split", a.split, "--dataset", a.dataset]
+        base += ["--allow-held-out", a.allow_held_out] if a.allow_held_out else []
         for flag, val in (("--subjects", a.subjects), ("--objects", a.objects), ("--sequences-like", a.sequences_like)):
             if val:
                 base += [flag, val]

@@ -4,9 +4,11 @@
 Example::
 
     python pretrain/train_contactnet.py --data-root ./hogsa_world --run-out runs/contactnet \
-        --optim-iters 1500 --data-val-subjects s05
+        --optim-iters 1500 --data-val-subjects s02
 
-Held-out subject validation (``--data-val-subjects``; default: the last subject). Writes
+ContactNet trains on the subjects the dataset's protocol does not hold out (s03 and s05 on
+ARCTIC are never read unless named in ``--data-allow-held-out``); ``--data-val-subjects``
+keeps named training subjects out of its training to validate on (default: none). Writes
 ``contactnet.safetensors`` + ``manifest.json`` (loaded by
 :func:`hogsa_loader.pom.contactnet.load_contactnet`), ``metrics.json`` (validation MAE,
 IoU@0.5, BCE, also on unperturbed hands) and ``curve.png`` into ``--run-out``. The flags are

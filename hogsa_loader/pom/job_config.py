@@ -43,15 +43,26 @@ def _tuple(value: Any) -> Any:
 
 @dataclass
 class ContactNetDataConfig:
-    """The annotated frames and the held-out subjects."""
+    """The annotated frames: the training subjects, and those ContactNet is validated on."""
 
     root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
     val_subjects: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("held-out subjects (unset: the last one)")
+        default=None,
+        metadata=_opt(
+            "training subjects kept out of ContactNet's training to validate it on (unset: none; ContactNet "
+            "trains on every training subject)"
+        ),
+    )
+    allow_held_out: Optional[tuple[str, ...]] = field(
+        default=None,
+        metadata=_opt(
+            "subjects the dataset's protocol holds out (ARCTIC: s03, s05; H2O: subject4) to read all the same "
+            "(unset: none are read)"
+        ),
     )
 
     def __post_init__(self) -> None:
-        self.val_subjects = _tuple(self.val_subjects)
+        self.val_subjects, self.allow_held_out = _tuple(self.val_subjects), _tuple(self.allow_held_out)
 
 
 @dataclass
@@ -103,9 +114,18 @@ class BankDataConfig:
 
     root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
     contactnet: str = field(default="", metadata=_opt("ContactNet run folder", required=True))
-    subjects: Optional[tuple[str, ...]] = field(default=None, metadata=_opt("subjects (unset: all)"))
+    subjects: Optional[tuple[str, ...]] = field(
+        default=None, metadata=_opt("subjects (unset: every subject the dataset's protocol does not hold out)")
+    )
     sequences: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all)")
+        default=None, metadata=_opt("sid/seq ids, e.g. s01/box_grab_01 (unset: all of those subjects)")
+    )
+    allow_held_out: Optional[tuple[str, ...]] = field(
+        default=None,
+        metadata=_opt(
+            "subjects the dataset's protocol holds out (ARCTIC: s03, s05; H2O: subject4) to read all the same "
+            "(unset: none are read)"
+        ),
     )
     per_sequence: int = field(default=16, metadata=_opt("frames per sequence (evenly spaced)", "positive_int"))
     variants: int = field(default=1, metadata=_opt("perturbations per frame", "positive_int"))
@@ -129,6 +149,7 @@ class BankDataConfig:
 
     def __post_init__(self) -> None:
         self.subjects, self.sequences = _tuple(self.subjects), _tuple(self.sequences)
+        self.allow_held_out = _tuple(self.allow_held_out)
         if self.per_sequence < 1 or self.variants < 1:
             raise ValueError(f"per_sequence and variants must be >= 1, got {self.per_sequence} and {self.variants}")
         check_bank_frames(self.frames)

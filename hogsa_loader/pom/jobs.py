@@ -20,10 +20,11 @@ import torch
 from tqdm import tqdm
 
 from hogsa_loader.datasets.arctic import ArcticRoot
+from hogsa_loader.datasets.protocol import training_subjects
 from hogsa_loader.pom.bank import save_pose_bank
 from hogsa_loader.pom.contactnet import ContactNet, load_contactnet, save_contactnet
 from hogsa_loader.pom.hands import SIDES, HandInfo, hand_infos
-from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
+from hogsa_loader.pom.job_config import ContactNetDataConfig, ContactNetJobConfig, PoseBankConfig
 from hogsa_loader.pom.metrics import grasp_metrics
 from hogsa_loader.pom.objects import ObjectSet
 from hogsa_loader.pom.optimize import POMConfig
@@ -65,17 +66,24 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
     plt.close(fig)
 
 
-def _split_subjects(root: ArcticRoot, val_subjects: Optional[tuple[str, ...]]) -> tuple[list[str], list[str]]:
-    """``(training subjects, held-out subjects)``; held out by default: the last subject.
+def _split_subjects(root: ArcticRoot, data: ContactNetDataConfig) -> tuple[list[str], list[str]]:
+    """``(subjects ContactNet trains on, subjects it is validated on)``: the subjects with
+    sequences that the dataset's protocol does not hold out (unless named in
+    ``data.allow_held_out``); ``data.val_subjects`` (none by default) are kept out of training.
 
     Raises:
+        UsageError: a held-out subject asked for without ``allow_held_out``.
         ValueError: no training subject is left.
     """
-    subjects = sorted({s.split("/")[0] for s in root.sequences()})
-    val_subj = list(val_subjects) if val_subjects else subjects[-1:]
-    train_subj = [s for s in subjects if s not in val_subj]
+    with_sequences = {s.split("/")[0] for s in root.sequences()}
+    pool = [s for s in training_subjects(root, None, data.allow_held_out or (), "ContactNet") if s in with_sequences]
+    val_subj = training_subjects(root, data.val_subjects or (), data.allow_held_out or (), "ContactNet validation")
+    missing = sorted(set(val_subj) - with_sequences)
+    if missing:
+        raise ValueError(f"validation subjects {missing} have no sequence in {root.data_root}")
+    train_subj = [s for s in pool if s not in val_subj]
     if not train_subj:
-        raise ValueError(f"no training subject left: subjects {subjects}, held out {val_subj}")
+        raise ValueError(f"no training subject left: subjects {pool}, validated on {val_subj}")
     return train_subj, val_subj
 
 
@@ -124,13 +132,14 @@ def _contactnet_metrics(
 
 
 def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[str, Any]:
-    """Train ContactNet on the annotated frames of ``cfg.data.root`` with held-out-subject validation.
+    """Train ContactNet on the annotated frames of the training subjects of ``cfg.data.root``,
+    validated on the subjects of ``cfg.data.val_subjects`` (kept out of its training).
 
     Writes ``contactnet.safetensors`` + ``manifest.json``, ``metrics.json``,
     ``history.json`` and ``curve.png`` into ``cfg.run.out``.
 
     Args:
-        cfg: data root and held-out subjects, optimiser settings (see
+        cfg: data root, validation subjects and the held-out subjects allowed, optimiser settings (see
             :class:`~hogsa_loader.pom.train.TrainConfig`), run folder and validation cadence.
         progress: show a progress bar.
 
@@ -138,11 +147,13 @@ def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[s
         the metrics written to ``metrics.json`` (``val_mae``, ``val_iou05``, ...).
 
     Raises:
+        UsageError: a subject the dataset's protocol holds out is asked for without
+            ``cfg.data.allow_held_out``.
         ValueError: no training subject is left after ``val_subjects``.
     """
     o = cfg.optim
     root = ArcticRoot(cfg.data.root)
-    train_subj, val_subj = _split_subjects(root, cfg.data.val_subjects)
+    train_subj, val_subj = _split_subjects(root, cfg.data)
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
     tc = TrainConfig(iters=o.iters, batch=o.batch, points=o.points, lr=o.lr, val_every=cfg.run.val_every, seed=o.seed)
@@ -160,7 +171,10 @@ def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[s
     metrics = _contactnet_metrics(
         hist, final, (train_subj, val_subj), (train.size, val.size if val is not None else 0), o.iters, prep
     )
-    training = {k: metrics[k] for k in ("val_subjects", "train_subjects", "iters", "val_mae", "val_iou05")}
+    metrics["held_out_read"] = sorted(set(cfg.data.allow_held_out or ()) & set(train_subj + val_subj))
+    training = {
+        k: metrics[k] for k in ("val_subjects", "train_subjects", "held_out_read", "iters", "val_mae", "val_iou05")
+    }
     save_contactnet(model, out, {"training": training, "data": str(root.data_root)})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "history.json").write_text(json.dumps({"train_loss": hist["train_loss"], "val": hist["val"]}))
@@ -179,10 +193,19 @@ def variant_seed(seed: int, sequence: str, variant: int) -> int:
 
 
 def _bank_sequences(root: ArcticRoot, cfg: PoseBankConfig) -> list[str]:
-    """The ``"sid/seq"`` ids of ``root`` selected by ``cfg.data.subjects`` / ``sequences``."""
-    seqs = root.sequences()
-    if cfg.data.subjects:
-        seqs = [s for s in seqs if s.split("/")[0] in set(cfg.data.subjects)]
+    """The ``"sid/seq"`` ids of ``root`` selected by ``cfg.data.subjects`` / ``sequences``: never
+    of a subject the dataset's protocol holds out, unless named in ``cfg.data.allow_held_out``.
+
+    Raises:
+        UsageError: a held-out subject asked for (by ``subjects`` or ``sequences``) without
+            ``allow_held_out``.
+    """
+    allow = cfg.data.allow_held_out or ()
+    requested = cfg.data.subjects
+    if requested is None and cfg.data.sequences:
+        requested = tuple(dict.fromkeys(s.split("/")[0] for s in cfg.data.sequences))
+    subjects = set(training_subjects(root, requested, allow, "the pose bank"))
+    seqs = [s for s in root.sequences() if s.split("/")[0] in subjects]
     if cfg.data.sequences:
         seqs = [s for s in seqs if s in set(cfg.data.sequences)]
     return seqs
@@ -315,6 +338,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
         "variants": cfg.data.variants,
         "frames": cfg.data.frames,
         "frame_margin": cfg.data.frame_margin,
+        "held_out_read": sorted(set(cfg.data.allow_held_out or ()) & {q.split("/")[0] for q in seqs}),
         "seed": cfg.run.seed,
         "optimised": parts.total,
         "dropped": parts.dropped,
