@@ -472,11 +472,11 @@ def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     assert index["dropped"] is None and index["num_dropped"] == 3
 
 
-def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
+def test_cli_export_with_torchrun_env(tmp_path, monkeypatch, capsys):
     """``hogsa export`` wiring (rank/world from the environment, resume) on a stand-in dataset."""
     import types
 
-    from hogsa_loader.cli import main as cli_main
+    from hogsa_loader.cli import commands as cli_main
     from hogsa_loader.cli.main import main
     from hogsa_loader.loader.config import export_info
 
@@ -550,6 +550,15 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch):
     other[other.index("--seed") + 1] = "5"
     assert main(other) == 2
     assert main(other + ["--overwrite"]) == 0 and main(other) == 0
+    # an export whose every sample is dropped fails (exit 1) and says so
+    monkeypatch.setattr(StandIn, "frames", lambda self, g: [None] * self.batch_size)
+    empty = list(args)
+    empty[empty.index("--out") + 1] = str(tmp_path / "empty")
+    monkeypatch.delenv("RANK")
+    monkeypatch.delenv("WORLD_SIZE")
+    capsys.readouterr()
+    assert main(empty) == 1
+    assert "the export kept no sample" in capsys.readouterr().err
 
 
 def test_failed_export_leaves_nothing_behind(tmp_path):

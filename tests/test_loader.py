@@ -993,3 +993,37 @@ def test_hands_run_prefers_the_same_object_then_the_subjects_first_run():
     assert hands_run(keys, "s02", "box") == ("s02", "box")
     assert hands_run(keys, "s02", "laptop") == ("s02", "box")  # no laptop run: its first in sorted order
     assert hands_run(keys, "s03", "box") is None
+
+
+def test_a_stream_that_keeps_nothing_stops_with_the_reasons(bundle_dir, tiny_world):
+    """An endless stream whose every sample is dropped (here: no sample can show 10⁹ alpha
+    pixels) raises after ``max_consecutive_drops`` drops in a row instead of rendering forever."""
+    from hogsa_loader.loader.config import SampleChecks
+    from hogsa_loader.loader.dataset import DroppedSamplesError
+
+    checks = SampleChecks(min_alpha_pixels=10**9, max_consecutive_drops=6)
+    ds = _dataset(bundle_dir, tiny_world, num_samples=None, batch_size=4, checks=checks)
+    with pytest.raises(DroppedSamplesError, match=r"6 synthetic samples in a row were dropped .*empty_alpha 8"):
+        next(iter(ds))
+    assert ds.stats.attempted == 8 and ds.stats.kept == 0
+
+
+def test_drop_guard_counts_drops_in_a_row_and_warns_once_on_a_high_share():
+    from hogsa_loader.loader.config import SampleChecks
+    from hogsa_loader.loader.dataset import DropGuard, DroppedSamplesError
+    from hogsa_loader.loader.synth import SynthStats
+
+    stats = SynthStats()
+    stats.dropped["out_of_crop"] = 3
+    guard = DropGuard(SampleChecks(max_consecutive_drops=3, warn_drop_share=0.5), stats)
+    kept = object()
+    with pytest.warns(UserWarning, match="dropped"):
+        for _ in range(200):  # two drops, then a kept sample: never three in a row
+            guard.update([None, None, kept])
+    assert guard.seen == 600 and guard.dropped == 400 and guard.warned  # warned once (share 2/3 > 0.5)
+    with pytest.raises(DroppedSamplesError, match=r"3 synthetic samples in a row .*out_of_crop 3"):
+        guard.update([None, None, None])
+    with pytest.raises(ValueError, match="max_consecutive_drops"):
+        SampleChecks(max_consecutive_drops=0)
+    with pytest.warns(UserWarning, match="400 of 600 synthetic samples were dropped"):
+        DropGuard(SampleChecks(max_consecutive_drops=3), stats).update([None, None, kept] * 200)

@@ -204,6 +204,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
         return 2
     st = ds.stats.as_dict()
     reasons = ", ".join(f"{k} {v}" for k, v in (res["dropped"] or {}).items() if v)
+    if res["complete"] and not res["num_samples_written"]:
+        print(
+            f"hogsa export: error: the export kept no sample ({res['num_dropped']} dropped"
+            f"{f': {reasons}' if reasons else ''}); {res['index']} lists none",
+            file=sys.stderr,
+        )
+        return 1
     say(
         f"rank {rank}: wrote {len(res['written'])} shards ({res['samples']} samples, "
         f"{st['num_dropped']} dropped), skipped {len(res['skipped'])} complete shards, "

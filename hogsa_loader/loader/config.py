@@ -198,16 +198,28 @@ class SampleChecks:
             rendered alpha less often than this → ``label_pixel_mismatch``.
         near_m: any joint / object vertex closer than this to the camera plane →
             ``behind_camera``.
+        max_consecutive_drops: the stream stops with
+            :class:`~hogsa_loader.loader.dataset.DroppedSamplesError` (the drops by reason)
+            after this many dropped samples in a row: inputs that no sample survives (absurd
+            poses, a wrong bundle) fail instead of rendering forever.
+        warn_drop_share: above this share of dropped samples (after 256 attempts) the stream
+            warns once, with the drops by reason.
     """
 
     min_alpha_pixels: int = 64
     hands: str = "any"
     min_on_alpha: float = 0.8
     near_m: float = 0.05
+    max_consecutive_drops: int = 512
+    warn_drop_share: float = 0.5
 
     def __post_init__(self) -> None:
         if self.hands not in ("any", "both", "none"):
             raise ValueError(f"SampleChecks.hands must be 'any', 'both' or 'none', got {self.hands!r}")
+        if int(self.max_consecutive_drops) < 1:
+            raise ValueError(f"SampleChecks.max_consecutive_drops must be >= 1, got {self.max_consecutive_drops}")
+        if not 0.0 <= float(self.warn_drop_share) <= 1.0:
+            raise ValueError(f"SampleChecks.warn_drop_share must be in [0, 1], got {self.warn_drop_share}")
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from dataclasses import replace
 from typing import Any, Iterator, Optional, Union
 
@@ -26,7 +27,7 @@ from hogsa_loader.compose import make_backgrounds
 from hogsa_loader.datasets.arctic import ArcticRoot, protocol_views
 from hogsa_loader.datasets.augment import AugParams, sample_aug_params
 from hogsa_loader.datasets.interfield import interfield_targets
-from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.errors import AssetError, HogsaError, PathLike
 from hogsa_loader.gaussians.recombine import hands_run
 from hogsa_loader.loader.cameras import CameraSampler
 from hogsa_loader.loader.config import LoaderConfig, SampleChecks, is_default
@@ -38,7 +39,7 @@ from hogsa_loader.loader.views import EgoCameras
 from hogsa_loader.srm import load_srm
 from hogsa_loader.srm.io import SRM_MANIFEST, read_srm_manifest
 
-__all__ = ["HOGSADataset", "shard_info", "MAX_WORKER_ROWS"]
+__all__ = ["DropGuard", "DroppedSamplesError", "HOGSADataset", "MAX_WORKER_ROWS", "shard_info"]
 
 #: Rows of the shared worker-statistics table (worker ids beyond share rows modulo this).
 MAX_WORKER_ROWS = 64
@@ -521,8 +522,60 @@ class HOGSADataset(IterableDataset):
 
     def __iter__(self) -> Iterator[Sample]:
         self._check_device()
+        guard = DropGuard(self.checks, self.stats)
         for plan in self._shard_plans():
-            yield from self._plan_samples(plan, self.render(plan))
+            frames = self.render(plan)
+            guard.update(frames)
+            yield from self._plan_samples(plan, frames)
+
+
+class DroppedSamplesError(HogsaError, RuntimeError):
+    """So many synthetic samples in a row were dropped that the inputs must be wrong; the
+    message gives the drops by reason."""
+
+
+#: Attempts before a high drop share is warned about.
+_WARN_AFTER = 256
+
+
+class DropGuard:
+    """Counts dropped samples in a row over a stream's render batches: past
+    ``checks.max_consecutive_drops`` it raises :class:`DroppedSamplesError`; once the stream's
+    drop share exceeds ``checks.warn_drop_share`` (after 256 attempts) it warns once.
+
+    Args:
+        checks: the stream's :class:`~hogsa_loader.loader.config.SampleChecks`.
+        stats: the counters whose drop reasons the messages report.
+    """
+
+    def __init__(self, checks: SampleChecks, stats: SynthStats) -> None:
+        self.checks, self.stats = checks, stats
+        self.in_a_row = self.seen = self.dropped = 0
+        self.warned = False
+
+    def _reasons(self) -> str:
+        return ", ".join(f"{k} {v}" for k, v in self.stats.dropped.items() if v) or "none counted here"
+
+    def update(self, frames: list[Optional[SynthFrame]]) -> None:
+        """Count one render batch's frames (None = dropped), in index order."""
+        for frame in frames:
+            self.seen += 1
+            if frame is not None:
+                self.in_a_row = 0
+                continue
+            self.dropped += 1
+            self.in_a_row += 1
+            if self.in_a_row >= self.checks.max_consecutive_drops:
+                raise DroppedSamplesError(
+                    f"{self.in_a_row} synthetic samples in a row were dropped ({self.dropped} of {self.seen} in this "
+                    f"stream; by reason: {self._reasons()}): the poses, cameras or models give no valid sample "
+                    "(SampleChecks.max_consecutive_drops)"
+                )
+        if not self.warned and self.seen >= _WARN_AFTER and self.dropped > self.checks.warn_drop_share * self.seen:
+            self.warned = True
+            warnings.warn(
+                f"{self.dropped} of {self.seen} synthetic samples were dropped ({self._reasons()})", stacklevel=3
+            )
 
 
 def _refuse_overrides(config: LoaderConfig, backgrounds: Any, poses: Any, refiner: Any) -> None:
