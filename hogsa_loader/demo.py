@@ -24,6 +24,7 @@ from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
 from hogsa_loader.errors import PathLike
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.hashing import keyed_settings, settings_key
 from hogsa_loader.loader.config import LoaderConfig, with_options
 from hogsa_loader.loader.dataset import HOGSADataset
@@ -183,9 +184,10 @@ class _Stages:
         result = fn()
         dt = time.perf_counter() - t0
         self.seconds[name] = dt
-        tmp = rec_path.with_name(rec_path.name + ".tmp")
-        tmp.write_text(json.dumps({"key": key, "seconds": dt, "result": result}, indent=1, default=str))
-        os.replace(tmp, rec_path)  # atomic: a record is whole or absent
+        # atomic: a record is whole or absent
+        atomic_write(
+            rec_path, json.dumps({"key": key, "seconds": dt, "result": result}, indent=1, default=str).encode()
+        )
         self.say(f"[{name}] done in {dt:.0f} s")
         return result
 

@@ -193,13 +193,13 @@ def test_resume_after_interruption(tmp_path, export_dir):
 
     with pytest.raises(KeyboardInterrupt):
         write_shards(crashing, out, NUM, SHARD, progress=False)
-    assert not (out / shard_name(1)).exists() and not list(out.glob(".synth-000001.tar.tmp.*"))
+    assert not (out / shard_name(1)).exists() and not list(out.glob(".synth-000001.tar.*.tmp"))
     assert not json.loads((out / "index.json").read_text())["complete"]
-    (out / ".synth-000001.tar.tmp.999999").write_bytes(b"torn")
+    (out / ".synth-000001.tar.999999.0123abcd.tmp").write_bytes(b"torn")
     calls.clear()
     res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
     assert calls == [1] and res["skipped"] == [0] and res["complete"]
-    assert not list(out.glob(".synth-*.tmp.*"))
+    assert not list(out.glob(".synth-*.tmp"))
     assert (out / shard_name(0)).read_bytes() == first
     for i, f in enumerate(SynthShardDataset(out)):
         assert_same_frame(make_frame(i), f)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import functools
-import os
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
@@ -33,6 +32,7 @@ from hogsa_loader.datasets.conventions import (
 )
 from hogsa_loader.datasets.types import SequenceData
 from hogsa_loader.errors import AssetError, PathLike, read_json
+from hogsa_loader.io.atomic import atomic_open
 from hogsa_loader.objects.template import MESH_FILE, PARAMS_FILE, _points, _read_obj
 
 __all__ = [
@@ -561,10 +561,8 @@ def build_split(
 def _save_npy_atomic(path: Path, obj: Any) -> None:
     """``np.save`` of a Python object to ``path`` via a temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_open(path) as fh:
         np.save(fh, np.asarray(obj, dtype=object) if not isinstance(obj, np.ndarray) else obj, allow_pickle=True)
-    os.replace(tmp, path)
 
 
 def write_processed_splits(

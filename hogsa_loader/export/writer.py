@@ -14,17 +14,17 @@ import hashlib
 import io
 import json
 import math
-import os
 import tarfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
+from typing import IO, Any, Callable, Iterable, Iterator, Optional, Sequence
 
 from tqdm import tqdm
 
 from hogsa_loader.errors import PathLike
 from hogsa_loader.export.codec import encode_frame, json_default
+from hogsa_loader.io.atomic import atomic_open, temp_glob
 from hogsa_loader.loader.frame import SynthFrame
 
 __all__ = [
@@ -116,12 +116,8 @@ def _index_path(out_dir: Path, shard: int, prefix: str) -> Path:
 
 
 def _atomic_write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}")
-    with open(tmp, "w", encoding="utf-8") as fh:
+    with atomic_open(path, "w", encoding="utf-8") as fh:
         json.dump(obj, fh, indent=1, default=json_default)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: Optional[dict[str, Any]]) -> str:
@@ -366,12 +362,13 @@ def _shards_to_write(
 
 
 def _write_tar(
-    tmp: Path, frames: Iterable[SynthFrame], rng: range, shard: int, enc: _Encoding, bar: Optional[Any]
+    fh: IO[bytes], frames: Iterable[SynthFrame], rng: range, shard: int, enc: _Encoding, bar: Optional[Any]
 ) -> tuple[list[str], dict[str, str]]:
-    """Write the frames of ``shard`` (global samples ``rng``) into the tar ``tmp``; its keys and member digests."""
+    """Write the frames of ``shard`` (global samples ``rng``) as a tar into the open file ``fh``; its keys and
+    member digests."""
     keys: list[str] = []
     digests: dict[str, str] = {}
-    with tarfile.open(tmp, "w", format=tarfile.GNU_FORMAT) as tar:
+    with tarfile.open(fileobj=fh, mode="w", format=tarfile.GNU_FORMAT) as tar:
         last = last_seen = rng.start - 1
         for j, frame in enumerate(frames):
             idx = _frame_index(frame, rng, j, last, shard)
@@ -394,8 +391,6 @@ def _write_tar(
                 last_seen = idx
     if bar is not None:
         bar.update(rng.stop - 1 - max(last_seen, rng.start - 1))
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
     return keys, digests
 
 
@@ -425,12 +420,12 @@ def _write_shard(
     created).
     """
     name = shard_name(shard, prefix)
-    for stale in out.glob(f".{name}.tmp.*"):
+    for stale in out.glob(temp_glob(out / name)):
         stale.unlink()
-    tmp = out / f".{name}.tmp.{os.getpid()}"
     t0 = time.perf_counter()
-    try:
-        keys, digests = _write_tar(tmp, frames, rng, shard, enc, bar)
+    with atomic_open(out / name) as fh:  # renamed once the index file below is written
+        keys, digests = _write_tar(fh, frames, rng, shard, enc, bar)
+        fh.flush()
         rec = {
             "shard": shard,
             "file": name,
@@ -439,7 +434,7 @@ def _write_shard(
             "first": rng.start,
             "last": rng.stop - 1,
             "keys": keys,
-            "bytes": tmp.stat().st_size,
+            "bytes": fh.tell(),
             "seconds": round(time.perf_counter() - t0, 3),
             "rank": rank,
             "world_size": world_size,
@@ -450,9 +445,6 @@ def _write_shard(
         if _explains_gaps(dropped, len(rng) - len(keys)):
             rec["dropped"] = dropped
         _atomic_write_json(_index_path(out, shard, prefix), rec)
-        os.replace(tmp, out / name)
-    finally:
-        tmp.unlink(missing_ok=True)
     return len(keys)
 
 

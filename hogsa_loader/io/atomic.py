@@ -1,8 +1,13 @@
 """Atomic file writes: a temporary file in the target's folder, fsync, ``os.replace``.
 
 A reader never sees a half-written file: it finds the old content or the new one. A failed
-write removes its temporary file and leaves the target as it was. :func:`creation_problem`
-says, before anything is written, why a new output path could not be created.
+write removes its temporary file and leaves the target as it was. The temporary file has an
+unguessable name (128 random bits) and is created with ``O_CREAT | O_EXCL | O_NOFOLLOW``, so
+a link planted in the folder by another user is never followed: the write fails instead of
+overwriting the link's target, and the rename replaces a link at the target path itself, not
+what it points to. Every writer of the library goes through :func:`atomic_open`.
+:func:`creation_problem` says, before anything is written, why a new output path could not be
+created.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from typing import IO, Any, Iterator, Optional
 
 from hogsa_loader.errors import PathLike
 
-__all__ = ["atomic_open", "atomic_write", "atomic_write_json", "creation_problem"]
+__all__ = ["atomic_open", "atomic_write", "atomic_write_json", "creation_problem", "temp_glob"]
 
 
 def creation_problem(path: Path) -> Optional[str]:
@@ -37,8 +42,17 @@ def creation_problem(path: Path) -> Optional[str]:
 
 
 def _temp_name(path: Path) -> Path:
-    """A hidden, unique temporary file next to ``path``."""
-    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    """A hidden, unguessable temporary file name next to ``path``."""
+    return path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex}.tmp")
+
+
+def temp_glob(path: PathLike) -> str:
+    """The glob pattern of :func:`atomic_open`'s temporary files for ``path`` (in its folder)."""
+    return f".{Path(path).name}.*.tmp"
+
+
+#: flags of a temporary file: created here, never an existing file, never through a link
+_EXCLUSIVE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
 
 
 def _fsync_folder(folder: Path) -> None:
@@ -69,8 +83,9 @@ def atomic_open(path: PathLike, mode: str = "wb", encoding: str | None = None) -
     """
     path = Path(path)
     tmp = _temp_name(path)
+    fd = os.open(tmp, _EXCLUSIVE, 0o666)  # (the umask applies, as for open())
     try:
-        with open(tmp, mode, encoding=encoding) as fh:
+        with os.fdopen(fd, mode, encoding=encoding) as fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,13 +16,14 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from torch import Tensor
 
 import hogsa_loader
 from hogsa_loader.errors import AssetError
 from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, PART_NAMES, HogsModel
 from hogsa_loader.gaussians.shading import LIGHT_TENSORS
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.train.hogs_data import HogsData, ViewSample
 from hogsa_loader.train.hogs_source import HogsSource, load_run_data
 
@@ -249,9 +249,7 @@ def _cached_renders(
             rgb, a = (rgb * 255).round().to(torch.uint8), (a * 255).round().to(torch.uint8)
         t[f"{name}_rgb"], t[f"{name}_alpha"] = rgb.contiguous(), a.contiguous()
     cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")  # runs sharing a cache never write the same file
-    save_file(t, str(tmp))
-    tmp.replace(path)
+    atomic_write(path, save(t))  # runs sharing a cache never write the same temporary file
     log(
         f"[srm] {run.name}: rendered {', '.join(f'{len(v)} {k}' for k, v in parts.items())} views at {lo}² "
         f"(SH degree {sh}) in {time.perf_counter() - t0:.0f} s -> {path.name}"

@@ -10,7 +10,6 @@ camera keys only).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from hogsa_loader.datasets.arctic import read_npy
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.io.atomic import atomic_open
 
 __all__ = [
     "SMPLX_PARAMS",
@@ -102,10 +102,8 @@ def add_split_stand_ins(paths: Iterable[PathLike]) -> None:
             raise AssetError(path, "expected a split dict with 'data_dict'")
         changed = [_add_to_sequence(seq) for seq in data["data_dict"].values()]
         if any(changed):
-            tmp = path.with_name(path.name + ".tmp")
-            with open(tmp, "wb") as fh:
+            with atomic_open(path) as fh:
                 np.save(fh, np.array(data, dtype=object), allow_pickle=True)
-            os.replace(tmp, path)
 
 
 def record() -> dict[str, list[dict[str, Any]]]:

@@ -20,6 +20,7 @@ from hogsa_loader.datasets.arctic_processing import write_processed_splits
 from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE, MASK_IDS
 from hogsa_loader.errors import PathLike
 from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
+from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.objects.template import load_object_template, read_object_meta
 from hogsa_loader.render import raster_kernels
 from hogsa_loader.render.mesh_raster import warm_up_kernels
@@ -72,9 +73,8 @@ def _same_world(record: dict, fingerprint: dict) -> bool:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    _write_json(tmp, obj)
-    os.replace(tmp, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode("utf-8"))
 
 
 def _read_json_or_none(path: Path):
