@@ -7,8 +7,10 @@ pair whose folder already holds a finished run (three part checkpoints and
 be spread over processes as a job array:
 
 * ``--array-index I --array-size N`` (or SLURM's ``SLURM_ARRAY_TASK_ID`` /
-  ``SLURM_ARRAY_TASK_COUNT``, or torchrun's ``RANK`` / ``WORLD_SIZE``): this process takes
-  pairs ``I, I+N, I+2N, ...`` of the sorted list;
+  ``SLURM_ARRAY_TASK_COUNT``, or torchrun's ``RANK`` / ``WORLD_SIZE``, or srun's
+  ``SLURM_PROCID`` / ``SLURM_NTASKS``): this process takes pairs ``I, I+N, I+2N, ...`` of the
+  sorted list; with several processes on a node, ``--run-device cuda`` becomes
+  ``cuda:LOCAL_RANK`` (``SLURM_LOCALID`` under srun);
 * ``--gpus 0,1,2,3``: launch one child process per listed GPU, each seeing only its GPU
   (``CUDA_VISIBLE_DEVICES``) and taking its share of the pairs.
 
@@ -183,11 +185,28 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
         idx -= int(env.get("SLURM_ARRAY_TASK_MIN", 0))
     elif "WORLD_SIZE" in env:
         idx, size = int(env.get("RANK", 0)), int(env["WORLD_SIZE"])
+    elif "SLURM_NTASKS" in env and "SLURM_PROCID" in env:  # srun -n N
+        idx, size = int(env["SLURM_PROCID"]), int(env["SLURM_NTASKS"])
     else:
         idx, size = 0, 1
     if not 0 <= idx < size:
         _usage(f"array index {idx} is outside 0..{size - 1}")
     return idx, size
+
+
+def rank_device(rest: Sequence[str], env: Optional[dict[str, str]] = None) -> list[str]:
+    """``train_hogs.py``'s arguments with ``--run-device cuda`` made ``cuda:LOCAL_RANK`` when this
+    process is one of several on a node (torchrun's ``LOCAL_RANK``, srun's ``SLURM_LOCALID``), so
+    that each process trains on its own GPU; other arguments unchanged."""
+    env = dict(os.environ) if env is None else env
+    local = env.get("LOCAL_RANK", env.get("SLURM_LOCALID"))
+    out = list(rest)
+    if local is None:
+        return out
+    for i, arg in enumerate(out[:-1]):
+        if arg == "--run-device" and out[i + 1] == "cuda":
+            out[i + 1] = f"cuda:{int(local)}"
+    return out
 
 
 def is_finished(run: Path) -> bool:
@@ -285,7 +304,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             "--data-sequences",
             *seqs,
         ]
-        code = train_one(args + (["--resume"] if resume else []) + rest)
+        code = train_one(args + (["--resume"] if resume else []) + rank_device(rest))
         if code:
             failed.append(run.name)
     out.mkdir(parents=True, exist_ok=True)

@@ -119,3 +119,27 @@ def test_train_all_hogs_trains_the_training_split_by_default(tiny_world, tmp_pat
         "--data", str(tiny_world), "--out", str(tmp_path / "runs"), "--split", "val", "--allow-held-out", "s05"
     )
     assert named.returncode == 0 and "s05" in named.stdout and "held-out subject(s) ['s05']" in named.stderr
+
+
+def test_train_all_hogs_takes_its_share_under_srun_and_torchrun(tiny_world, tmp_path):
+    """Real environments of the launchers: srun's SLURM_PROCID / SLURM_NTASKS and torchrun's
+    RANK / WORLD_SIZE pick the process's share; LOCAL_RANK / SLURM_LOCALID its GPU."""
+    import os
+
+    from conftest import load_script
+
+    base = [sys.executable, str(ROOT / "pretrain" / "train_all_hogs.py"), "--data", str(tiny_world)]
+    base += ["--out", str(tmp_path / "runs"), "--split", "all", "--allow-held-out", "s05", "--dry-run"]
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "WORLD_SIZE", "LOCAL_RANK"))}
+    for env, slot in (
+        ({"SLURM_PROCID": "1", "SLURM_NTASKS": "2"}, "process 1/2"),
+        ({"RANK": "0", "WORLD_SIZE": "3"}, "process 0/3"),
+    ):
+        out = subprocess.run(base, env={**clean, **env}, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0 and slot in out.stdout, (out.stdout, out.stderr[-2000:])
+    tah = load_script("pretrain/train_all_hogs.py", "train_all_hogs_script")
+    rest = ["--optim-iters", "5", "--run-device", "cuda"]
+    assert tah.rank_device(rest, {"LOCAL_RANK": "3"})[-1] == "cuda:3"
+    assert tah.rank_device(rest, {"SLURM_LOCALID": "1"})[-1] == "cuda:1"
+    assert tah.rank_device(rest, {}) == rest
+    assert tah.rank_device(["--run-device", "cuda:0"], {"LOCAL_RANK": "2"}) == ["--run-device", "cuda:0"]
