@@ -37,7 +37,11 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--data", required=True)
     p.add_argument("--contactnet", required=True, help="ContactNet run folder")
     p.add_argument("--json", required=True, help="output JSON path")
-    p.add_argument("--subjects", default=None, help="comma-separated subjects (default: the run's val subjects)")
+    p.add_argument(
+        "--subjects",
+        default=None,
+        help="comma-separated subjects (default: the run's val subjects, else the dataset's held-out subjects)",
+    )
     p.add_argument("--per-sequence", type=int, default=16)
     p.add_argument("--iters", type=int, default=200)
     p.add_argument("--batch", type=int, default=16)
@@ -78,6 +82,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     from hogsa_loader.datasets import ArcticRoot
+    from hogsa_loader.datasets.protocol import held_out_subjects
     from hogsa_loader.errors import read_json
     from hogsa_loader.pom.contactnet import load_contactnet
     from hogsa_loader.pom.hands import hand_infos
@@ -92,9 +97,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         subjects = args.subjects.split(",")
     else:
         man = read_json(Path(args.contactnet) / "manifest.json")
+        with_sequences = {s.split("/")[0] for s in root.sequences()}
+        # ContactNet's validation subjects, else the subjects the dataset holds out (never its training ones)
         subjects = list(man.get("training", {}).get("val_subjects") or []) or sorted(
-            {s.split("/")[0] for s in root.sequences()}
+            set(held_out_subjects(root)) & with_sequences
         )
+        if not subjects:
+            raise SystemExit(f"pom_quality: {root.data_root} has no held-out subject with sequences; pass --subjects")
     seqs = [s for s in root.sequences() if s.split("/")[0] in subjects]
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))

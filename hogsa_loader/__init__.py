@@ -40,4 +40,4 @@ def __getattr__(name: str):  # lazy: importing the package stays cheap
 
 
 def __dir__() -> list[str]:
-    return sorted(__all__)
+    return sorted(set(globals()) | set(__all__))

@@ -23,6 +23,7 @@ from torch.utils.data import DataLoader
 from hogsa_loader.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
 from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.datasets.arctic_dataset import ArcticDataset
+from hogsa_loader.datasets.protocol import training_subjects
 from hogsa_loader.errors import PathLike
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.hashing import keyed_settings, settings_key
@@ -296,7 +297,8 @@ def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _St
         m = fit_contactnet(job, progress=c.progress)
         return {k: m[k] for k in ("val_mae", "val_iou05")}
 
-    return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters), [cn], contactnet)
+    subjects = {"subjects": training_subjects(ArcticRoot(data), stage="ContactNet")}  # what it is trained on
+    return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters, subjects), [cn], contactnet)
 
 
 #: SRM settings keyed only when they hold other values than these.
@@ -462,7 +464,7 @@ def build_bundle_stages(
 
         world       OUT/world/                the `demo` world (hogsa world --preset demo)
         hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
-        contactnet  OUT/runs/contactnet        ContactNet (held-out subject s05)
+        contactnet  OUT/runs/contactnet        ContactNet (the training subjects)
         bank        OUT/runs/pose_bank         POM pose bank of the training subjects
         srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
                     OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights

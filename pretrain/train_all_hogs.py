@@ -8,7 +8,7 @@ be spread over processes as a job array:
 
 * ``--array-index I --array-size N`` (or SLURM's ``SLURM_ARRAY_TASK_ID`` /
   ``SLURM_ARRAY_TASK_COUNT``, or torchrun's ``RANK`` / ``WORLD_SIZE``, or srun's
-  ``SLURM_PROCID`` / ``SLURM_NTASKS``): this process takes pairs ``I, I+N, I+2N, ...`` of the
+  ``SLURM_PROCID`` / ``SLURM_STEP_NUM_TASKS``): this process takes pairs ``I, I+N, I+2N, ...`` of the
   sorted list; with several processes on a node, ``--run-device cuda`` becomes
   ``cuda:LOCAL_RANK`` (``SLURM_LOCALID`` under srun);
 * ``--gpus 0,1,2,3``: launch one child process per listed GPU, each seeing only its GPU
@@ -119,8 +119,15 @@ def list_pairs(root: ArcticRoot, a: argparse.Namespace) -> list[tuple[str, str, 
     """Sorted ``(subject, object, sequences)`` of the selection."""
     if a.split == "all":
         seqs = root.sequences()
-    else:
+    elif root.protocol_path(a.protocol).is_file():
         seqs = root.protocol(a.protocol)[a.split]
+    elif a.split == "train":  # no protocol file: every subject the dataset's protocol does not hold out
+        from hogsa_loader.datasets.protocol import held_out_subjects  # deferred: only without protocol files
+
+        held = held_out_subjects(root)
+        seqs = [s for s in root.sequences() if s.split("/", 1)[0] not in held]
+    else:
+        _usage(f"--split {a.split}: {root.protocol_path(a.protocol)} is missing")
     subjects = set(a.subjects.split(",")) if a.subjects else None
     objects = set(a.objects.split(",")) if a.objects else None
     suffixes = [s for s in a.sequences_like.split(",") if s] if a.sequences_like else None
@@ -185,8 +192,8 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
         idx -= int(env.get("SLURM_ARRAY_TASK_MIN", 0))
     elif "WORLD_SIZE" in env:
         idx, size = int(env.get("RANK", 0)), int(env["WORLD_SIZE"])
-    elif "SLURM_NTASKS" in env and "SLURM_PROCID" in env:  # srun -n N
-        idx, size = int(env["SLURM_PROCID"]), int(env["SLURM_NTASKS"])
+    elif "SLURM_STEP_NUM_TASKS" in env and "SLURM_PROCID" in env:  # a task of srun -n N (not the batch script)
+        idx, size = int(env["SLURM_PROCID"]), int(env["SLURM_STEP_NUM_TASKS"])
     else:
         idx, size = 0, 1
     if not 0 <= idx < size:

@@ -144,11 +144,15 @@ def test_render_quality_matches_training_metrics(tiny_world, trained_runs, tmp_p
 def test_train_all_hogs_selection_array_and_skip(tiny_world, tmp_path, capsys, monkeypatch):
     ta = _module(ROOT / "pretrain" / "train_all_hogs.py", "train_all_hogs")
     root = ArcticRoot(tiny_world)
-    args, _ = ta.parse_args(["--data", str(tiny_world), "--out", str(tmp_path)])
-    pairs = ta.list_pairs(root, args)
+    every = ["--data", str(tiny_world), "--out", str(tmp_path), "--split", "all", "--allow-held-out", "s05"]
+    args, _ = ta.parse_args(every)
+    with pytest.warns(UserWarning, match="held-out"):
+        pairs = ta.list_pairs(root, args)
     assert pairs == sorted(pairs) and {(s, o) for s, o, _ in pairs} == {
         (sid_seq.split("/")[0], sid_seq.split("/")[1].split("_")[0]) for sid_seq in root.sequences()
     }
+    default, _ = ta.parse_args(["--data", str(tiny_world), "--out", str(tmp_path)])  # the training split
+    assert [(s, o) for s, o, _ in ta.list_pairs(root, default)] == [("s01", "box")]
     monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "1")
     monkeypatch.setenv("SLURM_ARRAY_TASK_COUNT", "2")
     assert ta.array_slot(args) == (1, 2)

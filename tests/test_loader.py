@@ -1014,15 +1014,18 @@ def test_drop_guard_counts_drops_in_a_row_and_warns_once_on_a_high_share():
     from hogsa_loader.loader.synth import SynthStats
 
     stats = SynthStats()
-    stats.dropped["out_of_crop"] = 3
+    stats.dropped["empty_alpha"] = 5  # counted before the stream started (a worker's copy of its parent's counts)
     guard = DropGuard(SampleChecks(max_consecutive_drops=3, warn_drop_share=0.5), stats)
+    stats.dropped["out_of_crop"] = 3  # counted by this stream
     kept = object()
-    with pytest.warns(UserWarning, match="dropped"):
+    with pytest.warns(UserWarning, match="dropped") as caught:
         for _ in range(200):  # two drops, then a kept sample: never three in a row
             guard.update([None, None, kept])
+    assert len([w for w in caught if "synthetic samples were dropped" in str(w.message)]) == 1
     assert guard.seen == 600 and guard.dropped == 400 and guard.warned  # warned once (share 2/3 > 0.5)
-    with pytest.raises(DroppedSamplesError, match=r"3 synthetic samples in a row .*out_of_crop 3"):
+    with pytest.raises(DroppedSamplesError, match=r"3 synthetic samples in a row .*by reason: out_of_crop 3\)") as info:
         guard.update([None, None, None])
+    assert "empty_alpha" not in str(info.value)
     with pytest.raises(ValueError, match="max_consecutive_drops"):
         SampleChecks(max_consecutive_drops=0)
     with pytest.warns(UserWarning, match="400 of 600 synthetic samples were dropped"):

@@ -122,7 +122,7 @@ def test_train_all_hogs_trains_the_training_split_by_default(tiny_world, tmp_pat
 
 
 def test_train_all_hogs_takes_its_share_under_srun_and_torchrun(tiny_world, tmp_path):
-    """Real environments of the launchers: srun's SLURM_PROCID / SLURM_NTASKS and torchrun's
+    """Real environments of the launchers: srun's SLURM_PROCID / SLURM_STEP_NUM_TASKS and torchrun's
     RANK / WORLD_SIZE pick the process's share; LOCAL_RANK / SLURM_LOCALID its GPU."""
     import os
 
@@ -132,7 +132,8 @@ def test_train_all_hogs_takes_its_share_under_srun_and_torchrun(tiny_world, tmp_
     base += ["--out", str(tmp_path / "runs"), "--split", "all", "--allow-held-out", "s05", "--dry-run"]
     clean = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "RANK", "WORLD_SIZE", "LOCAL_RANK"))}
     for env, slot in (
-        ({"SLURM_PROCID": "1", "SLURM_NTASKS": "2"}, "process 1/2"),
+        ({"SLURM_PROCID": "1", "SLURM_STEP_NUM_TASKS": "2", "SLURM_NTASKS": "2"}, "process 1/2"),
+        ({"SLURM_PROCID": "0", "SLURM_NTASKS": "4"}, "process 0/1"),  # an sbatch script itself: every pair
         ({"RANK": "0", "WORLD_SIZE": "3"}, "process 0/3"),
     ):
         out = subprocess.run(base, env={**clean, **env}, capture_output=True, text=True, timeout=300)
@@ -143,3 +144,19 @@ def test_train_all_hogs_takes_its_share_under_srun_and_torchrun(tiny_world, tmp_
     assert tah.rank_device(rest, {"SLURM_LOCALID": "1"})[-1] == "cuda:1"
     assert tah.rank_device(rest, {}) == rest
     assert tah.rank_device(["--run-device", "cuda:0"], {"LOCAL_RANK": "2"}) == ["--run-device", "cuda:0"]
+
+
+def test_h2o_holds_out_subject4_under_each_of_its_folder_names(tmp_path):
+    from hogsa_loader.datasets.h2o import H2ORoot
+
+    for names in (("subject1", "subject4"), ("subject1_ego", "subject4_ego"), ("subject2_pose", "subject4_pose")):
+        root_dir = tmp_path / "_".join(names)
+        for n in names:
+            (root_dir / n).mkdir(parents=True)
+        root = H2ORoot(root_dir)
+        if sorted(root.subjects()) != sorted(names):
+            pytest.skip(f"H2ORoot lists {root.subjects()} for folders {names}")
+        assert held_out_subjects(root) == {names[1]: "test"}
+        assert training_subjects(root) == [names[0]]
+        with pytest.raises(UsageError, match=f"{names[1]} \\(test\\)"):
+            training_subjects(root, [names[1]])

@@ -21,6 +21,7 @@ from typing import Optional, Sequence, Union
 from hogsa_loader.compose.sources import CropSpec, _ImageListSource
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.extras import require
+from hogsa_loader.io.atomic import atomic_open
 
 __all__ = ["COCO_PERSON", "CocoBackgrounds", "default_cache_dir"]
 
@@ -142,8 +143,7 @@ def _coco_selection(
     if cache_file is not None:
         try:
             cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache_file.with_name(f".{cache_file.name}.{os.getpid()}")
-            with open(tmp, "w", encoding="utf-8") as fh:
+            with atomic_open(cache_file, "w", encoding="utf-8") as fh:
                 json.dump(
                     {
                         "key": [str(k) for k in key],
@@ -153,7 +153,6 @@ def _coco_selection(
                     },
                     fh,
                 )
-            os.replace(tmp, cache_file)
         except OSError as exc:  # a read-only cache folder only costs speed
             log.debug("cannot write COCO selection cache %s: %s", cache_file, exc)
     return _COCO_MEMO[key]

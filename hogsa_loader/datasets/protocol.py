@@ -10,6 +10,7 @@ it then warns, and records the names in what it writes.
 
 from __future__ import annotations
 
+import re
 import warnings
 from typing import Iterable, Optional, Union
 
@@ -22,7 +23,7 @@ __all__ = ["ARCTIC_HELD_OUT", "H2O_HELD_OUT", "HeldOutWarning", "held_out_subjec
 #: ARCTIC's held-out subjects (protocols p1 and p2) and the split each is held out for; used
 #: where a root has no ``splits_json/protocol_*.json``.
 ARCTIC_HELD_OUT = {"s03": "test", "s05": "val"}
-#: H2O's held-out subject.
+#: H2O's held-out subject (its folders ``subject4``, ``subject4_ego``, ``subject4_pose``).
 H2O_HELD_OUT = {"subject4": "test"}
 
 
@@ -40,8 +41,9 @@ def held_out_subjects(root: Union[ArcticRoot, H2ORoot]) -> dict[str, str]:
     Returns:
         ``{subject: "val" | "test"}``.
     """
-    if isinstance(root, H2ORoot):
-        return dict(H2O_HELD_OUT)
+    if isinstance(root, H2ORoot):  # subject4, or its ego / pose download (subject4_ego, subject4_pose)
+        held = {s: "test" for s in root.subjects() if re.fullmatch(r"subject4(?:_ego|_pose)?", s)}
+        return held or dict(H2O_HELD_OUT)
     out: dict[str, str] = {}
     found = False
     for protocol in ("p1", "p2"):

@@ -14,6 +14,7 @@ import hashlib
 import io
 import json
 import math
+import os
 import tarfile
 import time
 from dataclasses import dataclass
@@ -420,12 +421,16 @@ def _write_shard(
     created).
     """
     name = shard_name(shard, prefix)
-    for stale in out.glob(temp_glob(out / name)):
-        stale.unlink()
+    for pattern in (temp_glob(out / name), f".{name}.tmp.*"):  # this and the earlier temporary names
+        for stale in out.glob(pattern):
+            stale.unlink()
+    # a shard being rewritten (--overwrite) has no index until it is complete: a torn rewrite reads as missing
+    _index_path(out, shard, prefix).unlink(missing_ok=True)
     t0 = time.perf_counter()
     with atomic_open(out / name) as fh:  # renamed once the index file below is written
         keys, digests = _write_tar(fh, frames, rng, shard, enc, bar)
         fh.flush()
+        os.fsync(fh.fileno())  # the tar is on disk before its index says it is complete
         rec = {
             "shard": shard,
             "file": name,

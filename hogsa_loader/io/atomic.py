@@ -52,7 +52,8 @@ def temp_glob(path: PathLike) -> str:
 
 
 #: flags of a temporary file: created here, never an existing file, never through a link
-_EXCLUSIVE = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+_EXCLUSIVE = os.O_WRONLY | os.O_CREAT | os.O_EXCL
+_EXCLUSIVE |= getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
 
 
 def _fsync_folder(folder: Path) -> None:
@@ -85,7 +86,12 @@ def atomic_open(path: PathLike, mode: str = "wb", encoding: str | None = None) -
     tmp = _temp_name(path)
     fd = os.open(tmp, _EXCLUSIVE, 0o666)  # (the umask applies, as for open())
     try:
-        with os.fdopen(fd, mode, encoding=encoding) as fh:
+        try:
+            fh = os.fdopen(fd, mode, encoding=encoding)
+        except BaseException:
+            os.close(fd)
+            raise
+        with fh:
             yield fh
             fh.flush()
             os.fsync(fh.fileno())

@@ -517,16 +517,19 @@ class HOGSADataset(IterableDataset):
     def iter_frames(self) -> Iterator[SynthFrame]:
         """The kept frames of this process's shard, in order (what the offline exporter
         stores), all of the epoch current when the iteration starts."""
+        guard = DropGuard(self.checks, self.stats)
         for plan in self._shard_plans():
-            yield from (f for f in self.render(plan) if f is not None)
+            frames = self.render(plan)
+            yield from (f for f in frames if f is not None)
+            guard.update(frames)
 
     def __iter__(self) -> Iterator[Sample]:
         self._check_device()
         guard = DropGuard(self.checks, self.stats)
         for plan in self._shard_plans():
             frames = self.render(plan)
-            guard.update(frames)
             yield from self._plan_samples(plan, frames)
+            guard.update(frames)
 
 
 class DroppedSamplesError(HogsaError, RuntimeError):
@@ -550,11 +553,13 @@ class DropGuard:
 
     def __init__(self, checks: SampleChecks, stats: SynthStats) -> None:
         self.checks, self.stats = checks, stats
+        self.start = dict(stats.dropped)  # (a DataLoader worker starts with its parent's counts)
         self.in_a_row = self.seen = self.dropped = 0
         self.warned = False
 
     def _reasons(self) -> str:
-        return ", ".join(f"{k} {v}" for k, v in self.stats.dropped.items() if v) or "none counted here"
+        since = {k: v - self.start.get(k, 0) for k, v in self.stats.dropped.items()}
+        return ", ".join(f"{k} {v}" for k, v in since.items() if v) or "none counted here"
 
     def update(self, frames: list[Optional[SynthFrame]]) -> None:
         """Count one render batch's frames (None = dropped), in index order."""

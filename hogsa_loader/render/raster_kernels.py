@@ -18,7 +18,7 @@ import torch
 
 try:
     from numba import njit
-except ImportError:  # pragma: no cover - numba is a declared dependency
+except ImportError:  # numba is the [cpu] extra: without it the PyTorch paths run
     njit = None
 
 __all__ = ["AVAILABLE", "compile_kernel", "use_kernels", "pixel_centres", "setup_faces", "zbuffer", "resolve", "shade"]

@@ -165,7 +165,7 @@ PRESETS: dict[str, WorldPreset] = {
         ego_image_scale=0.3,
     ),
     # What `hogsa demo` trains on and streams, at ARCTIC's image sizes: the sequences of its two
-    # (subject, object) models and one of the held-out subject (ContactNet's validation).
+    # (subject, object) models and one of the held-out subject (the real validation frames).
     "demo": WorldPreset(
         name="demo",
         subjects=(
