@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.io.images import read_image
 from hogsa_loader.system import available_cores
 
 __all__ = ["BackgroundSource", "CropSpec", "FolderBackgrounds", "IMAGE_EXTENSIONS", "ImageCache"]
@@ -350,7 +351,10 @@ class _ImageListSource(BackgroundSource):
             4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8,
         }[reduce]
-        bgr = cv2.imread(str(path), flag)
+        try:  # the header's size is checked before decoding (a small file can announce a huge image)
+            bgr = read_image(path, flag)
+        except AssetError:
+            return None
         if bgr is None or bgr.ndim != 3 or bgr.shape[0] < 2 or bgr.shape[1] < 2:
             return None
         img = np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))

@@ -23,6 +23,7 @@ from hogsa_loader.datasets.conventions import EGO_VIEW, cropped_bbox, full_to_cr
 from hogsa_loader.datasets.interfield import interfield_targets
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels, make_arctic_sample
 from hogsa_loader.errors import AssetError, PathLike
+from hogsa_loader.io.images import read_image
 
 __all__ = ["ArcticDataset", "SUBSAMPLE_COUNTS", "parse_imgname", "rewrite_imgname", "subsample_imgnames"]
 
@@ -265,9 +266,12 @@ class ArcticDataset(Dataset):
         return patch_intrinsics(self._full_k(sid, view, vidx, seq_data), size, 1.0, True, self.cfg)
 
     def _read_image(self, path: Path) -> Optional[np.ndarray]:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR) if path.is_file() else None
+        try:  # missing, truncated, oversized or undecodable: counted as missing, like ARCTIC's loader
+            img = read_image(path, cv2.IMREAD_COLOR)
+        except AssetError as exc:
+            img = None
+            log.warning("Unable to load %s (%s); using a zero image", path, exc.problem)
         if img is None:
-            log.warning("Unable to load %s; using a zero image", path)
             self.missing_images += 1
             self.missing_image_paths.append(str(path))
             return None

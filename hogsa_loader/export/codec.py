@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from hogsa_loader.datasets.sample import HandLabels, ObjectLabels
+from hogsa_loader.io.images import decode_image
 from hogsa_loader.loader.frame import SynthFrame
 
 __all__ = ["FORMAT_VERSION", "encode_frame", "decode_frame", "frame_labels", "json_default", "split_member_name"]
@@ -172,11 +173,8 @@ def encode_frame(
     return members
 
 
-def _decode_png(data: bytes) -> np.ndarray:
-    arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise ValueError("undecodable PNG")
-    return arr
+def _decode_png(data: bytes, where: str = "<shard member>") -> np.ndarray:
+    return decode_image(data, where, cv2.IMREAD_UNCHANGED)
 
 
 def _dequantise(q: np.ndarray) -> np.ndarray:
@@ -206,13 +204,18 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
     ext = "jpg" if "jpg" in files else "png" if "png" in files else None
     if ext is None:
         raise ValueError(f"{where}: no image member (.jpg or .png)")
-    bgr = cv2.imdecode(np.frombuffer(files[ext], np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"{where}: undecodable .{ext}")
+    bgr = decode_image(files[ext], f"{where}.{ext}", cv2.IMREAD_COLOR)
     image = np.ascontiguousarray(bgr[:, :, ::-1])
-    alpha = _dequantise(_decode_png(files["alpha.png"]))
+    alpha = _dequantise(_decode_png(files["alpha.png"], f"{where}.alpha.png"))
+    if alpha.shape[:2] != image.shape[:2]:
+        raise ValueError(
+            f"{where}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, the image {image.shape[1]}x{image.shape[0]}"
+        )
     if "parts.png" in files:
-        part_alpha = _dequantise(np.ascontiguousarray(_decode_png(files["parts.png"])[:, :, ::-1]))
+        parts = _decode_png(files["parts.png"], f"{where}.parts.png")
+        if parts.shape[:2] != image.shape[:2]:
+            raise ValueError(f"{where}: parts.png is {parts.shape[1]}x{parts.shape[0]}, the image differs")
+        part_alpha = _dequantise(np.ascontiguousarray(parts[:, :, ::-1]))
     else:
         part_alpha = np.zeros(image.shape[:2] + (3,), np.float32)
     with np.load(io.BytesIO(files["labels.npz"]), allow_pickle=False) as z:

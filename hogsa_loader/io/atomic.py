@@ -71,13 +71,17 @@ def _fsync_folder(folder: Path) -> None:
 
 
 @contextmanager
-def atomic_open(path: PathLike, mode: str = "wb", encoding: str | None = None) -> Iterator[IO[Any]]:
+def atomic_open(
+    path: PathLike, mode: str = "wb", encoding: str | None = None, durable: bool = True
+) -> Iterator[IO[Any]]:
     """Open a temporary file that replaces ``path`` when the ``with`` block ends without error.
 
     Args:
         path: the file to write; its folder must exist.
         mode: ``"wb"`` or ``"w"``.
         encoding: text encoding (text mode only).
+        durable: fsync the file and its folder (a power cut keeps it); False for bulk files
+            that a later step checks (still atomic and never through a link).
 
     Yields:
         the open temporary file.
@@ -94,17 +98,19 @@ def atomic_open(path: PathLike, mode: str = "wb", encoding: str | None = None) -
         with fh:
             yield fh
             fh.flush()
-            os.fsync(fh.fileno())
+            if durable:
+                os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    _fsync_folder(path.parent)
+    if durable:
+        _fsync_folder(path.parent)
 
 
-def atomic_write(path: PathLike, data: bytes) -> None:
+def atomic_write(path: PathLike, data: bytes, durable: bool = True) -> None:
     """Write ``data`` to ``path`` atomically (see :func:`atomic_open`)."""
-    with atomic_open(path) as fh:
+    with atomic_open(path, durable=durable) as fh:
         fh.write(data)
 
 

@@ -21,6 +21,7 @@ from hogsa_loader.datasets.conventions import EGO_IMAGE_SIZE, MASK_IDS
 from hogsa_loader.errors import PathLike
 from hogsa_loader.hands.mano_io import load_mano, write_mano_pickle
 from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.io.images import write_image
 from hogsa_loader.objects.template import load_object_template, read_object_meta
 from hogsa_loader.render import raster_kernels
 from hogsa_loader.render.mesh_raster import warm_up_kernels
@@ -439,12 +440,10 @@ def _render_sequence(
                 rgb, mask = renderer.render_ego(w2e[i], fg)
             else:
                 rgb, mask = renderer.render_allo(v, boxes[v - 1, i], fg, float(density[v - 1]))
-            cv2.imwrite(
-                str(dirs[v][0] / f"{stem}.jpg"),
-                cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality],
-            )
-            cv2.imwrite(str(dirs[v][1] / f"{stem}.png"), mask, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+            # a failed write raises (naming the file), so the sequence is never recorded finished
+            jpeg = [cv2.IMWRITE_JPEG_QUALITY, preset.jpeg_quality]
+            write_image(dirs[v][0] / f"{stem}.jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), jpeg, durable=False)
+            write_image(dirs[v][1] / f"{stem}.png", mask, [cv2.IMWRITE_PNG_COMPRESSION, 3], durable=False)
             bar.update()
 
 
