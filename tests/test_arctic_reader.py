@@ -1451,3 +1451,27 @@ def test_fuzz_corrupt_misc_json_raises_only_asset_error(data, fuzz_template):
         r.sequence("s01", "box_grab_01")
     except AssetError as exc:
         assert exc.path == str(r.misc_path), exc
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("trans", 1e30, r"right\.trans reaches 1e\+30 m, beyond any real capture"),
+        ("rot", 1e30, r"right\.rot reaches 1\.73e\+30 rad"),
+        ("pose", -1e6, r"right\.pose reaches 1\.73e\+06 rad"),
+    ],
+)
+def test_physically_impossible_hand_values_are_refused(tiny_world, tmp_path, field, value, message):
+    """Finite but absurd annotations (a hand 10³⁰ m away) are refused by the reader, naming the
+    file and the field, instead of yielding samples that are all dropped."""
+    from hogsa_loader.datasets.arctic import ArcticRoot, read_npy
+
+    src = next((tiny_world / "arctic_data" / "data" / "raw_seqs").rglob("*.mano.npy"))
+    data = read_npy(src)
+    ArcticRoot._read_mano(src)  # the untouched file is accepted
+    data["right"][field] = np.full_like(np.asarray(data["right"][field], dtype=np.float64), value)
+    bad = tmp_path / src.name
+    np.save(bad, np.array(data, dtype=object), allow_pickle=True)
+    with pytest.raises(AssetError, match=message) as info:
+        ArcticRoot._read_mano(bad)
+    assert str(bad) in str(info.value)

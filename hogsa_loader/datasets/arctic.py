@@ -130,6 +130,22 @@ def _numeric(
     return out
 
 
+#: Largest |translation| component (metres) of a hand, an object or the egocentric camera:
+#: ARCTIC's capture volume is a few metres across.
+MAX_TRANSLATION_M = 100.0
+#: Largest axis-angle norm (radians) of a rotation or a pose parameter triple (16 turns; the
+#: fits stay within a few radians).
+MAX_ROTATION_RAD = 100.0
+
+
+def _check_bounds(x: np.ndarray, path: Path, key: str, limit: float, unit: str, norm: bool = False) -> None:
+    """Refuse finite but physically impossible values (``norm``: of the rows' 3-vectors)."""
+    v = np.linalg.norm(x.reshape(-1, 3), axis=1) if norm else np.abs(x)
+    if v.size and float(v.max()) > limit:
+        worst = float(v.max())
+        raise AssetError(path, f"{key} reaches {worst:.3g} {unit}, beyond any real capture (limit {limit:g} {unit})")
+
+
 def _check_rotations(R: np.ndarray, path: Path, key: str) -> None:
     """(..., 3, 3) must be proper rotations within :data:`ROTATION_TOL`."""
     eye = np.eye(3)
@@ -625,6 +641,9 @@ class ArcticRoot:
         ):
             raise AssetError(obj_path, f"has {obj_raw.shape[0]} frames, but {paths['mano'].name} has {F}")
         obj = _numeric(obj_raw, obj_path, "object parameters", ("F", 7), F)
+        _check_bounds(obj[:, 0], obj_path, "object articulation", MAX_ROTATION_RAD, "rad")
+        _check_bounds(obj[:, 1:4], obj_path, "object rotation", MAX_ROTATION_RAD, "rad", norm=True)
+        _check_bounds(obj[:, 4:7], obj_path, "object translation", MAX_TRANSLATION_M * 1000.0, "mm")
 
         ego_path = paths["egocam"]
         ego = read_npy(ego_path)
@@ -643,6 +662,7 @@ class ArcticRoot:
             T = _numeric(T_raw, ego_path, "T_k_cam_np", ("F", 3), F)
         else:
             T = _numeric(T_raw, ego_path, "T_k_cam_np", ("F", 3, 1), F)[..., 0]
+        _check_bounds(T, ego_path, "T_k_cam_np", MAX_TRANSLATION_M, "m")
         K = _numeric(ego["intrinsics"], ego_path, "intrinsics", (3, 3))
         _check_intrinsics(K, ego_path, "intrinsics")
         dist8 = _numeric(ego["dist8"], ego_path, "dist8", (8,))
@@ -693,6 +713,9 @@ class ArcticRoot:
                 "trans": _numeric(hand["trans"], path, f"{side}.trans", ("F", 3), F),
                 "fitting_err": _numeric(hand["fitting_err"], path, f"{side}.fitting_err", ("F",), F),
             }
+            _check_bounds(d["rot"], path, f"{side}.rot", MAX_ROTATION_RAD, "rad", norm=True)
+            _check_bounds(d["pose"], path, f"{side}.pose", MAX_ROTATION_RAD, "rad", norm=True)
+            _check_bounds(d["trans"], path, f"{side}.trans", MAX_TRANSLATION_M, "m")
             shape_raw = hand["shape"]
             if isinstance(shape_raw, np.ndarray) and shape_raw.ndim == 2:
                 betas = _numeric(shape_raw, path, f"{side}.shape", ("F", 10), F)
