@@ -26,6 +26,7 @@ from tqdm import tqdm
 from hogsa_loader.errors import PathLike
 from hogsa_loader.export.codec import encode_frame, json_default
 from hogsa_loader.io.atomic import atomic_open, temp_glob
+from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.loader.frame import SynthFrame
 
 __all__ = [
@@ -524,43 +525,46 @@ def write_shards(
         ExportMismatchError: ``out_dir`` holds shards of another export and not ``overwrite``.
     """
     out, created = _output_folder(out_dir, num, shard_size)
-    n = num_shards(num, shard_size)
-    settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
-    todo, skipped = _shards_to_write(out, n, num, shard_size, rank, world_size, prefix, settings, overwrite)
-    enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
-    bar = _progress_bar(todo, num, shard_size, rank, world_size) if progress and rank == 0 else None
-    t_all = time.perf_counter()
-    written_samples, dropped = 0, 0
-    failed = True
-    try:
-        for s in todo:
-            rng = shard_range(s, num, shard_size)
-            count = _write_shard(out, s, frames_for_shard(s), rng, enc, prefix, rank, world_size, settings, bar)
-            written_samples += count
+    with writer_lock(out, f".rank-{int(rank)}.lock", f"rank {rank} of an export"):  # one writer per rank
+        n = num_shards(num, shard_size)
+        settings = export_settings(image_format, jpeg_quality, alpha_bits, parts, info)
+        todo, skipped = _shards_to_write(out, n, num, shard_size, rank, world_size, prefix, settings, overwrite)
+        enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
+        bar = _progress_bar(todo, num, shard_size, rank, world_size) if progress and rank == 0 else None
+        t_all = time.perf_counter()
+        written_samples, dropped = 0, 0
+        failed = True
+        try:
+            for s in todo:
+                rng = shard_range(s, num, shard_size)
+                count = _write_shard(out, s, frames_for_shard(s), rng, enc, prefix, rank, world_size, settings, bar)
+                written_samples += count
+                if bar is not None:
+                    dropped += len(rng) - count
+                    bar.set_postfix({"dropped": dropped})
+            failed = False
+        finally:
             if bar is not None:
-                dropped += len(rng) - count
-                bar.set_postfix({"dropped": dropped})
-        failed = False
-    finally:
-        if bar is not None:
-            bar.close()
-        # also after an interruption: index.json always describes what is on disk
-        index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
-        if failed and not index["shards"] and world_size == 1:  # nothing of this export exists
-            _remove_empty_export(out, created)
-    return {
-        "written": todo,
-        "skipped": skipped,
-        "samples": written_samples,
-        "seconds": time.perf_counter() - t_all,
-        "index": str(out / INDEX_NAME),
-        **{k: index[k] for k in ("complete", "num_samples_written", "num_dropped", "dropped")},
-    }
+                bar.close()
+            # also after an interruption: index.json always describes what is on disk
+            index = rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
+            if failed and not index["shards"] and world_size == 1:  # nothing of this export exists
+                _remove_empty_export(out, created)
+        return {
+            "written": todo,
+            "skipped": skipped,
+            "samples": written_samples,
+            "seconds": time.perf_counter() - t_all,
+            "index": str(out / INDEX_NAME),
+            **{k: index[k] for k in ("complete", "num_samples_written", "num_dropped", "dropped")},
+        }
 
 
 def _remove_empty_export(out: Path, created: bool) -> None:
     """Remove the index and lock of an export that wrote nothing (and its folder, when it made it)."""
     (out / INDEX_NAME).unlink(missing_ok=True)
     (out / ".index.lock").unlink(missing_ok=True)
+    for lock in out.glob(".rank-*.lock"):
+        lock.unlink(missing_ok=True)
     if created and not any(out.iterdir()):
         out.rmdir()

@@ -10,6 +10,7 @@ from typing import Any, Optional
 from torch import Tensor
 from tqdm import tqdm
 
+from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.train.run_folder import (
     commit_checkpoint,
     latest_checkpoint,
@@ -78,6 +79,11 @@ class StepLoop(ABC):
             overwrite: when the run was not resumed and its folder holds checkpoints, empty
                 the folder and start again (otherwise :class:`RunExistsError`).
         """
+        Path(self.out).mkdir(parents=True, exist_ok=True)
+        with writer_lock(self.out, what="this run"):  # two --resume of one run: the second is refused
+            return self._run_steps(overwrite)
+
+    def _run_steps(self, overwrite: bool) -> dict[str, Any]:
         cfg = self.cfg
         start_run(self.out, resumed=self.resumed, overwrite=overwrite, config=cfg.to_json())
         if self.step == 0 and not self.evals:
