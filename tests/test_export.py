@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import shutil
@@ -616,3 +617,22 @@ def test_member_checksums_catch_flipped_bytes(tmp_path, export_dir):
     (out / "synth-000000.index.json").write_text(json.dumps(rec))
     with pytest.raises(AssetError, match="records no members_sha256"):
         list(SynthShardDataset(out))
+
+
+def test_a_shard_of_the_right_size_but_other_bytes_is_rewritten(tmp_path):
+    """Completeness is judged by the shard's sha256, not its size: tar pads to 10,240-byte
+    records, so a torn or foreign shard can have exactly the recorded size."""
+    out = tmp_path / "e"
+    calls: list = []
+    write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
+    tar = out / shard_name(0)
+    good = tar.read_bytes()
+    torn = bytearray(good)
+    torn[len(torn) // 2] ^= 0xFF  # same size, other bytes
+    tar.write_bytes(bytes(torn))
+    calls.clear()
+    res = write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
+    assert calls == [0] and res["written"] == [0] and res["skipped"] == [1]
+    assert tar.read_bytes() == good
+    rec = json.loads((out / "synth-000000.index.json").read_text())
+    assert rec["sha256"] == hashlib.sha256(good).hexdigest()

@@ -131,8 +131,8 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
     try:
         with open(idx, "r", encoding="utf-8") as fh:
             rec = json.load(fh)
-        if int(rec.get("bytes", -1)) != tar.stat().st_size:
-            return "missing"
+        if int(rec.get("bytes", -1)) != tar.stat().st_size or rec.get("sha256") != _file_sha256(tar):
+            return "missing"  # (tar pads to 10,240-byte records: a torn rewrite can have the right size)
     except (OSError, ValueError, AttributeError, TypeError):
         return "missing"
     if (rec.get("first"), rec.get("last")) != (rng.start, rng.stop - 1):
@@ -143,6 +143,28 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
         diff = sorted(k for k in settings if old.get(k) != settings[k]) or ["settings"]
         return f"stale: written with other {', '.join(diff)} ({', '.join(f'{k}={old.get(k)!r}' for k in diff[:3])})"
     return "complete"
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class _HashingWriter:
+    """A write-only file wrapper that hashes what passes through (for the shard's sha256)."""
+
+    def __init__(self, fh: IO[bytes]) -> None:
+        self.fh, self.sha = fh, hashlib.sha256()
+
+    def write(self, data: bytes) -> int:
+        self.sha.update(data)
+        return self.fh.write(data)
+
+    def tell(self) -> int:
+        return self.fh.tell()
 
 
 def _extra_shards(out_dir: Path, n: int, prefix: str) -> list[int]:
@@ -429,7 +451,8 @@ def _write_shard(
     _index_path(out, shard, prefix).unlink(missing_ok=True)
     t0 = time.perf_counter()
     with atomic_open(out / name) as fh:  # renamed once the index file below is written
-        keys, digests = _write_tar(fh, frames, rng, shard, enc, bar)
+        hashed = _HashingWriter(fh)
+        keys, digests = _write_tar(hashed, frames, rng, shard, enc, bar)
         fh.flush()
         os.fsync(fh.fileno())  # the tar is on disk before its index says it is complete
         rec = {
@@ -441,6 +464,7 @@ def _write_shard(
             "last": rng.stop - 1,
             "keys": keys,
             "bytes": fh.tell(),
+            "sha256": hashed.sha.hexdigest(),
             "seconds": round(time.perf_counter() - t0, 3),
             "rank": rank,
             "world_size": world_size,
