@@ -26,6 +26,7 @@ from tqdm import tqdm
 from hogsa_loader.errors import PathLike
 from hogsa_loader.export.codec import encode_frame, json_default
 from hogsa_loader.io.atomic import atomic_open, temp_glob
+from hogsa_loader.io.hashing import sha256_file
 from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.loader.frame import SynthFrame
 
@@ -131,7 +132,7 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
     try:
         with open(idx, "r", encoding="utf-8") as fh:
             rec = json.load(fh)
-        if int(rec.get("bytes", -1)) != tar.stat().st_size or rec.get("sha256") != _file_sha256(tar):
+        if int(rec.get("bytes", -1)) != tar.stat().st_size or rec.get("sha256") != sha256_file(tar):
             return "missing"  # (tar pads to 10,240-byte records: a torn rewrite can have the right size)
     except (OSError, ValueError, AttributeError, TypeError):
         return "missing"
@@ -143,14 +144,6 @@ def _shard_state(out_dir: Path, shard: int, prefix: str, rng: range, settings: O
         diff = sorted(k for k in settings if old.get(k) != settings[k]) or ["settings"]
         return f"stale: written with other {', '.join(diff)} ({', '.join(f'{k}={old.get(k)!r}' for k in diff[:3])})"
     return "complete"
-
-
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 class _HashingWriter:
