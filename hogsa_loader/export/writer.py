@@ -9,7 +9,6 @@ Start with :func:`write_shards` and :func:`dataset_frames_for_shard`, which feed
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import json
@@ -176,19 +175,9 @@ def _add_member(tar: tarfile.TarFile, name: str, data: bytes, digests: dict[str,
     tar.addfile(ti, io.BytesIO(data))
 
 
-@contextlib.contextmanager
-def _locked(out_dir: Path) -> Iterator[None]:
-    try:
-        import fcntl  # deferred: POSIX only (without it the index is rebuilt unlocked)
-    except ImportError:  # pragma: no cover - non-POSIX
-        yield
-        return
-    with open(out_dir / ".index.lock", "a") as fh:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+def _locked(out_dir: Path) -> Any:
+    """The export index's lock: the ranks rebuild ``index.json`` one at a time."""
+    return writer_lock(out_dir, ".index.lock", "the export index", wait=True)
 
 
 def rebuild_index(

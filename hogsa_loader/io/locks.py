@@ -24,16 +24,20 @@ class FolderBusyError(HogsaError, RuntimeError):
 
 
 @contextlib.contextmanager
-def writer_lock(folder: PathLike, name: str = ".hogsa-writer.lock", what: str = "this folder") -> Iterator[None]:
+def writer_lock(
+    folder: PathLike, name: str = ".hogsa-writer.lock", what: str = "this folder", wait: bool = False
+) -> Iterator[None]:
     """Hold the writer lock ``folder/name`` for the ``with`` block.
 
     Args:
         folder: the output folder (it must exist).
         name: the lock file (one per unit that has one writer, e.g. an export rank).
         what: what the lock guards, for the message (``"rank 0 of this export"``).
+        wait: wait for the holder to finish instead of refusing (for short critical sections
+            that several writers take in turn, e.g. rebuilding an export's index).
 
     Raises:
-        FolderBusyError: a live process holds the lock (its pid is named).
+        FolderBusyError: a live process holds the lock (its pid is named); never with ``wait``.
     """
     try:
         import fcntl  # deferred: POSIX only (elsewhere no lock is taken)
@@ -44,7 +48,7 @@ def writer_lock(folder: PathLike, name: str = ".hogsa-writer.lock", what: str = 
     fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644)
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
             raise FolderBusyError(f"{Path(folder)}: {what} is being written by process {holder}") from None
