@@ -9,7 +9,7 @@ Every step is timed and recorded, and a failing step does not stop the others:
 3. ``world`` / ``bundle`` — the ``tiny`` generated world (256-px crops) and an untrained bundle
    of one (subject, object) with ``--gaussians-per-face`` Gaussians per face and an untrained
    SRM (same architecture and cost as a trained one); backgrounds: the demo's photographs.
-4. ``stream`` — :class:`~hogsa_loader.loader.dataset.HOGSADataset` on the device at
+4. ``stream`` — :class:`~hogsa_loader.sample.dataset.HOGSADataset` on the device at
    ``--render-size`` with the SRM, batches of ``--batch-size``, timed over ``--seconds``:
    images/s and seconds per stage (CUDA-synchronised).
 5. ``finetune`` — ArcticNet-SF (``--backbone``, patches of ``--img-res``) trained with AdamW
@@ -89,7 +89,7 @@ def step_cuda_tests(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, 
 
 def step_world(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
     """The ``tiny`` world (reused when present)."""
-    from hogsa_loader.synthetic.world import generate_world, get_preset
+    from hogsa_world import generate_world, get_preset
 
     world = Path(args.out) / "world"
     data = world / "arctic_data" / "data"
@@ -101,11 +101,11 @@ def step_world(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
 
 def step_bundle(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]:
     """An untrained bundle of the world's training pair with an untrained SRM."""
-    from hogsa_loader.bundle import load_bundle
-    from hogsa_loader.srm import SRM
-    from hogsa_loader.srm.io import save_srm
-    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
+    from hogsa_loader.models.bundle import load_bundle
+    from hogsa_loader.models.srm import SRM
+    from hogsa_loader.models.srm.io import save_srm
     from hogsa_loader.view.pictures import demo_photographs
+    from hogsa_world.untrained import write_untrained_bundle
 
     out = Path(args.out) / "bundle_src"
     srm = out / "srm"
@@ -121,9 +121,9 @@ def step_bundle(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
 
 
 def _synthetic(args: argparse.Namespace, ctx: dict[str, Any], seed: int = 0) -> Any:
-    from hogsa_loader.datasets.augment import ArcticConfig
-    from hogsa_loader.loader.config import LoaderConfig, with_options
-    from hogsa_loader.loader.dataset import HOGSADataset
+    from hogsa_loader.sample.augment import ArcticConfig
+    from hogsa_loader.sample.config import LoaderConfig, with_options
+    from hogsa_loader.sample.dataset import HOGSADataset
 
     config = with_options(
         LoaderConfig(),
@@ -167,9 +167,9 @@ def step_stream(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, Any]
 
 
 def _finetune(args: argparse.Namespace, ctx: dict[str, Any], batches: Any, steps: int) -> dict[str, Any]:
+    from hogsa_loader.assets.arctic import ArcticRoot
     from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
     from hogsa_loader.baselines.engine import BodyLayers, training_step
-    from hogsa_loader.datasets.arctic import ArcticRoot
 
     layers = BodyLayers.from_root(ArcticRoot(ctx["world"])).to(args.device)
     torch.manual_seed(0)
@@ -205,9 +205,9 @@ def step_finetune(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, An
     """Steps/s on real batches alone, then with half of each batch synthetic."""
     from torch.utils.data import DataLoader
 
-    from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-    from hogsa_loader.datasets.augment import ArcticConfig
-    from hogsa_loader.loader.mixing import MixedLoader
+    from hogsa_loader.sample.arctic_dataset import ArcticDataset
+    from hogsa_loader.sample.augment import ArcticConfig
+    from hogsa_loader.sample.mixing import MixedLoader
 
     real = ArcticDataset(ctx["world"], split="p1_train", config=ArcticConfig(img_res=args.img_res), seed=0)
     workers = min(8, os.cpu_count() or 1) if not args.dry_run else 0

@@ -3,7 +3,7 @@
 Two measurements in one run, each through a ``torch.utils.data.DataLoader`` with the
 default collate and the same batch size:
 
-1. **synthetic** — :class:`hogsa_loader.loader.dataset.HOGSADataset` over ``--bundle``
+1. **synthetic** — :class:`hogsa_loader.sample.dataset.HOGSADataset` over ``--bundle``
    and ``--data`` (pose sampling → [POM] → one batched render into the crop → [SRM] →
    background compositing → ARCTIC augmentation + targets). Images/s are counted over
    ``--seconds`` of wall clock after ``--warmup`` batches (model loading, background pool,
@@ -13,11 +13,11 @@ default collate and the same batch size:
    ``--num-workers 0`` (the only choice on CUDA: workers never touch CUDA) the stages are
    those of the timed run. With CPU workers, ``timed_worker_stats`` / ``timed_worker_stages``
    are the workers' own counts and seconds over the timed window (from the dataset's
-   shared-memory table, :meth:`~hogsa_loader.loader.dataset.HOGSADataset.total_stats`;
+   shared-memory table, :meth:`~hogsa_loader.sample.dataset.HOGSADataset.total_stats`;
    seconds summed over workers), and ``stats`` / ``stages`` come from a separate
    single-process pass of ``--stage-seconds``, which shows the stage costs without
    contention between workers.
-2. **real** — :class:`hogsa_loader.datasets.arctic_dataset.ArcticDataset` over
+2. **real** — :class:`hogsa_loader.sample.arctic_dataset.ArcticDataset` over
    ``--real-data`` (default ``--data``), split ``--real-split``: JPEG decode + blur + crop
    warp + augmentation + targets, the reference a training loop would otherwise run at
    (``real_loader_images_per_s``), plus a small single-process breakdown (read+decode vs
@@ -52,10 +52,10 @@ from typing import Any, Iterable, Optional
 import torch
 from torch.utils.data import DataLoader
 
-from hogsa_loader.datasets.arctic_dataset import ArcticDataset
-from hogsa_loader.loader.config import with_options
-from hogsa_loader.loader.dataset import HOGSADataset
-from hogsa_loader.loader.synth import SynthStats
+from hogsa_loader.sample.arctic_dataset import ArcticDataset
+from hogsa_loader.sample.config import with_options
+from hogsa_loader.sample.dataset import HOGSADataset
+from hogsa_loader.sample.synth import SynthStats
 from hogsa_loader.system import available_cores
 
 STAGES = ("pose", "pom", "render", "srm", "composite", "targets")

@@ -17,14 +17,14 @@ __version__ = "0.1.0"
 
 #: public name -> module that defines it
 _EXPORTS = {
-    "Bundle": "hogsa_loader.bundle",
-    "load_bundle": "hogsa_loader.bundle",
-    "write_bundle": "hogsa_loader.bundle",
-    "HOGSADataset": "hogsa_loader.loader.dataset",
-    "MixedLoader": "hogsa_loader.loader.mixing",
-    "LoaderConfig": "hogsa_loader.loader.config",
-    "with_options": "hogsa_loader.loader.config",
-    "SynthShardDataset": "hogsa_loader.export.reader",
+    "Bundle": "hogsa_loader.models.bundle",
+    "load_bundle": "hogsa_loader.models.bundle",
+    "write_bundle": "hogsa_loader.models.bundle",
+    "HOGSADataset": "hogsa_loader.sample.dataset",
+    "MixedLoader": "hogsa_loader.sample.mixing",
+    "LoaderConfig": "hogsa_loader.sample.config",
+    "with_options": "hogsa_loader.sample.config",
+    "SynthShardDataset": "hogsa_loader.sample.export.reader",
     "wrap_train_loader": "hogsa_loader.integrations.arctic",
 }
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import json
 import os
 import sys
@@ -14,26 +14,32 @@ import pytest
 import torch
 from hypothesis import settings as hypothesis_settings
 
-from hogsa_loader.hands.mano_io import write_mano_pickle
-from hogsa_loader.synthetic.hand import synthetic_hand_pair
+from hogsa_loader.assets.hands.mano_io import write_mano_pickle
+from hogsa_world.hand import synthetic_hand_pair
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 # Property tests draw the same examples on every run and machine (``derandomize``: a seed from
 # each test's own code) and keep no example database; ``HOGSA_HYPOTHESIS_PROFILE=random`` draws
-# fresh examples each run. The long randomized reader fuzz is ``benchmarks/fuzz_readers.py``.
+# fresh examples each run. The long randomized reader fuzz is ``tests/robustness/fuzz_readers.py``.
 hypothesis_settings.register_profile("suite", derandomize=True, database=None, print_blob=True)
 hypothesis_settings.register_profile("random", database=None, print_blob=True)
 hypothesis_settings.load_profile(os.environ.get("HOGSA_HYPOTHESIS_PROFILE", "suite"))
 
 
-def load_script(relpath: str, name: str) -> types.ModuleType:
-    """Import a script of the repository that is not in the package (``benchmarks/x.py``) as ``name``."""
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / relpath)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+def job(name: str) -> types.SimpleNamespace:
+    """``main`` and ``parse_args`` of a command-line job, called in-process: ``hogs``, ``srm``,
+    ``contactnet``, ``bank`` (``hogsa train NAME``), ``train_all_hogs`` or ``build_bundle``
+    (``python -m hogsa_loader.cli.NAME``)."""
+    import hogsa_loader.cli.train as train_cli
+
+    if name in ("train_all_hogs", "build_bundle"):
+        return importlib.import_module(f"hogsa_loader.cli.{name}")
+    main = {"hogs": "train_hogs_main", "srm": "train_srm_main", "contactnet": "train_contactnet_main"}
+    main["bank"] = "build_pose_bank_main"
+    return types.SimpleNamespace(
+        main=getattr(train_cli, main[name]), parse_args=getattr(train_cli, f"parse_{name}_args")
+    )
 
 
 @pytest.fixture(scope="session")
@@ -93,8 +99,6 @@ def tiny_world(tmp_path_factory) -> Path:
     For quick local runs, ``HOGSA_TEST_WORLD=DIR`` reuses a world made beforehand with that
     exact command (CI never sets it).
     """
-    import os
-
     from hogsa_loader.cli.main import main
 
     given = os.environ.get("HOGSA_TEST_WORLD")
@@ -138,8 +142,8 @@ def tiny_hogs_config(data, out, **overrides):
 
 def tiny_srm(folder: Path, scale: int = 1) -> Path:
     """A small untrained SRM saved in ``folder``."""
-    from hogsa_loader.srm import SRM, save_srm
-    from hogsa_loader.srm.styleunet import StyleUNetConfig
+    from hogsa_loader.models.srm import SRM, save_srm
+    from hogsa_loader.models.srm.styleunet import StyleUNetConfig
 
     torch.manual_seed(0)
     cfg = StyleUNetConfig(channels=[8, 8, 8], style_dim=8, mlp_num=1, scale=scale, extra_channels=4)
@@ -151,7 +155,7 @@ def tiny_srm(folder: Path, scale: int = 1) -> Path:
 def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
     """An untrained bundle of the tiny world (colours from the hand albedo / object texture)
     for s01 + box, with a small untrained SRM."""
-    from hogsa_loader.synthetic.world.untrained import write_untrained_bundle
+    from hogsa_world.untrained import write_untrained_bundle
 
     out = tmp_path_factory.mktemp("bundle")
     return write_untrained_bundle(tiny_world, out, "s01", "box", srm=tiny_srm(out / "srm"))

@@ -10,11 +10,11 @@ import hogsa_loader
 
 
 def test_main_names_at_the_top_level_are_the_library_objects():
-    from hogsa_loader.bundle import load_bundle
-    from hogsa_loader.export.reader import SynthShardDataset
     from hogsa_loader.integrations.arctic import wrap_train_loader
-    from hogsa_loader.loader.dataset import HOGSADataset
-    from hogsa_loader.loader.mixing import MixedLoader
+    from hogsa_loader.models.bundle import load_bundle
+    from hogsa_loader.sample.dataset import HOGSADataset
+    from hogsa_loader.sample.export.reader import SynthShardDataset
+    from hogsa_loader.sample.mixing import MixedLoader
 
     assert hogsa_loader.HOGSADataset is HOGSADataset and hogsa_loader.wrap_train_loader is wrap_train_loader
     assert hogsa_loader.load_bundle is load_bundle and hogsa_loader.MixedLoader is MixedLoader
@@ -46,7 +46,7 @@ def test_package_import_and_cli_help_import_no_torch():
             "from hogsa_loader.cli.main import main\n"
             f"try:\n    main([{flag!r}])\nexcept SystemExit as exc:\n    assert not exc.code\n"
         )
-        heavy = {m for m in mods if m in ("torch", "numpy", "scipy", "cv2") or m.startswith("hogsa_loader.loader")}
+        heavy = {m for m in mods if m in ("torch", "numpy", "scipy", "cv2") or m.startswith("hogsa_loader.sample")}
         assert not heavy, (flag, sorted(heavy))
         assert "hogsa_loader.cli.commands" not in mods and "hogsa_loader.cli.train" not in mods
 

@@ -2,9 +2,9 @@
 
 A ResNet trunk feeds three HMR-style heads (right hand, left hand, object) that refine
 their state in 3 iterations. Hands: 16 rotations (6D) + 10 betas + a weak-perspective
-camera, posed with :class:`~hogsa_loader.hands.mano.MANOLayer`. Object: axis-angle
+camera, posed with :class:`~hogsa_loader.assets.hands.mano.MANOLayer`. Object: axis-angle
 rotation, articulation angle + camera, posed with
-:class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`. Weak-perspective
+:class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`. Weak-perspective
 cameras ``(s, tx, ty)`` become translations ``(tx, ty, 2 f / (img_res · s))`` with the mean
 focal length of the patch intrinsics, and 3D points are projected with those intrinsics.
 
@@ -22,12 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from hogsa_loader.assets.hands.mano import MANOLayer
+from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys, read_state_dict
-from hogsa_loader.datasets.augment import normalize_kp2d
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.geometry.rotations import matrix_to_axis_angle
-from hogsa_loader.hands.mano import MANOLayer
-from hogsa_loader.objects.articulated import ArticulatedObjectLayer
+from hogsa_loader.sample.augment import normalize_kp2d
 
 __all__ = [
     "ARCTIC_IGNORED_PREFIXES",
@@ -299,7 +299,7 @@ class ManoHead(nn.Module):
     """Poses a MANO layer from rotation matrices and places it with a weak-perspective camera.
 
     Args:
-        mano: a :class:`~hogsa_loader.hands.mano.MANOLayer` (10 betas, axis-angle mode).
+        mano: a :class:`~hogsa_loader.assets.hands.mano.MANOLayer` (10 betas, axis-angle mode).
         img_res: patch side in pixels.
     """
 
@@ -347,7 +347,7 @@ class ArtiHead(nn.Module):
     """Poses the articulated objects and places them with a weak-perspective camera.
 
     Args:
-        object_tensors: an :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
+        object_tensors: an :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`.
         img_res: patch side in pixels.
     """
 
@@ -411,9 +411,9 @@ class ArcticNetSF(nn.Module):
         backbone: ``"resnet18"`` or ``"resnet50"`` (ARCTIC's release uses ResNet-50),
             randomly initialised; load ImageNet weights with
             :func:`~hogsa_loader.baselines.resnet.load_backbone_weights` on ``.backbone``.
-        mano_r, mano_l: right / left :class:`~hogsa_loader.hands.mano.MANOLayer`
+        mano_r, mano_l: right / left :class:`~hogsa_loader.assets.hands.mano.MANOLayer`
             (ARCTIC: ``flat_hand_mean=False``); stored as ``mano_r.mano`` / ``mano_l.mano``.
-        object_layer: :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`
+        object_layer: :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`
             holding every object of ``query_names``; stored as ``arti_head.object_tensors``.
         focal_length: focal length (px) of the fixed patch camera used when
             ``meta_info`` has no ``intrinsics`` (ARCTIC: 1000).

@@ -15,7 +15,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from hogsa_loader.datasets.arctic_dataset import parse_imgname
+from hogsa_loader.sample.arctic_dataset import parse_imgname
 
 __all__ = ["CLIP_METRICS", "ClipSums", "clip_mean", "clip_sums", "clip_uncertainty", "interval_text", "left_out_text"]
 

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from hogsa_loader.baselines.loss import arcticnet_sf_loss
 from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, summarize
 from hogsa_loader.baselines.targets import prepare_targets
-from hogsa_loader.datasets.arctic_dataset import parse_imgname
+from hogsa_loader.sample.arctic_dataset import parse_imgname
 
 __all__ = ["BodyLayers", "to_device", "training_step", "evaluate", "temporal_order", "mean_cameras", "SEQUENCE_KEYS"]
 
@@ -32,8 +32,8 @@ class BodyLayers:
     """The MANO layers and object layer a model and its targets are built with.
 
     Attributes:
-        mano_r, mano_l: right / left :class:`~hogsa_loader.hands.mano.MANOLayer`.
-        objects: :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
+        mano_r, mano_l: right / left :class:`~hogsa_loader.assets.hands.mano.MANOLayer`.
+        objects: :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`.
     """
 
     mano_r: nn.Module
@@ -42,7 +42,7 @@ class BodyLayers:
 
     @classmethod
     def from_root(cls, root: Any) -> "BodyLayers":
-        """The layers of an :class:`~hogsa_loader.datasets.arctic.ArcticRoot`."""
+        """The layers of an :class:`~hogsa_loader.assets.arctic.ArcticRoot`."""
         layers = root.mano_layers()
         return cls(layers["right"], layers["left"], root.object_layer())
 

@@ -13,10 +13,10 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from hogsa_loader.assets.hands.mano import MANOLayer
+from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.baselines.arcticnet_sf import mean_focal, perspective_to_weak_perspective
-from hogsa_loader.datasets.augment import unnormalize_kp2d
-from hogsa_loader.hands.mano import MANOLayer
-from hogsa_loader.objects.articulated import ArticulatedObjectLayer
+from hogsa_loader.sample.augment import unnormalize_kp2d
 
 __all__ = ["estimate_translation_k", "nearest_distances", "prepare_targets", "solve_rigid_transform"]
 
@@ -232,7 +232,7 @@ def prepare_targets(
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Add ArcticNet-SF's patch-camera 3D targets to a collated batch.
 
-    A batch of :class:`~hogsa_loader.datasets.arctic_dataset.ArcticDataset` (or synthetic)
+    A batch of :class:`~hogsa_loader.sample.arctic_dataset.ArcticDataset` (or synthetic)
     samples holds MANO and object parameters plus 3D labels in the camera of the *full*
     image and 2D labels in the patch. :func:`prepare_targets` turns them into the 3D labels
     the loss compares with the network outputs, in the patch camera:
@@ -254,7 +254,7 @@ def prepare_targets(
             ``object.kp2d.norm.b`` (B, 16, 2).
         meta_info: ``intrinsics`` (B, 3, 3) patch intrinsics, ``query_names`` (B names).
         mano_r, mano_l: the MANO layers of the data; object_layer: its
-            :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
+            :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`.
         img_res: patch side (px) of the normalised 2D labels.
         max_dist: clamp of the ``dist.*`` targets (ArcticNet-SF: none).
         field: which nearest-vertex targets to add: ``"both"`` directions (as ARCTIC

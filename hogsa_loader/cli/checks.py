@@ -1,10 +1,10 @@
-"""Argument checks shared by every ``hogsa`` command and ``pretrain/`` script.
+"""Argument checks shared by every ``hogsa`` command and ``python -m hogsa_loader.cli.*`` script.
 
 Checks run before any work starts. The argparse converters (``type=``) :func:`positive_int`, :func:`non_negative_int`,
 :func:`positive_float`, :func:`non_negative_float`, :func:`unit_float` and :func:`torch_device` raise
 ``argparse.ArgumentTypeError``, and the parser reports ``PROG: error: argument --x: ...``. The checks of whole paths
 and combinations of arguments, :func:`output_dir`, :func:`output_file`, :func:`input_dir`, :func:`input_file`,
-:func:`multiple_of`, :func:`procedural_objects` and :func:`data_root_pairs`, raise
+:func:`multiple_of` and :func:`data_root_pairs`, raise
 :class:`~hogsa_loader.errors.UsageError` naming the argument and the problem. :func:`one_line_errors` makes a parser
 (and its sub-commands) print argparse's errors as one ``PROG: error: ...`` line without the usage block;
 :func:`report` prints any :class:`~hogsa_loader.errors.HogsaError` or ``OSError`` in that form and returns the exit
@@ -17,15 +17,14 @@ import argparse
 import math
 import os
 from pathlib import Path
-from typing import Iterable, Optional, Sequence
+from typing import Iterable, Optional
 
 import torch
 
+from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.cli.parsing import one_line_errors, report
-from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError, PathLike, UsageError
 from hogsa_loader.io.atomic import creation_problem
-from hogsa_loader.synthetic.objects.procedural import PROCEDURAL_NAMES
 
 __all__ = [
     "positive_int",
@@ -39,7 +38,6 @@ __all__ = [
     "input_dir",
     "input_file",
     "multiple_of",
-    "procedural_objects",
     "data_root_pairs",
     "one_line_errors",
     "report",
@@ -201,20 +199,6 @@ def multiple_of(value: int, base: int, flag: str, base_flag: str) -> None:
     """``value`` must be a multiple of ``base``."""
     if value % base:
         raise UsageError(f"{flag} {value} must be a multiple of {base_flag} {base}")
-
-
-def procedural_objects(names: Sequence[str], flag: str = "--objects") -> list[str]:
-    """Names of procedural objects: at least one, each known, none repeated."""
-    names = list(names)
-    if not names:
-        raise UsageError(f"{flag}: name at least one object ({', '.join(PROCEDURAL_NAMES)})")
-    unknown = [n for n in names if n not in PROCEDURAL_NAMES]
-    if unknown:
-        raise UsageError(f"{flag}: unknown object(s) {', '.join(unknown)}; known: {', '.join(PROCEDURAL_NAMES)}")
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise UsageError(f"{flag}: {', '.join(dup)} named twice")
-    return names
 
 
 def data_root_pairs(data: PathLike, pairs: Iterable[tuple[str, str]], flag: str = "--data") -> None:

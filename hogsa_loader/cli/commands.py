@@ -14,37 +14,52 @@ import json
 import os
 import sys
 import time
+from typing import Sequence
 
 import torch
 from tqdm import tqdm
 
+from hogsa_loader.assets.hands.mano_io import convert_mano_to_npz, write_mano_pickle
+from hogsa_loader.assets.objects import load_object_templates
 from hogsa_loader.cli import checks
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.cli.registry import HELP
 from hogsa_loader.compose.plates import PlateConfig, build_plates
-from hogsa_loader.demo import DemoConfig, run_demo
-from hogsa_loader.errors import AssetError, HogsaError
-from hogsa_loader.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
+from hogsa_loader.errors import AssetError, HogsaError, UsageError
 from hogsa_loader.extras import require
-from hogsa_loader.hands.mano_io import convert_mano_to_npz, write_mano_pickle
-from hogsa_loader.loader.config import LoaderConfig, export_info
-from hogsa_loader.loader.dataset import HOGSADataset
-from hogsa_loader.objects import load_object_templates
-from hogsa_loader.render.preview import hand_preview, object_preview, save_sheet
-from hogsa_loader.synthetic.hand import synthetic_hand_pair
-from hogsa_loader.synthetic.objects.procedural import write_procedural_objects
-from hogsa_loader.synthetic.world import generate_world, get_preset
-from hogsa_loader.synthetic.world.annotation_noise import AnnotationNoise, add_annotation_noise
-from hogsa_loader.synthetic.world.h2o_export import export_h2o_world
+from hogsa_loader.sample.config import LoaderConfig, export_info
+from hogsa_loader.sample.dataset import HOGSADataset
+from hogsa_loader.sample.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
 from hogsa_loader.view.config import ViewConfig, check_view_config
 from hogsa_loader.view.job import run_view
+from hogsa_loader.view.preview import hand_preview, object_preview, save_sheet
+from hogsa_world import generate_world, get_preset
+from hogsa_world.annotation_noise import AnnotationNoise, add_annotation_noise
+from hogsa_world.demo import DemoConfig, run_demo
+from hogsa_world.h2o_export import export_h2o_world
+from hogsa_world.hand import synthetic_hand_pair
+from hogsa_world.objects.procedural import PROCEDURAL_NAMES, write_procedural_objects
 
 __all__: list[str] = []
 
 
+def procedural_objects(names: Sequence[str], flag: str = "--objects") -> list[str]:
+    """Names of procedural objects: at least one, each known, none repeated."""
+    names = list(names)
+    if not names:
+        raise UsageError(f"{flag}: name at least one object ({', '.join(PROCEDURAL_NAMES)})")
+    unknown = [n for n in names if n not in PROCEDURAL_NAMES]
+    if unknown:
+        raise UsageError(f"{flag}: unknown object(s) {', '.join(unknown)}; known: {', '.join(PROCEDURAL_NAMES)}")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise UsageError(f"{flag}: {', '.join(dup)} named twice")
+    return names
+
+
 def _cmd_assets(args: argparse.Namespace) -> int:
     require("skimage", "demo", "hogsa assets")
-    names = checks.procedural_objects([n for n in args.objects.split(",") if n])
+    names = procedural_objects([n for n in args.objects.split(",") if n])
     out = os.path.abspath(checks.output_dir(args.out))
     mano_dir = os.path.join(out, "body_models", "mano")
     meta_dir = os.path.join(out, "arctic_data", "data", "meta")
@@ -382,7 +397,7 @@ def _export_parser(sub: argparse._SubParsersAction) -> None:
         "tar shards (shard i = samples [i*S, (i+1)*S); complete shards are skipped when re-run). "
         "Under torchrun each process writes shards i with i % WORLD_SIZE == RANK.",
     )
-    e.add_argument("--bundle", required=True, help="bundle folder (pretrain/build_bundle.py)")
+    e.add_argument("--bundle", required=True, help="bundle folder (hogsa_loader/cli/build_bundle.py)")
     e.add_argument("--data", required=True, help="ARCTIC(-format) data root the bundle was built on")
     e.add_argument("--out", required=True, help="output folder of the shards")
     e.add_argument(

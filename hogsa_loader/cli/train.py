@@ -3,8 +3,8 @@
 Each job's flags are derived from its config dataclass (``--group-field``;
 :mod:`hogsa_loader.cli.dataclass_args`), every argument is checked before any data is
 read, and errors are reported as one ``PROG: error: ...`` line (exit status 2 for a usage
-error, 1 otherwise). ``pretrain/*.py`` call the ``*_main`` functions, and ``hogsa train
-hogs|srm|contactnet|bank`` runs them (:mod:`hogsa_loader.cli.train_commands`).
+error, 1 otherwise). ``hogsa train hogs|srm|contactnet|bank`` runs the ``*_main`` functions
+(:mod:`hogsa_loader.cli.train_commands`).
 """
 
 from __future__ import annotations
@@ -18,14 +18,14 @@ from typing import Any, Callable, Optional, Sequence
 
 import torch
 
+from hogsa_loader.assets.arctic import ALLO_VIEWS
+from hogsa_loader.assets.h2o_meshes import find_h2o_mesh
 from hogsa_loader.cli import checks
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, apply_field_checks, dataclass_from_args
-from hogsa_loader.datasets.arctic import ALLO_VIEWS
 from hogsa_loader.errors import AssetError, HogsaError, UsageError
-from hogsa_loader.objects.h2o_meshes import find_h2o_mesh
-from hogsa_loader.pom.job_config import ContactNetJobConfig, PoseBankConfig
-from hogsa_loader.pom.jobs import build_pose_bank, fit_contactnet
 from hogsa_loader.train import HogsConfig, HogsTrainer
+from hogsa_loader.train.pom_config import ContactNetJobConfig, PoseBankConfig
+from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet
 from hogsa_loader.train.run_folder import check_run_folder, latest_checkpoint, read_trainer_state
 from hogsa_loader.train.srm_trainer import SRMTrainConfig, SRMTrainer
 
@@ -276,7 +276,7 @@ def _run_job(prog: str, a: argparse.Namespace, job: Callable[[], dict]) -> int:
 
 
 def parse_contactnet_args(argv: Optional[Sequence[str]] = None) -> tuple[ContactNetJobConfig, argparse.Namespace]:
-    """The :class:`~hogsa_loader.pom.job_config.ContactNetJobConfig` of a command line and the namespace."""
+    """The :class:`~hogsa_loader.train.pom_config.ContactNetJobConfig` of a command line and the namespace."""
     a = _job_parser("train_contactnet", CONTACTNET_DESCRIPTION, ContactNetJobConfig).parse_args(argv)
     return dataclass_from_args(ContactNetJobConfig, a), a
 
@@ -294,7 +294,7 @@ def train_contactnet_main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def parse_bank_args(argv: Optional[Sequence[str]] = None) -> tuple[PoseBankConfig, argparse.Namespace]:
-    """The :class:`~hogsa_loader.pom.job_config.PoseBankConfig` of a command line and the namespace
+    """The :class:`~hogsa_loader.train.pom_config.PoseBankConfig` of a command line and the namespace
     (exit status 2 for an articulation range that is not finite ``0 <= LO <= HI``)."""
     p = _job_parser("build_pose_bank", BANK_DESCRIPTION, PoseBankConfig)
     a = p.parse_args(argv)

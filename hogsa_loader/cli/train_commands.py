@@ -25,7 +25,9 @@ def add_train_commands(subparsers: Any) -> None:
     """Add ``hogsa train JOB FLAGS`` to ``subparsers`` (the ``add_subparsers`` action of the
     ``hogsa`` parser); its handler is ``args.func(args)``."""
     t = subparsers.add_parser(
-        "train", help=HELP["train"], description="Training jobs; each takes the flags of its pretrain/ script."
+        "train",
+        help=HELP["train"],
+        description="Training jobs; each job's flags are derived from its config (see its --help).",
     )
     t.add_argument("job", choices=sorted(TRAIN_JOBS), help="; ".join(f"{k}: {v}" for k, v in TRAIN_JOBS.items()))
     t.add_argument("job_args", nargs=argparse.REMAINDER, help="the job's flags (JOB --help lists them)")

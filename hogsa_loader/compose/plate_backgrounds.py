@@ -12,8 +12,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from hogsa_loader.assets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics
 from hogsa_loader.compose.sources import CropSpec, FolderBackgrounds
-from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics
 from hogsa_loader.errors import AssetError, PathLike, read_json
 
 __all__ = ["PLATES_MANIFEST", "PlateBackgrounds", "crop_to_plate"]
@@ -26,7 +26,7 @@ def crop_to_plate(bbox: np.ndarray, cropped_size: int, resized: int, gain: float
     """(2, 3) affine from a resized cropped image's pixels to plate pixels (OpenCV coordinates).
 
     The cropped image is the dataset's crop of the full image
-    (:func:`~hogsa_loader.datasets.conventions.cropped_intrinsics`), resized to ``resized``
+    (:func:`~hogsa_loader.assets.conventions.cropped_intrinsics`), resized to ``resized``
     pixels; the plate is the full image scaled by ``gain``. Resizing scales coordinates
     whose pixel centres sit at ``j + 0.5``, so the scales are applied in those.
 

@@ -21,13 +21,13 @@ from typing import Callable, Literal, Optional, Sequence
 import cv2
 import numpy as np
 
-from hogsa_loader.compose.part_masks import pose_meshes, render_camera_mask
+from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.arctic_processing import crop_boxes
+from hogsa_loader.assets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics, render_intrinsics
 from hogsa_loader.compose.plate_backgrounds import PLATES_MANIFEST, crop_to_plate
-from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.datasets.arctic_processing import crop_boxes
-from hogsa_loader.datasets.conventions import BBOX_PIXELS_PER_SCALE, CROP_ENLARGE, cropped_intrinsics, render_intrinsics
 from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.render.part_masks import pose_meshes, render_camera_mask
 
 __all__ = ["PLATES_MANIFEST", "PlateConfig", "build_plates", "crop_to_plate", "data_fingerprint"]
 

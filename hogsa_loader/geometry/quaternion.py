@@ -70,7 +70,7 @@ def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product ``a b`` of wxyz quaternions (rotation ``R(a) R(b)``), (..., 4).
 
     Every term is evaluated in the written order (pytorch3d's ``quaternion_raw_multiply``),
-    which ARCTIC's float32 posing in :mod:`hogsa_loader.datasets.arctic_float32` relies on.
+    which ARCTIC's float32 posing in :mod:`hogsa_loader.assets.arctic_float32` relies on.
     """
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)

@@ -3,7 +3,7 @@
 Example (ArcticNet-SF training, real-format data)::
 
     from torch.utils.data import DataLoader
-    from hogsa_loader.datasets import ArcticDataset
+    from hogsa_loader.assets import ArcticDataset
     from hogsa_loader.integrations.arctic import wrap_train_loader
 
     real = DataLoader(ArcticDataset("./data", split="p1_train"), batch_size=64, shuffle=True, num_workers=8)
@@ -18,14 +18,14 @@ from typing import Any, Optional, Union
 
 from torch.utils.data import DataLoader
 
-from hogsa_loader.bundle import Bundle
-from hogsa_loader.datasets.arctic import protocol_views
+from hogsa_loader.assets.arctic import protocol_views
 from hogsa_loader.errors import PathLike
-from hogsa_loader.loader.config import LoaderConfig, with_options
-from hogsa_loader.loader.dataset import HOGSADataset
-from hogsa_loader.loader.mixing import MixedLoader, MixMode
-from hogsa_loader.loader.poses import PoseSource
-from hogsa_loader.loader.synth import Refiner
+from hogsa_loader.models.bundle import Bundle
+from hogsa_loader.sample.config import LoaderConfig, with_options
+from hogsa_loader.sample.dataset import HOGSADataset
+from hogsa_loader.sample.mixing import MixedLoader, MixMode
+from hogsa_loader.sample.poses import PoseSource
+from hogsa_loader.sample.synth import Refiner
 
 __all__ = ["wrap_train_loader"]
 
@@ -45,7 +45,7 @@ def _root_of(dataset: Any) -> Optional[PathLike]:
 
 def _loader_protocol(dataset: Any) -> Optional[str]:
     """``"p1"`` / ``"p2"`` of the real dataset's setup (``.setup`` of
-    :class:`~hogsa_loader.datasets.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
+    :class:`~hogsa_loader.assets.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
     ``p1a`` / ``p2a`` are the same views), or None when it does not say."""
     setup = getattr(dataset, "setup", None) or getattr(getattr(dataset, "args", None), "setup", None)
     if setup is None:
@@ -93,24 +93,24 @@ def wrap_train_loader(
     Args:
         train_loader: the real DataLoader (ArcticNet-SF ``(inputs, targets, meta_info)``
             batches); its batch size B is kept (``mode="replace"``).
-        bundle: bundle folder or :class:`~hogsa_loader.bundle.Bundle`.
+        bundle: bundle folder or :class:`~hogsa_loader.models.bundle.Bundle`.
         ratio: synthetic share; each batch has exactly ``round(ratio·B)`` (half up)
             synthetic samples (``mode="replace"``; with ``"add"``,
             ``added_synthetic(ratio, b)`` are appended to a real batch of b).
         data_root: ARCTIC data root (default: ``train_loader.dataset.root.data_root`` of a
-            :class:`~hogsa_loader.datasets.ArcticDataset`).
+            :class:`~hogsa_loader.assets.ArcticDataset`).
         num_workers: DataLoader workers of the synthetic stream (CPU rendering only;
             keep 0 with ``device="cuda"`` — workers must not touch CUDA).
-        drop_last: see :class:`~hogsa_loader.loader.mixing.MixedLoader` (``"replace"`` only;
+        drop_last: see :class:`~hogsa_loader.sample.mixing.MixedLoader` (``"replace"`` only;
             with ``"add"`` the train loader's own ``drop_last`` applies).
         mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
-            their share is about ``ratio``); see :class:`~hogsa_loader.loader.mixing.MixedLoader`.
-        config: the synthetic stream's :class:`~hogsa_loader.loader.config.LoaderConfig`.
+            their share is about ``ratio``); see :class:`~hogsa_loader.sample.mixing.MixedLoader`.
+        config: the synthetic stream's :class:`~hogsa_loader.sample.config.LoaderConfig`.
         backgrounds, poses, refiner: explicit objects, as for
-            :class:`~hogsa_loader.loader.dataset.HOGSADataset`.
+            :class:`~hogsa_loader.sample.dataset.HOGSADataset`.
         **options: loader options by name, applied to ``config``
-            (:func:`~hogsa_loader.loader.config.with_options`: ``device``, ``seed``,
+            (:func:`~hogsa_loader.sample.config.with_options`: ``device``, ``seed``,
             ``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...). ``protocol``,
             ``arctic`` (the sample config) and ``interfield`` default to the real dataset's (so
             both halves of a batch have the same keys; the protocol is read from ``.setup``
@@ -119,7 +119,7 @@ def wrap_train_loader(
             dataset says neither (the default is then ``p1``, allocentric).
 
     Returns:
-        a :class:`~hogsa_loader.loader.mixing.MixedLoader`.
+        a :class:`~hogsa_loader.sample.mixing.MixedLoader`.
     """
     real_ds = _unwrap(getattr(train_loader, "dataset", None))
     root = data_root if data_root is not None else _root_of(real_ds)

@@ -1,4 +1,5 @@
-"""Training of the HOGS models (``pretrain/train_hogs.py``)."""
+"""Training: HOGS (``hogsa train hogs``), the SRM (``hogsa train srm``), ContactNet and the pose
+bank (``hogsa train contactnet|bank``). The runtime library never imports this package."""
 
 from hogsa_loader.train.hogs_config import (
     HogsConfig,

@@ -2,7 +2,7 @@
 
 Every field's ``metadata`` carries its command-line help (``help``), whether the flag must be
 given (``required``) and the name of its :mod:`hogsa_loader.cli.checks` validator
-(``check``); ``pretrain/train_hogs.py`` derives its flags from these classes. The run folder's
+(``check``); ``hogsa train hogs`` derives its flags from these classes. The run folder's
 ``config.json`` keeps the settings flat (:meth:`HogsConfig.to_json`), with the data root
 under the key ``data``.
 """

@@ -16,11 +16,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.compose.part_masks import pose_meshes, render_camera_mask
-from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.datasets.arctic_processing import crop_boxes
-from hogsa_loader.datasets.conventions import ALLO_VIEWS, cropped_intrinsics, project, render_intrinsics, transform
-from hogsa_loader.datasets.types import SequenceData
+from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.arctic_processing import crop_boxes
+from hogsa_loader.assets.conventions import ALLO_VIEWS, cropped_intrinsics, project, render_intrinsics, transform
+from hogsa_loader.assets.types import SequenceData
+from hogsa_loader.render.part_masks import pose_meshes, render_camera_mask
 
 __all__ = [
     "MASK_MODES",
@@ -86,7 +86,7 @@ class ViewSample:
     the training resolution), the camera (world→camera and *render* intrinsics of the crop)
     and the annotated poses of that frame. Crop boxes are recomputed exactly as ARCTIC's
     processing does (object-template vertices posed by the object layer, projected, then
-    :func:`~hogsa_loader.datasets.conventions.allocentric_bbox`), and the intrinsics are
+    :func:`~hogsa_loader.assets.conventions.allocentric_bbox`), and the intrinsics are
     ``render_intrinsics(cropped_intrinsics(K, bbox, cropped_size))`` scaled to the training
     resolution, so rendered pixels line up with the labels.
     """
@@ -105,7 +105,7 @@ class HogsData:
     """Training and held-out samples of one subject + object.
 
     Masks (``masks``): ``"files"`` reads the generated world's ``masks/`` images; ``"render"``
-    rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.compose.part_masks`),
+    rasterises the part masks from the annotated meshes (:mod:`hogsa_loader.render.part_masks`),
     for real ARCTIC, which ships none; ``"auto"`` (default) uses the files of a sequence when
     every used image has one, else renders. With mask files the background is removed at the
     native resolution before resizing (:func:`_read_foreground`). With rendered masks the
@@ -271,7 +271,7 @@ def foreground_window(
     """Square window ``(x0, y0, side)`` (cropped-image pixels) around the posed meshes.
 
     Args:
-        posed: :class:`~hogsa_loader.compose.part_masks.PosedMeshes` holding ``frame``.
+        posed: :class:`~hogsa_loader.render.part_masks.PosedMeshes` holding ``frame``.
         world2cam: (4, 4); K_crop: (3, 3) render intrinsics of the whole cropped image.
         crop: cropped-image side; size: training resolution.
         margin: added on each side, as a fraction of the meshes' larger extent.

@@ -12,8 +12,7 @@ import cv2
 import numpy as np
 import torch
 
-from hogsa_loader.compose.part_masks import PosedMeshes, pose_meshes, render_camera_mask
-from hogsa_loader.datasets.conventions import (
+from hogsa_loader.assets.conventions import (
     BBOX_PIXELS_PER_SCALE,
     CROP_ENLARGE,
     cropped_intrinsics,
@@ -21,11 +20,12 @@ from hogsa_loader.datasets.conventions import (
     render_intrinsics,
     transform,
 )
-from hogsa_loader.datasets.h2o import H2ORoot, read_h2o_rgb
-from hogsa_loader.datasets.h2o_io import H2O_EGO_CAMERA
-from hogsa_loader.datasets.types import SequenceData
-from hogsa_loader.objects.rigid import H2O_OBJECT_NAMES
-from hogsa_loader.objects.template import ObjectTemplate
+from hogsa_loader.assets.h2o import H2ORoot, read_h2o_rgb
+from hogsa_loader.assets.h2o_io import H2O_EGO_CAMERA
+from hogsa_loader.assets.objects.rigid import H2O_OBJECT_NAMES
+from hogsa_loader.assets.objects.template import ObjectTemplate
+from hogsa_loader.assets.types import SequenceData
+from hogsa_loader.render.part_masks import PosedMeshes, pose_meshes, render_camera_mask
 from hogsa_loader.train.hogs_data import (
     FrameSelection,
     HogsData,
@@ -147,11 +147,11 @@ def load_h2o_hogs_data(
       ``crop_enlarge`` × the larger extent, is expressed as an ARCTIC box ``(cx, cy, scale)``,
       so the crop intrinsics are ARCTIC's
       ``render_intrinsics(cropped_intrinsics(K, box, image_size))``
-      (:mod:`hogsa_loader.datasets.conventions`). The image is warped into that crop
+      (:mod:`hogsa_loader.assets.conventions`). The image is warped into that crop
       (crop pixel i shows label coordinate ``origin + i · side / size``, black outside the
       frame, like ARCTIC's padding), supersampled and box-filtered when the crop shrinks.
     * **Mask.** Always rendered from the annotated meshes at the training resolution
-      (:mod:`hogsa_loader.compose.part_masks`); the object is rigid, so it is all part id 4.
+      (:mod:`hogsa_loader.render.part_masks`); the object is rigid, so it is all part id 4.
       The image keeps its real background (see :func:`~hogsa_loader.train.hogs_data.load_hogs_data`).
     * **Views.** ``views`` default the static cameras 0–3; the egocentric camera 4 (moving,
       head-mounted) is used only when listed. ``eval_views`` default camera 3, held out.
@@ -167,7 +167,7 @@ def load_h2o_hogs_data(
         root: the H2O root.
         subject: e.g. ``"subject1"``; object_name: H2O class name (``"book"``...).
         mano_layers: ``{"right", "left"}`` MANO layers, ``flat_hand_mean=False``.
-        template: the object's rigid template (:func:`~hogsa_loader.objects.h2o_meshes.load_h2o_object`).
+        template: the object's rigid template (:func:`~hogsa_loader.assets.h2o_meshes.load_h2o_object`).
         selection: frames, views and resolution (default views: the static cameras 0–3,
             camera 3 held out; default size: :data:`H2O_CROP_SIZE`).
         crop_enlarge: crop side / extent of the projected meshes.

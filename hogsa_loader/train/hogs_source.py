@@ -1,7 +1,7 @@
 """Where a HOGS run's images, hands and object come from: an ARCTIC(-format) or an H2O root.
 
 :func:`open_hogs_source` gives one :class:`HogsSource` for both datasets (its docstring
-compares them), so the trainer and ``benchmarks/render_quality.py`` build the same split
+compares them), so the trainer and ``experiments/render_quality.py`` build the same split
 and the same models; :func:`load_run_data` reopens a run's dataset from its ``config.json``.
 """
 
@@ -10,14 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Optional
 
-from hogsa_loader.datasets.arctic import ArcticRoot
-from hogsa_loader.datasets.conventions import ALLO_VIEWS
-from hogsa_loader.datasets.h2o import H2ORoot
+from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.conventions import ALLO_VIEWS
+from hogsa_loader.assets.h2o import H2ORoot
+from hogsa_loader.assets.h2o_meshes import h2o_class_name, h2o_mesh_provenance, load_h2o_object
+from hogsa_loader.assets.hands.mano import MANOLayer
+from hogsa_loader.assets.hands.mano_io import load_mano
+from hogsa_loader.assets.objects.template import ObjectTemplate
 from hogsa_loader.errors import PathLike
-from hogsa_loader.hands.mano import MANOLayer
-from hogsa_loader.hands.mano_io import load_mano
-from hogsa_loader.objects.h2o_meshes import h2o_class_name, h2o_mesh_provenance, load_h2o_object
-from hogsa_loader.objects.template import ObjectTemplate
 from hogsa_loader.train.hogs_data import FrameSelection, HogsData, load_hogs_data
 from hogsa_loader.train.hogs_data_h2o import H2O_EVAL_VIEWS, H2O_VIEWS, load_h2o_hogs_data
 
@@ -33,8 +33,8 @@ class HogsSource:
 
     Attributes:
         dataset: ``"arctic"`` or ``"h2o"``.
-        root: :class:`~hogsa_loader.datasets.arctic.ArcticRoot` or
-            :class:`~hogsa_loader.datasets.h2o.H2ORoot`.
+        root: :class:`~hogsa_loader.assets.arctic.ArcticRoot` or
+            :class:`~hogsa_loader.assets.h2o.H2ORoot`.
         mano_layers: ``{"right", "left"}`` MANO layers (``flat_hand_mean=False``).
         object_templates: ``{name: ObjectTemplate}`` (ARCTIC: every template of the root;
             H2O: the requested object), what :meth:`HogsModel.from_run` takes.
@@ -110,14 +110,14 @@ def open_hogs_source(
     data           ARCTIC ``./data`` (or the generated world)  H2O root (``subjectN/...``)
     MANO           ``body_models/mano`` of the root            ``mano_dir`` (required)
     object         ``meta/object_vtemplates/<object>``         ``object_mesh_dir`` (required),
-                                                               :mod:`~hogsa_loader.objects.h2o_meshes`
+                                                               :mod:`~hogsa_loader.assets.h2o_meshes`
     views          allocentric 1–8, held out: 8                static cameras 0–3, held out: 3
     masks          ``masks/`` files, else rendered              always rendered
     =============  ==========================================  ================================
 
     MANO layers are built with ``flat_hand_mean=False`` for both (the
-    :class:`~hogsa_loader.datasets.types.HandTrack` convention; H2O's flat-mean labels are
-    converted by :class:`~hogsa_loader.datasets.h2o.H2ORoot`).
+    :class:`~hogsa_loader.assets.types.HandTrack` convention; H2O's flat-mean labels are
+    converted by :class:`~hogsa_loader.assets.h2o.H2ORoot`).
 
     Raises:
         ValueError: unknown dataset, an H2O option given for ARCTIC, a missing H2O option,

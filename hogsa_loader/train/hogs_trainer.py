@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.assets.objects.template import ObjectTemplate
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians import BindingConfig, HandGaussians, ObjectGaussians, load_state, save_part
-from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, HogsModel
-from hogsa_loader.gaussians.shading import DirectionalLight, load_light, save_light
-from hogsa_loader.objects.template import ObjectTemplate
+from hogsa_loader.models.gaussians import BindingConfig, HandGaussians, ObjectGaussians, load_state, save_part
+from hogsa_loader.models.gaussians.hogs_model import LIGHT_DIR, HogsModel
+from hogsa_loader.models.gaussians.shading import DirectionalLight, load_light, save_light
 from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_data import MASK_MODES, FrameSelection, HogsData, ViewSample, dilate_mask
 from hogsa_loader.train.hogs_eval import evaluate_samples

@@ -1,7 +1,7 @@
 """Settings of one SRM training run, grouped: data, model, loss, optimiser, run.
 
 Field ``metadata`` holds the command-line help, ``required`` and the name of the
-:mod:`hogsa_loader.cli.checks` validator (``check``); ``pretrain/train_srm.py`` derives its
+:mod:`hogsa_loader.cli.checks` validator (``check``); ``hogsa train srm`` derives its
 flags from these classes. ``config.json`` keeps the settings flat
 (:meth:`SRMTrainConfig.to_json`), with the data root under the key ``data``.
 """

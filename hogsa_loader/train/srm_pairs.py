@@ -21,9 +21,9 @@ from torch import Tensor
 
 import hogsa_loader
 from hogsa_loader.errors import AssetError
-from hogsa_loader.gaussians.hogs_model import LIGHT_DIR, PART_NAMES, HogsModel
-from hogsa_loader.gaussians.shading import LIGHT_TENSORS
 from hogsa_loader.io.atomic import atomic_write
+from hogsa_loader.models.gaussians.hogs_model import LIGHT_DIR, PART_NAMES, HogsModel
+from hogsa_loader.models.gaussians.shading import LIGHT_TENSORS
 from hogsa_loader.train.hogs_data import HogsData, ViewSample
 from hogsa_loader.train.hogs_source import HogsSource, load_run_data
 

@@ -20,9 +20,16 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hogsa_loader.errors import AssetError
-from hogsa_loader.srm.discriminator import ConditionalDiscriminator
-from hogsa_loader.srm.io import load_srm, save_srm
-from hogsa_loader.srm.losses import (
+from hogsa_loader.models.srm.io import load_srm, save_srm
+from hogsa_loader.models.srm.model import SRM, dihedral
+from hogsa_loader.models.srm.styleunet import StyleUNetConfig, count_gflops
+from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
+from hogsa_loader.train.loop import StepLoop
+from hogsa_loader.train.losses import box_of, psnr, ssim_map
+from hogsa_loader.train.run_folder import write_json
+from hogsa_loader.train.srm_config import SRMTrainConfig
+from hogsa_loader.train.srm_discriminator import ConditionalDiscriminator
+from hogsa_loader.train.srm_losses import (
     PERCEPTUAL_DEFAULT_WEIGHT,
     d_logistic,
     g_nonsaturating,
@@ -30,13 +37,6 @@ from hogsa_loader.srm.losses import (
     perceptual_loss,
     r1_penalty,
 )
-from hogsa_loader.srm.model import SRM, dihedral
-from hogsa_loader.srm.styleunet import StyleUNetConfig, count_gflops
-from hogsa_loader.train.hogs_data import ViewSample, dilate_mask
-from hogsa_loader.train.loop import StepLoop
-from hogsa_loader.train.losses import box_of, psnr, ssim_map
-from hogsa_loader.train.run_folder import write_json
-from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.srm_pairs import PAIR_MODES, PairSet, find_runs, fold_runs, load_pairs
 
 __all__ = ["SRMTrainConfig", "SRMTrainer", "find_runs", "PairSet", "AUGMENTS", "dihedral"]
@@ -451,7 +451,7 @@ class SRMTrainer(StepLoop):
         """What the SRM has seen, per run: subject, object, sequences and the views whose
         ground-truth images were training targets (``"views"``) or validation targets
         (``"val_views"``). Recorded in every saved SRM so that an evaluation can refuse
-        views the SRM was trained or selected on (``benchmarks/render_quality.py --srm``)."""
+        views the SRM was trained or selected on (``experiments/render_quality.py --srm``)."""
         out = []
         for ps in self.sets:
             views = sorted({int(ps.data.train[int(i)].view) for i in ps.train_rows})

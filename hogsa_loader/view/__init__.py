@@ -3,7 +3,7 @@
 * :mod:`~hogsa_loader.view.orbit` — :func:`orbit_cameras` (N look-at cameras evenly spaced
   in azimuth on a full circle around the interaction centre), :func:`render_orbit` (one
   grasp from them, with and without the SRM); :func:`swap_hands` (hands of one run, object
-  of another) is :mod:`hogsa_loader.gaussians.recombine`'s;
+  of another) is :mod:`hogsa_loader.models.gaussians.recombine`'s;
 * :mod:`~hogsa_loader.view.transfer` — :func:`transfer_pose` (a grasp on another
   subject's hands: their betas, wrists re-solved to keep the contacts, articulation and
   object kept exactly) and :func:`transfer_report` (contact / penetration figures);

@@ -14,16 +14,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.bundle import load_bundle
+from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
+from hogsa_loader.assets.objects.template import load_object_templates
 from hogsa_loader.compose import make_backgrounds
-from hogsa_loader.datasets.arctic import ArcticRoot
 from hogsa_loader.errors import HogsaError
-from hogsa_loader.gaussians.recombine import hands_run
-from hogsa_loader.objects.articulated import ArticulatedObjectLayer
-from hogsa_loader.objects.template import load_object_templates
-from hogsa_loader.pom.hands import hand_infos
-from hogsa_loader.pom.objects import ObjectSet
-from hogsa_loader.srm import load_srm
+from hogsa_loader.models.bundle import load_bundle
+from hogsa_loader.models.gaussians.recombine import hands_run
+from hogsa_loader.models.pom.hands import hand_infos
+from hogsa_loader.models.pom.objects import ObjectSet
+from hogsa_loader.models.srm import load_srm
 from hogsa_loader.view.config import ViewConfig, ViewError, check_view_config, parse_item
 from hogsa_loader.view.orbit import (
     orbit_azimuth,

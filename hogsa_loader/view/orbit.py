@@ -2,11 +2,11 @@
 rendering one grasp from them with a HOGS model, with and without the SRM.
 
 A scene may take its hand and object Gaussians from different runs (:func:`swap_hands`
-of :mod:`hogsa_loader.gaussians.recombine`, used for pose transfer); each part is then
+of :mod:`hogsa_loader.models.gaussians.recombine`, used for pose transfer); each part is then
 shaded by the learned light of its own run (:class:`PartLights`).
 
 Conventions: ARCTIC world frame, metres, OpenCV cameras (``p_cam = R p + t``); poses as
-:data:`~hogsa_loader.gaussians.hogs_model.POSE_KEYS` tensors, batch first.
+:data:`~hogsa_loader.models.gaussians.hogs_model.POSE_KEYS` tensors, batch first.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.datasets.conventions import render_intrinsics
-from hogsa_loader.gaussians.recombine import PartLights, swap_hands
-from hogsa_loader.loader.cameras import look_at
+from hogsa_loader.assets.conventions import render_intrinsics
+from hogsa_loader.models.gaussians.recombine import PartLights, swap_hands
+from hogsa_loader.sample.cameras import look_at
 
 __all__ = [
     "OrbitRender",
@@ -136,8 +136,8 @@ def posed_points(
 
     Args:
         layers: ``{"right", "left"}`` MANO layers; object_layer: the data root's
-            :class:`~hogsa_loader.objects.articulated.ArticulatedObjectLayer`.
-        poses: :data:`~hogsa_loader.gaussians.hogs_model.POSE_KEYS` tensors, batch B.
+            :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`.
+        poses: :data:`~hogsa_loader.models.gaussians.hogs_model.POSE_KEYS` tensors, batch B.
         obj: object name.
 
     Returns:
@@ -184,7 +184,7 @@ def render_views(
     """Render one posed frame from C cameras (``chunk`` cameras per render call).
 
     Args:
-        model: a :class:`~hogsa_loader.gaussians.hogs_model.HogsModel`.
+        model: a :class:`~hogsa_loader.models.gaussians.hogs_model.HogsModel`.
         poses: POSE_KEYS tensors of one frame (batch 1; further rows are ignored).
         world2cam: (C, 4, 4); K: (3, 3) label-convention intrinsics of a ``size`` square.
         refiner: optional ``(rgb, alpha) -> rgb`` (e.g. ``SRM.refine``), applied per chunk.

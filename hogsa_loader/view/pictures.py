@@ -15,8 +15,8 @@ from torch import Tensor
 from hogsa_loader.compose import composite
 from hogsa_loader.errors import PathLike
 from hogsa_loader.extras import require
-from hogsa_loader.loader.viz import draw_skeletons
 from hogsa_loader.render.mesh_raster import save_png
+from hogsa_loader.view.grid import draw_skeletons
 
 __all__ = [
     "DEMO_PHOTOS",

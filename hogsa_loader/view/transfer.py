@@ -4,7 +4,7 @@
 articulation exactly, gives the hands the target subject's own betas, puts each wrist
 joint where the source wrist was (:func:`align_wrists`), then re-solves each hand's rigid
 placement so that the vertices that touched the object in the source grasp touch it again
-(POM's :func:`~hogsa_loader.pom.regrasp.regrasp`). :func:`transfer_report` gives GraspTTA's
+(POM's :func:`~hogsa_loader.models.pom.regrasp.regrasp`). :func:`transfer_report` gives GraspTTA's
 contact / penetration figures of the source, the wrist-aligned and the transferred grasp.
 
 Grasps to show (:class:`ViewPose`): an annotated frame (:func:`frame_pose`), a pose-bank
@@ -21,11 +21,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hogsa_loader.pom.bank import load_pose_bank
-from hogsa_loader.pom.metrics import grasp_metrics
-from hogsa_loader.pom.objects import to_canonical
-from hogsa_loader.pom.regrasp import regrasp, source_contacts
-from hogsa_loader.pom.state import GraspState, HandParams, hand_forward
+from hogsa_loader.models.pom.bank import load_pose_bank
+from hogsa_loader.models.pom.metrics import grasp_metrics
+from hogsa_loader.models.pom.objects import to_canonical
+from hogsa_loader.models.pom.regrasp import regrasp, source_contacts
+from hogsa_loader.models.pom.state import GraspState, HandParams, hand_forward
 from hogsa_loader.view.config import ViewError
 
 __all__ = [
@@ -53,7 +53,7 @@ class Transfer:
         aligned: target betas, each wrist joint where the source wrist was (rotation,
             articulation and object unchanged).
         state: ``aligned`` after the contact re-solve — what is rendered.
-        contacts: :class:`~hogsa_loader.pom.regrasp.SourceContacts` of the source.
+        contacts: :class:`~hogsa_loader.models.pom.regrasp.SourceContacts` of the source.
     """
 
     source: Any
@@ -77,8 +77,8 @@ def align_wrists(state: Any, betas: Mapping[str, Any], infos: Mapping[str, Any])
     the source's tensors, unchanged.
 
     Args:
-        state: :class:`~hogsa_loader.pom.state.GraspState` (B); betas: side → (10,) or
-            (B, 10); infos: :func:`~hogsa_loader.pom.hands.hand_infos`.
+        state: :class:`~hogsa_loader.models.pom.state.GraspState` (B); betas: side → (10,) or
+            (B, 10); infos: :func:`~hogsa_loader.models.pom.hands.hand_infos`.
     """
     hands = {}
     with torch.no_grad():
@@ -107,17 +107,17 @@ def transfer_pose(
     2. with ``resolve``: each hand's rigid placement re-solved so that its source
        contact vertices (within ``contact_distance`` of the object in ``source``) return to
        their source distances from the surface without penetrating
-       (:func:`~hogsa_loader.pom.regrasp.regrasp`, ``steps`` Levenberg–Marquardt steps).
+       (:func:`~hogsa_loader.models.pom.regrasp.regrasp`, ``steps`` Levenberg–Marquardt steps).
        Hands that touched nothing keep the aligned placement.
 
     Articulation (``pose``), object pose and articulation are the source's tensors and the
     betas are the target's, exactly; only each hand's global rotation and translation change.
 
     Args:
-        source: :class:`~hogsa_loader.pom.state.GraspState` (B grasps, float32 as POM uses).
+        source: :class:`~hogsa_loader.models.pom.state.GraspState` (B grasps, float32 as POM uses).
         betas: side → (10,) or (B, 10) target shape.
-        infos: hands (:func:`~hogsa_loader.pom.hands.hand_infos` of the data root's layers).
-        objects: :class:`~hogsa_loader.pom.objects.ObjectSet`.
+        infos: hands (:func:`~hogsa_loader.models.pom.hands.hand_infos` of the data root's layers).
+        objects: :class:`~hogsa_loader.models.pom.objects.ObjectSet`.
     """
     contacts = source_contacts(source, infos, objects, contact_distance)
     aligned = align_wrists(source, betas, infos)
@@ -142,7 +142,7 @@ def transfer_report(t: Transfer, infos: Mapping[str, Any], objects: Any) -> list
     """Contact and penetration figures of a :class:`Transfer`, per grasp.
 
     For each of ``source``, ``aligned`` (betas changed, wrists kept) and ``transferred``
-    (after the re-solve): GraspTTA's :func:`~hogsa_loader.pom.metrics.grasp_metrics`
+    (after the re-solve): GraspTTA's :func:`~hogsa_loader.models.pom.metrics.grasp_metrics`
     (penetration depth mm, intersection volume cm³, contact ratio, per-hand contact,
     acceptance with the source's touching hands required) and, per hand, the mean change
     of the source contact vertices' distance to the surface (``contact_error_mm``: 0 means
@@ -180,7 +180,7 @@ class ViewPose:
         label: short name (``"s01 box_use_01:20"``, ``"bank pose_bank:3"``).
         subject: the subject whose hands (betas) the grasp was made with.
         object: object name.
-        state: :class:`~hogsa_loader.pom.state.GraspState` of batch 1 (float32).
+        state: :class:`~hogsa_loader.models.pom.state.GraspState` of batch 1 (float32).
         origin: where it comes from (JSON-able).
     """
 
@@ -208,7 +208,7 @@ def _state(poses: Mapping[str, np.ndarray], obj: str) -> Any:
 
 
 def state_poses(state: Any) -> dict[str, Tensor]:
-    """POSE_KEYS tensors of a :class:`~hogsa_loader.pom.state.GraspState` (``obj_arti`` (B, 1))."""
+    """POSE_KEYS tensors of a :class:`~hogsa_loader.models.pom.state.GraspState` (``obj_arti`` (B, 1))."""
     out = {f"{s}_{k}": getattr(state.hands[s], k) for s in SIDES for k in ("rot", "pose", "betas", "trans")}
     out.update(obj_arti=state.obj_arti.reshape(-1, 1), obj_rot=state.obj_rot, obj_trans=state.obj_trans)
     return out

@@ -1,0 +1,86 @@
+"""Assemble a hogsa-loader bundle from trained HOGS runs (and optional SRM / ContactNet / pose banks).
+
+Example::
+
+    python -m hogsa_loader.cli.build_bundle --data ./hogsa_world --hogs runs/ --out bundle/ \
+        [--srm runs/srm] [--contactnet runs/contactnet] [--pose-bank runs/pose_bank]
+
+``--hogs`` is either one run folder (``hand_right/``, ``hand_left/``, ``object/``) or a
+folder whose sub-folders (searched two levels deep) are runs; each run's (subject, object)
+is read from its object checkpoint. The result is validated with
+:func:`hogsa_loader.models.bundle.load_bundle` before the command returns.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from hogsa_loader.cli import checks
+from hogsa_loader.errors import HogsaError, UsageError
+from hogsa_loader.models.bundle import MANIFEST_NAME, load_bundle, write_bundle
+from hogsa_loader.models.gaussians.hogs_model import HogsModel
+
+
+def find_runs(folder: Path, depth: int = 2) -> list[Path]:
+    """Finished HOGS run folders at or below ``folder`` (at most ``depth`` levels down)."""
+    if HogsModel.is_run(folder):
+        return [folder]
+    if depth <= 0 or not folder.is_dir():
+        return []
+    out: list[Path] = []
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir()):
+        out.extend(find_runs(sub, depth - 1))
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", required=True, help="ARCTIC(-format) data root the runs were trained on")
+    p.add_argument("--hogs", required=True, help="a HOGS run folder, or a folder of run folders")
+    p.add_argument("--out", required=True, help="bundle folder to write")
+    p.add_argument("--srm", default=None, help="SRM checkpoint folder (a train_srm.py run)")
+    p.add_argument("--contactnet", default=None, help="ContactNet checkpoint folder")
+    p.add_argument(
+        "--pose-bank",
+        action="append",
+        default=[],
+        help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names",
+    )
+    p.add_argument("--dataset", default="arctic")
+    p.add_argument("--overwrite", action="store_true", help="replace the bundle already in --out")
+    checks.one_line_errors(p)
+    args = p.parse_args(argv)
+    try:
+        checks.input_dir(args.data, "--data")
+        checks.input_dir(args.hogs, "--hogs")
+        checks.output_dir(args.out, "--out")
+        if (Path(args.out) / MANIFEST_NAME).is_file() and not args.overwrite:
+            raise UsageError(f"--out {args.out}: already holds a bundle (pass --overwrite to replace it)")
+        runs = find_runs(Path(args.hogs))
+        if not runs:
+            raise UsageError(f"--hogs {args.hogs}: no finished HOGS run under it")
+        out = write_bundle(
+            args.out,
+            args.data,
+            runs,
+            srm=args.srm,
+            contactnet=args.contactnet,
+            pose_banks=args.pose_bank,
+            dataset=args.dataset,
+        )
+        bundle = load_bundle(out, data_root=args.data)
+    except (HogsaError, OSError) as exc:
+        return checks.report("build_bundle", exc)
+    print(
+        f"bundle {out}: {len(bundle.hogs)} HOGS run(s) {bundle.keys}"
+        f"{', SRM' if bundle.srm else ''}{', ContactNet' if bundle.contactnet else ''}"
+        f"{f', {len(bundle.pose_banks)} pose bank(s)' if bundle.pose_banks else ''}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,242 @@
+"""``MixedLoader``: real ARCTIC batches with an exact share of synthetic samples.
+
+Start with :class:`MixedLoader` (its docstring describes the ``"replace"`` and ``"add"``
+modes); :func:`num_synthetic` and :func:`added_synthetic` give the synthetic count per batch.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable, Iterator, Literal, Optional
+
+import torch
+from torch.utils.data import default_collate
+
+__all__ = ["MixedLoader", "MixMode", "num_synthetic", "added_synthetic", "batch_size_of"]
+
+#: How synthetic samples enter a real batch (see :class:`MixedLoader`).
+MixMode = Literal["replace", "add"]
+
+
+def num_synthetic(ratio: float, batch_size: int) -> int:
+    """Synthetic samples in a batch of ``batch_size``: ``floor(ratio·B + 0.5)``."""
+    return int(ratio * batch_size + 0.5)
+
+
+def added_synthetic(ratio: float, real: int) -> int:
+    """Synthetic samples appended to ``real`` real ones so that their share is ``ratio``:
+    ``floor(ratio / (1 - ratio) · real + 0.5)`` (``ratio < 1``; a 1e-9 margin keeps exact
+    halves such as 0.6 / 0.4 = 1.5 from rounding down in floating point)."""
+    return int(ratio / (1.0 - ratio) * real + 0.5 + 1e-9)
+
+
+_CONTAINERS = (torch.Tensor, dict, tuple, list)
+
+
+def batch_size_of(batch: Any) -> int:
+    """Number of samples of a collated batch (first tensor / list found)."""
+    if isinstance(batch, torch.Tensor):
+        return int(batch.shape[0])
+    if isinstance(batch, (list, tuple)) and batch and not isinstance(batch[0], _CONTAINERS):
+        return len(batch)
+    if isinstance(batch, dict):
+        for v in batch.values():
+            return batch_size_of(v)
+    if isinstance(batch, (list, tuple)):
+        for v in batch:
+            return batch_size_of(v)
+    raise TypeError(f"cannot find the batch size of a {type(batch).__name__}")
+
+
+def _slice(batch: Any, a: int, b: int) -> Any:
+    """Samples ``a:b`` of a collated batch."""
+    if isinstance(batch, torch.Tensor):
+        return batch[a:b]
+    if isinstance(batch, dict):
+        return {k: _slice(v, a, b) for k, v in batch.items()}
+    if isinstance(batch, tuple):
+        return tuple(_slice(v, a, b) for v in batch)
+    if isinstance(batch, list):
+        if batch and isinstance(batch[0], _CONTAINERS):  # structure (default_collate turns tuples into lists)
+            return [_slice(v, a, b) for v in batch]
+        return batch[a:b]
+    raise TypeError(f"cannot slice a collated {type(batch).__name__}")
+
+
+def _cat(parts: list[Any]) -> Any:
+    """Concatenate collated batches along the batch dimension."""
+    first = parts[0]
+    if isinstance(first, torch.Tensor):
+        return torch.cat(parts, 0)
+    if isinstance(first, dict):
+        keys = list(first)
+        for p in parts[1:]:
+            if list(p) != keys:
+                raise ValueError(f"cannot mix batches with different keys: {sorted(set(keys) ^ set(p))}")
+        return {k: _cat([p[k] for p in parts]) for k in keys}
+    if isinstance(first, tuple):
+        return tuple(_cat([p[i] for p in parts]) for i in range(len(first)))
+    if isinstance(first, list):
+        if first and isinstance(first[0], _CONTAINERS):
+            return [_cat([p[i] for p in parts]) for i in range(len(first))]
+        return [x for p in parts for x in p]
+    raise TypeError(f"cannot concatenate collated {type(first).__name__}")
+
+
+class MixedLoader:
+    """Real batches with exactly ``round(ratio·B)`` synthetic samples each (``mode="replace"``),
+    or real batches with ``added_synthetic(ratio, b)`` synthetic samples appended (``"add"``).
+
+    With the default ``mode="replace"``, every yielded batch of size B holds exactly
+    ``n_syn = floor(ratio·B + 0.5)`` synthetic samples (round half up) after ``B − n_syn`` real
+    ones, collated exactly like the real batches: the synthetic samples go through the real
+    loader's ``collate_fn`` and are concatenated with the real part along the batch dimension
+    (tensors with ``torch.cat``, lists of strings by concatenation, dicts / tuples recursively).
+
+    No real sample is wasted: the real samples a mixed batch does not use are kept for the
+    next one, so one epoch of a ``MixedLoader`` yields ``len(real) // (B − n_syn)`` batches and
+    covers the real epoch (the last real samples that cannot fill a batch are dropped when
+    ``drop_last`` is True, else they form a smaller last batch with its own rounded share).
+
+    ``mode="add"`` instead keeps every real batch as the real loader yields it (its own
+    ``drop_last`` applies) and appends ``n_syn = added_synthetic(ratio, b)`` synthetic samples to
+    a batch of b real ones, so that a training run sees the same real batches as without
+    synthetic data (larger batches, synthetic share ``n_syn / (b + n_syn)`` ≈ ratio).
+
+    Args:
+        real_loader: the real DataLoader (collated ``(inputs, targets, meta_info)`` batches,
+            so not ``batch_size=None``); its ``batch_size`` is B (else the first batch's size).
+        synthetic: an iterable of **single** synthetic samples — a
+            :class:`~hogsa_loader.sample.dataset.HOGSADataset` (iterated in this process)
+            or ``DataLoader(hogsa_dataset, batch_size=None, num_workers=k)``. It is
+            iterated again when exhausted.
+        ratio: synthetic share in [0, 1].
+        collate_fn: collate of the synthetic samples; default the real loader's own
+            ``collate_fn`` (or torch's ``default_collate``).
+        drop_last: drop the real samples that cannot fill a last batch (``"replace"``; with
+            ``"add"`` the real loader's own ``drop_last`` applies).
+        mode: ``"replace"``, batches of B with ``num_synthetic(ratio, B)`` of them synthetic;
+            ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
+            samples (ratio < 1).
+    """
+
+    def __init__(
+        self,
+        real_loader: Iterable[Any],
+        synthetic: Iterable[Any],
+        ratio: float,
+        collate_fn: Optional[Callable[[list[Any]], Any]] = None,
+        drop_last: bool = True,
+        mode: MixMode = "replace",
+    ) -> None:
+        if not 0.0 <= float(ratio) <= 1.0:
+            raise ValueError(f"ratio must be in [0, 1], got {ratio}")
+        if mode not in ("replace", "add"):
+            raise ValueError(f"mode must be 'replace' or 'add', got {mode!r}")
+        if mode == "add" and not float(ratio) < 1.0:
+            raise ValueError("mode='add' needs ratio < 1 (real samples in every batch)")
+        if hasattr(real_loader, "batch_sampler") and real_loader.batch_sampler is None:
+            raise ValueError(
+                "the real loader yields single samples (batch_size=None); MixedLoader needs collated batches"
+            )
+        self.mode = mode
+        self.real_loader = real_loader
+        self.synthetic = synthetic
+        self.ratio = float(ratio)
+        self.collate_fn = collate_fn or getattr(real_loader, "collate_fn", None) or default_collate
+        self.drop_last = bool(drop_last)
+        self._syn_iter: Optional[Iterator[Any]] = None
+
+    @property
+    def batch_size(self) -> Optional[int]:
+        """Samples per mixed batch (None when the real loader's batch size is unknown)."""
+        B = getattr(self.real_loader, "batch_size", None)
+        if self.mode == "add" and B:
+            return B + added_synthetic(self.ratio, B)
+        return B
+
+    def _real_samples(self) -> int:
+        """Real samples one pass of the real loader yields: its sampler's length (per rank
+        with a ``DistributedSampler``), less the last incomplete batch with ``drop_last``."""
+        bs = getattr(self.real_loader, "batch_sampler", None)
+        sampler = getattr(bs, "sampler", None)
+        size = getattr(bs, "batch_size", None) or getattr(self.real_loader, "batch_size", None)
+        drop = bool(getattr(bs, "drop_last", getattr(self.real_loader, "drop_last", False)))
+        if bs is not None and sampler is not None and hasattr(sampler, "__len__"):
+            n = len(sampler)
+        elif hasattr(getattr(self.real_loader, "dataset", None), "__len__"):  # e.g. a sized IterableDataset
+            n = len(self.real_loader.dataset)  # type: ignore[attr-defined]
+        else:
+            raise TypeError(
+                f"length unknown: the real loader ({type(self.real_loader).__name__}) has neither a "
+                "sized sampler nor a sized dataset"
+            )
+        return (n // size) * size if drop and size else n
+
+    def __len__(self) -> int:
+        if self.mode == "add":
+            return len(self.real_loader)  # type: ignore[arg-type]
+        B = self.batch_size
+        if B is None:
+            raise TypeError("length unknown: the real loader has no batch_size")
+        n_real = self._real_samples()
+        per = B - num_synthetic(self.ratio, B)
+        if per == 0:
+            return len(self.real_loader)  # type: ignore[arg-type]
+        return n_real // per if self.drop_last else -(-n_real // per)
+
+    def _next_synthetic(self, n: int) -> list[Any]:
+        out: list[Any] = []
+        fresh = False  # the iterator was (re)started during this call and gave nothing yet
+        while len(out) < n:
+            if self._syn_iter is None:
+                self._syn_iter = iter(self.synthetic)
+                fresh = True
+            try:
+                out.append(next(self._syn_iter))
+                fresh = False
+            except StopIteration:
+                self._syn_iter = None
+                if fresh:
+                    raise RuntimeError("the synthetic source yields no samples") from None
+        return out
+
+    def _mixed(self, real: Optional[Any], n_syn: int) -> Any:
+        parts = [] if real is None else [real]
+        if n_syn:
+            parts.append(self.collate_fn(self._next_synthetic(n_syn)))
+        return _cat(parts) if len(parts) > 1 else parts[0]
+
+    def __iter__(self) -> Iterator[Any]:
+        if self.mode == "add":
+            for batch in self.real_loader:
+                yield self._mixed(batch, added_synthetic(self.ratio, batch_size_of(batch)))
+            return
+        B = self.batch_size
+        buf: list[Any] = []  # collated real chunks not used yet
+        have = 0
+        for batch in self.real_loader:
+            n = batch_size_of(batch)
+            if B is None:
+                B = n
+            n_syn = num_synthetic(self.ratio, B)
+            n_real = B - n_syn
+            if n_real == 0:  # all synthetic: one batch per real batch
+                yield self._mixed(None, n_syn)
+                continue
+            buf.append(batch)
+            have += n
+            while have >= n_real:
+                real = _cat(buf) if len(buf) > 1 else buf[0]
+                take, rest = _slice(real, 0, n_real), _slice(real, n_real, have)
+                have -= n_real
+                buf = [rest] if have else []
+                yield self._mixed(take, n_syn)
+        if have and not self.drop_last:
+            real = _cat(buf) if len(buf) > 1 else buf[0]
+            # a smaller last batch: the smallest share s with round(ratio·(have+s)) == s. It
+            # exists: s ↦ round(ratio·(have+s)) − s starts ≥ 0 and falls by 0 or 1 per step
+            # (ratio < 1 here, since n_real > 0), so it reaches 0; have + s ≤ B.
+            s = 0
+            while num_synthetic(self.ratio, have + s) != s:
+                s += 1
+            yield self._mixed(real, s)

@@ -1,0 +1,354 @@
+"""HOGS on H2O: object mesh reader, the H2O export of the tiny world, data, training, quality.
+
+The H2O tree is exported from the tiny world's ``s05/box_grab_01`` (16 frames, cams 0-3 =
+world views 1-4, cam 4 = ego, 320x180 frames, the box as H2O's ``book``).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import job
+
+from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.conventions import project, transform
+from hogsa_loader.assets.h2o import H2ORoot
+from hogsa_loader.assets.h2o_meshes import H2O_MESH_NAMES, find_h2o_mesh, h2o_mesh_candidates, load_h2o_object
+from hogsa_loader.assets.objects.template import BOTTOM
+from hogsa_loader.errors import AssetError
+from hogsa_loader.geometry.rotations import axis_angle_to_matrix
+from hogsa_loader.models.gaussians.hogs_model import HogsModel
+from hogsa_loader.train import HogsConfig, HogsTrainer
+from hogsa_loader.train.hogs_data import FrameSelection
+from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
+from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
+from hogsa_world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _script(rel: str):
+    spec = importlib.util.spec_from_file_location(Path(rel).stem, ROOT / rel)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def h2o_world(tiny_world, tmp_path_factory):
+    out = tmp_path_factory.mktemp("h2o") / "h2o"
+    return out, export_h2o_world(tiny_world, out)
+
+
+def _box_mesh(scale: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    box = trimesh.creation.box(extents=(scale, 2 * scale, 3 * scale))
+    return np.asarray(box.vertices), np.asarray(box.faces)
+
+
+# ---------------------------------------------------------------------------------- meshes
+def test_mesh_reader_finds_every_name_variant(tmp_path):
+    import trimesh
+
+    verts, faces = _box_mesh()
+    n = 0
+    for cls, names in H2O_MESH_NAMES.items():
+        for path in h2o_mesh_candidates(tmp_path / "x", cls):
+            d = tmp_path / f"case{n}"
+            target = d / path.relative_to(tmp_path / "x")
+            target.parent.mkdir(parents=True)
+            trimesh.Trimesh(verts, faces, process=False).export(str(target))
+            assert find_h2o_mesh(d, cls) == target
+            t = load_h2o_object(d, names[-1])  # a mesh-name variant gives the class's README name
+            assert t.name == cls and (t.parts == BOTTOM).all() and len(t.verts) == 8 and len(t.faces) == 12
+            assert t.kp_top.shape == t.kp_bottom.shape == (16, 3) and t.sub_top.shape == (300, 3)
+            assert t.diameter == pytest.approx(np.sqrt(14) * 0.05)
+            n += 1
+    assert n == sum(2 * len(v) ** 2 for v in H2O_MESH_NAMES.values()) == 40
+    with pytest.raises(AssetError, match=r"tried .*ovomaltine/ovomaltine\.ply"):
+        load_h2o_object(tmp_path / "case0", "cocoa")
+    with pytest.raises(ValueError, match="unknown H2O object 'mug'"):
+        load_h2o_object(tmp_path / "case0", "mug")
+    big = tmp_path / "mm" / "book" / "book.obj"
+    big.parent.mkdir(parents=True)
+    trimesh.Trimesh(verts * 1000, faces, process=False).export(str(big))
+    with pytest.raises(AssetError, match="metres"):
+        load_h2o_object(tmp_path / "mm", "book")
+
+
+def test_textured_mesh_keeps_uv_and_texture(tmp_path):
+    verts, faces = _box_mesh()
+    # split every face's corners (as UV seams do) so welding has something to weld
+    tv, tf = verts[faces.reshape(-1)], np.arange(faces.size).reshape(-1, 3)
+    uv = np.random.default_rng(0).random((len(tv), 2))
+    tex = np.random.default_rng(1).integers(0, 256, (16, 16, 3), dtype=np.uint8)
+    write_obj_mesh(tmp_path / "pringles", "chips", tv, tf, uv, tex)
+    t = load_h2o_object(tmp_path, "chips")
+    assert t.has_texture and (t.tex_parts == BOTTOM).all()
+    np.testing.assert_allclose(t.tex_verts, tv, atol=1e-7)
+    np.testing.assert_allclose(t.tex_uv, uv, atol=1e-7)
+    np.testing.assert_array_equal(t.texture, tex)
+    assert len(t.verts) == 8 and len(t.faces) == 12  # geometry welded
+
+
+# ---------------------------------------------------------------------------------- export
+def test_export_round_trip(h2o_world, tiny_world):
+    out, record = h2o_world
+    src_root = ArcticRoot(tiny_world)
+    assert record["source"]["stage_seed"] == src_root.world_meta().extra["seed"]  # the world's table and room
+    src = src_root.sequence("s05", "box_grab_01")
+    layers = src_root.mano_layers(dtype=torch.float64)
+    root = H2ORoot(out)
+    assert root.sequences() == [("subject1", "h1", "0")]
+    seq = root.sequence("subject1", "h1", 0, layers)
+    idx = np.arange(0, 64, 4)
+    assert seq.frame_ids.tolist() == idx.tolist() and seq.object.name == "book"
+
+    def verts(track, side, rows):
+        o = layers[side](
+            global_orient=torch.as_tensor(track.rot[rows]),
+            hand_pose=torch.as_tensor(track.pose[rows]),
+            betas=torch.as_tensor(np.repeat(track.betas[None], len(rows), 0)),
+            transl=torch.as_tensor(track.trans[rows]),
+        )
+        return o.vertices.numpy()
+
+    for side in ("right", "left"):
+        a, b = verts(getattr(seq, side), side, np.arange(16)), verts(getattr(src, side), side, idx)
+        assert np.abs(a - b).max() < 1e-6, side
+    np.testing.assert_allclose(seq.object.rot, src.object.rot[idx], atol=1e-9)
+    np.testing.assert_allclose(seq.object.trans, src.object.trans[idx], atol=1e-9)
+    for cam, view in enumerate((1, 2, 3, 4, 0)):
+        np.testing.assert_allclose(seq.cameras[cam].world2cam, src.cameras[view].world2cam[idx], atol=1e-9)
+        assert (seq.cameras[cam].width, seq.cameras[cam].height) == (320, 180)
+        assert seq.cameras[cam].egocentric == (cam == 4)
+        assert all(p is not None for p in seq.image_paths[cam])
+    # the rigid mesh is the template at the sequence's articulation, in the object frame
+    mesh = load_h2o_object(out / "object", "book")
+    box = src_root.object_templates()["box"]
+    assert np.abs(mesh.tex_verts - box.tex_verts).max() < 1e-6  # articulation 0 in this sequence
+    np.testing.assert_array_equal(mesh.texture, box.texture)
+    assert json.loads((out / EXPORT_RECORD).read_text())["h2o"]["mesh"] == "object/book/book.obj"
+    with pytest.raises(ValueError, match="articulation varies"):
+        export_h2o_world(tiny_world, out.parent / "bad", subject="s01", sequence="box_use_01")
+
+
+def test_export_refuses_to_mix_exports_and_cli_errors(tiny_world, tmp_path, capsys):
+    """A second export into the same H2O sequence folder is refused (frames would mix)
+    unless overwrite; the CLI reports bad arguments as errors, not tracebacks."""
+    from hogsa_loader.cli.main import main as cli
+
+    out = tmp_path / "h2o"
+    export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=32)
+    with pytest.raises(AssetError, match="already holds an H2O sequence"):
+        export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16)
+    with pytest.raises(ValueError, match="articulation varies"):  # a failed overwrite keeps the old export
+        export_h2o_world(tiny_world, out, subject="s01", sequence="box_use_01", image_size=(48, 27), overwrite=True)
+    assert H2ORoot(out).frames("subject1", "h1", 0) == [0, 32]
+    rec = export_h2o_world(tiny_world, out, image_size=(48, 27), frame_stride=16, overwrite=True)
+    root = H2ORoot(out)
+    assert root.frames("subject1", "h1", 0) == rec["frames"] and len(rec["frames"]) > 2
+    base = ["h2o-export", "--world", str(tiny_world), "--out", str(tmp_path / "x"), "--quiet"]
+    for extra, msg in (
+        (["--object-class", "foo"], "unknown H2O object 'foo'"),
+        (["--mesh-name", "pringles"], "not a known name of H2O class"),
+        (["--subject", "s01", "--sequence", "box_use_01"], "articulation varies"),
+        (["--frame-stride", "0"], "frame stride must be >= 1"),
+    ):
+        assert cli(base + extra) == 2
+        assert msg in capsys.readouterr().err
+    assert cli(base[:3] + ["--out", str(out), "--quiet"]) == 1
+    assert "already holds an H2O sequence" in capsys.readouterr().err
+
+
+def test_crop_image_geometry():
+    """Crop pixel i shows label coordinate origin + i / k (exact on a linear ramp), also
+    when the crop shrinks the image (supersampled + box-filtered); black outside."""
+    H, W = 60, 100
+    ramp = np.stack(np.broadcast_arrays(np.arange(W)[None, :], np.arange(H)[:, None]), -1).astype(np.float32)
+    for box, size in (
+        (np.array([40.0, 30.0, 0.1]), 16),
+        (np.array([40.0, 30.0, 0.1]), 60),
+        (np.array([50, 25, 0.2]), 8),
+    ):
+        side = 300 * box[2]
+        c = crop_image(ramp, box, size)
+        want = box[0] - side / 2 + np.arange(size) * side / size
+        half = 0.5 * side / size  # a shrunk pixel averages a block this far either side
+        inside = (want - half >= 0) & (want + half <= W - 1)
+        np.testing.assert_allclose(c[size // 2, inside, 0], want[inside], atol=1e-3)  # a row inside the image
+    img = np.full((H, W, 3), 200, np.uint8)
+    c = crop_image(img, np.array([5.0, 30.0, 0.1]), 30)  # hangs 10 px over the left edge
+    assert (c[:, :8] == 0).all() and (c[:, 12:] == 200).all()
+    b = square_box(np.array([[10.0, 20.0], [30.0, 24.0]]), enlarge=1.5)
+    np.testing.assert_allclose(b, [20.0, 22.0, 30.0 / 300.0])
+
+
+def test_h2o_data_alignment(h2o_world, tiny_world):
+    out, _ = h2o_world
+    layers = mano_layers_from_dir(Path(tiny_world) / "body_models" / "mano")
+    tpl = load_h2o_object(out / "object", "book")
+    data = load_h2o_hogs_data(
+        H2ORoot(out), "subject1", "book", mano_layers=layers, template=tpl, selection=FrameSelection(image_size=64)
+    )
+    assert data.train_views == (0, 1, 2) and data.eval_views == (3,) and data.mask_source == "render"
+    assert {s.view for s in data.train} == {0, 1, 2} and {s.view for s in data.eval} == {3}
+    assert len(data.train) >= 30 and data.crop_size == 256
+    assert set(np.unique(np.stack([s.mask for s in data.train]))) <= {0, 1, 2, 4}  # rigid: no top part
+    seq = data.sequences[0]
+    hits = []
+    for s in data.train[::5]:
+        o = seq.object
+        R = axis_angle_to_matrix(torch.as_tensor(o.rot[s.frame])).numpy()
+        v = tpl.verts.astype(np.float64) @ R.T + o.trans[s.frame]
+        K = s.K.copy()
+        K[:2, 2] -= 0.5
+        uv = np.rint(project(transform(s.world2cam, v), K)).astype(int)
+        ok = (uv >= 0).all(1) & (uv < 64).all(1)
+        hits.append(np.isin(s.mask[uv[ok, 1], uv[ok, 0]], (4,)).mean())
+    assert np.mean(hits) > 0.6  # occluded vertices land on hand pixels
+    # the crop shows the picture: object pixels are not the dark background of the room
+    lum = [s.image[s.mask == 4].mean() for s in data.train]
+    assert np.mean(lum) > 40
+    with pytest.raises(ValueError, match="no sequence with object 'milk'"):
+        load_h2o_hogs_data(H2ORoot(out), "subject1", "milk", mano_layers=layers, template=tpl)
+    with pytest.raises(ValueError, match="eval views must be among"):
+        load_h2o_hogs_data(
+            H2ORoot(out),
+            "subject1",
+            "book",
+            mano_layers=layers,
+            template=tpl,
+            selection=FrameSelection(eval_views=(4,)),
+        )
+    ego = load_h2o_hogs_data(
+        H2ORoot(out),
+        "subject1",
+        "book",
+        mano_layers=layers,
+        template=tpl,
+        selection=FrameSelection(image_size=32, views=(0, 1, 2, 3, 4), frame_stride=4, eval_every_frame=2),
+    )
+    assert 4 in {s.view for s in ego.train}
+
+
+# ---------------------------------------------------------------------------------- training
+def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
+    out, _ = h2o_world
+    mano = str(Path(tiny_world) / "body_models" / "mano")
+    h2o = dict(
+        dataset="h2o",
+        data=str(out),
+        mano_dir=mano,
+        object_mesh_dir=str(out / "object"),
+        subject="subject1",
+        object="book",
+    )
+    cfg = HogsConfig.from_json(
+        dict(
+            **h2o,
+            out=str(tmp_path / "run"),
+            iters=24,
+            image_size=64,
+            max_eval=3,
+            eval_every=0,
+            ckpt_every=12,
+            lr_scale=10.0,
+            k=1,
+            sh_degree=1,
+            sh_warmup=0,
+            strip_views=2,
+        )
+    )
+    tr = HogsTrainer(cfg, progress=False)
+    assert tr.cfg.data.views == (0, 1, 2, 3) and tr.cfg.data.eval_views == (3,)
+    fixed = tr.data.train[:: max(1, len(tr.data.train) // 4)][:4]
+
+    p0 = tr.photometric_loss(fixed)
+    m = tr.train()
+    assert tr.photometric_loss(fixed) < p0 - 0.01
+    assert m["psnr"] > m["initial"]["psnr"] + 0.5 and m["dataset"] == "h2o" and m["eval_views"] == [3]
+    run = tmp_path / "run"
+    for f in ("strip.png", "curves.png", "metrics.json", "config.json", "checkpoints/latest.json"):
+        assert (run / f).is_file(), f
+    manifest = json.loads((run / "object" / "manifest.json").read_text())
+    assert manifest["source"]["dataset"] == "h2o" and manifest["source"]["sequence"] == "h1/0"
+    assert manifest["extra"]["object_mesh"]["mesh"].endswith("object/book/book.obj")
+
+    source = open_hogs_source("h2o", out, "book", mano_dir=mano, object_mesh_dir=out / "object")
+    model = HogsModel.from_run(run, source.mano_layers, source.object_templates)
+    s = tr.data.eval[0]
+    poses = tr.data.poses([s])
+    vm = torch.as_tensor(s.world2cam, dtype=torch.float32)[None, None]
+    K = torch.as_tensor(s.K, dtype=torch.float32)[None, None]
+    with torch.no_grad():
+        r = model.render(poses, vm, K, 64, 64, render_mode="RGB")
+        rgb0, _ = tr.render([s])
+    assert torch.allclose(r.rgb[:, 0], rgb0, atol=1e-5)
+    assert float(r.alpha[0, 0, ..., 0][torch.as_tensor(s.mask > 0)].mean()) > 0.5
+
+    rq = importlib.import_module("experiments.render_quality")
+    qj = tmp_path / "q.json"
+    assert (
+        rq.main(
+            [
+                "--dataset",
+                "h2o",
+                "--data",
+                str(out),
+                "--mano-dir",
+                mano,
+                "--object-mesh-dir",
+                str(out / "object"),
+                "--run",
+                str(run),
+                "--json",
+                str(qj),
+                "--png",
+                str(tmp_path / "q.png"),
+            ]
+        )
+        == 0
+    )
+    q = json.loads(qj.read_text())
+    assert q["psnr"] == pytest.approx(m["psnr"]) and q["ssim"] == pytest.approx(m["ssim"]) and "lpips" in q
+    assert [v["view"] for v in q["per_view"]] == [3] and q["runs"][0]["dataset"] == "h2o"
+
+    cli = job("hogs")
+    args = [
+        "--data-dataset",
+        "h2o",
+        "--data-root",
+        str(out),
+        "--data-subject",
+        "subject1",
+        "--data-object",
+        "book",
+        "--run-out",
+        str(tmp_path / "x"),
+    ]
+    assert cli.main(args) == 2 and "needs --mano-dir and --object-mesh-dir" in capsys.readouterr().err
+    assert cli.main(args + ["--data-mano-dir", mano, "--data-object-mesh-dir", str(tmp_path)]) == 2
+    assert "no mesh for H2O object 'book'; tried book/book.obj, book/book.ply" in capsys.readouterr().err
+
+
+def test_train_all_hogs_lists_h2o_pairs(h2o_world, tmp_path, capsys):
+    """--dataset h2o: pairs are (subject, object class) read from the obj_pose_rt labels."""
+    root, _ = h2o_world
+    ta = job("train_all_hogs")
+    args, rest = ta.parse_args(
+        ["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--dry-run", "--", "--mano-dir", "M"]
+    )
+    from hogsa_loader.assets.h2o import H2ORoot
+
+    assert ta.list_h2o_pairs(H2ORoot(root), args) == [("subject1", "book", ["h1/0"])] and rest == ["--mano-dir", "M"]
+    assert ta.main(["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--dry-run"]) == 0
+    assert "1 pairs" in capsys.readouterr().out
+    args, _ = ta.parse_args(["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--objects", "milk"])
+    assert ta.list_h2o_pairs(H2ORoot(root), args) == []
