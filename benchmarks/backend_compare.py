@@ -26,7 +26,7 @@ absolute depth difference over pixels with alpha > 0.5 in both.
 
 Usage::
 
-    python benchmarks/backend_compare.py --json OUT.json [--n 50000] [--size 224 512]
+    python benchmarks/backend_compare.py --json OUT.json [--n 50000] [--size 224,512]
 """
 
 from __future__ import annotations
@@ -156,7 +156,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", help="write the result to this file")
     ap.add_argument("--n", type=int, default=50_000, help="number of Gaussians")
-    ap.add_argument("--size", type=int, nargs="+", default=[224, 512], help="square image sizes")
+    ap.add_argument(
+        "--size",
+        type=lambda t: [int(x) for x in t.split(",")],
+        default=[224, 512],
+        help="square image sizes, comma-separated",
+    )
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--repeats-fwd", type=int, default=7)
     ap.add_argument("--repeats-bwd", type=int, default=5)

@@ -225,8 +225,8 @@ def step_hogs_train(args: argparse.Namespace, ctx: dict[str, Any]) -> dict[str, 
     """``hogsa train hogs`` for ``--hogs-iters`` steps; iterations/s from the run's metrics."""
     run = Path(args.out) / "hogs_run"
     data = Path(ctx["world"]) / "arctic_data" / "data"
-    cmd = [sys.executable, "-m", "hogsa_loader.cli.main", "train", "hogs", "--data-root", str(data)]
-    cmd += ["--data-subject", "s01", "--data-object", "box", "--run-out", str(run), "--run-device", args.device]
+    cmd = [sys.executable, "-m", "hogsa_loader.cli.main", "train", "hogs", "--data", str(data)]
+    cmd += ["--subject", "s01", "--object", "box", "--out", str(run), "--device", args.device]
     cmd += ["--optim-iters", str(args.hogs_iters), "--overwrite", "--quiet"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=args.test_timeout)

@@ -99,7 +99,7 @@ from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
 from hogsa_loader.errors import AssetError, read_json
-from hogsa_loader.io.hashing import keyed_settings, settings_key, sha256_file
+from hogsa_loader.io.hashing import settings_key, sha256_file
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.sample import HOGSADataset, with_options
 from hogsa_loader.sample.arctic_dataset import ArcticDataset
@@ -506,21 +506,13 @@ def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
 
 
 def synthetic_key(cfg: DownstreamConfig, frames_only: bool = False) -> dict[str, Any]:
-    """The synthetic settings in cache keys: photo backgrounds, novel cameras, the replace mix and
-    supervising all hands and every model's own hands add nothing; ``frames_only``: without the mix and the supervision,
+    """The synthetic settings in cache keys; ``frames_only``: without the mix and the supervision,
     which the exported frames do not depend on."""
-    syn = keyed_settings(
-        asdict(cfg.synthetic),
-        {"backgrounds": "photos", "cameras": "novel", "mix": "replace", "supervise": "all", "other_hands": 0.0},
-    )
+    syn = asdict(cfg.synthetic)
     if frames_only:
         syn.pop("mix", None)
         syn.pop("supervise", None)
     return syn
-
-
-#: Setup settings keyed only when they hold other values than these.
-_SETUP_UNKEYED = {"bank_finger_scale": 0.0, "bank_variants": 1, "bank_frames": "contact", "srm_gan": 0.0}
 
 
 def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str, str]:
@@ -542,7 +534,7 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
-    s = keyed_settings(asdict(cfg.setup), _SETUP_UNKEYED)
+    s = asdict(cfg.setup)
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
     no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}  # bank_*: the banks
@@ -623,7 +615,7 @@ def export_variant(variant: str, cfg: DownstreamConfig, setup: dict[str, Any], o
         "seed": s.seed,
         "img_res": cfg.model.img_res,
         "setup": setup["fingerprints"][reads(variant)],
-        **keyed_settings({"other_hands": s.other_hands}, {"other_hands": 0.0}),  # recorded when set
+        "other_hands": s.other_hands,
     }
     folder = export_dir(variant, cfg, setup, out)
     t0 = time.perf_counter()
@@ -884,9 +876,9 @@ def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
 
 
 def train_key(cfg: DownstreamConfig) -> dict[str, Any]:
-    """The optimisation settings in cache keys: ``checkpoint_every`` left out, a constant
-    ``lr_schedule`` left out, ``workers`` keyed as 1 (the batches do not depend on it)."""
-    train = keyed_settings(asdict(cfg.train), {"lr_schedule": "constant"})
+    """The optimisation settings in cache keys: ``checkpoint_every`` left out, ``workers`` keyed
+    as 1 (the batches do not depend on it)."""
+    train = asdict(cfg.train)
     del train["checkpoint_every"]
     train["workers"] = 1
     return train

@@ -23,7 +23,7 @@ Usage::
 
     hogsa world --out runs/world_heldout --preset small_styles_heldout
     python experiments/heldout.py --data runs/world_heldout/arctic_data/data --reference real \\
-        --runs real=runs/downstream/runs/real hogsa=runs/downstream/runs/hogsa
+        --runs real=runs/downstream/runs/real,hogsa=runs/downstream/runs/hogsa
 """
 
 from __future__ import annotations
@@ -388,7 +388,7 @@ def run(cfg: HeldoutConfig) -> dict[str, Any]:
         raise SystemExit(f"heldout: error: a split is given twice in --splits {list(cfg.splits)}")
     runs = parse_runs(cfg.runs)
     if not runs:
-        raise SystemExit("heldout: error: no runs given (--runs LABEL=FOLDER ...)")
+        raise SystemExit("heldout: error: no runs given (--runs LABEL=FOLDER,...)")
     if cfg.reference not in runs:
         raise SystemExit(f"heldout: error: --reference {cfg.reference!r} is not a label of --runs ({sorted(runs)})")
     ctx = _context(cfg)

@@ -51,7 +51,12 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> argparse.Namespace:
     p.add_argument("--dataset", default=None, choices=["arctic", "h2o"], help="check that the runs are of this dataset")
     p.add_argument("--mano-dir", default=None, help="H2O: MANO folder (default: the run's)")
     p.add_argument("--object-mesh-dir", default=None, help="H2O: object mesh folder (default: the run's)")
-    p.add_argument("--run", action="append", required=True, help="HOGS run folder (repeat to compare)")
+    p.add_argument(
+        "--run",
+        type=lambda text: [t for t in text.split(",") if t],
+        required=True,
+        help="HOGS run folders, comma-separated (several: side by side)",
+    )
     p.add_argument("--json", required=True, help="output JSON")
     p.add_argument("--png", default=None, help="side-by-side PNG: GT | run 1 | run 2 | ... (| SRM)")
     p.add_argument("--srm", default=None, help="SRM run folder: also score the first run after refinement")

@@ -9,51 +9,23 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Optional
 
 import cv2
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from hogsa_loader.assets.arctic import ArcticRoot
-from hogsa_loader.assets.protocol import training_subjects
 from hogsa_loader.errors import PathLike
-from hogsa_loader.io.atomic import atomic_write
-from hogsa_loader.io.hashing import keyed_settings, settings_key
-from hogsa_loader.models.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
-from hogsa_loader.models.pom.perturb import KEEP_ARTICULATION
-from hogsa_loader.render.gaussians import warm_up_compositor
 from hogsa_loader.sample.arctic_dataset import ArcticDataset
 from hogsa_loader.sample.config import LoaderConfig, with_options
 from hogsa_loader.sample.dataset import HOGSADataset
 from hogsa_loader.sample.mixing import MixedLoader
-from hogsa_loader.system import available_cores, can_fork, run_forked
-from hogsa_loader.train import HogsConfig, HogsDataConfig, HogsModelConfig, HogsOptimConfig, HogsRunConfig, HogsTrainer
-from hogsa_loader.train.pom_config import (
-    BankDataConfig,
-    BankPOMConfig,
-    BankRunConfig,
-    ContactNetDataConfig,
-    ContactNetJobConfig,
-    ContactNetOptimConfig,
-    ContactNetRunConfig,
-    PoseBankConfig,
-)
-from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet
-from hogsa_loader.train.srm_config import (
-    SRMDataConfig,
-    SRMLossConfig,
-    SRMModelConfig,
-    SRMOptimConfig,
-    SRMRunConfig,
-    SRMTrainConfig,
-)
-from hogsa_loader.train.srm_trainer import SRMTrainer
+from hogsa_loader.train.build import BuildConfig, BuildDataConfig, BuildRunConfig, build
+from hogsa_loader.train.stages import StageRecords, stage_key
 from hogsa_loader.view import ViewConfig, run_view
 from hogsa_loader.view.grid import sample_grid
 from hogsa_loader.view.pictures import demo_photographs
@@ -134,65 +106,6 @@ class DemoConfig:
     progress: bool = field(default=True, compare=False)
 
 
-def _key(*parts: Any) -> str:
-    return settings_key(parts)
-
-
-class _Stages:
-    """Stage records in ``OUT/stages/``: run a stage unless its key is unchanged."""
-
-    def __init__(self, out: Path, say: Callable[[str], None]) -> None:
-        self.dir = out / "stages"
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.say = say
-        self.seconds: dict[str, float] = {}
-        self.reused: list[str] = []
-
-    def is_cached(self, name: str, key: str, outputs: Sequence[Path]) -> bool:
-        """Whether :meth:`run` would reuse ``name`` (its record has ``key`` and its outputs exist)."""
-        rec = self._record(name)
-        return rec is not None and rec.get("key") == key and all(p.exists() for p in outputs)
-
-    def _record(self, name: str) -> Optional[dict]:
-        """The stage's record, or None (absent or unreadable: a build interrupted mid-write)."""
-        rec_path = self.dir / f"{name.replace('/', '_')}.json"
-        try:
-            rec = json.loads(rec_path.read_text()) if rec_path.is_file() else None
-        except (OSError, ValueError):
-            return None
-        return rec if isinstance(rec, dict) else None
-
-    def run(self, name: str, key: str, outputs: Sequence[Path], fn: Callable[[], Any], resumable: bool = False) -> Any:
-        """Run ``fn`` unless a record of ``name`` with ``key`` exists and its outputs do. Stale
-        outputs are removed first — but a ``resumable`` stage's outputs with no record (an
-        interrupted build) are left for ``fn`` to resume from."""
-        rec_path = self.dir / f"{name.replace('/', '_')}.json"
-        rec = self._record(name)
-        if rec is not None and rec.get("key") == key and all(p.exists() for p in outputs):
-            self.say(f"[{name}] cached ({rec['seconds']:.0f} s when built)")
-            self.reused.append(name)
-            self.seconds[name] = 0.0
-            return rec.get("result")
-        for p in outputs if rec is not None or not resumable else ():  # stale: rebuild from scratch
-            if p.is_dir():
-                shutil.rmtree(p)
-            elif p.exists():
-                p.unlink()
-        if rec_path.exists():  # an interruption of the rebuild leaves no stale record behind
-            rec_path.unlink()
-        self.say(f"[{name}] building ...")
-        t0 = time.perf_counter()
-        result = fn()
-        dt = time.perf_counter() - t0
-        self.seconds[name] = dt
-        # atomic: a record is whole or absent
-        atomic_write(
-            rec_path, json.dumps({"key": key, "seconds": dt, "result": result}, indent=1, default=str).encode()
-        )
-        self.say(f"[{name}] done in {dt:.0f} s")
-        return result
-
-
 def unbatch(batch: Any, i: int) -> Any:
     """Sample ``i`` of a default-collated batch (tensors indexed, lists of scalars indexed)."""
     if isinstance(batch, torch.Tensor):
@@ -227,20 +140,15 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def _child_cfg(cfg: DemoConfig) -> DemoConfig:
-    """The settings a stage builds with: those of the stage process (no progress bars), else ``cfg``."""
-    return _CHILD_CFG or cfg
-
-
-def _world_stage(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, str]:
+def _world_stage(cfg: DemoConfig, out: Path, stages: StageRecords, say: Callable[[str], None]) -> tuple[Path, str]:
     """Build (or reuse) the world in ``out/world`` unless ``cfg.data`` names one; its data root and key."""
     if cfg.data is not None:
         data = Path(os.path.abspath(cfg.data))
-        return data, _key("data", str(data), cfg.seed)  # (the seed also drives every training stage)
+        return data, stage_key("data", str(data))  # (the seed also drives every training stage)
     world = out / "world"
     data = world / "arctic_data" / "data"
     preset = get_preset(cfg.preset)
-    k_world = _key("world", cfg.preset, cfg.seed)
+    k_world = stage_key("world", cfg.preset, cfg.seed)
     stages.run(
         "world",
         k_world,
@@ -255,283 +163,78 @@ def _world_stage(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str
     return data, k_world
 
 
-def _hogs_nodes(cfg: DemoConfig, out: Path, data: Path, k_world: str) -> list[_StageNode]:
-    """One HOGS training stage per (subject, object) pair, into ``out/runs/hogs/<sid>_<obj>``."""
-    nodes: list[_StageNode] = []
-    for sid, obj in cfg.pairs:
-        run = out / "runs" / "hogs" / f"{sid}_{obj}"
-        k = _key(
-            "hogs",
-            k_world,
-            sid,
-            obj,
-            cfg.hogs_iters,
-            cfg.hogs_image_size,
-            cfg.hogs_sh_degree,
-            cfg.hogs_frame_stride,
-            cfg.hogs_k,
-            cfg.hogs_object_subdivide,
-            cfg.hogs_window,
-        )
-        nodes.append(
-            _StageNode(
-                f"hogs/{sid}_{obj}",
-                k,
-                [run],
-                lambda sid=sid, obj=obj, run=run: _train_hogs(_child_cfg(cfg), data, sid, obj, run),
-            )
-        )
-    return nodes
-
-
-def _contactnet_node(cfg: DemoConfig, cn: Path, data: Path, k_world: str) -> _StageNode:
-    """The ContactNet training stage, into ``cn``."""
-
-    def contactnet() -> dict[str, Any]:
-        c = _child_cfg(cfg)
-        job = ContactNetJobConfig(
-            data=ContactNetDataConfig(root=str(data)),
-            optim=ContactNetOptimConfig(iters=c.contactnet_iters, seed=c.seed),
-            run=ContactNetRunConfig(out=str(cn), val_every=c.contactnet_iters),
-        )
-        m = fit_contactnet(job, progress=c.progress)
-        return {k: m[k] for k in ("val_mae", "val_iou05")}
-
-    subjects = {"subjects": training_subjects(ArcticRoot(data), stage="ContactNet")}  # what it is trained on
-    return _StageNode("contactnet", _key("contactnet", k_world, cfg.contactnet_iters, subjects), [cn], contactnet)
-
-
-#: SRM settings keyed only when they hold other values than these.
-_SRM_UNKEYED = {"gan": 0.0}
-#: Pose-bank settings keyed only when they hold other values than these.
-_BANK_UNKEYED = {"finger_scale": 0.0, "variants": 1, "frames": "contact"}
-
-
-def _bank_node(cfg: DemoConfig, bank: Path, data: Path, cn: Path, k_cn: str) -> _StageNode:
-    """The pose-bank stage (after ContactNet ``cn``) over the sequences of ``cfg.pairs``, into ``bank``."""
-    root = ArcticRoot(data)
-    seqs = [s for sid, obj in cfg.pairs for s in root.sequences(sid) if s.split("/", 1)[1].split("_", 1)[0] == obj]
-    late = keyed_settings(
-        {"finger_scale": cfg.bank_finger_scale, "variants": cfg.bank_variants, "frames": cfg.bank_frames}, _BANK_UNKEYED
-    )
-    bank_cfg = PoseBankConfig(
-        data=BankDataConfig(
-            root=str(data),
-            contactnet=str(cn),
-            sequences=tuple(seqs),
-            per_sequence=cfg.bank_per_sequence,
-            variants=cfg.bank_variants,
-            frames=cfg.bank_frames,
-        ),
-        pom=BankPOMConfig(finger_scale=cfg.bank_finger_scale),
-        run=BankRunConfig(out=str(bank), seed=cfg.seed),
-    )
-    start = [asdict(KEEP_ARTICULATION)] + ([late] if late else [])  # the start perturbations
-    margin = {"frame_margin": bank_cfg.data.frame_margin}  # which frames a bank may start from
-    k_bank = _key("bank", k_cn, cfg.bank_per_sequence, seqs, margin, *start)
-    return _StageNode(
-        "bank",
-        k_bank,
-        [bank],
-        lambda: build_pose_bank(bank_cfg, progress=_child_cfg(cfg).progress),
-        needs=("contactnet",),
-    )
-
-
-def _srm_node(cfg: DemoConfig, out: Path, data: Path, hogs: list[_StageNode]) -> _StageNode:
-    """The SRM stage (after the HOGS stages ``hogs``) into ``OUT/runs/srm``."""
-    late = keyed_settings({"gan": float(cfg.srm_gan)}, _SRM_UNKEYED)  # 1 and 1.0 key alike
-    k_hogs = [n.key for n in hogs]
-    srm = out / "runs" / "srm"
-    return _StageNode(
-        "srm",
-        _key("srm", k_hogs, cfg.srm_iters, cfg.srm_crop, cfg.srm_augment, *([late] if late else [])),
-        [srm],
-        lambda: _train_srm(_child_cfg(cfg), data, out / "runs" / "hogs", srm, out / "cache" / "srm"),
-        needs=tuple(n.name for n in hogs),
-    )
-
-
-def _build(cfg: DemoConfig, out: Path, stages: _Stages, say: Callable[[str], None]) -> tuple[Path, Path]:
-    """Build (or reuse) world, HOGS runs, ContactNet, pose bank, SRM and bundle; the data root and bundle."""
-    data, k_world = _world_stage(cfg, out, stages, say)
-    # the stages between the world and the bundle
-    hogs = _hogs_nodes(cfg, out, data, k_world)
-    runs, k_hogs = [n.outputs[0] for n in hogs], [n.key for n in hogs]
-    cn, bank = out / "runs" / "contactnet", out / "runs" / "pose_bank"
-    cn_node = _contactnet_node(cfg, cn, data, k_world)
-    bank_node = _bank_node(cfg, bank, data, cn, cn_node.key)
-    srm_node = _srm_node(cfg, out, data, hogs)
-    srm, k_srm = srm_node.outputs[0], srm_node.key
-    _run_stage_graph(stages, [*hogs, cn_node, bank_node, srm_node], cfg, say)
-
-    bundle = out / "bundle"
-    k_bundle = _key("bundle", k_hogs, cn_node.key, bank_node.key, k_srm, BUNDLE_SCHEMA_VERSION)
-    stages.run(
-        "bundle",
-        k_bundle,
-        [bundle],
-        lambda: str(write_bundle(bundle, data, runs, srm=srm, contactnet=cn, pose_banks=[bank])),
-    )
-    return data, bundle
-
-
-@dataclass
-class _StageNode:
-    """A stage of the build graph: :meth:`_Stages.run` arguments and the stages it needs."""
-
-    name: str
-    key: str
-    outputs: list[Path]
-    build: Callable[[], Any]
-    needs: tuple[str, ...] = ()
-
-
-_NODES: list[_StageNode] = []  # the stage graph, set in the parent before the stage processes fork
-_CHILD_CFG: Optional[DemoConfig] = None  # the settings inside a stage process (no progress bars)
-_SAY: Callable[[str], None] = print  # the parent's line printer, inherited by the stage processes
-_OUT = Path(".")  # the demo folder, inherited by the stage processes
-
-
-def _run_node(i: int) -> tuple[float, bool]:
-    """Build stage ``i`` in a stage process; returns its seconds and whether it was reused."""
-    stages = _Stages(_OUT, _SAY)
-    node = _NODES[i]
-    stages.run(node.name, node.key, node.outputs, node.build)
-    return stages.seconds[node.name], node.name in stages.reused
-
-
-def _stage_process_init(cfg: DemoConfig) -> None:
-    global _CHILD_CFG
-    _CHILD_CFG = replace(cfg, progress=False)
-
-
-def _check_graph(nodes: list[_StageNode]) -> None:
-    """Every stage needs only stages listed before it (so list order is a valid build order)."""
-    seen: set[str] = set()
-    for n in nodes:
-        missing = [d for d in n.needs if d not in seen]
-        if missing:
-            raise ValueError(f"stage {n.name!r} needs {missing}, which are not listed before it")
-        seen.add(n.name)
-
-
-def _run_stage_graph(stages: _Stages, nodes: list[_StageNode], cfg: DemoConfig, say: Callable[[str], None]) -> None:
-    """Run the stages, each once the stages it needs are done. Where forking is safe
-    (:func:`hogsa_loader.system.can_fork`), with more than one core and more than one stage to
-    build, they run on forked processes, side by side where the graph allows (one torch
-    thread each, no progress bars; a stage that is the only one able to run builds in this
-    process, on all threads); else one after the other in list order. Cached stages are
-    reported and skipped in the parent. On an error the other stage processes are stopped
-    and the error is raised."""
-    global _NODES, _SAY, _OUT, _CHILD_CFG
-    _check_graph(nodes)
-    todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]
-    workers = min(len(todo), available_cores())
-    if workers < 2 or not can_fork():
-        for n in nodes:
-            stages.run(n.name, n.key, n.outputs, n.build)
-        return
-    for n in nodes:
-        if n not in todo:
-            stages.run(n.name, n.key, n.outputs, n.build)
-    say(f"[stages] building {', '.join(n.name for n in todo)} on up to {workers} processes")
-    warm_up_compositor()  # the stage processes inherit the compiled kernels
-    index = {n.name: i for i, n in enumerate(todo)}
-    needs = [tuple(index[d] for d in n.needs if d in index) for n in todo]  # cached needs are done
-
-    def record(i: int, result: tuple[float, bool]) -> None:
-        stages.seconds[todo[i].name] = result[0]
-        if result[1]:
-            stages.reused.append(todo[i].name)
-
-    _NODES, _SAY, _OUT = todo, say, stages.dir.parent
-    try:
-        run_forked(_run_node, needs, workers, on_result=record, initializer=_stage_process_init, initargs=(cfg,))
-    finally:
-        _NODES, _CHILD_CFG = [], None  # (a stage built in this process set the stage settings here)
-
-
-def build_bundle_stages(
-    out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print
-) -> tuple[Path, Path, dict[str, float]]:
-    """Build (or reuse) the demo's stages up to the bundle: world, HOGS runs, ContactNet,
-    pose bank, SRM, bundle — each cached in ``out`` by its settings.
-
-    Stages (each writes into ``OUT`` and records ``OUT/stages/<name>.json`` with a key of its
-    settings and of the stages it builds on; a stage whose key is unchanged is reused, so a
-    second run only streams)::
-
-        world       OUT/world/                the `demo` world (hogsa world --preset demo)
-        hogs        OUT/runs/hogs/<sid>_<obj>  HOGS per (subject, object), brief CPU training
-        contactnet  OUT/runs/contactnet        ContactNet (the training subjects)
-        bank        OUT/runs/pose_bank         POM pose bank of the training subjects
-        srm         OUT/runs/srm               SRM on the HOGS renders, brief; its coarse renders
-                    OUT/cache/srm              are kept for rebuilds (entries of other HOGS weights
-                                               or labels are removed after each SRM build)
-        bundle      OUT/bundle                 the bundle the loader reads
-        stream      (always)                   HOGSADataset (pose bank, SRM, photo backgrounds)
-                                               through a DataLoader; samples.png, batch.npz,
-                                               demo.json, throughput on stdout
-
-    Between the world and the bundle the stages form a graph (HOGS per pair and ContactNet need
-    the world, the pose bank ContactNet, the SRM every HOGS run): on Linux with more than one
-    core and more than one stage to build, each starts on a forked process as soon as the stages
-    it needs are done (one torch thread each, no progress bars; a stage that is the only one
-    able to run builds in the demo's own process, on all threads).
-
-    Returns:
-        ``(data_root, bundle_folder, stage_seconds)``.
-    """
-    out = Path(os.path.abspath(out))
-    out.mkdir(parents=True, exist_ok=True)
-    stages = _Stages(out, log or (lambda s: None))
-    data, bundle = _build(config, out, stages, log or (lambda s: None))
-    return data, bundle, dict(stages.seconds)
-
-
-def _train_hogs(cfg: DemoConfig, data: Path, sid: str, obj: str, run: Path) -> dict[str, Any]:
-
-    hc = HogsConfig(
-        data=HogsDataConfig(
-            root=str(data),
-            subject=sid,
-            object=obj,
+def build_config(cfg: DemoConfig, data: Path, out: Path) -> BuildConfig:
+    """The :class:`~hogsa_loader.train.build.BuildConfig` of the demo's settings: brief CPU
+    training of its pairs on every sequence of each (1 Gaussian per face of the unsubdivided
+    meshes, learning rates ×10, SH raised every third of the steps)."""
+    base = BuildConfig()
+    hogs = replace(
+        base.hogs,
+        data=replace(
+            base.hogs.data,
             image_size=cfg.hogs_image_size,
             max_eval=4,
             frame_stride=cfg.hogs_frame_stride,
             window=cfg.hogs_window,
         ),
-        model=HogsModelConfig(sh_degree=cfg.hogs_sh_degree, k=cfg.hogs_k, object_subdivide=cfg.hogs_object_subdivide),
-        optim=HogsOptimConfig(iters=cfg.hogs_iters, sh_warmup=max(1, cfg.hogs_iters // 3), lr_scale=10.0),
-        run=HogsRunConfig(
-            out=str(run), seed=cfg.seed, eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters, strip_views=2
+        model=replace(
+            base.hogs.model, sh_degree=cfg.hogs_sh_degree, k=cfg.hogs_k, object_subdivide=cfg.hogs_object_subdivide
         ),
+        optim=replace(base.hogs.optim, iters=cfg.hogs_iters, sh_warmup=max(1, cfg.hogs_iters // 3), lr_scale=10.0),
+        run=replace(base.hogs.run, eval_every=cfg.hogs_iters, ckpt_every=cfg.hogs_iters, strip_views=2),
     )
-    m = HogsTrainer(hc, progress=cfg.progress).train()
-    return {"psnr": m["psnr"], "ssim": m["ssim"], "iters": m["iters"]}
-
-
-def _train_srm(cfg: DemoConfig, data: Path, hogs: Path, out: Path, cache: Path) -> dict[str, Any]:
-
-    sc = SRMTrainConfig(
-        data=SRMDataConfig(
-            root=str(data), hogs=str(hogs), crop=cfg.srm_crop, augment=cfg.srm_augment, cache=str(cache)
-        ),
-        model=SRMModelConfig(channels=(16, 32, 64, 64, 64)),
-        loss=SRMLossConfig(lambda_gan=cfg.srm_gan),
-        optim=SRMOptimConfig(iters=cfg.srm_iters),
-        run=SRMRunConfig(
-            out=str(out), seed=cfg.seed, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters, strip_views=2
-        ),
+    contactnet = replace(
+        base.contactnet,
+        optim=replace(base.contactnet.optim, iters=cfg.contactnet_iters),
+        run=replace(base.contactnet.run, val_every=cfg.contactnet_iters),
     )
-    trainer = SRMTrainer(sc, progress=cfg.progress, log=lambda s: None)
-    m = trainer.train()
-    used = {f.resolve() for ps in trainer.sets for f in ps.cache_files}
-    for stale in cache.glob("coarse_*.safetensors"):  # renders of HOGS weights or labels no longer in use
-        if stale.resolve() not in used:
-            stale.unlink()
-    return {"delta_psnr": m["delta_psnr"], "delta_ssim": m["delta_ssim"]}
+    bank = replace(
+        base.bank,
+        data=replace(
+            base.bank.data, per_sequence=cfg.bank_per_sequence, variants=cfg.bank_variants, frames=cfg.bank_frames
+        ),
+        pom=replace(base.bank.pom, finger_scale=cfg.bank_finger_scale),
+    )
+    srm = replace(
+        base.srm,
+        data=replace(base.srm.data, crop=cfg.srm_crop, augment=cfg.srm_augment),
+        model=replace(base.srm.model, channels=(16, 32, 64, 64, 64)),
+        loss=replace(base.srm.loss, lambda_gan=float(cfg.srm_gan)),
+        optim=replace(base.srm.optim, iters=cfg.srm_iters),
+        run=replace(base.srm.run, eval_every=cfg.srm_iters, ckpt_every=cfg.srm_iters, strip_views=2),
+    )
+    return BuildConfig(
+        data=BuildDataConfig(root=str(data), pairs=tuple(f"{s}/{o}" for s, o in cfg.pairs), sequences_like=None),
+        run=BuildRunConfig(out=str(out), seed=cfg.seed),
+        hogs=hogs,
+        contactnet=contactnet,
+        bank=bank,
+        srm=srm,
+    )
+
+
+def build_bundle_stages(
+    out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print
+) -> tuple[Path, Path, dict[str, float]]:
+    """Build (or reuse) the demo's world and, from it, every stage up to the bundle
+    (:func:`hogsa_loader.train.build.build`, settings :func:`build_config`), each cached in
+    ``out`` by its settings.
+
+    Stages: ``world`` (``OUT/world/``, the ``demo`` world; none when ``config.data`` names a
+    root), then those of ``hogsa build`` into ``OUT``: ``hogs/<sid>_<obj>`` (``OUT/runs/hogs/``),
+    ``contactnet``, ``bank`` (``OUT/runs/pose_bank``), ``srm`` and ``bundle`` (``OUT/bundle``).
+    A stage whose key is unchanged is reused, so a second run only streams.
+
+    Returns:
+        ``(data_root, bundle_folder, stage_seconds)``.
+    """
+    say = log or (lambda s: None)
+    out = Path(os.path.abspath(out))
+    out.mkdir(parents=True, exist_ok=True)
+    stages = StageRecords(out, say)
+    data, k_world = _world_stage(config, out, stages, say)
+    bundle, seconds = build(build_config(config, data, out), log=log, data_key=k_world, progress=config.progress)
+    return data, bundle, {**stages.seconds, **seconds}
 
 
 def _orbit(out: Path, bundle: Path, data: Path, cfg: DemoConfig, say: Callable[[str], None]) -> dict[str, Any] | None:
@@ -681,8 +384,7 @@ def run_demo(
     t_start = time.perf_counter()
     out = Path(os.path.abspath(out))
     out.mkdir(parents=True, exist_ok=True)
-    stages = _Stages(out, say)
-    data, bundle = _build(config, out, stages, say)
+    data, bundle, stage_seconds = build_bundle_stages(out, config, log)
 
     bg = _background_options(config, out)
     ds = _demo_dataset(
@@ -708,8 +410,8 @@ def run_demo(
 
     record = {
         "config": {k: v for k, v in asdict(config).items() if k != "progress"},
-        "stage_seconds": {k: round(v, 1) for k, v in stages.seconds.items()},
-        "reused_stages": stages.reused,
+        "stage_seconds": {k: round(v, 1) for k, v in stage_seconds.items()},
+        "reused_stages": sorted(k for k, v in stage_seconds.items() if v == 0.0),
         "stream": {**stream, "models": [list(k) for k in ds.keys], "backgrounds": str(bg)},
         "outputs": {
             "grid": str(grid_path),

@@ -169,3 +169,38 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+def tiny_build_config(data: Path, out: Path, **data_kw):
+    """A build of one pair at toy sizes (seconds per stage on a CPU core)."""
+    from dataclasses import replace
+
+    from hogsa_loader.train.build import BuildConfig, BuildDataConfig, BuildRunConfig
+
+    base = BuildConfig()
+    return BuildConfig(
+        data=BuildDataConfig(root=str(data), **{"pairs": ("s01/box",), **data_kw}),
+        run=BuildRunConfig(out=str(out)),
+        hogs=replace(
+            base.hogs,
+            data=replace(base.hogs.data, image_size=64, frame_stride=4, max_eval=2),
+            model=replace(base.hogs.model, k=1, sh_degree=0, object_subdivide=0),
+            optim=replace(base.hogs.optim, iters=4, sh_warmup=1),
+            run=replace(base.hogs.run, eval_every=4, ckpt_every=4, strip_views=1),
+        ),
+        contactnet=replace(
+            base.contactnet,
+            optim=replace(base.contactnet.optim, iters=4, points=64),
+            run=replace(base.contactnet.run, val_every=4),
+        ),
+        bank=replace(
+            base.bank, data=replace(base.bank.data, per_sequence=1), pom=replace(base.bank.pom, iters=2, batch=4)
+        ),
+        srm=replace(
+            base.srm,
+            data=replace(base.srm.data, crop=32, augment="none", max_val=2),
+            model=replace(base.srm.model, channels=(8, 8, 8, 8, 8)),
+            optim=replace(base.srm.optim, iters=2, batch_size=2),
+            run=replace(base.srm.run, eval_every=2, ckpt_every=2, strip_views=1),
+        ),
+    )

@@ -36,23 +36,29 @@ def find_runs(folder: Path, depth: int = 2) -> list[Path]:
     return out
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of this command."""
+    p = argparse.ArgumentParser(prog="python -m hogsa_loader.cli.build_bundle", description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root the runs were trained on")
     p.add_argument("--hogs", required=True, help="a HOGS run folder, or a folder of run folders")
     p.add_argument("--out", required=True, help="bundle folder to write")
-    p.add_argument("--srm", default=None, help="SRM checkpoint folder (a train_srm.py run)")
+    p.add_argument("--srm", default=None, help="SRM checkpoint folder (a hogsa train srm run)")
     p.add_argument("--contactnet", default=None, help="ContactNet checkpoint folder")
     p.add_argument(
         "--pose-bank",
-        action="append",
+        type=lambda text: [t for t in text.split(",") if t],
         default=[],
-        help="pose-bank folder (build_pose_bank.py); repeatable, distinct folder names",
+        help="pose-bank folders (hogsa train bank), comma-separated, distinct folder names",
     )
     p.add_argument("--dataset", default="arctic")
     p.add_argument("--overwrite", action="store_true", help="replace the bundle already in --out")
     checks.one_line_errors(p)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Build the bundle; the exit status (0, 1 for a problem met, 2 for a usage error)."""
+    args = build_parser().parse_args(argv)
     try:
         checks.input_dir(args.data, "--data")
         checks.input_dir(args.hogs, "--hogs")

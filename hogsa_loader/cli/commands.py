@@ -238,7 +238,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     require("skimage", "demo", "hogsa demo")
     checks.output_dir(args.out)
-    for flag, folder in (("--backgrounds", args.backgrounds), ("--coco-root", args.coco_root)):
+    for flag, folder in (("--background-folder", args.backgrounds), ("--coco-root", args.coco_root)):
         if folder is not None:
             checks.input_dir(folder, flag)
     if args.coco_ann is not None:
@@ -439,7 +439,8 @@ def _demo_parser(sub: argparse._SubParsersAction) -> None:
         "--threads", type=checks.non_negative_int, default=0, help="torch CPU threads of the main process (0 = default)"
     )
     d.add_argument(
-        "--backgrounds",
+        "--background-folder",
+        dest="backgrounds",
         default=None,
         help="image folder for backgrounds (default: photographs shipped with scikit-image)",
     )

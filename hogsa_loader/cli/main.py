@@ -39,11 +39,15 @@ def build_parser(commands: Optional[Iterable[str]] = None) -> argparse.ArgumentP
         hogsa world --out DIR --preset tiny|demo|small|small_styles [--seed N]
                                        a synthetic ARCTIC-format world (raw_seqs, misc, cropped
                                        images, masks, splits) rendered with the mesh rasteriser
+        hogsa build --data ROOT --out DIR [--config FILE] [--status] [--print-config]
+                                       every model of a dataset root and the bundle: HOGS per
+                                       training pair, ContactNet, pose bank, SRM (cached, resumable;
+                                       several processes with torchrun or srun)
         hogsa export --bundle B --data ROOT --out DIR --num N --shard-size S [--seed N] [--device D]
                      [--coco-root C] ...
                                        offline synthetic frames as WebDataset tar shards
                                        (resumable; multi-process/GPU with torchrun: RANK, WORLD_SIZE)
-        hogsa plates --data ROOT --out DIR [--subjects S ...] [--views V ...]
+        hogsa plates --data ROOT --out DIR [--subjects S,...] [--views V,...]
                                        clean background plates of the static cameras, made from
                                        the dataset's own frames (for --background-folder)
         hogsa view --bundle B --data ROOT --subject S --object O --out DIR [--frame SEQ:IDX ...]
@@ -83,6 +87,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    args.argv = argv  # a command that reads a settings file parses its arguments again
     try:
         return int(args.func(args))
     except (HogsaError, OSError) as exc:  # argument checks (exit status 2), problems with files (1)

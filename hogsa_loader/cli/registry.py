@@ -23,6 +23,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "copy a world with ARCTIC-like fitting error in its hand annotations",
         "hogsa_loader.cli.commands:_world_noise_parser",
     ),
+    "build": (
+        "train every model of a dataset root and write the bundle (cached per stage, resumable)",
+        "hogsa_loader.cli.build:add_build_command",
+    ),
+    "finetune": (
+        "fine-tune ArcticNet-SF on real + HOGSA batches (one process, or DDP under torchrun / srun)",
+        "hogsa_loader.cli.finetune:add_finetune_command",
+    ),
     "export": (
         "write synthetic frames as WebDataset tar shards (offline mode)",
         "hogsa_loader.cli.commands:_export_parser",

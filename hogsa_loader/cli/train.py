@@ -69,7 +69,9 @@ def _config_parser(p: argparse.ArgumentParser, cls: type) -> argparse.ArgumentPa
 
 def hogs_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
     """The flags of one HOGS run (:class:`~hogsa_loader.train.HogsConfig` + run flags)."""
-    return _config_parser(p or argparse.ArgumentParser(prog="train_hogs", description=HOGS_DESCRIPTION), HogsConfig)
+    return _config_parser(
+        p or argparse.ArgumentParser(prog="hogsa train hogs", description=HOGS_DESCRIPTION), HogsConfig
+    )
 
 
 HOGS_DESCRIPTION = "Train one HOGS model (right hand, left hand, object Gaussians) per subject + object."
@@ -85,20 +87,20 @@ def check_hogs_args(cfg: HogsConfig, resume: bool, overwrite: bool) -> None:
         ValueError: settings that differ from the run's saved ones.
     """
     d = cfg.data
-    checks.input_dir(d.root, "--data-root")
-    for flag, path in (("--data-mano-dir", d.mano_dir), ("--data-object-mesh-dir", d.object_mesh_dir)):
+    checks.input_dir(d.root, "--data")
+    for flag, path in (("--mano-dir", d.mano_dir), ("--object-mesh-dir", d.object_mesh_dir)):
         if path is not None:
             checks.input_dir(path, flag)
     if d.dataset == "h2o" and d.object_mesh_dir is not None:
         try:
             find_h2o_mesh(d.object_mesh_dir, d.object)
         except AssetError as exc:
-            raise UsageError(f"--data-object-mesh-dir {exc}") from exc
-    for flag, views in (("--data-views", d.views), ("--data-eval-views", d.eval_views)):
+            raise UsageError(f"--object-mesh-dir {exc}") from exc
+    for flag, views in (("--views", d.views), ("--eval-views", d.eval_views)):
         bad = [v for v in views or () if v not in ALLO_VIEWS]
         if d.dataset == "arctic" and bad:
             raise UsageError(f"{flag} must be allocentric ARCTIC views {tuple(ALLO_VIEWS)}, got {bad}")
-    checks.output_dir(cfg.run.out, "--run-out")
+    checks.output_dir(cfg.run.out, "--out")
     check_run_folder(cfg.run.out, resume=resume, overwrite=overwrite)
     if resume:
         # views and eval views left to the data (None) are compared when the trainer resumes
@@ -142,7 +144,7 @@ def run_hogs(cfg: HogsConfig, *, resume: bool = False, overwrite: bool = False, 
             print(f"resumed {cfg.run.out} at step {trainer.step}")
         return trainer
 
-    m, rc = _build_and_train("train_hogs", build, overwrite)
+    m, rc = _build_and_train("hogsa train hogs", build, overwrite)
     if m is None:
         return rc
     if not quiet:
@@ -170,7 +172,7 @@ SRM_DESCRIPTION = "Train the SRM (StyleUNet refinement of HOGS renders) on every
 
 def srm_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
     """The flags of one SRM run (:class:`~hogsa_loader.train.srm_trainer.SRMTrainConfig`, run flags, ``--threads``)."""
-    p = p or argparse.ArgumentParser(prog="train_srm", description=SRM_DESCRIPTION)
+    p = p or argparse.ArgumentParser(prog="hogsa train srm", description=SRM_DESCRIPTION)
     p.add_argument("--threads", type=checks.positive_int, default=None, help="torch CPU threads (default: torch's)")
     return _config_parser(p, SRMTrainConfig)
 
@@ -181,13 +183,13 @@ def check_srm_args(cfg: SRMTrainConfig, resume: bool, overwrite: bool) -> None:
     Raises:
         UsageError / RunExistsError: a bad path or run folder.
     """
-    checks.input_dir(cfg.data.root, "--data-root")
-    checks.input_dir(cfg.data.hogs, "--data-hogs")
+    checks.input_dir(cfg.data.root, "--data")
+    checks.input_dir(cfg.data.hogs, "--hogs")
     if cfg.data.cross_hogs:
-        checks.input_dir(cfg.data.cross_hogs, "--data-cross-hogs")
+        checks.input_dir(cfg.data.cross_hogs, "--cross-hogs")
     if cfg.data.cache:
-        checks.output_dir(cfg.data.cache, "--data-cache")
-    checks.output_dir(cfg.run.out, "--run-out")
+        checks.output_dir(cfg.data.cache, "--cache")
+    checks.output_dir(cfg.run.out, "--out")
     check_run_folder(cfg.run.out, resume=resume, overwrite=overwrite)
 
 
@@ -196,7 +198,7 @@ def _print_srm_summary(m: dict) -> None:
     if m["selection"]:
         b = m["selection"]["best"]
         print(
-            f"train_srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "
+            f"hogsa train srm: selected step {b['step']} (validation views {m['selection']['val_views']}: "
             f"{b['psnr_without_srm']:.2f} -> {b['psnr']:.2f} dB on {b['n']} pairs)",
             file=sys.stderr,
         )
@@ -217,12 +219,12 @@ def run_srm(cfg: SRMTrainConfig, *, resume: bool = False, overwrite: bool = Fals
         trainer = SRMTrainer(cfg, progress=not quiet)
         if resume:
             if trainer.resume():
-                print(f"train_srm: resumed {cfg.run.out} at step {trainer.step}", file=sys.stderr)
+                print(f"hogsa train srm: resumed {cfg.run.out} at step {trainer.step}", file=sys.stderr)
             else:
-                print(f"train_srm: nothing to resume in {cfg.run.out}; starting fresh", file=sys.stderr)
+                print(f"hogsa train srm: nothing to resume in {cfg.run.out}; starting fresh", file=sys.stderr)
         return trainer
 
-    m, rc = _build_and_train("train_srm", build, overwrite)
+    m, rc = _build_and_train("hogsa train srm", build, overwrite)
     if m is None:
         return rc
     _print_srm_summary(m)
@@ -277,7 +279,7 @@ def _run_job(prog: str, a: argparse.Namespace, job: Callable[[], dict]) -> int:
 
 def parse_contactnet_args(argv: Optional[Sequence[str]] = None) -> tuple[ContactNetJobConfig, argparse.Namespace]:
     """The :class:`~hogsa_loader.train.pom_config.ContactNetJobConfig` of a command line and the namespace."""
-    a = _job_parser("train_contactnet", CONTACTNET_DESCRIPTION, ContactNetJobConfig).parse_args(argv)
+    a = _job_parser("hogsa train contactnet", CONTACTNET_DESCRIPTION, ContactNetJobConfig).parse_args(argv)
     return dataclass_from_args(ContactNetJobConfig, a), a
 
 
@@ -286,17 +288,17 @@ def train_contactnet_main(argv: Optional[Sequence[str]] = None) -> int:
     cfg, a = parse_contactnet_args(argv)
 
     def job() -> dict:
-        checks.input_dir(cfg.data.root, "--data-root")
-        checks.output_dir(cfg.run.out, "--run-out")
+        checks.input_dir(cfg.data.root, "--data")
+        checks.output_dir(cfg.run.out, "--out")
         return fit_contactnet(cfg, progress=not a.quiet)
 
-    return _run_job("train_contactnet", a, job)
+    return _run_job("hogsa train contactnet", a, job)
 
 
 def parse_bank_args(argv: Optional[Sequence[str]] = None) -> tuple[PoseBankConfig, argparse.Namespace]:
     """The :class:`~hogsa_loader.train.pom_config.PoseBankConfig` of a command line and the namespace
     (exit status 2 for an articulation range that is not finite ``0 <= LO <= HI``)."""
-    p = _job_parser("build_pose_bank", BANK_DESCRIPTION, PoseBankConfig)
+    p = _job_parser("hogsa train bank", BANK_DESCRIPTION, PoseBankConfig)
     a = p.parse_args(argv)
     cfg = dataclass_from_args(PoseBankConfig, a)
     lo_hi = cfg.pom.arti_range
@@ -310,12 +312,12 @@ def build_pose_bank_main(argv: Optional[Sequence[str]] = None) -> int:
     cfg, a = parse_bank_args(argv)
 
     def job() -> dict:
-        checks.input_dir(cfg.data.root, "--data-root")
-        checks.input_dir(cfg.data.contactnet, "--data-contactnet")
-        checks.output_dir(cfg.run.out, "--run-out")
+        checks.input_dir(cfg.data.root, "--data")
+        checks.input_dir(cfg.data.contactnet, "--contactnet")
+        checks.output_dir(cfg.run.out, "--out")
         return build_pose_bank(cfg, progress=not a.quiet)
 
-    return _run_job("build_pose_bank", a, job)
+    return _run_job("hogsa train bank", a, job)
 
 
 #: entry point of each ``hogsa train`` job

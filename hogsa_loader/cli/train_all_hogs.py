@@ -5,10 +5,10 @@ train hogs flags]``. Each pair is trained as ``hogsa train hogs`` into ``RUNS_DI
 a finished pair (three part checkpoints and ``metrics.json``) is skipped, one with only
 intermediate checkpoints resumed. Pairs are spread over processes: ``--array-index I
 --array-size N`` (or SLURM arrays, srun's ``SLURM_PROCID``, torchrun's ``RANK``/``WORLD_SIZE``)
-takes pairs ``I, I+N, ...``, ``--run-device cuda`` becoming ``cuda:LOCAL_RANK``; ``--gpus``
+takes pairs ``I, I+N, ...``, ``--device cuda`` becoming ``cuda:LOCAL_RANK``; ``--gpus``
 starts one child per listed GPU. Arguments after ``--`` go to ``hogsa train hogs`` unchanged
-(``--data-root``, ``--data-dataset``, ``--data-subject``, ``--data-object``, ``--run-out``,
-``--data-sequences`` and ``--resume`` are set here). ``RUNS_DIR/summary.json`` lists every
+(``--data``, ``--dataset``, ``--subject``, ``--object``, ``--out``,
+``--sequences`` and ``--resume`` are set here). ``RUNS_DIR/summary.json`` lists every
 finished run's held-out PSNR/SSIM.
 """
 
@@ -32,20 +32,16 @@ from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.models.gaussians.hogs_model import HogsModel
 
 
-def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace, list[str]]:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    rest: list[str] = []
-    if "--" in argv:
-        i = argv.index("--")
-        argv, rest = argv[:i], argv[i + 1 :]
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of this command (those after ``--`` go to ``hogsa train hogs``)."""
+    p = argparse.ArgumentParser(prog="python -m hogsa_loader.cli.train_all_hogs", description=__doc__.split("\n")[0])
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root, or an H2O root with --dataset h2o")
     p.add_argument(
         "--dataset",
         default="arctic",
         choices=["arctic", "h2o"],
-        help="h2o: pairs are (subject, object class) of every sequence; pass --data-mano-dir and "
-        "--data-object-mesh-dir to train_hogs.py after --",
+        help="h2o: pairs are (subject, object class) of every sequence; pass --mano-dir and "
+        "--object-mesh-dir to hogsa train hogs after --",
     )
     p.add_argument("--out", required=True, help="folder of the runs (one sub-folder per subject_object)")
     p.add_argument("--protocol", default="p1")
@@ -78,6 +74,17 @@ def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace
     p.add_argument("--gpus", default=None, type=_gpu_ids, help="comma-separated GPU ids: one child process per GPU")
     p.add_argument("--dry-run", action="store_true", help="list this process's pairs and exit")
     checks.one_line_errors(p)
+    return p
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> tuple[argparse.Namespace, list[str]]:
+    """This command's arguments and those after ``--`` (for ``hogsa train hogs``)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    rest: list[str] = []
+    if "--" in argv:
+        i = argv.index("--")
+        argv, rest = argv[:i], argv[i + 1 :]
+    p = build_parser()
     a = p.parse_args(argv)
     if a.array_index is not None and a.array_index >= (a.array_size or 1):
         size = a.array_size or 1
@@ -183,7 +190,7 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
 
 
 def rank_device(rest: Sequence[str], env: Optional[dict[str, str]] = None) -> list[str]:
-    """``train_hogs.py``'s arguments with ``--run-device cuda`` made ``cuda:LOCAL_RANK`` when this
+    """``hogsa train hogs`` arguments with ``--device cuda`` made ``cuda:LOCAL_RANK`` when this
     process is one of several on a node (torchrun's ``LOCAL_RANK``, srun's ``SLURM_LOCALID``), so
     that each process trains on its own GPU; other arguments unchanged."""
     env = dict(os.environ) if env is None else env
@@ -192,7 +199,7 @@ def rank_device(rest: Sequence[str], env: Optional[dict[str, str]] = None) -> li
     if local is None:
         return out
     for i, arg in enumerate(out[:-1]):
-        if arg == "--run-device" and out[i + 1] == "cuda":
+        if arg == "--device" and out[i + 1] == "cuda":
             out[i + 1] = f"cuda:{int(local)}"
     return out
 
@@ -278,18 +285,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if a.dry_run:
             continue
         args = [
-            "--data-root",
+            "--data",
             a.data,
-            "--data-dataset",
+            "--dataset",
             a.dataset,
-            "--data-subject",
+            "--subject",
             sid,
-            "--data-object",
+            "--object",
             obj,
-            "--run-out",
+            "--out",
             str(run),
-            "--data-sequences",
-            *seqs,
+            "--sequences",
+            ",".join(seqs),
         ]
         code = train_one(args + (["--resume"] if resume else []) + rank_device(rest))
         if code:

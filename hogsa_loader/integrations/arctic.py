@@ -3,7 +3,7 @@
 Example (ArcticNet-SF training, real-format data)::
 
     from torch.utils.data import DataLoader
-    from hogsa_loader.assets import ArcticDataset
+    from hogsa_loader.sample import ArcticDataset
     from hogsa_loader.integrations.arctic import wrap_train_loader
 
     real = DataLoader(ArcticDataset("./data", split="p1_train"), batch_size=64, shuffle=True, num_workers=8)
@@ -45,7 +45,7 @@ def _root_of(dataset: Any) -> Optional[PathLike]:
 
 def _loader_protocol(dataset: Any) -> Optional[str]:
     """``"p1"`` / ``"p2"`` of the real dataset's setup (``.setup`` of
-    :class:`~hogsa_loader.assets.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
+    :class:`~hogsa_loader.sample.ArcticDataset`, ``.args.setup`` of ARCTIC's own dataset;
     ``p1a`` / ``p2a`` are the same views), or None when it does not say."""
     setup = getattr(dataset, "setup", None) or getattr(getattr(dataset, "args", None), "setup", None)
     if setup is None:
@@ -98,7 +98,7 @@ def wrap_train_loader(
             synthetic samples (``mode="replace"``; with ``"add"``,
             ``added_synthetic(ratio, b)`` are appended to a real batch of b).
         data_root: ARCTIC data root (default: ``train_loader.dataset.root.data_root`` of a
-            :class:`~hogsa_loader.assets.ArcticDataset`).
+            :class:`~hogsa_loader.sample.ArcticDataset`).
         num_workers: DataLoader workers of the synthetic stream (CPU rendering only;
             keep 0 with ``device="cuda"`` — workers must not touch CUDA).
         drop_last: see :class:`~hogsa_loader.sample.mixing.MixedLoader` (``"replace"`` only;

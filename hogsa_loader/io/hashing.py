@@ -17,17 +17,13 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
+#: Version of every cache key (:func:`settings_key`) and export settings record: raised when
+#: the settings a cache is keyed by change meaning, so that every cache is rebuilt once.
+CACHE_VERSION = 2
+
+
 def settings_key(obj: Any) -> str:
-    """16 hex digits of the sha256 of ``obj`` as JSON with sorted keys (values JSON cannot
-    hold are written with ``str``): the cache key of a set of settings."""
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def keyed_settings(values: dict[str, Any], unkeyed: dict[str, Any]) -> dict[str, Any]:
-    """``values`` without each entry whose value is the one ``unkeyed`` gives for its name.
-
-    A setting added after cache keys were first written is keyed this way only when it holds
-    another value than the one that reproduces the behaviour from before it existed, so what
-    was cached before keeps its key.
-    """
-    return {k: v for k, v in values.items() if k not in unkeyed or v != unkeyed[k]}
+    """16 hex digits of the sha256 of ``obj`` (with :data:`CACHE_VERSION`) as JSON with sorted
+    keys (values JSON cannot hold are written with ``str``): the cache key of a set of settings."""
+    blob = json.dumps([CACHE_VERSION, obj], sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]

@@ -32,11 +32,9 @@ __all__ = [
 #: Test-time augmentation copies the bundle's SRM accepts (``SRM.refine(tta=...)``).
 SRM_TTA_CHOICES: tuple[int, ...] = tuple(sorted(TTA_CODES))
 
-_IF_SET = {"record": "if_set"}
-
 
 def _comma_joined(names: Optional[tuple[str, ...]]) -> Optional[str]:
-    """Names recorded as one comma-separated string (as the first exports recorded the flag)."""
+    """Names recorded as one comma-separated string (as the flag takes them)."""
     return None if names is None else ",".join(names)
 
 
@@ -57,19 +55,16 @@ class BackgroundConfig:
         },
     )
     exclude_person: bool = field(
-        default=False,
-        metadata={"help": "no COCO background showing people (their hands would be unlabelled hands)", **_IF_SET},
+        default=False, metadata={"help": "no COCO background showing people (their hands would be unlabelled hands)"}
     )
     image_dir: Optional[str] = field(
-        default=None,
-        metadata={"help": "COCO image folder (default under --coco-root)", "name": "coco_image_dir", **_IF_SET},
+        default=None, metadata={"help": "COCO image folder (default under --coco-root)", "name": "coco_image_dir"}
     )
     camera_plates: bool = field(
         default=False,
         metadata={
             "help": "--background-folder holds plates (hogsa plates): a sample seen through a dataset camera gets "
-            "that camera's own plate, cut by its crop box",
-            **_IF_SET,
+            "that camera's own plate, cut by its crop box"
         },
     )
 
@@ -98,12 +93,7 @@ class PoseConfig:
     )
     options: Mapping[str, Any] = field(
         default_factory=dict,
-        metadata={
-            "help": "keyword arguments of the pose-source factory",
-            "name": "pose_options",
-            "cli": False,
-            **_IF_SET,
-        },
+        metadata={"help": "keyword arguments of the pose-source factory", "name": "pose_options", "cli": False},
     )
 
 
@@ -117,7 +107,6 @@ class RefinementConfig:
         metadata={
             "help": "with --srm: test-time augmentation (symmetric copies averaged; 8x the SRM cost at 8)",
             "choices": SRM_TTA_CHOICES,
-            **_IF_SET,
         },
     )
 
@@ -138,17 +127,16 @@ class SampleConfig:
             "help": "p1 (allocentric: novel + dataset cameras, ARCTIC crops) or p2 (egocentric: the subject's head "
             "camera, whole frame)",
             "choices": ("p1", "p2"),
-            **_IF_SET,
         },
     )
-    split: str = field(default="train", metadata={"help": "split whose sequences the pose source may use", **_IF_SET})
+    split: str = field(default="train", metadata={"help": "split whose sequences the pose source may use"})
     augment: bool = field(
-        default=True, metadata={"help": "ARCTIC training augmentation (rotation, scale, colour noise)", **_IF_SET}
+        default=True, metadata={"help": "ARCTIC training augmentation (rotation, scale, colour noise)"}
     )
     render_size: Optional[int] = field(
         default=None, metadata={"help": "side of the rendered crop (default 1.5 x img_res)", "type": "positive_int"}
     )
-    arctic: ArcticConfig = field(default_factory=ArcticConfig, metadata={"cli": False, **_IF_SET})
+    arctic: ArcticConfig = field(default_factory=ArcticConfig, metadata={"cli": False})
     interfield: Union[bool, float] = field(
         default=False,
         metadata={
@@ -159,10 +147,7 @@ class SampleConfig:
     )
     ego_distortion: bool = field(
         default=True,
-        metadata={
-            "help": "p2: pass the pixels through the egocentric lens distortion (labels stay undistorted)",
-            **_IF_SET,
-        },
+        metadata={"help": "p2: pass the pixels through the egocentric lens distortion (labels stay undistorted)"},
     )
     other_hands: float = field(
         default=0.0,
@@ -172,7 +157,6 @@ class SampleConfig:
             "of the models, drawn uniformly (its run with the same object when it has one); 0: every model's own "
             "hands",
             "type": "unit_float",
-            **_IF_SET,
         },
     )
 
@@ -239,15 +223,11 @@ class RunConfig:
     num_samples: Optional[int] = field(
         default=None, metadata={"help": "samples per epoch (None: endless)", "cli": False, "record": "never"}
     )
-    backend: str = field(
-        default="auto", metadata={"help": "renderer backend", "choices": ("auto", "torch", "gsplat"), **_IF_SET}
-    )
+    backend: str = field(default="auto", metadata={"help": "renderer backend", "choices": ("auto", "torch", "gsplat")})
     subjects: Optional[tuple[str, ...]] = field(
-        default=None, metadata={"help": "restrict the models to these subjects", **_IF_SET}
+        default=None, metadata={"help": "restrict the models to these subjects"}
     )
-    objects: Optional[tuple[str, ...]] = field(
-        default=None, metadata={"help": "restrict the models to these objects", **_IF_SET}
-    )
+    objects: Optional[tuple[str, ...]] = field(default=None, metadata={"help": "restrict the models to these objects"})
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -275,18 +255,16 @@ class LoaderConfig:
     name) and ``choices`` shape the flag; ``name`` is the flag and recorded key where it
     differs from the field name; ``cli: False`` marks settings that are objects rather than
     flags; ``flat`` marks groups whose flags carry no group prefix; ``recorded`` writes the
-    value for the export (default: JSON-able as is); ``record`` says when it is recorded:
-    ``"always"`` (default), ``"if_set"`` (only when not the default, so that exports made
-    before the option existed keep their settings hash) or ``"never"`` (it does not change
-    the frames).
+    value for the export (default: JSON-able as is); ``record: "never"`` leaves out a setting
+    that does not change the frames (device, sample count); every other one is recorded.
     """
 
     backgrounds: BackgroundConfig = field(default_factory=BackgroundConfig, metadata={"flat": True})
     poses: PoseConfig = field(default_factory=PoseConfig, metadata={"flat": True})
     refinement: RefinementConfig = field(default_factory=RefinementConfig, metadata={"flat": True})
-    cameras: CameraConfig = field(default_factory=CameraConfig, metadata={"cli": False, **_IF_SET})
+    cameras: CameraConfig = field(default_factory=CameraConfig, metadata={"cli": False})
     sample: SampleConfig = field(default_factory=SampleConfig, metadata={"flat": True})
-    checks: SampleChecks = field(default_factory=SampleChecks, metadata={"cli": False, **_IF_SET})
+    checks: SampleChecks = field(default_factory=SampleChecks, metadata={"cli": False})
     run: RunConfig = field(default_factory=RunConfig, metadata={"flat": True})
 
 
@@ -309,18 +287,15 @@ def export_info(config: Any) -> dict[str, Any]:
     """The config as the flat JSON-able dict an export records (``index.json`` ``info``).
 
     Flat groups are merged into one level, each leaf under its ``name`` (default the field
-    name); a field is left out when its ``record`` is ``"never"``, or ``"if_set"`` and it
-    has its default value.
+    name); a field whose ``record`` is ``"never"`` is left out.
     """
     out: dict[str, Any] = {}
-    default = type(config)()
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         if f.metadata.get("flat"):
             out.update(export_info(value))
             continue
-        record = f.metadata.get("record", "always")
-        if record == "never" or (record == "if_set" and value == getattr(default, f.name)):
+        if f.metadata.get("record", "always") == "never":
             continue
         out[f.metadata.get("name", f.name)] = f.metadata.get("recorded", _json_value)(value)
     return out

@@ -44,7 +44,9 @@ def name_float(text: str) -> tuple[str, float]:
 class HogsDataConfig:
     """Dataset, subject/object, camera views and the train/held-out split."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data, or the H2O root)", required=True))
+    root: str = field(
+        default="", metadata=_opt("dataset root (ARCTIC ./data, or the H2O root)", required=True, name="data")
+    )
     subject: str = field(default="", metadata=_opt("subject, e.g. s01 (H2O: subject1)", required=True))
     object: str = field(default="", metadata=_opt("object name, e.g. box", required=True))
     dataset: Literal["arctic", "h2o"] = field(default="arctic", metadata=_opt("dataset format"))
@@ -139,7 +141,9 @@ class HogsOptimConfig:
     """Steps, batch and the Adam learning rates."""
 
     iters: int = field(default=2000, metadata=_opt("training steps", "non_negative_int"))
-    batch_size: int = field(default=1, metadata=_opt("(frame, view) samples per step", "positive_int"))
+    batch_size: int = field(
+        default=1, metadata=_opt("(frame, view) samples per step", "positive_int", name="batch_size")
+    )
     lr_scale: float = field(
         default=1.0,
         metadata=_opt("multiply every learning rate except the position ones (offsets, means)", "positive_float"),
@@ -147,7 +151,7 @@ class HogsOptimConfig:
     lr_overrides: dict[str, float] = field(
         default_factory=dict,
         metadata=_opt(
-            "learning rates of single parameters as NAME=VALUE (e.g. opacity_logits=0.01)", type=name_float, nargs="+"
+            "learning rates of single parameters as NAME=VALUE (e.g. opacity_logits=0.01)", type=name_float, list=True
         ),
     )
     sh_warmup: int = field(default=1000, metadata=_opt("raise the SH degree every N steps", "non_negative_int"))
@@ -163,9 +167,9 @@ class HogsOptimConfig:
 class HogsRunConfig:
     """Run folder, device, seed, evaluation/checkpoint cadence and time budget."""
 
-    out: str = field(default="", metadata=_opt("run folder", required=True))
-    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device"))
-    seed: int = field(default=0, metadata=_opt("random seed"))
+    out: str = field(default="", metadata=_opt("run folder", required=True, name="out"))
+    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device", name="device"))
+    seed: int = field(default=0, metadata=_opt("random seed", name="seed"))
     eval_every: int = field(default=500, metadata=_opt("evaluate every N steps (0: at the end)", "non_negative_int"))
     ckpt_every: int = field(default=500, metadata=_opt("checkpoint every N steps (0: at the end)", "non_negative_int"))
     strip_views: int = field(default=4, metadata=_opt("held-out views in strip.png", "positive_int"))
@@ -178,7 +182,7 @@ class HogsRunConfig:
 class HogsConfig:
     """All settings of one HOGS run (subject + object)."""
 
-    data: HogsDataConfig = field(default_factory=HogsDataConfig)
+    data: HogsDataConfig = field(default_factory=HogsDataConfig, metadata={"flat": True})
     model: HogsModelConfig = field(default_factory=HogsModelConfig)
     loss: HogsLossConfig = field(default_factory=HogsLossConfig)
     optim: HogsOptimConfig = field(default_factory=HogsOptimConfig)

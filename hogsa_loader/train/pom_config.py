@@ -46,7 +46,7 @@ def _tuple(value: Any) -> Any:
 class ContactNetDataConfig:
     """The annotated frames: the training subjects, and those ContactNet is validated on."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
+    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True, name="data"))
     val_subjects: Optional[tuple[str, ...]] = field(
         default=None,
         metadata=_opt(
@@ -71,17 +71,17 @@ class ContactNetOptimConfig:
     """Steps, batch, sampled object points, learning rate and seed."""
 
     iters: int = field(default=1500, metadata=_opt("training steps", "non_negative_int"))
-    batch: int = field(default=8, metadata=_opt("frames per step", "positive_int"))
+    batch: int = field(default=8, metadata=_opt("frames per step", "positive_int", name="batch_size"))
     points: int = field(default=512, metadata=_opt("object points per training sample", "positive_int"))
     lr: float = field(default=1e-3, metadata=_opt("Adam learning rate", "positive_float"))
-    seed: int = field(default=0, metadata=_opt("random seed"))
+    seed: int = field(default=0, metadata=_opt("random seed", name="seed"))
 
 
 @dataclass
 class ContactNetRunConfig:
     """Run folder and validation cadence."""
 
-    out: str = field(default="", metadata=_opt("run folder", required=True))
+    out: str = field(default="", metadata=_opt("run folder", required=True, name="out"))
     val_every: int = field(default=100, metadata=_opt("validate every N steps", "positive_int"))
 
 
@@ -89,7 +89,7 @@ class ContactNetRunConfig:
 class ContactNetJobConfig:
     """All settings of one ContactNet fit (:func:`~hogsa_loader.train.pom_jobs.fit_contactnet`)."""
 
-    data: ContactNetDataConfig = field(default_factory=ContactNetDataConfig)
+    data: ContactNetDataConfig = field(default_factory=ContactNetDataConfig, metadata={"flat": True})
     optim: ContactNetOptimConfig = field(default_factory=ContactNetOptimConfig)
     run: ContactNetRunConfig = field(default_factory=ContactNetRunConfig)
 
@@ -103,7 +103,7 @@ class ContactNetJobConfig:
 class BankDataConfig:
     """The dataset, the ContactNet and which sequences and frames are optimised."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True))
+    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True, name="data"))
     contactnet: str = field(default="", metadata=_opt("ContactNet run folder", required=True))
     subjects: Optional[tuple[str, ...]] = field(
         default=None, metadata=_opt("subjects (unset: every subject the dataset's protocol does not hold out)")
@@ -151,13 +151,13 @@ class BankPOMConfig:
     """The start perturbation, the POM optimisation and which grasps are kept."""
 
     iters: int = field(default=200, metadata=_opt("POM iterations", "non_negative_int"))
-    batch: int = field(default=16, metadata=_opt("grasps optimised at once", "positive_int"))
+    batch: int = field(default=16, metadata=_opt("grasps optimised at once", "positive_int", name="batch_size"))
     arti_range: Optional[tuple[float, ...]] = field(
         default=None,
         metadata=_opt(
-            "draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314 0.628) instead of keeping the "
+            "draw the articulation angle uniformly in [LO, HI] rad (the paper: 0.0314,0.628) instead of keeping the "
             "annotated angle",
-            nargs=2,
+            count=2,
         ),
     )
     keep_rejected: bool = field(default=False, metadata=_opt("also keep grasps that fail acceptance"))
@@ -186,17 +186,20 @@ class BankPOMConfig:
 class BankRunConfig:
     """Bank folder, seed and device."""
 
-    out: str = field(default="", metadata=_opt("bank folder", required=True))
+    out: str = field(default="", metadata=_opt("bank folder", required=True, name="out"))
     seed: int = field(
-        default=0, metadata=_opt("base seed; each (sequence, variant) draws from a seed derived from it (variant_seed)")
+        default=0,
+        metadata=_opt(
+            "base seed; each (sequence, variant) draws from a seed derived from it (variant_seed)", name="seed"
+        ),
     )
-    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device"))
+    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device", name="device"))
 
 
 @dataclass
 class PoseBankConfig:
     """All settings of one pose-bank build (:func:`~hogsa_loader.train.pom_jobs.build_pose_bank`)."""
 
-    data: BankDataConfig = field(default_factory=BankDataConfig)
+    data: BankDataConfig = field(default_factory=BankDataConfig, metadata={"flat": True})
     pom: BankPOMConfig = field(default_factory=BankPOMConfig)
     run: BankRunConfig = field(default_factory=BankRunConfig)

@@ -32,7 +32,8 @@ class SRMDataConfig:
     """The HOGS runs, which of their renders are training inputs, the windows and the cache."""
 
     root: str = field(
-        default="", metadata=_opt("dataset root (ARCTIC ./data) the HOGS runs were trained on", required=True)
+        default="",
+        metadata=_opt("dataset root (ARCTIC ./data) the HOGS runs were trained on", required=True, name="data"),
     )
     hogs: str = field(default="", metadata=_opt("folder of finished HOGS runs (or one run folder)", required=True))
     runs: Optional[tuple[str, ...]] = field(
@@ -119,7 +120,7 @@ class SRMOptimConfig:
     """Steps, batch, Adam learning rate and the EMA of the generator."""
 
     iters: int = field(default=4000, metadata=_opt("training steps", "non_negative_int"))
-    batch_size: int = field(default=4, metadata=_opt("windows per step", "positive_int"))
+    batch_size: int = field(default=4, metadata=_opt("windows per step", "positive_int", name="batch_size"))
     lr: float = field(default=0.002, metadata=_opt("Adam learning rate (before the lazy-R1 ratio)", "positive_float"))
     ema_decay: float = field(default=0.999, metadata=_opt("EMA decay of the generator", "unit_float"))
 
@@ -128,9 +129,9 @@ class SRMOptimConfig:
 class SRMRunConfig:
     """Run folder, device, seed and evaluation/checkpoint cadence."""
 
-    out: str = field(default="", metadata=_opt("SRM run folder", required=True))
-    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device"))
-    seed: int = field(default=0, metadata=_opt("random seed"))
+    out: str = field(default="", metadata=_opt("SRM run folder", required=True, name="out"))
+    device: str = field(default="cpu", metadata=_opt("torch device", "torch_device", name="device"))
+    seed: int = field(default=0, metadata=_opt("random seed", name="seed"))
     eval_every: int = field(default=500, metadata=_opt("evaluate every N steps (0: at the end)", "non_negative_int"))
     ckpt_every: int = field(default=500, metadata=_opt("checkpoint every N steps (0: at the end)", "non_negative_int"))
     strip_views: int = field(default=4, metadata=_opt("held-out samples in samples.png", "positive_int"))
@@ -140,7 +141,7 @@ class SRMRunConfig:
 class SRMTrainConfig:
     """All settings of one SRM run."""
 
-    data: SRMDataConfig = field(default_factory=SRMDataConfig)
+    data: SRMDataConfig = field(default_factory=SRMDataConfig, metadata={"flat": True})
     model: SRMModelConfig = field(default_factory=SRMModelConfig)
     loss: SRMLossConfig = field(default_factory=SRMLossConfig)
     optim: SRMOptimConfig = field(default_factory=SRMOptimConfig)

@@ -281,7 +281,7 @@ def _check_pair_views(run: Path, rc: dict, data: HogsData, val: set[int], mode: 
         raise AssetError(
             run,
             f"pair mode {mode!r} needs view-fold runs of {rc['subject']}/{rc['object']} "
-            "(HOGS runs trained on subsets of the training views; --data-cross-hogs)",
+            "(HOGS runs trained on subsets of the training views; --cross-hogs)",
         )
 
 

@@ -141,7 +141,7 @@ class SRMTrainer(StepLoop):
         self.timings: dict[str, float] = {"data_s": time.perf_counter() - t0}
         self.size = self.sets[0].data.image_size
         if any(s.data.image_size != self.size for s in self.sets):
-            raise ValueError("runs have different image sizes; pass --data-image-size")
+            raise ValueError("runs have different image sizes; pass --image-size")
         torch.manual_seed(cfg.run.seed)
         ucfg = StyleUNetConfig(
             channels=list(cfg.model.channels),
@@ -156,7 +156,7 @@ class SRMTrainer(StepLoop):
         crop = cfg.data.crop or self.size
         if crop > self.size or crop % (self.g.net.multiple * cfg.model.scale):
             multiple = self.g.net.multiple * cfg.model.scale
-            raise ValueError(f"--data-crop {crop} must be <= image size {self.size} and a multiple of {multiple}")
+            raise ValueError(f"--crop {crop} must be <= image size {self.size} and a multiple of {multiple}")
         self.crop = crop
         self.perc = perceptual_loss(cfg.loss.vgg_weights).to(self.device)
         self.lambda_perc = (

@@ -60,7 +60,10 @@ class ViewConfig:
     background: Literal["neutral", "photo"] = field(default="neutral", metadata={"help": "background of the pictures"})
     backgrounds: Optional[str] = field(
         default=None,
-        metadata={"help": "image folder for --background photo; none: the photographs shipped with scikit-image"},
+        metadata={
+            "help": "image folder for --background photo; none: the photographs shipped with scikit-image",
+            "name": "background_folder",
+        },
     )
     keypoints: bool = field(
         default=False, metadata={"help": "draw the 2D hand joints and object keypoints in transfer.png"}
@@ -143,9 +146,9 @@ def check_view_config(cfg: ViewConfig) -> None:
     if len(set(cfg.transfer_to)) != len(cfg.transfer_to):
         raise ViewError(f"--transfer-to lists a subject twice: {' '.join(cfg.transfer_to)}")
     if cfg.backgrounds is not None and cfg.background != "photo":
-        raise ViewError("--backgrounds applies to --background photo")
+        raise ViewError("--background-folder applies to --background photo")
     if cfg.backgrounds is not None and not Path(cfg.backgrounds).is_dir():
-        raise ViewError(f"--backgrounds {cfg.backgrounds}: no such folder")
+        raise ViewError(f"--background-folder {cfg.backgrounds}: no such folder")
     if cfg.video == "mp4":
         if importlib.util.find_spec("imageio_ffmpeg") is None:
             raise ViewError(

@@ -139,11 +139,11 @@ def test_train_all_hogs_takes_its_share_under_srun_and_torchrun(tiny_world, tmp_
         out = subprocess.run(base, env={**clean, **env}, capture_output=True, text=True, timeout=300)
         assert out.returncode == 0 and slot in out.stdout, (out.stdout, out.stderr[-2000:])
     tah = job("train_all_hogs")
-    rest = ["--optim-iters", "5", "--run-device", "cuda"]
+    rest = ["--optim-iters", "5", "--device", "cuda"]
     assert tah.rank_device(rest, {"LOCAL_RANK": "3"})[-1] == "cuda:3"
     assert tah.rank_device(rest, {"SLURM_LOCALID": "1"})[-1] == "cuda:1"
     assert tah.rank_device(rest, {}) == rest
-    assert tah.rank_device(["--run-device", "cuda:0"], {"LOCAL_RANK": "2"}) == ["--run-device", "cuda:0"]
+    assert tah.rank_device(["--device", "cuda:0"], {"LOCAL_RANK": "2"}) == ["--device", "cuda:0"]
 
 
 def test_h2o_holds_out_subject4_under_each_of_its_folder_names(tmp_path):

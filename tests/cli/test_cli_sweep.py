@@ -66,45 +66,25 @@ TABLE: list[tuple[str, list[str], str, tuple[str, ...]]] = [
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-index", ("-1", "nan", "3")),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--array-size", ("0",)),
     ("train_all_hogs", ["--data", "{W}", "--out", "o", "--dry-run"], "--gpus", ("-1", "nan", "0,0", "²")),
-    ("train_contactnet", ["--data-root", "{W}", "--run-out", "o"], "--optim-iters", ("-1", "nan")),
-    ("train_contactnet", ["--data-root", "{W}", "--run-out", "o"], "--optim-lr", ("nan", "0")),
-    (
-        "build_pose_bank",
-        ["--data-root", "{W}", "--data-contactnet", "{B}/contactnet", "--run-out", "o"],
-        "--data-per-sequence",
-        ("0",),
-    ),
-    (
-        "build_pose_bank",
-        ["--data-root", "{W}", "--data-contactnet", "{B}/contactnet", "--run-out", "o"],
-        "--run-device",
-        ("potato",),
-    ),
+    ("train_contactnet", ["--data", "{W}", "--out", "o"], "--optim-iters", ("-1", "nan")),
+    ("train_contactnet", ["--data", "{W}", "--out", "o"], "--optim-lr", ("nan", "0")),
+    ("build_pose_bank", ["--data", "{W}", "--contactnet", "{B}/contactnet", "--out", "o"], "--per-sequence", ("0",)),
+    ("build_pose_bank", ["--data", "{W}", "--contactnet", "{B}/contactnet", "--out", "o"], "--device", ("potato",)),
     (
         "train_hogs",
-        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
+        ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"],
         "--optim-lr-scale",
         ("nan", "0"),
     ),
     (
         "train_hogs",
-        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
+        ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"],
         "--loss-lambda-ssim",
         ("nan", "inf"),
     ),
-    (
-        "train_hogs",
-        ["--data-root", "{W}", "--data-subject", "s01", "--data-object", "box", "--run-out", "o"],
-        "--data-views",
-        ("0", "9"),
-    ),
-    (
-        "train_srm",
-        ["--data-root", "{W}", "--data-hogs", "{B}/hogs", "--run-out", "o"],
-        "--optim-ema-decay",
-        ("nan", "2"),
-    ),
-    ("train_srm", ["--data-root", "{W}", "--data-hogs", "{B}/hogs", "--run-out", "o"], "--optim-batch-size", ("0",)),
+    ("train_hogs", ["--data", "{W}", "--subject", "s01", "--object", "box", "--out", "o"], "--views", ("0", "9")),
+    ("train_srm", ["--data", "{W}", "--hogs", "{B}/hogs", "--out", "o"], "--optim-ema-decay", ("nan", "2")),
+    ("train_srm", ["--data", "{W}", "--hogs", "{B}/hogs", "--out", "o"], "--batch-size", ("0",)),
 ]
 CASES = [(cmd, base, flag, v) for cmd, base, flag, vals in TABLE for v in vals]
 
@@ -140,9 +120,7 @@ def test_pose_bank_articulation_range_is_checked(lo_hi, tmp_path, monkeypatch) -
     monkeypatch.chdir(tmp_path)
     err = io.StringIO()
     with contextlib.redirect_stderr(err), pytest.raises(SystemExit) as exc:
-        _script_main("build_pose_bank")(
-            ["--data-root", "w", "--data-contactnet", "c", "--run-out", "o", "--pom-arti-range", *lo_hi]
-        )
+        _script_main("build_pose_bank")(["--data", "w", "--contactnet", "c", "--out", "o", "--pom-arti-range", *lo_hi])
     assert exc.value.code != 0 and "--pom-arti-range" in err.getvalue() and "Traceback" not in err.getvalue()
     assert not any(tmp_path.iterdir())
 

@@ -52,9 +52,7 @@ def test_dataclass_flags_round_trip():
                 "--name",
                 "y",
                 "--seeds",
-                "4",
-                "5",
-                "6",
+                "4,5,6",
                 "--flag",
                 "--rate",
                 "0.25",
@@ -98,7 +96,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["--arms", "real", "bogus"], "unknown arms"),
+        (["--arms", "real,bogus"], "unknown arms"),
         (["--low-data", "0"], "low-data"),
         (["--synthetic-share", "1.0"], "synthetic-share"),
         (["--train-batch-size", "1"], "batch-size"),
@@ -109,7 +107,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--setup-bank-variants", "0"], "bank-variants"),
         (["--setup-bank-per-sequence", "0"], "bank-per-sequence"),
         (["--model-init", "/m{seed}.ckpt", "--model-weights", "/w.pth"], "exclude each other"),
-        (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2", "3"], "/nowhere/seed2/m.safetensors"),
+        (["--model-init", "/nowhere/seed{seed}/m.safetensors", "--seeds", "2,3"], "/nowhere/seed2/m.safetensors"),
     ],
 )
 def test_bad_settings_are_refused_before_work(argv, message, tmp_path):
@@ -199,15 +197,14 @@ def test_setup_fingerprints_follow_what_changed(tmp_path):
     manifest.write_text(json.dumps({"hogs": [{"files": {"a": "1"}}], "pose_banks": [{"files": {"p": "1"}}]}))
     first = ds.setup_fingerprints(cfg, setup)
     assert first == ds.setup_fingerprints(cfg, setup) and len(set(first.values())) == 4
-    # pinned: the default --setup-bank-finger-scale (0), --setup-bank-variants (1), --setup-bank-frames
-    # (contact) and --setup-srm-gan (0) add nothing to the keys
-    assert first == {"world": "7829384198a2f0f3", "bundle": "70c63df39baf3bf5", "all": "cacbad1012974482"} | {
-        "free": "39022538e5ffdfd9"
+    # pinned: the keys of this settings schema (every setup setting keyed; CACHE_VERSION 2)
+    assert first == {"world": "46b48e092b5dcb90", "bundle": "4ab7715de9d20d51", "all": "89c44b375b5678f9"} | {
+        "free": "54ea99098af417a2"
     }
     cfg.setup.bank_finger_scale = 0.5  # another pose bank: only the runs that draw from it change
     fingers = ds.setup_fingerprints(cfg, setup)
     assert {k: v for k, v in fingers.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
-    assert fingers["all"] == "6acbc5b369094571"  # pinned: the key the finger-noise setups were made with
+    assert fingers["all"] == "9df640ca6546ee01"  # pinned: the key of a finger-noise setup
     cfg.setup.bank_variants = 4
     variants = ds.setup_fingerprints(cfg, setup)
     assert {k: v for k, v in variants.items() if k != "all"} == {k: v for k, v in first.items() if k != "all"}
@@ -320,7 +317,7 @@ def test_appended_synthetic_samples_key_the_runs_not_the_frames(tmp_path):
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", add, setup, tmp_path) == ds.export_dir("full", cfg, setup, tmp_path)
     assert ds.run_settings("hogsa", 0, add, setup) != ds.run_settings("hogsa", 0, cfg, setup)
-    assert "mix" not in ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]
+    assert ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]["mix"] == "replace"  # every setting is keyed
     assert ds.run_settings("real", 0, add, setup) == ds.run_settings("real", 0, cfg, setup)
     assert ds.run_dir("hogsa", 0, add, tmp_path) != ds.run_dir("hogsa", 0, cfg, tmp_path)
     assert ds.run_dir("real", 0, add, tmp_path) == ds.run_dir("real", 0, cfg, tmp_path) == tmp_path / "runs/real/seed0"
@@ -338,7 +335,7 @@ def test_dataset_cameras_key_their_own_exports_and_reach_the_loader(tmp_path, mo
     cfg = ds.DownstreamConfig()
     rig = ds.replace(cfg, synthetic=ds.replace(cfg.synthetic, cameras="dataset"))
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
-    assert "cameras" not in ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]
+    assert ds.run_settings("hogsa", 0, cfg, setup)["synthetic"]["cameras"] == "novel"
     assert ds.run_settings("hogsa", 0, rig, setup)["synthetic"]["cameras"] == "dataset"
     assert ds.export_dir("full", rig, setup, tmp_path) != ds.export_dir("full", cfg, setup, tmp_path)
     assert ds.run_settings("real", 0, rig, setup) == ds.run_settings("real", 0, cfg, setup)
@@ -397,10 +394,8 @@ def test_background_folder_builds_plates_once_and_keys_exports(tiny_world, tmp_p
     assert ds.background_folder(photos, Path(tiny_world), tmp_path) != folder
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", photos, setup, tmp_path)
-    # photo runs keep the keys they had before backgrounds (and the mix, and the cameras) could be chosen
-    later = ("backgrounds", "mix", "cameras", "supervise", "other_hands")
-    syn = {k: v for k, v in ds.asdict(photos.synthetic).items() if k not in later}
-    assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == syn
+    # a run is keyed by every synthetic setting
+    assert ds.run_settings("hogsa", 0, photos, setup)["synthetic"] == ds.asdict(photos.synthetic)
 
 
 class _Shuffled:
@@ -537,7 +532,7 @@ def test_touching_hands_only_marks_the_hands_away_from_the_object_invalid(tiny_w
     for key in ("right_valid", "left_valid"):
         assert torch.equal(b_every[1][key][:n_real], b_touch[1][key][:n_real])
     assert (b_touch[1]["right_valid"][n_real:] <= b_every[1]["right_valid"][n_real:]).all()
-    assert "supervise" not in ds.synthetic_key(every) and ds.synthetic_key(touch)["supervise"] == "touching"
+    assert ds.synthetic_key(every)["supervise"] == "all" and ds.synthetic_key(touch)["supervise"] == "touching"
     assert ds.synthetic_key(touch, frames_only=True) == ds.synthetic_key(every, frames_only=True)
     assert ds.run_dir("hogsa", 0, touch, Path("/o")) == Path("/o/runs/hogsa+add+touching/seed0")
     assert ds.run_dir("hogsa", 0, every, Path("/o")) == Path("/o/runs/hogsa+add/seed0")
@@ -631,7 +626,7 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
     assert [ds.learning_rate(k, lin) for k in (1, 2, 3, 4)] == pytest.approx([3e-4, 2.25e-4, 1.5e-4, 0.75e-4])
     assert ds.learning_rate(3, cfg) == cfg.train.lr
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
-    assert "lr_schedule" not in ds.run_settings("real", 0, cfg, setup)["train"]
+    assert ds.run_settings("real", 0, cfg, setup)["train"]["lr_schedule"] == "constant"
     assert "checkpoint_every" not in ds.run_settings("real", 0, cfg, setup)["train"]
     long = ds.replace(lin, train=ds.replace(lin.train, steps=cfg.train.steps))
     assert ds.run_settings("real", 0, long, setup)["train"]["lr_schedule"] == "linear"
@@ -646,8 +641,8 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
 
 
 def test_run_keys_are_pinned():
-    """Run keys of the defaults and of the non-default synthetic and schedule choices, as
-    cached runs hold them."""
+    """Run keys of the defaults and of the non-default synthetic and schedule choices, pinned
+    (this settings schema, CACHE_VERSION 2): a change of any key is a change of the schema."""
     ds = _downstream()
     cfg = ds.DownstreamConfig()
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
@@ -660,8 +655,8 @@ def test_run_keys_are_pinned():
         [ds._key(ds.run_settings(arm, 0, c, setup)) for arm in ("real", "hogsa", "hogsa_no_pom")] for c in (cfg, other)
     ]
     assert keys == [
-        ["37ca71391b1e6a9e", "b275e8cb0de1d4f0", "dbd36c200dbc12e7"],
-        ["f95d64c947ad36ea", "b85389724c5e741a", "149f667b5b888d84"],
+        ["88d3636411eab9f6", "b4bb632c49ed203b", "1143eb07e1d0c2ab"],
+        ["737648ec1ca1d18b", "f6cc108e287d2d05", "7e229dde8d08cf25"],
     ]
 
 
@@ -841,8 +836,8 @@ def test_other_hands_reach_the_export_and_key_its_frames_and_runs(monkeypatch, t
         with pytest.raises(Captured):
             ds.export_variant("full", c, {**setup, "backgrounds": tmp_path}, tmp_path)
         assert seen["config"].sample.other_hands == share
-        assert seen["info"].get("other_hands") == (share or None)  # the export describes itself
-    assert "other_hands" not in ds.synthetic_key(cfg, frames_only=True)
+        assert seen["info"]["other_hands"] == share  # the export describes itself
+    assert ds.synthetic_key(cfg, frames_only=True)["other_hands"] == 0.0
     assert ds.synthetic_key(other, frames_only=True)["other_hands"] == 0.5
     assert ds.export_dir("full", cfg, setup, tmp_path) != ds.export_dir("full", other, setup, tmp_path)
     assert ds.run_dir("hogsa", 0, other, Path("/o")) == Path("/o/runs/hogsa+add+hands0.5/seed0")

@@ -79,9 +79,9 @@ def test_writers_ignore_links_at_the_old_guessable_names(tmp_path, victim, write
         _atomic_write_json(target, {"complete": False, "x": np.int64(3)})
         assert json.loads(target.read_text()) == {"complete": False, "x": 3}
     else:
-        from hogsa_world.demo import _Stages
+        from hogsa_loader.train.stages import StageRecords
 
-        stages = _Stages(out, say=lambda m: None)
+        stages = StageRecords(out, say=lambda m: None)
         _plant(out / "stages" / "s.json.tmp", victim)
         assert stages.run("s", "k1", [], lambda: {"ok": 1}) == {"ok": 1}
         assert json.loads((out / "stages" / "s.json").read_text())["result"] == {"ok": 1}

@@ -295,22 +295,20 @@ def srm_cache(tmp_path_factory):
 
 def _args(world, runs, out, iters):
     return [
-        "--data-root",
+        "--data",
         str(world),
-        "--data-hogs",
+        "--hogs",
         str(runs),
-        "--run-out",
+        "--out",
         str(out),
         "--optim-iters",
         str(iters),
-        "--optim-batch-size",
+        "--batch-size",
         "2",
-        "--data-crop",
+        "--crop",
         "32",
         "--model-channels",
-        "8",
-        "16",
-        "16",
+        "8,16,16",
         "--run-eval-every",
         "0",
         "--run-ckpt-every",
@@ -497,16 +495,15 @@ def test_trainer_keeps_best_validated_checkpoint(tiny_world, hogs_runs, folds, s
     chosen without the held-out views, and resuming keeps the choice exactly."""
     cli = _cli()
     extra = [
-        "--data-cross-hogs",
+        "--cross-hogs",
         str(folds),
-        "--data-val-views",
-        "2",
-        "5",
+        "--val-views",
+        "2,5",
         "--run-eval-every",
         "1",
         "--optim-lr",
         "0.02",
-        "--data-cache",
+        "--cache",
         str(srm_cache),
     ]
     with pytest.warns(SubstituteWarning):

@@ -43,21 +43,21 @@ def _one_line(err: str, *needles: str) -> None:
 
 def _hogs_args(world: Path, out: Path, iters: int = 2) -> list[str]:
     return [
-        "--data-root",
+        "--data",
         str(world),
-        "--data-subject",
+        "--subject",
         "s01",
-        "--data-object",
+        "--object",
         "box",
-        "--run-out",
+        "--out",
         str(out),
-        "--data-image-size",
+        "--image-size",
         "32",
-        "--data-frame-stride",
+        "--frame-stride",
         "8",
-        "--data-eval-every-frame",
+        "--eval-every-frame",
         "2",
-        "--data-max-eval",
+        "--max-eval",
         "1",
         "--run-eval-every",
         "0",
@@ -92,7 +92,7 @@ def test_rerun_without_resume_is_refused_and_keeps_the_checkpoints(tiny_world, h
     before = sorted(p.name for p in (run / "checkpoints").iterdir())
     capsys.readouterr()
     assert _script("train_hogs").main(_hogs_args(tiny_world, run)) == 2
-    _one_line(capsys.readouterr().err, "train_hogs: error:", "--resume", "--overwrite")
+    _one_line(capsys.readouterr().err, "hogsa train hogs: error:", "--resume", "--overwrite")
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == before
     # the library refuses too, at the start of training
     from hogsa_loader.train import HogsTrainer
@@ -178,7 +178,7 @@ def test_moved_run_folder_resumes(tiny_world, hogs_run, tmp_path):
     cfg = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3))
     tr = HogsTrainer(cfg, progress=False)
     assert tr.resume() and tr.step == 2
-    cfg_other = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3) + ["--run-seed", "5"])
+    cfg_other = _script("train_hogs").parse_args(_hogs_args(tiny_world, moved, iters=3) + ["--seed", "5"])
     with pytest.raises(ValueError, match="seed"):  # other settings still have to match
         HogsTrainer(cfg_other, progress=False).resume()
 
@@ -549,10 +549,10 @@ def test_assets_unknown_object_refused_before_writing(tmp_path, capsys):
 def test_train_hogs_checks_numbers_first(tiny_world, tmp_path, capsys):
     train = _script("train_hogs")
     for flag, value, needle in (
-        ("--data-image-size", "-64", "must be > 0"),
-        ("--data-image-size", "0", "must be > 0"),
+        ("--image-size", "-64", "must be > 0"),
+        ("--image-size", "0", "must be > 0"),
         ("--optim-iters", "-1", "must be >= 0"),
-        ("--run-device", "potato", "not a device"),
+        ("--device", "potato", "not a device"),
         ("--model-sh-degree", "7", "invalid choice"),
     ):
         args = _hogs_args(tiny_world, tmp_path / "r")
@@ -565,8 +565,8 @@ def test_train_hogs_checks_numbers_first(tiny_world, tmp_path, capsys):
             train.main(args)
         assert exc.value.code == 2
         _one_line(capsys.readouterr().err, f"argument {flag}", needle)
-    assert train.main(_hogs_args(tiny_world, tmp_path / "afile") + ["--data-root", str(tmp_path / "none")]) == 2
-    _one_line(capsys.readouterr().err, "train_hogs: error: --data", "no such folder")
+    assert train.main(_hogs_args(tiny_world, tmp_path / "afile") + ["--data", str(tmp_path / "none")]) == 2
+    _one_line(capsys.readouterr().err, "hogsa train hogs: error: --data", "no such folder")
     from hogsa_loader.train import HogsTrainer
 
     cfg = train.parse_args(_hogs_args(tiny_world, tmp_path / "r"))
@@ -629,36 +629,27 @@ def test_pretrain_scripts_check_first(tiny_world, untrained_bundle, tmp_path, ca
     for name, argv, flag in (
         (
             "train_contactnet",
-            ["--data-root", str(tiny_world), "--run-out", str(tmp_path / "cn"), "--optim-points", "0"],
+            ["--data", str(tiny_world), "--out", str(tmp_path / "cn"), "--optim-points", "0"],
             "--optim-points",
         ),
         (
             "build_pose_bank",
             [
-                "--data-root",
+                "--data",
                 str(tiny_world),
-                "--data-contactnet",
+                "--contactnet",
                 str(tmp_path),
-                "--run-out",
+                "--out",
                 str(tmp_path / "b"),
-                "--run-device",
+                "--device",
                 "potato",
             ],
-            "--run-device",
+            "--device",
         ),
         (
             "train_srm",
-            [
-                "--data-root",
-                str(tiny_world),
-                "--data-hogs",
-                str(tmp_path),
-                "--run-out",
-                str(tmp_path / "s"),
-                "--optim-batch-size",
-                "0",
-            ],
-            "--optim-batch-size",
+            ["--data", str(tiny_world), "--hogs", str(tmp_path), "--out", str(tmp_path / "s"), "--batch-size", "0"],
+            "--batch-size",
         ),
     ):
         with pytest.raises(SystemExit) as exc:

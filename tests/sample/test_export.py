@@ -533,7 +533,7 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch, capsys):
     assert main(args[:-1] + ["--out", str(tmp_path / "if"), "--interfield", "--quiet"]) == 0
     assert made[-1].kw["interfield"] is True
     assert made[0].kw["exclude_person"] is False and made[0].kw["srm_tta"] == 1
-    assert "exclude_person" not in index["info"] and "srm_tta" not in index["info"]  # (defaults keep old hashes)
+    assert index["info"]["exclude_person"] is False and index["info"]["srm_tta"] == 1  # every setting recorded
     assert (
         main(args[:-1] + ["--out", str(tmp_path / "ep"), "--exclude-person", "--srm", "--srm-tta", "8", "--quiet"]) == 0
     )

@@ -778,24 +778,26 @@ def test_explicit_objects_refuse_settings_of_their_config_group(bundle_dir, tiny
     assert (plan.seed, plan.epoch, plan.key, plan.indices) == (9, 4, ds.batch_key(2, 4), (6, 7))
 
 
-def test_export_info_is_the_config_with_the_first_exports_keys():
-    """The recorded settings of a default config have exactly the keys the first exports
-    recorded (their settings hash is kept); options set away from their defaults are added."""
+def test_export_info_records_every_setting_that_changes_the_frames():
+    """The recorded settings are every loader option, default or not, except the device and the
+    sample count (which do not change the frames); an option set elsewhere is recorded as set."""
+    import dataclasses
+
     from hogsa_loader.sample.config import export_info
 
-    assert set(export_info(LoaderConfig())) == {
-        "seed",
-        "poses",
-        "srm",
-        "batch_size",
-        "render_size",
-        "coco_root",
-        "coco_ann",
-        "background_folder",
-        "categories",
-        "epoch",
-        "interfield",
-    }
+    def leaves(cfg) -> set[str]:
+        out = set()
+        for f in dataclasses.fields(cfg):
+            value = getattr(cfg, f.name)
+            if f.metadata.get("flat"):
+                out |= leaves(value)
+            else:
+                out.add(f.metadata.get("name", f.name))
+        return out
+
+    recorded = set(export_info(LoaderConfig()))
+    assert recorded == leaves(LoaderConfig()) - {"device", "num_samples"}
+    assert {"seed", "poses", "srm", "cameras", "checks", "exclude_person", "subjects", "other_hands"} <= recorded
     info = export_info(
         with_options(
             exclude_person=True, srm=True, srm_tta=8, cameras=CameraConfig(roll_deg=0.0), device="cuda", num_samples=5
@@ -803,6 +805,7 @@ def test_export_info_is_the_config_with_the_first_exports_keys():
     )
     assert info["exclude_person"] is True and info["srm_tta"] == 8 and info["cameras"]["roll_deg"] == 0.0
     assert "device" not in info and "num_samples" not in info
+    assert export_info(LoaderConfig())["exclude_person"] is False
 
 
 def test_dataset_camera_samples_sit_on_their_own_plate(bundle_dir, tiny_world, tmp_path):
@@ -983,7 +986,9 @@ def test_other_hands_share_is_drawn_per_batch_and_needs_two_subjects(bundle_dir,
         _dataset(bundle_dir, tiny_world, other_hands=0.5)
     with pytest.raises(ValueError, match="in \\[0, 1\\]"):
         _config(other_hands=1.5)
-    assert "other_hands" not in export_info(_config()) and export_info(_config(other_hands=0.25))["other_hands"] == 0.25
+    assert (
+        export_info(_config())["other_hands"] == 0.0 and export_info(_config(other_hands=0.25))["other_hands"] == 0.25
+    )
 
 
 def test_hands_run_prefers_the_same_object_then_the_subjects_first_run():

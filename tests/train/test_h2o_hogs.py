@@ -322,19 +322,19 @@ def test_h2o_training_end_to_end(h2o_world, tiny_world, tmp_path, capsys):
 
     cli = job("hogs")
     args = [
-        "--data-dataset",
+        "--dataset",
         "h2o",
-        "--data-root",
+        "--data",
         str(out),
-        "--data-subject",
+        "--subject",
         "subject1",
-        "--data-object",
+        "--object",
         "book",
-        "--run-out",
+        "--out",
         str(tmp_path / "x"),
     ]
     assert cli.main(args) == 2 and "needs --mano-dir and --object-mesh-dir" in capsys.readouterr().err
-    assert cli.main(args + ["--data-mano-dir", mano, "--data-object-mesh-dir", str(tmp_path)]) == 2
+    assert cli.main(args + ["--mano-dir", mano, "--object-mesh-dir", str(tmp_path)]) == 2
     assert "no mesh for H2O object 'book'; tried book/book.obj, book/book.ply" in capsys.readouterr().err
 
 

@@ -28,13 +28,13 @@ def _module(path: Path, name: str):
 
 
 FAST = [
-    "--data-image-size",
+    "--image-size",
     "64",
-    "--data-frame-stride",
+    "--frame-stride",
     "4",
-    "--data-eval-every-frame",
+    "--eval-every-frame",
     "2",
-    "--data-max-eval",
+    "--max-eval",
     "3",
     "--run-eval-every",
     "0",
@@ -112,9 +112,7 @@ def test_render_quality_matches_training_metrics(tiny_world, trained_runs, tmp_p
                 "--data",
                 str(tiny_world),
                 "--run",
-                str(mesh_run),
-                "--run",
-                str(free_run),
+                f"{mesh_run},{free_run}",
                 "--json",
                 str(out),
                 "--png",

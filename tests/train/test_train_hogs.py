@@ -115,21 +115,21 @@ def test_resume_matches_unbroken_run(tiny_world, tmp_path):
     full.train()
     cli = _cli()
     args = [
-        "--data-root",
+        "--data",
         str(tiny_world),
-        "--data-subject",
+        "--subject",
         "s01",
-        "--data-object",
+        "--object",
         "box",
-        "--run-out",
+        "--out",
         str(tmp_path / "cut"),
-        "--data-image-size",
+        "--image-size",
         "64",
-        "--data-frame-stride",
+        "--frame-stride",
         "4",
-        "--data-eval-every-frame",
+        "--eval-every-frame",
         "2",
-        "--data-max-eval",
+        "--max-eval",
         "3",
         "--run-eval-every",
         "0",
@@ -188,18 +188,7 @@ def test_bad_arguments(tiny_world, tmp_path, capsys):
         HogsTrainer(_cfg(tiny_world, tmp_path / "r", sequences=["box_grab_07"]), progress=False)
     with pytest.raises(ValueError, match="eval views"):
         HogsTrainer(_cfg(tiny_world, tmp_path / "r", eval_views=[0]), progress=False)
-    rc = _cli().main(
-        [
-            "--data-root",
-            str(tiny_world),
-            "--data-subject",
-            "s01",
-            "--data-object",
-            "mug",
-            "--run-out",
-            str(tmp_path / "r"),
-        ]
-    )
+    rc = _cli().main(["--data", str(tiny_world), "--subject", "s01", "--object", "mug", "--out", str(tmp_path / "r")])
     assert rc == 2 and "unknown object 'mug'" in capsys.readouterr().err
     mask = torch.zeros(1, 9, 9, dtype=torch.bool)
     mask[0, 4, 4] = True
@@ -215,19 +204,19 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     import time
 
     args = [
-        "--data-root",
+        "--data",
         str(tiny_world),
-        "--data-subject",
+        "--subject",
         "s01",
-        "--data-object",
+        "--object",
         "box",
-        "--data-image-size",
+        "--image-size",
         "64",
-        "--data-frame-stride",
+        "--frame-stride",
         "4",
-        "--data-eval-every-frame",
+        "--eval-every-frame",
         "2",
-        "--data-max-eval",
+        "--max-eval",
         "3",
         "--run-eval-every",
         "0",
@@ -249,7 +238,7 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     # the same intra-op thread count as this process: CPU float sums are reproducible per thread count
     env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hogsa_loader.cli.main", "train", "hogs", *args, "--run-out", str(cut)], env=env
+        [sys.executable, "-m", "hogsa_loader.cli.main", "train", "hogs", *args, "--out", str(cut)], env=env
     )
     latest = cut / "checkpoints" / "latest.json"
     deadline = time.monotonic() + 120
@@ -260,8 +249,8 @@ def test_sigkill_and_resume(tiny_world, tmp_path):
     proc.wait()
     step = json.loads(latest.read_text())["step"]
     assert 2 <= step <= 14
-    assert _cli().main(args + ["--run-out", str(cut), "--resume"]) == 0
-    assert _cli().main(args + ["--run-out", str(tmp_path / "full")]) == 0
+    assert _cli().main(args + ["--out", str(cut), "--resume"]) == 0
+    assert _cli().main(args + ["--out", str(tmp_path / "full")]) == 0
     a = json.loads((tmp_path / "full" / "metrics.json").read_text())
     b = json.loads((cut / "metrics.json").read_text())
     assert b["iters"] == 14 and a["psnr"] == b["psnr"] and a["ssim"] == b["ssim"]

@@ -341,7 +341,7 @@ def test_view_without_transfer_or_srm(two_subject_bundle, tiny_world, tmp_path):
         (["--transfer-to", "s09"], "no HOGS model of that subject"),
         (["--transfer-to", "s01"], "lists the shown subject"),
         (["--background", "fancy"], "argument --background: invalid choice"),
-        (["--backgrounds", "/nonexistent"], "applies to --background photo"),
+        (["--background-folder", "/nonexistent"], "applies to --background photo"),
         (["--distance", "0"], "--distance must be a positive"),
         (["--device", "tpu"], "--device must be cpu or cuda"),
         (["--contact-voxel", "0.5"], "--contact-voxel must be in"),
@@ -397,7 +397,7 @@ def test_view_missing_or_broken_inputs(two_subject_bundle, tiny_world, tmp_path,
 def test_view_config_flags_come_from_the_dataclass():
     from hogsa_loader.cli.main import build_parser
 
-    argv = _args("B", "D", "O", "--transfer-to", "s02", "s05", "--no-srm", "--distance", "1.5")
+    argv = _args("B", "D", "O", "--transfer-to", "s02,s05", "--no-srm", "--distance", "1.5")
     ns = build_parser().parse_args(argv)
     from hogsa_loader.cli.dataclass_args import dataclass_from_args
 

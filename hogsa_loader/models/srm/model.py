@@ -131,7 +131,7 @@ class SRM(nn.Module):
             tta: test-time augmentation: the mean of the refinements of ``tta`` symmetric
                 copies of the input (:data:`TTA_CODES`: 1 none, 2 flip, 4 flips and 180°
                 turns, 8 all symmetries of the square), each mapped back; costs ``tta``×.
-                For an SRM trained with ``--data-augment d4`` on the small world, held-out view 8:
+                For an SRM trained with ``--augment d4`` on the small world, held-out view 8:
                 +0.49 dB over HOGS alone with 1, +0.59 with 4, +0.62 with 8.
 
         Returns:

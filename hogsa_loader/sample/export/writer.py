@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from hogsa_loader.errors import PathLike
 from hogsa_loader.io.atomic import atomic_open, temp_glob
-from hogsa_loader.io.hashing import sha256_file
+from hogsa_loader.io.hashing import CACHE_VERSION, sha256_file
 from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.sample.export.codec import encode_frame, json_default
 from hogsa_loader.sample.frame import SynthFrame
@@ -74,6 +74,7 @@ def export_settings(
         "alpha_bits": int(alpha_bits),
         "parts": bool(parts),
         "info_sha256": hashlib.sha256(blob).hexdigest(),
+        "cache_version": CACHE_VERSION,
     }
 
 
