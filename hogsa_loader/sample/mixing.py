@@ -82,6 +82,17 @@ def _cat(parts: list[Any]) -> Any:
     raise TypeError(f"cannot concatenate collated {type(first).__name__}")
 
 
+def _pinned(batch: Any) -> Any:
+    """``batch`` with its tensors in page-locked memory (what a ``pin_memory=True`` loader gives)."""
+    if isinstance(batch, torch.Tensor):
+        return batch.pin_memory()
+    if isinstance(batch, dict):
+        return {k: _pinned(v) for k, v in batch.items()}
+    if isinstance(batch, (tuple, list)):
+        return type(batch)(_pinned(v) for v in batch)
+    return batch
+
+
 class MixedLoader:
     """Real batches with exactly ``round(ratio·B)`` synthetic samples each (``mode="replace"``),
     or real batches with ``added_synthetic(ratio, b)`` synthetic samples appended (``"add"``).
@@ -117,6 +128,9 @@ class MixedLoader:
         mode: ``"replace"``, batches of B with ``num_synthetic(ratio, B)`` of them synthetic;
             ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
             samples (ratio < 1).
+
+    :meth:`set_epoch` reaches both halves. When the real loader pins its memory
+    (``pin_memory=True``, with CUDA), the mixed batches are pinned too.
     """
 
     def __init__(
@@ -144,7 +158,25 @@ class MixedLoader:
         self.ratio = float(ratio)
         self.collate_fn = collate_fn or getattr(real_loader, "collate_fn", None) or default_collate
         self.drop_last = bool(drop_last)
+        self.pin_memory = bool(getattr(real_loader, "pin_memory", False)) and torch.cuda.is_available()
         self._syn_iter: Optional[Iterator[Any]] = None
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Start epoch ``epoch`` of both halves: the real loader's sampler (a
+        ``DistributedSampler``'s shuffle) and dataset (ARCTIC's augmentation draws) and the
+        synthetic stream (its dataset's epoch, restarted from its first sample) — what a
+        training loop or PyTorch Lightning calls before each epoch."""
+        self.epoch = int(epoch)
+        sources = [getattr(self.real_loader, "sampler", None), getattr(self.real_loader, "dataset", None)]
+        sources.append(getattr(getattr(self.real_loader, "batch_sampler", None), "sampler", None))
+        sources += [self.synthetic, getattr(self.synthetic, "dataset", None)]
+        done: set[int] = set()
+        for src in sources:
+            if src is not None and id(src) not in done and callable(getattr(src, "set_epoch", None)):
+                src.set_epoch(self.epoch)
+                done.add(id(src))
+        self._syn_iter = None  # the synthetic stream of this epoch, from its start
 
     @property
     def batch_size(self) -> Optional[int]:
@@ -204,7 +236,8 @@ class MixedLoader:
         parts = [] if real is None else [real]
         if n_syn:
             parts.append(self.collate_fn(self._next_synthetic(n_syn)))
-        return _cat(parts) if len(parts) > 1 else parts[0]
+        batch = _cat(parts) if len(parts) > 1 else parts[0]
+        return _pinned(batch) if self.pin_memory else batch
 
     def __iter__(self) -> Iterator[Any]:
         if self.mode == "add":

@@ -223,13 +223,13 @@ def _batches(cfg: FinetuneConfig, state: dict[str, Any], real: Any, sampler: Any
     """``(epoch, index in epoch, batch)`` from where ``state`` left off: each epoch sets the real
     sampler, the real dataset and the synthetic stream to it and restarts the synthetic stream."""
     epoch, skip = int(state.get("epoch", 0)), int(state.get("epoch_batches", 0))
+    loader = real if synthetic is None else MixedLoader(real, synthetic, cfg.ratio)
     while True:
-        sampler.set_epoch(epoch)
-        real.dataset.set_epoch(epoch)
-        loader = real
-        if synthetic is not None:
-            getattr(synthetic, "dataset", synthetic).set_epoch(epoch)
-            loader = MixedLoader(real, synthetic, cfg.ratio)
+        if synthetic is None:
+            sampler.set_epoch(epoch)
+            real.dataset.set_epoch(epoch)
+        else:
+            loader.set_epoch(epoch)  # the real sampler and dataset, and the synthetic stream from its start
         for i, batch in enumerate(loader):
             if i >= skip:  # (resumed mid-epoch: the batches before were trained on; their samples are drawn again)
                 yield epoch, i, batch

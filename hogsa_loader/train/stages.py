@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
+import torch
+
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.hashing import settings_key
 from hogsa_loader.system import available_cores, can_fork, run_forked
@@ -138,11 +140,21 @@ def check_graph(nodes: Sequence[StageNode]) -> None:
 def run_stage_graph(stages: StageRecords, nodes: list[StageNode], say: Callable[[str], None]) -> None:
     """Run the stages, each once the stages it needs are done. Where forking is safe
     (:func:`hogsa_loader.system.can_fork`), with more than one core and more than one stage to
-    build, they run on forked processes, side by side where the graph allows (one torch
-    thread each, no progress bars; a stage that is the only one able to run builds in this
-    process, on all threads); else one after the other in list order. Cached stages are
-    reported and skipped in the parent. On an error the other stage processes are stopped
-    and the error is raised."""
+    build, they run on forked processes, side by side where the graph allows (no progress bars;
+    a stage that is the only one able to run builds in this process); else one after the other
+    in list order. Every stage runs on one torch thread wherever it runs, so what it builds does
+    not depend on the schedule (CPU reductions over more threads round differently). Cached
+    stages are reported and skipped in the parent. On an error the other stage processes are
+    stopped and the error is raised."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _run_graph(stages, nodes, say)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_graph(stages: StageRecords, nodes: list[StageNode], say: Callable[[str], None]) -> None:
     global _NODES, _SAY, _OUT, _IN_STAGE
     check_graph(nodes)
     todo = [n for n in nodes if not stages.is_cached(n.name, n.key, n.outputs)]

@@ -1035,3 +1035,59 @@ def test_drop_guard_counts_drops_in_a_row_and_warns_once_on_a_high_share():
         SampleChecks(max_consecutive_drops=0)
     with pytest.warns(UserWarning, match="400 of 600 synthetic samples were dropped"):
         DropGuard(SampleChecks(max_consecutive_drops=3), stats).update([None, None, kept] * 200)
+
+
+class _Epochs(torch.utils.data.Dataset):
+    """Items ``epoch * 100 + i``: what ``set_epoch`` reached shows in every sample."""
+
+    def __init__(self, n: int) -> None:
+        self.n, self.epoch = n, 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i: int) -> dict:
+        return {"x": torch.tensor(self.epoch * 100 + i)}
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+
+class _Stream:
+    """Endless synthetic samples ``-(epoch * 100 + k) - 1`` from the start of the set epoch."""
+
+    def __init__(self) -> None:
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __iter__(self):
+        return ({"x": torch.tensor(-(self.epoch * 100 + k) - 1)} for k in itertools.count())
+
+
+def test_mixed_loader_set_epoch_reaches_the_sampler_the_dataset_and_the_stream():
+    from torch.utils.data import DistributedSampler
+
+    ds = _Epochs(8)
+    sampler = DistributedSampler(ds, num_replicas=2, rank=1, shuffle=True, seed=0)
+    mixed = MixedLoader(DataLoader(ds, batch_size=2, sampler=sampler), _Stream(), ratio=0.5)
+    first = [b["x"].tolist() for b in mixed]
+    mixed.set_epoch(3)
+    again = [b["x"].tolist() for b in mixed]
+    assert sampler.epoch == 3 and ds.epoch == 3 and mixed.synthetic.epoch == 3
+    order = list(sampler)  # the shuffled order of epoch 3, rank 1's share
+    assert [b[0] for b in again] == [300 + i for i in order]  # real half: epoch 3's order, epoch 3's draws
+    assert [b[1] for b in again] == [-301 - k for k in range(4)]  # synthetic half: epoch 3, from its start
+    assert [b[1] for b in first] == [-1 - k for k in range(4)]
+    sampler.set_epoch(0)
+    assert [b[0] for b in first] == list(sampler)
+
+
+@pytest.mark.cuda
+def test_mixed_batches_are_pinned_when_the_real_loader_pins():
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    real = DataLoader(_Epochs(4), batch_size=2, pin_memory=True)
+    batch = next(iter(MixedLoader(real, _Stream(), ratio=0.5)))
+    assert batch["x"].is_pinned()

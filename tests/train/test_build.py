@@ -251,3 +251,35 @@ def test_status_says_what_is_built_and_left(tiny_world, tmp_path, capsys):
     assert "0 of 5 stages done; left: hogs/s01_box, contactnet, bank, srm, bundle" in capsys.readouterr().out
     assert main(["build", "--data", str(tiny_world), "--out", str(tmp_path / "x"), "--pairs", "s05/box"]) == 2
     assert "s05 (val) held out" in capsys.readouterr().err
+
+
+def test_every_stage_runs_on_one_thread_wherever_it_runs(tmp_path):
+    """A stage built alone (in this process) and one built beside another (a forked process)
+    use one torch thread both, so what a stage builds does not depend on the schedule."""
+    import torch
+
+    log = tmp_path / "threads.txt"
+
+    def stage(name: str):
+        def build_it() -> None:
+            with open(log, "a") as fh:
+                fh.write(f"{name} {torch.get_num_threads()}\n")
+            (tmp_path / name).mkdir()
+
+        return build_it
+
+    nodes = [
+        StageNode("a", "ka", [tmp_path / "a"], stage("a")),
+        StageNode("b", "kb", [tmp_path / "b"], stage("b")),
+        StageNode("c", "kc", [tmp_path / "c"], stage("c"), needs=("a", "b")),  # alone: in this process
+    ]
+    before = torch.get_num_threads()
+    run_stage_graph(StageRecords(tmp_path / "out", lambda s: None), nodes, lambda s: None)
+    assert sorted(log.read_text().split("\n")[:-1]) == ["a 1", "b 1", "c 1"]
+    assert torch.get_num_threads() == before
+    run_stage_graph(
+        StageRecords(tmp_path / "one", lambda s: None),
+        [StageNode("d", "kd", [tmp_path / "d"], stage("d"))],
+        lambda s: None,
+    )
+    assert log.read_text().split("\n")[-2] == "d 1"  # a build of one stage (no fork) too
