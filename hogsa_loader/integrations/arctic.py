@@ -14,20 +14,69 @@ Example (ArcticNet-SF training, real-format data)::
 
 from __future__ import annotations
 
-from typing import Any, Optional, Union
+from typing import Any, Literal, Optional, Union
 
 from torch.utils.data import DataLoader
 
 from hogsa_loader.assets.arctic import protocol_views
 from hogsa_loader.errors import PathLike
-from hogsa_loader.models.bundle import Bundle
+from hogsa_loader.models.bundle import Bundle, load_bundle
 from hogsa_loader.sample.config import LoaderConfig, with_options
 from hogsa_loader.sample.dataset import HOGSADataset
 from hogsa_loader.sample.mixing import MixedLoader, MixMode
 from hogsa_loader.sample.poses import PoseSource
 from hogsa_loader.sample.synth import Refiner
 
-__all__ = ["wrap_train_loader"]
+__all__ = ["METHODS", "Method", "method_options", "wrap_train_loader"]
+
+#: The synthetic samples of the HOGSA paper and its ablations (:func:`method_options`).
+Method = Literal["hogsa", "no_pom", "no_srm"]
+METHODS: tuple[str, ...] = ("hogsa", "no_pom", "no_srm")
+
+
+def method_options(method: str, bundle: Bundle) -> dict[str, Any]:
+    """The loader options of ``method`` for ``bundle``.
+
+    * ``"hogsa"`` (the paper's method): POM-optimised grasps of the bundle's pose banks
+      (``poses="bank"``), each render refined by its SRM (``srm=True``);
+    * ``"no_pom"``: perturbed annotated grasps (``poses="perturb"``), with the SRM;
+    * ``"no_srm"``: the pose bank's grasps, without the SRM.
+
+    Raises:
+        ValueError: an unknown method, or one that needs what ``bundle`` lacks (a pose bank,
+            an SRM), naming it.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    poses = "perturb" if method == "no_pom" else "bank"
+    srm = method != "no_srm"
+    missing = [
+        what
+        for what, need, have in (
+            ("a pose bank", poses == "bank", bool(bundle.pose_banks)),
+            ("an SRM", srm, bundle.srm is not None),
+        )
+        if need and not have
+    ]
+    if missing:
+        raise ValueError(f"method={method!r} needs {' and '.join(missing)}, which bundle {bundle.path} lacks")
+    return {"poses": poses, "srm": srm}
+
+
+def _method_defaults(
+    b: Bundle, method: Optional[str], config: Optional[LoaderConfig], options: dict[str, Any]
+) -> dict[str, Any]:
+    """The ``poses`` / ``srm`` options ``method`` (or, without one, the paper's method where the
+    bundle has it) adds to ``options``."""
+    if method is not None:
+        preset = method_options(method, b)
+        clash = {k: options[k] for k in preset if k in options and options[k] != preset[k]}
+        if clash:
+            raise ValueError(f"method={method!r} means {preset}; conflicting options {clash}")
+        return preset
+    if config is not None:  # the caller's config decides
+        return {}
+    return {"poses": "bank" if b.pose_banks else "perturb", "srm": b.srm is not None}
 
 
 def _unwrap(dataset: Any) -> Any:
@@ -82,6 +131,7 @@ def wrap_train_loader(
     num_workers: int = 0,
     drop_last: bool = True,
     mode: MixMode = "replace",
+    method: Optional[Method] = None,
     config: Optional[LoaderConfig] = None,
     backgrounds: Any = None,
     poses: Optional[PoseSource] = None,
@@ -106,6 +156,12 @@ def wrap_train_loader(
         mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
             their share is about ``ratio``); see :class:`~hogsa_loader.sample.mixing.MixedLoader`.
+        method: ``"hogsa"`` (the paper's method: pose-bank grasps refined by the SRM),
+            ``"no_pom"`` or ``"no_srm"`` (its ablations; :func:`method_options`). By default
+            (None) the paper's method where the bundle has it: bank poses when it holds a pose
+            bank, the SRM when it holds one (else perturbed annotated grasps, unrefined), unless
+            ``config`` or ``poses``/``srm`` options say otherwise. A method given together with
+            a ``poses`` or ``srm`` option that contradicts it is refused.
         config: the synthetic stream's :class:`~hogsa_loader.sample.config.LoaderConfig`.
         backgrounds, poses, refiner: explicit objects, as for
             :class:`~hogsa_loader.sample.dataset.HOGSADataset`.
@@ -125,6 +181,8 @@ def wrap_train_loader(
     root = data_root if data_root is not None else _root_of(real_ds)
     if root is None:
         raise ValueError("data_root is needed (the train loader's dataset does not say where its data is)")
+    bundle = bundle if isinstance(bundle, Bundle) else load_bundle(bundle, data_root=root)
+    options = {**_method_defaults(bundle, method, config, options), **options}
     config = LoaderConfig() if config is None else config
     config = with_options(config, **_real_options(real_ds, config, options), **options)
     syn = HOGSADataset(bundle, root, config, backgrounds=backgrounds, poses=poses, refiner=refiner)

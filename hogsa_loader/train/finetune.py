@@ -158,15 +158,6 @@ def _resume(out: Path, key: str, model: ArcticNetSF, opt: torch.optim.Optimizer)
     return state
 
 
-def _options(cfg: FinetuneConfig) -> dict[str, Any]:
-    """The synthetic stream's options of ``cfg.method``."""
-    if cfg.method == "no_pom":
-        return dict(poses="perturb", srm=True)
-    if cfg.method == "no_srm":
-        return dict(poses="bank", srm=False)
-    return dict(poses="bank", srm=True)
-
-
 def _validation(cfg: FinetuneConfig, model: ArcticNetSF, layers: BodyLayers, device: Any) -> dict[str, Any]:
     """ARCTIC's metrics on ``cfg.max_val`` frames of the validation split, evenly spaced in temporal
     order (the temporal metrics MDev and ACC only when every frame is evaluated)."""
@@ -215,7 +206,7 @@ def _loaders(cfg: FinetuneConfig, rank: int, world: int, device: torch.device) -
         )
     if cfg.bundle is None:
         return real, sampler, None
-    mixed = wrap_train_loader(real, cfg.bundle, cfg.ratio, seed=cfg.seed, device=str(device), **_options(cfg))
+    mixed = wrap_train_loader(real, cfg.bundle, cfg.ratio, seed=cfg.seed, device=str(device), method=cfg.method)
     return real, sampler, mixed.synthetic
 
 

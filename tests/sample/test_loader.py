@@ -1091,3 +1091,32 @@ def test_mixed_batches_are_pinned_when_the_real_loader_pins():
     real = DataLoader(_Epochs(4), batch_size=2, pin_memory=True)
     batch = next(iter(MixedLoader(real, _Stream(), ratio=0.5)))
     assert batch["x"].is_pinned()
+
+
+def test_wrap_train_loader_takes_the_papers_method_where_the_bundle_has_it(bundle_dir, tiny_world):
+    """By default the paper's method as far as the bundle holds it (its SRM; bank poses only with
+    a pose bank); the named presets ask for their parts and refuse a bundle without them."""
+    import dataclasses
+
+    from hogsa_loader.integrations.arctic import method_options, wrap_train_loader
+
+    real = DataLoader(ArcticDataset(tiny_world, split="p1_train", config=CFG, seed=0), batch_size=4)
+    kw = dict(ratio=0.5, batch_size=2, backgrounds=ProceduralBackgrounds())
+    b = load_bundle(bundle_dir)
+    assert b.srm is not None and not b.pose_banks  # the test bundle: an SRM, no pose bank
+    syn = wrap_train_loader(real, bundle_dir, **kw).synthetic
+    assert (syn.config.poses.kind, syn.config.refinement.srm) == ("perturb", True)
+    syn = wrap_train_loader(real, bundle_dir, method="no_pom", **kw).synthetic
+    assert (syn.config.poses.kind, syn.config.refinement.srm) == ("perturb", True)
+    assert wrap_train_loader(real, bundle_dir, srm=False, **kw).synthetic.config.refinement.srm is False
+    with pytest.raises(ValueError, match="needs a pose bank"):
+        wrap_train_loader(real, bundle_dir, method="hogsa", **kw)
+    with pytest.raises(ValueError, match="conflicting options"):
+        wrap_train_loader(real, bundle_dir, method="no_pom", srm=False, **kw)
+    with_bank = dataclasses.replace(b, pose_banks={"pose_bank": object()})
+    assert method_options("hogsa", with_bank) == {"poses": "bank", "srm": True}
+    assert method_options("no_srm", with_bank) == {"poses": "bank", "srm": False}
+    with pytest.raises(ValueError, match="needs an SRM"):
+        method_options("no_pom", dataclasses.replace(b, srm=None))
+    with pytest.raises(ValueError, match="one of"):
+        method_options("views_only", b)
