@@ -70,7 +70,6 @@ import hashlib
 import json
 import os
 import platform
-import re
 import shutil
 import sys
 import time
@@ -98,7 +97,7 @@ from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
-from hogsa_loader.errors import AssetError, read_json
+from hogsa_loader.errors import AssetError
 from hogsa_loader.io.hashing import settings_key, sha256_file
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.sample import HOGSADataset, with_options
@@ -108,7 +107,13 @@ from hogsa_loader.sample.cameras import CameraConfig
 from hogsa_loader.sample.export import SynthShardSamples, dataset_frames_for_shard, write_shards
 from hogsa_loader.sample.mixing import MixedLoader, MixMode, added_synthetic, num_synthetic
 from hogsa_loader.system import available_cores
-from hogsa_loader.train.run_folder import commit_checkpoint, read_trainer_state, save_trainer_state
+from hogsa_loader.train.run_folder import (
+    commit_checkpoint,
+    load_network_and_adam,
+    network_and_adam_tensors,
+    read_latest_trainer_state,
+    save_trainer_state,
+)
 from hogsa_loader.view.pictures import demo_photographs
 from hogsa_world import get_preset
 from hogsa_world.demo import DemoConfig, build_bundle_stages
@@ -967,10 +972,7 @@ def adopt_shared_folder_runs(cfg: DownstreamConfig, setup: dict[str, Any], out: 
 
 def _save_progress(folder: Path, step: int, model: Any, opt: torch.optim.Optimizer, state: dict[str, Any]) -> None:
     """Write ``checkpoints/step_N`` (network, Adam moments, progress) and point ``latest.json`` at it."""
-    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
-    for i, p in enumerate(opt.param_groups[0]["params"]):
-        for name, v in opt.state.get(p, {}).items():
-            tensors[f"adam.{i}.{name}"] = torch.as_tensor(v).detach().cpu().contiguous()
+    tensors = network_and_adam_tensors(model, opt)
     tensors["rng.torch"] = torch.get_rng_state()
     device = opt.param_groups[0]["params"][0].device
     if device.type == "cuda":  # dropout on a GPU draws from its own generator
@@ -983,27 +985,14 @@ def _save_progress(folder: Path, step: int, model: Any, opt: torch.optim.Optimiz
 def _load_progress(folder: Path, key: str, model: Any, opt: torch.optim.Optimizer) -> Optional[dict[str, Any]]:
     """Restore the last saved state of a run with this ``key`` into ``model`` and ``opt``; None
     when there is none (or it belongs to other settings)."""
-    latest = folder / "checkpoints" / "latest.json"
-    if not latest.is_file():
+    found = read_latest_trainer_state(folder, required=("rng.torch",))
+    if found is None:
         return None
-    rec = read_json(latest)
-    name = rec.get("folder") if isinstance(rec, dict) else None
-    if not isinstance(name, str) or not re.fullmatch(r"step_[0-9]+", name):
-        raise AssetError(latest, f'must hold {{"step", "folder": "step_N"}}, got {str(rec)[:80]}')
-    state, tensors = read_trainer_state(folder / "checkpoints" / name, required=("rng.torch",))
+    latest, state, tensors = found
     if state.get("key") != key:
         _say(f"[{folder}] the saved state (step {state['step']}) belongs to other settings: starting again")
         return None
-    net = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
-    missing = set(model.network_state_dict()) - set(net)
-    if missing:
-        raise AssetError(latest, f"the saved network lacks {sorted(missing)[:3]}")
-    model.load_state_dict(net, strict=False)
-    for i, p in enumerate(opt.param_groups[0]["params"]):
-        st = {k.split(".", 2)[2]: v.to(p.device) for k, v in tensors.items() if k.startswith(f"adam.{i}.")}
-        if st:
-            st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
-            opt.state[p] = st
+    load_network_and_adam(latest, tensors, model, opt)
     torch.set_rng_state(tensors["rng.torch"])
     p = opt.param_groups[0]["params"][0]
     if p.is_cuda:

@@ -204,3 +204,66 @@ def tiny_build_config(data: Path, out: Path, **data_kw):
             run=replace(base.srm.run, eval_every=2, ckpt_every=2, strip_views=1),
         ),
     )
+
+
+#: The side (px) of :func:`make_frame`'s images.
+FRAME_SIDE = 48
+
+
+def _frame_hand(rng: np.random.Generator, s: float):
+    from hogsa_loader.sample.targets import HandLabels
+
+    return HandLabels(
+        pose48=rng.normal(size=48).astype(np.float32),
+        betas=rng.normal(size=10).astype(np.float32),
+        j3d_full=rng.normal(size=(21, 3)) * 0.05 + [0, 0, 0.6],
+        j2d=rng.uniform(5, FRAME_SIDE - 5, size=(21, 2)),
+        valid=s,
+    )
+
+
+def make_frame(i: int):
+    """Synthetic frame ``i`` of the tests (a 48-pixel patch with alpha, parts and labels; a fixed
+    draw per ``i``): for the export codec, the image checks and the downstream export."""
+    from hogsa_loader.sample.frame import SynthFrame
+    from hogsa_loader.sample.targets import ObjectLabels
+
+    rng = np.random.default_rng(100 + i)
+    yy, xx = np.mgrid[0:FRAME_SIDE, 0:FRAME_SIDE]
+    img = np.stack([xx * 4, yy * 4, (xx + yy) * 2 + 10 * i], -1).clip(0, 255).astype(np.uint8)
+    alpha = np.zeros((FRAME_SIDE, FRAME_SIDE), np.float32)
+    alpha[10:30, 12:40] = 1.0
+    alpha[9, 12:40] = 0.5
+    parts = np.zeros((FRAME_SIDE, FRAME_SIDE, 3), np.float32)
+    parts[10:30, 12:25, 0] = 1.0
+    parts[10:30, 25:40, 2] = 0.75
+    kp3d = rng.normal(size=(32, 3)) * 0.05 + [0, 0, 0.7]
+    return SynthFrame(
+        image=img,
+        alpha=alpha,
+        part_alpha=parts,
+        bbox=np.array([FRAME_SIDE / 2, FRAME_SIDE / 2, FRAME_SIDE / 200.0]),
+        K_full=np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]]) + i,
+        image_size=(640, 480),
+        right=_frame_hand(rng, 1.0),
+        left=_frame_hand(rng, float(i % 2)),
+        obj=ObjectLabels(
+            name="box",
+            radian=float(rng.uniform(0, 1)),
+            kp3d_full=kp3d,
+            bbox3d_full=rng.normal(size=(16, 3)) * 0.05 + [0, 0, 0.7],
+            kp2d=rng.uniform(0, FRAME_SIDE, size=(32, 2)),
+            bbox2d=rng.uniform(0, FRAME_SIDE, size=(16, 2)),
+            valid=1.0,
+            kp_bottom_cano=(rng.normal(size=(16, 3)) * 50).astype(np.float32),
+        ),
+        imgname=f"./synthetic/s01/box/{i:06d}.jpg",
+        meta={"seed": 3, "index": i, "subject": "s01", "pose_source": "bank", "cam": np.int64(i)},
+        extra_targets={}
+        if i % 2
+        else {
+            "dist.ro": rng.uniform(0, 0.1, 5).astype(np.float32),
+            "idx.ro": np.arange(5, dtype=np.int64) + i,
+            "object.v_len": 40 + i,
+        },
+    )

@@ -30,6 +30,8 @@ from hogsa_loader.cli import checks
 from hogsa_loader.errors import UsageError
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.models.gaussians.hogs_model import HogsModel
+from hogsa_loader.train.build import process_slot
+from hogsa_loader.train.build import rank_device as device_of_rank
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -178,12 +180,8 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
     elif "SLURM_ARRAY_TASK_ID" in env and "SLURM_ARRAY_TASK_COUNT" in env:
         idx, size = int(env["SLURM_ARRAY_TASK_ID"]), int(env["SLURM_ARRAY_TASK_COUNT"])
         idx -= int(env.get("SLURM_ARRAY_TASK_MIN", 0))
-    elif "WORLD_SIZE" in env:
-        idx, size = int(env.get("RANK", 0)), int(env["WORLD_SIZE"])
-    elif "SLURM_STEP_NUM_TASKS" in env and "SLURM_PROCID" in env:  # a task of srun -n N (not the batch script)
-        idx, size = int(env["SLURM_PROCID"]), int(env["SLURM_STEP_NUM_TASKS"])
-    else:
-        idx, size = 0, 1
+    else:  # torchrun's RANK / WORLD_SIZE, a task of srun -n N (not the batch script), else alone
+        idx, size = process_slot(dict(env))
     if not 0 <= idx < size:
         _usage(f"array index {idx} is outside 0..{size - 1}")
     return idx, size
@@ -191,16 +189,13 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
 
 def rank_device(rest: Sequence[str], env: Optional[dict[str, str]] = None) -> list[str]:
     """``hogsa train hogs`` arguments with ``--device cuda`` made ``cuda:LOCAL_RANK`` when this
-    process is one of several on a node (torchrun's ``LOCAL_RANK``, srun's ``SLURM_LOCALID``), so
-    that each process trains on its own GPU; other arguments unchanged."""
-    env = dict(os.environ) if env is None else env
-    local = env.get("LOCAL_RANK", env.get("SLURM_LOCALID"))
+    process is one of several on a node (torchrun's ``LOCAL_RANK``, srun's ``SLURM_LOCALID``;
+    :func:`hogsa_loader.train.build.rank_device`), so that each process trains on its own GPU;
+    other arguments unchanged."""
     out = list(rest)
-    if local is None:
-        return out
     for i, arg in enumerate(out[:-1]):
-        if arg == "--device" and out[i + 1] == "cuda":
-            out[i + 1] = f"cuda:{int(local)}"
+        if arg == "--device":
+            out[i + 1] = device_of_rank(out[i + 1], env)
     return out
 
 

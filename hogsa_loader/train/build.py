@@ -29,6 +29,7 @@ from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
 from hogsa_loader.errors import PathLike, UsageError
 from hogsa_loader.io.locks import FolderBusyError, writer_lock
 from hogsa_loader.models.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
+from hogsa_loader.train.config import field_options as _opt
 from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_trainer import HogsTrainer
 from hogsa_loader.train.pom_config import ContactNetJobConfig, PoseBankConfig
@@ -80,10 +81,6 @@ SET_BY_BUILD = frozenset(
         ("srm", "run", "device"),
     }
 )
-
-
-def _opt(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
-    return {"help": help, **({"check": check} if check else {}), **extra}
 
 
 @dataclass

@@ -12,11 +12,17 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from typing import Any, Mapping, TypeVar
+from typing import Any, Mapping, Optional, TypeVar
 
-__all__ = ["config_from_flat", "flat_config", "flat_defaults", "flat_field_names"]
+__all__ = ["config_from_flat", "field_options", "flat_config", "flat_defaults", "flat_field_names"]
 
 T = TypeVar("T")
+
+
+def field_options(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
+    """A config field's metadata: help text, the name of its validator in
+    :mod:`hogsa_loader.cli.checks` and any further keys (``name``, ``required``, ...)."""
+    return {"help": help, **({"check": check} if check else {}), **extra}
 
 
 def _groups(cls: type) -> dict[str, type]:

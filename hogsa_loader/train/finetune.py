@@ -27,7 +27,7 @@ from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.protocol import training_subjects
 from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF, load_arctic_checkpoint
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, temporal_order, training_step
-from hogsa_loader.errors import AssetError, UsageError, read_json
+from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.integrations.arctic import wrap_train_loader
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.locks import writer_lock
@@ -37,13 +37,16 @@ from hogsa_loader.sample.augment import ArcticConfig
 from hogsa_loader.sample.mixing import MixedLoader
 from hogsa_loader.sample.synth import is_synthetic
 from hogsa_loader.train.build import process_slot, rank_device
-from hogsa_loader.train.run_folder import commit_checkpoint, read_trainer_state, save_trainer_state
+from hogsa_loader.train.config import field_options as _opt
+from hogsa_loader.train.run_folder import (
+    commit_checkpoint,
+    load_network_and_adam,
+    network_and_adam_tensors,
+    read_latest_trainer_state,
+    save_trainer_state,
+)
 
 __all__ = ["FinetuneConfig", "finetune", "weights_digest"]
-
-
-def _opt(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
-    return {"help": help, **({"check": check} if check else {}), **extra}
 
 
 @dataclass
@@ -70,6 +73,9 @@ class FinetuneConfig:
     steps: int = field(default=1000, metadata=_opt("optimisation steps", "positive_int"))
     batch_size: int = field(default=64, metadata=_opt("samples per batch per process", "positive_int"))
     lr: float = field(default=1e-5, metadata=_opt("Adam learning rate", "positive_float"))
+    log_weights: bool = field(
+        default=False, metadata=_opt("log a digest of the weights after every step (hashes every parameter)")
+    )
     ckpt_every: int = field(default=100, metadata=_opt("checkpoint every N steps", "positive_int"))
     workers: int = field(default=0, metadata=_opt("DataLoader workers of the real half", "non_negative_int"))
     seed: int = field(default=0, metadata=_opt("seed of the model, the real order and the synthetic stream"))
@@ -121,12 +127,8 @@ def _checks(cfg: FinetuneConfig) -> None:
 
 def _save(out: Path, step: int, model: ArcticNetSF, opt: torch.optim.Optimizer, state: dict) -> None:
     """``checkpoints/step_N``: the network, Adam's moments and ``state``."""
-    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
-    for i, p in enumerate(opt.param_groups[0]["params"]):
-        for name, v in opt.state.get(p, {}).items():
-            tensors[f"adam.{i}.{name}"] = torch.as_tensor(v).detach().cpu().contiguous()
     ck = out / "checkpoints" / f"step_{step:07d}"
-    save_trainer_state(ck, tensors, {**state, "step": step})
+    save_trainer_state(ck, network_and_adam_tensors(model, opt), {**state, "step": step})
     commit_checkpoint(ck, step)
 
 
@@ -142,19 +144,13 @@ def _resume(out: Path, key: str, model: ArcticNetSF, opt: torch.optim.Optimizer)
     Raises:
         AssetError: the checkpoint belongs to a run with other settings, or is damaged.
     """
-    latest = out / "checkpoints" / "latest.json"
-    if not latest.is_file():
+    found = read_latest_trainer_state(out, required=())
+    if found is None:
         return None
-    rec = read_json(latest)
-    state, tensors = read_trainer_state(out / "checkpoints" / str(rec["folder"]), required=())
+    latest, state, tensors = found
     if state.get("key") != key:
         raise AssetError(latest, "belongs to a run with other settings (start again in another --out)")
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, strict=False)
-    for i, p in enumerate(opt.param_groups[0]["params"]):
-        st = {k.split(".", 2)[2]: v.to(p.device) for k, v in tensors.items() if k.startswith(f"adam.{i}.")}
-        if st:
-            st["step"] = st["step"].cpu()
-            opt.state[p] = st
+    load_network_and_adam(latest, tensors, model, opt)
     return state
 
 
@@ -227,15 +223,17 @@ def _batches(cfg: FinetuneConfig, state: dict[str, Any], real: Any, sampler: Any
         epoch, skip = epoch + 1, 0
 
 
-def _log_row(step: int, losses: dict[str, float], batch: Any, model: torch.nn.Module) -> str:
+def _log_row(step: int, losses: dict[str, float], batch: Any, model: Optional[torch.nn.Module]) -> str:
+    """One log line: the step, its loss, its samples and (``model`` given) the weights' digest."""
     names = list(batch[2]["imgname"])
     row = {
         "step": step,
         "loss": losses["loss"],
         "synthetic": [n for n in names if is_synthetic(n)],
         "real": [n for n in names if not is_synthetic(n)],
-        "weights": weights_digest(model),
     }
+    if model is not None:
+        row["weights"] = weights_digest(model)
     return json.dumps(row) + "\n"
 
 
@@ -291,14 +289,14 @@ def finetune(cfg: FinetuneConfig, log: Any = print) -> dict[str, Any]:
         step = int(state.get("step", 0))
         log_path = out / f"log.rank{rank}.jsonl"
         _truncated_log(log_path, step)
-        say(f"[finetune] rank {rank} of {world} on {device}, from step {step} (weights {weights_digest(model)})")
+        say(f"[finetune] rank {rank} of {world} on {device}, from step {step}")
         t0 = time.perf_counter()
         with open(log_path, "a") as fh:
             for epoch, i, batch in _batches(cfg, state, real, sampler, synthetic) if step < cfg.steps else ():
                 torch.manual_seed(_step_seed(cfg.seed, rank, step))  # dropout: a function of (seed, rank, step)
                 losses = training_step(net, batch, layers, opt, cfg.img_res, device=device)
                 step += 1
-                fh.write(_log_row(step, losses, batch, model))
+                fh.write(_log_row(step, losses, batch, model if cfg.log_weights else None))
                 fh.flush()
                 state["history"].append({"step": step, "loss": losses["loss"]})
                 if step % cfg.ckpt_every == 0 or step == cfg.steps:

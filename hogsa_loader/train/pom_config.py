@@ -14,6 +14,7 @@ from typing import Any, Literal, Optional
 
 from hogsa_loader.assets.arctic_processing import FRAME_MARGIN
 from hogsa_loader.models.pom.pipeline import check_bank_frames
+from hogsa_loader.train.config import field_options as _opt
 
 __all__ = [
     "BankDataConfig",
@@ -25,11 +26,6 @@ __all__ = [
     "ContactNetRunConfig",
     "PoseBankConfig",
 ]
-
-
-def _opt(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
-    """Field metadata: help text, validator name and any further keys."""
-    return {"help": help, **({"check": check} if check else {}), **extra}
 
 
 def _tuple(value: Any) -> Any:

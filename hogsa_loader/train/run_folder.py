@@ -28,6 +28,9 @@ from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.tensors import read_checked_tensors, write_tensors_and_manifest
 
 __all__ = [
+    "load_network_and_adam",
+    "network_and_adam_tensors",
+    "read_latest_trainer_state",
     "RunExistsError",
     "TRAINER_TENSORS",
     "TRAINER_STATE",
@@ -221,3 +224,51 @@ def config_defaults(cls: type) -> dict[str, Any]:
         elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
             out[f.name] = f.default_factory()  # type: ignore[misc]
     return out
+
+
+def network_and_adam_tensors(model: Any, opt: torch.optim.Optimizer) -> dict[str, Tensor]:
+    """What a checkpoint holds of a model trained with Adam: ``model.<key>`` for its
+    ``network_state_dict()`` and ``adam.<param index>.<name>`` for each parameter's Adam state."""
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
+    for i, p in enumerate(opt.param_groups[0]["params"]):
+        for name, v in opt.state.get(p, {}).items():
+            tensors[f"adam.{i}.{name}"] = torch.as_tensor(v).detach().cpu().contiguous()
+    return tensors
+
+
+def read_latest_trainer_state(
+    folder: Path, required: Sequence[str]
+) -> Optional[tuple[Path, dict[str, Any], dict[str, Tensor]]]:
+    """``(latest.json, trainer.json, tensors)`` of ``folder/checkpoints``'s latest checkpoint
+    (None: there is none yet).
+
+    Raises:
+        AssetError: ``latest.json`` names no ``step_N`` folder, or the state is damaged.
+    """
+    latest = folder / "checkpoints" / "latest.json"
+    if not latest.is_file():
+        return None
+    rec = read_json(latest)
+    name = rec.get("folder") if isinstance(rec, dict) else None
+    if not isinstance(name, str) or not re.fullmatch(r"step_[0-9]+", name):
+        raise AssetError(latest, f'must hold {{"step", "folder": "step_N"}}, got {str(rec)[:80]}')
+    state, tensors = read_trainer_state(folder / "checkpoints" / name, required=required)
+    return latest, state, tensors
+
+
+def load_network_and_adam(latest: Path, tensors: Mapping[str, Tensor], model: Any, opt: torch.optim.Optimizer) -> None:
+    """Restore :func:`network_and_adam_tensors` into ``model`` and ``opt``.
+
+    Raises:
+        AssetError: naming ``latest`` when the saved network lacks a key of ``model``.
+    """
+    net = {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
+    missing = set(model.network_state_dict()) - set(net)
+    if missing:
+        raise AssetError(latest, f"the saved network lacks {sorted(missing)[:3]}")
+    model.load_state_dict(net, strict=False)
+    for i, p in enumerate(opt.param_groups[0]["params"]):
+        st = {k.split(".", 2)[2]: v.to(p.device) for k, v in tensors.items() if k.startswith(f"adam.{i}.")}
+        if st:
+            st["step"] = st["step"].cpu()  # Adam keeps its step count on the CPU
+            opt.state[p] = st

@@ -13,13 +13,9 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Mapping, Optional
 
 from hogsa_loader.train.config import config_from_flat, flat_config, flat_defaults
+from hogsa_loader.train.config import field_options as _opt
 
 __all__ = ["SRMDataConfig", "SRMLossConfig", "SRMModelConfig", "SRMOptimConfig", "SRMRunConfig", "SRMTrainConfig"]
-
-
-def _opt(help: str, check: Optional[str] = None, **extra: Any) -> dict[str, Any]:
-    """Field metadata: help text, validator name and any further keys."""
-    return {"help": help, **({"check": check} if check else {}), **extra}
 
 
 def _tuple(value: Any) -> Any:

@@ -766,7 +766,7 @@ def test_export_drops_survive_a_resumed_export(tmp_path, monkeypatch):
     """export_variant reports the whole export, also when a second pass (a fresh dataset,
     counters at zero) finishes what an interrupted one began: samples from ``index.json``,
     drops in all and by reason from every shard's record."""
-    from test_export import make_frame
+    from conftest import make_frame
 
     ds = _downstream()
     reasons = {1: "labels_out_of_crop", 300: "labels_out_of_crop", 520: "empty_render"}

@@ -78,7 +78,7 @@ def test_arctic_dataset_counts_a_truncated_image_as_missing(tiny_world, tmp_path
 
 
 def test_a_shard_member_of_another_size_is_refused():
-    from test_export import make_frame  # noqa: I001 - the tests' own frame builder
+    from conftest import make_frame
 
     from hogsa_loader.sample.export.codec import decode_frame, encode_frame
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 ARGS = [
+    "--log-weights",
     "--method",
     "no_pom",
     "--backbone",
