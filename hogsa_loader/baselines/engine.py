@@ -20,7 +20,16 @@ from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, 
 from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.sample.arctic_dataset import parse_imgname
 
-__all__ = ["BodyLayers", "to_device", "training_step", "evaluate", "temporal_order", "mean_cameras", "SEQUENCE_KEYS"]
+__all__ = [
+    "BodyLayers",
+    "to_device",
+    "prepare_batch",
+    "training_step",
+    "evaluate",
+    "temporal_order",
+    "mean_cameras",
+    "SEQUENCE_KEYS",
+]
 
 #: Per-frame tensors kept for the temporal metrics (prediction and ground truth).
 SEQUENCE_KEYS = ("mano.v3d.cam.r", "mano.v3d.cam.l", "mano.j3d.cam.r", "mano.j3d.cam.l", "object.v.cam")
@@ -61,8 +70,10 @@ def to_device(batch: Any, device: Any) -> Any:
     return batch
 
 
-def _prepared(batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
-    """A batch on ``device`` with ArcticNet-SF's targets prepared (no gradients)."""
+def prepare_batch(batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
+    """A collated ``(inputs, targets, meta_info)`` batch on ``device`` with ArcticNet-SF's
+    targets prepared (ARCTIC's target preparation, no gradients): what the model and
+    :func:`~hogsa_loader.baselines.loss.arcticnet_sf_loss` take."""
     inputs, targets, meta_info = to_device(batch, device)
     with torch.no_grad():
         targets, meta_info = prepare_targets(
@@ -97,7 +108,7 @@ def mean_cameras(batches: Iterable[Any], layers: BodyLayers, img_res: int, devic
     sums = {k: torch.zeros(3, dtype=torch.float64) for k in keys}
     counts = dict.fromkeys(keys, 0)
     for batch in batches:
-        _, targets, _ = _prepared(batch, layers, img_res, device)
+        _, targets, _ = prepare_batch(batch, layers, img_res, device)
         for k, (cam, valid) in keys.items():
             ok = targets[valid].reshape(-1).bool()
             sums[k] += targets[cam][ok].double().sum(0).cpu()
@@ -135,7 +146,7 @@ def training_step(
         FloatingPointError: the loss is not finite (the step is not applied).
     """
     model.train()
-    inputs, targets, meta_info = _prepared(batch, layers, img_res, device)
+    inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device)
     pred = model(inputs, meta_info)
     losses = arcticnet_sf_loss(pred, targets)
     total = losses["loss"]
@@ -217,7 +228,7 @@ def evaluate(
     current: Optional[tuple[str, str, int]] = None
     frames: list[tuple[int, dict[str, Any]]] = []
     for batch in batches:
-        inputs, targets, meta_info = _prepared(batch, layers, img_res, device)
+        inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device)
         pred = model(inputs, meta_info)
         per_frame.append(per_frame_metrics(pred, targets, meta_info))
         for b, name in enumerate(meta_info["imgname"]):

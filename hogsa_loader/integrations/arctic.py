@@ -175,7 +175,10 @@ def wrap_train_loader(
             dataset says neither (the default is then ``p1``, allocentric).
 
     Returns:
-        a :class:`~hogsa_loader.sample.mixing.MixedLoader`.
+        a :class:`~hogsa_loader.sample.mixing.MixedLoader`. On several processes (torchrun,
+        PyTorch Lightning's DDP) each rank gets its own share of both halves: the synthetic
+        stream splits itself by rank, and a ``train_loader`` without a distributed sampler is
+        given a ``DistributedSampler`` (shuffled with the config's ``seed`` when it shuffles).
     """
     real_ds = _unwrap(getattr(train_loader, "dataset", None))
     root = data_root if data_root is not None else _root_of(real_ds)
@@ -191,4 +194,4 @@ def wrap_train_loader(
         if syn.device.startswith("cuda"):
             raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
         source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
-    return MixedLoader(train_loader, source, ratio, drop_last=drop_last, mode=mode)
+    return MixedLoader(train_loader, source, ratio, drop_last=drop_last, mode=mode, seed=config.run.seed)

@@ -9,9 +9,17 @@ from __future__ import annotations
 from typing import Any, Callable, Iterable, Iterator, Literal, Optional
 
 import torch
-from torch.utils.data import default_collate
+from torch.utils.data import (
+    DataLoader,
+    DistributedSampler,
+    IterableDataset,
+    RandomSampler,
+    SequentialSampler,
+    default_collate,
+)
+from torch.utils.data.sampler import BatchSampler
 
-__all__ = ["MixedLoader", "MixMode", "num_synthetic", "added_synthetic", "batch_size_of"]
+__all__ = ["MixedLoader", "MixMode", "num_synthetic", "added_synthetic", "batch_size_of", "distributed_loader"]
 
 #: How synthetic samples enter a real batch (see :class:`MixedLoader`).
 MixMode = Literal["replace", "add"]
@@ -93,6 +101,95 @@ def _pinned(batch: Any) -> Any:
     return batch
 
 
+def _process_group() -> tuple[int, int]:
+    """``(rank, world size)`` of the initialised torch.distributed process group, else ``(0, 1)``."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+def _is_distributed(loader: Any) -> bool:
+    """Whether ``loader`` is left as it is on several processes: it already draws a per-rank
+    share (a sampler with ``num_replicas``), its dataset is an ``IterableDataset`` (which splits
+    itself), or it is not a DataLoader (an iterable of batches that says nothing of samplers)."""
+    if not isinstance(loader, DataLoader) or isinstance(loader.dataset, IterableDataset):
+        return True
+    samplers = [getattr(loader, "sampler", None), getattr(getattr(loader, "batch_sampler", None), "sampler", None)]
+    return any(hasattr(s, "num_replicas") for s in samplers)
+
+
+def distributed_loader(loader: DataLoader, rank: int, world: int, seed: int = 0) -> DataLoader:
+    """``loader`` with a :class:`~torch.utils.data.DistributedSampler` in place of its sampler:
+    rank ``rank``'s share of ``world`` (what PyTorch Lightning and ``accelerate`` do to the
+    DataLoaders they are given).
+
+    The sampler shuffles (with ``seed``, reshuffled by ``set_epoch``) when ``loader``'s sampler is
+    a ``RandomSampler`` and keeps the order when it is a ``SequentialSampler``; it drops the last
+    ``len(dataset) % world`` samples so that no sample is on two ranks in one epoch. Every other
+    setting of ``loader`` is kept (batch size, ``drop_last``, workers, ``collate_fn``,
+    ``pin_memory``, generator, ...).
+
+    Raises:
+        ValueError: ``loader`` is not a plain :class:`~torch.utils.data.DataLoader`, or its
+            sampler / batch sampler is a custom one (which this function cannot split between
+            ranks): give it a distributed sampler of its own.
+    """
+    sampler = getattr(loader, "sampler", None)
+    bs = getattr(loader, "batch_sampler", None)
+    kind = type(sampler).__name__
+    if (
+        type(loader) is not DataLoader
+        or type(bs) is not BatchSampler
+        or not isinstance(sampler, (RandomSampler, SequentialSampler))
+    ):
+        raise ValueError(
+            f"the real loader ({type(loader).__name__}, sampler {kind}, batch sampler {type(bs).__name__}) "
+            f"runs on {world} processes without a distributed sampler, and only a plain DataLoader with "
+            "a RandomSampler or SequentialSampler can be given one; pass a DataLoader with "
+            "sampler=DistributedSampler(dataset, ...)"
+        )
+    dist = DistributedSampler(
+        loader.dataset,  # type: ignore[arg-type]
+        num_replicas=world,
+        rank=rank,
+        shuffle=isinstance(sampler, RandomSampler),
+        seed=int(seed),
+        drop_last=True,
+    )
+    kwargs = dict(
+        batch_size=loader.batch_size,
+        sampler=dist,
+        num_workers=loader.num_workers,
+        collate_fn=loader.collate_fn,
+        pin_memory=loader.pin_memory,
+        drop_last=loader.drop_last,
+        timeout=loader.timeout,
+        worker_init_fn=loader.worker_init_fn,
+        multiprocessing_context=loader.multiprocessing_context,
+        generator=loader.generator,
+        persistent_workers=loader.persistent_workers,
+        pin_memory_device=loader.pin_memory_device,
+    )
+    if loader.num_workers > 0:
+        kwargs["prefetch_factor"] = loader.prefetch_factor
+    return DataLoader(loader.dataset, **kwargs)  # type: ignore[arg-type]
+
+
+class _EpochOf:
+    """What ``MixedLoader.sampler`` is: an object whose ``set_epoch`` is the mixed loader's
+    (PyTorch Lightning calls ``set_epoch`` on a train loader's ``.sampler`` before each epoch)."""
+
+    def __init__(self, mixed: "MixedLoader") -> None:
+        self._mixed = mixed
+
+    @property
+    def epoch(self) -> int:
+        return self._mixed.epoch
+
+    def set_epoch(self, epoch: int) -> None:
+        self._mixed.set_epoch(epoch)
+
+
 class MixedLoader:
     """Real batches with exactly ``round(ratio·B)`` synthetic samples each (``mode="replace"``),
     or real batches with ``added_synthetic(ratio, b)`` synthetic samples appended (``"add"``).
@@ -129,8 +226,21 @@ class MixedLoader:
             ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
             samples (ratio < 1).
 
-    :meth:`set_epoch` reaches both halves. When the real loader pins its memory
-    (``pin_memory=True``, with CUDA), the mixed batches are pinned too.
+        seed: the shuffle seed of the ``DistributedSampler`` the real loader gets when it has
+            none (below).
+
+    **Several processes.** Under an initialised torch.distributed process group of N > 1
+    processes (torchrun, ``srun``, PyTorch Lightning's or ``accelerate``'s DDP), a real
+    DataLoader of a map-style dataset without a distributed sampler is given one
+    (:func:`distributed_loader`: each rank its own share, shuffled with ``seed`` when the
+    loader shuffles), as Lightning does for the DataLoaders it is given (it cannot see inside
+    a ``MixedLoader``); a loader with one is kept.
+    The synthetic stream splits itself by rank
+    (:class:`~hogsa_loader.sample.dataset.HOGSADataset`).
+
+    :meth:`set_epoch` reaches both halves; so does ``.sampler.set_epoch`` (where PyTorch
+    Lightning calls it). When the real loader pins its memory (``pin_memory=True``, with CUDA),
+    the mixed batches are pinned too.
     """
 
     def __init__(
@@ -141,6 +251,7 @@ class MixedLoader:
         collate_fn: Optional[Callable[[list[Any]], Any]] = None,
         drop_last: bool = True,
         mode: MixMode = "replace",
+        seed: int = 0,
     ) -> None:
         if not 0.0 <= float(ratio) <= 1.0:
             raise ValueError(f"ratio must be in [0, 1], got {ratio}")
@@ -153,7 +264,9 @@ class MixedLoader:
                 "the real loader yields single samples (batch_size=None); MixedLoader needs collated batches"
             )
         self.mode = mode
-        self.real_loader = real_loader
+        self.given_loader = real_loader
+        self.seed = int(seed)
+        self._per_rank: dict[tuple[int, int], Iterable[Any]] = {}
         self.synthetic = synthetic
         self.ratio = float(ratio)
         self.collate_fn = collate_fn or getattr(real_loader, "collate_fn", None) or default_collate
@@ -161,6 +274,18 @@ class MixedLoader:
         self.pin_memory = bool(getattr(real_loader, "pin_memory", False)) and torch.cuda.is_available()
         self._syn_iter: Optional[Iterator[Any]] = None
         self.epoch = 0
+        self.sampler = _EpochOf(self)
+
+    @property
+    def real_loader(self) -> Iterable[Any]:
+        """The real loader this process iterates: the one given, or (several processes, none
+        of its samplers distributed) that loader with a ``DistributedSampler``."""
+        rank, world = _process_group()
+        if world == 1 or _is_distributed(self.given_loader):
+            return self.given_loader
+        if (rank, world) not in self._per_rank:
+            self._per_rank[(rank, world)] = distributed_loader(self.given_loader, rank, world, self.seed)  # type: ignore[arg-type]
+        return self._per_rank[(rank, world)]
 
     def set_epoch(self, epoch: int) -> None:
         """Start epoch ``epoch`` of both halves: the real loader's sampler (a
@@ -168,8 +293,9 @@ class MixedLoader:
         synthetic stream (its dataset's epoch, restarted from its first sample) — what a
         training loop or PyTorch Lightning calls before each epoch."""
         self.epoch = int(epoch)
-        sources = [getattr(self.real_loader, "sampler", None), getattr(self.real_loader, "dataset", None)]
-        sources.append(getattr(getattr(self.real_loader, "batch_sampler", None), "sampler", None))
+        real = self.real_loader
+        sources = [getattr(real, "sampler", None), getattr(real, "dataset", None)]
+        sources.append(getattr(getattr(real, "batch_sampler", None), "sampler", None))
         sources += [self.synthetic, getattr(self.synthetic, "dataset", None)]
         done: set[int] = set()
         for src in sources:

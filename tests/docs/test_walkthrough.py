@@ -43,7 +43,9 @@ def _run(argv: list[str], cwd: Path, env: dict[str, str], **kw) -> subprocess.Co
 
 def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     commands = _commands()
-    assert [c.split()[0] for c in commands] == ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "torchrun"]
+    first_words = ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "torchrun", "torchrun"]
+    assert [c.split()[0] for c in commands] == first_words
+    assert "examples/lightning_arcticnet.py" in commands[7]  # run by tests/sample/test_lightning.py
     (tmp_path / "data").symlink_to(tiny_world, target_is_directory=True)
     env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
     env = {k: v for k, v in env.items() if not k.startswith("SLURM_")}
