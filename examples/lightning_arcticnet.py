@@ -37,7 +37,7 @@ from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.baselines.arcticnet_sf import ArcticNetSF
 from hogsa_loader.baselines.engine import BodyLayers, prepare_batch
 from hogsa_loader.baselines.loss import arcticnet_sf_loss
-from hogsa_loader.integrations.arctic import wrap_train_loader
+from hogsa_loader.integrations.arctic import METHODS, wrap_train_loader
 from hogsa_loader.sample import ArcticDataset, is_synthetic
 from hogsa_loader.sample.augment import ArcticConfig
 from hogsa_loader.train.finetune import weights_digest
@@ -108,7 +108,7 @@ def parse_args(argv: Any = None) -> argparse.Namespace:
     p.add_argument("--data", required=True, help="ARCTIC data root")
     p.add_argument("--bundle", required=True, help="HOGSA bundle")
     p.add_argument("--out", required=True, help="folder of the step logs")
-    p.add_argument("--method", default="no_pom", choices=["hogsa", "no_pom", "no_srm"], help="synthetic samples")
+    p.add_argument("--method", default="no_pom", choices=list(METHODS), help="synthetic samples")
     p.add_argument("--ratio", type=float, default=0.5, help="synthetic share of each batch")
     p.add_argument("--backbone", default="resnet50", choices=["resnet18", "resnet50"])
     p.add_argument("--img-res", type=int, default=224, help="patch side (px)")

@@ -30,8 +30,8 @@ from hogsa_loader.sample.synth import Refiner
 __all__ = ["METHODS", "Method", "method_options", "wrap_train_loader"]
 
 #: The synthetic samples of the HOGSA paper and its ablations (:func:`method_options`).
-Method = Literal["hogsa", "no_pom", "no_srm"]
-METHODS: tuple[str, ...] = ("hogsa", "no_pom", "no_srm")
+Method = Literal["hogsa", "no_pom", "no_srm", "views_only"]
+METHODS: tuple[str, ...] = ("hogsa", "no_pom", "no_srm", "views_only")
 
 
 def method_options(method: str, bundle: Bundle) -> dict[str, Any]:
@@ -40,7 +40,9 @@ def method_options(method: str, bundle: Bundle) -> dict[str, Any]:
     * ``"hogsa"`` (the paper's method): POM-optimised grasps of the bundle's pose banks
       (``poses="bank"``), each render refined by its SRM (``srm=True``);
     * ``"no_pom"``: perturbed annotated grasps (``poses="perturb"``), with the SRM;
-    * ``"no_srm"``: the pose bank's grasps, without the SRM.
+    * ``"no_srm"``: the pose bank's grasps, without the SRM;
+    * ``"views_only"``: the annotated grasps unchanged (no new pose: new cameras,
+      backgrounds and appearance only), with the SRM.
 
     Raises:
         ValueError: an unknown method, or one that needs what ``bundle`` lacks (a pose bank,
@@ -48,7 +50,7 @@ def method_options(method: str, bundle: Bundle) -> dict[str, Any]:
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    poses = "perturb" if method == "no_pom" else "bank"
+    poses = "perturb" if method in ("no_pom", "views_only") else "bank"
     srm = method != "no_srm"
     missing = [
         what
@@ -60,6 +62,8 @@ def method_options(method: str, bundle: Bundle) -> dict[str, Any]:
     ]
     if missing:
         raise ValueError(f"method={method!r} needs {' and '.join(missing)}, which bundle {bundle.path} lacks")
+    if method == "views_only":
+        return {"poses": poses, "pose_options": {"finger_std": 0.0, "arti_std": 0.0, "hand_trans_std": 0.0}, "srm": srm}
     return {"poses": poses, "srm": srm}
 
 
@@ -157,7 +161,7 @@ def wrap_train_loader(
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
             their share is about ``ratio``); see :class:`~hogsa_loader.sample.mixing.MixedLoader`.
         method: ``"hogsa"`` (the paper's method: pose-bank grasps refined by the SRM),
-            ``"no_pom"`` or ``"no_srm"`` (its ablations; :func:`method_options`). By default
+            ``"no_pom"``, ``"no_srm"`` or ``"views_only"`` (its ablations; :func:`method_options`). By default
             (None) the paper's method where the bundle has it: bank poses when it holds a pose
             bank, the SRM when it holds one (else perturbed annotated grasps, unrefined), unless
             ``config`` or ``poses``/``srm`` options say otherwise. A method given together with

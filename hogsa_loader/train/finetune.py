@@ -57,9 +57,12 @@ class FinetuneConfig:
     out: str = field(default="", metadata=_opt("run folder", required=True))
     bundle: Optional[str] = field(default=None, metadata=_opt("HOGSA bundle (none: real batches only)"))
     ratio: float = field(default=0.5, metadata=_opt("synthetic share of each batch", "unit_float"))
-    method: Literal["hogsa", "no_pom", "no_srm"] = field(
+    method: Literal["hogsa", "no_pom", "no_srm", "views_only"] = field(
         default="hogsa",
-        metadata=_opt("hogsa: pose-bank grasps refined by the SRM (the paper); no_pom: perturbed annotated grasps"),
+        metadata=_opt(
+            "hogsa: pose-bank grasps refined by the SRM (the paper); no_pom: perturbed annotated grasps; "
+            "no_srm: unrefined; views_only: the annotated grasps unchanged"
+        ),
     )
     split: str = field(default="p1_train", metadata=_opt("real training split"))
     allow_held_out: Optional[tuple[str, ...]] = field(

@@ -1118,5 +1118,16 @@ def test_wrap_train_loader_takes_the_papers_method_where_the_bundle_has_it(bundl
     assert method_options("no_srm", with_bank) == {"poses": "bank", "srm": False}
     with pytest.raises(ValueError, match="needs an SRM"):
         method_options("no_pom", dataclasses.replace(b, srm=None))
+    still = method_options("views_only", b)
+    assert still["poses"] == "perturb" and still["srm"] is True
+    assert set(still["pose_options"].values()) == {0.0}
+    syn = wrap_train_loader(real, bundle_dir, method="views_only", **kw).synthetic
+    assert syn.config.poses.options == still["pose_options"]
+    batch = syn._pose_source.sample(("s01", "box"), [np.random.default_rng(i) for i in range(3)])
+    for i, prov in enumerate(batch.provenance):  # each grasp is an annotated frame's, exactly
+        sid, seq = prov["sequence"].split("/")
+        hand = ArcticRoot(tiny_world).sequence(sid, seq).right
+        assert np.array_equal(batch.poses["right_pose"][i], hand.pose[prov["frame"]])
+    assert len(next(iter(wrap_train_loader(real, bundle_dir, method="views_only", **kw)))[2]["imgname"]) == 4
     with pytest.raises(ValueError, match="one of"):
-        method_options("views_only", b)
+        method_options("novel", b)
