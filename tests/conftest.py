@@ -9,6 +9,7 @@ import sys
 import types
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -267,3 +268,68 @@ def make_frame(i: int):
             "object.v_len": 40 + i,
         },
     )
+
+
+# A small COCO-format dataset (images of flat colours; a person, a cup, a dining table)
+# image id -> (colour RGB, categories present)
+_IMAGES = {
+    1: ((230, 20, 20), ["dining table"]),
+    2: ((20, 230, 20), ["person", "dining table"]),
+    3: ((20, 20, 230), ["cup"]),
+    4: ((230, 230, 20), ["person"]),
+    5: ((20, 230, 230), []),
+}
+_CATS = [(1, "person", "person"), (44, "cup", "kitchen"), (67, "dining table", "furniture")]
+
+
+def write_coco(root: Path, layout: str = "images") -> Path:
+    """A small COCO-format folder (train2017 images + instances_train2017.json) under ``root``."""
+    img_dir = root / "images" / "train2017" if layout == "images" else root / "train2017"
+    img_dir.mkdir(parents=True)
+    (root / "annotations").mkdir()
+    images, anns = [], []
+    aid = 1
+    cat_id = {name: cid for cid, name, _ in _CATS}
+    for iid, (colour, cats) in _IMAGES.items():
+        h, w = 96 + 8 * iid, 128 + 16 * iid
+        rng = np.random.default_rng(iid)
+        img = np.empty((h, w, 3), np.uint8)
+        img[:] = colour
+        img = np.clip(img.astype(int) + rng.integers(-10, 10, img.shape), 0, 255).astype(np.uint8)
+        name = f"{iid:012d}.jpg"
+        cv2.imwrite(str(img_dir / name), img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+        images.append(
+            {
+                "license": 1,
+                "file_name": name,
+                "coco_url": "",
+                "height": h,
+                "width": w,
+                "date_captured": "2013-11-14 17:02:52",
+                "flickr_url": "",
+                "id": iid,
+            }
+        )
+        for c in cats:
+            anns.append(
+                {
+                    "segmentation": [[10.0, 10.0, 40.0, 10.0, 40.0, 40.0, 10.0, 40.0]],
+                    "area": 900.0,
+                    "iscrowd": 0,
+                    "image_id": iid,
+                    "bbox": [10.0, 10.0, 30.0, 30.0],
+                    "category_id": cat_id[c],
+                    "id": aid,
+                }
+            )
+            aid += 1
+    data = {
+        "info": {"description": "fake COCO", "version": "1.0", "year": 2017},
+        "licenses": [{"url": "", "id": 1, "name": "test"}],
+        "images": images,
+        "annotations": anns,
+        "categories": [{"supercategory": s, "id": cid, "name": n} for cid, n, s in _CATS],
+    }
+    ann = root / "annotations" / "instances_train2017.json"
+    ann.write_text(json.dumps(data))
+    return root

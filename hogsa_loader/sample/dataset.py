@@ -172,6 +172,8 @@ class HOGSADataset(IterableDataset):
         ).share_memory_()
         self._published: Optional[tuple[int, np.ndarray]] = None  # (pid, stats vector already added)
         self._pipe: Optional[SynthPipeline] = None
+        self._position: Optional[dict[str, int]] = None  # where the running iterator is (state_dict)
+        self._resume_at: Optional[dict[str, int]] = None  # where the next iterator starts (load_state_dict)
         # pose source built eagerly (cheap) so bad configurations fail at construction
         self.keys = self._pose_keys(self._requested_keys(), poses)
         if sample.other_hands > 0 and len({k[0] for k in self.keys}) < 2:
@@ -505,14 +507,73 @@ class HOGSADataset(IterableDataset):
         frame = self._pipeline().frames(plan)[0]
         return None if frame is None else self._to_sample(frame, int(index), ep)
 
-    def _shard_plans(self) -> Iterator[BatchPlan]:
-        """The plans of this process's shard, all at the epoch current when the iteration starts."""
+    def _shard_plans(self, start: Optional[int] = None, epoch: Optional[int] = None) -> Iterator[BatchPlan]:
+        """The plans of this process's shard from render batch ``start`` (default its first), all
+        at ``epoch`` (default the epoch current when the iteration starts)."""
         shard, num = shard_info()
-        ep = self.epoch
-        g = shard
+        ep = self.epoch if epoch is None else int(epoch)
+        g = shard if start is None else int(start)
         while self.num_batches is None or g < self.num_batches:
             yield self.plan(g, ep)
             g += num
+
+    # ------------------------------------------------------------------ resumable stream
+    def state_dict(self) -> dict[str, int]:
+        """Where this process's shard of the stream is (a few integers): the state that
+        :meth:`load_state_dict` resumes exactly, the next sample being the one an uninterrupted
+        iteration would yield next. Before an iteration, its start; in a DataLoader worker,
+        that worker's shard (what torchdata's ``StatefulDataLoader`` collects per worker).
+
+        Keys: ``epoch``, ``batch`` (the render batch the next sample comes from; -1: the shard's
+        first), ``skip`` (kept samples of that batch already yielded), and what the position
+        depends on (``seed``, ``batch_size``, ``num_shards``; -1 before an iteration has told).
+        """
+        if self._position is not None:
+            return dict(self._position)
+        if self._resume_at is not None:
+            return dict(self._resume_at)
+        base = {"seed": self.seed, "batch_size": self.batch_size, "num_shards": -1}
+        return {**base, "epoch": self.epoch, "batch": -1, "skip": 0}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        """Start the next iteration where ``state`` (:meth:`state_dict`) was: same epoch, same
+        render batch, its first ``skip`` kept samples left out. The epoch becomes ``state``'s.
+
+        Raises:
+            ValueError: ``state`` is not a stream state, or it was taken with another seed or
+                render batch size (its positions would name other samples). A state of another
+                number of shards (world size × DataLoader workers) is refused when the
+                iteration starts.
+        """
+        need = ("seed", "batch_size", "num_shards", "epoch", "batch", "skip")
+        if not isinstance(state, dict) or any(not isinstance(state.get(k), int) for k in need):
+            raise ValueError(f"not a HOGSADataset stream state (integers {need}): {state!r}")
+        for k, mine in (("seed", self.seed), ("batch_size", self.batch_size)):
+            if state[k] != mine:
+                raise ValueError(f"the stream state was taken with {k}={state[k]}, this dataset has {k}={mine}")
+        self._resume_at = {k: int(state[k]) for k in need}
+        self._position = None
+        self.epoch = int(state["epoch"])
+
+    def _start(self) -> tuple[Optional[int], int, int]:
+        """``(first render batch or None, kept samples of it to skip, epoch)`` of a new iteration
+        (consuming a loaded state); the running position set to its start."""
+        shard, num = shard_info()
+        at, self._resume_at = self._resume_at, None
+        if at is not None and at["num_shards"] not in (-1, num):
+            raise ValueError(
+                f"the stream state was taken over {at['num_shards']} shards (processes × DataLoader workers); "
+                f"this iteration has {num}: resume with the same world size and workers"
+            )
+        if at is not None and at["batch"] >= 0 and at["batch"] % num != shard:
+            raise ValueError(f"the stream state is of shard {at['batch'] % num}, this process iterates shard {shard}")
+        start = None if at is None or at["batch"] < 0 else at["batch"]
+        skip = 0 if at is None else at["skip"]
+        epoch = self.epoch if at is None else at["epoch"]
+        first = shard if start is None else start
+        base = {"seed": self.seed, "batch_size": self.batch_size, "num_shards": num, "epoch": epoch}
+        self._position = {**base, "batch": first, "skip": skip}
+        return start, skip, epoch
 
     def iter_frames(self) -> Iterator[SynthFrame]:
         """The kept frames of this process's shard, in order (what the offline exporter
@@ -526,9 +587,20 @@ class HOGSADataset(IterableDataset):
     def __iter__(self) -> Iterator[Sample]:
         self._check_device()
         guard = DropGuard(self.checks, self.stats)
-        for plan in self._shard_plans():
+        start, skip, epoch = self._start()
+        _, num = shard_info()
+        for plan in self._shard_plans(start, epoch):
+            g = plan.indices[0] // self.batch_size if plan.indices else 0
             frames = self.render(plan)
-            yield from self._plan_samples(plan, frames)
+            kept = [(i, f) for i, f in zip(plan.indices, frames) if f is not None]
+            for j, (index, frame) in enumerate(kept[skip:], start=skip):
+                sample = self._to_sample(frame, index, plan.epoch)
+                last = j == len(kept) - 1  # the position after this sample: the next batch, or this one
+                self._position = {**self._position, "batch": g + num if last else g, "skip": 0 if last else j + 1}
+                yield sample
+            if not kept[skip:]:
+                self._position = {**self._position, "batch": g + num, "skip": 0}
+            skip = 0
             guard.update(frames)
 
 

@@ -241,6 +241,14 @@ class MixedLoader:
     :meth:`set_epoch` reaches both halves; so does ``.sampler.set_epoch`` (where PyTorch
     Lightning calls it). When the real loader pins its memory (``pin_memory=True``, with CUDA),
     the mixed batches are pinned too.
+
+    **Resuming mid-epoch.** :meth:`state_dict` says where the loader is (epoch, batches
+    yielded, the synthetic stream's own state where it has one); after
+    :meth:`load_state_dict` the next iteration yields exactly the batches an uninterrupted one
+    would have yielded next. The real loader is iterated again from the epoch's start to the
+    same place (its batches are loaded and passed over); the synthetic stream resumes from its
+    state without rendering the samples already used (a stream without ``state_dict``, e.g. a
+    DataLoader with workers, is drawn again up to the same place).
     """
 
     def __init__(
@@ -275,6 +283,9 @@ class MixedLoader:
         self._syn_iter: Optional[Iterator[Any]] = None
         self.epoch = 0
         self.sampler = _EpochOf(self)
+        self._batches = 0  # batches yielded in this epoch
+        self._syn_taken = 0  # synthetic samples taken in this epoch
+        self._resume: Optional[dict[str, Any]] = None
 
     @property
     def real_loader(self) -> Iterable[Any]:
@@ -303,6 +314,45 @@ class MixedLoader:
                 src.set_epoch(self.epoch)
                 done.add(id(src))
         self._syn_iter = None  # the synthetic stream of this epoch, from its start
+        self._batches = self._syn_taken = 0
+        self._resume = None
+
+    def state_dict(self) -> dict[str, Any]:
+        """Where this loader is in its epoch: ``{"epoch", "batches"`` (yielded in it),
+        ``"synthetic_taken"`` (synthetic samples used since the stream's start in this epoch:
+        a new pass of the loader without :meth:`set_epoch` goes on with the same stream),
+        ``"synthetic"`` (the stream's own
+        ``state_dict()``, or None when it has none)``}``; JSON-able."""
+        stream = getattr(self.synthetic, "state_dict", None)
+        return {
+            "epoch": self.epoch,
+            "batches": self._batches,
+            "synthetic_taken": self._syn_taken,
+            "synthetic": stream() if callable(stream) and self._syn_iter is not None else None,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Resume where ``state`` (:meth:`state_dict`) was: its epoch is set on both halves
+        (:meth:`set_epoch`), and the next iteration leaves out the batches already yielded.
+
+        Raises:
+            ValueError: ``state`` is not a ``MixedLoader`` state.
+        """
+        need = ("epoch", "batches", "synthetic_taken")
+        if not isinstance(state, dict) or any(not isinstance(state.get(k), int) or state[k] < 0 for k in need):
+            raise ValueError(f"not a MixedLoader state (non-negative integers {need}, 'synthetic'): {state!r}")
+        self.set_epoch(state["epoch"])
+        self._resume = dict(state)
+
+    def _restore_synthetic(self, state: dict[str, Any]) -> None:
+        """The synthetic stream where ``state`` left it: from its own state, else drawn again."""
+        self._syn_taken = int(state["synthetic_taken"])
+        load = getattr(self.synthetic, "load_state_dict", None)
+        if state.get("synthetic") is not None and callable(load):
+            load(state["synthetic"])
+            self._syn_iter = iter(self.synthetic)
+        elif self._syn_taken:
+            self._next_synthetic(self._syn_taken)
 
     @property
     def batch_size(self) -> Optional[int]:
@@ -358,17 +408,43 @@ class MixedLoader:
                     raise RuntimeError("the synthetic source yields no samples") from None
         return out
 
+    def _draw(self, n: int) -> list[Any]:
+        """``n`` synthetic samples for a batch (counted)."""
+        out = self._next_synthetic(n)
+        self._syn_taken += n
+        return out
+
     def _mixed(self, real: Optional[Any], n_syn: int) -> Any:
         parts = [] if real is None else [real]
         if n_syn:
-            parts.append(self.collate_fn(self._next_synthetic(n_syn)))
+            parts.append(self.collate_fn(self._draw(n_syn)))
         batch = _cat(parts) if len(parts) > 1 else parts[0]
         return _pinned(batch) if self.pin_memory else batch
 
     def __iter__(self) -> Iterator[Any]:
+        resume, self._resume = self._resume, None
+        skip = 0 if resume is None else int(resume["batches"])
+        if resume is not None:
+            self._restore_synthetic(resume)
+        self._batches = skip
+        for batch in self._batches_from(skip):
+            self._batches += 1
+            yield batch
+
+    def _batches_from(self, skip: int) -> Iterator[Any]:
+        """The epoch's mixed batches after the first ``skip`` (whose synthetic samples are not
+        drawn: the stream is already past them)."""
+        for i, spec in enumerate(self._plan()):
+            if i < skip:
+                continue
+            real, n_syn = spec
+            yield self._mixed(real, n_syn)
+
+    def _plan(self) -> Iterator[tuple[Optional[Any], int]]:
+        """``(real part or None, synthetic count)`` of each batch of the epoch, in order."""
         if self.mode == "add":
             for batch in self.real_loader:
-                yield self._mixed(batch, added_synthetic(self.ratio, batch_size_of(batch)))
+                yield batch, added_synthetic(self.ratio, batch_size_of(batch))
             return
         B = self.batch_size
         buf: list[Any] = []  # collated real chunks not used yet
@@ -380,7 +456,7 @@ class MixedLoader:
             n_syn = num_synthetic(self.ratio, B)
             n_real = B - n_syn
             if n_real == 0:  # all synthetic: one batch per real batch
-                yield self._mixed(None, n_syn)
+                yield None, n_syn
                 continue
             buf.append(batch)
             have += n
@@ -389,7 +465,7 @@ class MixedLoader:
                 take, rest = _slice(real, 0, n_real), _slice(real, n_real, have)
                 have -= n_real
                 buf = [rest] if have else []
-                yield self._mixed(take, n_syn)
+                yield take, n_syn
         if have and not self.drop_last:
             real = _cat(buf) if len(buf) > 1 else buf[0]
             # a smaller last batch: the smallest share s with round(ratio·(have+s)) == s. It
@@ -398,4 +474,4 @@ class MixedLoader:
             s = 0
             while num_synthetic(self.ratio, have + s) != s:
                 s += 1
-            yield self._mixed(real, s)
+            yield real, s

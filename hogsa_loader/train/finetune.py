@@ -209,21 +209,42 @@ def _loaders(cfg: FinetuneConfig, rank: int, world: int, device: torch.device) -
     return real, sampler, mixed.synthetic
 
 
-def _batches(cfg: FinetuneConfig, state: dict[str, Any], real: Any, sampler: Any, synthetic: Any) -> Iterator[Any]:
+def _batches(state: dict[str, Any], real: Any, sampler: Any, mixed: Optional[MixedLoader], rank: int) -> Iterator[Any]:
     """``(epoch, index in epoch, batch)`` from where ``state`` left off: each epoch sets the real
-    sampler, the real dataset and the synthetic stream to it and restarts the synthetic stream."""
+    sampler, the real dataset and the synthetic stream to it and restarts the synthetic stream.
+    Resumed mid-epoch, the mixed loader continues from this rank's saved stream state (the
+    synthetic samples already trained on are not rendered again; the real batches before are
+    loaded and passed over)."""
     epoch, skip = int(state.get("epoch", 0)), int(state.get("epoch_batches", 0))
-    loader = real if synthetic is None else MixedLoader(real, synthetic, cfg.ratio)
+    streams = state.get("streams")
     while True:
-        if synthetic is None:
+        if mixed is None:
             sampler.set_epoch(epoch)
             real.dataset.set_epoch(epoch)
+            batches = enumerate(real)
+        elif skip and streams:
+            mixed.load_state_dict(streams[rank])  # this epoch, from this rank's place in it
+            batches = enumerate(mixed, start=skip)
+            skip = 0
         else:
-            loader.set_epoch(epoch)  # the real sampler and dataset, and the synthetic stream from its start
-        for i, batch in enumerate(loader):
-            if i >= skip:  # (resumed mid-epoch: the batches before were trained on; their samples are drawn again)
+            mixed.set_epoch(epoch)  # the real sampler and dataset, and the synthetic stream from its start
+            batches = enumerate(mixed)
+        for i, batch in batches:
+            if i >= skip:  # (resumed mid-epoch without a stream state: the batches before are drawn again)
                 yield epoch, i, batch
         epoch, skip = epoch + 1, 0
+
+
+def _stream_states(mixed: Optional[MixedLoader], world: int) -> Optional[list[dict[str, Any]]]:
+    """Every rank's mixed-loader state, in rank order (a collective call: every rank makes it)."""
+    if mixed is None:
+        return None
+    mine = mixed.state_dict()
+    if world == 1:
+        return [mine]
+    every: list[Any] = [None] * world
+    torch.distributed.all_gather_object(every, mine)
+    return every
 
 
 def _log_row(step: int, losses: dict[str, float], batch: Any, model: Optional[torch.nn.Module]) -> str:
@@ -289,13 +310,14 @@ def finetune(cfg: FinetuneConfig, log: Any = print) -> dict[str, Any]:
         state = state or {"key": key, "history": [], "evals": [], "train_time_s": 0.0}
         net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
         real, sampler, synthetic = _loaders(cfg, rank, world, device)
+        mixed = None if synthetic is None else MixedLoader(real, synthetic, cfg.ratio)
         step = int(state.get("step", 0))
         log_path = out / f"log.rank{rank}.jsonl"
         _truncated_log(log_path, step)
         say(f"[finetune] rank {rank} of {world} on {device}, from step {step}")
         t0 = time.perf_counter()
         with open(log_path, "a") as fh:
-            for epoch, i, batch in _batches(cfg, state, real, sampler, synthetic) if step < cfg.steps else ():
+            for epoch, i, batch in _batches(state, real, sampler, mixed, rank) if step < cfg.steps else ():
                 torch.manual_seed(_step_seed(cfg.seed, rank, step))  # dropout: a function of (seed, rank, step)
                 losses = training_step(net, batch, layers, opt, cfg.img_res, device=device)
                 step += 1
@@ -305,8 +327,10 @@ def finetune(cfg: FinetuneConfig, log: Any = print) -> dict[str, Any]:
                 if step % cfg.ckpt_every == 0 or step == cfg.steps:
                     state["train_time_s"] = float(state["train_time_s"]) + time.perf_counter() - t0
                     t0 = time.perf_counter()
+                    streams = _stream_states(mixed, world)
                     if rank == 0:
-                        _save(out, step, model, opt, {**state, "epoch": epoch, "epoch_batches": i + 1})
+                        place = {"epoch": epoch, "epoch_batches": i + 1, "streams": streams}
+                        _save(out, step, model, opt, {**state, **place})
                     if world > 1:
                         torch.distributed.barrier()  # a checkpoint is whole before any rank goes on
                 if step >= cfg.steps:

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import tiny_srm
+from conftest import tiny_srm, write_coco
 from torch.utils.data import DataLoader, default_collate
 
 from hogsa_loader.assets.arctic import ArcticRoot
@@ -355,10 +355,8 @@ def test_background_source_is_built_at_construction(bundle_dir, tiny_world, tmp_
     with pytest.raises(ValueError, match="apply to COCO images"):  # not silently ignored
         HOGSADataset(bundle_dir, tiny_world, _config(background_folder=tmp_path / "bg", exclude_person=True))
     # COCO options reach the source: people excluded, explicit image folder
-    from test_compose import _write_coco
-
     monkeypatch.setenv("HOGSA_CACHE", str(tmp_path / "cache"))  # (the COCO selection cache, not ~/.cache)
-    coco = _write_coco(tmp_path / "coco")
+    coco = write_coco(tmp_path / "coco")
     ds = HOGSADataset(
         bundle_dir,
         tiny_world,
