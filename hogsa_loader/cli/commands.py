@@ -14,7 +14,8 @@ import json
 import os
 import sys
 import time
-from typing import Sequence
+from pathlib import Path
+from typing import Any, Sequence
 
 import torch
 from tqdm import tqdm
@@ -27,11 +28,14 @@ from hogsa_loader.cli.registry import HELP
 from hogsa_loader.compose.plates import PlateConfig, build_plates
 from hogsa_loader.errors import AssetError, HogsaError, UsageError
 from hogsa_loader.extras import require
+from hogsa_loader.render.frame_maps import FrameMapsConfig, view_images, write_frame_maps
 from hogsa_loader.sample.config import LoaderConfig, export_info
 from hogsa_loader.sample.dataset import HOGSADataset
 from hogsa_loader.sample.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
 from hogsa_loader.view.config import ViewConfig, check_view_config
+from hogsa_loader.view.frame_maps import frame_maps_sheet
 from hogsa_loader.view.job import run_view
+from hogsa_loader.view.pictures import write_png
 from hogsa_loader.view.preview import hand_preview, object_preview, save_sheet
 from hogsa_world import generate_world, get_preset
 from hogsa_world.annotation_noise import AnnotationNoise, add_annotation_noise
@@ -285,6 +289,20 @@ def _cmd_plates(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_frame_maps(args: argparse.Namespace) -> int:
+    cfg = dataclass_from_args(FrameMapsConfig, args)
+    cfg.check()
+    checks.input_dir(cfg.data, "--data")
+    checks.output_dir(cfg.out)
+    manifest = write_frame_maps(cfg, log=None if cfg.quiet else print)
+    if manifest["views"]:  # a picture of the first view written
+        folder, images = view_images(cfg, manifest["views"][0])
+        write_png(Path(cfg.out) / "preview.png", frame_maps_sheet(folder, images))
+        if not cfg.quiet:
+            print(f"[frame-maps] preview: {Path(cfg.out) / 'preview.png'}")
+    return 0
+
+
 def _cmd_h2o_export(args: argparse.Namespace) -> int:
     try:
         w, h = (int(v) for v in args.image_size.split("x"))
@@ -485,14 +503,28 @@ def _view_parser(sub: argparse._SubParsersAction) -> None:
     v.set_defaults(func=_cmd_view)
 
 
+def _config_parser(sub: argparse._SubParsersAction, name: str, config: type, description: str, func: Any) -> None:
+    """A sub-command whose flags are derived from the dataclass ``config``."""
+    parser = sub.add_parser(name, help=HELP[name], description=description)
+    add_dataclass_arguments(parser, config)
+    parser.set_defaults(func=func)
+
+
+def _frame_maps_parser(sub: argparse._SubParsersAction) -> None:
+    """The ``hogsa frame-maps`` sub-command."""
+    description = (
+        "Render the annotated hands and object into every allocentric cropped image: "
+        "<image>_depth.png (16-bit millimetres), <image>_mask.png (part ids) and cameras.npz (the "
+        "crops' intrinsics and extrinsics) per (subject, sequence, view); resumable per view."
+    )
+    _config_parser(sub, "frame-maps", FrameMapsConfig, description, _cmd_frame_maps)
+
+
 def _plates_parser(sub: argparse._SubParsersAction) -> None:
     """The ``hogsa plates`` sub-command."""
-    pl = sub.add_parser(
-        "plates",
-        help=HELP["plates"],
-        description="Map the cropped frames of each allocentric view back into the full camera "
+    description = (
+        "Map the cropped frames of each allocentric view back into the full camera "
         "image, mask out the annotated hands and object, and keep the per-pixel median of the "
-        "background: one PNG per (subject, view) and plates.json, for --background-folder.",
+        "background: one PNG per (subject, view) and plates.json, for --background-folder."
     )
-    add_dataclass_arguments(pl, PlateConfig)
-    pl.set_defaults(func=_cmd_plates)
+    _config_parser(sub, "plates", PlateConfig, description, _cmd_plates)

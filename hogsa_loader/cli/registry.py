@@ -48,6 +48,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "clean background plates of the dataset's static cameras, from its own frames",
         "hogsa_loader.cli.commands:_plates_parser",
     ),
+    "frame-maps": (
+        "depth maps, part masks and intrinsics of the dataset's cropped images, from its annotations",
+        "hogsa_loader.cli.commands:_frame_maps_parser",
+    ),
     "train": (
         "train a HOGS model, the SRM or ContactNet, or build a pose bank",
         "hogsa_loader.cli.train_commands:add_train_commands",

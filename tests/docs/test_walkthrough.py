@@ -43,7 +43,7 @@ def _run(argv: list[str], cwd: Path, env: dict[str, str], **kw) -> subprocess.Co
 
 def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     commands = _commands()
-    first_words = ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "torchrun", "torchrun"]
+    first_words = ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "torchrun", "torchrun", "hogsa"]
     assert [c.split()[0] for c in commands] == first_words
     assert "examples/lightning_arcticnet.py" in commands[7]  # run by tests/sample/test_lightning.py
     (tmp_path / "data").symlink_to(tiny_world, target_is_directory=True)
@@ -124,6 +124,10 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
             and (tmp_path / run / "model.safetensors").is_file()
         )
     assert (tmp_path / "finetune_ddp" / "log.rank1.jsonl").is_file()
+    # 8. depth maps, part masks and intrinsics of the real frames
+    timed("frame-maps", lambda: _run(hogsa + shlex.split(commands[8])[1:], tmp_path, env))
+    maps = json.loads((tmp_path / "maps" / "maps.json").read_text())
+    assert maps["views"] == ["s01/box_use_01/1", "s01/box_use_01/2"] and (tmp_path / "maps" / "preview.png").is_file()
     total = sum(seconds.values())
     steps = ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items())
     print(f"walkthrough on the tiny world: {total:.0f} s ({steps})")
