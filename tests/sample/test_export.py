@@ -290,6 +290,27 @@ def test_map_style_samples_equal_the_stream(export_dir, tmp_path):
         SynthShardSamples(tmp_path / "empty")
 
 
+def test_map_style_samples_hold_an_index_not_the_shards(export_dir, tmp_path):
+    """Each rank and worker holds where the members are, not their bytes; a shard changed
+    afterwards is refused on access, naming it; a worker reads through its own files."""
+    ds = SynthShardSamples(export_dir, seed=5)
+    held = sum(len(v) for *_, files in ds._items for v in files.values() if isinstance(v, bytes))
+    assert held == 0
+    ref = ds[3][0]["img"]
+    workers = DataLoader(ds, batch_size=None, num_workers=2)
+    assert torch.equal([x for x in workers][3][0]["img"], ref)
+    copy = tmp_path / "copy"
+    shutil.copytree(export_dir, copy)
+    ds = SynthShardSamples(copy, seed=5)
+    shard = ds._items[0][0]
+    offset, size, _ = ds._items[0][3]["json"]
+    raw = bytearray(shard.read_bytes())
+    raw[offset] ^= 0xFF
+    shard.write_bytes(bytes(raw))
+    with pytest.raises(AssetError, match=f"{shard.name}.*changed since the dataset was made"):
+        ds[0]
+
+
 def test_reader_sharding_and_errors(export_dir, tmp_path):
     a = [f.imgname for f in SynthShardDataset(export_dir, rank=0, world_size=2)]
     b = [f.imgname for f in SynthShardDataset(export_dir, rank=1, world_size=2)]

@@ -378,6 +378,18 @@ class SynthShardDataset(IterableDataset):
             yield frame_to_arctic_sample(frame, int(index), seed, epoch, self.augment, self.cfg)
 
 
+def _member_places(shard: Path) -> Optional[dict[tuple[str, str], tuple[int, int]]]:
+    """``(key, extension) -> (offset, size)`` of the data of every member of an uncompressed
+    tar shard; None for a compressed one (no offsets into the file)."""
+    try:
+        with tarfile.open(shard, "r:") as tar:
+            return {split_member_name(m.name): (m.offset_data, m.size) for m in tar.getmembers() if m.isfile()}
+    except tarfile.ReadError:
+        return None
+    except (tarfile.TarError, OSError, EOFError) as exc:
+        raise AssetError(shard, f"unreadable tar shard ({type(exc).__name__}: {exc})") from None
+
+
 def _sample_index(shard: Path, key: str, files: dict[str, bytes]) -> int:
     """Global sample index of a stored sample (``index`` of its JSON, else its key)."""
     try:
@@ -396,12 +408,16 @@ def _sample_index(shard: Path, key: str, files: dict[str, bytes]) -> int:
 class SynthShardSamples(Dataset):
     """Exported synthetic frames as a map-style dataset of ArcticNet-SF samples.
 
-    The shards' encoded members are held in memory (a few tens of kB per sample) and
-    decoded on access, so a ``DataLoader(shuffle=True)`` draws samples from every model
-    and pose of the export in each batch (:class:`SynthShardDataset` streams them in
-    shard order). Sample ``i`` is augmented from ``default_rng([seed, epoch, index, 3])``
-    with ``index`` its global export index — the same draw as :class:`SynthShardDataset`
-    and the live loader.
+    The shards are read once when the dataset is made (every member checked against the
+    shard index's sha256) and then indexed: each sample is read from its shard by offset when
+    it is accessed (its sha256 checked again), so each rank and DataLoader worker holds only
+    the index (a few hundred bytes per sample), and a ``DataLoader(shuffle=True)`` draws
+    samples from every model and pose of the export in each batch (:class:`SynthShardDataset`
+    streams them in shard order). Compressed shards (``.tar.gz``), which cannot be read by
+    offset, are held in memory instead (a few tens of kB per sample).
+
+    Sample ``i`` is augmented from ``default_rng([seed, epoch, index, 3])`` with ``index`` its
+    global export index — the same draw as :class:`SynthShardDataset` and the live loader.
 
     Args:
         paths: shard folder, glob, brace pattern, file, or a list of them.
@@ -428,12 +444,43 @@ class SynthShardSamples(Dataset):
         self.seed = None if seed is None else int(seed)
         self.epoch = int(epoch)
         self.cfg = cfg if cfg is not None else ArcticConfig()
-        self._items: list[tuple[Path, str, int, dict[str, bytes]]] = []
+        # (shard, key, global index, {extension: bytes, or (offset, size, sha256) in the shard})
+        self._items: list[tuple[Path, str, int, dict[str, Any]]] = []
         for sh in self.shards:
+            places = _member_places(sh)
             for key, files in iter_tar_samples(sh):
-                self._items.append((sh, key, _sample_index(sh, key, files), files))
+                index = _sample_index(sh, key, files)
+                if places is not None:
+                    files = {ext: (*places[(key, ext)], hashlib.sha256(data).digest()) for ext, data in files.items()}
+                self._items.append((sh, key, index, files))
         if not self._items:
             raise AssetError(self.shards[0], "no samples in the export")
+        self._handles: dict[Path, Any] = {}
+        self._pid = os.getpid()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_handles": {}}  # (open files stay in the process that opened them)
+
+    def _files(self, i: int) -> dict[str, bytes]:
+        """The encoded members of item ``i``, read from its shard (and checked) when indexed."""
+        sh, key, _, files = self._items[i]
+        if os.getpid() != self._pid:  # a forked worker: files of its own
+            self._handles, self._pid = {}, os.getpid()
+        out = {}
+        for ext, place in files.items():
+            if isinstance(place, bytes):
+                out[ext] = place
+                continue
+            offset, size, digest = place
+            fh = self._handles.get(sh)
+            if fh is None:
+                fh = self._handles[sh] = open(sh, "rb")
+            fh.seek(offset)
+            data = fh.read(size)
+            if len(data) != size or hashlib.sha256(data).digest() != digest:
+                raise AssetError(sh, f"{key}.{ext} changed since the dataset was made (truncated or rewritten shard)")
+            out[ext] = data
+        return out
 
     def __len__(self) -> int:
         return len(self._items)
@@ -444,7 +491,8 @@ class SynthShardSamples(Dataset):
 
     def frame(self, i: int) -> SynthFrame:
         """The stored frame of item ``i``."""
-        sh, key, _, files = self._items[i]
+        sh, key, _, _ = self._items[i]
+        files = self._files(i)
         try:
             return decode_frame(files, f"{sh}:{key}")
         except ValueError as exc:
