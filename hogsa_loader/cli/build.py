@@ -5,20 +5,34 @@ Settings come from the defaults, then the ``--config`` file, then the flags. Eac
 are those of its ``hogsa train`` job behind the stage's name (``--hogs-optim-iters``,
 ``--srm-batch-size``); the data, output, seed and device are the build's own (``--data``,
 ``--out``, ``--seed``, ``--device``).
+
+``--gpus 0,1,…`` starts one build process per listed GPU on this machine (each maps ``--device
+cuda`` to ``cuda:<id>``; with another device the ids only count the processes); they share the
+stages as processes from torchrun or srun do.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
 from typing import Any, Optional, Sequence
 
 from hogsa_loader.cli import checks
-from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, apply_field_checks, dataclass_from_args
+from hogsa_loader.cli.dataclass_args import CommaList, add_dataclass_arguments, apply_field_checks, dataclass_from_args
 from hogsa_loader.cli.registry import HELP
-from hogsa_loader.errors import HogsaError
-from hogsa_loader.train.build import SET_BY_BUILD, BuildConfig, build, build_status, config_toml, read_config
+from hogsa_loader.errors import HogsaError, UsageError
+from hogsa_loader.train.build import (
+    SET_BY_BUILD,
+    BuildConfig,
+    build,
+    build_status,
+    config_toml,
+    process_slot,
+    read_config,
+)
 
 __all__ = ["add_build_command", "build_parser", "run_build_command"]
 
@@ -30,6 +44,15 @@ _FLAGS = (
     ("--print-config", dict(action="store_true", help="print the settings as TOML and exit")),
     ("--status", dict(action="store_true", help="print what is built and what is left, and exit")),
     ("--quiet", dict(action="store_true", help="no progress bars or messages")),
+    (
+        "--gpus",
+        dict(
+            default=None,
+            type=CommaList(int),
+            metavar="ID,...",
+            help="one build process per listed GPU of this machine, sharing the stages",
+        ),
+    ),
 )
 
 
@@ -93,12 +116,48 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             tail = f"; left: {', '.join(left)}" if left else ""
             print(f"{len(rows) - len(left)} of {len(rows)} stages done{tail}")
             return 0
+        if a.gpus:
+            return _launch(list(argv if argv is not None else sys.argv[1:]), a.gpus)
         bundle, seconds = build(cfg, log=None if a.quiet else print)
     except (HogsaError, OSError) as exc:  # a bad setting (exit status 2), a problem met while building (1)
         return checks.report("hogsa build", exc)
     if not a.quiet:
         print(json.dumps({"bundle": str(bundle), "stage_seconds": {k: round(v, 1) for k, v in seconds.items()}}))
     return 0
+
+
+def _without_gpus(argv: list[str]) -> list[str]:
+    out, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--gpus":
+            skip = True
+        elif not arg.startswith("--gpus="):
+            out.append(arg)
+    return out
+
+
+def _launch(argv: list[str], gpus: list[int]) -> int:
+    """Run the build in one process per GPU of ``gpus`` (``RANK``, ``WORLD_SIZE`` and
+    ``LOCAL_RANK`` = the GPU id, as torchrun sets them); the first non-zero exit status."""
+    if process_slot()[1] > 1:
+        raise UsageError("--gpus starts its own processes: not under torchrun or srun")
+    if len(set(gpus)) != len(gpus) or min(gpus) < 0:
+        raise UsageError(f"--gpus must list distinct GPU ids >= 0, got {gpus}")
+    base = {k: v for k, v in os.environ.items() if not k.startswith("SLURM_")}
+    cmd = [sys.executable, "-m", "hogsa_loader.cli.build", *_without_gpus(argv)]
+    procs = []
+    try:
+        for rank, gpu in enumerate(gpus):
+            env = {**base, "RANK": str(rank), "WORLD_SIZE": str(len(gpus)), "LOCAL_RANK": str(gpu)}
+            procs.append(subprocess.Popen(cmd, env=env))
+        codes = [p.wait() for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+    return next((c for c in codes if c), 0)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """``docs/real-arctic.md``, executed: every console command and the Python block, in order, on
 the generated test world treated as a user's ARCTIC root (``data`` in a fresh folder), with the
-settings file shrunk to toy sizes (the one edit step 2 invites). torchrun and srun each build
-into a folder of their own and must write the stages a single process writes; srun is played by
-two processes with the variables srun sets."""
+settings file shrunk to toy sizes (the one edit step 2 invites). torchrun, srun and ``--gpus``
+each build into a folder of their own and must write the stages a single process writes; srun
+is played by two processes with the variables srun sets."""
 
 from __future__ import annotations
 
@@ -43,9 +43,9 @@ def _run(argv: list[str], cwd: Path, env: dict[str, str], **kw) -> subprocess.Co
 
 def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     commands = _commands()
-    first_words = ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "torchrun", "torchrun", "hogsa"]
+    first_words = ["hogsa", "hogsa", "hogsa", "torchrun", "srun", "hogsa", "hogsa", "torchrun", "torchrun", "hogsa"]
     assert [c.split()[0] for c in commands] == first_words
-    assert "examples/lightning_arcticnet.py" in commands[7]  # run by tests/sample/test_lightning.py
+    assert "examples/lightning_arcticnet.py" in commands[8]  # run by tests/sample/test_lightning.py
     (tmp_path / "data").symlink_to(tiny_world, target_is_directory=True)
     env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
     env = {k: v for k, v in env.items() if not k.startswith("SLURM_")}
@@ -82,20 +82,26 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     assert srun[1:3] == ["--ntasks", "2"] and srun[3] == "python"
     task = [sys.executable, *srun[4:], "--out", "build_srun"]
 
-    def both():  # side by side (folders of their own): torchrun, and srun's two tasks
+    gpus = shlex.split(commands[5])
+    assert gpus[-2:] == ["--gpus", "0,1"]
+    launched = hogsa + gpus[1:] + ["--out", "build_gpus"]
+
+    def both():  # side by side (folders of their own): torchrun, srun's two tasks, --gpus
         def start(cmd, extra_env):
             pipe = subprocess.PIPE
             return subprocess.Popen(cmd, cwd=tmp_path, env={**env, **extra_env}, stdout=pipe, stderr=pipe, text=True)
 
         slurm = [{"SLURM_PROCID": str(i), "SLURM_STEP_NUM_TASKS": "2", "SLURM_NTASKS": "2"} for i in range(2)]
-        procs = [start(argv, {})] + [start(task, v) for v in slurm]
+        procs = [start(argv, {})] + [start(task, v) for v in slurm] + [start(launched, {})]
         return [(*p.communicate(timeout=900), p.returncode) for p in procs]
 
-    results = timed("torchrun + srun", both)
-    assert [r[2] for r in results] == [0, 0, 0], [r[1][-2000:] for r in results]
+    results = timed("torchrun + srun + --gpus", both)
+    assert [r[2] for r in results] == [0, 0, 0, 0], [r[1][-2000:] for r in results]
     assert "process 0 of 2" in results[0][0] and "process 1 of 2" in results[0][0]
     assert _records(tmp_path / "build_torchrun") == single
-    results = [(r[2], r[0], r[1]) for r in results[1:]]
+    assert "process 0 of 2" in results[3][0] and "process 1 of 2" in results[3][0]
+    assert _records(tmp_path / "build_gpus") == single
+    results = [(r[2], r[0], r[1]) for r in results[1:3]]
     assert _records(tmp_path / "build_srun") == single
     built = [line for r in results for line in r[1].splitlines() if "] done in" in line]
     assert len(built) == 5  # each stage once, across the two tasks
@@ -109,9 +115,9 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     assert "synthetic 4" in out.stdout
     # 7. fine-tuning, one process and two (toy sizes, on the CPU)
     toy = ["--backbone", "resnet18", "--img-res", "64", "--batch-size", "4", "--steps", "2", "--max-val", "4"]
-    one = [a if a != "cuda" else "cpu" for a in shlex.split(commands[5])]
+    one = [a if a != "cuda" else "cpu" for a in shlex.split(commands[6])]
     timed("finetune", lambda: _run(hogsa + one[1:] + toy, tmp_path, env))
-    ddp = [a if a != "cuda" else "cpu" for a in shlex.split(commands[6])]
+    ddp = [a if a != "cuda" else "cpu" for a in shlex.split(commands[7])]
     timed(
         "finetune torchrun",
         lambda: _run([sys.executable, "-m", "torch.distributed.run", *ddp[1:], *toy], tmp_path, env),
@@ -125,7 +131,7 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
         )
     assert (tmp_path / "finetune_ddp" / "log.rank1.jsonl").is_file()
     # 8. depth maps, part masks and intrinsics of the real frames
-    timed("frame-maps", lambda: _run(hogsa + shlex.split(commands[8])[1:], tmp_path, env))
+    timed("frame-maps", lambda: _run(hogsa + shlex.split(commands[9])[1:], tmp_path, env))
     maps = json.loads((tmp_path / "maps" / "maps.json").read_text())
     assert maps["views"] == ["s01/box_use_01/1", "s01/box_use_01/2"] and (tmp_path / "maps" / "preview.png").is_file()
     total = sum(seconds.values())

@@ -205,6 +205,16 @@ def test_process_slot_and_device_from_the_launchers():
     assert rank_device("cuda:0", {"LOCAL_RANK": "1"}) == "cuda:0" and rank_device("cpu", {"LOCAL_RANK": "1"}) == "cpu"
 
 
+def test_gpus_refuses_repeated_ids_and_a_launcher(tmp_path, monkeypatch, capsys):
+    from hogsa_loader.cli.build import _without_gpus, main
+
+    assert _without_gpus(["--out", "b", "--gpus", "0,1", "--seed", "2", "--gpus=3"]) == ["--out", "b", "--seed", "2"]
+    args = ["--data", str(tmp_path), "--out", str(tmp_path / "b")]
+    assert main([*args, "--gpus", "0,0"]) == 2 and "distinct GPU ids" in capsys.readouterr().err
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main([*args, "--gpus", "0,1"]) == 2 and "not under torchrun or srun" in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------------- the command line
 def test_config_file_round_trips_and_flags_override_it(tiny_world, tmp_path, capsys):
     from hogsa_loader.cli.build import parse_build_args
