@@ -6,7 +6,11 @@ import hashlib
 import io
 import json
 import shutil
+import signal
+import subprocess
+import sys
 import tarfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -153,6 +157,36 @@ def test_resume_after_interruption(tmp_path, export_dir):
     calls.clear()
     write_shards(frames_for(calls), out, NUM, SHARD, progress=False)
     assert calls == [1]
+
+
+def test_a_killed_export_reads_as_incomplete(tmp_path):
+    """SIGKILL in the middle of a fresh export (no finally block runs): its index.json, written
+    before the first shard, says incomplete, so the readers refuse it; the next run completes it."""
+    out = tmp_path / "killed"
+    script = f"""
+import os, signal, sys
+sys.path.insert(0, {str(Path(__file__).resolve().parents[1])!r})
+from conftest import make_frame
+from hogsa_loader.sample.export import write_shards
+
+def frames(shard):
+    for i in range(shard * {SHARD}, min((shard + 1) * {SHARD}, {NUM})):
+        if shard == 1:
+            os.kill(os.getpid(), signal.SIGKILL)
+        yield make_frame(i)
+
+write_shards(frames, {str(out)!r}, {NUM}, {SHARD}, progress=False)
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert (out / shard_name(0)).is_file() and not (out / shard_name(1)).exists()
+    with pytest.raises(AssetError, match="incomplete"):
+        SynthShardDataset(out)
+    with pytest.raises(AssetError, match="no complete shard"):  # (the index lists what it had verified)
+        expand_shards(out, incomplete=True)
+    calls: list = []
+    assert write_shards(frames_for(calls), out, NUM, SHARD, progress=False)["complete"]  # resumed
+    assert calls == [1] and len(list(SynthShardDataset(out))) == NUM
 
 
 def test_resume_refuses_another_exports_shards(tmp_path, export_dir):

@@ -541,6 +541,8 @@ def write_shards(
         t_all = time.perf_counter()
         written_samples, dropped = 0, 0
         failed = True
+        if todo:  # the marker first: until the last shard is written, index.json says incomplete
+            rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
         try:
             for s in todo:
                 rng = shard_range(s, num, shard_size)
