@@ -12,6 +12,7 @@ import sys
 import tarfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -34,6 +35,7 @@ from hogsa_loader.sample.export import (
     shard_name,
     write_shards,
 )
+from hogsa_loader.sample.export.codec import split_member_name
 from hogsa_loader.sample.frame import SynthFrame
 from hogsa_loader.sample.synth import frame_to_sample, source_scale
 from hogsa_loader.sample.targets import SAMPLE_META_KEYS, SAMPLE_TARGET_KEYS, make_arctic_sample
@@ -634,3 +636,49 @@ def test_a_shard_of_the_right_size_but_other_bytes_is_rewritten(tmp_path):
     assert tar.read_bytes() == good
     rec = json.loads((out / "synth-000000.index.json").read_text())
     assert rec["sha256"] == hashlib.sha256(good).hexdigest()
+
+
+def _members(frame_index: int = 0) -> dict[str, bytes]:
+    """``{extension: bytes}`` of a stored sample (what the readers pass to ``decode_frame``)."""
+    return {split_member_name(k)[1]: v for k, v in encode_frame(make_frame(frame_index), "s/0").items()}
+
+
+def _npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def test_crafted_sample_members_are_refused_before_they_are_decoded(tmp_path):
+    """Decompression bombs (an alpha larger than its image, labels that inflate to megabytes, a
+    tar member announcing gigabytes) and malformed records give the readers' typed errors,
+    naming the member; a frame with labels that are not finite is not decoded."""
+    good = _members()
+    labels = dict(np.load(io.BytesIO(good["labels.npz"]), allow_pickle=False))
+    cases = {
+        "alpha.png": (_png_of(np.zeros((S + 1, S), np.uint8)), "announces 48x49 pixels, more than 2304"),
+        "labels.npz": (_npz(bomb=np.zeros(2**21, np.float32), **labels), "uncompressed, more than labels hold"),
+    }
+    for member, (data, message) in cases.items():
+        with pytest.raises((ValueError, AssetError), match=message):
+            decode_frame({**good, member: data}, "s/0")
+    nan = {**labels, "right.j2d": np.full_like(labels["right.j2d"], np.nan)}
+    with pytest.raises(ValueError, match="not finite: right.j2d"):
+        decode_frame({**good, "labels.npz": _npz(**nan)}, "s/0")
+    missing = {k: v for k, v in labels.items() if k != "obj.radian"}
+    with pytest.raises(ValueError, match=r"s/0: malformed sample \(KeyError"):
+        decode_frame({**good, "labels.npz": _npz(**missing)}, "s/0")
+    with pytest.raises(ValueError, match=r"malformed sample \(TypeError"):
+        decode_frame({**good, "json": b"[]"}, "s/0")
+    # a tar member that announces 3 GiB (a sparse member: the file itself is small)
+    head = tarfile.TarInfo("s/0.jpg")
+    head.size = 3 * 2**30
+    (tmp_path / "bomb.tar").write_bytes(head.tobuf(format=tarfile.GNU_FORMAT))
+    with pytest.raises(AssetError, match=r"member s/0.jpg: 3221225472 bytes, more than a sample member's"):
+        list(iter_tar_samples(tmp_path / "bomb.tar"))
+
+
+def _png_of(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()

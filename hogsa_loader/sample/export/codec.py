@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 from typing import Any, Mapping, Optional
 
 import cv2
@@ -173,8 +174,31 @@ def encode_frame(
     return members
 
 
-def _decode_png(data: bytes, where: str = "<shard member>") -> np.ndarray:
-    return decode_image(data, where, cv2.IMREAD_UNCHANGED)
+#: Largest uncompressed ``labels.npz`` of one sample (its arrays hold a few kB).
+MAX_LABEL_BYTES = 4 * 2**20
+
+
+def _decode_png(data: bytes, where: str = "<shard member>", max_pixels: Optional[int] = None) -> np.ndarray:
+    if max_pixels is None:
+        return decode_image(data, where, cv2.IMREAD_UNCHANGED)
+    return decode_image(data, where, cv2.IMREAD_UNCHANGED, max_pixels=max_pixels)
+
+
+def _labels(data: bytes, where: str) -> dict[str, np.ndarray]:
+    """The arrays of a ``labels.npz`` member, its uncompressed size checked before anything
+    is decompressed."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            size = sum(i.file_size for i in zf.infolist())
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        raise ValueError(f"{where}.labels.npz: not an npz archive ({exc})") from None
+    if size > MAX_LABEL_BYTES:
+        raise ValueError(f"{where}.labels.npz: {size} bytes uncompressed, more than labels hold ({MAX_LABEL_BYTES})")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{where}.labels.npz: unreadable ({type(exc).__name__}: {exc})") from None
 
 
 def _dequantise(q: np.ndarray) -> np.ndarray:
@@ -195,8 +219,16 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
         [0, 1]; label arrays as written; ``part_alpha`` zeros when not stored).
 
     Raises:
-        ValueError: a member is missing or undecodable.
+        ValueError: a member is missing, undecodable or malformed (a label missing or not
+            finite, a record of the wrong type); the message names ``where`` and the member.
     """
+    try:
+        return _decode_frame(files, where)
+    except (KeyError, TypeError, AttributeError, IndexError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{where}: malformed sample ({type(exc).__name__}: {exc})") from None
+
+
+def _decode_frame(files: Mapping[str, bytes], where: str) -> SynthFrame:
     for need in ("labels.npz", "json", "alpha.png"):
         if need not in files:
             raise ValueError(f"{where}: member .{need} missing")
@@ -206,20 +238,25 @@ def decode_frame(files: Mapping[str, bytes], where: str = "<sample>") -> SynthFr
         raise ValueError(f"{where}: no image member (.jpg or .png)")
     bgr = decode_image(files[ext], f"{where}.{ext}", cv2.IMREAD_COLOR)
     image = np.ascontiguousarray(bgr[:, :, ::-1])
-    alpha = _dequantise(_decode_png(files["alpha.png"], f"{where}.alpha.png"))
+    pixels = image.shape[0] * image.shape[1]  # alpha and parts: the image's size, no larger
+    alpha = _dequantise(_decode_png(files["alpha.png"], f"{where}.alpha.png", max_pixels=pixels))
     if alpha.shape[:2] != image.shape[:2]:
         raise ValueError(
             f"{where}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, the image {image.shape[1]}x{image.shape[0]}"
         )
     if "parts.png" in files:
-        parts = _decode_png(files["parts.png"], f"{where}.parts.png")
+        parts = _decode_png(files["parts.png"], f"{where}.parts.png", max_pixels=pixels)
         if parts.shape[:2] != image.shape[:2]:
             raise ValueError(f"{where}: parts.png is {parts.shape[1]}x{parts.shape[0]}, the image differs")
         part_alpha = _dequantise(np.ascontiguousarray(parts[:, :, ::-1]))
     else:
         part_alpha = np.zeros(image.shape[:2] + (3,), np.float32)
-    with np.load(io.BytesIO(files["labels.npz"]), allow_pickle=False) as z:
-        lab = {k: z[k] for k in z.files}
+    lab = _labels(files["labels.npz"], where)
+    bad = [
+        k for k, v in lab.items() if not k.startswith(EXTRA_PREFIX) and v.dtype.kind == "f" and not np.isfinite(v).all()
+    ]
+    if bad:
+        raise ValueError(f"{where}.labels.npz: labels that are not finite: {', '.join(sorted(bad))}")
 
     def hand(side: str) -> HandLabels:
         return HandLabels(

@@ -17,6 +17,7 @@ import tarfile
 from pathlib import Path
 from typing import Any, Iterator, Optional, Sequence, Union
 
+import numpy as np
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
@@ -166,6 +167,10 @@ def member_checksums(shard: PathLike) -> Optional[dict[str, str]]:
     return digests
 
 
+#: Largest shard member read (a sample's image, masks and labels are tens of kB each).
+MAX_MEMBER_BYTES = 64 * 2**20
+
+
 def iter_tar_samples(path: PathLike, verify: bool = True) -> Iterator[tuple[str, dict[str, bytes]]]:
     """``(key, {extension: bytes})`` for each sample of a tar shard, in file order.
 
@@ -191,6 +196,9 @@ def iter_tar_samples(path: PathLike, verify: bool = True) -> Iterator[tuple[str,
                 if base.startswith("."):
                     continue
                 k, ext = split_member_name(m.name)
+                if m.size > MAX_MEMBER_BYTES:  # (a sparse member can announce gigabytes in a small file)
+                    too_big = f"{m.size} bytes, more than a sample member's {MAX_MEMBER_BYTES}"
+                    raise AssetError(path, f"member {m.name}: {too_big}")
                 fh = tar.extractfile(m)
                 data = fh.read() if fh is not None else b""
                 if digests is not None:
@@ -375,7 +383,18 @@ class SynthShardDataset(IterableDataset):
                     raise AssetError(sh, f"{key}: no global index to seed the augmentation") from None
             seed = self.seed if self.seed is not None else int(frame.meta.get("seed", 0))
             epoch = self.epoch if self.epoch is not None else int(frame.meta.get("epoch", 0))
-            yield frame_to_arctic_sample(frame, int(index), seed, epoch, self.augment, self.cfg)
+            yield _arctic_sample(sh, key, frame, int(index), seed, epoch, self.augment, self.cfg)
+
+
+def _arctic_sample(shard: Path, key: str, frame: SynthFrame, index: int, *args: Any) -> Any:
+    """:func:`frame_to_arctic_sample` of a stored frame; a frame it cannot use (crafted labels:
+    a singular camera, wrong shapes) is an :class:`AssetError` naming the shard and the sample."""
+    try:
+        return frame_to_arctic_sample(frame, index, *args)
+    except (ValueError, KeyError, TypeError, IndexError, np.linalg.LinAlgError) as exc:
+        raise AssetError(
+            shard, f"{key}: its labels make no ArcticNet-SF sample ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def _member_places(shard: Path) -> Optional[dict[tuple[str, str], tuple[int, int]]]:
@@ -502,4 +521,6 @@ class SynthShardSamples(Dataset):
         frame = self.frame(i)
         index = self._items[i][2]
         seed = self.seed if self.seed is not None else int(frame.meta.get("seed", 0))
-        return frame_to_arctic_sample(frame, index, seed, self.epoch, self.augment, self.cfg)
+        return _arctic_sample(
+            self._items[i][0], self._items[i][1], frame, index, seed, self.epoch, self.augment, self.cfg
+        )
