@@ -19,6 +19,7 @@ from hogsa_loader.assets.objects.template import (
     BOTTOM,
     ObjectTemplate,
     bbox_corners,
+    check_mesh_size,
     farthest_point_sampling,
     max_pairwise_distance,
     merge_uv_vertices,
@@ -204,6 +205,7 @@ def load_h2o_object(mesh_dir: PathLike, name: Union[str, int], *, load_texture: 
 
     cls = h2o_class_name(name)
     path = find_h2o_mesh(mesh_dir, cls)
+    check_mesh_size(path)
     try:
         # (maintain_order=False: an OBJ vertex with several texture coordinates at a UV
         # seam is split, one per coordinate; the geometry is welded below anyway)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Mapping, Optional, Sequence
@@ -20,6 +21,7 @@ from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.io.atomic import atomic_write_json
 from hogsa_loader.io.hashing import sha256_file
+from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.io.tensors import ManifestFormat, check_header
 from hogsa_loader.models.gaussians.checkpoint import MANIFEST_FILE, TENSORS_FILE, read_manifest
 from hogsa_loader.models.gaussians.hogs_model import LIGHT_DIR, HogsModel
@@ -387,7 +389,9 @@ def write_bundle(
     Every HOGS run is validated against the data root's hand model and object templates
     before anything is copied (its ``(subject, object)`` comes from the object part's
     manifest ``source``); the runs and optional checkpoints are **copied** into the bundle
-    so it is self-contained. An existing manifest in ``out`` is replaced.
+    so it is self-contained. The bundle is written beside ``out`` and renamed into place when
+    whole: an existing bundle at ``out`` is replaced only then (a killed write leaves the old
+    one), and one process at a time writes it (a lock beside it).
 
     Args:
         out: bundle folder (created).
@@ -414,8 +418,62 @@ def write_bundle(
     if problems:
         raise _bundle_error(out, problems)
 
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MANIFEST_NAME).unlink(missing_ok=True)
+    given, out = Path(out), Path(os.path.abspath(out))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with writer_lock(out.parent, f".{out.name}.bundle.lock", what=f"the writer of bundle {out}"):
+        _restore_or_clean(out)
+        stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+        try:
+            os.chmod(stage, 0o777 & ~_umask())
+            _write_bundle_files(stage, root, runs, layers, templates, srm, contactnet, pose_banks, dataset)
+            _replace_folder(stage, out)
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
+    return given
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _restore_or_clean(out: Path) -> None:
+    """Leftovers of a killed write next to ``out`` (the caller holds the bundle's lock, so no
+    one is writing them): an old bundle moved aside is put back when ``out`` is missing, and
+    partial and old folders are removed."""
+    old = sorted(out.parent.glob(f".{out.name}.old-*"))
+    if old and not out.exists():
+        os.rename(old.pop(), out)
+    for leftover in old + sorted(out.parent.glob(f".{out.name}.partial-*")):
+        shutil.rmtree(leftover, ignore_errors=True)
+
+
+def _replace_folder(new: Path, out: Path) -> None:
+    """``new`` renamed to ``out``; a folder at ``out`` is moved aside first and removed after,
+    so ``out`` holds either the old or the new bundle, whole."""
+    if not out.exists():
+        os.rename(new, out)
+        return
+    aside = out.parent / f".{out.name}.old-{new.name.rsplit('-', 1)[-1]}"
+    os.rename(out, aside)
+    os.rename(new, out)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _write_bundle_files(
+    out: Path,
+    root: ArcticRoot,
+    runs: list,
+    layers: Any,
+    templates: Any,
+    srm: Optional[PathLike],
+    contactnet: Optional[PathLike],
+    pose_banks: Sequence[PathLike],
+    dataset: str,
+) -> None:
+    """Copy the checkpoints into the empty folder ``out`` and write its manifest (last)."""
     hogs = []
     for sid, obj, run, n in sorted(runs):
         rel = f"hogs/{sid}_{obj}"
@@ -441,7 +499,6 @@ def write_bundle(
         ],
     }
     atomic_write_json(out / MANIFEST_NAME, manifest, indent=1)
-    return out
 
 
 # --------------------------------------------------------------------------------------

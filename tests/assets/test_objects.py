@@ -6,6 +6,7 @@ import dataclasses
 import filecmp
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from hogsa_loader.assets.objects import (
     read_h2o_obj_pose_rt,
     write_object_template,
 )
-from hogsa_loader.assets.objects.template import bbox_corners, max_pairwise_distance
+from hogsa_loader.assets.objects.template import MAX_MESH_BYTES, bbox_corners, max_pairwise_distance
 from hogsa_loader.errors import AssetError
 from hogsa_world.objects.procedural import GAP_MM, PROCEDURAL_NAMES, make_object, write_procedural_objects
 
@@ -405,6 +406,8 @@ BAD_CASES = {
     ),
     "missing_mesh": ("mesh.obj", lambda f: (f / "mesh.obj").unlink()),
     "mesh_no_faces": ("mesh.obj", _break_mesh),
+    # a file too large to parse (sparse: no disk used), refused before trimesh reads it
+    "mesh_too_large": ("mesh.obj", lambda f: os.truncate(f / "mesh.obj", MAX_MESH_BYTES + 1)),
     "missing_texture_image": ("material.jpg", lambda f: (f / "material.jpg").unlink()),
 }
 

@@ -391,6 +391,36 @@ def test_bad_bundle_lists_every_problem(bundle_dir, tmp_path):
     assert load_bundle(bundle_dir).keys == [("s01", "box")]
 
 
+def test_a_bundle_is_replaced_only_when_the_new_one_is_whole(bundle_dir, tiny_world, tmp_path, monkeypatch):
+    """A rebuild killed part-way (here: an error while copying) leaves the old bundle, loadable,
+    and no partial folder; an old bundle moved aside by a killed swap is put back; a second
+    writer of the same bundle is refused."""
+    import hogsa_loader.models.bundle as bundle_mod
+    from hogsa_loader.io.locks import FolderBusyError, writer_lock
+
+    run = bundle_dir / "hogs" / "s01_box"
+    out = tmp_path / "b"
+    write_bundle(out, tiny_world, [run])
+    before = (out / "manifest.json").read_bytes()
+
+    def torn(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(bundle_mod, "_copy_run", torn)
+    with pytest.raises(OSError, match="disk full"):
+        write_bundle(out, tiny_world, [run])
+    monkeypatch.undo()
+    assert (out / "manifest.json").read_bytes() == before and load_bundle(out).keys == [("s01", "box")]
+    assert not list(tmp_path.glob(".b.partial-*"))
+    out.rename(tmp_path / ".b.old-x")  # killed between moving the old bundle aside and the new one in
+    with writer_lock(tmp_path, ".b.bundle.lock", what="another writer"):
+        with pytest.raises(FolderBusyError):
+            write_bundle(out, tiny_world, [run])
+    assert not out.exists()
+    write_bundle(out, tiny_world, [run])
+    assert load_bundle(out).keys == [("s01", "box")] and not list(tmp_path.glob(".b.old-*"))
+
+
 def test_bundle_keeps_the_runs_light(bundle_dir, tiny_world, tmp_path):
     """A run trained with a learned light renders with it from the bundle too."""
     from hogsa_loader.models.gaussians.hogs_model import LIGHT_DIR

@@ -284,6 +284,26 @@ def _points(value: Any, path: Path, key: str, count: Optional[int]) -> np.ndarra
     return arr
 
 
+#: Largest mesh file read (an object template of a few hundred thousand faces is tens of MB;
+#: a file past this would take gigabytes to parse).
+MAX_MESH_BYTES = 128 * 2**20
+
+
+def check_mesh_size(path: Path) -> None:
+    """Refuse a mesh file larger than :data:`MAX_MESH_BYTES` before it is parsed.
+
+    Raises:
+        AssetError: the file is missing or too large (naming its size and the cap).
+    """
+    if not path.is_file():
+        raise AssetError(path, "file is missing")
+    size = path.stat().st_size
+    if size > MAX_MESH_BYTES:
+        raise AssetError(
+            path, f"mesh file of {size} bytes, more than the {MAX_MESH_BYTES} read (simplify the mesh first)"
+        )
+
+
 def _read_obj(path: Path, keep_order: bool = True) -> Any:
     """Load an OBJ with trimesh (``process=False``).
 
@@ -297,8 +317,7 @@ def _read_obj(path: Path, keep_order: bool = True) -> Any:
     """
     import trimesh  # deferred: trimesh adds ~1-3 s to every process importing templates
 
-    if not path.is_file():
-        raise AssetError(path, "file is missing")
+    check_mesh_size(path)
     try:
         mesh = trimesh.load(str(path), process=False, force="mesh", maintain_order=keep_order, skip_materials=True)
     except Exception as exc:  # trimesh raises many kinds of errors on bad files
