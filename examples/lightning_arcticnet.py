@@ -12,7 +12,9 @@ epoch reaches the real sampler, the real dataset and the synthetic stream.
 Every training step appends one JSON line to ``OUT/lightning.rank<R>.jsonl`` (its epoch, the
 image names of its real and synthetic samples, the epochs the real sampler and the synthetic
 stream are at, whether the real loader pins memory); after training each rank appends the
-digest of its weights.
+digest of its weights. With ``--ckpt-every N`` Lightning keeps a checkpoint every N steps
+(the mixed loader's place in its epoch included: it has ``state_dict``); ``--resume CKPT``
+continues from one, mid-epoch, on the batches an uninterrupted run trains on.
 
 Usage (one process, or N under torchrun; ``pip install pytorch-lightning``)::
 
@@ -31,6 +33,7 @@ from typing import Any
 
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.callbacks import ModelCheckpoint
 from torch.utils.data import DataLoader
 
 from hogsa_loader.assets.arctic import ArcticRoot
@@ -119,6 +122,8 @@ def parse_args(argv: Any = None) -> argparse.Namespace:
     p.add_argument("--devices", type=int, default=1, help="processes (DDP when more than one)")
     p.add_argument("--accelerator", default="cpu", choices=["cpu", "gpu"])
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ckpt-every", type=int, default=0, help="a checkpoint every N steps in OUT/checkpoints (0: none)")
+    p.add_argument("--resume", default=None, help="checkpoint to resume from (mid-epoch: the mixed loader's state too)")
     return p.parse_args(argv)
 
 
@@ -134,12 +139,23 @@ def main(argv: Any = None) -> None:
         max_epochs=args.epochs,
         limit_train_batches=args.batches_per_epoch or 1.0,
         logger=False,
-        enable_checkpointing=False,
+        enable_checkpointing=bool(args.ckpt_every),
+        callbacks=[every_n(args)] if args.ckpt_every else None,
         enable_progress_bar=False,
         enable_model_summary=False,
         num_sanity_val_steps=0,
     )
-    trainer.fit(ArcticNetSFModule(args))
+    trainer.fit(ArcticNetSFModule(args), ckpt_path=args.resume)
+
+
+def every_n(args: argparse.Namespace) -> pl.Callback:
+    """Keep a checkpoint every ``--ckpt-every`` steps (``step=N.ckpt``)."""
+    return ModelCheckpoint(
+        dirpath=os.path.join(args.out, "checkpoints"),
+        filename="{step}",
+        every_n_train_steps=args.ckpt_every,
+        save_top_k=-1,
+    )
 
 
 if __name__ == "__main__":

@@ -297,9 +297,10 @@ def _cmd_frame_maps(args: argparse.Namespace) -> int:
     manifest = write_frame_maps(cfg, log=None if cfg.quiet else print)
     if manifest["views"]:  # a picture of the first view written
         folder, images = view_images(cfg, manifest["views"][0])
-        write_png(Path(cfg.out) / "preview.png", frame_maps_sheet(folder, images))
-        if not cfg.quiet:
-            print(f"[frame-maps] preview: {Path(cfg.out) / 'preview.png'}")
+        if images:  # (a root with annotations but no cropped images: nothing to show)
+            write_png(Path(cfg.out) / "preview.png", frame_maps_sheet(folder, images))
+            if not cfg.quiet:
+                print(f"[frame-maps] preview: {Path(cfg.out) / 'preview.png'}")
     return 0
 
 

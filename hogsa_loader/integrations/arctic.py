@@ -135,6 +135,7 @@ def wrap_train_loader(
     num_workers: int = 0,
     drop_last: bool = True,
     mode: MixMode = "replace",
+    distribute: bool = True,
     method: Optional[Method] = None,
     config: Optional[LoaderConfig] = None,
     backgrounds: Any = None,
@@ -160,6 +161,9 @@ def wrap_train_loader(
         mode: ``"replace"`` (synthetic samples take ``round(ratio·B)`` places of each batch of
             B) or ``"add"`` (each real batch kept whole, synthetic samples appended so that
             their share is about ``ratio``); see :class:`~hogsa_loader.sample.mixing.MixedLoader`.
+        distribute: on several processes, give a ``train_loader`` without a distributed
+            sampler a ``DistributedSampler`` (see Returns); False when each process's real
+            dataset is already its own share.
         method: ``"hogsa"`` (the paper's method: pose-bank grasps refined by the SRM),
             ``"no_pom"``, ``"no_srm"`` or ``"views_only"`` (its ablations; :func:`method_options`). By default
             (None) the paper's method where the bundle has it: bank poses when it holds a pose
@@ -198,4 +202,6 @@ def wrap_train_loader(
         if syn.device.startswith("cuda"):
             raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
         source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
-    return MixedLoader(train_loader, source, ratio, drop_last=drop_last, mode=mode, seed=config.run.seed)
+    return MixedLoader(
+        train_loader, source, ratio, drop_last=drop_last, mode=mode, seed=config.run.seed, distribute=distribute
+    )

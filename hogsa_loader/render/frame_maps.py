@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
@@ -22,7 +23,7 @@ from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.arctic_processing import crop_boxes
 from hogsa_loader.assets.conventions import MASK_IDS, cropped_intrinsics, render_intrinsics
 from hogsa_loader.assets.types import SequenceData
-from hogsa_loader.errors import UsageError
+from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.io.atomic import atomic_write, atomic_write_json
 from hogsa_loader.io.images import write_image
 from hogsa_loader.io.locks import writer_lock
@@ -141,7 +142,8 @@ def render_frame_maps(
         template = root.object_templates()[seq.object.name]
         posed = pose_meshes(seq, frames, root.mano_layers(), template)
     cam = seq.cameras[view]
-    paths = seq.image_paths.get(view) or [None] * seq.num_frames
+    paths = list(seq.image_paths.get(view) or [])
+    paths += [None] * (seq.num_frames - len(paths))
     out = []
     for f in frames:
         # resized as cv2.resize resizes (pixel edges scale, x' = (x + 0.5)·s − 0.5): scale the
@@ -194,32 +196,52 @@ def _view_folder(out: Path, seq: SequenceData, view: int) -> Path:
     return out / seq.subject / seq.name / str(view)
 
 
+#: Frames rendered and written at a time (their maps held in memory together).
+_CHUNK = 32
+
+
 def _write_view(
-    root: ArcticRoot, seq: SequenceData, view: int, frames: list[int], folder: Path, size: int
-) -> list[FrameMaps]:
-    """The maps of ``frames`` as PNGs under ``folder``, then ``cameras.npz`` (written last: a
-    view with one is complete)."""
+    root: ArcticRoot, seq: SequenceData, view: int, frames: list[int], folder: Path, size: int, stride: int
+) -> None:
+    """The maps of ``frames`` as PNGs under ``folder``, a few frames at a time, then
+    ``cameras.npz`` (written last: a view with one is complete; it records ``size`` and
+    ``stride``)."""
     folder.mkdir(parents=True, exist_ok=True)
     template = root.object_templates()[seq.object.name]
-    posed = pose_meshes(seq, frames, root.mano_layers(), template)
-    maps = render_frame_maps(root, seq, view, frames, size=size or None, posed=posed)
-    names = []
-    for m in maps:
-        stem = m.image.stem if m.image is not None else f"frame{m.frame:05d}"
-        depth = np.round(m.depth / DEPTH_PNG_METRES).clip(0, 65535).astype(np.uint16)
-        write_image(folder / f"{stem}_depth.png", depth, durable=False)
-        write_image(folder / f"{stem}_mask.png", m.mask, durable=False)
-        names.append(stem)
+    names, Ks, w2cs = [], [], []
+    for i in range(0, len(frames), _CHUNK):
+        chunk = frames[i : i + _CHUNK]
+        posed = pose_meshes(seq, chunk, root.mano_layers(), template)
+        for m in render_frame_maps(root, seq, view, chunk, size=size or None, posed=posed):
+            stem = m.image.stem if m.image is not None else f"frame{m.frame:05d}"
+            depth = np.round(m.depth / DEPTH_PNG_METRES).clip(0, 65535).astype(np.uint16)
+            write_image(folder / f"{stem}_depth.png", depth, durable=False)
+            write_image(folder / f"{stem}_mask.png", m.mask, durable=False)
+            names.append(stem)
+            Ks.append(m.K)
+            w2cs.append(m.world2cam)
     buf = io.BytesIO()
     np.savez(
         buf,
         frames=np.asarray(frames, np.int64),
         names=np.asarray(names),
-        K=np.stack([m.K for m in maps]),
-        world2cam=np.stack([m.world2cam for m in maps]),
+        K=np.stack(Ks),
+        world2cam=np.stack(w2cs),
+        settings=np.asarray([size, stride], np.int64),
     )
     atomic_write(folder / "cameras.npz", buf.getvalue())
-    return maps
+
+
+def _written_settings(folder: Path) -> tuple[int, int]:
+    """``(size, frame stride)`` a complete view was written with."""
+    try:
+        with np.load(folder / "cameras.npz", allow_pickle=False) as cams:
+            size, stride = (int(v) for v in cams["settings"])
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        raise AssetError(
+            folder / "cameras.npz", f"unreadable ({type(exc).__name__}: {exc}); remove the view to redo it"
+        ) from None
+    return size, stride
 
 
 def write_frame_maps(cfg: FrameMapsConfig, log: Optional[Callable[[str], None]] = print) -> dict[str, Any]:
@@ -245,12 +267,12 @@ def write_frame_maps(cfg: FrameMapsConfig, log: Optional[Callable[[str], None]] 
 
 def _write_all(cfg: FrameMapsConfig, root: ArcticRoot, out: Path, say: Callable[[str], None]) -> dict[str, Any]:
     subjects = list(cfg.subjects) or root.subjects()
+    every = {sid: [n.split("/", 1)[1] for n in root.sequences(sid)] for sid in subjects}
+    unknown = sorted(set(cfg.sequences) - {n for names in every.values() for n in names})
+    if unknown:
+        raise UsageError(f"--sequences {','.join(unknown)}: not sequences of {', '.join(subjects)}")
     done, written = [], 0
-    for sid in subjects:
-        names = [n.split("/", 1)[1] for n in root.sequences(sid)]
-        unknown = sorted(set(cfg.sequences) - set(names)) if cfg.subjects and cfg.sequences else []
-        if unknown:
-            raise UsageError(f"--sequences {','.join(unknown)}: not sequences of {sid} ({', '.join(names)})")
+    for sid, names in every.items():
         for name in [n for n in names if not cfg.sequences or n in cfg.sequences]:
             seq = root.sequence(sid, name)
             frames = list(range(0, seq.num_frames, cfg.frame_stride))
@@ -258,9 +280,16 @@ def _write_all(cfg: FrameMapsConfig, root: ArcticRoot, out: Path, say: Callable[
                 folder = _view_folder(out, seq, view)
                 if view not in seq.cameras:
                     continue
-                if not (folder / "cameras.npz").is_file():
+                if (folder / "cameras.npz").is_file():
+                    had = _written_settings(folder)
+                    if had != (cfg.size, cfg.frame_stride):
+                        raise UsageError(
+                            f"{folder} was written with --size {had[0]} --frame-stride {had[1]}; give those, "
+                            "or another --out"
+                        )
+                else:
                     t0 = time.perf_counter()
-                    _write_view(root, seq, view, frames, folder, cfg.size)
+                    _write_view(root, seq, view, frames, folder, cfg.size, cfg.frame_stride)
                     written += len(frames)
                     secs = time.perf_counter() - t0
                     say(f"[frame-maps] {sid}/{name} view {view}: {len(frames)} frames in {secs:.1f} s")

@@ -376,8 +376,13 @@ class HOGSADataset(IterableDataset):
 
     def set_epoch(self, epoch: int) -> None:
         """Select the epoch (a new stream of samples for the same seed). Workers, persistent
-        ones included, use it from their next iteration on."""
-        self.epoch = int(epoch)
+        ones included, use it from their next iteration on. A stream state loaded for another
+        epoch is dropped (one for this epoch stands); :meth:`state_dict` then says the start."""
+        epoch = int(epoch)
+        if self._resume_at is not None and self._resume_at["epoch"] != epoch:
+            self._resume_at = None
+        self._position = None
+        self.epoch = epoch
 
     def _epoch_or(self, epoch: Optional[int]) -> int:
         return self.epoch if epoch is None else int(epoch)

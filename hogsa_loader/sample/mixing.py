@@ -130,23 +130,24 @@ def distributed_loader(loader: DataLoader, rank: int, world: int, seed: int = 0)
     ``pin_memory``, generator, ...).
 
     Raises:
-        ValueError: ``loader`` is not a plain :class:`~torch.utils.data.DataLoader`, or its
-            sampler / batch sampler is a custom one (which this function cannot split between
-            ranks): give it a distributed sampler of its own.
+        ValueError: ``loader`` is not a plain :class:`~torch.utils.data.DataLoader` made with
+            ``batch_size``, or its sampler / batch sampler is a custom one or samples with
+            replacement (which this function cannot split between ranks): give it a
+            distributed sampler of its own.
     """
     sampler = getattr(loader, "sampler", None)
     bs = getattr(loader, "batch_sampler", None)
     kind = type(sampler).__name__
-    if (
-        type(loader) is not DataLoader
-        or type(bs) is not BatchSampler
-        or not isinstance(sampler, (RandomSampler, SequentialSampler))
-    ):
+    plain = type(loader) is DataLoader and type(bs) is BatchSampler and loader.batch_size is not None
+    if isinstance(sampler, RandomSampler) and (sampler.replacement or sampler._num_samples is not None):
+        plain = False  # (drawn with replacement, or a number of samples of its own)
+    if not plain or not isinstance(sampler, (RandomSampler, SequentialSampler)):
         raise ValueError(
             f"the real loader ({type(loader).__name__}, sampler {kind}, batch sampler {type(bs).__name__}) "
-            f"runs on {world} processes without a distributed sampler, and only a plain DataLoader with "
-            "a RandomSampler or SequentialSampler can be given one; pass a DataLoader with "
-            "sampler=DistributedSampler(dataset, ...)"
+            f"runs on {world} processes without a distributed sampler, and only a DataLoader made with "
+            "batch_size= and shuffle (a RandomSampler without replacement) or a SequentialSampler can be "
+            "given one; pass a DataLoader with sampler=DistributedSampler(dataset, ...), or distribute=False "
+            "when each process's dataset is already its own share"
         )
     dist = DistributedSampler(
         loader.dataset,  # type: ignore[arg-type]
@@ -169,6 +170,7 @@ def distributed_loader(loader: DataLoader, rank: int, world: int, seed: int = 0)
         generator=loader.generator,
         persistent_workers=loader.persistent_workers,
         pin_memory_device=loader.pin_memory_device,
+        in_order=getattr(loader, "in_order", True),
     )
     if loader.num_workers > 0:
         kwargs["prefetch_factor"] = loader.prefetch_factor
@@ -225,17 +227,18 @@ class MixedLoader:
         mode: ``"replace"``, batches of B with ``num_synthetic(ratio, B)`` of them synthetic;
             ``"add"``, each real batch unchanged plus ``added_synthetic(ratio, b)`` synthetic
             samples (ratio < 1).
-
         seed: the shuffle seed of the ``DistributedSampler`` the real loader gets when it has
             none (below).
+        distribute: give a real loader without a distributed sampler one on several
+            processes (below); False when each process's real dataset is already its own share.
 
     **Several processes.** Under an initialised torch.distributed process group of N > 1
     processes (torchrun, ``srun``, PyTorch Lightning's or ``accelerate``'s DDP), a real
     DataLoader of a map-style dataset without a distributed sampler is given one
     (:func:`distributed_loader`: each rank its own share, shuffled with ``seed`` when the
     loader shuffles), as Lightning does for the DataLoaders it is given (it cannot see inside
-    a ``MixedLoader``); a loader with one is kept.
-    The synthetic stream splits itself by rank
+    a ``MixedLoader``); a loader with one is kept (and any with ``distribute=False``). The
+    synthetic stream splits itself by rank
     (:class:`~hogsa_loader.sample.dataset.HOGSADataset`).
 
     :meth:`set_epoch` reaches both halves; so does ``.sampler.set_epoch`` (where PyTorch
@@ -260,6 +263,7 @@ class MixedLoader:
         drop_last: bool = True,
         mode: MixMode = "replace",
         seed: int = 0,
+        distribute: bool = True,
     ) -> None:
         if not 0.0 <= float(ratio) <= 1.0:
             raise ValueError(f"ratio must be in [0, 1], got {ratio}")
@@ -274,6 +278,7 @@ class MixedLoader:
         self.mode = mode
         self.given_loader = real_loader
         self.seed = int(seed)
+        self.distribute = bool(distribute)
         self._per_rank: dict[tuple[int, int], Iterable[Any]] = {}
         self.synthetic = synthetic
         self.ratio = float(ratio)
@@ -286,13 +291,14 @@ class MixedLoader:
         self._batches = 0  # batches yielded in this epoch
         self._syn_taken = 0  # synthetic samples taken in this epoch
         self._resume: Optional[dict[str, Any]] = None
+        self._resume_rank = 0
 
     @property
     def real_loader(self) -> Iterable[Any]:
         """The real loader this process iterates: the one given, or (several processes, none
         of its samplers distributed) that loader with a ``DistributedSampler``."""
         rank, world = _process_group()
-        if world == 1 or _is_distributed(self.given_loader):
+        if world == 1 or not self.distribute or _is_distributed(self.given_loader):
             return self.given_loader
         if (rank, world) not in self._per_rank:
             self._per_rank[(rank, world)] = distributed_loader(self.given_loader, rank, world, self.seed)  # type: ignore[arg-type]
@@ -303,6 +309,8 @@ class MixedLoader:
         ``DistributedSampler``'s shuffle) and dataset (ARCTIC's augmentation draws) and the
         synthetic stream (its dataset's epoch, restarted from its first sample) — what a
         training loop or PyTorch Lightning calls before each epoch."""
+        if self._resume is not None and int(epoch) == self._resume["epoch"]:
+            return  # the resume loaded for this epoch stands
         self.epoch = int(epoch)
         real = self.real_loader
         sources = [getattr(real, "sampler", None), getattr(real, "dataset", None)]
@@ -318,41 +326,67 @@ class MixedLoader:
         self._resume = None
 
     def state_dict(self) -> dict[str, Any]:
-        """Where this loader is in its epoch: ``{"epoch", "batches"`` (yielded in it),
-        ``"synthetic_taken"`` (synthetic samples used since the stream's start in this epoch:
-        a new pass of the loader without :meth:`set_epoch` goes on with the same stream),
-        ``"synthetic"`` (the stream's own
-        ``state_dict()``, or None when it has none)``}``; JSON-able."""
+        """Where this loader is in its epoch (JSON-able when the synthetic stream's state is):
+        ``{"epoch", "batches"`` (yielded in it), ``"synthetic_taken"`` (synthetic samples used
+        since the stream's start in this epoch: a new pass without :meth:`set_epoch` goes on
+        with the same stream), ``"synthetic"`` (a list, one per process, of the stream's own
+        ``state_dict()`` or None when it has none)``}``; a resume loaded and not yet started
+        is returned as loaded.
+
+        Under an initialised torch.distributed group this is a collective call (every rank
+        gathers every rank's stream state; PyTorch Lightning's checkpointing and
+        ``hogsa finetune`` call it on every rank), so that any rank's copy resumes all of them.
+        """
+        if self._resume is not None:
+            return dict(self._resume)
         stream = getattr(self.synthetic, "state_dict", None)
-        return {
-            "epoch": self.epoch,
-            "batches": self._batches,
-            "synthetic_taken": self._syn_taken,
-            "synthetic": stream() if callable(stream) and self._syn_iter is not None else None,
-        }
+        mine = stream() if callable(stream) and self._syn_iter is not None else None
+        _, world = _process_group()
+        every: list[Any] = [mine]
+        if world > 1:
+            every = [None] * world
+            torch.distributed.all_gather_object(every, mine)
+        return {"epoch": self.epoch, "batches": self._batches, "synthetic_taken": self._syn_taken, "synthetic": every}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Resume where ``state`` (:meth:`state_dict`) was: its epoch is set on both halves
-        (:meth:`set_epoch`), and the next iteration leaves out the batches already yielded.
+        (:meth:`set_epoch`; a later ``set_epoch`` of the same epoch keeps the resume, as
+        PyTorch Lightning calls it after loading), and the next iteration leaves out the
+        batches already yielded. Exact when the real loader's order and augmentation depend
+        on the epoch alone (a ``DistributedSampler``, a seeded ``ArcticDataset``); a
+        ``RandomSampler`` draws another order after a restart.
 
         Raises:
-            ValueError: ``state`` is not a ``MixedLoader`` state.
+            ValueError: ``state`` is not a ``MixedLoader`` state, or was taken over another
+                number of processes.
         """
         need = ("epoch", "batches", "synthetic_taken")
-        if not isinstance(state, dict) or any(not isinstance(state.get(k), int) or state[k] < 0 for k in need):
-            raise ValueError(f"not a MixedLoader state (non-negative integers {need}, 'synthetic'): {state!r}")
+        streams = state.get("synthetic") if isinstance(state, dict) else None
+        if (
+            not isinstance(state, dict)
+            or any(not isinstance(state.get(k), int) or state[k] < 0 for k in need)
+            or not isinstance(streams, list)
+        ):
+            raise ValueError(f"not a MixedLoader state (non-negative integers {need}, 'synthetic' list): {state!r}")
+        rank, world = _process_group()
+        if len(streams) != world:
+            raise ValueError(f"the loader state was taken over {len(streams)} process(es); this run has {world}")
         self.set_epoch(state["epoch"])
-        self._resume = dict(state)
+        self._resume = {**state, "synthetic": list(streams)}
+        self._resume_rank = rank
 
     def _restore_synthetic(self, state: dict[str, Any]) -> None:
-        """The synthetic stream where ``state`` left it: from its own state, else drawn again."""
+        """The synthetic stream where ``state`` left it: from its own state, else drawn again
+        (and passed over, one sample at a time)."""
         self._syn_taken = int(state["synthetic_taken"])
+        mine = state["synthetic"][self._resume_rank]
         load = getattr(self.synthetic, "load_state_dict", None)
-        if state.get("synthetic") is not None and callable(load):
-            load(state["synthetic"])
+        if mine is not None and callable(load):
+            load(mine)
             self._syn_iter = iter(self.synthetic)
-        elif self._syn_taken:
-            self._next_synthetic(self._syn_taken)
+            return
+        for _ in range(self._syn_taken):
+            self._next_synthetic(1)
 
     @property
     def batch_size(self) -> Optional[int]:

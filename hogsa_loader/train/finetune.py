@@ -209,21 +209,21 @@ def _loaders(cfg: FinetuneConfig, rank: int, world: int, device: torch.device) -
     return real, sampler, mixed.synthetic
 
 
-def _batches(state: dict[str, Any], real: Any, sampler: Any, mixed: Optional[MixedLoader], rank: int) -> Iterator[Any]:
+def _batches(state: dict[str, Any], real: Any, sampler: Any, mixed: Optional[MixedLoader]) -> Iterator[Any]:
     """``(epoch, index in epoch, batch)`` from where ``state`` left off: each epoch sets the real
     sampler, the real dataset and the synthetic stream to it and restarts the synthetic stream.
-    Resumed mid-epoch, the mixed loader continues from this rank's saved stream state (the
+    Resumed mid-epoch, the mixed loader continues from the saved stream states (the
     synthetic samples already trained on are not rendered again; the real batches before are
     loaded and passed over)."""
     epoch, skip = int(state.get("epoch", 0)), int(state.get("epoch_batches", 0))
-    streams = state.get("streams")
+    stream = state.get("stream")
     while True:
         if mixed is None:
             sampler.set_epoch(epoch)
             real.dataset.set_epoch(epoch)
             batches = enumerate(real)
-        elif skip and streams:
-            mixed.load_state_dict(streams[rank])  # this epoch, from this rank's place in it
+        elif skip and stream:
+            mixed.load_state_dict(stream)  # this epoch, each rank from its own place in it
             batches = enumerate(mixed, start=skip)
             skip = 0
         else:
@@ -233,18 +233,6 @@ def _batches(state: dict[str, Any], real: Any, sampler: Any, mixed: Optional[Mix
             if i >= skip:  # (resumed mid-epoch without a stream state: the batches before are drawn again)
                 yield epoch, i, batch
         epoch, skip = epoch + 1, 0
-
-
-def _stream_states(mixed: Optional[MixedLoader], world: int) -> Optional[list[dict[str, Any]]]:
-    """Every rank's mixed-loader state, in rank order (a collective call: every rank makes it)."""
-    if mixed is None:
-        return None
-    mine = mixed.state_dict()
-    if world == 1:
-        return [mine]
-    every: list[Any] = [None] * world
-    torch.distributed.all_gather_object(every, mine)
-    return every
 
 
 def _log_row(step: int, losses: dict[str, float], batch: Any, model: Optional[torch.nn.Module]) -> str:
@@ -317,7 +305,7 @@ def finetune(cfg: FinetuneConfig, log: Any = print) -> dict[str, Any]:
         say(f"[finetune] rank {rank} of {world} on {device}, from step {step}")
         t0 = time.perf_counter()
         with open(log_path, "a") as fh:
-            for epoch, i, batch in _batches(state, real, sampler, mixed, rank) if step < cfg.steps else ():
+            for epoch, i, batch in _batches(state, real, sampler, mixed) if step < cfg.steps else ():
                 torch.manual_seed(_step_seed(cfg.seed, rank, step))  # dropout: a function of (seed, rank, step)
                 losses = training_step(net, batch, layers, opt, cfg.img_res, device=device)
                 step += 1
@@ -327,9 +315,9 @@ def finetune(cfg: FinetuneConfig, log: Any = print) -> dict[str, Any]:
                 if step % cfg.ckpt_every == 0 or step == cfg.steps:
                     state["train_time_s"] = float(state["train_time_s"]) + time.perf_counter() - t0
                     t0 = time.perf_counter()
-                    streams = _stream_states(mixed, world)
+                    stream = None if mixed is None else mixed.state_dict()  # (collective: every rank)
                     if rank == 0:
-                        place = {"epoch": epoch, "epoch_batches": i + 1, "streams": streams}
+                        place = {"epoch": epoch, "epoch_batches": i + 1, "stream": stream}
                         _save(out, step, model, opt, {**state, **place})
                     if world > 1:
                         torch.distributed.barrier()  # a checkpoint is whole before any rank goes on

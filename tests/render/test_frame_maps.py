@@ -119,5 +119,7 @@ def test_the_command_writes_depth_masks_and_cameras_and_resumes(tiny_world, tmp_
     assert (tmp_path / "maps" / "preview.png").is_file()
     again = subprocess.run(argv, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and "(0 frames written now)" in again.stdout
+    other = subprocess.run([*argv, "--size", "100"], capture_output=True, text=True, timeout=600)
+    assert other.returncode == 2 and "written with --size 0 --frame-stride 20" in other.stderr
     ego = subprocess.run(argv[:-4] + ["--views", "0"], capture_output=True, text=True, timeout=600)
     assert ego.returncode == 2 and "allocentric" in ego.stderr

@@ -76,6 +76,10 @@ def test_a_state_of_other_settings_is_refused(untrained_bundle, tiny_world):
         _dataset(untrained_bundle, tiny_world, batch_size=2).load_state_dict(state)
     with pytest.raises(ValueError, match="not a HOGSADataset stream state"):
         ds.load_state_dict({"epoch": 0})
+    moved = _dataset(untrained_bundle, tiny_world)
+    moved.load_state_dict(state)
+    moved.set_epoch(1)  # a state of epoch 0 dropped: the next iteration starts epoch 1
+    assert (moved.state_dict()["epoch"], moved.state_dict()["batch"]) == (1, -1)
     other = _dataset(untrained_bundle, tiny_world)
     other.load_state_dict({**state, "num_shards": 2})
     with pytest.raises(ValueError, match="over 2 shards.*has 1"):
@@ -115,7 +119,7 @@ def test_mixed_loader_resumes_mid_epoch_without_drawing_the_used_samples_again(u
     it = iter(loader)
     head = [parts(next(it)) for _ in range(3)]
     state = loader.state_dict()
-    assert (state["batches"], state["synthetic_taken"]) == (3, 6) and state["synthetic"]["batch"] == 3
+    assert (state["batches"], state["synthetic_taken"]) == (3, 6) and state["synthetic"][0]["batch"] == 3
     again, syn2 = mixed()
     again.load_state_dict(state)
     rendered = []
@@ -126,3 +130,17 @@ def test_mixed_loader_resumes_mid_epoch_without_drawing_the_used_samples_again(u
     assert rendered[0] == (9, 10, 11)  # resumed at render batch 3: samples 0-8 not rendered again
     with pytest.raises(ValueError, match="not a MixedLoader state"):
         again.load_state_dict({"epoch": 0, "batches": -1, "synthetic_taken": 0})
+    with pytest.raises(ValueError, match="taken over 2 process"):
+        again.load_state_dict({**state, "synthetic": [None, None]})
+    # PyTorch Lightning's order: the state loaded, the loader's iterator made, set_epoch of the
+    # same epoch, then the first batch: the resume stands (and state_dict says it meanwhile)
+    lit, _ = mixed()
+    lit.load_state_dict(state)
+    it = iter(lit)
+    lit.sampler.set_epoch(0)
+    assert lit.state_dict() == state
+    assert parts(next(it)) == whole[3]
+    other, _ = mixed()
+    other.load_state_dict(state)
+    other.sampler.set_epoch(1)  # another epoch: the resume is dropped
+    assert other.state_dict()["batches"] == 0 and other.epoch == 1

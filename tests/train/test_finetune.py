@@ -93,9 +93,10 @@ def test_a_resumed_run_continues_on_the_same_batches(two_ranks):
     # the checkpoints hold each rank's place in its synthetic stream (the resumed run started
     # from it instead of rendering the samples of steps 1-2 again, and counted on from there)
     state = json.loads((cut / "checkpoints" / "step_0000003" / "trainer.json").read_text())
-    streams = state["streams"]
-    assert [s["batches"] for s in streams] == [3, 3] and [s["synthetic_taken"] for s in streams] == [6, 6]
-    assert streams[0]["synthetic"]["num_shards"] == 2 and streams[0]["synthetic"] != streams[1]["synthetic"]
+    stream = state["stream"]
+    assert (stream["batches"], stream["synthetic_taken"]) == (3, 6)
+    ranks = stream["synthetic"]  # each rank's place in its own share of the stream
+    assert len(ranks) == 2 and ranks[0]["num_shards"] == 2 and ranks[0] != ranks[1]
 
 
 def test_a_torn_log_line_is_dropped_and_later_steps_are_trained_again(tmp_path):

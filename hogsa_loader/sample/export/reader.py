@@ -428,8 +428,9 @@ class SynthShardSamples(Dataset):
     """Exported synthetic frames as a map-style dataset of ArcticNet-SF samples.
 
     The shards are read once when the dataset is made (every member checked against the
-    shard index's sha256) and then indexed: each sample is read from its shard by offset when
-    it is accessed (its sha256 checked again), so each rank and DataLoader worker holds only
+    sha256 its shard index records, where it records them) and then indexed: each sample is
+    read from its shard by offset when it is accessed (its sha256 checked again), so each rank
+    and DataLoader worker holds only
     the index (a few hundred bytes per sample), and a ``DataLoader(shuffle=True)`` draws
     samples from every model and pose of the export in each batch (:class:`SynthShardDataset`
     streams them in shard order). Compressed shards (``.tar.gz``), which cannot be read by
@@ -480,6 +481,11 @@ class SynthShardSamples(Dataset):
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_handles": {}}  # (open files stay in the process that opened them)
 
+    def __del__(self) -> None:
+        if getattr(self, "_pid", None) == os.getpid():
+            for fd in getattr(self, "_handles", {}).values():
+                os.close(fd)
+
     def _files(self, i: int) -> dict[str, bytes]:
         """The encoded members of item ``i``, read from its shard (and checked) when indexed."""
         sh, key, _, files = self._items[i]
@@ -491,11 +497,10 @@ class SynthShardSamples(Dataset):
                 out[ext] = place
                 continue
             offset, size, digest = place
-            fh = self._handles.get(sh)
-            if fh is None:
-                fh = self._handles[sh] = open(sh, "rb")
-            fh.seek(offset)
-            data = fh.read(size)
+            fd = self._handles.get(sh)
+            if fd is None:
+                fd = self._handles[sh] = os.open(sh, os.O_RDONLY)
+            data = os.pread(fd, size, offset)  # (no shared file position: safe across threads)
             if len(data) != size or hashlib.sha256(data).digest() != digest:
                 raise AssetError(sh, f"{key}.{ext} changed since the dataset was made (truncated or rewritten shard)")
             out[ext] = data
