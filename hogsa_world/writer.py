@@ -23,6 +23,7 @@ from hogsa_loader.assets.objects.template import load_object_template, read_obje
 from hogsa_loader.errors import PathLike
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.io.images import write_image
+from hogsa_loader.io.locks import writer_lock
 from hogsa_loader.render import raster_kernels
 from hogsa_loader.render.mesh_raster import warm_up_kernels
 from hogsa_loader.system import available_cores, can_fork, run_forked
@@ -598,9 +599,15 @@ def generate_world(
         the ``hogsa_world.json`` content.
     """
     say = log or (lambda s: None)
+    root = Path(os.path.abspath(out))
+    root.mkdir(parents=True, exist_ok=True)
+    with writer_lock(root, ".hogsa_world.lock", what="hogsa world"):  # two writers of one world: refused
+        return _generate(root, preset, seed, resume, workers, progress, preview, process_splits, say)
+
+
+def _generate(root: Path, preset, seed, resume, workers, progress, preview, process_splits, say) -> dict:
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
-    root = Path(os.path.abspath(out))
     data = root / "arctic_data" / "data"
     partial = _Progress(root, preset, seed, resume)
 

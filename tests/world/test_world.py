@@ -974,3 +974,14 @@ def test_annotation_noise_world(tiny_world, tmp_path):
     add_annotation_noise(real, tmp_path / "real_noisy", process_splits=False)
     kept = {p.name for p in (tmp_path / "real_noisy" / "arctic_data" / "data").iterdir()}
     assert "cropped_images" in kept and not kept & {"processed_seqs", "feat", "masks"}
+
+
+def test_a_second_writer_of_a_world_is_refused(tmp_path):
+    """Two ``hogsa world`` runs into one folder: the second is refused at once, naming the
+    holder, before it writes anything."""
+    from hogsa_loader.io.locks import FolderBusyError, writer_lock
+
+    with writer_lock(tmp_path, ".hogsa_world.lock", what="hogsa world"):
+        with pytest.raises(FolderBusyError, match=r"hogsa world is being written by process \d+"):
+            generate_world(tmp_path, _micro_preset(), progress=False, preview=False)
+    assert [p.name for p in tmp_path.iterdir()] == [".hogsa_world.lock"]
