@@ -593,6 +593,7 @@ class HOGSADataset(IterableDataset):
         self._check_device()
         guard = DropGuard(self.checks, self.stats)
         start, skip, epoch = self._start()
+        base = {k: v for k, v in self._position.items() if k not in ("batch", "skip")}  # type: ignore[union-attr]
         _, num = shard_info()
         for plan in self._shard_plans(start, epoch):
             g = plan.indices[0] // self.batch_size if plan.indices else 0
@@ -601,10 +602,10 @@ class HOGSADataset(IterableDataset):
             for j, (index, frame) in enumerate(kept[skip:], start=skip):
                 sample = self._to_sample(frame, index, plan.epoch)
                 last = j == len(kept) - 1  # the position after this sample: the next batch, or this one
-                self._position = {**self._position, "batch": g + num if last else g, "skip": 0 if last else j + 1}
+                self._position = {**base, "batch": g + num if last else g, "skip": 0 if last else j + 1}
                 yield sample
             if not kept[skip:]:
-                self._position = {**self._position, "batch": g + num, "skip": 0}
+                self._position = {**base, "batch": g + num, "skip": 0}
             skip = 0
             guard.update(frames)
 

@@ -539,18 +539,12 @@ def write_shards(
         enc = _Encoding(image_format, jpeg_quality, alpha_bits, parts)
         bar = _progress_bar(todo, num, shard_size, rank, world_size) if progress and rank == 0 else None
         t_all = time.perf_counter()
-        written_samples, dropped = 0, 0
         failed = True
         if todo:  # the marker first: until the last shard is written, index.json says incomplete
             rebuild_index(out, num, shard_size, info=info, prefix=prefix, settings=settings)
         try:
-            for s in todo:
-                rng = shard_range(s, num, shard_size)
-                count = _write_shard(out, s, frames_for_shard(s), rng, enc, prefix, rank, world_size, settings, bar)
-                written_samples += count
-                if bar is not None:
-                    dropped += len(rng) - count
-                    bar.set_postfix({"dropped": dropped})
+            sizes = (num, shard_size, rank, world_size)
+            written_samples = _write_todo(out, todo, frames_for_shard, sizes, enc, prefix, settings, bar)
             failed = False
         finally:
             if bar is not None:
@@ -567,6 +561,29 @@ def write_shards(
             "index": str(out / INDEX_NAME),
             **{k: index[k] for k in ("complete", "num_samples_written", "num_dropped", "dropped")},
         }
+
+
+def _write_todo(
+    out: Path,
+    todo: list[int],
+    frames_for_shard: Callable[[int], Iterable[SynthFrame]],
+    sizes: tuple[int, int, int, int],
+    enc: Any,
+    prefix: str,
+    settings: dict[str, Any],
+    bar: Any,
+) -> int:
+    """Write the shards ``todo`` (``sizes``: samples, shard size, rank, world size); the samples kept."""
+    num, shard_size, rank, world_size = sizes
+    written, dropped = 0, 0
+    for s in todo:
+        rng = shard_range(s, num, shard_size)
+        count = _write_shard(out, s, frames_for_shard(s), rng, enc, prefix, rank, world_size, settings, bar)
+        written += count
+        if bar is not None:
+            dropped += len(rng) - count
+            bar.set_postfix({"dropped": dropped})
+    return written
 
 
 def _remove_empty_export(out: Path, created: bool) -> None:
