@@ -171,8 +171,10 @@ def wrap_train_loader(
             ``config`` or ``poses``/``srm`` options say otherwise. A method given together with
             a ``poses`` or ``srm`` option that contradicts it is refused.
         config: the synthetic stream's :class:`~hogsa_loader.sample.config.LoaderConfig`.
-        backgrounds, poses, refiner: explicit objects, as for
+        backgrounds: an explicit background source, as for
             :class:`~hogsa_loader.sample.dataset.HOGSADataset`.
+        poses: an explicit pose source, as for ``HOGSADataset``.
+        refiner: an explicit refiner, as for ``HOGSADataset``.
         **options: loader options by name, applied to ``config``
             (:func:`~hogsa_loader.sample.config.with_options`: ``device``, ``seed``,
             ``coco_root``, ``poses``, ``srm``, ``batch_size``, ``protocol`` ...). ``protocol``,

@@ -290,8 +290,8 @@ class SynthShardDataset(IterableDataset):
             new augmentations of the same frames.
         shuffle_shards: visit shards in a permutation drawn from ``(seed, epoch)``.
         cfg: ArcticNet-SF settings for the samples.
-        rank, world_size: distributed reader; default ``torch.distributed`` when
-            initialised, else 0 / 1.
+        rank: this reader's rank; default ``torch.distributed``'s when initialised, else 0.
+        world_size: the number of readers; default ``torch.distributed``'s, else 1.
         incomplete: read the complete shards of an export whose ``index.json`` says it is
             incomplete (otherwise refused, :func:`expand_shards`).
 
