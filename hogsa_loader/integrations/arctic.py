@@ -126,6 +126,15 @@ def _real_options(real_ds: Any, config: LoaderConfig, options: dict[str, Any]) -
     }
 
 
+def _in_workers(syn: HOGSADataset, num_workers: int) -> Any:
+    """The synthetic stream, in ``num_workers`` persistent DataLoader workers when > 0 (CPU only)."""
+    if num_workers == 0:
+        return syn
+    if syn.device.startswith("cuda"):
+        raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
+    return DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
+
+
 def wrap_train_loader(
     train_loader: DataLoader,
     bundle: Union[PathLike, Bundle],
@@ -199,11 +208,7 @@ def wrap_train_loader(
     config = LoaderConfig() if config is None else config
     config = with_options(config, **_real_options(real_ds, config, options), **options)
     syn = HOGSADataset(bundle, root, config, backgrounds=backgrounds, poses=poses, refiner=refiner)
-    source: Any = syn
-    if num_workers > 0:
-        if syn.device.startswith("cuda"):
-            raise ValueError("num_workers > 0 with device='cuda': DataLoader workers must not touch CUDA; use 0")
-        source = DataLoader(syn, batch_size=None, num_workers=num_workers, persistent_workers=True)
+    source = _in_workers(syn, num_workers)
     return MixedLoader(
         train_loader, source, ratio, drop_last=drop_last, mode=mode, seed=config.run.seed, distribute=distribute
     )

@@ -1,8 +1,9 @@
 """``docs/real-arctic.md``, executed: every console command and the Python block, in order, on
 the generated test world treated as a user's ARCTIC root (``data`` in a fresh folder), with the
-settings file shrunk to toy sizes (the one edit step 2 invites). torchrun, srun and ``--gpus``
-each build into a folder of their own and must write the stages a single process writes; srun
-is played by two processes with the variables srun sets."""
+settings file shrunk to toy sizes (the one edit step 2 invites). torchrun and srun each build
+into a folder of their own and must write the stages a single process writes; srun is played by
+two processes with the variables srun sets; ``--gpus`` starts its two processes on the torchrun
+build."""
 
 from __future__ import annotations
 
@@ -82,29 +83,30 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     assert srun[1:3] == ["--ntasks", "2"] and srun[3] == "python"
     task = [sys.executable, *srun[4:], "--out", "build_srun"]
 
-    gpus = shlex.split(commands[5])
-    assert gpus[-2:] == ["--gpus", "0,1"]
-    launched = hogsa + gpus[1:] + ["--out", "build_gpus"]
-
-    def both():  # side by side (folders of their own): torchrun, srun's two tasks, --gpus
+    def both():  # side by side (folders of their own): torchrun and srun's two tasks
         def start(cmd, extra_env):
             pipe = subprocess.PIPE
             return subprocess.Popen(cmd, cwd=tmp_path, env={**env, **extra_env}, stdout=pipe, stderr=pipe, text=True)
 
         slurm = [{"SLURM_PROCID": str(i), "SLURM_STEP_NUM_TASKS": "2", "SLURM_NTASKS": "2"} for i in range(2)]
-        procs = [start(argv, {})] + [start(task, v) for v in slurm] + [start(launched, {})]
+        procs = [start(argv, {})] + [start(task, v) for v in slurm]
         return [(*p.communicate(timeout=900), p.returncode) for p in procs]
 
-    results = timed("torchrun + srun + --gpus", both)
-    assert [r[2] for r in results] == [0, 0, 0, 0], [r[1][-2000:] for r in results]
+    results = timed("torchrun + srun", both)
+    assert [r[2] for r in results] == [0, 0, 0], [r[1][-2000:] for r in results]
     assert "process 0 of 2" in results[0][0] and "process 1 of 2" in results[0][0]
     assert _records(tmp_path / "build_torchrun") == single
-    assert "process 0 of 2" in results[3][0] and "process 1 of 2" in results[3][0]
-    assert _records(tmp_path / "build_gpus") == single
-    results = [(r[2], r[0], r[1]) for r in results[1:3]]
+    results = [(r[2], r[0], r[1]) for r in results[1:]]
     assert _records(tmp_path / "build_srun") == single
     built = [line for r in results for line in r[1].splitlines() if "] done in" in line]
     assert len(built) == 5  # each stage once, across the two tasks
+    # --gpus: two processes of this machine with torchrun's variables (the sharing above), here
+    # on the torchrun build, which they find complete
+    gpus = shlex.split(commands[5])
+    assert gpus[-2:] == ["--gpus", "0,1"]
+    launched = timed("--gpus", lambda: _run(hogsa + gpus[1:] + ["--out", "build_torchrun"], tmp_path, env))
+    assert "process 0 of 2" in launched.stdout and "process 1 of 2" in launched.stdout
+    assert _records(tmp_path / "build_torchrun") == single
     # 6. the Python block
     (code,) = _blocks("python")
     script = tmp_path / "train.py"
