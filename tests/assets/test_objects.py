@@ -717,3 +717,13 @@ def test_h2o_rejects_bad_lines(case):
     with pytest.raises(AssetError) as info:
         parse_h2o_obj_pose_rt(line, path="cam4/obj_pose_rt/000042.txt")
     assert "000042.txt" in str(info.value)
+
+
+def test_a_mesh_file_too_large_is_refused_before_it_is_parsed(meta_dir, tmp_path):
+    folder = tmp_path / "box"
+    shutil.copytree(meta_dir / "object_vtemplates" / "box", folder)
+    os.truncate(folder / "mesh.obj", MAX_MESH_BYTES + 1)  # sparse: no disk used
+    with pytest.raises(
+        AssetError, match=rf"mesh file of {MAX_MESH_BYTES + 1} bytes, more than the {MAX_MESH_BYTES} read"
+    ):
+        load_object_template(folder, load_texture=False)
