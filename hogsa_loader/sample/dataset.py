@@ -537,8 +537,11 @@ class HOGSADataset(IterableDataset):
             return dict(self._position)
         if self._resume_at is not None:
             return dict(self._resume_at)
-        base = {"seed": self.seed, "batch_size": self.batch_size, "num_shards": -1}
-        return {**base, "epoch": self.epoch, "batch": -1, "skip": 0}
+        return {**self._state_base(-1, self.epoch), "batch": -1, "skip": 0}
+
+    def _state_base(self, num_shards: int, epoch: int) -> dict[str, int]:
+        """What a stream position depends on (the keys of a state besides ``batch`` and ``skip``)."""
+        return {"seed": self.seed, "batch_size": self.batch_size, "num_shards": num_shards, "epoch": epoch}
 
     def load_state_dict(self, state: dict[str, int]) -> None:
         """Start the next iteration where ``state`` (:meth:`state_dict`) was: same epoch, same
@@ -576,8 +579,7 @@ class HOGSADataset(IterableDataset):
         skip = 0 if at is None else at["skip"]
         epoch = self.epoch if at is None else at["epoch"]
         first = shard if start is None else start
-        base = {"seed": self.seed, "batch_size": self.batch_size, "num_shards": num, "epoch": epoch}
-        self._position = {**base, "batch": first, "skip": skip}
+        self._position = {**self._state_base(num, epoch), "batch": first, "skip": skip}
         return start, skip, epoch
 
     def iter_frames(self) -> Iterator[SynthFrame]:
@@ -593,7 +595,7 @@ class HOGSADataset(IterableDataset):
         self._check_device()
         guard = DropGuard(self.checks, self.stats)
         start, skip, epoch = self._start()
-        base = {k: v for k, v in self._position.items() if k not in ("batch", "skip")}  # type: ignore[union-attr]
+        base = self._state_base(shard_info()[1], epoch)
         _, num = shard_info()
         for plan in self._shard_plans(start, epoch):
             g = plan.indices[0] // self.batch_size if plan.indices else 0

@@ -17,13 +17,7 @@ from hogsa_loader.sample.augment import ArcticConfig
 from hogsa_loader.sample.config import with_options
 from hogsa_loader.sample.mixing import MixedLoader
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # (conftest: small renders on one thread)
 
 
 def _dataset(bundle, world, **kw) -> HOGSADataset:
