@@ -285,7 +285,8 @@ def bench_real(args: argparse.Namespace) -> dict[str, Any]:
     }  # (workers' counts stay in the workers)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def parse_args(argv: Optional[list[str]] = None) -> argparse.Namespace:
+    """The benchmark's settings from command-line flags."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--bundle", default=None, help="bundle folder; omit to measure the real loader only")
     p.add_argument("--data", required=True, help="ARCTIC(-format) data root")
@@ -310,7 +311,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     p.add_argument("--real-seconds", type=float, default=None, help="timed seconds of the real loader")
     p.add_argument("--real-profile-items", type=int, default=40, help="items of the real single-process breakdown")
     p.add_argument("--no-real", action="store_true", help="skip the real loader")
-    args = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    args = parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     device = args.device

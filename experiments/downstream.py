@@ -1420,7 +1420,9 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     return record
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def parse_args(argv: Optional[list[str]] = None) -> DownstreamConfig:
+    """The experiment's settings from command-line flags (``--quick`` and ``--device cuda`` first
+    switch the defaults, other flags still override them)."""
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--quick", action="store_true")
     pre.add_argument("--device", default="cpu")
@@ -1439,8 +1441,19 @@ def main(argv: Optional[list[str]] = None) -> int:
         help="defaults for the tiny world: one seed, a few steps (minutes); other flags still apply",
     )
     add_dataclass_arguments(p, DownstreamConfig, base)
-    cfg = dataclass_from_args(DownstreamConfig, p.parse_args(argv))
-    run(cfg)
+    return dataclass_from_args(DownstreamConfig, p.parse_args(argv))
+
+
+def arm_folder(arm: str, cfg: DownstreamConfig) -> Path:
+    """The folder holding ``seed<k>/`` of ``arm``'s runs under ``cfg.out`` (what ``heldout.py``'s
+    ``--runs`` takes)."""
+    if arm not in ARM_SPECS:
+        raise SystemExit(f"downstream: error: unknown arm {arm!r}; known: {', '.join(ARMS)}")
+    return run_dir(arm, 0, cfg, Path(cfg.out)).parent
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    run(parse_args(argv))
     return 0
 
 

@@ -416,10 +416,15 @@ def run(cfg: HeldoutConfig) -> dict[str, Any]:
     return record
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def parse_args(argv: Optional[list[str]] = None) -> HeldoutConfig:
+    """The evaluation's settings from command-line flags."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_dataclass_arguments(p, HeldoutConfig, HeldoutConfig())
-    run(dataclass_from_args(HeldoutConfig, p.parse_args(argv)))
+    return dataclass_from_args(HeldoutConfig, p.parse_args(argv))
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    run(parse_args(argv))
     return 0
 
 
