@@ -2,7 +2,7 @@
 
 Builds the synthetic hand pair (:func:`hogsa_world.hand.synthetic_hand_pair`) as Gaussian
 parts in a grasp pose (:func:`hogsa_loader.assets.hands.anatomy.named_articulation`), a procedural
-textured object (:func:`hogsa_world.objects.procedural.make_object`), places the hands on opposite
+textured object (:func:`hogsa_world.objects.catalogue.make_object`), places the hands on opposite
 sides of the object with their palms towards it, composes the scene and renders 8 views on a
 ring around the vertical axis with the CPU Gaussian rasteriser. Writes a 2 x 4 PNG grid (a
 third row of per-part masks with ``--masks``) and prints sizes and timings: the first
@@ -36,7 +36,7 @@ from hogsa_loader.geometry.rotations import matrix_to_axis_angle
 from hogsa_loader.models.gaussians import BindingConfig, HandGaussians, ObjectGaussians, compose, render_scene
 from hogsa_loader.render.mesh_raster import camera_look_at, intrinsics_from_fov, save_png
 from hogsa_world.hand import synthetic_hand_pair
-from hogsa_world.objects.procedural import make_object
+from hogsa_world.objects.catalogue import make_object
 
 BACKGROUND = (0.93, 0.93, 0.95)
 PART_COLOURS = np.array([[0.85, 0.25, 0.2], [0.2, 0.45, 0.9], [0.95, 0.8, 0.2]])

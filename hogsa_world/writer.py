@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from hogsa_loader.assets.arctic_processing import write_processed_splits
 from hogsa_loader.assets.conventions import EGO_IMAGE_SIZE, MASK_IDS
-from hogsa_loader.assets.hands.mano_io import load_mano, write_mano_pickle
+from hogsa_loader.assets.hands.mano_io import load_mano
 from hogsa_loader.assets.objects.template import load_object_template, read_object_meta
 from hogsa_loader.errors import PathLike
 from hogsa_loader.io.atomic import atomic_write
@@ -31,8 +31,9 @@ from hogsa_world.cameras import AlloRig, allocentric_rig, ego_calibration, ego_t
 from hogsa_world.decimation import write_decimation_files
 from hogsa_world.grasp import HandKit, fit_part_boxes
 from hogsa_world.hand import GENERATOR_VERSION, synthetic_hand_pair
+from hogsa_world.mano_pickle import write_mano_pickle
 from hogsa_world.motion import build_motion
-from hogsa_world.objects.procedural import PROCEDURAL_NAMES, make_and_write_objects
+from hogsa_world.objects.catalogue import PROCEDURAL_NAMES, make_and_write_objects
 from hogsa_world.presets import SequencePlan, WorldPreset
 from hogsa_world.preview import write_world_preview
 from hogsa_world.quality import sequence_quality

@@ -15,8 +15,8 @@ import pytest
 import torch
 from hypothesis import settings as hypothesis_settings
 
-from hogsa_loader.assets.hands.mano_io import write_mano_pickle
 from hogsa_world.hand import synthetic_hand_pair
+from hogsa_world.mano_pickle import write_mano_pickle
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 

@@ -20,7 +20,7 @@ from typing import Any, Sequence
 import torch
 from tqdm import tqdm
 
-from hogsa_loader.assets.hands.mano_io import convert_mano_to_npz, write_mano_pickle
+from hogsa_loader.assets.hands.mano_io import convert_mano_to_npz
 from hogsa_loader.assets.objects import load_object_templates
 from hogsa_loader.cli import checks
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
@@ -42,7 +42,8 @@ from hogsa_world.annotation_noise import AnnotationNoise, add_annotation_noise
 from hogsa_world.demo import DemoConfig, run_demo
 from hogsa_world.h2o_export import export_h2o_world
 from hogsa_world.hand import synthetic_hand_pair
-from hogsa_world.objects.procedural import PROCEDURAL_NAMES, write_procedural_objects
+from hogsa_world.mano_pickle import write_mano_pickle
+from hogsa_world.objects.catalogue import PROCEDURAL_NAMES, write_procedural_objects
 
 __all__: list[str] = []
 

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hogsa_loader.assets import conventions
 from hogsa_loader.assets.conventions import render_intrinsics
 from hogsa_loader.models.gaussians.recombine import PartLights, swap_hands
 from hogsa_loader.sample.cameras import look_at
@@ -124,9 +125,7 @@ def scene_bounds(points: np.ndarray) -> tuple[np.ndarray, float]:
 def project(points: np.ndarray, world2cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(C, P, 2) pixel coordinates (label convention) of (P, 3) world points in C cameras."""
     w2c = np.asarray(world2cam, dtype=np.float64).reshape(-1, 4, 4)
-    p = np.einsum("cij,pj->cpi", w2c[:, :3, :3], np.asarray(points, dtype=np.float64)) + w2c[:, None, :3, 3]
-    uv = np.einsum("ij,cpj->cpi", np.asarray(K, dtype=np.float64), p)
-    return uv[..., :2] / uv[..., 2:3]
+    return conventions.project(conventions.transform(w2c, np.asarray(points, dtype=np.float64)), np.asarray(K, float))
 
 
 def posed_points(

@@ -10,8 +10,9 @@ import pickletools
 import numpy as np
 import pytest
 
-from hogsa_loader.assets.hands.mano_io import RestrictedUnpickler, convert_mano_to_npz, load_mano, write_mano_pickle
+from hogsa_loader.assets.hands.mano_io import RestrictedUnpickler, convert_mano_to_npz, load_mano
 from hogsa_loader.errors import AssetError, UnsafePickleError
+from hogsa_world.mano_pickle import write_mano_pickle
 
 
 def _globals_in(path) -> set[str]:

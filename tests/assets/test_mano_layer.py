@@ -263,7 +263,7 @@ def test_hd_refined_weights_hook(hand_pair):
 
 
 def test_hd_round_trips_through_the_pickle(tmp_path, hand_pair):
-    from hogsa_loader.assets.hands.mano_io import write_mano_pickle
+    from hogsa_world.mano_pickle import write_mano_pickle
 
     hd = subdivide_model(hand_pair[0], 1)
     write_mano_pickle(hd, tmp_path / "MANO_RIGHT.pkl")
@@ -311,8 +311,8 @@ def test_named_poses_deform_without_tearing(hand_pair, pose):
 
 
 def test_synthetic_hand_is_deterministic(tmp_path, hand_pair):
-    from hogsa_loader.assets.hands.mano_io import write_mano_pickle
     from hogsa_world.hand import synthetic_hand_pair
+    from hogsa_world.mano_pickle import write_mano_pickle
 
     again, _ = synthetic_hand_pair()
     write_mano_pickle(hand_pair[0], tmp_path / "a.pkl")

@@ -30,11 +30,12 @@ from hogsa_loader.assets.objects import (
     parse_h2o_obj_pose_rt,
     pose_rigid,
     read_h2o_obj_pose_rt,
-    write_object_template,
 )
 from hogsa_loader.assets.objects.template import MAX_MESH_BYTES, bbox_corners, max_pairwise_distance
 from hogsa_loader.errors import AssetError
-from hogsa_world.objects.procedural import GAP_MM, PROCEDURAL_NAMES, make_object, write_procedural_objects
+from hogsa_world.object_files import write_object_template
+from hogsa_world.objects.catalogue import PROCEDURAL_NAMES, make_object, write_procedural_objects
+from hogsa_world.objects.procedural import GAP_MM
 
 F64 = torch.float64
 

@@ -635,7 +635,7 @@ def smplx_mano_shapes(V: int, F: int) -> dict[str, tuple[int, ...]]:
 def test_smplx_mano_state_dict_names(world, tmp_path: Path, chumpy_shim) -> None:
     """The smplx MANO names listed above are the real ones (smplx is a test dependency)."""
     smplx = pytest.importorskip("smplx")
-    from hogsa_loader.assets.hands.mano_io import write_mano_pickle
+    from hogsa_world.mano_pickle import write_mano_pickle
 
     data = world["mano"]["r"].data
     write_mano_pickle(data, tmp_path / "MANO_RIGHT.pkl")

@@ -151,7 +151,7 @@ def right_hand(hand_pair):
 
 @pytest.fixture(scope="module")
 def box_template():
-    from hogsa_world.objects.procedural import make_object
+    from hogsa_world.objects.catalogue import make_object
 
     return make_object("box")
 
@@ -637,7 +637,7 @@ def test_hogs_model_headlight_without_learned_light():
     has a learned light (the normals are kept for it), and darkens the grazing surfaces."""
     from hogsa_loader.models.gaussians.hogs_model import HogsModel
     from hogsa_world.hand import synthetic_hand_pair
-    from hogsa_world.objects.procedural import make_object
+    from hogsa_world.objects.catalogue import make_object
 
     r, l = synthetic_hand_pair()
     m = HogsModel(

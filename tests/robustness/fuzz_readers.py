@@ -51,6 +51,7 @@ from hypothesis import strategies as st
 from hypothesis.errors import UnsatisfiedAssumption
 
 from hogsa_loader.errors import AssetError
+from hogsa_world.mano_pickle import release_pickle_bytes, write_mano_pickle
 
 #: Random JSON documents (the values a hostile manifest may hold).
 JSON_VALUES = st.recursive(
@@ -338,21 +339,14 @@ def _prepare_mano(res: Resources) -> dict[str, Any]:
 
     d = _fresh(res, "mano")
     model = mano_io.load_mano(res.world / "body_models" / "mano", side="right")
-    good = mano_io._schema_dict(model)
+    good = mano_io.schema_dict(model)
     path = d / "MANO_RIGHT.pkl"
-    mano_io.write_mano_pickle(model, path)
+    write_mano_pickle(model, path)
     return {"path": path, "good": good, "bytes": path.read_bytes()}
 
 
 def _dump_mano(doc: dict[str, Any]) -> bytes:
-    from hogsa_loader.assets.hands import mano_io
-
-    doc = dict(doc)
-    if isinstance(doc.get("shapedirs"), np.ndarray):
-        doc["shapedirs"] = mano_io._ChumpyCh(np.ascontiguousarray(doc["shapedirs"]))
-    buf = io.BytesIO()
-    mano_io._LegacyPickler(buf, protocol=2, fix_imports=True).dump(doc)
-    return buf.getvalue()
+    return release_pickle_bytes(doc)
 
 
 def _case_mano(draw: Callable, ctx: dict[str, Any]) -> None:

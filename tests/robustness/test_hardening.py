@@ -307,21 +307,18 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
     """v_template as 3·10^7 shared numbers (under the 5·10^7 element cap) is refused by its
     shape, before np.asarray; so is a list of 2·10^6 (over the 10^6 list cap), and a list
     holding an integer beyond int64 is refused as not numeric."""
-    import io
-
     from hogsa_loader.assets.hands import mano_io
     from hogsa_loader.io.pickle_caps import nested_shape
+    from hogsa_world.mano_pickle import release_pickle_bytes
 
     x: list = [0.5]
     for w in (3, 1000, 10_000):
         x = [x] * w
     assert nested_shape(x) == (10_000, 1000, 3, 1)
-    doc = mano_io._schema_dict(hand_pair[0])
-    doc.update(v_template=x, shapedirs=mano_io._ChumpyCh(doc["shapedirs"]))
-    buf = io.BytesIO()
-    mano_io._LegacyPickler(buf, protocol=2).dump(doc)
+    doc = mano_io.schema_dict(hand_pair[0])
+    doc.update(v_template=x)
     path = tmp_path / "MANO_RIGHT.pkl"
-    path.write_bytes(buf.getvalue())
+    path.write_bytes(release_pickle_bytes(doc))
     with pytest.raises(AssetError, match=r"v_template.*nested list of shape 10000x1000x3x1 is far larger than any"):
         mano_io.load_mano(path)
     for value, message in (
@@ -329,9 +326,7 @@ def test_mano_list_bomb_under_the_element_cap_is_refused_before_conversion(hand_
         ([[2**70, 1, 2]], "expected a numeric array, got dtype object"),
     ):
         doc.update(v_template=value)
-        buf = io.BytesIO()
-        mano_io._LegacyPickler(buf, protocol=2).dump(doc)
-        path.write_bytes(buf.getvalue())
+        path.write_bytes(release_pickle_bytes(doc))
         with pytest.raises(AssetError, match=message):
             mano_io.load_mano(path)
 

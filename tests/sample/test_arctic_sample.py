@@ -724,7 +724,8 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def _write_box_template(meta: Path, kp_bottom: np.ndarray, kp_top: np.ndarray) -> None:
-    from hogsa_loader.assets.objects.template import ObjectTemplate, bbox_corners, write_object_template
+    from hogsa_loader.assets.objects.template import ObjectTemplate, bbox_corners
+    from hogsa_world.object_files import write_object_template
 
     rng = np.random.default_rng(0)
     verts = rng.uniform(-0.08, 0.08, (40, 3)).astype(np.float32)

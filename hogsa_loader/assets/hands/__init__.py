@@ -8,7 +8,6 @@ from hogsa_loader.assets.hands.mano_io import (
     convert_mano_to_npz,
     load_mano,
     reorder_vertices,
-    write_mano_pickle,
 )
 from hogsa_loader.assets.hands.manohd import subdivide_model
 
@@ -25,5 +24,4 @@ __all__ = [
     "named_articulation",
     "reorder_vertices",
     "subdivide_model",
-    "write_mano_pickle",
 ]

@@ -1,4 +1,4 @@
-"""Reading and writing MANO model files without chumpy.
+"""Reading MANO model files without chumpy.
 
 - :class:`ManoModelData`: the validated arrays of one hand model, plus the metadata the
   project needs (side, fingertip vertices, prior-contact vertices, vertex colours).
@@ -6,19 +6,14 @@
 - :func:`load_mano`: ``.pkl`` (restricted unpickler,
   :class:`~hogsa_loader.io.mano_pickle.RestrictedUnpickler`) or ``.npz`` (no pickle allowed).
 - :func:`convert_mano_to_npz`: one-shot conversion of a pickle to a chumpy-free ``.npz``.
-- :func:`write_mano_pickle`: writes a model in the MANO release's pickle schema (protocol 2,
-  Python-2 names, chumpy ``Ch`` for ``shapedirs``, CSC ``J_regressor``), used for the
-  project's synthetic hand so that every reader is exercised on the real format.
+- :func:`schema_dict`: a model as the MANO release's dictionary of arrays.
 """
 
 from __future__ import annotations
 
-import copyreg
-import io
 import json
 import os
 import pickle
-from _compat_pickle import REVERSE_IMPORT_MAPPING, REVERSE_NAME_MAPPING
 from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Optional
 
@@ -26,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from hogsa_loader.errors import AssetError, PathLike
-from hogsa_loader.io.atomic import atomic_open, atomic_write
+from hogsa_loader.io.atomic import atomic_open
 from hogsa_loader.io.mano_pickle import RestrictedUnpickler, as_array
 
 __all__ = [
@@ -39,7 +34,7 @@ __all__ = [
     "convert_mano_to_npz",
     "load_mano",
     "reorder_vertices",
-    "write_mano_pickle",
+    "schema_dict",
 ]
 
 #: Order of the five fingertips appended as joints 16..20 (ARCTIC's 21-joint MANO).
@@ -385,7 +380,10 @@ def load_mano(
 # ----------------------------------------------------------------------------------------
 # Writing
 # ----------------------------------------------------------------------------------------
-def _schema_dict(m: ManoModelData) -> dict[str, Any]:
+def schema_dict(m: ManoModelData) -> dict[str, Any]:
+    """``m`` as the MANO release's dictionary (``f``, ``J_regressor`` as CSC, ``kintree_table``
+    with the uint32 root sentinel, ``J``, ``weights``, ``posedirs``, ``shapedirs``, ...), with
+    the project's metadata (side, fingertips, contact sets, colours) under ``hogsa_meta``."""
     kintree = np.stack([m.parents, np.arange(m.num_joints)]).astype(np.int64)
     kintree[0, 0] = 4294967295  # the release's root sentinel (uint32 -1)
     meta = dict(m.meta)
@@ -413,73 +411,6 @@ def _schema_dict(m: ManoModelData) -> dict[str, Any]:
         META_KEY: meta,
     }
     return out
-
-
-class _ChumpyCh:
-    """Writer-side placeholder pickled as ``chumpy.ch.Ch`` with state ``{'x': array}``."""
-
-    def __init__(self, x: np.ndarray) -> None:
-        self.x = x
-
-    def __reduce__(self) -> tuple:
-        return (copyreg._reconstructor, (_ChumpyCh, object, None), {"x": self.x})
-
-
-class _LegacyPickler(pickle._Pickler):  # type: ignore[name-defined]
-    """Protocol-2 pickler that writes the global names of a Python-2 MANO file.
-
-    numpy's ``_core`` is written as ``core``, scipy's private ``_csc`` module as ``csc``, the
-    chumpy placeholder as ``chumpy.ch.Ch``, and ``bytes`` as Python-2 ``str`` (BINSTRING), so
-    that readers meet exactly what the official files contain.
-    """
-
-    _RENAMES = {
-        "numpy._core.multiarray": "numpy.core.multiarray",
-        "numpy._core.numeric": "numpy.core.numeric",
-        "scipy.sparse._csc": "scipy.sparse.csc",
-    }
-    dispatch = dict(pickle._Pickler.dispatch)  # type: ignore[attr-defined]
-
-    def save_global(self, obj: Any, name: Optional[str] = None) -> None:  # noqa: D401
-        if obj is _ChumpyCh:
-            module, qual = "chumpy.ch", "Ch"
-        else:
-            module, qual = obj.__module__, name or obj.__qualname__
-            module = self._RENAMES.get(module, module)
-        if (module, qual) in REVERSE_NAME_MAPPING:
-            module, qual = REVERSE_NAME_MAPPING[(module, qual)]
-        module = REVERSE_IMPORT_MAPPING.get(module, module)
-        self.write(pickle.GLOBAL + f"{module}\n{qual}\n".encode("latin1"))
-        self.memoize(obj)
-
-    def save_bytes_py2(self, obj: bytes) -> None:
-        n = len(obj)
-        if n < 256:
-            self.write(pickle.SHORT_BINSTRING + bytes([n]) + obj)
-        else:
-            self.write(pickle.BINSTRING + n.to_bytes(4, "little") + obj)
-        self.memoize(obj)
-
-    dispatch[bytes] = save_bytes_py2
-
-
-def write_mano_pickle(model: ManoModelData, path: PathLike) -> None:
-    """Write ``model`` as a MANO pickle in the release's schema (the schema of ``MANO_RIGHT.pkl``).
-
-    ``shapedirs`` is stored as a chumpy ``Ch`` (as in the release), ``J_regressor`` as a
-    ``scipy.sparse`` CSC matrix, ``kintree_table`` with the uint32 root sentinel, and the
-    project metadata (side, fingertips, contact sets, colours) under ``hogsa_meta``.
-    Readers that ignore ``hogsa_meta`` (smplx, ARCTIC) take the fingertips at
-    :data:`MANO_RELEASE_TIP_IDS`, so a model meant for them has its tips there (the
-    synthetic hand does). The file is written atomically.
-    """
-    p = os.fspath(path)
-    d = _schema_dict(model)
-    d["shapedirs"] = _ChumpyCh(np.ascontiguousarray(d["shapedirs"]))
-    buf = io.BytesIO()
-    _LegacyPickler(buf, protocol=2, fix_imports=True).dump(d)
-    os.makedirs(os.path.dirname(os.path.abspath(p)), exist_ok=True)
-    atomic_write(p, buf.getvalue())
 
 
 def check_npz_destination(src: PathLike, dst: PathLike, overwrite: bool = False) -> None:
@@ -513,7 +444,7 @@ def convert_mano_to_npz(
     """
     check_npz_destination(src, dst, overwrite)
     model = load_mano(src, side=side)
-    d = _schema_dict(model)
+    d = schema_dict(model)
     d["J_regressor"] = model.J_regressor
     d[META_KEY] = json.dumps(d[META_KEY])
     d["bs_style"] = np.array("lbs")

@@ -20,8 +20,6 @@ from hogsa_loader.assets.objects.template import (
     load_object_template,
     load_object_templates,
     read_object_meta,
-    write_object_meta,
-    write_object_template,
 )
 
 __all__ = [
@@ -40,6 +38,4 @@ __all__ = [
     "pose_rigid",
     "read_h2o_obj_pose_rt",
     "read_object_meta",
-    "write_object_meta",
-    "write_object_template",
 ]
