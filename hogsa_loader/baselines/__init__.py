@@ -1,5 +1,5 @@
-"""ArcticNet-SF (a re-implementation of ARCTIC's single-frame baseline), its loss, ARCTIC's
-metrics, and the training step / evaluation loop that use them."""
+"""ArcticNet-SF and InterField-SF (re-implementations of ARCTIC's single-frame baselines),
+their losses, ARCTIC's metrics, and the training step / evaluation loop that use them."""
 
 from hogsa_loader.baselines.arcticnet_sf import (
     ArcticNetSF,
@@ -13,6 +13,15 @@ from hogsa_loader.baselines.arcticnet_sf import (
 )
 from hogsa_loader.baselines.clips import clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
+from hogsa_loader.baselines.interfield_sf import (
+    FIELD_KEYS,
+    InterFieldSF,
+    field_acceleration,
+    field_metrics,
+    field_training_step,
+    interfield_loss,
+    read_mano_decimator,
+)
 from hogsa_loader.baselines.loss import ARCTIC_SF_LOSS_WEIGHTS, arcticnet_sf_loss
 from hogsa_loader.baselines.metrics import per_frame_metrics, sequence_metrics, summarize
 from hogsa_loader.baselines.resnet import ResNet, build_backbone, load_backbone_weights, resnet18, resnet50
@@ -21,6 +30,13 @@ from hogsa_loader.baselines.targets import estimate_translation_k, prepare_targe
 __all__ = [
     "ARCTIC_SF_LOSS_WEIGHTS",
     "ArcticNetSF",
+    "FIELD_KEYS",
+    "InterFieldSF",
+    "field_acceleration",
+    "field_metrics",
+    "field_training_step",
+    "interfield_loss",
+    "read_mano_decimator",
     "BodyLayers",
     "arcticnet_sf_loss",
     "clip_sums",

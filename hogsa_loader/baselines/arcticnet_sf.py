@@ -411,8 +411,9 @@ class ArcticNetSF(nn.Module):
         backbone: ``"resnet18"`` or ``"resnet50"`` (ARCTIC's release uses ResNet-50),
             randomly initialised; load ImageNet weights with
             :func:`~hogsa_loader.baselines.resnet.load_backbone_weights` on ``.backbone``.
-        mano_r, mano_l: right / left :class:`~hogsa_loader.assets.hands.mano.MANOLayer`
-            (ARCTIC: ``flat_hand_mean=False``); stored as ``mano_r.mano`` / ``mano_l.mano``.
+        mano_r: right :class:`~hogsa_loader.assets.hands.mano.MANOLayer` (ARCTIC:
+            ``flat_hand_mean=False``); stored as ``mano_r.mano``.
+        mano_l: the left one; stored as ``mano_l.mano``.
         object_layer: :class:`~hogsa_loader.assets.objects.articulated.ArticulatedObjectLayer`
             holding every object of ``query_names``; stored as ``arti_head.object_tensors``.
         focal_length: focal length (px) of the fixed patch camera used when

@@ -25,6 +25,7 @@ __all__ = [
     "to_device",
     "prepare_batch",
     "training_step",
+    "apply_losses",
     "evaluate",
     "temporal_order",
     "mean_cameras",
@@ -147,14 +148,25 @@ def training_step(
     """
     model.train()
     inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device)
-    pred = model(inputs, meta_info)
-    losses = arcticnet_sf_loss(pred, targets)
-    total = losses["loss"]
-    if not torch.isfinite(total):
+    return apply_losses(arcticnet_sf_loss(model(inputs, meta_info), targets), model, optimizer, grad_clip)
+
+
+def apply_losses(
+    losses: Mapping[str, Tensor], model: nn.Module, optimizer: torch.optim.Optimizer, grad_clip: float
+) -> dict[str, float]:
+    """Back-propagate ``losses["loss"]``, clip the gradient norm (0 = no clip) and step.
+
+    Returns:
+        ``{loss key: value}`` of every term.
+
+    Raises:
+        FloatingPointError: the loss is not finite (the step is not applied).
+    """
+    if not torch.isfinite(losses["loss"]):
         bad = [k for k, v in losses.items() if not torch.isfinite(v).all()]
         raise FloatingPointError(f"non-finite loss terms: {bad}")
     optimizer.zero_grad(set_to_none=True)
-    total.backward()
+    losses["loss"].backward()
     if grad_clip and grad_clip > 0:
         torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
     optimizer.step()

@@ -7,7 +7,6 @@ import pytest
 import torch
 from torch.utils.data import DataLoader, Subset
 
-from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.baselines import (
     ARCTIC_SF_LOSS_WEIGHTS,
     ArcticNetSF,
@@ -19,8 +18,7 @@ from hogsa_loader.baselines import (
     temporal_order,
     training_step,
 )
-from hogsa_loader.compose import ProceduralBackgrounds
-from hogsa_loader.sample import HOGSADataset, MixedLoader, is_synthetic, with_options
+from hogsa_loader.sample import is_synthetic
 from hogsa_loader.sample.arctic_dataset import ArcticDataset, parse_imgname
 from hogsa_loader.sample.augment import ArcticConfig
 
@@ -30,32 +28,9 @@ CFG = ArcticConfig(img_res=RES)
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.fixture(scope="module")
-def layers(tiny_world):
-    return BodyLayers.from_root(ArcticRoot(tiny_world))
-
-
 def _model(layers: BodyLayers) -> ArcticNetSF:
     torch.manual_seed(0)
     return ArcticNetSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, img_res=RES)
-
-
-@pytest.fixture(scope="module")
-def batches(tiny_world, untrained_bundle):
-    """A real batch of 4 and a mixed batch (2 real + 2 synthetic) of the tiny world."""
-    real = DataLoader(
-        ArcticDataset(tiny_world, "p1_train", seed=0, config=CFG),
-        batch_size=4,
-        shuffle=True,
-        generator=torch.Generator().manual_seed(0),
-    )
-    syn = HOGSADataset(
-        untrained_bundle,
-        tiny_world,
-        with_options(arctic=CFG, batch_size=4, num_samples=8, seed=1),
-        backgrounds=ProceduralBackgrounds(),
-    )
-    return next(iter(real)), next(iter(MixedLoader(real, syn, 0.5)))
 
 
 def test_training_step_on_real_and_mixed_batches(batches, layers):
@@ -73,11 +48,16 @@ def test_training_step_on_real_and_mixed_batches(batches, layers):
 
 
 def test_training_fits_a_fixed_batch(batches, layers):
+    """From the camera prior (as every fine-tuning starts), 12 Adam steps on one batch lower the
+    loss steadily. From a random camera the loss is dominated by metre-scale translations and
+    swings between 90 and 350 from step to step, so that start is no test of fitting."""
     real, _ = batches
     model = _model(layers)
+    model.init_cameras(mean_cameras([real], layers, RES))
     opt = torch.optim.Adam(model.parameters(), lr=3e-4)
     losses = [training_step(model, real, layers, opt, RES)["loss"] for _ in range(12)]
     assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
+    assert all(b < a for a, b in zip(losses[2:], losses[3:]))  # steady from the third step on
 
 
 def test_mean_cameras_are_the_mean_over_valid_frames(batches, layers):
