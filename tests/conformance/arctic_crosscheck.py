@@ -14,7 +14,7 @@ checkout and run, in a temporary working folder that holds ``data`` (a link to t
 ``src`` and ``common`` (links into the checkout), because ARCTIC's code opens
 ``./data/arctic_data/data/...`` relative to the working folder.
 
-Checks (``--checks``, default all three):
+Checks (``--checks``, default all four):
 
 ``dataset``
     ARCTIC's ``src/datasets/arctic_dataset.py`` ``ArcticDataset`` against
@@ -49,6 +49,16 @@ Checks (``--checks``, default all three):
     names, sequences, then per key shape, dtype and max abs difference (rotations as the
     geodesic angle between the two rotations). Keys that only ARCTIC writes because the
     project's worlds have no body (``joints.smplx``, ``smplx_*``) are listed, not failed.
+``field``
+    InterField-SF's loss and metrics against ARCTIC's ``src/callbacks/loss/loss_field.py``
+    ``dist_loss`` and ``src/utils/eval_modules.py`` ``eval_field_errors`` /
+    ``eval_acc_field``: one clip of ``p1_train`` (its first 8 frames in temporal order, no
+    augmentation), the field targets prepared by
+    :func:`hogsa_loader.baselines.prepare_targets` (clamped to 0.1 m), the predictions of a
+    randomly initialised :class:`hogsa_loader.baselines.InterFieldSF` and the targets plus
+    Gaussian noise; both sides get the same tensors. Passes when every loss term, per-frame
+    average error and acceleration error agrees within a relative 1e-5 (and NaN where the
+    other is NaN).
 
 Packages. ARCTIC imports packages that a CPU-only machine may lack. Those that ``pip``
 installs and that the selected checks really run (``loguru``, ``easydict``,
@@ -119,7 +129,7 @@ import numpy as np
 # Constants (facts read from ARCTIC's code; see the docstrings for the file each comes from)
 # ----------------------------------------------------------------------------------------
 
-CHECKS = ("dataset", "train", "processing")
+CHECKS = ("dataset", "train", "processing", "field")
 SPLITS = ("p1_train", "p1_val", "p2_train", "p2_val")
 ARCTIC_SUBDIR = "arctic_data/data"
 
@@ -498,7 +508,7 @@ def required_files(
     image_names: Optional[Mapping[str, Sequence[str]]] = None,
     require_smplx: bool = False,
 ) -> list[dict[str, Any]]:
-    """Every file ARCTIC's code opens for the three checks, with whether the world has it.
+    """Every file ARCTIC's code opens for the checks, with whether the world has it.
 
     Args:
         data_root: the folder that plays ARCTIC's ``./data``.
@@ -544,16 +554,20 @@ def required_files(
                 member=f"{obj}/{fname}",
             )
     for name in sorted(set(splits) | {"p1_train"}):
-        needed = (["dataset"] if name in splits else []) + (["train"] if name == "p1_train" else [])
+        needed = (["dataset"] if name in splits else []) + (["train", "field"] if name == "p1_train" else [])
         add(
             f"{arctic}/splits/{name}.npy",
             needed,
             "ARCTIC's ArcticDataset reads the world's split; the train check's real samples come from p1_train",
         )
     add(f"{arctic}/meta/downsamplers.npy", ("train",), "object_sampler (src/models/generic/wrapper.py __init__)")
-    add(f"{arctic}/meta/mano_decimator_195.npy", ("train",), "MANODecimator (common/body_models.py), every forward")
+    add(
+        f"{arctic}/meta/mano_decimator_195.npy",
+        ("train", "field"),
+        "MANODecimator (common/body_models.py), every forward; InterField-SF's hand templates",
+    )
     for side in ("RIGHT", "LEFT"):
-        add(f"body_models/mano/MANO_{side}.pkl", ("train", "processing"), "smplx MANO (common/body_models.py)")
+        add(f"body_models/mano/MANO_{side}.pkl", ("train", "processing", "field"), "smplx MANO (common/body_models.py)")
 
     misc: dict[str, Any] = {}
     misc_path = root / arctic / "meta" / "misc.json"
@@ -1781,6 +1795,89 @@ def run_processing_check(
 # ----------------------------------------------------------------------------------------
 
 
+def run_field_check(sess: ArcticSession, data_root: Path, seed: int, log: Callable[[str], None]) -> dict[str, Any]:
+    import numpy as np
+    import torch
+    from torch.utils.data import DataLoader, Subset
+
+    from hogsa_loader.assets.arctic import ArcticRoot
+    from hogsa_loader.baselines import (
+        BodyLayers,
+        InterFieldSF,
+        field_acceleration,
+        field_metrics,
+        interfield_loss,
+        prepare_targets,
+        read_mano_decimator,
+        temporal_order,
+    )
+    from hogsa_loader.sample.arctic_dataset import ArcticDataset as OurDataset
+
+    loss_field = sess.module("src.callbacks.loss.loss_field")
+    eval_modules = sess.module("src.utils.eval_modules")
+    xdict = sess.module("common.xdict").xdict
+    root = ArcticRoot(data_root)
+    layers = BodyLayers.from_root(root)
+    real = OurDataset(data_root, split="p1_train", augment=False, seed=seed, config=our_config(sess.args("p1")))
+    order = temporal_order(real.imgnames)
+    clip = "/".join(str(real.imgnames[order[0]]).split("/")[-4:-1])
+    frames = [i for i in order if "/".join(str(real.imgnames[i]).split("/")[-4:-1]) == clip][:8]
+    inputs, targets, meta = next(iter(DataLoader(Subset(real, frames), batch_size=len(frames))))
+    img_res = int(inputs["img"].shape[-1])
+    targets, meta = prepare_targets(
+        dict(targets), dict(meta), layers.mano_r, layers.mano_l, layers.objects, img_res=img_res, max_dist=0.1
+    )
+    D = read_mano_decimator(root.meta_dir / "mano_decimator_195.npy", int(layers.mano_r.v_template.shape[0]))
+    torch.manual_seed(seed)
+    with torch.no_grad():
+        model = InterFieldSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, D).eval()
+        out = model(inputs, meta)
+    keys = ("dist.ro", "dist.lo", "dist.or", "dist.ol")
+    gen = torch.Generator().manual_seed(seed)
+    noisy = {k: targets[k].float() + 0.01 * torch.randn(targets[k].shape, generator=gen) for k in keys}
+    gt = {k: targets[k].float() for k in ("is_valid", "right_valid", "left_valid", *keys)}
+    v_len = torch.as_tensor(targets["object.v_len"])
+    mask = (torch.arange(gt["dist.or"].shape[1])[None] < v_len[:, None]).float()
+    rows: list[dict[str, Any]] = []
+
+    def compare(what: str, key: str, ours: Any, theirs: Any) -> None:
+        a = np.asarray(ours, dtype=np.float64).reshape(-1)
+        b = np.asarray(torch.as_tensor(theirs).detach().double().reshape(-1))
+        same_nan = a.shape == b.shape and bool((np.isnan(a) == np.isnan(b)).all())
+        fin = ~np.isnan(a) & ~np.isnan(b) if same_nan else np.zeros(0, bool)
+        diff = float(np.abs(a[fin] - b[fin]).max()) if fin.any() else 0.0
+        scale = float(np.abs(b[fin]).max()) if fin.any() else 0.0
+        ok = same_nan and diff <= 1e-5 * max(scale, 1e-6)
+        rows.append(
+            {
+                "predictions": what,
+                "key": key,
+                "ours": float(np.nanmean(a)) if fin.any() else float("nan"),
+                "arctic": float(np.nanmean(b)) if fin.any() else float("nan"),
+                "max_abs_diff": diff,
+                "nan_agree": same_nan,
+                "ok": ok,
+            }
+        )
+
+    for what, pred in (("InterFieldSF", {k: out[k] for k in keys}), ("targets + noise", noisy)):
+        ours = interfield_loss(pred, dict(gt, **{"object.v_len": v_len}), 0.1)
+        theirs = loss_field.dist_loss(xdict(), xdict(pred), xdict(gt), {"mask": mask})
+        for k in ("ro", "lo", "or", "ol"):
+            value, weight = theirs[f"loss/dist/{k}"]
+            compare(what, f"loss/dist/{k}", float(ours[f"loss/dist/{k}"]), float(value) * weight)
+        ours_m = field_metrics(pred, dict(gt, **{"object.v_len": v_len}))
+        theirs_m = eval_modules.eval_field_errors(xdict(pred), xdict(gt), xdict({"object.v_len": v_len}))
+        for k in ("avg/ho", "avg/oh"):
+            compare(what, k, ours_m[k], theirs_m[k])
+        ours_a = field_acceleration(pred, dict(gt, **{"object.v_len": v_len}))
+        theirs_a = eval_modules.eval_acc_field(xdict(pred), xdict(gt), xdict())
+        for k in ("acc/ho", "acc/oh"):
+            compare(what, k, ours_a[k], theirs_a[k])
+    log(f"  field: {sum(r['ok'] for r in rows)}/{len(rows)} figures agree on {len(frames)} frames of {clip}")
+    return {"ok": all(r["ok"] for r in rows), "clip": clip, "frames": len(frames), "rows": rows}
+
+
 def _fmt(x: Any) -> str:
     if x is None:
         return "-"
@@ -1968,6 +2065,24 @@ def format_train(res: Mapping[str, Any]) -> str:
     if res["zero_keys"]:
         lines.append(f"losses exactly 0 on this batch (no valid target of that kind): {res['zero_keys']}")
     return "\n".join(lines)
+
+
+def format_field(res: Mapping[str, Any]) -> str:
+    if "rows" not in res:
+        return "  (no result)"
+    rows = [
+        [
+            r["predictions"],
+            r["key"],
+            _fmt(r["ours"]),
+            _fmt(r["arctic"]),
+            _fmt(r["max_abs_diff"]),
+            "ok" if r["ok"] else "DIFFER",
+        ]
+        for r in res["rows"]
+    ]
+    head = f"{res['frames']} frames of {res['clip']} (p1_train, no augmentation); means over frames shown"
+    return head + "\n" + table(["predictions", "figure", "ours", "ARCTIC", "max abs diff", "status"], rows)
 
 
 def format_processing(res: Mapping[str, Any]) -> str:
@@ -2177,6 +2292,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 try:
                     if check == "dataset":
                         res = run_dataset_check(sess, data, splits, ns.items, ns.seed, ns.img_tol, ns.image_mode, log)
+                    elif check == "field":
+                        res = run_field_check(sess, data, ns.seed, log)
                     elif check == "train":
                         res = run_train_check(
                             sess,
@@ -2222,8 +2339,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         "dataset": "Check 1 - ARCTIC's ArcticDataset vs hogsa_loader ArcticDataset",
         "train": "Check 2 - one ArcticNet-SF training step (ARCTIC's wrapper and compute_loss) on a mixed batch",
         "processing": "Check 3 - ARCTIC's process_seq + build_split vs the world's splits/*.npy",
+        "field": "Check 4 - InterField-SF's loss, average error and acceleration error vs ARCTIC's",
     }
-    fmt = {"dataset": format_dataset, "train": format_train, "processing": format_processing}
+    fmt = {"dataset": format_dataset, "train": format_train, "processing": format_processing, "field": format_field}
     for check in checks:
         res = report["checks"].get(check, {})
         print(f"\n{titles[check]}: {status.get(check, '?')}")
