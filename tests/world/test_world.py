@@ -702,7 +702,10 @@ def _hash_tree(root: Path) -> dict[str, str]:
     return out
 
 
-def _micro_preset():
+def _micro_preset(grasp_iters: int = 60):
+    """One subject, one ``box`` use sequence, 48-px crops, 52 frames (the fewest ARCTIC takes).
+    Tests of files rather than grasps (identity, resumption, added subjects) pass fewer grasp
+    iterations: the grasp optimisation is a third of their cost."""
     tiny = PRESETS["tiny"]
     return dataclasses.replace(
         tiny,
@@ -710,7 +713,7 @@ def _micro_preset():
         num_frames=52,
         cropped_size=48,
         ego_image_scale=0.03,
-        grasp_iters=60,
+        grasp_iters=grasp_iters,
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"),)),),
     )
 
@@ -769,7 +772,7 @@ def test_grasp_style_gives_each_subject_its_own_grasp(tmp_path):
 def test_same_seed_gives_byte_identical_world_and_seeds_differ(tmp_path):
     """Also with the sequences rendered in one process or side by side in two."""
     preset = dataclasses.replace(
-        _micro_preset(),
+        _micro_preset(grasp_iters=10),
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),),
     )
     hashes = []
@@ -792,7 +795,7 @@ def test_a_world_with_more_subjects_keeps_the_first_worlds_files(tmp_path):
     """Every subject and sequence draws from its own random stream: a preset with a held-out
     test subject added renders the first preset's sequences byte for byte, and writes the
     test split, which the dataset reads."""
-    base = _micro_preset()
+    base = _micro_preset(grasp_iters=10)
     more = dataclasses.replace(
         base, subjects=(*base.subjects, SubjectPlan("s03", "test", (SequencePlan("box", "grab"),)))
     )
@@ -815,7 +818,7 @@ def test_interrupted_world_resumes_only_unfinished_sequences(tmp_path, monkeypat
     import hogsa_world.writer as writer
 
     preset = dataclasses.replace(
-        _micro_preset(),
+        _micro_preset(grasp_iters=10),
         subjects=(SubjectPlan("s01", "train", (SequencePlan("box", "use"), SequencePlan("box", "grab"))),),
     )
     rendered: list[str] = []
