@@ -163,6 +163,41 @@ def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
+def layers(tiny_world):
+    """The tiny world's MANO and object layers (:class:`~hogsa_loader.baselines.BodyLayers`)."""
+    from hogsa_loader.assets.arctic import ArcticRoot
+    from hogsa_loader.baselines import BodyLayers
+
+    return BodyLayers.from_root(ArcticRoot(tiny_world))
+
+
+@pytest.fixture(scope="module")
+def batches(tiny_world, untrained_bundle):
+    """A real batch of 4 and a mixed batch (2 real + 2 synthetic) of the tiny world, 64 px."""
+    from torch.utils.data import DataLoader
+
+    from hogsa_loader.compose import ProceduralBackgrounds
+    from hogsa_loader.sample import HOGSADataset, MixedLoader, with_options
+    from hogsa_loader.sample.arctic_dataset import ArcticDataset
+    from hogsa_loader.sample.augment import ArcticConfig
+
+    cfg = ArcticConfig(img_res=64)
+    real = DataLoader(
+        ArcticDataset(tiny_world, "p1_train", seed=0, config=cfg),
+        batch_size=4,
+        shuffle=True,
+        generator=torch.Generator().manual_seed(0),
+    )
+    syn = HOGSADataset(
+        untrained_bundle,
+        tiny_world,
+        with_options(arctic=cfg, batch_size=4, num_samples=8, seed=1),
+        backgrounds=ProceduralBackgrounds(),
+    )
+    return next(iter(real)), next(iter(MixedLoader(real, syn, 0.5)))
+
+
+@pytest.fixture(scope="module")
 def one_thread():
     """One intra-op thread for a module of small-tensor tests (OpenMP hand-offs cost more than
     they gain there, and much more on a busy machine); restored afterwards."""
