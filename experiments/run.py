@@ -44,7 +44,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Optional
+from typing import Any, NoReturn, Optional
 
 from hogsa_loader.cli.dataclass_args import flag_name
 
@@ -80,7 +80,7 @@ class Experiment:
     steps: list[Step]
 
 
-def _fail(path: Path, msg: str) -> None:
+def _fail(path: Path, msg: str) -> NoReturn:
     raise SystemExit(f"run: error: {path}: {msg}")
 
 
@@ -102,12 +102,16 @@ def load_config(path: Path) -> Experiment:
         bad = set(entry) - STEP_KEYS
         if bad or not isinstance(entry.get("name"), str) or not isinstance(entry.get("run"), str):
             _fail(path, f"step {i + 1}: needs 'name' and 'run' and takes only {sorted(STEP_KEYS)}")
+        if not isinstance(entry.get("settings", {}), dict) or not isinstance(entry.get("out", True), bool):
+            _fail(path, f"step {i + 1}: 'settings' must be a table and 'out' true or false")
         step = Step(
             entry["name"], entry["run"], entry.get("settings", {}), entry.get("about", ""), entry.get("out", True)
         )
         if step.name in {s.name for s in steps}:
             _fail(path, f"two steps named {step.name!r}")
         for ref in _references(step.settings):
+            if ("arm" in ref or "file" in ref) and "step" not in ref or "file" in ref and "arm" not in ref:
+                _fail(path, f"step {step.name!r}: a reference with 'arm' names its 'step', one with 'file' its 'arm'")
             if "step" in ref and ref["step"] not in {s.name for s in steps}:
                 _fail(path, f"step {step.name!r} refers to {ref['step']!r}, which is not an earlier step")
         if not step.run.startswith("hogsa ") and not (ROOT / step.run).is_file():
@@ -119,7 +123,11 @@ def load_config(path: Path) -> Experiment:
 
 
 def _is_reference(value: Any) -> bool:
-    return isinstance(value, dict) and bool(value) and set(value) <= {"step", "path", "arm", "file", "label"}
+    """A table with ``step``, ``arm`` or ``file``, or ``path`` alone (with an optional
+    ``label``), is a reference; any other table is a nested settings table."""
+    if not isinstance(value, dict) or not value or not set(value) <= {"step", "path", "arm", "file", "label"}:
+        return False
+    return bool({"step", "arm", "file"} & set(value)) or set(value) - {"label"} == {"path"}
 
 
 def _references(value: Any) -> list[dict[str, Any]]:
@@ -238,6 +246,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = p.parse_args(argv)
     exp = load_config(Path(args.config))
     out = Path(args.out or exp.out).resolve()
+    if args.steps is not None and not all(args.steps.split(",")):
+        raise SystemExit(f"run: error: --steps: empty step name in {args.steps!r}")
     wanted = exp.steps if args.steps is None else [s for s in exp.steps if s.name in args.steps.split(",")]
     missing = set(args.steps.split(",")) - {s.name for s in exp.steps} if args.steps else set()
     if missing:

@@ -151,10 +151,16 @@ def test_runner_refuses_bad_configs_before_running(tmp_path, capsys):
         "refuses its settings": f'[[steps]]\nname = "a"\nrun = "{ok}"\n[[steps]]\nname = "b"\nrun = "{ok}"\n'
         "[steps.settings]\nnope = 1\n",
         "failed with status 3": f'[[steps]]\nname = "a"\nrun = "{fails}"\n',
+        "names its 'step'": f'[[steps]]\nname = "a"\nrun = "{ok}"\n[steps.settings]\nmodel = {{ arm = "real" }}\n',
+        "'settings' must be a table": f'[[steps]]\nname = "a"\nrun = "{ok}"\nsettings = 5\n',
+        "'out' true or false": f'[[steps]]\nname = "a"\nrun = "{ok}"\nout = "no"\n',
     }
     for message, text in cases.items():
         with pytest.raises(SystemExit) as e:
             run.main([_config(tmp_path, text).as_posix(), "--out", str(tmp_path / "out")])
         assert message in str(e.value), (message, e.value)
         assert not marker.exists(), message  # nothing ran before the refusal
+    with pytest.raises(SystemExit, match="empty step name"):
+        run.main([_config(tmp_path, f'[[steps]]\nname = "a"\nrun = "{ok}"\n').as_posix(), "--steps", ""])
+    assert not marker.exists()
     capsys.readouterr()

@@ -378,7 +378,7 @@ def load_mano(
 
 
 # ----------------------------------------------------------------------------------------
-# Writing
+# Release schema
 # ----------------------------------------------------------------------------------------
 def schema_dict(m: ManoModelData) -> dict[str, Any]:
     """``m`` as the MANO release's dictionary (``f``, ``J_regressor`` as CSC, ``kintree_table``
