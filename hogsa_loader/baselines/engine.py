@@ -8,8 +8,9 @@ split in temporal order and returns ARCTIC's per-frame and per-sequence metrics.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Mapping, Optional
+from typing import Any, Callable, Iterable, Literal, Mapping, Optional
 
 import numpy as np
 import torch
@@ -71,14 +72,30 @@ def to_device(batch: Any, device: Any) -> Any:
     return batch
 
 
-def prepare_batch(batch: Any, layers: BodyLayers, img_res: int, device: Any) -> tuple[dict, dict, dict]:
-    """A collated ``(inputs, targets, meta_info)`` batch on ``device`` with ArcticNet-SF's
-    targets prepared (ARCTIC's target preparation, no gradients): what the model and
-    :func:`~hogsa_loader.baselines.loss.arcticnet_sf_loss` take."""
+def prepare_batch(
+    batch: Any,
+    layers: BodyLayers,
+    img_res: int,
+    device: Any,
+    max_dist: float = math.inf,
+    field: Literal["both", "hands"] = "hands",
+) -> tuple[dict, dict, dict]:
+    """A collated ``(inputs, targets, meta_info)`` batch on ``device`` with its targets
+    prepared (ARCTIC's target preparation, no gradients). The defaults are ArcticNet-SF's
+    (unclamped hand-to-object distances only, what
+    :func:`~hogsa_loader.baselines.loss.arcticnet_sf_loss` reads); InterField-SF takes
+    ``max_dist=0.1, field="both"`` (see :func:`~hogsa_loader.baselines.targets.prepare_targets`)."""
     inputs, targets, meta_info = to_device(batch, device)
     with torch.no_grad():
         targets, meta_info = prepare_targets(
-            dict(targets), dict(meta_info), layers.mano_r, layers.mano_l, layers.objects, img_res=img_res, field="hands"
+            dict(targets),
+            dict(meta_info),
+            layers.mano_r,
+            layers.mano_l,
+            layers.objects,
+            img_res=img_res,
+            max_dist=max_dist,
+            field=field,
         )
     return inputs, targets, meta_info
 

@@ -18,9 +18,8 @@ from torch import Tensor, nn
 
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
-from hogsa_loader.baselines.engine import BodyLayers, apply_losses, to_device
+from hogsa_loader.baselines.engine import BodyLayers, apply_losses, prepare_batch
 from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone
-from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.io.npy import read_npy
 
@@ -172,6 +171,8 @@ class InterFieldSF(nn.Module):
         self.register_buffer("points_r", hands["right"], persistent=False)
         self.register_buffer("points_l", hands["left"], persistent=False)
         self.object_layer = object_layer
+        v_sub = object_layer.v_sub.float()  # (K, 600, 3) at zero articulation: fixed per object
+        self.register_buffer("template_o", v_sub - v_sub.mean(dim=1, keepdim=True), persistent=False)
         n_sub, n_verts = int(hands["right"].shape[0]), int(decimator["right"].shape[1])
         n_obj_sub, n_obj = int(object_layer.v_sub.shape[1]), int(object_layer.v_len.max())
         self.upsampling_r = nn.Linear(n_sub, n_verts)
@@ -189,15 +190,9 @@ class InterFieldSF(nn.Module):
             raise ValueError(f"decimator has {D.shape[1]} columns, the MANO layer {out.vertices.shape[1]} vertices")
         return (D.to(dt) @ out.vertices[0] - out.joints[0, :1]).float()
 
-    @torch.no_grad()
     def object_points(self, names: list[str]) -> Tensor:
         """(B, 600, 3) sub-sampled object points, unarticulated and unrotated, centred on their mean."""
-        B = len(names)
-        ref = self.points_r
-        zeros = torch.zeros(B, 3, dtype=self.object_layer.v.dtype, device=ref.device)
-        out = self.object_layer(angles=zeros[:, :1], global_orient=zeros, transl=None, names=list(names))
-        v = out["v_sub"].to(ref.dtype)
-        return v - v.mean(dim=1, keepdim=True)
+        return self.template_o[self.object_layer.indices(names).to(self.template_o.device)]
 
     def forward(self, inputs: Mapping[str, Tensor], meta_info: Mapping[str, Any]) -> dict[str, Tensor]:
         """Predict the interaction field.
@@ -390,15 +385,5 @@ def field_training_step(
         FloatingPointError: the loss is not finite (the step is not applied).
     """
     model.train()
-    inputs, targets, meta_info = to_device(batch, device)
-    with torch.no_grad():
-        targets, meta_info = prepare_targets(
-            dict(targets),
-            dict(meta_info),
-            layers.mano_r,
-            layers.mano_l,
-            layers.objects,
-            img_res=img_res,
-            max_dist=max_dist,
-        )
+    inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device, max_dist=max_dist, field="both")
     return apply_losses(interfield_loss(model(inputs, meta_info), targets, max_dist), model, optimizer, grad_clip)
