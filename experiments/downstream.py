@@ -93,6 +93,13 @@ from hogsa_loader.baselines.clips import (
     left_out_text,
 )
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
+from hogsa_loader.baselines.interfield_sf import (
+    InterFieldSF,
+    evaluate_field,
+    field_training_step,
+    load_field_weights,
+    read_mano_decimator,
+)
 from hogsa_loader.baselines.resnet import load_backbone_weights
 from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
@@ -141,6 +148,21 @@ METRICS = {
     "aae": ("AAE (°)", True),
     "success_rate/0.05": ("Success (%)", False),
 }
+#: InterField-SF's table (``--model-kind interfield_sf``): ARCTIC's average distance error and
+#: acceleration error of the interaction field, hands → object and object → hands.
+FIELD_TABLE_METRICS = {
+    "avg/ho": ("avg. dist. err. h→o (mm)", True),
+    "avg/oh": ("avg. dist. err. o→h (mm)", True),
+    "acc/ho": ("ACC h→o (m/s²)", True),
+    "acc/oh": ("ACC o→h (m/s²)", True),
+}
+#: Per model kind: the table's metrics and the two metrics paired per seed and over clips.
+KIND_METRICS: dict[str, tuple[dict[str, tuple[str, bool]], tuple[str, str]]] = {
+    "arcticnet_sf": (METRICS, ("mpjpe/ra/h", "cdev/ho")),
+    "interfield_sf": (FIELD_TABLE_METRICS, ("avg/ho", "avg/oh")),
+}
+#: The short names of the paired metrics in the tables.
+PAIRED_NAMES = {"mpjpe/ra/h": "MPJPE_h", "cdev/ho": "CDev_ho", "avg/ho": "avg. h→o", "avg/oh": "avg. o→h"}
 RESULT_VERSION = 2
 #: Resamples of the validation clips behind each paired difference's interval.
 CLIP_RESAMPLES = 2000
@@ -237,8 +259,15 @@ class SyntheticSettings:
 
 @dataclass
 class ModelSettings:
-    """The ArcticNet-SF baseline."""
+    """The baseline trained."""
 
+    kind: Literal["arcticnet_sf", "interfield_sf"] = field(
+        default="arcticnet_sf",
+        metadata={
+            "help": "arcticnet_sf: ArcticNet-SF (MANO and object parameters; MPJPE, CDev, ...); interfield_sf: "
+            "InterField-SF (the hand-object interaction field; average distance and acceleration errors)"
+        },
+    )
     backbone: Literal["resnet18", "resnet50"] = field(default="resnet18", metadata={"help": "image backbone"})
     img_res: int = field(default=96, metadata={"help": "patch side in pixels (ARCTIC: 224)"})
     weights: Optional[str] = field(default=None, metadata={"help": "local backbone weights (.pth/.safetensors)"})
@@ -421,9 +450,18 @@ def check_inits(cfg: DownstreamConfig, setup: dict[str, Any]) -> None:
     once (an :class:`~hogsa_loader.errors.AssetError` naming the file)."""
     if cfg.model.init is None:
         return
-    model = build_model(cfg, BodyLayers.from_root(ArcticRoot(setup["data"])))
+    model = build_model(cfg, BodyLayers.from_root(ArcticRoot(setup["data"])), setup["data"])
     for seed in cfg.seeds:
-        load_arctic_checkpoint(model, init_path(cfg, seed))
+        load_init(cfg, model, init_path(cfg, seed))
+
+
+def load_init(cfg: DownstreamConfig, model: torch.nn.Module, path: Path) -> None:
+    """Load the whole-model checkpoint ``path`` into ``model``: ARCTIC's released ``.ckpt`` or a
+    run's ``model.safetensors`` of the configured model kind."""
+    if cfg.model.kind == "interfield_sf":
+        load_field_weights(model, path)  # type: ignore[arg-type]
+    else:
+        load_arctic_checkpoint(model, path)  # type: ignore[arg-type]
 
 
 def _say(msg: str) -> None:
@@ -789,10 +827,24 @@ def train_batches(
         epoch, offset = epoch + 1, 0
 
 
-def build_model(cfg: DownstreamConfig, layers: Any) -> torch.nn.Module:
-    model = ArcticNetSF(
-        cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects, focal_length=1000.0, img_res=cfg.model.img_res
-    )
+def build_model(cfg: DownstreamConfig, layers: Any, data: Optional[Path] = None) -> torch.nn.Module:
+    """The model of ``cfg.model.kind`` on ``layers``; InterField-SF reads the MANO decimator
+    (``meta/mano_decimator_195.npy``) of the dataset root ``data``."""
+    model: torch.nn.Module
+    if cfg.model.kind == "interfield_sf":
+        assert data is not None, "InterField-SF needs the dataset root (its MANO decimator)"
+        path = ArcticRoot(data).meta_dir / "mano_decimator_195.npy"
+        decimator = read_mano_decimator(path, int(layers.mano_r.v_template.shape[0]))
+        model = InterFieldSF(cfg.model.backbone, layers.mano_r, layers.mano_l, layers.objects, decimator)
+    else:
+        model = ArcticNetSF(
+            cfg.model.backbone,
+            layers.mano_r,
+            layers.mano_l,
+            layers.objects,
+            focal_length=1000.0,
+            img_res=cfg.model.img_res,
+        )
     if cfg.model.weights:
         load_backbone_weights(model.backbone, cfg.model.weights)
     return model
@@ -806,9 +858,9 @@ def start_weights(
     tag = f"[{arm} seed {seed}]"
     if cfg.model.init is not None:
         path = init_path(cfg, seed)
-        load_arctic_checkpoint(model, path)
+        load_init(cfg, model, path)
         _say(f"{tag} started from {path}")
-    elif cfg.model.camera_prior > 0:
+    elif cfg.model.camera_prior > 0 and cfg.model.kind == "arcticnet_sf":
         prior = camera_prior(arm, cfg, setup, layers)
         model.init_cameras(prior)
         _say(
@@ -869,13 +921,14 @@ def file_digest(path: Path) -> str:
 def model_key(cfg: DownstreamConfig, seed: int) -> dict[str, Any]:
     """The model settings in a run's cache key: backbone, patch side and backbone weights; the
     sha256 of the seed's ``--model-init`` file (its bytes, wherever it lies) for a run from a
-    checkpoint, else the camera prior when it is on (absent for a random camera start)."""
+    checkpoint, else the camera prior when it is on (absent for a random camera start and for
+    InterField-SF, which has no camera)."""
     model = asdict(cfg.model)
     init = model.pop("init")
     if init is not None:
         model["init_sha256"] = file_digest(init_path(cfg, seed))
         del model["camera_prior"]  # not applied to a checkpoint
-    elif model["camera_prior"] == 0:
+    elif model["camera_prior"] == 0 or cfg.model.kind != "arcticnet_sf":
         del model["camera_prior"]
     return model
 
@@ -922,11 +975,14 @@ def run_dir(arm: str, seed: int, cfg: DownstreamConfig, out: Path) -> Path:
     from those from random weights, and runs with the linear learning-rate schedule
     (``+linear``) apart from those at a constant rate, and HOGSA runs that supervise only the
     touching hands (``+touching``) and those showing other subjects' hands (``+hands<share>``)
-    apart from the others, so that all of them can share one OUT
+    apart from the others, and InterField-SF runs (``+interfield_sf``) apart from ArcticNet-SF
+    runs, so that all of them can share one OUT
     (and its exports)."""
     synthetic = ARM_SPECS[arm][1] is not None
     add = synthetic and cfg.synthetic.mix == "add"
     name = f"{arm}+add" if add else arm
+    if cfg.model.kind != "arcticnet_sf":  # another model's runs: folders of their own
+        name += "+" + cfg.model.kind
     if cfg.model.init is not None:  # one folder per --model-init, so fine-tunings of several models coexist
         name += "+ft-" + hashlib.sha256(cfg.model.init.encode()).hexdigest()[:8]
     if cfg.train.lr_schedule != "constant":
@@ -1002,6 +1058,18 @@ def _load_progress(folder: Path, key: str, model: Any, opt: torch.optim.Optimize
     return state
 
 
+def train_step(cfg: DownstreamConfig, model: Any, batch: Any, layers: BodyLayers, opt: torch.optim.Optimizer) -> dict:
+    """One optimisation step of the configured model kind (its own loss, ARCTIC's gradient clip)."""
+    step = field_training_step if cfg.model.kind == "interfield_sf" else training_step
+    return step(model, batch, layers, opt, cfg.model.img_res, grad_clip=cfg.train.grad_clip, device=cfg.device)
+
+
+def evaluate_model(cfg: DownstreamConfig, model: Any, loader: Any, layers: BodyLayers, temporal: bool) -> dict:
+    """ARCTIC's metrics of the configured model kind over ``loader``."""
+    run = evaluate_field if cfg.model.kind == "interfield_sf" else evaluate
+    return run(model, loader, layers, cfg.model.img_res, cfg.device, temporal=temporal)
+
+
 def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], out: Path) -> dict[str, Any]:
     """Train one (arm, seed), evaluate it along the way; reuse a finished run with the same
     settings, and continue an interrupted one from its last saved state (``checkpoints/``)."""
@@ -1017,7 +1085,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         _say(f"[{arm} seed {seed}] settings changed since the saved result: run again")
     torch.manual_seed(seed)
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
-    model = build_model(cfg, layers).to(cfg.device)
+    model = build_model(cfg, layers, setup["data"]).to(cfg.device)
     start_weights(model, arm, seed, cfg, setup, layers)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
     progress = _load_progress(folder, key, model, opt)
@@ -1044,7 +1112,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         for group in opt.param_groups:
             group["lr"] = learning_rate(step, cfg)
         try:
-            rec = training_step(model, next(batches), layers, opt, cfg.model.img_res, cfg.train.grad_clip, cfg.device)
+            rec = train_step(cfg, model, next(batches), layers, opt)
         except FloatingPointError as exc:  # recorded as diverged; the other runs go on
             bar.close()
             _say(f"[{arm} seed {seed}] diverged at step {step}: {exc}")
@@ -1052,7 +1120,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
                 "key": key,
                 "settings": settings,
                 "diverged": step,
-                "summary": {m: None for m in METRICS},
+                "summary": {m: None for m in KIND_METRICS[cfg.model.kind][0]},
                 "curve": state["evals"],
                 "val_frames": 0,
             }
@@ -1066,14 +1134,15 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
             te = time.perf_counter()
             last = step == points[-1]
             loader, n = val_batches(cfg, val, 1 if last else cfg.train.eval_stride)
-            ev = evaluate(model, loader, layers, cfg.model.img_res, cfg.device, temporal=last)
+            ev = evaluate_model(cfg, model, loader, layers, temporal=last)
             state["eval_time_s"] += time.perf_counter() - te
             state["evals"].append({"step": step, "frames": n, **{k: _num(v) for k, v in ev["summary"].items()}})
             if last:
                 final = ev
+            a, b = KIND_METRICS[cfg.model.kind][1]
             bar.write(
-                f"[{arm} seed {seed}] step {step}: MPJPE_h {ev['summary'].get('mpjpe/ra/h', float('nan')):.2f} mm,"
-                f" CDev_ho {ev['summary'].get('cdev/ho', float('nan')):.2f} mm ({n} val frames)"
+                f"[{arm} seed {seed}] step {step}: {PAIRED_NAMES[a]} {ev['summary'].get(a, float('nan')):.2f} mm,"
+                f" {PAIRED_NAMES[b]} {ev['summary'].get(b, float('nan')):.2f} mm ({n} val frames)"
             )
         state["train_time_s"] = time.perf_counter() - t0 - state["eval_time_s"]
         every = cfg.train.checkpoint_every
@@ -1082,7 +1151,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
     bar.close()
     net = {k: v.detach().cpu().contiguous() for k, v in model.network_state_dict().items()}
     write_tensors_and_manifest(
-        folder, "model.safetensors", net, "model.json", {"kind": "arcticnet_sf", "settings": settings}
+        folder, "model.safetensors", net, "model.json", {"kind": cfg.model.kind, "settings": settings}
     )
     losses = [h["loss"] for h in state["history"]]
     terms = [{k: v for k, v in h.items() if k != "loss"} for h in state["history"]]
@@ -1091,7 +1160,7 @@ def run_arm(arm: str, seed: int, cfg: DownstreamConfig, setup: dict[str, Any], o
         "settings": settings,
         "summary": {k: _num(v) for k, v in final["summary"].items()},
         "val_frames": final["frames"],
-        "clips": clip_sums(final, CLIP_METRICS),
+        "clips": clip_sums(final, KIND_METRICS[cfg.model.kind][1]),
         "curve": state["evals"],
         "loss_first": losses[0],
         "loss_last": losses[-1],
@@ -1115,7 +1184,7 @@ def with_clips(
     when they reproduce its MPJPE_h and CDev_ho (to 0.01 mm); otherwise it is returned as is."""
     folder = run_dir(arm, seed, cfg, out)
     weights = folder / "model.safetensors"
-    if "clips" in result or result.get("diverged") or not weights.is_file():
+    if "clips" in result or result.get("diverged") or not weights.is_file() or cfg.model.kind != "arcticnet_sf":
         return result
     _say(f"[{arm} seed {seed}] per-clip metrics: evaluating the saved model once more")
     layers = BodyLayers.from_root(ArcticRoot(setup["data"])).to(cfg.device)
@@ -1141,12 +1210,14 @@ def _num(x: Any) -> Optional[float]:
 # ----------------------------------------------------------------------------- report
 
 
-def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
-    """Mean ± std over seeds per arm, and paired differences against the matching real arm."""
+def aggregate(results: dict[str, dict[int, dict[str, Any]]], kind: str = "arcticnet_sf") -> dict[str, Any]:
+    """Mean ± std over seeds per arm, and paired differences against the matching real arm, of
+    the metrics of model ``kind`` (:data:`KIND_METRICS`)."""
+    metrics, paired_metrics = KIND_METRICS[kind]
     agg: dict[str, Any] = {}
     for arm, by_seed in results.items():
         rows = {}
-        for m in METRICS:
+        for m in metrics:
             vals = [r["summary"].get(m) for r in by_seed.values()]
             vals = [v for v in vals if v is not None]
             rows[m] = {
@@ -1161,7 +1232,7 @@ def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
         if ARM_SPECS[arm][1] is None or ref not in results:
             continue
         diffs = {}
-        for m in ("mpjpe/ra/h", "cdev/ho"):
+        for m in paired_metrics:
             d = {
                 s: r["summary"][m] - results[ref][s]["summary"][m]
                 for s, r in by_seed.items()
@@ -1175,7 +1246,7 @@ def aggregate(results: dict[str, dict[int, dict[str, Any]]]) -> dict[str, Any]:
                 "mean": float(np.mean(v)) if v else None,
                 "std": float(np.std(v, ddof=1)) if len(v) > 1 else None,
             }
-            if m in CLIP_METRICS:
+            if m in paired_metrics:
                 diffs[m]["clips"] = clip_uncertainty(
                     [(r.get("clips"), results[ref][s].get("clips")) for s, r in by_seed.items() if s in d],
                     m,
@@ -1193,11 +1264,13 @@ def _cell(row: dict[str, Any]) -> str:
 
 def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: dict[str, str]) -> str:
     """The Table 1 / ablation / low-data tables and the paired differences."""
-    head = "| method | " + " | ".join(METRICS[m][0] + (" ↓" if METRICS[m][1] else " ↑") for m in METRICS) + " |"
-    sep = "|" + "---|" * (len(METRICS) + 1)
+    metrics, (pa, pb) = KIND_METRICS[cfg.model.kind]
+    model = "InterField-SF" if cfg.model.kind == "interfield_sf" else "ArcticNet-SF"
+    head = "| method | " + " | ".join(metrics[m][0] + (" ↓" if metrics[m][1] else " ↑") for m in metrics) + " |"
+    sep = "|" + "---|" * (len(metrics) + 1)
     names = {
-        "real": "ArcticNet-SF (real)",
-        "hogsa": "ArcticNet-SF + HOGSA",
+        "real": f"{model} (real)",
+        "hogsa": f"{model} + HOGSA",
         "hogsa_no_pom": "+ HOGSA w/o POM",
         "hogsa_no_srm": "+ HOGSA w/o SRM",
         "hogsa_free": "+ HOGSA, free 3DGS",
@@ -1209,12 +1282,12 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
         rows = [head, sep]
         for a in arms:
             if a in agg["arms"]:
-                rows.append(f"| {names[a]} | " + " | ".join(_cell(agg["arms"][a][m]) for m in METRICS) + " |")
+                rows.append(f"| {names[a]} | " + " | ".join(_cell(agg["arms"][a][m]) for m in metrics) + " |")
             elif a in skipped:
-                rows.append(f"| {names[a]} | " + " | ".join("—" for _ in METRICS) + f" |  ({skipped[a]})")
+                rows.append(f"| {names[a]} | " + " | ".join("—" for _ in metrics) + f" |  ({skipped[a]})")
         return rows
 
-    done = {a: agg["arms"][a]["mpjpe/ra/h"]["n"] for a in agg["arms"]}
+    done = {a: agg["arms"][a][pa]["n"] for a in agg["arms"]}
     finished = ", ".join(f"{a}: {n}" for a, n in done.items())
     lines = [
         f"Seeds {list(cfg.seeds)} ({finished} finished), mean ± std; "
@@ -1236,12 +1309,12 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
         "",
         "**Paired difference per seed** (negative = HOGSA better)",
         "",
-        "| pair | ΔMPJPE_h (mm) per seed | mean ± std | ΔCDev_ho (mm) per seed | mean ± std |",
+        f"| pair | Δ{PAIRED_NAMES[pa]} (mm) per seed | mean ± std | Δ{PAIRED_NAMES[pb]} (mm) per seed | mean ± std |",
         "|---|---|---|---|---|",
     ]
     for pair, d in agg["paired"].items():
         cells = []
-        for m in ("mpjpe/ra/h", "cdev/ho"):
+        for m in (pa, pb):
             per = ", ".join(f"{v:+.2f}" for v in d[m]["per_seed"].values())
             ms = (
                 "n/a"
@@ -1250,34 +1323,37 @@ def markdown(agg: dict[str, Any], cfg: DownstreamConfig, machine: str, skipped: 
             )
             cells += [per or "n/a", ms]
         lines.append(f"| {pair} | " + " | ".join(cells) + " |")
-    lines += clip_table(agg)
+    lines += clip_table(agg, cfg.model.kind)
     return "\n".join(lines) + "\n"
 
 
-def clip_table(agg: dict[str, Any]) -> list[str]:
+def clip_table(agg: dict[str, Any], kind: str = "arcticnet_sf") -> list[str]:
     """The paired differences' dependence on the validation clips (:func:`clip_uncertainty`)."""
+    paired = KIND_METRICS[kind][1]
+    a, b = (PAIRED_NAMES[m] for m in paired)
     rows = []
     for pair, d in agg["paired"].items():
         cells: list[str] = []
-        for m in CLIP_METRICS:
+        for m in paired:
             cells += [interval_text(d[m].get("clips")), left_out_text(d[m].get("clips"))]
         rows.append(f"| {pair} | " + " | ".join(cells) + " |")
     if not rows:
         return []
-    n = next((d[m]["clips"]["clips"] for d in agg["paired"].values() for m in CLIP_METRICS if d[m].get("clips")), None)
+    n = next((d[m]["clips"]["clips"] for d in agg["paired"].values() for m in paired if d[m].get("clips")), None)
     return [
         "",
         f"**Over validation clips** ({n if n is not None else '?'} clips: subject, sequence, camera view;"
         " 95 % interval of the seed-mean difference with the clips resampled, and its range when one clip is left out)",
         "",
-        "| pair | ΔMPJPE_h 95 % interval | ΔMPJPE_h, one clip left out"
-        " | ΔCDev_ho 95 % interval | ΔCDev_ho, one clip left out |",
+        f"| pair | Δ{a} 95 % interval | Δ{a}, one clip left out | Δ{b} 95 % interval | Δ{b}, one clip left out |",
         "|---|---|---|---|---|",
         *rows,
     ]
 
 
-def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], path: Path) -> None:
+def plot(
+    results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], path: Path, kind: str = "arcticnet_sf"
+) -> None:
     """Validation curves per arm (mean over seeds, min–max band) and metric bars with the seed spread."""
     import matplotlib  # deferred: the Agg backend is chosen before pyplot loads
 
@@ -1287,7 +1363,8 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
     arms = list(results)
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for ax, m in zip(axes[0], ("mpjpe/ra/h", "cdev/ho")):
+    metrics, paired = KIND_METRICS[kind]
+    for ax, m in zip(axes[0], paired):
         for i, arm in enumerate(arms):
             curves = [r["curve"] for r in results[arm].values() if not r.get("diverged")]
             if not curves:
@@ -1317,11 +1394,11 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
         if shown.size and shown.max() / shown.min() > 50:  # outliers (e.g. a far object) dominate
             ax.set_yscale("log")
         ax.set_xlabel("step (last point: all val frames; earlier: a strided subset)")
-        ax.set_ylabel(METRICS[m][0])
-        ax.set_title(f"validation {METRICS[m][0]} (p1_val)")
+        ax.set_ylabel(metrics[m][0])
+        ax.set_title(f"validation {metrics[m][0]} (p1_val)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    for ax, m in zip(axes[1], ("mpjpe/ra/h", "cdev/ho")):
+    for ax, m in zip(axes[1], paired):
         for i, arm in enumerate(arms):
             vals = [r["summary"].get(m) for r in results[arm].values()]
             vals = [v for v in vals if v is not None]
@@ -1337,8 +1414,8 @@ def plot(results: dict[str, dict[int, dict[str, Any]]], agg: dict[str, Any], pat
             ax.set_yscale("log")
         ax.set_xticks(range(len(arms)))
         ax.set_xticklabels(arms, rotation=20, fontsize=8)
-        ax.set_ylabel(METRICS[m][0])
-        ax.set_title(f"final {METRICS[m][0]}: mean (bar) and seeds (dots)")
+        ax.set_ylabel(metrics[m][0])
+        ax.set_title(f"final {metrics[m][0]}: mean (bar) and seeds (dots)")
         ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -1400,7 +1477,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
             by_seed[seed] = with_clips(arm, seed, cfg, setup, out, res)
     if cfg.report_only and not results:
         raise SystemExit(f"downstream: error: no finished run in {out} matches these settings; nothing rewritten")
-    agg = aggregate(results)
+    agg = aggregate(results, cfg.model.kind)
     machine = machine_description(cfg)
     record = {
         "config": asdict(cfg),
@@ -1414,7 +1491,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
     }
     _atomic_json(out / "downstream.json", record)
     (out / "downstream.md").write_text(markdown(agg, cfg, machine, skipped))
-    plot(results, agg, out / "downstream.png")
+    plot(results, agg, out / "downstream.png", cfg.model.kind)
     _say((out / "downstream.md").read_text())
     _say(f"[downstream] {out / 'downstream.json'}, downstream.md, downstream.png; {record['total_seconds']:.0f} s")
     return record

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import json
 import os
+import shutil
 import sys
 import types
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -89,6 +92,25 @@ def chumpy_shim(monkeypatch):
     yield
 
 
+def shared_folder(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
+    """The folder ``name`` built once per test session by ``build(folder)`` (given an empty
+    folder), also across pytest-xdist's worker processes: the first worker builds it while
+    holding a lock, the others wait for it and reuse it. A build that raises leaves no marker,
+    so the next worker builds it again."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the session's folder, shared by its workers
+    out = base / name
+    with open(base / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (base / f"{name}.built").is_file():
+            shutil.rmtree(out, ignore_errors=True)
+            out.mkdir()
+            build(out)
+            (base / f"{name}.built").touch()
+    return out
+
+
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory) -> Path:
     """A generated ``tiny`` world (``hogsa world --out DIR --preset tiny --seed 0``), run once.
@@ -110,9 +132,11 @@ def tiny_world(tmp_path_factory) -> Path:
             f"HOGSA_TEST_WORLD must be a tiny seed-0 world, got {info}"
         )
         return Path(given)
-    out = tmp_path_factory.mktemp("tiny_world")
-    assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
-    return out
+
+    def build(out: Path) -> None:
+        assert main(["world", "--out", str(out), "--preset", "tiny", "--seed", "0", "--quiet"]) == 0
+
+    return shared_folder(tmp_path_factory, "tiny_world", build)
 
 
 def tiny_hogs_config(data, out, **overrides):
@@ -158,8 +182,10 @@ def untrained_bundle(tiny_world, tmp_path_factory) -> Path:
     for s01 + box, with a small untrained SRM."""
     from hogsa_world.untrained import write_untrained_bundle
 
-    out = tmp_path_factory.mktemp("bundle")
-    return write_untrained_bundle(tiny_world, out, "s01", "box", srm=tiny_srm(out / "srm"))
+    def build(out: Path) -> None:
+        assert write_untrained_bundle(tiny_world, out, "s01", "box", srm=tiny_srm(out / "srm")) == out / "bundle"
+
+    return shared_folder(tmp_path_factory, "untrained_bundle", build) / "bundle"
 
 
 @pytest.fixture(scope="module")

@@ -15,11 +15,14 @@ from hogsa_loader.baselines.clips import clip_sums, clip_uncertainty
 from hogsa_loader.baselines.engine import BodyLayers, evaluate, mean_cameras, temporal_order, training_step
 from hogsa_loader.baselines.interfield_sf import (
     FIELD_KEYS,
+    FIELD_METRICS,
     InterFieldSF,
+    evaluate_field,
     field_acceleration,
     field_metrics,
     field_training_step,
     interfield_loss,
+    load_field_weights,
     read_mano_decimator,
 )
 from hogsa_loader.baselines.loss import ARCTIC_SF_LOSS_WEIGHTS, arcticnet_sf_loss
@@ -31,12 +34,15 @@ __all__ = [
     "ARCTIC_SF_LOSS_WEIGHTS",
     "ArcticNetSF",
     "FIELD_KEYS",
+    "FIELD_METRICS",
     "InterFieldSF",
+    "evaluate_field",
     "field_acceleration",
     "field_metrics",
     "field_training_step",
     "interfield_loss",
     "read_mano_decimator",
+    "load_field_weights",
     "BodyLayers",
     "arcticnet_sf_loss",
     "clip_sums",

@@ -40,6 +40,7 @@ __all__ = [
     "ObjectHMR",
     "arctic_key_map",
     "load_arctic_checkpoint",
+    "read_arctic_weights",
     "load_saved_model",
     "matrix_to_rotation_6d",
     "patch_intrinsics_wp",
@@ -562,6 +563,23 @@ def arctic_key_map(state_dict: Mapping[str, Tensor]) -> dict[str, Tensor]:
     return out
 
 
+def read_arctic_weights(path: PathLike, weights_only: bool = True) -> dict[str, Tensor]:
+    """The network weights of an ARCTIC model file, keyed as this package's models name them.
+
+    Args:
+        path: a Lightning ``.ckpt`` (its ``state_dict``), a ``torch.save`` state dict or a
+            ``.safetensors`` file.
+        weights_only: see :func:`~hogsa_loader.baselines.resnet.read_state_dict`.
+
+    Returns:
+        ``{name: tensor}`` after :func:`arctic_key_map`.
+    """
+    raw = read_state_dict(path, weights_only=weights_only)
+    if isinstance(raw.get("state_dict"), Mapping):
+        raw = raw["state_dict"]
+    return arctic_key_map(raw)
+
+
 def load_arctic_checkpoint(model: ArcticNetSF, path: PathLike, weights_only: bool = True) -> None:
     """Load ARCTIC's ArcticNet-SF weights (backbone and heads) into ``model``.
 
@@ -574,10 +592,7 @@ def load_arctic_checkpoint(model: ArcticNetSF, path: PathLike, weights_only: boo
     Raises:
         AssetError: naming the file and the missing / unexpected / mis-shaped keys.
     """
-    raw = read_state_dict(path, weights_only=weights_only)
-    if isinstance(raw.get("state_dict"), Mapping):
-        raw = raw["state_dict"]
-    state = arctic_key_map(raw)
+    state = read_arctic_weights(path, weights_only)
     own = model.network_state_dict()
     check_state_keys(path, own, state, f"an ArcticNet-SF with a {model.backbone_name} backbone")
     result = model.load_state_dict(state, strict=False)
@@ -601,11 +616,15 @@ def load_saved_model(
         ``(model, settings)``; the focal length is ARCTIC's 1000 px.
 
     Raises:
-        AssetError: naming ``model.json`` when it lacks ``settings.model.backbone`` /
-            ``img_res``, or the weights file when a tensor is missing or mis-shaped.
+        AssetError: naming ``model.json`` when it names another model kind (``kind``) or
+            lacks ``settings.model.backbone`` / ``img_res``, or the weights file when a tensor
+            is missing or mis-shaped.
     """
     manifest = Path(path).with_name("model.json")
     raw = read_json(manifest)
+    kind = raw.get("kind", "arcticnet_sf") if isinstance(raw, dict) else None
+    if kind != "arcticnet_sf":
+        raise AssetError(manifest, f"holds a {kind!r} model, not an ArcticNet-SF")
     try:
         settings = dict(raw["settings"])  # type: ignore[index]
         backbone, img_res = str(settings["model"]["backbone"]), int(settings["model"]["img_res"])

@@ -5,12 +5,13 @@ distance to the nearest object vertex (``dist.ro``, ``dist.lo``), and for every 
 the distance to the nearest vertex of each hand (``dist.or``, ``dist.ol``), clamped to 0.1 m
 by the targets. :class:`InterFieldSF` is the network, :func:`field_training_step` one
 optimisation step, :func:`interfield_loss` ARCTIC's loss, :func:`field_metrics` and
-:func:`field_acceleration` ARCTIC's average distance error and acceleration error.
+:func:`field_acceleration` ARCTIC's average distance error and acceleration error, and
+:func:`evaluate_field` both over a split.
 """
 
 from __future__ import annotations
 
-from typing import Any, Literal, Mapping
+from typing import Any, Callable, Iterable, Literal, Mapping, Optional
 
 import numpy as np
 import torch
@@ -18,21 +19,31 @@ from torch import Tensor, nn
 
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
+from hogsa_loader.baselines.arcticnet_sf import read_arctic_weights
 from hogsa_loader.baselines.engine import BodyLayers, apply_losses, prepare_batch
-from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone
+from hogsa_loader.baselines.metrics import summarize
+from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.io.npy import read_npy
+from hogsa_loader.sample.arctic_dataset import parse_imgname
 
 __all__ = [
     "FIELD_KEYS",
     "FIELD_LOSS_WEIGHT",
     "InterFieldSF",
     "read_mano_decimator",
+    "load_field_weights",
     "interfield_loss",
     "field_metrics",
     "field_acceleration",
     "field_training_step",
+    "evaluate_field",
+    "FIELD_METRICS",
 ]
+
+#: The split-level figures of :func:`evaluate_field`: average distance error (mm) and
+#: acceleration error (m/s²), hands → object and object → hands.
+FIELD_METRICS = ("avg/ho", "avg/oh", "acc/ho", "acc/oh")
 
 #: The four distance outputs: right hand → object, left → object, object → right, object → left.
 FIELD_KEYS = ("dist.ro", "dist.lo", "dist.or", "dist.ol")
@@ -190,6 +201,10 @@ class InterFieldSF(nn.Module):
             raise ValueError(f"decimator has {D.shape[1]} columns, the MANO layer {out.vertices.shape[1]} vertices")
         return (D.to(dt) @ out.vertices[0] - out.joints[0, :1]).float()
 
+    def network_state_dict(self) -> dict[str, Tensor]:
+        """The learned weights only (backbone, PointNet, heads, up-samplers; no object templates)."""
+        return {k: v for k, v in self.state_dict().items() if not k.startswith("object_layer.")}
+
     def object_points(self, names: list[str]) -> Tensor:
         """(B, 600, 3) sub-sampled object points, unarticulated and unrotated, centred on their mean."""
         return self.template_o[self.object_layer.indices(names).to(self.template_o.device)]
@@ -223,6 +238,25 @@ class InterFieldSF(nn.Module):
             "dist.ol": self.upsampling_o(self.dist_head_ol(f_o)),
             "feat_vec": feat,
         }
+
+
+def load_field_weights(model: InterFieldSF, path: PathLike, weights_only: bool = True) -> None:
+    """Load whole InterField-SF weights into ``model``.
+
+    Args:
+        model: the :class:`InterFieldSF` (its backbone and layers' vertex counts must be the
+            file's).
+        path: a run's ``model.safetensors``, a ``torch.save`` state dict or a Lightning
+            ``.ckpt`` (its ``state_dict``; the ``model.`` prefix removed, the training
+            wrapper's MANO layers dropped).
+        weights_only: see :func:`~hogsa_loader.baselines.resnet.read_state_dict`.
+
+    Raises:
+        AssetError: naming the file and the missing / unexpected / mis-shaped keys.
+    """
+    state = read_arctic_weights(path, weights_only)
+    check_state_keys(path, model.network_state_dict(), state, f"an InterField-SF with a {model.backbone_name} backbone")
+    model.load_state_dict(state, strict=False)
 
 
 def _object_mask(v_len: Tensor, length: int) -> Tensor:
@@ -387,3 +421,90 @@ def field_training_step(
     model.train()
     inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device, max_dist=max_dist, field="both")
     return apply_losses(interfield_loss(model(inputs, meta_info), targets, max_dist), model, optimizer, grad_clip)
+
+
+_CLIP_TARGETS = ("is_valid", "right_valid", "left_valid")
+
+
+def _clip_entry(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], b: int) -> dict[str, Tensor]:
+    """Frame ``b`` of a batch as :func:`field_acceleration` reads it (CPU), the object
+    directions cut to the frame's own vertex count (batches pad them to their longest object)."""
+    n = int(torch.as_tensor(targets["object.v_len"]).reshape(-1)[b])
+    out = {}
+    for key in FIELD_KEYS:
+        p, t = pred[key][b].detach().float().cpu(), targets[key][b].detach().float().cpu()
+        if key in ("dist.or", "dist.ol"):
+            p, t = p[:n], t[:n]
+        out["pred." + key], out[key] = p, t
+    for key in _CLIP_TARGETS:
+        out[key] = torch.as_tensor(targets[key]).reshape(-1)[b].cpu()
+    out["object.v_len"] = torch.tensor(n)
+    return out
+
+
+def _clip_acceleration(frames: list[tuple[int, dict[str, Tensor]]]) -> dict[str, np.ndarray]:
+    frames.sort(key=lambda x: x[0])
+    stacked = {k: torch.stack([e[k] for _, e in frames]) for k in frames[0][1]}
+    pred = {k: stacked.pop("pred." + k) for k in FIELD_KEYS}
+    return field_acceleration(pred, stacked)
+
+
+@torch.no_grad()
+def evaluate_field(
+    model: InterFieldSF,
+    batches: Iterable[Any],
+    layers: BodyLayers,
+    img_res: int,
+    device: Any = "cpu",
+    temporal: bool = True,
+    max_dist: float = 0.1,
+    on_batch: Optional[Callable[[int], None]] = None,
+) -> dict[str, Any]:
+    """ARCTIC's InterField-SF figures of ``model`` over a split.
+
+    Args:
+        model: the model (put in eval mode here).
+        batches: collated batches of the split, the frames of a (subject, sequence, view) in
+            consecutive batches (a DataLoader over
+            :func:`~hogsa_loader.baselines.engine.temporal_order`) when ``temporal``.
+        layers: the layers the targets are prepared with.
+        img_res: patch side (px).
+        device: where the model runs.
+        temporal: also compute the acceleration error per (subject, sequence, view).
+        max_dist: the targets' clamp (m; ARCTIC: 0.1), as in training.
+        on_batch: called with the number of frames after each batch (progress).
+
+    Returns:
+        ``{"summary": {metric: value}, "frames": n, "per_frame": {"avg/ho", "avg/oh": (n,)
+        arrays}, "imgnames": [...]}``; the summary holds :data:`FIELD_METRICS` (the
+        acceleration ones only when ``temporal``), each a nan-mean over the split's frames as
+        ARCTIC reports them.
+    """
+    model.eval()
+    per_frame: list[dict[str, np.ndarray]] = []
+    per_clip: list[dict[str, np.ndarray]] = []
+    names: list[str] = []
+    current: Optional[tuple[str, str, int]] = None
+    frames: list[tuple[int, dict[str, Tensor]]] = []
+    for batch in batches:
+        inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device, max_dist=max_dist, field="both")
+        pred = model(inputs, meta_info)
+        per_frame.append(field_metrics(pred, targets))
+        for b, name in enumerate(meta_info["imgname"]):
+            names.append(name)
+            if not temporal:
+                continue
+            sid, seq, view, frame = parse_imgname(name)
+            if (sid, seq, view) != current and frames:
+                per_clip.append(_clip_acceleration(frames))
+                frames = []
+            current = (sid, seq, view)
+            frames.append((frame, _clip_entry(pred, targets, b)))
+        if on_batch is not None:
+            on_batch(len(meta_info["imgname"]))
+    if frames:
+        per_clip.append(_clip_acceleration(frames))
+    merged = {k: np.concatenate([p[k] for p in per_frame]) for k in per_frame[0]} if per_frame else {}
+    keys = FIELD_METRICS if temporal else FIELD_METRICS[:2]
+    summary = summarize(per_frame + per_clip, keys)
+    return {"summary": summary, "frames": len(names), "per_frame": merged, "imgnames": names}

@@ -11,7 +11,9 @@ import torch
 
 from hogsa_loader.baselines import (
     FIELD_KEYS,
+    FIELD_METRICS,
     InterFieldSF,
+    evaluate_field,
     field_acceleration,
     field_metrics,
     field_training_step,
@@ -190,3 +192,59 @@ def test_a_training_step_prepares_both_directions_and_moves_the_weights(batches,
     assert all(np.isfinite(v) and v > 0 for v in rec.values())
     assert rec["loss"] == pytest.approx(sum(v for k, v in rec.items() if k != "loss"), rel=1e-5)
     assert not torch.equal(before, model.dist_head_ol.network[0].weight)
+
+
+def _frames(pred, targets, part):
+    """Frames ``part`` of a batch as one clip: the object directions cut to the shortest object."""
+    n = int(targets["object.v_len"][part].min())
+
+    def cut(d):
+        return {k: (v[part, :n] if k in ("dist.or", "dist.ol") else v[part]) for k, v in d.items()}
+
+    keep = ("is_valid", "right_valid", "left_valid", "object.v_len", *FIELD_KEYS)
+    return cut({k: pred[k] for k in FIELD_KEYS}), cut({k: targets[k] for k in keep})
+
+
+def test_split_figures_are_the_per_frame_and_per_clip_figures_of_the_whole_split(tiny_world, layers, decimator):
+    from torch.utils.data import DataLoader, Subset
+
+    from hogsa_loader.baselines import temporal_order
+    from hogsa_loader.baselines.engine import prepare_batch
+    from hogsa_loader.sample.arctic_dataset import ArcticDataset, parse_imgname
+    from hogsa_loader.sample.augment import ArcticConfig
+
+    val = ArcticDataset(tiny_world, "p1_val", seed=0, augment=False, config=ArcticConfig(img_res=RES))
+    order = temporal_order(val.imgnames)
+    clips = [parse_imgname(val.imgnames[i])[:3] for i in order]
+    first = clips.index(clips[-1]) if clips[0] == clips[-1] else next(i for i, c in enumerate(clips) if c != clips[0])
+    picked = order[first - 5 : first + 6]  # the last 5 frames of one clip and the first 6 of the next
+    assert len({parse_imgname(val.imgnames[i])[:3] for i in picked}) == 2
+    torch.manual_seed(0)
+    model = InterFieldSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, decimator)
+    out = evaluate_field(model, DataLoader(Subset(val, picked), batch_size=3), layers, RES)
+    assert out["frames"] == 11 and set(out["summary"]) == set(FIELD_METRICS)
+    # the same figures from one batch of the whole subset, split into its two clips by hand
+    model.eval()
+    with torch.no_grad():
+        (batch,) = DataLoader(Subset(val, picked), batch_size=11)
+        inputs, targets, meta = prepare_batch(batch, layers, RES, "cpu", max_dist=CLAMP, field="both")
+        pred = model(inputs, meta)
+    avg = field_metrics(pred, targets)
+    acc = {k: [] for k in ("acc/ho", "acc/oh")}
+    for part in (slice(0, 5), slice(5, 11)):
+        a = field_acceleration(*_frames(pred, targets, part))
+        for k in acc:
+            acc[k].append(a[k])
+    np.testing.assert_allclose(out["per_frame"]["avg/ho"], avg["avg/ho"], rtol=1e-5)
+    for k in ("avg/ho", "avg/oh"):
+        assert out["summary"][k] == pytest.approx(float(np.nanmean(avg[k])), rel=1e-5)
+    for k in acc:
+        whole = np.concatenate(acc[k])
+        assert np.isnan(whole).sum() >= 4  # each clip's first and last frame
+        assert out["summary"][k] == pytest.approx(float(np.nanmean(whole)), rel=1e-5)
+    # a clip boundary ignored would take a second difference across it
+    joined = field_acceleration(*_frames(pred, targets, slice(0, 11)))
+    assert float(np.nanmean(joined["acc/ho"])) != pytest.approx(out["summary"]["acc/ho"], rel=1e-3)
+    flat = evaluate_field(model, DataLoader(Subset(val, picked), batch_size=4), layers, RES, temporal=False)
+    assert set(flat["summary"]) == {"avg/ho", "avg/oh"}
+    assert flat["summary"]["avg/ho"] == pytest.approx(out["summary"]["avg/ho"], rel=1e-5)

@@ -642,7 +642,8 @@ def test_linear_schedule_keys_its_runs_and_ends_near_zero():
 
 def test_run_keys_are_pinned():
     """Run keys of the defaults and of the non-default synthetic and schedule choices, pinned
-    (this settings schema, CACHE_VERSION 2): a change of any key is a change of the schema."""
+    (this settings schema, with the model kind, CACHE_VERSION 2): a change of any key is a change
+    of the schema."""
     ds = _downstream()
     cfg = ds.DownstreamConfig()
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
@@ -655,8 +656,8 @@ def test_run_keys_are_pinned():
         [ds._key(ds.run_settings(arm, 0, c, setup)) for arm in ("real", "hogsa", "hogsa_no_pom")] for c in (cfg, other)
     ]
     assert keys == [
-        ["88d3636411eab9f6", "b4bb632c49ed203b", "1143eb07e1d0c2ab"],
-        ["737648ec1ca1d18b", "f6cc108e287d2d05", "7e229dde8d08cf25"],
+        ["f8f334f02265bb32", "3016035019c71673", "7163534f20587017"],
+        ["ac1ae183896eb611", "04da73f273793f7a", "3e085c36c0b82543"],
     ]
 
 
@@ -697,7 +698,13 @@ def test_a_checkpoint_start_keys_runs_by_the_files_bytes(tmp_path):
         (tmp_path / f"seed{k}" / "m.safetensors").write_bytes(b"weights of seed %d" % k)
     init = ds.replace(cfg, model=ds.replace(cfg.model, init=str(tmp_path / "seed{seed}" / "m.safetensors")))
     setup = {"bundle": Path("/b"), "data": Path("/d"), "fingerprints": _prints("w0", "b0", "a0")}
-    assert set(ds.run_settings("real", 0, cfg, setup)["model"]) == {"backbone", "img_res", "weights", "camera_prior"}
+    assert set(ds.run_settings("real", 0, cfg, setup)["model"]) == {
+        "kind",
+        "backbone",
+        "img_res",
+        "weights",
+        "camera_prior",
+    }
     m0, m1 = (ds.run_settings("hogsa", k, init, setup)["model"] for k in (0, 1))
     assert m0["init_sha256"] == hashlib.sha256(b"weights of seed 0").hexdigest()
     assert m1["init_sha256"] == hashlib.sha256(b"weights of seed 1").hexdigest()
@@ -863,3 +870,60 @@ def test_a_setup_data_root_that_is_not_one_is_refused_by_name(tiny_world, tmp_pa
     with pytest.raises(SystemExit, match=r"--setup-data .*protocol_p1.json: file is missing"):
         ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(tmp_path / "root"))))
     ds.validate(ds.replace(cfg, setup=ds.replace(cfg.setup, data=str(tiny_world))))  # a world: accepted
+
+
+def test_interfield_runs_train_evaluate_and_start_from_a_saved_field_model(tiny_world, tmp_path, monkeypatch):
+    """--model-kind interfield_sf: InterField-SF trained with its own loss and evaluated with the
+    field's average distance and acceleration errors (clip sums of the two average errors), in
+    folders and keys of its own; its saved model starts a fine-tune (no camera prior), and a
+    saved model of the other kind is refused naming the file; the tables name its metrics."""
+    ds = _downstream()
+    base = _tiny_cfg(ds, steps=2, evals=1, checkpoint_every=0)
+    cfg = ds.replace(base, model=ds.replace(base.model, kind="interfield_sf"))
+    setup = {"data": tiny_world, "bundle": Path("/unused"), "fingerprints": _prints("w0", "b0", "a0")}
+    val_dataset = ds.val_dataset
+    monkeypatch.setattr(ds, "val_dataset", lambda *a: (lambda v: (v[0], v[1][:12]))(val_dataset(*a)))
+    monkeypatch.setattr(ds, "camera_prior", lambda *a: pytest.fail("InterField-SF has no camera"))
+    monkeypatch.setattr(ds, "training_step", lambda *a, **k: pytest.fail("ArcticNet-SF's step"))
+    res = ds.run_arm("real", 0, cfg, setup, tmp_path)
+    folder = ds.run_dir("real", 0, cfg, tmp_path)
+    assert folder == tmp_path / "runs" / "real+interfield_sf" / "seed0"
+    assert set(res["summary"]) == {"avg/ho", "avg/oh", "acc/ho", "acc/oh"} and res["val_frames"] == 12
+    assert all(res["summary"][m] is not None and res["summary"][m] > 0 for m in ("avg/ho", "avg/oh"))
+    assert set(res["loss_terms_last"]) == {"loss/dist/ro", "loss/dist/lo", "loss/dist/or", "loss/dist/ol"}
+    for m in ("avg/ho", "avg/oh"):  # the per-clip sums form the split's value again
+        sums = np.array([c[m] for c in res["clips"].values()])
+        assert sums[:, 0].sum() / sums[:, 1].sum() == pytest.approx(res["summary"][m], abs=1e-6)
+    assert json.loads((folder / "model.json").read_text())["kind"] == "interfield_sf"
+    keys = {ds._key(ds.run_settings("real", 0, c, setup)) for c in (cfg, base)}
+    assert len(keys) == 2 and "camera_prior" not in ds.run_settings("real", 0, cfg, setup)["model"]
+
+    from safetensors.torch import load_file
+
+    from hogsa_loader.assets.arctic import ArcticRoot
+    from hogsa_loader.baselines.engine import BodyLayers
+    from hogsa_loader.errors import AssetError
+
+    layers = BodyLayers.from_root(ArcticRoot(tiny_world))
+    init = ds.replace(cfg, model=ds.replace(cfg.model, init=str(folder / "model.safetensors")))
+    model = ds.build_model(cfg, layers, tiny_world)
+    ds.start_weights(model, "real", 0, init, setup, layers)
+    saved = load_file(folder / "model.safetensors")
+    assert all(torch.equal(model.network_state_dict()[k], saved[k]) for k in saved)
+    arctic = ds.build_model(base, layers)
+    torch.save(arctic.network_state_dict(), tmp_path / "arcticnet.pt")
+    other = ds.replace(cfg, model=ds.replace(cfg.model, init=str(tmp_path / "arcticnet.pt")))
+    with pytest.raises(AssetError, match=r"arcticnet.pt.*InterField-SF"):
+        ds.check_inits(other, setup)
+    from hogsa_loader.baselines import load_saved_model
+
+    with pytest.raises(AssetError, match=r"model.json.*'interfield_sf' model, not an ArcticNet-SF"):
+        load_saved_model(folder / "model.safetensors", layers.mano_r, layers.mano_l, layers.objects)
+
+    summ = {"avg/ho": 9.0, "avg/oh": 10.0, "acc/ho": 1.0, "acc/oh": 2.0}
+    lower = {**summ, "avg/ho": 8.5, "avg/oh": 9.0}
+    results = {"real": {0: {"summary": summ}}, "hogsa": {0: {"summary": lower}}}
+    agg = ds.aggregate(results, "interfield_sf")
+    assert agg["paired"]["hogsa - real"]["avg/oh"]["per_seed"] == {0: -1.0}
+    md = ds.markdown(agg, cfg, "2 CPU cores", {})
+    assert "| InterField-SF (real) | 9.00 | 10.00 | 1.00 | 2.00 |" in md and "Δavg. h→o (mm) per seed" in md
