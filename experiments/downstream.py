@@ -397,6 +397,10 @@ def validate(cfg: DownstreamConfig) -> None:
         (cfg.train.checkpoint_every >= 0, "--train-checkpoint-every must be >= 0"),
         (not (cfg.model.init and cfg.model.weights), "--model-init and --model-weights exclude each other"),
         (
+            cfg.synthetic.supervise == "all" or cfg.model.kind == "arcticnet_sf",
+            "--synthetic-supervise touching marks hands invalid, which InterField-SF's loss does not read",
+        ),
+        (
             cfg.synthetic.mix == "add"
             or num_synthetic(cfg.synthetic.share, cfg.train.batch_size) < cfg.train.batch_size,
             "--synthetic-share leaves no real sample in a batch of --train-batch-size",

@@ -98,8 +98,9 @@ def shared_folder(tmp_path_factory, name: str, build: Callable[[Path], object]) 
     holding a lock, the others wait for it and reuse it. A build that raises leaves no marker,
     so the next worker builds it again."""
     base = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        base = base.parent  # the session's folder, shared by its workers
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker and base.name == f"popen-{worker}":
+        base = base.parent  # the session's folder, shared by its workers (and by them only)
     out = base / name
     with open(base / f"{name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)

@@ -622,7 +622,7 @@ def load_saved_model(
     """
     manifest = Path(path).with_name("model.json")
     raw = read_json(manifest)
-    kind = raw.get("kind", "arcticnet_sf") if isinstance(raw, dict) else None
+    kind = raw.get("kind", "arcticnet_sf") if isinstance(raw, dict) else "arcticnet_sf"
     if kind != "arcticnet_sf":
         raise AssetError(manifest, f"holds a {kind!r} model, not an ArcticNet-SF")
     try:

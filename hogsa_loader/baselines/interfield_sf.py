@@ -128,6 +128,17 @@ class _DistanceHead(nn.Module):
         return self.network(x)[:, 0]
 
 
+class _Upsampler(nn.Module):
+    """(B, S) values on sub-sampled points -> (B, V) values on every vertex (one linear map)."""
+
+    def __init__(self, in_dim: int, out_dim: int):
+        super().__init__()
+        self.upsampling = nn.Linear(in_dim, out_dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.upsampling(x)
+
+
 class InterFieldSF(nn.Module):
     """InterField-SF: image -> hand↔object nearest-vertex distances.
 
@@ -143,7 +154,10 @@ class InterFieldSF(nn.Module):
        concatenated with the max-pooled global feature);
     4. four distance heads (1×1 convolutions) on the right-hand, left-hand and object points,
        and linear up-samplers from the decimated points to every vertex: hands to the MANO
-       vertex count, the object to the longest template of the object layer.
+       vertex count, the object to ``object_outputs`` points.
+
+    The module names are those of ARCTIC's ``FieldSF``, so its state dicts load with
+    :func:`load_field_weights`.
 
     Args:
         backbone: ``"resnet18"`` or ``"resnet50"`` (ARCTIC's release: ResNet-50), randomly
@@ -156,10 +170,12 @@ class InterFieldSF(nn.Module):
             holding every object of ``query_names`` (its sub-sampled points are the object
             template; its longest template is the length of ``dist.or/ol``).
         decimator: ``{"right": (S, V), "left": (S, V)}`` from :func:`read_mano_decimator`.
+        object_outputs: L, the length of ``dist.or`` / ``dist.ol``: at least the object
+            layer's longest template (the default); ARCTIC's released model has 4000.
 
     ``forward`` returns ``dist.ro``, ``dist.lo`` (B, V), ``dist.or``, ``dist.ol`` (B, L)
-    in metres, L = the object layer's longest template (entries past an object's own
-    vertex count are padding), and ``feat_vec`` (B, C) the pooled image feature.
+    in metres (entries past an object's own vertex count are padding), and ``feat_vec``
+    (B, C) the pooled image feature.
     """
 
     def __init__(
@@ -169,6 +185,7 @@ class InterFieldSF(nn.Module):
         mano_l: MANOLayer,
         object_layer: ArticulatedObjectLayer,
         decimator: Mapping[str, Tensor],
+        object_outputs: Optional[int] = None,
     ):
         super().__init__()
         self.backbone = build_backbone(backbone)
@@ -185,10 +202,13 @@ class InterFieldSF(nn.Module):
         v_sub = object_layer.v_sub.float()  # (K, 600, 3) at zero articulation: fixed per object
         self.register_buffer("template_o", v_sub - v_sub.mean(dim=1, keepdim=True), persistent=False)
         n_sub, n_verts = int(hands["right"].shape[0]), int(decimator["right"].shape[1])
-        n_obj_sub, n_obj = int(object_layer.v_sub.shape[1]), int(object_layer.v_len.max())
-        self.upsampling_r = nn.Linear(n_sub, n_verts)
-        self.upsampling_l = nn.Linear(n_sub, n_verts)
-        self.upsampling_o = nn.Linear(n_obj_sub, n_obj)
+        n_obj_sub, longest = int(object_layer.v_sub.shape[1]), int(object_layer.v_len.max())
+        n_obj = longest if object_outputs is None else int(object_outputs)
+        if n_obj < longest:
+            raise ValueError(f"object_outputs={n_obj} is shorter than the longest object template ({longest})")
+        self.upsampling_r = _Upsampler(n_sub, n_verts)
+        self.upsampling_l = _Upsampler(n_sub, n_verts)
+        self.upsampling_o = _Upsampler(n_obj_sub, n_obj)
 
     @staticmethod
     @torch.no_grad()

@@ -58,7 +58,11 @@ Checks (``--checks``, default all four):
     randomly initialised :class:`hogsa_loader.baselines.InterFieldSF` and the targets plus
     Gaussian noise; both sides get the same tensors. Passes when every loss term, per-frame
     average error and acceleration error agrees within a relative 1e-5 (and NaN where the
-    other is NaN).
+    other is NaN), and when the state dict of ARCTIC's ``FieldSF`` (resnet18, saved as a
+    Lightning checkpoint) loads into an ``InterFieldSF`` through
+    :func:`hogsa_loader.baselines.load_field_weights` with every name, shape and value
+    unchanged (ARCTIC's up-samplers have 778 hand and 4000 object outputs; where the world's
+    MANO or longest object template differs, both models get the world's counts).
 
 Packages. ARCTIC imports packages that a CPU-only machine may lack. Those that ``pip``
 installs and that the selected checks really run (``loguru``, ``easydict``,
@@ -1807,10 +1811,12 @@ def run_field_check(sess: ArcticSession, data_root: Path, seed: int, log: Callab
         field_acceleration,
         field_metrics,
         interfield_loss,
+        load_field_weights,
         prepare_targets,
         read_mano_decimator,
         temporal_order,
     )
+    from hogsa_loader.baselines.arcticnet_sf import read_arctic_weights
     from hogsa_loader.sample.arctic_dataset import ArcticDataset as OurDataset
 
     loss_field = sess.module("src.callbacks.loss.loss_field")
@@ -1874,6 +1880,41 @@ def run_field_check(sess: ArcticSession, data_root: Path, seed: int, log: Callab
         theirs_a = eval_modules.eval_acc_field(xdict(pred), xdict(gt), xdict())
         for k in ("acc/ho", "acc/oh"):
             compare(what, k, ours_a[k], theirs_a[k])
+    # ARCTIC's FieldSF state dict (a Lightning checkpoint of it) loads into ours: every name and
+    # shape agrees, every tensor arrives unchanged. ARCTIC sizes its up-samplers for MANO's 778
+    # vertices and 4000 object vertices; both sides get the world's counts where they differ
+    sess.module("src.nets.backbone.resnet")  # FieldSF imports it when built: patched first (no download)
+    field_sf = sess.module("src.models.field_sf.model")
+    theirs_model = field_sf.FieldSF("resnet18", focal_length=1000.0, img_res=img_res)
+    longest = max(int(layers.objects.v_len.max()), int(theirs_model.num_v_o))
+    theirs_model.upsampling_o = field_sf.Upsampler(theirs_model.num_v_o_sub, longest)  # the world's objects
+    n_hand = int(layers.mano_r.v_template.shape[0])  # ARCTIC: MANO's 778; the world's MANO may differ
+    theirs_model.upsampling_r = field_sf.Upsampler(theirs_model.num_v_sub, n_hand)
+    theirs_model.upsampling_l = field_sf.Upsampler(theirs_model.num_v_sub, n_hand)
+    with tempfile.TemporaryDirectory() as tmp:
+        ckpt = Path(tmp) / "field_sf.ckpt"
+        torch.save({"state_dict": {f"model.{k}": v for k, v in theirs_model.state_dict().items()}}, ckpt)
+        ours_model = InterFieldSF("resnet18", layers.mano_r, layers.mano_l, layers.objects, D, object_outputs=longest)
+        error = None
+        try:
+            load_field_weights(ours_model, ckpt)
+        except Exception as exc:  # reported as a failed row
+            error = f"{type(exc).__name__}: {exc}"
+        state = read_arctic_weights(ckpt)
+    own = ours_model.network_state_dict()
+    same = [k for k, v in state.items() if k in own and own[k].shape == v.shape]
+    diff = max((float((own[k].double() - state[k].double()).abs().max()) for k in same), default=0.0)
+    rows.append(
+        {
+            "predictions": "FieldSF weights",
+            "key": "state dict" + (f" ({error})" if error else ""),
+            "ours": float(len(own)),
+            "arctic": float(len(state)),
+            "max_abs_diff": diff,
+            "nan_agree": True,
+            "ok": error is None and set(own) == set(state) == set(same) and diff == 0.0,
+        }
+    )
     log(f"  field: {sum(r['ok'] for r in rows)}/{len(rows)} figures agree on {len(frames)} frames of {clip}")
     return {"ok": all(r["ok"] for r in rows), "clip": clip, "frames": len(frames), "rows": rows}
 

@@ -84,6 +84,34 @@ def test_downstream_config_is_the_published_runs(tmp_path):
     assert table.data == str(tmp_path / "finetune" / "setup" / "world" / "arctic_data" / "data")
 
 
+def test_interfield_config_is_the_downstream_protocol_with_interfield_sf(tmp_path):
+    """interfield.toml's steps are downstream.toml's with InterField-SF and the real and HOGSA
+    arms, and its fine-tunes start from the InterField-SF models of its own first step."""
+    run = _run()
+    downstream = run.load_script("experiments/downstream.py")
+    parse, replace = downstream.parse_args, downstream.replace
+    steps = {}
+    for name in ("downstream", "interfield"):
+        exp = run.load_config(ROOT / "experiments" / "configs" / f"{name}.toml")
+        steps[name] = {s.name: parse(run.step_argv(exp, tmp_path / name, s)) for s in exp.steps if s.name != "table"}
+    field, arctic = steps["interfield"], steps["downstream"]
+    assert set(field) == {"init", "finetune"}
+    init = field["init"]
+    assert init.model.kind == "interfield_sf"
+    expected = replace(arctic["init"], out=init.out, model=replace(arctic["init"].model, kind="interfield_sf"))
+    assert init == expected
+    model = tmp_path / "interfield" / "init" / "runs" / "real+interfield_sf" / "seed{seed}" / "model.safetensors"
+    assert field["finetune"].model.init == str(model)
+    assert downstream.arm_folder("real", init) / "seed{seed}" / "model.safetensors" == model
+    ft = arctic["finetune"]
+    assert field["finetune"] == replace(
+        ft,
+        out=field["finetune"].out,
+        arms=("real", "hogsa"),
+        model=replace(ft.model, kind="interfield_sf", init=str(model)),
+    )
+
+
 def _script(tmp_path: Path, name: str, body: str) -> Path:
     path = tmp_path / f"{name}.py"
     path.write_text(
