@@ -11,7 +11,16 @@ import threading
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Optional, Sequence
 
-__all__ = ["available_cores", "can_fork", "run_forked", "keep_allocator_memory", "allocator_status", "KEEP_MEMORY_ENV"]
+__all__ = [
+    "available_cores",
+    "can_fork",
+    "run_forked",
+    "keep_allocator_memory",
+    "allocator_status",
+    "KEEP_MEMORY_ENV",
+    "process_slot",
+    "rank_device",
+]
 
 #: Set to ``0`` to leave the C allocator as the process found it.
 KEEP_MEMORY_ENV = "HOGSA_KEEP_MEMORY"
@@ -194,3 +203,23 @@ def keep_allocator_memory() -> str:
 def allocator_status() -> str:
     """What :func:`keep_allocator_memory` did in this process ("not configured yet" before its first call)."""
     return _status if _status is not None else "not configured yet"
+
+
+def process_slot(env: Optional[dict[str, str]] = None) -> tuple[int, int]:
+    """``(rank, world_size)`` of this process: torchrun's ``RANK`` / ``WORLD_SIZE``, srun's
+    ``SLURM_PROCID`` / ``SLURM_STEP_NUM_TASKS`` (an sbatch script itself, with only
+    ``SLURM_NTASKS``, is one process); ``(0, 1)`` alone."""
+    env = dict(os.environ) if env is None else env
+    if "WORLD_SIZE" in env:
+        return int(env.get("RANK", "0")), int(env["WORLD_SIZE"])
+    if "SLURM_PROCID" in env and "SLURM_STEP_NUM_TASKS" in env:
+        return int(env["SLURM_PROCID"]), int(env["SLURM_STEP_NUM_TASKS"])
+    return 0, 1
+
+
+def rank_device(device: str, env: Optional[dict[str, str]] = None) -> str:
+    """``cuda`` made ``cuda:LOCAL_RANK`` (torchrun) or ``cuda:SLURM_LOCALID`` (srun) for a process
+    that is one of several on a node; any other device unchanged."""
+    env = dict(os.environ) if env is None else env
+    local = env.get("LOCAL_RANK", env.get("SLURM_LOCALID"))
+    return f"cuda:{int(local)}" if device == "cuda" and local is not None else device

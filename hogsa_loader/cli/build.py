@@ -24,15 +24,8 @@ from hogsa_loader.cli import checks
 from hogsa_loader.cli.dataclass_args import CommaList, add_dataclass_arguments, apply_field_checks, dataclass_from_args
 from hogsa_loader.cli.registry import HELP
 from hogsa_loader.errors import HogsaError, UsageError
-from hogsa_loader.train.build import (
-    SET_BY_BUILD,
-    BuildConfig,
-    build,
-    build_status,
-    config_toml,
-    process_slot,
-    read_config,
-)
+from hogsa_loader.system import process_slot
+from hogsa_loader.train.build import SET_BY_BUILD, BuildConfig, build, build_status, config_toml, read_config
 
 __all__ = ["add_build_command", "build_parser", "run_build_command"]
 

@@ -32,6 +32,7 @@ from hogsa_loader.render.frame_maps import FrameMapsConfig, view_images, write_f
 from hogsa_loader.sample.config import LoaderConfig, export_info
 from hogsa_loader.sample.dataset import HOGSADataset
 from hogsa_loader.sample.export import ExportMismatchError, dataset_frames_for_shard, num_shards, write_shards
+from hogsa_loader.system import process_slot, rank_device
 from hogsa_loader.view.config import ViewConfig, check_view_config
 from hogsa_loader.view.frame_maps import frame_maps_sheet
 from hogsa_loader.view.job import run_view
@@ -151,20 +152,16 @@ def _cmd_world_noise(args: argparse.Namespace) -> int:
     return 0
 
 
-def _env_int(name: str, default: int) -> int:
-    v = os.environ.get(name)
-    return int(v) if v not in (None, "") else default
-
-
 def _export_config(args: argparse.Namespace, world: int) -> LoaderConfig:
-    """The loader config of ``hogsa export`` (``--num`` samples; ``cuda`` = ``cuda:LOCAL_RANK`` under torchrun)."""
+    """The loader config of ``hogsa export`` (``--num`` samples; ``cuda`` = the process's local GPU,
+    ``cuda:LOCAL_RANK`` under torchrun and ``cuda:SLURM_LOCALID`` under srun)."""
     try:
         config = dataclass_from_args(LoaderConfig, args)
     except ValueError as exc:  # combinations the config refuses (e.g. --srm-tta without --srm)
         raise checks.UsageError(str(exc)) from None
     device = config.run.device
-    if device == "cuda" and world > 1:  # torchrun: one GPU per local rank
-        device = f"cuda:{_env_int('LOCAL_RANK', 0)}"
+    if world > 1:  # one GPU per local process
+        device = rank_device(device)
     return dataclasses.replace(config, run=dataclasses.replace(config.run, device=device, num_samples=args.num))
 
 
@@ -182,8 +179,9 @@ def _check_export_paths(args: argparse.Namespace, config: LoaderConfig) -> None:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    rank = args.rank if args.rank is not None else _env_int("RANK", 0)
-    world = args.world_size if args.world_size is not None else _env_int("WORLD_SIZE", 1)
+    launched = process_slot()  # torchrun's RANK / WORLD_SIZE, srun's SLURM_PROCID / SLURM_STEP_NUM_TASKS
+    rank = args.rank if args.rank is not None else launched[0]
+    world = args.world_size if args.world_size is not None else launched[1]
     if not 0 <= rank < world:
         raise checks.UsageError(f"rank {rank} outside world size {world}")
     config = _export_config(args, world)
@@ -433,8 +431,12 @@ def _export_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="rewrite shards in --out that another export (other settings, --num or --shard-size) wrote",
     )
-    e.add_argument("--rank", type=checks.non_negative_int, default=None, help="default: $RANK or 0")
-    e.add_argument("--world-size", type=checks.positive_int, default=None, help="default: $WORLD_SIZE or 1")
+    e.add_argument(
+        "--rank", type=checks.non_negative_int, default=None, help="default: the launcher's (torchrun, srun) or 0"
+    )
+    e.add_argument(
+        "--world-size", type=checks.positive_int, default=None, help="default: the launcher's (torchrun, srun) or 1"
+    )
     e.add_argument("--threads", type=checks.non_negative_int, default=0, help="torch CPU threads (0 = default)")
     e.add_argument("--quiet", action="store_true", help="no progress bar or messages")
     add_dataclass_arguments(e, LoaderConfig)  # the loader's options: one flag per LoaderConfig field

@@ -30,8 +30,8 @@ from hogsa_loader.cli import checks
 from hogsa_loader.errors import UsageError
 from hogsa_loader.io.atomic import atomic_write
 from hogsa_loader.models.gaussians.hogs_model import HogsModel
-from hogsa_loader.train.build import process_slot
-from hogsa_loader.train.build import rank_device as device_of_rank
+from hogsa_loader.system import process_slot
+from hogsa_loader.system import rank_device as device_of_rank
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -190,7 +190,7 @@ def array_slot(a: argparse.Namespace) -> tuple[int, int]:
 def rank_device(rest: Sequence[str], env: Optional[dict[str, str]] = None) -> list[str]:
     """``hogsa train hogs`` arguments with ``--device cuda`` made ``cuda:LOCAL_RANK`` when this
     process is one of several on a node (torchrun's ``LOCAL_RANK``, srun's ``SLURM_LOCALID``;
-    :func:`hogsa_loader.train.build.rank_device`), so that each process trains on its own GPU;
+    :func:`hogsa_loader.system.rank_device`), so that each process trains on its own GPU;
     other arguments unchanged."""
     out = list(rest)
     for i, arg in enumerate(out[:-1]):

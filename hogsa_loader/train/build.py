@@ -29,6 +29,7 @@ from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
 from hogsa_loader.errors import PathLike, UsageError
 from hogsa_loader.io.locks import FolderBusyError, writer_lock
 from hogsa_loader.models.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
+from hogsa_loader.system import process_slot, rank_device
 from hogsa_loader.train.config import field_options as _opt
 from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_trainer import HogsTrainer
@@ -38,16 +39,7 @@ from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.srm_trainer import SRMTrainer
 from hogsa_loader.train.stages import StageNode, StageRecords, in_stage_process, run_stage_graph, stage_key
 
-__all__ = [
-    "BuildConfig",
-    "BuildDataConfig",
-    "BuildRunConfig",
-    "build",
-    "build_status",
-    "config_toml",
-    "process_slot",
-    "read_config",
-]
+__all__ = ["BuildConfig", "BuildDataConfig", "BuildRunConfig", "build", "build_status", "config_toml", "read_config"]
 
 #: Fields of the stage configs that the build sets itself (no flag, no TOML key).
 SET_BY_BUILD = frozenset(
@@ -421,26 +413,6 @@ def plan_build(config: BuildConfig, data_key: Optional[str] = None) -> _Plan:
 
 
 # ---------------------------------------------------------------------------- running it
-def process_slot(env: Optional[dict[str, str]] = None) -> tuple[int, int]:
-    """``(rank, world_size)`` of this process: torchrun's ``RANK`` / ``WORLD_SIZE``, srun's
-    ``SLURM_PROCID`` / ``SLURM_STEP_NUM_TASKS`` (an sbatch script itself, with only
-    ``SLURM_NTASKS``, is one process); ``(0, 1)`` alone."""
-    env = dict(os.environ) if env is None else env
-    if "WORLD_SIZE" in env:
-        return int(env.get("RANK", "0")), int(env["WORLD_SIZE"])
-    if "SLURM_PROCID" in env and "SLURM_STEP_NUM_TASKS" in env:
-        return int(env["SLURM_PROCID"]), int(env["SLURM_STEP_NUM_TASKS"])
-    return 0, 1
-
-
-def rank_device(device: str, env: Optional[dict[str, str]] = None) -> str:
-    """``cuda`` made ``cuda:LOCAL_RANK`` (torchrun) or ``cuda:SLURM_LOCALID`` (srun) for a process
-    that is one of several on a node; any other device unchanged."""
-    env = dict(os.environ) if env is None else env
-    local = env.get("LOCAL_RANK", env.get("SLURM_LOCALID"))
-    return f"cuda:{int(local)}" if device == "cuda" and local is not None else device
-
-
 def _claimed_run(stages: StageRecords, node: StageNode) -> bool:
     """Build ``node`` if no live process holds its claim; False when another one does (an
     error of the stage itself is raised)."""

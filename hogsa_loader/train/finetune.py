@@ -36,7 +36,7 @@ from hogsa_loader.sample.arctic_dataset import ArcticDataset
 from hogsa_loader.sample.augment import ArcticConfig
 from hogsa_loader.sample.mixing import MixedLoader
 from hogsa_loader.sample.synth import is_synthetic
-from hogsa_loader.train.build import process_slot, rank_device
+from hogsa_loader.system import process_slot, rank_device
 from hogsa_loader.train.config import field_options as _opt
 from hogsa_loader.train.run_folder import (
     commit_checkpoint,

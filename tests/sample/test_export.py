@@ -473,7 +473,7 @@ def test_shard_drops_by_reason_survive_a_resumed_export(tmp_path):
     assert index["dropped"] is None and index["num_dropped"] == 3
 
 
-def test_cli_export_with_torchrun_env(tmp_path, monkeypatch, capsys):
+def test_cli_export_takes_its_rank_from_torchrun_or_srun(tmp_path, monkeypatch, capsys):
     """``hogsa export`` wiring (rank/world from the environment, resume) on a stand-in dataset."""
     import types
 
@@ -530,6 +530,21 @@ def test_cli_export_with_torchrun_env(tmp_path, monkeypatch, capsys):
     assert index["complete"] and index["num_samples_written"] == 7 and index["info"]["seed"] == 4
     assert json.loads((out / "synth-000001.index.json").read_text())["rank"] == 1
     assert len(list(SynthShardDataset(out))) == 7
+    # srun's two tasks: the ranks from SLURM_PROCID / SLURM_STEP_NUM_TASKS, no flag
+    monkeypatch.delenv("RANK")
+    monkeypatch.delenv("WORLD_SIZE")
+    srun = list(args)
+    srun[srun.index("--out") + 1] = str(tmp_path / "srun")
+    for rank in (1, 0):
+        monkeypatch.setenv("SLURM_PROCID", str(rank))
+        monkeypatch.setenv("SLURM_STEP_NUM_TASKS", "2")
+        assert main(srun) == 0
+    assert json.loads((tmp_path / "srun" / "synth-000001.index.json").read_text())["rank"] == 1
+    assert json.loads((tmp_path / "srun" / "index.json").read_text())["num_samples_written"] == 7
+    monkeypatch.delenv("SLURM_PROCID")
+    monkeypatch.delenv("SLURM_STEP_NUM_TASKS")
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "2")
     assert main(args[:-1] + ["--out", str(tmp_path / "if"), "--interfield", "--quiet"]) == 0
     assert made[-1].kw["interfield"] is True
     assert made[0].kw["exclude_person"] is False and made[0].kw["srm_tta"] == 1

@@ -13,15 +13,8 @@ import pytest
 from conftest import tiny_build_config as tiny_config
 
 from hogsa_loader.errors import UsageError
-from hogsa_loader.train.build import (
-    build,
-    build_status,
-    config_toml,
-    plan_build,
-    process_slot,
-    rank_device,
-    read_config,
-)
+from hogsa_loader.system import process_slot, rank_device
+from hogsa_loader.train.build import build, build_status, config_toml, plan_build, read_config
 from hogsa_loader.train.stages import StageNode, StageRecords, run_stage_graph
 
 
