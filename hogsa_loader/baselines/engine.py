@@ -28,6 +28,7 @@ __all__ = [
     "training_step",
     "apply_losses",
     "evaluate",
+    "evaluate_split",
     "temporal_order",
     "mean_cameras",
     "SEQUENCE_KEYS",
@@ -196,27 +197,27 @@ def temporal_order(imgnames: Iterable[str]) -> list[int]:
     return sorted(range(len(keys)), key=lambda i: keys[i])
 
 
-def _group_of(imgname: str) -> tuple[tuple[str, str, int], int]:
-    sid, seq, view, frame = parse_imgname(imgname)
-    return (sid, seq, view), frame
+def _sequence_entries(
+    pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any]
+) -> list[dict[str, Any]]:
+    """What :func:`sequence_metrics` needs of each frame of a batch (moved to the CPU once per
+    batch, predictions as float32), the object vertices trimmed to the frame's own count
+    (batches pad them to their longest object)."""
+    v_len = torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len"))).reshape(-1).cpu()
+    p = {k: pred[k].detach().float().cpu() for k in SEQUENCE_KEYS}
+    t = {k: targets[k].detach().cpu() for k in SEQUENCE_KEYS + _TARGET_ONLY if k in targets}
+    part_ids = torch.as_tensor(meta_info["part_ids"]).cpu()
+    entries = []
+    for b, n in enumerate(v_len.tolist()):
+        pb, tb = {k: v[b] for k, v in p.items()}, {k: v[b] for k, v in t.items()}
+        pb["object.v.cam"], tb["object.v.cam"] = pb["object.v.cam"][:n], tb["object.v.cam"][:n]
+        tb["object.v_len"] = torch.tensor(n)
+        entries.append({"pred": pb, "targets": tb, "part_ids": part_ids[b, :n]})
+    return entries
 
 
-def _sequence_entry(
-    pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], meta_info: Mapping[str, Any], b: int
-) -> dict[str, Any]:
-    """What :func:`sequence_metrics` needs of frame ``b`` of a batch (CPU, float32), the object
-    vertices trimmed to the frame's own count (batches pad them to their longest object)."""
-    n = int(torch.as_tensor(targets.get("object.v_len", meta_info.get("object.v_len")))[b])
-    p = {k: pred[k][b].detach().float().cpu() for k in SEQUENCE_KEYS}
-    t = {k: targets[k][b].detach().cpu() for k in SEQUENCE_KEYS + _TARGET_ONLY if k in targets}
-    p["object.v.cam"], t["object.v.cam"] = p["object.v.cam"][:n], t["object.v.cam"][:n]
-    t["object.v_len"] = torch.tensor(n)
-    return {"pred": p, "targets": t, "part_ids": torch.as_tensor(meta_info["part_ids"])[b, :n].cpu()}
-
-
-def _flush(frames: list[tuple[int, dict[str, Any]]]) -> dict[str, np.ndarray]:
-    frames.sort(key=lambda x: x[0])
-    entries = [e for _, e in frames]
+def _sequence_figures(entries: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """:func:`sequence_metrics` of one clip's entries (in frame order)."""
     pred = {k: torch.stack([e["pred"][k] for e in entries]) for k in entries[0]["pred"]}
     targets = {k: torch.stack([e["targets"][k] for e in entries]) for k in entries[0]["targets"]}
     meta = {"part_ids": torch.stack([e["part_ids"] for e in entries])}
@@ -224,6 +225,75 @@ def _flush(frames: list[tuple[int, dict[str, Any]]]) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
+def evaluate_split(
+    model: nn.Module,
+    batches: Iterable[Any],
+    prepare: Callable[[Any], tuple[dict, dict, dict]],
+    frame_metrics: Callable[[dict, dict, dict], dict[str, np.ndarray]],
+    clip_entries: Callable[[dict, dict, dict], list[Any]],
+    clip_metrics: Callable[[list[Any]], dict[str, np.ndarray]],
+    temporal: bool = True,
+    keys: Optional[Iterable[str]] = None,
+    on_batch: Optional[Callable[[int], None]] = None,
+) -> dict[str, Any]:
+    """The evaluation loop of the baselines, with what a model is scored on passed in.
+
+    Each batch is prepared (``prepare(batch)`` -> ``(inputs, targets, meta_info)``), the model
+    runs on it and ``frame_metrics(pred, targets, meta_info)`` gives its per-frame arrays. When
+    ``temporal``, ``clip_entries(pred, targets, meta_info)`` gives one entry per frame, the
+    entries of each (subject, sequence, view) clip are gathered across batches, and
+    ``clip_metrics(entries)`` scores each clip with its entries in frame order.
+
+    Args:
+        model: the model (put in eval mode here).
+        batches: collated batches of the split, the frames of a clip in consecutive batches
+            (e.g. a DataLoader over :func:`temporal_order`) when ``temporal``.
+        prepare: batch -> ``(inputs, targets, meta_info)`` on the model's device.
+        frame_metrics: per-frame figures of a batch, ``{metric: (B,) array}``.
+        clip_entries: what ``clip_metrics`` needs of each frame of a batch.
+        clip_metrics: a clip's figures, ``{metric: array}``.
+        temporal: also score each clip.
+        keys: the metrics of the summary; default every key seen.
+        on_batch: called with the number of frames after each batch (progress).
+
+    Returns:
+        ``{"summary": {metric: value}, "frames": n, "per_frame": {metric: (n,) array},
+        "imgnames": [...]}``; the summary is :func:`summarize` over the frames and clips.
+    """
+    model.eval()
+    per_frame: list[dict[str, np.ndarray]] = []
+    per_clip: list[dict[str, np.ndarray]] = []
+    names: list[str] = []
+    current: Optional[tuple[str, str, int]] = None
+    frames: list[tuple[int, Any]] = []
+
+    def flush() -> None:
+        frames.sort(key=lambda x: x[0])
+        per_clip.append(clip_metrics([e for _, e in frames]))
+        frames.clear()
+
+    for batch in batches:
+        inputs, targets, meta_info = prepare(batch)
+        pred = model(inputs, meta_info)
+        per_frame.append(frame_metrics(pred, targets, meta_info))
+        batch_names = list(meta_info["imgname"])
+        names += batch_names
+        if temporal:
+            for name, entry in zip(batch_names, clip_entries(pred, targets, meta_info)):
+                sid, seq, view, frame = parse_imgname(name)
+                if (sid, seq, view) != current and frames:
+                    flush()
+                current = (sid, seq, view)
+                frames.append((frame, entry))
+        if on_batch is not None:
+            on_batch(len(batch_names))
+    if frames:
+        flush()
+    merged = {k: np.concatenate([p[k] for p in per_frame]) for k in per_frame[0]} if per_frame else {}
+    summary = summarize(per_frame + per_clip, keys)
+    return {"summary": summary, "frames": len(names), "per_frame": merged, "imgnames": names}
+
+
 def evaluate(
     model: nn.Module,
     batches: Iterable[Any],
@@ -250,30 +320,13 @@ def evaluate(
         ``{"summary": {metric: value}, "frames": n, "per_frame": {metric: (n,) array},
         "imgnames": [...]}``.
     """
-    model.eval()
-    per_frame: list[dict[str, np.ndarray]] = []
-    per_seq: list[dict[str, np.ndarray]] = []
-    names: list[str] = []
-    current: Optional[tuple[str, str, int]] = None
-    frames: list[tuple[int, dict[str, Any]]] = []
-    for batch in batches:
-        inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device)
-        pred = model(inputs, meta_info)
-        per_frame.append(per_frame_metrics(pred, targets, meta_info))
-        for b, name in enumerate(meta_info["imgname"]):
-            names.append(name)
-            if not temporal:
-                continue
-            group, frame = _group_of(name)
-            if group != current and frames:
-                per_seq.append(_flush(frames))
-                frames = []
-            current = group
-            frames.append((frame, _sequence_entry(pred, targets, meta_info, b)))
-        if on_batch is not None:
-            on_batch(len(meta_info["imgname"]))
-    if frames:
-        per_seq.append(_flush(frames))
-    merged = {k: np.concatenate([p[k] for p in per_frame]) for k in per_frame[0]} if per_frame else {}
-    summary = summarize(per_frame + per_seq)
-    return {"summary": summary, "frames": len(names), "per_frame": merged, "imgnames": names}
+    return evaluate_split(
+        model,
+        batches,
+        lambda batch: prepare_batch(batch, layers, img_res, device),
+        per_frame_metrics,
+        _sequence_entries,
+        _sequence_figures,
+        temporal=temporal,
+        on_batch=on_batch,
+    )

@@ -20,12 +20,10 @@ from torch import Tensor, nn
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
 from hogsa_loader.baselines.arcticnet_sf import read_arctic_weights
-from hogsa_loader.baselines.engine import BodyLayers, apply_losses, prepare_batch
-from hogsa_loader.baselines.metrics import summarize
+from hogsa_loader.baselines.engine import BodyLayers, apply_losses, evaluate_split, prepare_batch
 from hogsa_loader.baselines.resnet import BACKBONE_CHANNELS, build_backbone, check_state_keys
 from hogsa_loader.errors import AssetError, PathLike
 from hogsa_loader.io.npy import read_npy
-from hogsa_loader.sample.arctic_dataset import parse_imgname
 
 __all__ = [
     "FIELD_KEYS",
@@ -446,30 +444,32 @@ def field_training_step(
 _CLIP_TARGETS = ("is_valid", "right_valid", "left_valid")
 
 
-def _clip_entry(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], b: int) -> dict[str, Tensor]:
-    """Frame ``b`` of a batch as :func:`field_acceleration` reads it (CPU), the object
-    directions cut to the frame's own vertex count (batches pad them to their longest object)."""
-    n = int(torch.as_tensor(targets["object.v_len"]).reshape(-1)[b])
-    out = {}
-    for key in FIELD_KEYS:
-        p, t = pred[key][b].detach().float().cpu(), targets[key][b].detach().float().cpu()
-        if key in ("dist.or", "dist.ol"):
-            p, t = p[:n], t[:n]
-        out["pred." + key], out[key] = p, t
-    for key in _CLIP_TARGETS:
-        out[key] = torch.as_tensor(targets[key]).reshape(-1)[b].cpu()
-    out["object.v_len"] = torch.tensor(n)
-    return out
+def _clip_entries(pred: Mapping[str, Tensor], targets: Mapping[str, Tensor], _: Any) -> list[dict[str, Tensor]]:
+    """Each frame of a batch as :func:`field_acceleration` reads it (moved to the CPU once per
+    batch), the object directions cut to the frame's own vertex count (batches pad them to
+    their longest object)."""
+    v_len = torch.as_tensor(targets["object.v_len"]).reshape(-1).cpu()
+    p = {k: pred[k].detach().float().cpu() for k in FIELD_KEYS}
+    t = {k: targets[k].detach().float().cpu() for k in FIELD_KEYS}
+    flags = {k: torch.as_tensor(targets[k]).reshape(-1).cpu() for k in _CLIP_TARGETS}
+    entries = []
+    for b, n in enumerate(v_len.tolist()):
+        entry = {k: v[b] for k, v in flags.items()}
+        for key in FIELD_KEYS:
+            cut = n if key in ("dist.or", "dist.ol") else None
+            entry["pred." + key], entry[key] = p[key][b, :cut], t[key][b, :cut]
+        entry["object.v_len"] = torch.tensor(n)
+        entries.append(entry)
+    return entries
 
 
-def _clip_acceleration(frames: list[tuple[int, dict[str, Tensor]]]) -> dict[str, np.ndarray]:
-    frames.sort(key=lambda x: x[0])
-    stacked = {k: torch.stack([e[k] for _, e in frames]) for k in frames[0][1]}
+def _clip_acceleration(entries: list[dict[str, Tensor]]) -> dict[str, np.ndarray]:
+    """:func:`field_acceleration` of one clip's entries (in frame order)."""
+    stacked = {k: torch.stack([e[k] for e in entries]) for k in entries[0]}
     pred = {k: stacked.pop("pred." + k) for k in FIELD_KEYS}
     return field_acceleration(pred, stacked)
 
 
-@torch.no_grad()
 def evaluate_field(
     model: InterFieldSF,
     batches: Iterable[Any],
@@ -500,31 +500,14 @@ def evaluate_field(
         acceleration ones only when ``temporal``), each a nan-mean over the split's frames as
         ARCTIC reports them.
     """
-    model.eval()
-    per_frame: list[dict[str, np.ndarray]] = []
-    per_clip: list[dict[str, np.ndarray]] = []
-    names: list[str] = []
-    current: Optional[tuple[str, str, int]] = None
-    frames: list[tuple[int, dict[str, Tensor]]] = []
-    for batch in batches:
-        inputs, targets, meta_info = prepare_batch(batch, layers, img_res, device, max_dist=max_dist, field="both")
-        pred = model(inputs, meta_info)
-        per_frame.append(field_metrics(pred, targets))
-        for b, name in enumerate(meta_info["imgname"]):
-            names.append(name)
-            if not temporal:
-                continue
-            sid, seq, view, frame = parse_imgname(name)
-            if (sid, seq, view) != current and frames:
-                per_clip.append(_clip_acceleration(frames))
-                frames = []
-            current = (sid, seq, view)
-            frames.append((frame, _clip_entry(pred, targets, b)))
-        if on_batch is not None:
-            on_batch(len(meta_info["imgname"]))
-    if frames:
-        per_clip.append(_clip_acceleration(frames))
-    merged = {k: np.concatenate([p[k] for p in per_frame]) for k in per_frame[0]} if per_frame else {}
-    keys = FIELD_METRICS if temporal else FIELD_METRICS[:2]
-    summary = summarize(per_frame + per_clip, keys)
-    return {"summary": summary, "frames": len(names), "per_frame": merged, "imgnames": names}
+    return evaluate_split(
+        model,
+        batches,
+        lambda batch: prepare_batch(batch, layers, img_res, device, max_dist=max_dist, field="both"),
+        lambda pred, targets, _: field_metrics(pred, targets),
+        _clip_entries,
+        _clip_acceleration,
+        temporal=temporal,
+        keys=FIELD_METRICS if temporal else FIELD_METRICS[:2],
+        on_batch=on_batch,
+    )

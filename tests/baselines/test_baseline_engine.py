@@ -160,14 +160,15 @@ def test_evaluate_in_temporal_order(tiny_world, layers):
 def test_sequence_frames_padded_differently_by_their_batches_stack():
     """A sequence's frames may sit in batches padded to different object lengths (a batch
     that also holds another, larger object): the kept frames are trimmed to their own count."""
-    from hogsa_loader.baselines.engine import SEQUENCE_KEYS, _sequence_entry
+    from hogsa_loader.baselines.engine import SEQUENCE_KEYS, _sequence_entries
 
     def batch(pad: int):
         pred = {k: torch.zeros(2, pad if k == "object.v.cam" else 30, 3) for k in SEQUENCE_KEYS}
         targets = dict(pred, **{"object.v_len": torch.tensor([5, pad]), "is_valid": torch.ones(2)})
         return pred, targets, {"part_ids": torch.ones(2, pad, dtype=torch.long)}
 
-    entries = [_sequence_entry(*batch(pad), 0) for pad in (5, 9)]  # frame 0 of each: 5 object vertices
+    entries = [_sequence_entries(*batch(pad))[0] for pad in (5, 9)]  # frame 0 of each: 5 object vertices
     stacked = torch.stack([e["targets"]["object.v.cam"] for e in entries])
     assert stacked.shape == (2, 5, 3) and torch.stack([e["part_ids"] for e in entries]).shape == (2, 5)
     assert torch.stack([e["pred"]["object.v.cam"] for e in entries]).shape == (2, 5, 3)
+    assert _sequence_entries(*batch(9))[1]["targets"]["object.v.cam"].shape == (9, 3)  # frame 1: its own 9
