@@ -30,6 +30,10 @@ MAX_DEPTH = 32
 _ATOMS = (int, float, complex, bool, str, bytes, bytearray, type(None), slice, np.generic, np.dtype, type)
 
 
+#: Exact types whose values count one element (the common leaves of pickled lists).
+_UNITS = frozenset({int, float, bool, type(None)})
+
+
 def _atom_size(x: Any) -> int:
     """Elements an atom stands for: 1, or one per 8 bytes of what it holds."""
     if isinstance(x, (str, bytes, bytearray)):
@@ -104,7 +108,8 @@ def check_unpickled(
         elif isinstance(x, dict):
             items = [v for kv in x.items() for v in kv]
         elif isinstance(x, (list, tuple, set, frozenset)):
-            items = x
+            items = [v for v in x if type(v) not in _UNITS]  # plain numbers count 1 each, no call
+            n = len(x) - len(items)
         else:  # an inert stand-in (chumpy stub, pickled sparse matrix): its recorded state
             items = list(getattr(x, "__dict__", {}).values())
         if n > limit:

@@ -228,11 +228,14 @@ class RunConfig:
         default=None, metadata={"help": "restrict the models to these subjects"}
     )
     objects: Optional[tuple[str, ...]] = field(default=None, metadata={"help": "restrict the models to these objects"})
+    allow_held_out: Optional[tuple[str, ...]] = field(
+        default=None, metadata={"help": "held-out subjects whose models may be streamed all the same (with a warning)"}
+    )
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
-        for name in ("subjects", "objects"):
+        for name in ("subjects", "objects", "allow_held_out"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, tuple):
                 object.__setattr__(self, name, tuple(value))

@@ -23,6 +23,7 @@ import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
 from hogsa_loader.assets.arctic import ArcticRoot, protocol_views
+from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
 from hogsa_loader.compose import make_backgrounds
 from hogsa_loader.errors import AssetError, HogsaError, PathLike
 from hogsa_loader.models.bundle import Bundle, load_bundle
@@ -241,17 +242,33 @@ class HOGSADataset(IterableDataset):
             )
 
     def _requested_keys(self) -> list[tuple[str, str]]:
-        """The bundle's models allowed by ``config.run.subjects`` / ``objects``."""
-        subjects, objects = self.config.run.subjects, self.config.run.objects
+        """The bundle's models allowed by ``config.run.subjects`` / ``objects`` and by the data
+        root's protocol: a model of a held-out subject is streamed only when that subject is named
+        in ``config.run.allow_held_out`` (with ``subjects=None`` the other held-out models are left
+        out, with a warning; a held-out subject named in ``subjects`` alone is refused)."""
+        run = self.config.run
+        subjects, objects, allowed = run.subjects, run.objects, run.allow_held_out or ()
         keys = [
             k
             for k in self.bundle.keys
             if (subjects is None or k[0] in subjects) and (objects is None or k[1] in objects)
         ]
+        held = held_out_subjects(self.root)
+        if subjects is None:
+            left_out = sorted({k[0] for k in keys if k[0] in held and k[0] not in allowed})
+            if left_out:
+                keys = [k for k in keys if k[0] not in left_out]
+                warnings.warn(
+                    f"bundle {self.bundle.path}: models of {left_out}, held out by {self.root}'s protocol, "
+                    "are not streamed (name them in allow_held_out to stream them)",
+                    stacklevel=3,
+                )
         if not keys:
             raise ValueError(
-                f"no HOGS model left for subjects={subjects} objects={objects}; bundle has {self.bundle.keys}"
+                f"no HOGS model left for subjects={subjects} objects={objects} (held out: {sorted(held)}, "
+                f"allowed: {sorted(allowed)}); bundle has {self.bundle.keys}"
             )
+        training_subjects(self.root, sorted({k[0] for k in keys}), allowed, "the synthetic stream")
         return keys
 
     def _pose_keys(self, keys: list[tuple[str, str]], poses: Optional[PoseSource]) -> list[tuple[str, str]]:

@@ -66,7 +66,8 @@ class FinetuneConfig:
     )
     split: str = field(default="p1_train", metadata=_opt("real training split"))
     allow_held_out: Optional[tuple[str, ...]] = field(
-        default=None, metadata=_opt("held-out subjects the training split may hold (recorded, with a warning)")
+        default=None,
+        metadata=_opt("held-out subjects the training split and the bundle may hold (recorded, with a warning)"),
     )
     val_split: str = field(default="p1_val", metadata=_opt("split ARCTIC's metrics are computed on"))
     max_val: int = field(default=256, metadata=_opt("validation frames (0: none)", "non_negative_int"))
@@ -205,7 +206,15 @@ def _loaders(cfg: FinetuneConfig, rank: int, world: int, device: torch.device) -
         )
     if cfg.bundle is None:
         return real, sampler, None
-    mixed = wrap_train_loader(real, cfg.bundle, cfg.ratio, seed=cfg.seed, device=str(device), method=cfg.method)
+    mixed = wrap_train_loader(
+        real,
+        cfg.bundle,
+        cfg.ratio,
+        seed=cfg.seed,
+        device=str(device),
+        method=cfg.method,
+        allow_held_out=cfg.allow_held_out,
+    )
     return real, sampler, mixed.synthetic
 
 

@@ -16,8 +16,9 @@ from conftest import tiny_srm, write_coco
 from torch.utils.data import DataLoader, default_collate
 
 from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.protocol import HeldOutWarning
 from hogsa_loader.compose import ProceduralBackgrounds
-from hogsa_loader.errors import AssetError
+from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.models.bundle import load_bundle, write_bundle
 from hogsa_loader.sample import (
     CameraConfig,
@@ -933,6 +934,33 @@ def two_subject_dir(tiny_world, tmp_path_factory) -> Path:
     return write_bundle(out / "bundle", tiny_world, runs)
 
 
+def test_held_out_subjects_models_stream_only_when_named(bundle_dir, two_subject_dir, tiny_world):
+    """The tiny world holds s05 out (p1 val): its model in a bundle is left out of the stream
+    with a warning, refused when asked for by ``subjects`` alone, and streamed (with a
+    ``HeldOutWarning``) only when named in ``allow_held_out``."""
+    with pytest.warns(UserWarning, match=r"models of \['s05'\], held out"):
+        default = _dataset(two_subject_dir, tiny_world)
+    assert default.keys == [("s01", "box")]
+    assert {default.batch_key(g, 0) for g in range(8)} == {("s01", "box")}
+    with pytest.raises(UsageError, match=r"s05 \(val\) held out"):
+        _dataset(two_subject_dir, tiny_world, subjects=("s05",))
+    with pytest.raises(UsageError, match="does not hold out"):
+        _dataset(two_subject_dir, tiny_world, allow_held_out=("s01",))
+    with pytest.warns(HeldOutWarning, match="s05"):
+        named = _dataset(
+            two_subject_dir,
+            tiny_world,
+            poses=_S01Poses(_dataset(bundle_dir, tiny_world)._pose_source),
+            allow_held_out=("s05",),
+        )
+    assert named.keys == [("s01", "box"), ("s05", "box")]
+    s05_only = write_bundle(
+        two_subject_dir.parent / "s05_only", tiny_world, [two_subject_dir.parent / "runs" / "s05_box"]
+    )
+    with pytest.warns(UserWarning), pytest.raises(ValueError, match=r"no HOGS model left .*held out: \['s05'\]"):
+        _dataset(s05_only, tiny_world)
+
+
 class _S01Poses:
     """s01's annotated poses for both models (the cameras stay each subject's own)."""
 
@@ -950,7 +978,7 @@ def test_other_hands_change_the_hands_pixels_and_nothing_else(bundle_dir, two_su
     the labels, the alpha and every pixel away from the hands stay those of the model's own
     hands, the hands take the other run's colour, and the frame records whose hands it shows."""
     inner = _dataset(bundle_dir, tiny_world)._pose_source
-    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4, seed=5)
+    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4, seed=5, allow_held_out=("s05",))
     own = _dataset(two_subject_dir, tiny_world, **kw)
     other = _dataset(two_subject_dir, tiny_world, other_hands=1.0, **kw)
     compared = {"s01": 0, "s05": 0}
@@ -997,7 +1025,7 @@ def test_other_hands_change_the_hands_pixels_and_nothing_else(bundle_dir, two_su
 
 def test_other_hands_share_is_drawn_per_batch_and_needs_two_subjects(bundle_dir, two_subject_dir, tiny_world):
     inner = _dataset(bundle_dir, tiny_world)._pose_source
-    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4)
+    kw = dict(poses=_S01Poses(inner), num_samples=8, batch_size=4, allow_held_out=("s05",))
     half = _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=5, **kw)
     hands = [half.batch_hands(g, 0) for g in range(400)]
     swapped = [h is not None for h in hands]
@@ -1007,9 +1035,8 @@ def test_other_hands_share_is_drawn_per_batch_and_needs_two_subjects(bundle_dir,
     again = _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=5, **kw)
     assert [again.batch_hands(g, 0) for g in range(400)] == hands  # a function of (seed, epoch, batch)
     assert [half.batch_hands(g, 1) for g in range(400)] != hands
-    assert [
-        _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=6, **kw).batch_hands(g, 0) for g in range(400)
-    ] != hands
+    seed6 = _dataset(two_subject_dir, tiny_world, other_hands=0.5, seed=6, **kw)
+    assert [seed6.batch_hands(g, 0) for g in range(400)] != hands
     with pytest.raises(ValueError, match="one subject"):
         _dataset(bundle_dir, tiny_world, other_hands=0.5)
     with pytest.raises(ValueError, match="in \\[0, 1\\]"):
