@@ -147,6 +147,27 @@ def test_sdf_sign_matches_ray_parity(scene):
     assert 0.2 < float(inside.float().mean()) < 0.8
 
 
+def test_sdf_grid_of_a_mesh_is_built_once_per_setting(monkeypatch):
+    """A second build for the same mesh and settings returns the kept grid, which equals a fresh
+    build; another voxel size or a moved mesh builds a new one."""
+    from hogsa_loader.models.pom import geometry
+
+    v, f = _box((-0.05, -0.04, -0.03), (0.05, 0.04, 0.03))
+    monkeypatch.setattr(geometry, "_SDF_GRIDS", type(geometry._SDF_GRIDS)())
+    first = geometry.build_sdf_grid(v, f, voxel=0.01, max_samples=20_000)
+    assert geometry.build_sdf_grid(v.copy(), f.copy(), voxel=0.01, max_samples=20_000) is first
+    other = geometry.build_sdf_grid(v, f, voxel=0.008, max_samples=20_000)
+    moved = geometry.build_sdf_grid(v + 0.01, f, voxel=0.01, max_samples=20_000)
+    assert other is not first and moved is not first
+    assert tuple(other.values.shape) != tuple(first.values.shape)
+    torch.testing.assert_close(moved.lo, first.lo + 0.01)
+    monkeypatch.setattr(geometry, "_SDF_GRIDS", type(geometry._SDF_GRIDS)())
+    fresh = geometry.build_sdf_grid(v, f, voxel=0.01, max_samples=20_000)
+    assert fresh is not first
+    torch.testing.assert_close(fresh.values, first.values, rtol=0, atol=0)
+    assert float(first.values.min()) < 0 < float(first.values.max())
+
+
 def test_capped_hand_is_closed(scene):
     import trimesh
 
