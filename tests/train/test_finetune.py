@@ -1,11 +1,13 @@
-"""``hogsa finetune`` with 2 gloo ranks under torchrun (real processes): each rank's synthetic
-samples are its own, the weights are the same on both ranks after every step, the loss is
-finite, ARCTIC's metrics are written, and a resumed run continues on the same batches."""
+"""``hogsa finetune`` with 2 gloo ranks under torchrun and as srun starts them (real processes):
+each rank's synthetic samples are its own, the weights are the same on both ranks after every
+step, the loss is finite, ARCTIC's metrics are written, and a resumed run continues on the same
+batches."""
 
 from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from dataclasses import replace
@@ -39,6 +41,28 @@ def _torchrun(tmp_path: Path, out: Path, bundle: Path, data: Path, steps: int) -
     return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
 
 
+def _srun(tmp_path: Path, out: Path, bundle: Path, data: Path, steps: int) -> list[subprocess.Popen]:
+    """The same fine-tune as two processes with the variables ``srun --ntasks 2`` sets, meeting
+    at ``MASTER_ADDR`` / ``MASTER_PORT`` as the docs ask of a SLURM user."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK")}
+    env.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), SLURM_STEP_NUM_TASKS="2", SLURM_NTASKS="2")
+    # torchrun sets OMP_NUM_THREADS=1 for several processes per node; the weights' bits depend
+    # on the intra-op thread count, so the srun processes get the same to match them
+    env["OMP_NUM_THREADS"] = "1"
+    argv = [sys.executable, "-m", "hogsa_loader.cli.finetune", "--data", str(data), "--bundle", str(bundle)]
+    argv += ["--out", str(out), *ARGS, "--steps", str(steps), "--ckpt-every", "1"]
+    pipe = subprocess.PIPE
+    return [
+        subprocess.Popen(
+            argv, stdout=pipe, stderr=pipe, text=True, cwd=tmp_path, env={**env, "SLURM_PROCID": r, "SLURM_LOCALID": r}
+        )
+        for r in ("0", "1")
+    ]
+
+
 def _wait(*procs: subprocess.Popen) -> None:
     for proc in procs:
         _, err = proc.communicate(timeout=900)
@@ -53,11 +77,11 @@ def _log(out: Path, rank: int) -> list[dict]:
 def two_ranks(tiny_world, untrained_bundle, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("finetune")
     whole, cut = tmp / "whole", tmp / "cut"
-    _wait(  # side by side: two runs of their own
+    _wait(  # side by side: two runs of their own, one under torchrun, one as srun starts it
         _torchrun(tmp, whole, untrained_bundle, tiny_world, steps=3),
-        _torchrun(tmp, cut, untrained_bundle, tiny_world, steps=2),
+        *_srun(tmp, cut, untrained_bundle, tiny_world, steps=2),
     )
-    _wait(_torchrun(tmp, cut, untrained_bundle, tiny_world, steps=3))  # resumed from step 2
+    _wait(_torchrun(tmp, cut, untrained_bundle, tiny_world, steps=3))  # resumed from step 2, under torchrun
     return whole, cut
 
 
@@ -82,6 +106,8 @@ def test_ranks_train_one_model_on_their_own_synthetic_samples(two_ranks):
 
 
 def test_a_resumed_run_continues_on_the_same_batches(two_ranks):
+    """The run cut after step 2 was started as srun starts it and resumed under torchrun: the
+    launchers give the same ranks, so its batches and weights are the uncut torchrun run's."""
     whole, cut = two_ranks
     for rank in (0, 1):
         a, b = _log(whole, rank), _log(cut, rank)
