@@ -18,10 +18,18 @@ import pytest
 import torch
 from hypothesis import settings as hypothesis_settings
 
+from hogsa_loader.system import available_cores
 from hogsa_world.hand import synthetic_hand_pair
 from hogsa_world.mano_pickle import write_mano_pickle
 
-torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+# Each pytest-xdist worker gets its share of the cores, for its own torch and (through
+# OMP_NUM_THREADS, unless set) for the processes its tests start: more threads than cores make
+# OpenMP's waiting threads spin against the other processes' work (tests up to ten times
+# slower on a 2-core machine).
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+THREADS = max(1, min(2, available_cores() // _WORKERS))
+torch.set_num_threads(THREADS)
+os.environ.setdefault("OMP_NUM_THREADS", str(THREADS))
 
 # Property tests draw the same examples on every run and machine (``derandomize``: a seed from
 # each test's own code) and keep no example database; ``HOGSA_HYPOTHESIS_PROFILE=random`` draws

@@ -118,6 +118,13 @@ def _run_node(i: int) -> tuple[float, bool]:
     return stages.seconds[node.name], node.name in stages.reused
 
 
+def warm_up_optimizers() -> None:
+    """Make one Adam optimizer now: torch.optim imports ``torch._dynamo`` the first time an
+    optimizer is made (several seconds of CPU), so a parent that does it before forking
+    stages spares every stage process the import."""
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+
+
 def _stage_process_init() -> None:
     global _IN_STAGE
     _IN_STAGE = True
@@ -170,6 +177,7 @@ def _run_graph(stages: StageRecords, nodes: list[StageNode], say: Callable[[str]
     from hogsa_loader.render.gaussians import warm_up_compositor  # deferred: numba kernels, only when stages fork
 
     warm_up_compositor()  # the stage processes inherit the compiled kernels
+    warm_up_optimizers()  # and torch.optim's first-use import of torch._dynamo
     index = {n.name: i for i, n in enumerate(todo)}
     needs = [tuple(index[d] for d in n.needs if d in index) for n in todo]  # cached needs are done
 

@@ -147,6 +147,30 @@ def test_sdf_sign_matches_ray_parity(scene):
     assert 0.2 < float(inside.float().mean()) < 0.8
 
 
+def test_grid_inside_matches_ray_parity_along_z():
+    """The grid test (each triangle against the columns in its bounding box, in chunks of
+    pairs) gives every node the parity of Möller–Trumbore crossings of a +z ray from it, on
+    stacked shells (20 crossings per column) and on a box."""
+    import trimesh
+
+    from hogsa_loader.models.pom.geometry import grid_inside
+
+    s = trimesh.creation.icosphere(2)
+    v = np.concatenate([np.asarray(s.vertices) * 0.3 + [0.05 * i, 0, 0.7 * i] for i in range(10)])
+    f = np.concatenate([np.asarray(s.faces) + len(s.vertices) * i for i in range(10)])
+    vb, fb = _box((-0.05, -0.04, -0.03), (0.05, 0.04, 0.03))
+    shells = (np.linspace(-0.4, 0.9, 19), np.linspace(-0.4, 0.4, 15), np.linspace(-0.51, 7.0, 61))
+    box = (np.linspace(-0.061, 0.06, 23), np.linspace(-0.05, 0.051, 17), np.linspace(-0.041, 0.04, 13))
+    for tris, axes in ((v[f], shells), (vb[fb].astype(np.float64), box)):
+        Z, Y, X = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        nodes = np.stack([X + 1.2345e-7, Y + 2.3456e-7, Z], -1).reshape(-1, 3)  # the grid's ray offsets
+        ref = ray_parity_inside(torch.as_tensor(nodes), torch.as_tensor(tris), direction=(0.0, 0.0, 1.0))
+        ref = ref.numpy().reshape(Z.shape)
+        assert 0.05 < ref.mean() < 0.6
+        for chunk in (40, 2_000_000):
+            np.testing.assert_array_equal(grid_inside(tris, *axes, chunk=chunk), ref)
+
+
 def test_sdf_grid_of_a_mesh_is_built_once_per_setting(monkeypatch):
     """A second build for the same mesh and settings returns the kept grid, which equals a fresh
     build; another voxel size or a moved mesh builds a new one."""

@@ -604,9 +604,11 @@ def _contact_stats(world: World) -> dict:
             for part in (0, 1):
                 n, d = _part_planes(t, part)
                 p = _to_part_frame(verts, obj, part)
-                signed = p @ n.T - d  # (F, V, P) > 0 outside a plane
+                part_verts = t.verts[t.parts == part]
+                near = ((p >= part_verts.min(0) - 1e-6) & (p <= part_verts.max(0) + 1e-6)).all(-1)
+                signed = p[near] @ n.T - d  # (M, P) > 0 outside a plane; points off the box are outside
                 inside = (signed <= 0).all(-1)
-                depth = np.maximum(depth, np.where(inside, -signed.max(-1), 0.0))
+                depth[near] = np.maximum(depth[near], np.where(inside, -signed.max(-1), 0.0))
                 tree = cKDTree(_surface_samples(t, part))
                 dd, _ = tree.query(p.reshape(-1, 3))
                 dist = np.minimum(dist, dd.reshape(p.shape[:2]))
@@ -736,10 +738,14 @@ def test_styled_spec_stays_within_its_bounds():
     assert rng0.random() == rng1.random()
 
 
-def test_grasp_style_gives_each_subject_its_own_grasp(tmp_path):
+def test_grasp_style_gives_each_subject_its_own_grasp(tmp_path, monkeypatch):
     """With ``grasp_style`` two subjects hold the same object differently, still touching it
     without penetrating; the style has its own random stream, so the rest of the motion (the
-    rest poses of the first frame) is the same as without it."""
+    rest poses of the first frame) is the same as without it. (Grasps are annotations: the
+    worlds are written without images.)"""
+    import hogsa_world.writer as writer
+
+    monkeypatch.setattr(writer, "_render_task", lambda shared, task, bar, renderers: task.name)
     seqs = (SequencePlan("box", "grab"),)
     base = dataclasses.replace(
         _micro_preset(), subjects=(SubjectPlan("s01", "train", seqs), SubjectPlan("s02", "train", seqs))
@@ -748,7 +754,7 @@ def test_grasp_style_gives_each_subject_its_own_grasp(tmp_path):
     for style in (0.0, 1.0):
         root = tmp_path / f"style{style}"
         preset = dataclasses.replace(base, grasp_style=style)
-        generate_world(root, preset, seed=3, progress=False, process_splits=False, preview=False)
+        generate_world(root, preset, seed=3, progress=False, process_splits=False, preview=False, workers=1)
         w = World(root)
         assert w.meta["grasp_style"] == style
         mid = preset.num_frames // 2  # both hands hold the box

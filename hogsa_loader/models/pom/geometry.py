@@ -259,43 +259,70 @@ class SDFGrid:
         return (vals + outside).reshape(shape)
 
 
-def grid_inside(tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, max_cross: int = 32) -> np.ndarray:
+def grid_inside(
+    tris: np.ndarray, xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, max_cross: int = 32, chunk: int = 2_000_000
+) -> np.ndarray:
     """Inside flags of the nodes of a regular grid by ray parity (one +z ray per column).
+
+    Each triangle is tested only against the columns inside its (x, y) bounding box, so the
+    cost grows with the mesh's area in columns, not with columns times triangles.
 
     Args:
         tris: (F, 3, 3) triangles of a closed mesh.
-        xs, ys, zs: node coordinates along each axis.
-        max_cross: most surface crossings counted per column.
+        xs, ys, zs: node coordinates along each axis, ascending.
+        max_cross: most surface crossings counted per column (its lowest ones).
+        chunk: most (triangle, column) pairs tested at once (bounds the memory).
 
     Returns:
         (nz, ny, nx) bool.
     """
-    t = torch.as_tensor(tris, dtype=torch.float64)
+    t = np.asarray(tris, dtype=np.float64)
     # tiny irrational offset so that rays never run exactly through grid-aligned edges
-    cx = torch.as_tensor(xs, dtype=torch.float64) + 1.2345e-7
-    cy = torch.as_tensor(ys, dtype=torch.float64) + 2.3456e-7
-    gx, gy = torch.meshgrid(cx, cy, indexing="xy")  # (ny, nx)
-    cols = torch.stack([gx.reshape(-1), gy.reshape(-1)], -1)
+    cx = np.asarray(xs, dtype=np.float64) + 1.2345e-7
+    cy = np.asarray(ys, dtype=np.float64) + 2.3456e-7
+    zt = np.asarray(zs, dtype=np.float64)
+    nx, ny, nz = len(cx), len(cy), len(zt)
     a, b, c = t[:, 0], t[:, 1], t[:, 2]
     den = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
-    ok = den.abs() > 1e-18
-    den = torch.where(ok, den, torch.ones_like(den))
-    zt = torch.as_tensor(zs, dtype=torch.float64)
-    inside = torch.zeros(cols.shape[0], len(zs), dtype=torch.bool)
-    step = max(1, 3_000_000 // t.shape[0])
-    for s in range(0, cols.shape[0], step):
-        px, py = cols[s : s + step, 0:1], cols[s : s + step, 1:2]
-        l1 = ((b[:, 1] - c[:, 1]) * (px - c[:, 0]) + (c[:, 0] - b[:, 0]) * (py - c[:, 1])) / den
-        l2 = ((c[:, 1] - a[:, 1]) * (px - c[:, 0]) + (a[:, 0] - c[:, 0]) * (py - c[:, 1])) / den
-        l3 = 1 - l1 - l2
-        hit = ok & (l1 >= 0) & (l2 >= 0) & (l3 >= 0)
-        z = l1 * a[:, 2] + l2 * b[:, 2] + l3 * c[:, 2]
-        z = torch.where(hit, z, torch.full_like(z, float("inf")))
-        k = min(max_cross, z.shape[1])
-        zc = torch.topk(z, k, dim=1, largest=False).values  # (cols, k)
-        cnt = (zc[:, :, None] > zt[None, None, :]).sum(1)  # crossings above each node
-        inside[s : s + step] = (cnt % 2) == 1
-    return inside.reshape(len(ys), len(xs), len(zs)).permute(2, 0, 1).numpy()
+    ok = np.abs(den) > 1e-18
+    den = np.where(ok, den, 1.0)
+    lo, hi = t[:, :, :2].min(1), t[:, :, :2].max(1)
+    i0, i1 = np.searchsorted(cx, lo[:, 0], "left"), np.searchsorted(cx, hi[:, 0], "right")
+    j0, j1 = np.searchsorted(cy, lo[:, 1], "left"), np.searchsorted(cy, hi[:, 1], "right")
+    wx = np.maximum(i1 - i0, 0)
+    count = np.where(ok, wx * np.maximum(j1 - j0, 0), 0)  # columns in each triangle's box
+    ends = np.cumsum(count)
+    cols, heights = [], []
+    start = 0
+    while start < len(t):
+        done = ends[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, done + chunk, "right")))
+        tri = np.repeat(np.arange(start, stop), count[start:stop])
+        if len(tri):
+            off = np.arange(done, done + len(tri)) - np.repeat(ends[start:stop] - count[start:stop], count[start:stop])
+            ii, jj = i0[tri] + off % wx[tri], j0[tri] + off // wx[tri]
+            px, py = cx[ii], cy[jj]
+            at, bt, ct, dt = a[tri], b[tri], c[tri], den[tri]
+            l1 = ((bt[:, 1] - ct[:, 1]) * (px - ct[:, 0]) + (ct[:, 0] - bt[:, 0]) * (py - ct[:, 1])) / dt
+            l2 = ((ct[:, 1] - at[:, 1]) * (px - ct[:, 0]) + (at[:, 0] - ct[:, 0]) * (py - ct[:, 1])) / dt
+            l3 = 1 - l1 - l2
+            hit = (l1 >= 0) & (l2 >= 0) & (l3 >= 0)
+            cols.append((jj * nx + ii)[hit])
+            heights.append((l1 * at[:, 2] + l2 * bt[:, 2] + l3 * ct[:, 2])[hit])
+        start = stop
+    col = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+    z = np.concatenate(heights) if heights else np.zeros(0)
+    k = min(max_cross, len(t))
+    order = np.lexsort((z, col))
+    col, z = col[order], z[order]
+    lowest = np.arange(len(col)) - np.searchsorted(col, col, "left") < k  # a column's k lowest
+    col, z = col[lowest], z[lowest]
+    # below[c, n]: counted crossings of column c at or under node n; the k counting slots
+    # above it (a slot without a crossing counts as one) give the parity
+    below = np.bincount(col * (nz + 1) + np.searchsorted(zt, z, "left"), minlength=nx * ny * (nz + 1))
+    below = np.cumsum(below.reshape(nx * ny, nz + 1), axis=1)[:, :nz]
+    inside = (k - below) % 2 == 1
+    return np.ascontiguousarray(inside.reshape(ny, nx, nz).transpose(2, 0, 1))
 
 
 #: Grids built in this process, by mesh and settings (most recent last): ARCTIC's 11 objects
