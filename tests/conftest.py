@@ -29,7 +29,8 @@ from hogsa_world.mano_pickle import write_mano_pickle
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 THREADS = max(1, min(2, available_cores() // _WORKERS))
 torch.set_num_threads(THREADS)
-os.environ.setdefault("OMP_NUM_THREADS", str(THREADS))
+if "PYTEST_XDIST_WORKER" in os.environ:  # (not in xdist's controller, whose environment the workers inherit)
+    os.environ.setdefault("OMP_NUM_THREADS", str(THREADS))
 
 # Property tests draw the same examples on every run and machine (``derandomize``: a seed from
 # each test's own code) and keep no example database; ``HOGSA_HYPOTHESIS_PROFILE=random`` draws
