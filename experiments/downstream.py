@@ -13,8 +13,8 @@ Arms (``--arms``):
 * ``hogsa`` — real + HOGSA: POM pose bank + SRM;
 * ``hogsa_no_pom`` — annotated training poses (no POM), novel views, SRM;
 * ``hogsa_no_srm`` — POM pose bank, no SRM;
-* ``hogsa_free`` — the free-3DGS HOGS variant (needs ``--setup-free-bundle``; skipped and
-  recorded otherwise);
+* ``hogsa_free`` — the free-3DGS HOGS variant (needs ``--setup-free``, which builds it beside
+  the setup, or ``--setup-free-bundle``; skipped and recorded otherwise);
 * ``real_low`` / ``hogsa_low`` — the same with ``--low-data`` of the real training frames
   (a fixed random subset, the same for every seed and arm).
 
@@ -176,6 +176,13 @@ class SetupSettings:
     data: Optional[str] = field(default=None, metadata={"help": "an existing ARCTIC(-format) data root"})
     bundle: Optional[str] = field(default=None, metadata={"help": "an existing bundle built on --setup-data"})
     free_bundle: Optional[str] = field(default=None, metadata={"help": "bundle of free-3DGS HOGS runs"})
+    free: bool = field(
+        default=False,
+        metadata={
+            "help": "also build a bundle of free-3DGS HOGS runs (plain 3D Gaussians, not bound to the meshes; every "
+            "other stage setting the same) in OUT/setup/free, for the hogsa_free arm"
+        },
+    )
     hogs_iters: int = field(default=400, metadata={"help": "HOGS steps per (subject, object) when building"})
     hogs_image_size: int = field(default=128, metadata={"help": "HOGS training resolution when building"})
     srm_iters: int = field(default=400, metadata={"help": "SRM steps when building"})
@@ -409,6 +416,11 @@ def validate(cfg: DownstreamConfig) -> None:
             (cfg.setup.data is None) == (cfg.setup.bundle is None) or cfg.setup.data is not None,
             "--setup-bundle needs --setup-data",
         ),
+        (not (cfg.setup.free and cfg.setup.free_bundle), "give --setup-free or --setup-free-bundle, not both"),
+        (
+            not (cfg.setup.free and cfg.setup.bundle),
+            "--setup-free builds beside the setup built here; with --setup-bundle give --setup-free-bundle",
+        ),
     ]
     for ok, msg in checks:
         if not ok:
@@ -526,13 +538,19 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     )
     data, bundle, seconds = build_bundle_stages(out / "setup", demo, log=_say)
     data, bundle = Path(data).resolve(), Path(bundle).resolve()  # one name per setup, also through links
-    return {
+    setup = {
         "data": data,
         "bundle": bundle,
         "backgrounds": background_folder(cfg, data, out),
         "stage_seconds": seconds,
         "pairs": pairs,
     }
+    built = (out / "setup" / "free" / "stages" / "bundle.json").is_file()
+    if s.free and (built or not cfg.report_only):
+        _, free, free_seconds = build_bundle_stages(out / "setup", demo, log=_say, gaussians="free")
+        setup["free_bundle"] = Path(free).resolve()
+        setup["stage_seconds"] = {**seconds, **{f"free/{k}": v for k, v in free_seconds.items() if k != "world"}}
+    return setup
 
 
 def background_folder(cfg: DownstreamConfig, data: Path, out: Path) -> Path:
@@ -581,7 +599,9 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
-    s = asdict(cfg.setup)
+    s = {k: v for k, v in asdict(cfg.setup).items() if k != "free"}  # (read through free_bundle below)
+    free_bundle = setup.get("free_bundle") or cfg.setup.free_bundle
+    free_manifest = Path(free_bundle or "/nonexistent") / "manifest.json"
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
     no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}  # bank_*: the banks
@@ -592,11 +612,7 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
             [s, world, digest(manifest), digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json")]
         ),
         "free": _key(
-            [
-                {"data": s["data"], "preset": s["preset"], "free_bundle": s["free_bundle"]},
-                world,
-                digest(Path(cfg.setup.free_bundle or "/nonexistent") / "manifest.json"),
-            ]
+            [{"data": s["data"], "preset": s["preset"], "free_bundle": s["free_bundle"]}, world, digest(free_manifest)]
         ),
     }
 
@@ -611,9 +627,10 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
     """HOGSADataset arguments of a synthetic variant (None: not available)."""
     bundle = setup["bundle"]
     if variant == "free":
-        if cfg.setup.free_bundle is None:
+        free = setup.get("free_bundle") or cfg.setup.free_bundle
+        if free is None:
             return None
-        bundle = Path(cfg.setup.free_bundle).resolve()
+        bundle = Path(free).resolve()
     poses: dict[str, Any] = {"poses": "bank"}
     if variant == "no_pom":  # the annotated training poses, unperturbed
         poses = {"poses": "perturb", "pose_options": {"finger_std": 0.0}}
@@ -1459,7 +1476,7 @@ def run(cfg: DownstreamConfig) -> dict[str, Any]:
         if cfg.report_only or variant is None or variant in exports:
             continue
         if variant_options(variant, cfg, setup) is None:
-            skipped[arm] = "no free-3DGS bundle given (--setup-free-bundle)"
+            skipped[arm] = "no free-3DGS bundle (--setup-free builds one, --setup-free-bundle gives one)"
             continue
         _say(f"[synthetic] variant {variant}: {cfg.synthetic.frames} frames")
         exports[variant] = export_variant(variant, cfg, setup, out)

@@ -12,7 +12,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Literal, Optional
 
 import cv2
 import numpy as np
@@ -214,7 +214,10 @@ def build_config(cfg: DemoConfig, data: Path, out: Path) -> BuildConfig:
 
 
 def build_bundle_stages(
-    out: PathLike, config: DemoConfig = DemoConfig(), log: Optional[Callable[[str], None]] = print
+    out: PathLike,
+    config: DemoConfig = DemoConfig(),
+    log: Optional[Callable[[str], None]] = print,
+    gaussians: Literal["mesh", "free"] = "mesh",
 ) -> tuple[Path, Path, dict[str, float]]:
     """Build (or reuse) the demo's world and, from it, every stage up to the bundle
     (:func:`hogsa_loader.train.build.build`, settings :func:`build_config`), each cached in
@@ -225,6 +228,11 @@ def build_bundle_stages(
     ``contactnet``, ``bank`` (``OUT/runs/pose_bank``), ``srm`` and ``bundle`` (``OUT/bundle``).
     A stage whose key is unchanged is reused, so a second run only streams.
 
+    Args:
+        gaussians: ``"free"``: HOGS runs of plain 3D Gaussians (not bound to the meshes), and
+            every stage of ``hogsa build`` with otherwise the same settings, in ``OUT/free/``
+            (the world is the same).
+
     Returns:
         ``(data_root, bundle_folder, stage_seconds)``.
     """
@@ -233,7 +241,10 @@ def build_bundle_stages(
     out.mkdir(parents=True, exist_ok=True)
     stages = StageRecords(out, say)
     data, k_world = _world_stage(config, out, stages, say)
-    bundle, seconds = build(build_config(config, data, out), log=log, data_key=k_world, progress=config.progress)
+    settings = build_config(config, data, out if gaussians == "mesh" else out / "free")
+    model = replace(settings.hogs.model, gaussians=gaussians)
+    settings = replace(settings, hogs=replace(settings.hogs, model=model))
+    bundle, seconds = build(settings, log=log, data_key=k_world, progress=config.progress)
     return data, bundle, {**stages.seconds, **seconds}
 
 

@@ -101,6 +101,8 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--synthetic-share", "1.0"], "synthetic-share"),
         (["--train-batch-size", "1"], "batch-size"),
         (["--setup-bundle", "b"], "needs --setup-data"),
+        (["--setup-free", "--setup-free-bundle", "f"], "not both"),
+        (["--setup-free", "--setup-data", "d", "--setup-bundle", "b"], "give --setup-free-bundle"),
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
         (["--setup-bank-finger-scale", "-0.5"], "finger-scale"),
@@ -122,8 +124,9 @@ def test_setup_builds_its_pose_bank_with_the_finger_scale(tmp_path, monkeypatch)
     ds = _downstream()
     seen = []
 
-    def stages(out, demo, log):
+    def stages(out, demo, log, gaussians="mesh"):
         seen.append(demo)
+        assert gaussians == "mesh"
         return tmp_path, tmp_path, {}
 
     monkeypatch.setattr(ds, "build_bundle_stages", stages)
@@ -135,6 +138,42 @@ def test_setup_builds_its_pose_bank_with_the_finger_scale(tmp_path, monkeypatch)
     got = seen[0]
     assert (got.bank_finger_scale, got.bank_per_sequence, got.bank_variants, got.bank_frames) == (0.5, 64, 3, "all")
     assert got.srm_gan == 1.0
+
+
+def test_setup_free_builds_free_gaussians_beside_the_setup_for_the_free_arm(tmp_path, monkeypatch):
+    """``--setup-free``: the same stages again with plain 3D Gaussians (``OUT/setup/free``), read by
+    the ``hogsa_free`` arm alone; the other arms' keys do not change."""
+    ds = _downstream()
+    calls = []
+
+    def stages(out, demo, log, gaussians="mesh"):
+        calls.append((out, demo, gaussians))
+        bundle = out / ("free" if gaussians == "free" else "") / "bundle"
+        bundle.mkdir(parents=True, exist_ok=True)
+        (bundle / "manifest.json").write_text(json.dumps({"hogs": [gaussians]}))
+        (out / "world" / "meta").mkdir(parents=True, exist_ok=True)
+        return out / "world", bundle, {"hogs/s01_box": 1.0}
+
+    monkeypatch.setattr(ds, "build_bundle_stages", stages)
+    monkeypatch.setattr(ds, "background_folder", lambda cfg, data, out: data)
+    cfg = ds.DownstreamConfig()
+    mesh = ds.build_setup(cfg, tmp_path)
+    assert [c[2] for c in calls] == ["mesh"] and "free_bundle" not in mesh
+    mesh["fingerprints"] = ds.setup_fingerprints(cfg, mesh)
+    assert ds.variant_options("free", cfg, mesh) is None
+    cfg.setup.free = True
+    free = ds.build_setup(cfg, tmp_path)
+    assert [c[2] for c in calls] == ["mesh", "mesh", "free"] and calls[1][1] == calls[2][1]  # the same settings
+    assert free["free_bundle"] == (tmp_path / "setup" / "free" / "bundle").resolve()
+    assert set(free["stage_seconds"]) == {"hogs/s01_box", "free/hogs/s01_box"}
+    free["fingerprints"] = ds.setup_fingerprints(cfg, free)
+    assert ds.variant_options("free", cfg, free)["bundle"] == str(free["free_bundle"])
+    changed = {k for k in mesh["fingerprints"] if mesh["fingerprints"][k] != free["fingerprints"][k]}
+    assert changed == {"free"}
+    for arm in ("real", "hogsa", "hogsa_no_srm", "hogsa_no_pom", "real_low", "hogsa_low"):
+        mesh_cfg = ds.replace(cfg, setup=ds.replace(cfg.setup, free=False))
+        assert ds.run_settings(arm, 0, cfg, free) == ds.run_settings(arm, 0, mesh_cfg, mesh), arm
+    assert ds.export_dir("free", cfg, free, tmp_path).name.startswith("free-")
 
 
 def test_low_data_subset_is_fixed_and_sized():

@@ -70,7 +70,15 @@ def test_downstream_config_is_the_published_runs(tmp_path):
     model = str(tmp_path / "init" / "runs" / "real" / "seed{seed}" / "model.safetensors")
     finetune = parse(run.step_argv(exp, tmp_path, steps["finetune"]))
     published = parse(_documented_finetune_flags(tmp_path / "finetune", model))
-    assert finetune == downstream.replace(published, arms=("real", "hogsa", "hogsa_no_srm", "hogsa_no_pom"))
+    # the published arms, and the plain-3DGS arm on models built beside the setup (its runs'
+    # keys, and so the published runs, do not depend on that setting)
+    assert finetune == downstream.replace(
+        published,
+        arms=("real", "hogsa", "hogsa_no_srm", "hogsa_no_pom", "hogsa_free"),
+        setup=downstream.replace(published.setup, free=True),
+    )
+    for arm in ("real", "hogsa", "hogsa_no_srm", "hogsa_no_pom"):
+        assert downstream.arm_folder(arm, finetune) == downstream.arm_folder(arm, published)
     gan = parse(run.step_argv(exp, tmp_path, steps["finetune_srm_gan"]))
     published_gan = parse(
         _documented_finetune_flags(tmp_path / "finetune_srm_gan", model) + ["--setup-srm-gan", "1.0", "--arms", "hogsa"]
@@ -80,6 +88,7 @@ def test_downstream_config_is_the_published_runs(tmp_path):
     runs = dict(r.split("=", 1) for r in table.runs)
     assert runs["real"] == str(downstream.arm_folder("real", finetune).resolve())
     assert runs["srm_gan"] == str(downstream.arm_folder("hogsa", gan).resolve())
+    assert runs["free_3dgs"] == str(downstream.arm_folder("hogsa_free", finetune).resolve())
     assert Path(runs["hogsa"]).name.startswith("hogsa+add+ft-") and runs["hogsa"].endswith("+linear+hands0.5")
     assert table.data == str(tmp_path / "finetune" / "setup" / "world" / "arctic_data" / "data")
 
@@ -108,6 +117,7 @@ def test_interfield_config_is_the_downstream_protocol_with_interfield_sf(tmp_pat
         ft,
         out=field["finetune"].out,
         arms=("real", "hogsa"),
+        setup=replace(ft.setup, free=False),  # no plain-3DGS arm
         model=replace(ft.model, kind="interfield_sf", init=str(model)),
     )
 

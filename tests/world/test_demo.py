@@ -12,6 +12,9 @@ import torch
 from hogsa_loader.sample import is_synthetic
 from hogsa_world.demo import DemoConfig, run_demo, unbatch
 
+# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
+pytestmark = pytest.mark.xdist_group("test_demo")
+
 CFG = dict(
     pairs=(("s01", "box"),),
     hogs_iters=6,
@@ -89,6 +92,29 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     # same HOGS: no new renders, and the entry the rebuild did not use is gone
     assert sorted((out / "cache" / "srm").glob("coarse_*.safetensors")) == renders
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
+
+
+def test_free_gaussians_build_beside_the_mesh_stages_and_stream(demo, tiny_world):
+    """``gaussians="free"``: plain-3DGS HOGS runs and every later stage in ``OUT/free``, beside
+    the demo's mesh-bound ones (left as they were); the free bundle streams labelled samples."""
+    from hogsa_loader import HOGSADataset
+    from hogsa_loader.sample import LoaderConfig, with_options
+    from hogsa_world.demo import build_bundle_stages
+
+    out, _, _ = demo
+    records = {p.name: p.read_bytes() for p in (out / "stages").glob("*.json")}
+    cfg = DemoConfig(data=str(tiny_world), **CFG)
+    data, bundle, seconds = build_bundle_stages(out, cfg, log=None, gaussians="free")
+    assert bundle == out / "free" / "bundle" and {"hogs/s01_box", "srm", "bank", "bundle"} <= set(seconds)
+    assert {p.name: p.read_bytes() for p in (out / "stages").glob("*.json")} == records
+    for part in ("hand_right", "hand_left", "object"):
+        assert json.loads((bundle / "hogs" / "s01_box" / part / "manifest.json").read_text())["variant"] == "free"
+    options = dict(srm=True, device="cpu", batch_size=2, num_samples=2, background_folder=str(out / "backgrounds"))
+    samples = list(HOGSADataset(bundle, data, with_options(LoaderConfig(), **options)))
+    assert len(samples) == 2
+    for inputs, targets, meta in samples:
+        assert inputs["img"].shape[0] == 3 and torch.isfinite(inputs["img"]).all() and inputs["img"].std() > 0
+        assert is_synthetic(meta["imgname"]) and torch.isfinite(targets["mano.j3d.full.r"]).all()
 
 
 def test_unbatch_inverts_default_collate():
