@@ -417,6 +417,7 @@ def validate(cfg: DownstreamConfig) -> None:
             "--setup-bundle needs --setup-data",
         ),
         (not (cfg.setup.free and cfg.setup.free_bundle), "give --setup-free or --setup-free-bundle, not both"),
+        (not cfg.setup.free or "hogsa_free" in cfg.arms, "--setup-free builds for the hogsa_free arm, not in --arms"),
         (
             not (cfg.setup.free and cfg.setup.bundle),
             "--setup-free builds beside the setup built here; with --setup-bundle give --setup-free-bundle",
@@ -599,7 +600,9 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
         body = {k: v for k, v in json.loads(f.read_text()).items() if k not in drop}
         return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
-    s = {k: v for k, v in asdict(cfg.setup).items() if k != "free"}  # (read through free_bundle below)
+    # ``free`` is read through the free bundle's manifest below, by the free variant alone (the
+    # "all" key digests only a given --setup-free-bundle), so that the other arms' keys do not change with it
+    s = {k: v for k, v in asdict(cfg.setup).items() if k != "free"}
     free_bundle = setup.get("free_bundle") or cfg.setup.free_bundle
     free_manifest = Path(free_bundle or "/nonexistent") / "manifest.json"
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")

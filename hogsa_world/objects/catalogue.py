@@ -81,7 +81,7 @@ def make_object(name: str, seed: int = 0) -> ObjectTemplate:
         raise KeyError(f"no procedural object {name!r}; known: {list(PROCEDURAL_NAMES)}")
     key = (name, int(seed))
     if key not in _MADE:
-        template = _make_object(name, seed)
+        template = _make_object(name, key[1])
         for f in fields(template):
             value = getattr(template, f.name)
             if isinstance(value, np.ndarray):

@@ -102,6 +102,7 @@ def test_quick_defaults_yield_to_explicit_flags(monkeypatch):
         (["--train-batch-size", "1"], "batch-size"),
         (["--setup-bundle", "b"], "needs --setup-data"),
         (["--setup-free", "--setup-free-bundle", "f"], "not both"),
+        (["--setup-free", "--arms", "real,hogsa"], "not in --arms"),
         (["--setup-free", "--setup-data", "d", "--setup-bundle", "b"], "give --setup-free-bundle"),
         (["--train-batch-size", "2", "--synthetic-share", "0.75"], "no real sample"),
         (["--train-checkpoint-every", "-1"], "checkpoint-every"),
@@ -162,6 +163,7 @@ def test_setup_free_builds_free_gaussians_beside_the_setup_for_the_free_arm(tmp_
     mesh["fingerprints"] = ds.setup_fingerprints(cfg, mesh)
     assert ds.variant_options("free", cfg, mesh) is None
     cfg.setup.free = True
+    ds.validate(cfg)  # (every arm, hogsa_free among them)
     free = ds.build_setup(cfg, tmp_path)
     assert [c[2] for c in calls] == ["mesh", "mesh", "free"] and calls[1][1] == calls[2][1]  # the same settings
     assert free["free_bundle"] == (tmp_path / "setup" / "free" / "bundle").resolve()

@@ -150,7 +150,8 @@ def test_sdf_sign_matches_ray_parity(scene):
 def test_grid_inside_matches_ray_parity_along_z():
     """The grid test (each triangle against the columns in its bounding box, in chunks of
     pairs) gives every node the parity of Möller–Trumbore crossings of a +z ray from it, on
-    stacked shells (20 crossings per column) and on a box."""
+    stacked shells (20 crossings per column) and on a box; with fewer counted crossings than a
+    column has, the same flags as testing every column against every triangle."""
     import trimesh
 
     from hogsa_loader.models.pom.geometry import grid_inside
@@ -169,6 +170,27 @@ def test_grid_inside_matches_ray_parity_along_z():
         assert 0.05 < ref.mean() < 0.6
         for chunk in (40, 2_000_000):
             np.testing.assert_array_equal(grid_inside(tris, *axes, chunk=chunk), ref)
+    for k in (3, 6, 32):  # the k lowest crossings of a column counted, against every column x every triangle
+        for chunk in (40, 2_000_000):
+            got = grid_inside(v[f], *shells, max_cross=k, chunk=chunk)
+            np.testing.assert_array_equal(got, _dense(v[f], *shells, k))
+    with pytest.raises(ValueError, match="zs must be ascending"):
+        grid_inside(v[f], shells[0], shells[1], shells[2][::-1])
+
+
+def _dense(tris, xs, ys, zs, k):
+    """Every column against every triangle: crossing heights, the ``k`` lowest (a missing one
+    counts as +inf, above every node), the parity of those above each node."""
+    X, Y = np.meshgrid(xs + 1.2345e-7, ys + 2.3456e-7, indexing="xy")
+    px, py = X.reshape(-1, 1), Y.reshape(-1, 1)
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    den = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    l1 = ((b[:, 1] - c[:, 1]) * (px - c[:, 0]) + (c[:, 0] - b[:, 0]) * (py - c[:, 1])) / den
+    l2 = ((c[:, 1] - a[:, 1]) * (px - c[:, 0]) + (a[:, 0] - c[:, 0]) * (py - c[:, 1])) / den
+    l3 = 1 - l1 - l2
+    z = np.where((l1 >= 0) & (l2 >= 0) & (l3 >= 0), l1 * a[:, 2] + l2 * b[:, 2] + l3 * c[:, 2], np.inf)
+    above = (np.sort(z, axis=1)[:, :k, None] > zs).sum(1)
+    return (above % 2 == 1).reshape(len(ys), len(xs), len(zs)).transpose(2, 0, 1)
 
 
 def test_sdf_grid_of_a_mesh_is_built_once_per_setting(monkeypatch):

@@ -29,9 +29,6 @@ from hogsa_loader.train.srm_losses import (
     vgg19_features,
 )
 
-# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
-pytestmark = pytest.mark.xdist_group("test_srm")
-
 ROOT = Path(__file__).resolve().parents[2]
 SMALL = [16, 32, 32]  # 3 levels: inputs multiple of 8
 

@@ -21,9 +21,6 @@ from torch.utils.data import BatchSampler, DataLoader, RandomSampler, TensorData
 
 from hogsa_loader.sample.mixing import distributed_loader
 
-# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
-pytestmark = pytest.mark.xdist_group("test_lightning")
-
 ROOT = Path(__file__).resolve().parents[2]
 TOY = ["--backbone", "resnet18", "--epochs", "2", "--batches-per-epoch", "2", "--batch-size", "4", "--img-res", "64"]
 TOY += ["--lr", "1e-4", "--method", "no_pom"]

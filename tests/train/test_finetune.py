@@ -15,9 +15,6 @@ from pathlib import Path
 
 import pytest
 
-# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
-pytestmark = pytest.mark.xdist_group("test_finetune")
-
 ARGS = [
     "--log-weights",
     "--method",

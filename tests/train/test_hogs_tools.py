@@ -17,9 +17,6 @@ from hogsa_loader.errors import AssetError
 from hogsa_loader.models.gaussians.hogs_model import HogsModel
 from hogsa_loader.train import HogsTrainer
 
-# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
-pytestmark = pytest.mark.xdist_group("test_hogs_tools")
-
 ROOT = Path(__file__).resolve().parents[2]
 
 

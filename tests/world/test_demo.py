@@ -12,9 +12,6 @@ import torch
 from hogsa_loader.sample import is_synthetic
 from hogsa_world.demo import DemoConfig, run_demo, unbatch
 
-# one worker runs this module (pytest-xdist, --dist loadgroup), so its module fixtures are built once
-pytestmark = pytest.mark.xdist_group("test_demo")
-
 CFG = dict(
     pairs=(("s01", "box"),),
     hogs_iters=6,
@@ -39,7 +36,7 @@ CFG = dict(
 @pytest.fixture(scope="module")
 def demo(tiny_world, tmp_path_factory):
     before = torch.get_num_threads()
-    torch.set_num_threads(1)  # restored below: later tests compare against 2-thread subprocesses
+    torch.set_num_threads(1)  # restored below for the module's later tests
     try:
         out = tmp_path_factory.mktemp("demo")
         cfg = DemoConfig(data=str(tiny_world), **CFG)

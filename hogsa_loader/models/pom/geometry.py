@@ -270,12 +270,21 @@ def grid_inside(
     Args:
         tris: (F, 3, 3) triangles of a closed mesh.
         xs, ys, zs: node coordinates along each axis, ascending.
-        max_cross: most surface crossings counted per column (its lowest ones).
+        max_cross: most surface crossings counted per column (its lowest ones); a node is
+            inside when an odd number of the ``k = min(max_cross, F)`` counting slots above it
+            hold a crossing or none (for a closed mesh, F and k are even: the parity of the
+            crossings above it).
         chunk: most (triangle, column) pairs tested at once (bounds the memory).
 
     Returns:
         (nz, ny, nx) bool.
+
+    Raises:
+        ValueError: an axis is not ascending.
     """
+    for name, axis in (("xs", xs), ("ys", ys), ("zs", zs)):
+        if np.any(np.diff(np.asarray(axis, dtype=np.float64)) <= 0):
+            raise ValueError(f"grid_inside: {name} must be ascending")
     t = np.asarray(tris, dtype=np.float64)
     # tiny irrational offset so that rays never run exactly through grid-aligned edges
     cx = np.asarray(xs, dtype=np.float64) + 1.2345e-7
