@@ -66,6 +66,28 @@ def trained_runs(tiny_world, tmp_path_factory):
     return base / "mesh", base / "free", mesh
 
 
+def test_a_bundle_of_free_runs_streams_labelled_samples(tiny_world, trained_runs, tmp_path):
+    """Plain-3DGS runs (the paper's "3DGS" row) bundle and stream like mesh-bound ones."""
+    from conftest import tiny_srm
+
+    from hogsa_loader import HOGSADataset
+    from hogsa_loader.models.bundle import write_bundle
+    from hogsa_loader.sample import LoaderConfig, is_synthetic, with_options
+    from hogsa_loader.view.pictures import demo_photographs
+
+    _, free_run, _ = trained_runs
+    bundle = write_bundle(tmp_path / "bundle", tiny_world, [free_run], srm=tiny_srm(tmp_path / "srm"))
+    for part in ("hand_right", "hand_left", "object"):
+        assert json.loads((bundle / "hogs" / "s01_box" / part / "manifest.json").read_text())["variant"] == "free"
+    options = dict(srm=True, poses="perturb", batch_size=2, num_samples=2)
+    options["background_folder"] = str(demo_photographs(tmp_path / "photos"))
+    samples = list(HOGSADataset(bundle, tiny_world, with_options(LoaderConfig(), **options)))
+    assert len(samples) == 2
+    for inputs, targets, meta in samples:
+        assert inputs["img"].shape[0] == 3 and torch.isfinite(inputs["img"]).all() and inputs["img"].std() > 0
+        assert is_synthetic(meta["imgname"]) and torch.isfinite(targets["mano.j3d.full.r"]).all()
+
+
 def test_hogs_model_renders_like_the_trainer(tiny_world, trained_runs):
     mesh_run, _, trainer = trained_runs
     root = ArcticRoot(tiny_world)

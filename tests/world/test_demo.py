@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -91,27 +93,22 @@ def test_demo_rebuilds_a_stage_whose_settings_changed(demo, tiny_world):
     assert {"hogs/s01_box", "contactnet", "bank"} <= set(rec["reused_stages"])
 
 
-def test_free_gaussians_build_beside_the_mesh_stages_and_stream(demo, tiny_world):
-    """``gaussians="free"``: plain-3DGS HOGS runs and every later stage in ``OUT/free``, beside
-    the demo's mesh-bound ones (left as they were); the free bundle streams labelled samples."""
-    from hogsa_loader import HOGSADataset
-    from hogsa_loader.sample import LoaderConfig, with_options
-    from hogsa_world.demo import build_bundle_stages
+def test_free_gaussians_build_the_same_stages_in_their_own_folder(tiny_world, tmp_path, monkeypatch):
+    """``gaussians="free"``: ``hogsa build`` with plain 3D Gaussians and every other setting
+    the same, in ``OUT/free`` (streaming a bundle of free runs: tests/train/test_hogs_tools.py)."""
+    import hogsa_world.demo as demo_module
 
-    out, _, _ = demo
-    records = {p.name: p.read_bytes() for p in (out / "stages").glob("*.json")}
+    built = []
+    monkeypatch.setattr(demo_module, "build", lambda config, **kw: (built.append(config), (Path("b"), {}))[1])
     cfg = DemoConfig(data=str(tiny_world), **CFG)
-    data, bundle, seconds = build_bundle_stages(out, cfg, log=None, gaussians="free")
-    assert bundle == out / "free" / "bundle" and {"hogs/s01_box", "srm", "bank", "bundle"} <= set(seconds)
-    assert {p.name: p.read_bytes() for p in (out / "stages").glob("*.json")} == records
-    for part in ("hand_right", "hand_left", "object"):
-        assert json.loads((bundle / "hogs" / "s01_box" / part / "manifest.json").read_text())["variant"] == "free"
-    options = dict(srm=True, device="cpu", batch_size=2, num_samples=2, background_folder=str(out / "backgrounds"))
-    samples = list(HOGSADataset(bundle, data, with_options(LoaderConfig(), **options)))
-    assert len(samples) == 2
-    for inputs, targets, meta in samples:
-        assert inputs["img"].shape[0] == 3 and torch.isfinite(inputs["img"]).all() and inputs["img"].std() > 0
-        assert is_synthetic(meta["imgname"]) and torch.isfinite(targets["mano.j3d.full.r"]).all()
+    for gaussians in ("mesh", "free"):
+        demo_module.build_bundle_stages(tmp_path, cfg, log=None, gaussians=gaussians)
+    mesh, free = built
+    assert (Path(mesh.run.out), Path(free.run.out)) == (tmp_path, tmp_path / "free")
+    assert (mesh.hogs.model.gaussians, free.hogs.model.gaussians) == ("mesh", "free")
+    assert mesh == demo_module.build_config(cfg, Path(tiny_world), tmp_path)  # the demo's own build, as before
+    same = dataclasses.replace(free, run=mesh.run, hogs=dataclasses.replace(free.hogs, model=mesh.hogs.model))
+    assert same == mesh
 
 
 def test_unbatch_inverts_default_collate():
