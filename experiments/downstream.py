@@ -513,11 +513,13 @@ def setup_pairs(s: SetupSettings) -> list[tuple[str, str]]:
 
 def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
     """Data root and bundle: given, or built by the demo's cached stages in ``out/setup``."""
+    given = Path(cfg.setup.free_bundle).resolve() if cfg.setup.free_bundle else None
     if cfg.setup.bundle is not None:
         data = Path(cfg.setup.data).resolve()
         return {
             "data": data,
             "bundle": Path(cfg.setup.bundle).resolve(),
+            "free_bundle": given,
             "backgrounds": background_folder(cfg, data, out),
             "stage_seconds": {},
         }
@@ -545,9 +547,9 @@ def build_setup(cfg: DownstreamConfig, out: Path) -> dict[str, Any]:
         "backgrounds": background_folder(cfg, data, out),
         "stage_seconds": seconds,
         "pairs": pairs,
+        "free_bundle": given,
     }
-    built = (out / "setup" / "free" / "stages" / "bundle.json").is_file()
-    if s.free and (built or not cfg.report_only):
+    if s.free and (not cfg.report_only or (out / "setup" / "free" / "stages" / "bundle.json").is_file()):
         _, free, free_seconds = build_bundle_stages(out / "setup", demo, log=_say, gaussians="free")
         setup["free_bundle"] = Path(free).resolve()
         setup["stage_seconds"] = {**seconds, **{f"free/{k}": v for k, v in free_seconds.items() if k != "world"}}
@@ -603,8 +605,7 @@ def setup_fingerprints(cfg: DownstreamConfig, setup: dict[str, Any]) -> dict[str
     # ``free`` is read through the free bundle's manifest below, by the free variant alone (the
     # "all" key digests only a given --setup-free-bundle), so that the other arms' keys do not change with it
     s = {k: v for k, v in asdict(cfg.setup).items() if k != "free"}
-    free_bundle = setup.get("free_bundle") or cfg.setup.free_bundle
-    free_manifest = Path(free_bundle or "/nonexistent") / "manifest.json"
+    free_manifest = Path(setup.get("free_bundle") or "/nonexistent") / "manifest.json"
     world = digest(Path(setup["data"]) / "meta" / "hogsa_world.json")
     manifest = Path(setup["bundle"]) / "manifest.json"
     no_bank = {k: v for k, v in s.items() if not k.startswith("bank_") and k != "free_bundle"}  # bank_*: the banks
@@ -630,10 +631,9 @@ def variant_options(variant: str, cfg: DownstreamConfig, setup: dict[str, Any]) 
     """HOGSADataset arguments of a synthetic variant (None: not available)."""
     bundle = setup["bundle"]
     if variant == "free":
-        free = setup.get("free_bundle") or cfg.setup.free_bundle
-        if free is None:
+        if setup.get("free_bundle") is None:
             return None
-        bundle = Path(free).resolve()
+        bundle = setup["free_bundle"]
     poses: dict[str, Any] = {"poses": "bank"}
     if variant == "no_pom":  # the annotated training poses, unperturbed
         poses = {"poses": "perturb", "pose_options": {"finger_std": 0.0}}

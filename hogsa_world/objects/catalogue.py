@@ -5,7 +5,7 @@ compound spec (:mod:`hogsa_world.objects.household`: the other seven), and
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import functools
 from dataclasses import fields
 from pathlib import Path
 from typing import Iterable, Optional
@@ -57,12 +57,6 @@ def _spec_and_parts(name: str, rng: np.random.Generator) -> tuple[Optional[Objec
     return None, {p: merge_pieces(compound.parts[p]) for p in (TOP, BOTTOM)}
 
 
-#: Objects made in this process, by ``(name, seed)``, most recent last (two seeds' worth):
-#: a process that writes several worlds (the tests, a demo) makes each object once.
-_MADE: "OrderedDict[tuple[str, int], ObjectTemplate]" = OrderedDict()
-_MADE_KEPT = 2 * len(PROCEDURAL_NAMES)
-
-
 def make_object(name: str, seed: int = 0) -> ObjectTemplate:
     """Generate one procedural textured articulated object.
 
@@ -79,18 +73,17 @@ def make_object(name: str, seed: int = 0) -> ObjectTemplate:
     """
     if name not in PROCEDURAL_NAMES:
         raise KeyError(f"no procedural object {name!r}; known: {list(PROCEDURAL_NAMES)}")
-    key = (name, int(seed))
-    if key not in _MADE:
-        template = _make_object(name, key[1])
-        for f in fields(template):
-            value = getattr(template, f.name)
-            if isinstance(value, np.ndarray):
-                value.setflags(write=False)  # shared by every caller
-        _MADE[key] = template
-        while len(_MADE) > _MADE_KEPT:
-            _MADE.popitem(last=False)
-    _MADE.move_to_end(key)
-    return _MADE[key]
+    return _kept_object(name, int(seed))
+
+
+@functools.lru_cache(maxsize=2 * len(PROCEDURAL_NAMES))  # two seeds' worth: the tests, a demo's worlds
+def _kept_object(name: str, seed: int) -> ObjectTemplate:
+    template = _make_object(name, seed)
+    for f in fields(template):
+        value = getattr(template, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)  # shared by every caller
+    return template
 
 
 def _make_object(name: str, seed: int) -> ObjectTemplate:

@@ -580,10 +580,10 @@ def test_textured_mesh_with_welded_uv_seams(templates, meta_dir, tmp_path, name)
     np.testing.assert_allclose(m.tex_uv[m.tex_faces], corner_uv, atol=1e-5)
 
 
-def test_determinism_and_seed_variation(meta_dir, tmp_path, monkeypatch):
+def test_determinism_and_seed_variation(meta_dir, tmp_path):
     from hogsa_world.objects import catalogue
 
-    monkeypatch.setattr(catalogue, "_MADE", type(catalogue._MADE)())  # made afresh, not the kept ones
+    catalogue._kept_object.cache_clear()  # made afresh, not the kept ones
     again = tmp_path / "again"
     other = tmp_path / "other"
     write_procedural_objects(again, names=PROCEDURAL_NAMES, seed=0)

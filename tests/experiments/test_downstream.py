@@ -159,7 +159,7 @@ def test_setup_free_builds_free_gaussians_beside_the_setup_for_the_free_arm(tmp_
     monkeypatch.setattr(ds, "background_folder", lambda cfg, data, out: data)
     cfg = ds.DownstreamConfig()
     mesh = ds.build_setup(cfg, tmp_path)
-    assert [c[2] for c in calls] == ["mesh"] and "free_bundle" not in mesh
+    assert [c[2] for c in calls] == ["mesh"] and mesh["free_bundle"] is None
     mesh["fingerprints"] = ds.setup_fingerprints(cfg, mesh)
     assert ds.variant_options("free", cfg, mesh) is None
     cfg.setup.free = True
