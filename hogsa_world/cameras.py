@@ -14,9 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from hogsa_loader.assets.conventions import EGO_IMAGE_SIZE
+from hogsa_loader.geometry.cameras import look_at
 from hogsa_world.stage import TABLE_Y, TABLE_Z, WORKSPACE
 
-__all__ = ["AlloRig", "EgoCamera", "look_at", "allocentric_rig", "ego_calibration", "ego_trajectory"]
+#: World up: the cameras' image-up direction.
+_UP = np.array([0.0, 0.0, 1.0])
+
+__all__ = ["AlloRig", "EgoCamera", "allocentric_rig", "ego_calibration", "ego_trajectory"]
 
 #: Full-res sizes (w, h) of the allocentric views, alternating landscape / portrait.
 ALLO_SIZES = ((2800, 2000), (2000, 2800))
@@ -62,23 +66,10 @@ class EgoCamera:
         return out
 
 
-def look_at(
-    eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]), roll: float = 0.0
-) -> np.ndarray:
-    """OpenCV world->camera (4, 4): z toward ``target``, image-up toward ``up``, then a roll
-    (radians) about the optical axis."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    y = -(up - (up @ z) * z)
-    y = y / np.linalg.norm(y)
-    x = np.cross(y, z)
-    R = np.stack([x, y, z])
-    c, s = np.cos(roll), np.sin(roll)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R
-    M = np.eye(4)
-    M[:3, :3] = R
-    M[:3, 3] = -R @ eye
-    return M
+def _look_at(eye: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
+    """(4, 4) world->camera of a camera at ``eye`` looking at ``target``, image-up toward +z,
+    rolled by ``roll`` radians (image x turning toward image -y)."""
+    return look_at(eye, target, _UP, -roll)[0]
 
 
 def allocentric_rig(base_rng: np.random.Generator, subject_rng: np.random.Generator) -> AlloRig:
@@ -100,7 +91,7 @@ def allocentric_rig(base_rng: np.random.Generator, subject_rng: np.random.Genera
         eye = eye + subject_rng.normal(0, 0.01, 3)
         target = WORKSPACE + base_rng.normal(0, 0.03, 3) + subject_rng.normal(0, 0.005, 3)
         roll = base_rng.normal(0, 0.03) + subject_rng.normal(0, 0.005)
-        w2c.append(look_at(eye, target, roll=roll))
+        w2c.append(_look_at(eye, target, roll))
         w, h = ALLO_SIZES[k % 2]
         d = np.linalg.norm(target - eye)
         f = 0.5 * min(w, h) * d / base_rng.uniform(0.34, 0.42) * subject_rng.uniform(0.99, 1.01)
@@ -170,7 +161,7 @@ def ego_trajectory(num_frames: int, rng: np.random.Generator, focus: np.ndarray)
     base_target = np.array([WORKSPACE[0], WORKSPACE[1] + 0.02, TABLE_Z])
     for i in range(num_frames):
         target = 0.5 * base_target + 0.5 * focus[i] + look[i]
-        M = look_at(head + motion[i], target, roll=roll[i])
+        M = _look_at(head + motion[i], target, roll[i])
         R.append(M[:3, :3])
         T.append(M[:3, 3:4])
     return np.stack(R), np.stack(T)

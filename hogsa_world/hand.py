@@ -22,10 +22,10 @@ from hogsa_loader.assets.hands.anatomy import (
     derive_contact_prior,
     derive_joint_axes,
     unit_rows,
-    vertex_normals,
 )
 from hogsa_loader.assets.hands.mano_io import MANO_RELEASE_TIP_IDS, ManoModelData, reorder_vertices, validate_model
 from hogsa_loader.extras import require
+from hogsa_loader.geometry.meshes import vertex_normals_np
 
 __all__ = ["HandSpec", "build_synthetic_hand", "mirror_to_left", "synthetic_hand_pair"]
 
@@ -365,7 +365,7 @@ def _pose_dirs(v: np.ndarray, f: np.ndarray, joints: np.ndarray, W: np.ndarray, 
     For joint j with flexion axis a, ``1 - cos(phi) = -0.5 * sum_{ab} (R - I)_{ab} (I - a a^T)_{ab}``;
     the dorsal skin near the joint bulges and the palmar skin creases by that amount.
     """
-    n = vertex_normals(v, f)
+    n = vertex_normals_np(v, f)
     P = np.zeros((v.shape[0], 3, 135))
     for j in range(1, 16):
         a = axes.flex[j - 1]
@@ -415,7 +415,7 @@ def _pose_space(model: ManoModelData, n: int = 1554, seed: int = 0) -> tuple[np.
 # colours and assembly
 # ----------------------------------------------------------------------------------------
 def _albedo(v: np.ndarray, f: np.ndarray, W: np.ndarray, sk: _Skeleton, skin: np.ndarray, axes) -> np.ndarray:
-    n = vertex_normals(v, f)
+    n = vertex_normals_np(v, f)
     palmar = np.clip(n @ axes.palm_normal, 0.0, 1.0)
     col = np.tile(skin, (v.shape[0], 1))
     col = col * (1.0 + 0.10 * palmar[:, None])  # lighter palm

@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F_nn
 from torch import Tensor
 
+from hogsa_loader.geometry.cameras import look_at
+from hogsa_loader.geometry.meshes import NORMAL_EPS, face_normals, normalize, vertex_normals
 from hogsa_loader.geometry.texture import sample_texture
 from hogsa_loader.render import raster_kernels
 
@@ -40,8 +42,6 @@ __all__ = [
     "project_points",
     "scale_intrinsics",
     "transform_points",
-    "face_normals",
-    "vertex_normals",
     "shade_blinn_phong",
     "camera_look_at",
     "intrinsics_from_fov",
@@ -50,7 +50,6 @@ __all__ = [
 
 _INT64_MAX = torch.iinfo(torch.int64).max
 _BBOX_EPS = 1e-3  # px; pixel bounding boxes are grown by this much, the edge test decides
-_NORMAL_EPS = 1e-12
 _SHADE_CHUNK = 1 << 20  # covered samples shaded at a time in render_meshes
 
 Backend = Literal["auto", "torch", "numba"]
@@ -246,49 +245,6 @@ def scale_intrinsics(K: Tensor, scale: float) -> Tensor:
     """
     S = torch.diag(torch.tensor([scale, scale, 1.0], dtype=K.dtype, device=K.device))
     return S @ K
-
-
-def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
-    """Unnormalised face normals ``cross(v1 - v0, v2 - v0)`` (length = 2 x area).
-
-    Args:
-        verts: (V, 3).
-        faces: (F, 3) int64.
-
-    Returns:
-        (F, 3).
-    """
-    tri = verts[faces]
-    return torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
-
-
-def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
-    """Area-weighted unit vertex normals (0 for vertices used by no face).
-
-    Args:
-        verts: (V, 3).
-        faces: (F, 3) int64.
-
-    Returns:
-        (V, 3).
-    """
-    fn = face_normals(verts, faces)
-    acc = torch.zeros_like(verts)
-    acc.index_add_(0, faces.reshape(-1), fn.repeat_interleave(3, dim=0))
-    return _normalize(acc)
-
-
-def _normalize(x: Tensor) -> Tensor:
-    """Unit vectors along the last axis; zero vectors stay zero.
-
-    Args:
-        x: (..., 3).
-
-    Returns:
-        (..., 3).
-    """
-    norm = x.norm(dim=-1, keepdim=True)
-    return x / norm.clamp_min(_NORMAL_EPS)
 
 
 def _interpolate(values: Tensor, tri_vidx: Tensor, bary: Tensor) -> Tensor:
@@ -1037,9 +993,9 @@ def shade_blinn_phong(albedo: Tensor, normal: Tensor, points: Tensor, light: Lig
         (N, 3) colours clamped to [0, 1].
     """
     to_light = _to_light(light, albedo.dtype, albedo.device)
-    view = _normalize(-points)
+    view = normalize(-points)
     n_dot_l = (normal * to_light).sum(-1).clamp_min(0.0)
-    half = _normalize(to_light + view)
+    half = normalize(to_light + view)
     n_dot_h = (normal * half).sum(-1).clamp_min(0.0)
     spec = torch.where(n_dot_l > 0, n_dot_h.pow(light.shininess), torch.zeros_like(n_dot_h))
     rgb = albedo * (light.ambient + light.diffuse * n_dot_l)[:, None] + light.specular * spec[:, None]
@@ -1107,7 +1063,7 @@ def _shade_samples(
     """
     sh, sw = frags.face_idx.shape
     dtype, device = verts_cam.dtype, verts_cam.device
-    unit_fn = _normalize(face_normals(verts_cam, scene.faces))
+    unit_fn = normalize(face_normals(verts_cam, scene.faces))
     vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else None
     part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64, device=device)
     color = torch.zeros((sh * sw, 3), dtype=dtype, device=device)
@@ -1165,11 +1121,11 @@ def _shade_kernel(
         [
             to_light,
             torch.tensor(
-                [light.ambient, light.diffuse, light.specular, light.shininess, 1e-6, _NORMAL_EPS], dtype=dtype
+                [light.ambient, light.diffuse, light.specular, light.shininess, 1e-6, NORMAL_EPS], dtype=dtype
             ),
         ]
     )
-    unit_fn = _normalize(face_normals(verts_cam, scene.faces))
+    unit_fn = normalize(face_normals(verts_cam, scene.faces))
     vert_n = vertex_normals(verts_cam, scene.faces) if smooth_normals else unit_fn[:1]
     part_ids = torch.tensor([operator.index(p.part_id) for p in parts], dtype=torch.int64)
     color = torch.empty((sh * sw, 3), dtype=dtype)
@@ -1310,16 +1266,9 @@ def camera_look_at(
     if z.norm() < 1e-12:
         raise ValueError("camera_look_at: eye and target coincide")
     z = z / z.norm()
-    y = -(u - (u @ z) * z)
-    if y.norm() < 1e-9 * max(u.norm().item(), 1e-300):
+    if (u - (u @ z) * z).norm() < 1e-9 * max(u.norm().item(), 1e-300):
         raise ValueError("camera_look_at: up is parallel to the viewing direction")
-    y = y / y.norm()
-    x = torch.linalg.cross(y, z)
-    R = torch.stack([x, y, z])
-    M = torch.eye(4, dtype=torch.float64)
-    M[:3, :3] = R
-    M[:3, 3] = -R @ e
-    return M.to(out_dtype)
+    return torch.from_numpy(look_at(e.numpy(), t.numpy(), u.numpy())[0]).to(out_dtype)
 
 
 def intrinsics_from_fov(fov_y_deg: float, width: int, height: int, dtype: torch.dtype = torch.float32) -> Tensor:

@@ -13,6 +13,7 @@ from typing import Mapping
 import numpy as np
 
 from hogsa_loader.assets.hands.mano_io import ManoModelData
+from hogsa_loader.geometry.meshes import vertex_normals_np
 
 __all__ = [
     "FINGER_JOINTS",
@@ -23,7 +24,6 @@ __all__ = [
     "NAMED_POSES",
     "derive_contact_prior",
     "unit_rows",
-    "vertex_normals",
 ]
 
 #: MANO joint ids per finger (base -> distal), in MANO's finger order.
@@ -168,16 +168,6 @@ def named_articulation(model: ManoModelData, name: str) -> np.ndarray:
     return articulation_from_angles(axes, flex, abd)
 
 
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals (zero for unreferenced vertices)."""
-    fn = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    vn = np.zeros_like(verts)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    return np.where(norm > 0, vn / np.maximum(norm, 1e-30), 0.0)
-
-
 def derive_contact_prior(model: ManoModelData, pad_cos: float = 0.35) -> dict[str, np.ndarray]:
     """Prior contact vertices: finger pads (palmar side of the two distal segments) and palm.
 
@@ -191,7 +181,7 @@ def derive_contact_prior(model: ManoModelData, pad_cos: float = 0.35) -> dict[st
     """
     axes = derive_joint_axes(model)
     J = rest_joints(model)
-    n = vertex_normals(model.v_template, model.faces)
+    n = vertex_normals_np(model.v_template, model.faces)
     dom = model.weights.argmax(1)
     out: dict[str, np.ndarray] = {}
     across = unit_rows(J[7] - J[1])

@@ -29,7 +29,6 @@ __all__ = [
     "SDFGrid",
     "build_sdf_grid",
     "grid_inside",
-    "vertex_normals",
     "nearest",
 ]
 
@@ -172,16 +171,6 @@ class CappedMesh:
     def triangles(self, verts: Tensor) -> Tensor:
         """(..., V, 3) -> (..., F', 3, 3) triangles of the capped mesh."""
         return self.verts(verts)[..., self.faces.to(verts.device), :]
-
-
-def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
-    """(B, V, 3) area-weighted unit vertex normals of (F, 3) faces (batched, differentiable)."""
-    tri = verts[:, faces]  # (B, F, 3, 3)
-    fn = torch.linalg.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-    vn = torch.zeros_like(verts)
-    for k in range(3):
-        vn = vn.index_add(1, faces[:, k], fn)
-    return vn / vn.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def nearest(a: Tensor, b: Tensor, chunk: int = 2_000_000) -> tuple[Tensor, Tensor]:

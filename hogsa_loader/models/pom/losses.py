@@ -13,8 +13,9 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
+from hogsa_loader.geometry.meshes import vertex_normals
 from hogsa_loader.models.pom.contactnet import contact_map
-from hogsa_loader.models.pom.geometry import nearest, vertex_normals
+from hogsa_loader.models.pom.geometry import nearest
 from hogsa_loader.models.pom.objects import ObjectSet
 
 __all__ = [
