@@ -105,6 +105,7 @@ from hogsa_loader.baselines.targets import prepare_targets
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import PLATES_MANIFEST, PlateConfig, build_plates, data_fingerprint
 from hogsa_loader.errors import AssetError
+from hogsa_loader.io.atomic import atomic_write_json
 from hogsa_loader.io.hashing import settings_key, sha256_file
 from hogsa_loader.io.tensors import write_tensors_and_manifest
 from hogsa_loader.sample import HOGSADataset, with_options
@@ -447,9 +448,7 @@ _key = settings_key
 
 def _atomic_json(path: Path, obj: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1, allow_nan=False, default=str) + "\n")
-    os.replace(tmp, path)
+    atomic_write_json(path, obj, allow_nan=False, default=str)
 
 
 def _validate_init(cfg: DownstreamConfig) -> None:

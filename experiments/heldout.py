@@ -32,7 +32,6 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import os
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -59,6 +58,7 @@ from hogsa_loader.baselines.engine import BodyLayers, evaluate, temporal_order
 from hogsa_loader.cli.dataclass_args import add_dataclass_arguments, dataclass_from_args
 from hogsa_loader.compose.plates import data_fingerprint
 from hogsa_loader.errors import AssetError, read_json
+from hogsa_loader.io.atomic import atomic_write_json
 from hogsa_loader.io.hashing import sha256_file
 from hogsa_loader.sample.arctic_dataset import ArcticDataset
 from hogsa_loader.sample.augment import ArcticConfig
@@ -270,9 +270,7 @@ def evaluate_model(path: Path, split: str, ctx: _Context) -> dict[str, Any]:
         "clips": clip_sums(ev, PAIRED_METRICS),
     }
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_name(cache.name + ".tmp")
-    tmp.write_text(json.dumps(rec, allow_nan=False))
-    os.replace(tmp, cache)
+    atomic_write_json(cache, rec, indent=None, allow_nan=False)
     return rec
 
 
@@ -408,9 +406,7 @@ def run(cfg: HeldoutConfig) -> dict[str, Any]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     record = {"config": asdict(cfg), "fingerprints": ctx.fingerprints, "unchecked": ctx.unchecked, "reports": reports}
-    tmp = out / "heldout.json.tmp"
-    tmp.write_text(json.dumps(record, indent=1, allow_nan=False))
-    os.replace(tmp, out / "heldout.json")
+    atomic_write_json(out / "heldout.json", record, allow_nan=False)
     (out / "heldout.md").write_text(markdown(reports, cfg.reference))
     print((out / "heldout.md").read_text())
     return record
