@@ -16,6 +16,7 @@ from typing import Iterable, Optional, Union
 
 from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.h2o import H2ORoot
+from hogsa_loader.assets.h2o_poses import H2OPoseRoot
 from hogsa_loader.errors import UsageError
 
 __all__ = ["ARCTIC_HELD_OUT", "H2O_HELD_OUT", "HeldOutWarning", "held_out_subjects", "training_subjects"]
@@ -31,16 +32,19 @@ class HeldOutWarning(UserWarning):
     """A training stage reads a held-out subject because the user named it."""
 
 
-def held_out_subjects(root: Union[ArcticRoot, H2ORoot]) -> dict[str, str]:
+def held_out_subjects(root: Union[ArcticRoot, H2ORoot, H2OPoseRoot]) -> dict[str, str]:
     """The subjects ``root`` holds out, each with the split it is held out for.
 
     Args:
         root: an ARCTIC root (its protocol files' ``val`` and ``test`` sequences; without any
-            protocol file, :data:`ARCTIC_HELD_OUT`) or an H2O root (:data:`H2O_HELD_OUT`).
+            protocol file, :data:`ARCTIC_HELD_OUT`) or an H2O root (:data:`H2O_HELD_OUT`), also
+            as an :class:`~hogsa_loader.assets.h2o_poses.H2OPoseRoot`.
 
     Returns:
         ``{subject: "val" | "test"}``.
     """
+    if isinstance(root, H2OPoseRoot):
+        root = root.h2o
     if isinstance(root, H2ORoot):  # subject4, or its ego / pose download (subject4_ego, subject4_pose)
         held = {s: "test" for s in root.subjects() if re.fullmatch(r"subject4(?:_ego|_pose)?", s)}
         return held or dict(H2O_HELD_OUT)
@@ -58,7 +62,7 @@ def held_out_subjects(root: Union[ArcticRoot, H2ORoot]) -> dict[str, str]:
 
 
 def training_subjects(
-    root: Union[ArcticRoot, H2ORoot],
+    root: Union[ArcticRoot, H2ORoot, H2OPoseRoot],
     requested: Optional[Iterable[str]] = None,
     allow_held_out: Iterable[str] = (),
     stage: str = "this stage",

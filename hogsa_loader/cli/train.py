@@ -250,7 +250,7 @@ def train_srm_main(argv: Optional[Sequence[str]] = None) -> int:
 # ContactNet and pose bank
 # --------------------------------------------------------------------------------------
 
-CONTACTNET_DESCRIPTION = "Train POM's ContactNet on the annotated frames of an ARCTIC-format dataset."
+CONTACTNET_DESCRIPTION = "Train POM's ContactNet on the annotated frames of an ARCTIC-format or H2O dataset."
 BANK_DESCRIPTION = "Build a POM pose bank: optimise perturbed contact frames of every sequence and keep the grasps."
 
 

@@ -16,7 +16,7 @@ __all__ = ["TRAIN_JOBS", "add_train_commands", "run_train_command"]
 TRAIN_JOBS = {
     "hogs": "train one HOGS model (right hand, left hand, object Gaussians) per subject + object",
     "srm": "train the SRM (StyleUNet refinement of HOGS renders) on every finished HOGS run of a folder",
-    "contactnet": "train POM's ContactNet on the annotated frames of an ARCTIC-format dataset",
+    "contactnet": "train POM's ContactNet on the annotated frames of an ARCTIC-format or H2O dataset",
     "bank": "build a POM pose bank: optimise perturbed contact frames of every sequence",
 }
 

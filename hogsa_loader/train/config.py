@@ -12,9 +12,22 @@ from __future__ import annotations
 
 import dataclasses
 import typing
-from typing import Any, Mapping, Optional, TypeVar
+from typing import Any, Literal, Mapping, Optional, TypeVar
 
-__all__ = ["config_from_flat", "field_options", "flat_config", "flat_defaults", "flat_field_names"]
+__all__ = [
+    "Dataset",
+    "config_from_flat",
+    "dataset_field",
+    "field_options",
+    "flat_config",
+    "flat_defaults",
+    "flat_field_names",
+    "mano_dir_field",
+    "object_mesh_dir_field",
+]
+
+#: The dataset formats a training job reads.
+Dataset = Literal["arctic", "h2o"]
 
 T = TypeVar("T")
 
@@ -23,6 +36,23 @@ def field_options(help: str, check: Optional[str] = None, **extra: Any) -> dict[
     """A config field's metadata: help text, the name of its validator in
     :mod:`hogsa_loader.cli.checks` and any further keys (``name``, ``required``, ...)."""
     return {"help": help, **({"check": check} if check else {}), **extra}
+
+
+def dataset_field() -> Any:
+    """The ``dataset`` field of a job's data group (``"arctic"`` or ``"h2o"``)."""
+    return dataclasses.field(default="arctic", metadata=field_options("dataset format"))
+
+
+def mano_dir_field() -> Any:
+    """The ``mano_dir`` field: H2O keeps the MANO models outside its root."""
+    return dataclasses.field(default=None, metadata=field_options("H2O: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl"))
+
+
+def object_mesh_dir_field() -> Any:
+    """The ``object_mesh_dir`` field: H2O keeps the object meshes outside its root."""
+    return dataclasses.field(
+        default=None, metadata=field_options("H2O: folder of the object meshes (<name>/<name>.obj|.ply)")
+    )
 
 
 def _groups(cls: type) -> dict[str, type]:

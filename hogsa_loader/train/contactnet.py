@@ -1,4 +1,4 @@
-"""ContactNet training on the annotated frames of an ARCTIC-format dataset.
+"""ContactNet training on the annotated frames of an ARCTIC-format or H2O dataset.
 
 Samples: every frame (of the chosen subjects) where at least one hand touches the object
 (within 2 cm), both hands of it. Input: the object's surface samples (canonical frame, a

@@ -13,7 +13,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal, Mapping, Optional
 
-from hogsa_loader.train.config import config_from_flat, flat_config, flat_defaults
+from hogsa_loader.train.config import (
+    Dataset,
+    config_from_flat,
+    dataset_field,
+    flat_config,
+    flat_defaults,
+    mano_dir_field,
+    object_mesh_dir_field,
+)
 from hogsa_loader.train.config import field_options as _opt
 
 __all__ = ["HogsConfig", "HogsDataConfig", "HogsLossConfig", "HogsModelConfig", "HogsOptimConfig", "HogsRunConfig"]
@@ -45,14 +53,12 @@ class HogsDataConfig:
     )
     subject: str = field(default="", metadata=_opt("subject, e.g. s01 (H2O: subject1)", required=True))
     object: str = field(default="", metadata=_opt("object name, e.g. box", required=True))
-    dataset: Literal["arctic", "h2o"] = field(default="arctic", metadata=_opt("dataset format"))
+    dataset: Dataset = dataset_field()
     sequences: Optional[tuple[str, ...]] = field(
         default=None, metadata=_opt("sequence names, H2O as scene/seq (unset: all with the object)")
     )
-    mano_dir: Optional[str] = field(default=None, metadata=_opt("H2O: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl"))
-    object_mesh_dir: Optional[str] = field(
-        default=None, metadata=_opt("H2O: folder of the object meshes (<name>/<name>.obj|.ply)")
-    )
+    mano_dir: Optional[str] = mano_dir_field()
+    object_mesh_dir: Optional[str] = object_mesh_dir_field()
     masks: Literal["auto", "files", "render"] = field(
         default="auto",
         metadata=_opt(

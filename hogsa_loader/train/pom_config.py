@@ -14,6 +14,7 @@ from typing import Any, Literal, Optional
 
 from hogsa_loader.assets.arctic_processing import FRAME_MARGIN
 from hogsa_loader.models.pom.pipeline import check_bank_frames
+from hogsa_loader.train.config import Dataset, dataset_field, mano_dir_field, object_mesh_dir_field
 from hogsa_loader.train.config import field_options as _opt
 
 __all__ = [
@@ -42,7 +43,12 @@ def _tuple(value: Any) -> Any:
 class ContactNetDataConfig:
     """The annotated frames: the training subjects, and those ContactNet is validated on."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True, name="data"))
+    root: str = field(
+        default="", metadata=_opt("dataset root (ARCTIC ./data, or the H2O root)", required=True, name="data")
+    )
+    dataset: Dataset = dataset_field()
+    mano_dir: Optional[str] = mano_dir_field()
+    object_mesh_dir: Optional[str] = object_mesh_dir_field()
     val_subjects: Optional[tuple[str, ...]] = field(
         default=None,
         metadata=_opt(
@@ -99,7 +105,12 @@ class ContactNetJobConfig:
 class BankDataConfig:
     """The dataset, the ContactNet and which sequences and frames are optimised."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True, name="data"))
+    root: str = field(
+        default="", metadata=_opt("dataset root (ARCTIC ./data, or the H2O root)", required=True, name="data")
+    )
+    dataset: Dataset = dataset_field()
+    mano_dir: Optional[str] = mano_dir_field()
+    object_mesh_dir: Optional[str] = object_mesh_dir_field()
     contactnet: str = field(default="", metadata=_opt("ContactNet run folder", required=True))
     subjects: Optional[tuple[str, ...]] = field(
         default=None, metadata=_opt("subjects (unset: every subject the dataset's protocol does not hold out)")

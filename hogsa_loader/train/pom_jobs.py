@@ -13,14 +13,16 @@ import time
 import zlib
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Union
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.h2o_poses import H2OPoseRoot
 from hogsa_loader.assets.protocol import training_subjects
+from hogsa_loader.errors import UsageError
 from hogsa_loader.models.pom.bank import save_pose_bank
 from hogsa_loader.models.pom.contactnet import ContactNet, load_contactnet, save_contactnet
 from hogsa_loader.models.pom.hands import SIDES, HandInfo, hand_infos
@@ -37,9 +39,17 @@ from hogsa_loader.train.contactnet import (
     evaluate_contactnet,
     train_contactnet,
 )
-from hogsa_loader.train.pom_config import ContactNetDataConfig, ContactNetJobConfig, PoseBankConfig
+from hogsa_loader.train.pom_config import BankDataConfig, ContactNetDataConfig, ContactNetJobConfig, PoseBankConfig
 
-__all__ = ["fit_contactnet", "build_pose_bank", "bank_finger_noise", "save_contactnet_curve", "variant_seed"]
+__all__ = [
+    "PoseRoot",
+    "bank_finger_noise",
+    "build_pose_bank",
+    "fit_contactnet",
+    "open_pose_root",
+    "save_contactnet_curve",
+    "variant_seed",
+]
 
 
 def save_contactnet_curve(path: Path, hist: dict) -> None:
@@ -72,7 +82,28 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
     plt.close(fig)
 
 
-def _split_subjects(root: ArcticRoot, data: ContactNetDataConfig) -> tuple[list[str], list[str]]:
+#: A dataset root the pose stages read: ARCTIC, or H2O with its MANO and mesh folders.
+PoseRoot = Union[ArcticRoot, H2OPoseRoot]
+
+
+def open_pose_root(data: Union[ContactNetDataConfig, BankDataConfig]) -> PoseRoot:
+    """The root of a pose stage's ``data`` group: an :class:`ArcticRoot`, or for
+    ``dataset="h2o"`` an :class:`H2OPoseRoot` with ``mano_dir`` and ``object_mesh_dir``.
+
+    Raises:
+        UsageError: an ARCTIC job is given ``mano_dir`` or ``object_mesh_dir`` (ARCTIC's are
+            in its root).
+        AssetError: a folder is missing.
+    """
+    if data.dataset == "h2o":
+        return H2OPoseRoot(data.root, data.mano_dir, data.object_mesh_dir)
+    extra = [f"--{n.replace('_', '-')}" for n in ("mano_dir", "object_mesh_dir") if getattr(data, n)]
+    if extra:
+        raise UsageError(f"{', '.join(extra)}: only for --dataset h2o (ARCTIC keeps its models in the data root)")
+    return ArcticRoot(data.root)
+
+
+def _split_subjects(root: PoseRoot, data: ContactNetDataConfig) -> tuple[list[str], list[str]]:
     """``(subjects ContactNet trains on, subjects it is validated on)``: the subjects with
     sequences that the dataset's protocol does not hold out (unless named in
     ``data.allow_held_out``); ``data.val_subjects`` (none by default) are kept out of training.
@@ -158,7 +189,7 @@ def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[s
         ValueError: no training subject is left after ``val_subjects``.
     """
     o = cfg.optim
-    root = ArcticRoot(cfg.data.root)
+    root = open_pose_root(cfg.data)
     train_subj, val_subj = _split_subjects(root, cfg.data)
     infos = hand_infos(root.mano_layers())
     objects = ObjectSet(root.object_templates(load_texture=False))
@@ -198,7 +229,7 @@ def variant_seed(seed: int, sequence: str, variant: int) -> int:
     return int(np.random.SeedSequence([int(seed), key, int(variant)]).generate_state(1)[0] >> 1)
 
 
-def _bank_sequences(root: ArcticRoot, cfg: PoseBankConfig) -> list[str]:
+def _bank_sequences(root: PoseRoot, cfg: PoseBankConfig) -> list[str]:
     """The ``"sid/seq"`` ids of ``root`` selected by ``cfg.data.subjects`` / ``sequences``: never
     of a subject the dataset's protocol holds out, unless named in ``cfg.data.allow_held_out``.
 
@@ -247,7 +278,7 @@ class _BankParts:
 
 
 def _optimise_sequences(
-    root: ArcticRoot,
+    root: PoseRoot,
     seqs: list[str],
     net: ContactNet,
     pom: POMConfig,
@@ -290,7 +321,7 @@ def _optimise_sequences(
     return parts
 
 
-def bank_finger_noise(root: ArcticRoot, seqs: list[str], cfg: PoseBankConfig) -> Optional[FingerNoise]:
+def bank_finger_noise(root: PoseRoot, seqs: list[str], cfg: PoseBankConfig) -> Optional[FingerNoise]:
     """The bank's finger noise: principal directions of every annotated frame of ``seqs``
     (None when ``cfg.pom.finger_scale`` is 0)."""
     if cfg.pom.finger_scale == 0:
@@ -323,7 +354,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
     Raises:
         ValueError: no frame was selected.
     """
-    root = ArcticRoot(cfg.data.root)
+    root = open_pose_root(cfg.data)
     net = load_contactnet(cfg.data.contactnet, cfg.run.device)
     pom = POMConfig(iters=cfg.pom.iters)
     pert = KEEP_ARTICULATION if cfg.pom.arti_range is None else PerturbConfig(arti_range=tuple(cfg.pom.arti_range))

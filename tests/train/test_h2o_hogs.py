@@ -1,4 +1,5 @@
-"""HOGS on H2O: object mesh reader, the H2O export of the tiny world, data, training, quality.
+"""H2O: object mesh reader, the H2O export of the tiny world, HOGS data, training and quality,
+and the pose stages (ContactNet, the POM pose bank) on H2O's grasps.
 
 The H2O tree is exported from the tiny world's ``s05/box_grab_01`` (16 frames, cams 0-3 =
 world views 1-4, cam 4 = ego, 320x180 frames, the box as H2O's ``book``).
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +21,20 @@ from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.conventions import project, transform
 from hogsa_loader.assets.h2o import H2ORoot
 from hogsa_loader.assets.h2o_meshes import H2O_MESH_NAMES, find_h2o_mesh, h2o_mesh_candidates, load_h2o_object
-from hogsa_loader.assets.objects.template import BOTTOM
-from hogsa_loader.errors import AssetError
+from hogsa_loader.assets.h2o_poses import H2OPoseRoot
+from hogsa_loader.assets.objects.template import BOTTOM, TOP
+from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
+from hogsa_loader.errors import AssetError, UsageError
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.models.gaussians.hogs_model import HogsModel
+from hogsa_loader.models.pom.bank import load_pose_bank
+from hogsa_loader.models.pom.objects import ABSENT_PART_DISTANCE, ObjectSet
 from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.hogs_data import FrameSelection
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
+from hogsa_loader.train.pom_config import BankDataConfig, ContactNetDataConfig, ContactNetJobConfig, PoseBankConfig
+from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet, open_pose_root
 from hogsa_world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -352,3 +360,81 @@ def test_train_all_hogs_lists_h2o_pairs(h2o_world, tmp_path, capsys):
     assert "1 pairs" in capsys.readouterr().out
     args, _ = ta.parse_args(["--data", str(root), "--out", str(tmp_path), "--dataset", "h2o", "--objects", "milk"])
     assert ta.list_h2o_pairs(H2ORoot(root), args) == []
+
+
+# ------------------------------------------------------------------------- the pose stages
+def _pose_root(h2o_world, tiny_world) -> H2OPoseRoot:
+    out, _ = h2o_world
+    return H2OPoseRoot(out, ArcticRoot(tiny_world).mano_dir, out / "object")
+
+
+def test_h2o_pose_root_reads_grasp_sequences(h2o_world, tiny_world, tmp_path):
+    root = _pose_root(h2o_world, tiny_world)
+    assert root.sequences() == root.sequences("subject1") == ["subject1/book_h1_0"]
+    assert root.h2o_sequence("subject1/book_h1_0") == ("subject1", "h1", "0", 1)
+    sd = root.sequence("subject1", "book_h1_0")
+    assert (sd.dataset, sd.subject, sd.name, sd.object.name) == ("h2o", "subject1", "book_h1_0", "book")
+    assert sd.num_frames == 16 and np.all(sd.object.arti == 0) and sd.right.valid.all()
+    # the same labels as the H2O reader gives
+    direct = H2ORoot(h2o_world[0]).sequence("subject1", "h1", 0, root.mano_layers(torch.float64))
+    np.testing.assert_array_equal(sd.right.pose, direct.right.pose)
+    np.testing.assert_array_equal(sd.object.trans, direct.object.trans)
+    ((name, tpl),) = root.object_templates(load_texture=False).items()
+    assert name == "book" and (tpl.parts == BOTTOM).all()
+    assert held_out_subjects(root) == {"subject4": "test"}
+    with pytest.raises(UsageError, match="subject4 \\(test\\) held out"):
+        training_subjects(root, ["subject4"], (), "ContactNet")
+    with pytest.raises(KeyError, match="subject/<object>_<scene>_<seq>"):
+        root.h2o_sequence("subject1/h1_0")
+    with pytest.raises(AssetError, match="needs mano_dir"):
+        H2OPoseRoot(h2o_world[0], None, h2o_world[0] / "object")
+    with pytest.raises(AssetError, match="object_mesh_dir folder not found"):
+        H2OPoseRoot(h2o_world[0], root.mano_dir, tmp_path / "none")
+    arctic = ContactNetDataConfig(root=str(tiny_world), mano_dir=str(root.mano_dir))
+    with pytest.raises(UsageError, match="--mano-dir: only for --dataset h2o"):
+        open_pose_root(arctic)
+
+
+def test_a_rigid_object_has_no_top_part(h2o_world, tiny_world):
+    root = _pose_root(h2o_world, tiny_world)
+    objects = ObjectSet(root.object_templates(load_texture=False))
+    g = objects.geometry("book")
+    assert g.parts == (BOTTOM,) and set(g.tris) == set(g.trees) == set(g.voxels) == {BOTTOM}
+    assert not g.points_top.any()
+    tpl = objects.templates["book"]
+    centre = torch.tensor((tpl.verts.min(0) + tpl.verts.max(0)) / 2, dtype=torch.float32)
+    pts = torch.stack([centre, centre + torch.tensor([0.0, 0.0, 0.5])])[None].requires_grad_()
+    parts = objects.part_sdf(pts, ["book"], torch.zeros(1))
+    assert torch.all(parts[TOP] == ABSENT_PART_DISTANCE)
+    d = objects.sdf(pts, ["book"], torch.zeros(1))
+    assert torch.equal(d, parts[BOTTOM]) and d[0, 0] < 0 < d[0, 1] < ABSENT_PART_DISTANCE
+    d.sum().backward()
+    assert torch.isfinite(pts.grad).all() and pts.grad.abs().sum() > 0
+
+
+def test_contactnet_and_pose_bank_on_h2o(h2o_world, tiny_world, tmp_path):
+    root = _pose_root(h2o_world, tiny_world)
+    data = {"root": str(root.root), "dataset": "h2o", "mano_dir": str(root.mano_dir)}
+    data["object_mesh_dir"] = str(root.object_mesh_dir)
+    cn = ContactNetJobConfig(
+        data=ContactNetDataConfig(**data),
+        optim=replace(ContactNetJobConfig().optim, iters=10),
+        run=replace(ContactNetJobConfig().run, out=str(tmp_path / "cn"), val_every=10),
+    )
+    m = fit_contactnet(cn, progress=False)
+    assert m["held_out_read"] == [] and Path(tmp_path / "cn").is_dir()
+    bank_cfg = PoseBankConfig(
+        data=BankDataConfig(**data, contactnet=str(tmp_path / "cn"), per_sequence=2, frame_margin=2),
+        pom=replace(PoseBankConfig().pom, iters=20),
+        run=replace(PoseBankConfig().run, out=str(tmp_path / "bank")),
+    )
+    info = build_pose_bank(bank_cfg, progress=False)
+    bank = load_pose_bank(tmp_path / "bank")
+    assert info["entries"] == len(bank.sources) == 2
+    assert {(s, q) for s, q, _ in bank.sources} == {("subject1", "book_h1_0")}
+    assert all(2 <= f < 14 for _, _, f in bank.sources)  # within the frame margin
+    assert bank.state.obj_names == ["book", "book"] and torch.all(bank.state.obj_arti == 0)
+    sd = root.sequence("subject1", "book_h1_0")
+    for (_, _, f), trans in zip(bank.sources, bank.state.obj_trans):  # a perturbation of H2O's frame
+        assert np.linalg.norm(trans.numpy() - sd.object.trans[f]) < 0.05
+    assert torch.isfinite(bank.metrics["penetration_depth"]).all()

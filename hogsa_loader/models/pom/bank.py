@@ -141,8 +141,8 @@ def save_pose_bank(
     bank = PoseBank(state, list(sources), m, dict(info or {}))
     fields = {
         "count": n,
-        "convention": "ARCTIC world frame as SequenceData: axis-angle, metres, hand pose relative to "
-        "the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
+        "convention": "the dataset's world frame (ARCTIC, H2O) as SequenceData: axis-angle, metres, hand pose "
+        "relative to the MANO mean (flat_hand_mean=False); object arti (rad), rot (axis-angle), trans (m)",
         "entries": [
             {"subject": a, "sequence": b, "frame": int(c), "object": state.obj_names[i]}
             for i, (a, b, c) in enumerate(sources)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from hogsa_loader.assets.objects.articulated import articulation_matrix
-from hogsa_loader.assets.objects.template import BOTTOM, TOP
+from hogsa_loader.assets.objects.template import TOP
 from hogsa_loader.models.pom.geometry import grid_inside, ray_parity_inside
 from hogsa_loader.models.pom.hands import SIDES, HandInfo
 from hogsa_loader.models.pom.objects import VOLUME_PITCH, ObjectSet
@@ -32,7 +32,7 @@ def _inside_and_distance(g: object, Rt: Tensor, pts: Tensor, near: Tensor) -> tu
     cand = near.nonzero().squeeze(-1)
     inside = torch.zeros(pts.shape[0], dtype=torch.bool)
     dist = np.full(pts.shape[0], np.inf)
-    for part in (TOP, BOTTOM):
+    for part in g.parts:
         q = pts[cand] @ Rt if part == TOP else pts[cand]
         inside[cand] |= ray_parity_inside(q, g.tris[part])
         if len(cand):
@@ -44,7 +44,7 @@ def _inside_and_distance(g: object, Rt: Tensor, pts: Tensor, near: Tensor) -> tu
 def _intersection_count(g: object, Rt: Tensor, V: Mapping[str, Tensor], infos: Mapping[str, HandInfo]) -> int:
     """Object voxel centres (per part's voxel grid) inside a (wrist-capped) hand mesh, summed over hands."""
     count = 0
-    for part in (TOP, BOTTOM):
+    for part in g.parts:
         (xs, ys, zs), obj_in = g.vox_grid[part]
         if not bool(obj_in.any()):
             continue

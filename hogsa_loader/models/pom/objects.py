@@ -28,10 +28,12 @@ from hogsa_loader.assets.objects.template import BOTTOM, TOP, ObjectTemplate
 from hogsa_loader.geometry.rotations import axis_angle_to_matrix
 from hogsa_loader.models.pom.geometry import build_sdf_grid, grid_inside, sample_surface
 
-__all__ = ["ObjectGeometry", "ObjectSet", "to_canonical", "to_world", "part_frames"]
+__all__ = ["ABSENT_PART_DISTANCE", "ObjectGeometry", "ObjectSet", "to_canonical", "to_world", "part_frames"]
 
 #: Voxel pitch of GraspTTA's intersection volume (m).
 VOLUME_PITCH = 0.005
+#: Signed distance of every point to a part an object does not have (m): far outside.
+ABSENT_PART_DISTANCE = 1.0
 
 
 def to_canonical(points: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
@@ -80,6 +82,9 @@ class ObjectGeometry:
         voxels: part -> (M_p, 3) 5 mm voxel centres inside the part.
         vox_grid: part -> ((xs, ys, zs), inside (nz, ny, nx) bool): the same voxels as a grid.
         diameter: metres.
+
+    A rigid object (every face in the bottom part, as H2O's) has no top entries: the
+    per-part dictionaries hold only the parts that have faces (:attr:`parts`).
     """
 
     name: str
@@ -92,6 +97,11 @@ class ObjectGeometry:
     vox_grid: dict
     diameter: float
 
+    @property
+    def parts(self) -> tuple[int, ...]:
+        """The parts with faces: ``(TOP, BOTTOM)``, or ``(BOTTOM,)`` for a rigid object."""
+        return tuple(self.sdf)
+
     @classmethod
     def build(
         cls, template: ObjectTemplate, n_points: int = 2048, sdf_voxel: float = 0.002, seed: int = 0
@@ -102,6 +112,8 @@ class ObjectGeometry:
         sdf, tris, trees, voxels, vox_grid = {}, {}, {}, {}, {}
         for part in (TOP, BOTTOM):
             v, f = template.part_mesh(part)
+            if len(f) == 0:
+                continue
             sdf[part] = build_sdf_grid(v, f, voxel=sdf_voxel, seed=seed + part)
             tris[part] = torch.as_tensor(v[f], dtype=torch.float64)
             dense, _ = sample_surface(v, f, 60_000, rng)
@@ -192,7 +204,8 @@ class ObjectSet:
 
         Returns:
             ``{TOP: (B, P), BOTTOM: (B, P)}`` signed distances (m, negative inside),
-            differentiable in the points.
+            differentiable in the points; a part an object does not have is
+            :data:`ABSENT_PART_DISTANCE` away from every point (no gradient).
         """
         frames = part_frames(points_c, arti)
         names = list(names)
@@ -202,6 +215,9 @@ class ObjectSet:
             for name in sorted(set(names)):
                 sel = torch.tensor([n == name for n in names], device=points_c.device)
                 g = self.geometry(name)
+                if part not in g.sdf:
+                    d = d.index_put((sel.nonzero().squeeze(-1),), d.new_tensor(ABSENT_PART_DISTANCE))
+                    continue
                 grid = g.sdf[part]
                 if grid.values.device != points_c.device:
                     grid = g.sdf[part] = grid.to(points_c.device)
