@@ -75,7 +75,10 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
     ax[0].legend()
     ax[0].set_yscale("log")
     ax[1].set_xlabel("iteration")
-    ax[1].legend()
+    if hist["val"]:
+        ax[1].legend()
+    else:
+        ax[1].text(0.5, 0.5, "no validation subjects (--val-subjects)", ha="center", va="center")
     fig.suptitle("ContactNet training")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import importlib
 import json
-from dataclasses import replace
+import re
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -33,8 +34,8 @@ from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.hogs_data import FrameSelection
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
-from hogsa_loader.train.pom_config import BankDataConfig, ContactNetDataConfig, ContactNetJobConfig, PoseBankConfig
-from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet, open_pose_root
+from hogsa_loader.train.pom_config import ContactNetDataConfig
+from hogsa_loader.train.pom_jobs import open_pose_root
 from hogsa_world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -412,25 +413,37 @@ def test_a_rigid_object_has_no_top_part(h2o_world, tiny_world):
     assert torch.isfinite(pts.grad).all() and pts.grad.abs().sum() > 0
 
 
-def test_contactnet_and_pose_bank_on_h2o(h2o_world, tiny_world, tmp_path):
+def _page_commands(name: str) -> list[list[str]]:
+    """The ``hogsa`` commands of the blocks of ``docs/<name>`` marked as run by this file."""
+    lines = (ROOT / "docs" / name).read_text().splitlines()
+    out = []
+    for i, line in enumerate(lines):
+        if line.startswith("<!-- block: run by tests/train/test_h2o_hogs.py"):
+            end = next(j for j in range(i + 2, len(lines)) if lines[j].startswith("```"))
+            text = re.sub(r"\\\n\s*", " ", "\n".join(lines[i + 2 : end]))
+            out += [shlex.split(c)[1:] for c in text.splitlines() if c.startswith("hogsa ")]
+    return out
+
+
+def _placed(arg: str, paths: dict[str, Path]) -> str:
+    """``arg`` with a placeholder path of the page (``KEY`` or ``KEY/...``) replaced."""
+    key, _, rest = arg.partition("/")
+    return arg if key not in paths else str(paths[key] / rest) if rest else str(paths[key])
+
+
+def test_the_pages_contactnet_and_pose_bank_run_on_h2o(h2o_world, tiny_world, tmp_path):
+    from hogsa_loader.cli.main import main as hogsa
+
     root = _pose_root(h2o_world, tiny_world)
-    data = {"root": str(root.root), "dataset": "h2o", "mano_dir": str(root.mano_dir)}
-    data["object_mesh_dir"] = str(root.object_mesh_dir)
-    cn = ContactNetJobConfig(
-        data=ContactNetDataConfig(**data),
-        optim=replace(ContactNetJobConfig().optim, iters=10),
-        run=replace(ContactNetJobConfig().run, out=str(tmp_path / "cn"), val_every=10),
-    )
-    m = fit_contactnet(cn, progress=False)
-    assert m["held_out_read"] == [] and Path(tmp_path / "cn").is_dir()
-    bank_cfg = PoseBankConfig(
-        data=BankDataConfig(**data, contactnet=str(tmp_path / "cn"), per_sequence=2, frame_margin=2),
-        pom=replace(PoseBankConfig().pom, iters=20),
-        run=replace(PoseBankConfig().run, out=str(tmp_path / "bank")),
-    )
-    info = build_pose_bank(bank_cfg, progress=False)
-    bank = load_pose_bank(tmp_path / "bank")
-    assert info["entries"] == len(bank.sources) == 2
+    cn_cmd, bank_cmd = _page_commands("h2o.md")
+    paths = {"H2O": root.root, "MANO": root.mano_dir, "runs": tmp_path / "runs"}
+    placed = [[_placed(a, paths) for a in c] for c in (cn_cmd, bank_cmd)]
+    assert placed[0][:2] == ["train", "contactnet"] and placed[1][:2] == ["train", "bank"]
+    assert hogsa(placed[0] + ["--optim-iters", "10", "--run-val-every", "10", "--quiet"]) == 0
+    toy = ["--per-sequence", "2", "--frame-margin", "2", "--pom-iters", "20", "--quiet"]
+    assert hogsa(placed[1] + toy) == 0
+    bank = load_pose_bank(tmp_path / "runs" / "h2o_pose_bank")
+    assert len(bank.sources) == 2 and bank.info["held_out_read"] == []
     assert {(s, q) for s, q, _ in bank.sources} == {("subject1", "book_h1_0")}
     assert all(2 <= f < 14 for _, _, f in bank.sources)  # within the frame margin
     assert bank.state.obj_names == ["book", "book"] and torch.all(bank.state.obj_arti == 0)
