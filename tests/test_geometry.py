@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -99,3 +100,23 @@ def test_look_at_points_the_camera_at_its_target():
     Md = look_at(np.array([[0.0, 0.0, 2.0]]), np.zeros((1, 3)), up)[0]
     np.testing.assert_allclose(Md[:3, :3] @ Md[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(Md[2, :3], [0.0, 0.0, -1.0], atol=1e-12)
+
+
+def test_the_world_rigs_roll_turns_image_x_toward_image_minus_y():
+    from hogsa_world.cameras import _look_at
+
+    eye, target, roll = np.array([1.2, -0.4, 0.6]), np.array([0.0, 0.1, 0.0]), 0.3
+    R0 = look_at(eye[None], target[None], np.array([0.0, 0.0, 1.0]))[0, :3, :3]
+    c, s = np.cos(roll), np.sin(roll)
+    expected = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ R0
+    np.testing.assert_allclose(_look_at(eye, target, roll)[:3, :3], expected, atol=1e-15)
+
+
+def test_camera_look_at_takes_the_direction_of_up_only():
+    from hogsa_loader.render.mesh_raster import camera_look_at
+
+    a = camera_look_at((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0))
+    b = camera_look_at((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1e-7, 0.0))
+    assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="parallel"):
+        camera_look_at((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1e-7, 1.0))

@@ -1,7 +1,8 @@
 """What the user holds, read and checked: dataset roots (ARCTIC, H2O), MANO, object templates.
 
 * :mod:`~hogsa_loader.assets.arctic` — :class:`ArcticRoot`, reader of a real ARCTIC root.
-* :mod:`~hogsa_loader.assets.h2o` — :class:`H2ORoot`, reader of an H2O root.
+* :mod:`~hogsa_loader.assets.h2o` — :class:`H2ORoot`, reader of an H2O root;
+  :mod:`~hogsa_loader.assets.h2o_poses` — its grasps as the pose stages read them.
 * :mod:`~hogsa_loader.assets.types` — :class:`SequenceData`, the dataset-independent
   sequence interface both readers return.
 * :mod:`~hogsa_loader.assets.protocol` — held-out subjects of a root's evaluation protocol.

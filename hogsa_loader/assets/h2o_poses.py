@@ -14,7 +14,7 @@ from typing import Any, Optional
 import torch
 
 from hogsa_loader.assets.h2o import H2O_EGO_CAMERA, H2ORoot
-from hogsa_loader.assets.h2o_meshes import load_h2o_object
+from hogsa_loader.assets.h2o_meshes import find_h2o_mesh, load_h2o_object
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.hands.mano_io import load_mano
 from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
@@ -31,16 +31,27 @@ def h2o_sequence_id(subject: str, scene: str, seq: str, obj: str) -> str:
     return f"{subject}/{obj}_{scene}_{seq}"
 
 
+def _has_mesh(mesh_dir: Path, name: str) -> bool:
+    try:
+        find_h2o_mesh(mesh_dir, name)
+    except AssetError:
+        return False
+    return True
+
+
 class H2OPoseRoot:
     """An H2O root with its MANO and object-mesh folders, as grasp sequences.
 
     * Ids: one per (sequence, object class its ``obj_pose_rt`` labels show), named by
       :func:`h2o_sequence_id`; a sequence showing two objects gives two ids, each with the
       other object's frames marked invalid.
-    * Labels are those of the egocentric camera (``cam4``), in H2O's world frame.
+    * Labels are those of the egocentric camera (``cam4``), in H2O's world frame; a subject's
+      labels are read when its sequences are first listed (a held-out subject's only when
+      asked for).
     * Hands: ``flat_hand_mean=False`` MANO layers of ``mano_dir`` (H2O's poses are turned
       into poses relative to the mean by :meth:`H2ORoot.sequence`).
-    * Objects: rigid templates (every face in the bottom part) of ``object_mesh_dir``.
+    * Objects: rigid templates (every face in the bottom part) of the meshes in
+      ``object_mesh_dir``.
 
     Args:
         root: H2O root (``subject1``, ``subject2``, ...).
@@ -60,36 +71,38 @@ class H2OPoseRoot:
             if not Path(path).is_dir():
                 raise AssetError(path, f"{what} folder not found")
         self.mano_dir, self.object_mesh_dir = Path(mano_dir), Path(object_mesh_dir)  # type: ignore[arg-type]
-        self._ids: Optional[dict[str, tuple[str, str, str, int]]] = None
+        self._ids: dict[str, dict[str, tuple[str, str, str, int]]] = {}
         self._mano_layers: dict[torch.dtype, dict] = {}
         self._templates: Optional[dict] = None
 
     def __repr__(self) -> str:
         return f"H2OPoseRoot({str(self.root)!r})"
 
-    def _index(self) -> dict[str, tuple[str, str, str, int]]:
-        """id -> (subject, scene, seq, object class)."""
-        if self._ids is None:
+    def _index(self, subject: str) -> dict[str, tuple[str, str, str, int]]:
+        """id -> (subject, scene, seq, object class) of one subject (its labels read once)."""
+        if subject not in self._ids:
             ids = {}
-            for subj, scene, seq in self.h2o.sequences():
+            for subj, scene, seq in self.h2o.sequences(subject) if subject in self.subjects() else ():
                 frames = self.h2o.frames(subj, scene, seq, H2O_EGO_CAMERA)
                 cls, _ = self.h2o.read_obj_poses(subj, scene, seq, H2O_EGO_CAMERA, frames)
                 for c in sorted(set(cls.tolist()) - {0}):
                     ids[h2o_sequence_id(subj, scene, seq, H2O_OBJECT_NAMES[c])] = (subj, scene, seq, int(c))
-            self._ids = dict(sorted(ids.items()))
-        return self._ids
+            self._ids[subject] = dict(sorted(ids.items()))
+        return self._ids[subject]
 
     def subjects(self) -> list[str]:
         """Subject folders, as :meth:`H2ORoot.subjects`."""
         return self.h2o.subjects()
 
     def sequences(self, subject: Optional[str] = None) -> list[str]:
-        """Sorted ``"sid/seq"`` ids (see the class).
+        """Sorted ``"sid/seq"`` ids (see the class); reads the object labels of the subjects
+        listed (all of them when ``subject`` is None).
 
         Args:
-            subject: restrict to one subject.
+            subject: restrict to one subject (none are listed for a subject the root lacks).
         """
-        return [k for k, v in self._index().items() if subject is None or v[0] == subject]
+        subjects = self.subjects() if subject is None else [subject]
+        return sorted(k for s in subjects for k in self._index(s))
 
     def h2o_sequence(self, sid_seq: str) -> tuple[str, str, str, int]:
         """``(subject, scene, seq, object class)`` of an id.
@@ -97,15 +110,17 @@ class H2OPoseRoot:
         Raises:
             KeyError: no such id.
         """
-        if sid_seq not in self._index():
+        ids = self._index(sid_seq.split("/", 1)[0])
+        if sid_seq not in ids:
             raise KeyError(f"{sid_seq!r} is not a sequence of {self.root} (ids: subject/<object>_<scene>_<seq>)")
-        return self._index()[sid_seq]
+        return ids[sid_seq]
 
     def sequence(self, sid: str, seq: str) -> SequenceData:
-        """The grasps of id ``sid/seq`` as :class:`SequenceData` (H2O world frame, labels of
-        ``cam4``, every camera folder; ``name`` is the id's ``seq``)."""
+        """The grasps of id ``sid/seq`` as :class:`SequenceData` (H2O world frame, labels and
+        camera of ``cam4`` only; ``name`` is the id's ``seq``)."""
         subj, scene, num, cls = self.h2o_sequence(f"{sid}/{seq}")
-        data = self.h2o.sequence(subj, scene, num, self.mano_layers(torch.float64), object_class=cls)
+        layers = self.mano_layers(torch.float64)
+        data = self.h2o.sequence(subj, scene, num, layers, cameras=[H2O_EGO_CAMERA], object_class=cls)
         data.name = seq
         return data
 
@@ -119,9 +134,15 @@ class H2OPoseRoot:
         return self._mano_layers[dtype]
 
     def object_templates(self, load_texture: bool = True) -> dict:
-        """``{name: ObjectTemplate}`` of the objects the ids show (rigid, metres, cached without
-        texture; ``load_texture`` reads the texture too)."""
-        names = sorted({seq.split("/", 1)[1].split("_", 1)[0] for seq in self._index()})
+        """``{name: ObjectTemplate}`` of every H2O object whose mesh ``object_mesh_dir`` holds
+        (rigid, metres, cached without texture; ``load_texture`` reads the texture too).
+
+        Raises:
+            AssetError: the folder holds no H2O object mesh.
+        """
+        names = [n for n in H2O_OBJECT_NAMES[1:] if _has_mesh(self.object_mesh_dir, n)]
+        if not names:
+            raise AssetError(self.object_mesh_dir, f"no H2O object mesh found (objects: {H2O_OBJECT_NAMES[1:]})")
         if load_texture:
             return {n: load_h2o_object(self.object_mesh_dir, n) for n in names}
         if self._templates is None:

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["look_at"]
+__all__ = ["LOOK_AT_PARALLEL", "look_at"]
+
+#: A unit ``up`` whose part across the viewing direction is shorter than this counts as
+#: parallel to it (:func:`look_at` then uses another axis).
+LOOK_AT_PARALLEL = 1e-6
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, roll_rad: np.ndarray | float = 0.0) -> np.ndarray:
@@ -19,7 +23,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, roll_rad: np.nd
     Args:
         eye: (B, 3) camera centres.
         target: (B, 3) look-at points.
-        up: (3,) world up vector.
+        up: (3,) world up vector (unit length).
         roll_rad: (B,) or scalar roll angles.
 
     Returns:
@@ -33,7 +37,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, roll_rad: np.nd
     up = np.broadcast_to(np.asarray(up, dtype=np.float64), (B, 3)).copy()
     y = -(up - np.sum(up * z, axis=1, keepdims=True) * z)
     n = np.linalg.norm(y, axis=1, keepdims=True)
-    bad = n[:, 0] < 1e-6
+    bad = n[:, 0] < LOOK_AT_PARALLEL
     if bad.any():  # looking straight along up: any perpendicular axis
         alt = np.where(np.abs(z[bad, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
         y[bad] = -(alt - np.sum(alt * z[bad], axis=1, keepdims=True) * z[bad])

@@ -42,7 +42,8 @@ def vertex_normals(verts: Tensor, faces: Tensor) -> Tensor:
     """Area-weighted unit vertex normals (zero for vertices used by no face).
 
     Each vertex sums the unnormalised normals of its faces, first over the faces' first
-    corners, then their second and third (a fixed order, so the result is reproducible).
+    corners, then their second and third (on the CPU a fixed order, so the result is
+    reproducible bit for bit; CUDA adds atomically).
 
     Args:
         verts: (..., V, 3).

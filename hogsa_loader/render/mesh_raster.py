@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F_nn
 from torch import Tensor
 
-from hogsa_loader.geometry.cameras import look_at
+from hogsa_loader.geometry.cameras import LOOK_AT_PARALLEL, look_at
 from hogsa_loader.geometry.meshes import NORMAL_EPS, face_normals, normalize, vertex_normals
 from hogsa_loader.geometry.texture import sample_texture
 from hogsa_loader.render import raster_kernels
@@ -1266,9 +1266,9 @@ def camera_look_at(
     if z.norm() < 1e-12:
         raise ValueError("camera_look_at: eye and target coincide")
     z = z / z.norm()
-    if (u - (u @ z) * z).norm() < 1e-9 * max(u.norm().item(), 1e-300):
+    if u.norm() < 1e-300 or (u - (u @ z) * z).norm() < LOOK_AT_PARALLEL * u.norm():
         raise ValueError("camera_look_at: up is parallel to the viewing direction")
-    return torch.from_numpy(look_at(e.numpy(), t.numpy(), u.numpy())[0]).to(out_dtype)
+    return torch.from_numpy(look_at(e.numpy(), t.numpy(), (u / u.norm()).numpy())[0]).to(out_dtype)
 
 
 def intrinsics_from_fov(fov_y_deg: float, width: int, height: int, dtype: torch.dtype = torch.float32) -> Tensor:

@@ -65,7 +65,7 @@ def build_contact_data(
     root, subjects: Sequence[str], infos: Mapping[str, HandInfo], objects: ObjectSet, near: float = 0.02
 ) -> ContactData:
     """Frames of ``subjects`` where a hand is within ``near`` of the object."""
-    seqs = [s for s in root.sequences() if s.split("/")[0] in set(subjects)]
+    seqs = [q for sid in dict.fromkeys(subjects) for q in root.sequences(sid)]
     if not seqs:
         raise ValueError(f"no sequences for subjects {list(subjects)}")
     state, src = load_frames(root, seqs)

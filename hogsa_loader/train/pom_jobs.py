@@ -13,7 +13,7 @@ import time
 import zlib
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import Any, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -47,6 +47,7 @@ __all__ = [
     "build_pose_bank",
     "fit_contactnet",
     "open_pose_root",
+    "sequences_of",
     "save_contactnet_curve",
     "variant_seed",
 ]
@@ -94,16 +95,32 @@ def open_pose_root(data: Union[ContactNetDataConfig, BankDataConfig]) -> PoseRoo
     ``dataset="h2o"`` an :class:`H2OPoseRoot` with ``mano_dir`` and ``object_mesh_dir``.
 
     Raises:
-        UsageError: an ARCTIC job is given ``mano_dir`` or ``object_mesh_dir`` (ARCTIC's are
-            in its root).
+        UsageError: an H2O job lacks ``mano_dir`` or ``object_mesh_dir``, or an ARCTIC job is
+            given one (ARCTIC's are in its root).
         AssetError: a folder is missing.
     """
     if data.dataset == "h2o":
+        missing = [f"--{n.replace('_', '-')}" for n in ("mano_dir", "object_mesh_dir") if not getattr(data, n)]
+        if missing:
+            raise UsageError(
+                f"--dataset h2o needs {' and '.join(missing)} (H2O keeps MANO and its meshes outside its root)"
+            )
         return H2OPoseRoot(data.root, data.mano_dir, data.object_mesh_dir)
     extra = [f"--{n.replace('_', '-')}" for n in ("mano_dir", "object_mesh_dir") if getattr(data, n)]
     if extra:
         raise UsageError(f"{', '.join(extra)}: only for --dataset h2o (ARCTIC keeps its models in the data root)")
     return ArcticRoot(data.root)
+
+
+def sequences_of(root: PoseRoot, subjects: Sequence[str]) -> list[str]:
+    """Sorted ``"sid/seq"`` ids of ``subjects`` (a subject without sequences has none); no
+    other subject's files are read, so a held-out subject's labels are never opened."""
+    out: list[str] = []
+    for sid in dict.fromkeys(subjects):
+        if isinstance(root, ArcticRoot) and not (root.raw_dir / sid).is_dir():
+            continue
+        out += root.sequences(sid)
+    return sorted(out)
 
 
 def _split_subjects(root: PoseRoot, data: ContactNetDataConfig) -> tuple[list[str], list[str]]:
@@ -115,9 +132,10 @@ def _split_subjects(root: PoseRoot, data: ContactNetDataConfig) -> tuple[list[st
         UsageError: a held-out subject asked for without ``allow_held_out``.
         ValueError: no training subject is left.
     """
-    with_sequences = {s.split("/")[0] for s in root.sequences()}
-    pool = [s for s in training_subjects(root, None, data.allow_held_out or (), "ContactNet") if s in with_sequences]
+    pool = training_subjects(root, None, data.allow_held_out or (), "ContactNet")
     val_subj = training_subjects(root, data.val_subjects or (), data.allow_held_out or (), "ContactNet validation")
+    with_sequences = {s.split("/")[0] for s in sequences_of(root, [*pool, *val_subj])}
+    pool = [s for s in pool if s in with_sequences]
     missing = sorted(set(val_subj) - with_sequences)
     if missing:
         raise ValueError(f"validation subjects {missing} have no sequence in {root.data_root}")
@@ -215,7 +233,7 @@ def fit_contactnet(cfg: ContactNetJobConfig, *, progress: bool = True) -> dict[s
     training = {
         k: metrics[k] for k in ("val_subjects", "train_subjects", "held_out_read", "iters", "val_mae", "val_iou05")
     }
-    save_contactnet(model, out, {"training": training, "data": str(root.data_root)})
+    save_contactnet(model, out, {"training": training, "data": str(root.data_root), "dataset": cfg.data.dataset})
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     (out / "history.json").write_text(json.dumps({"train_loss": hist["train_loss"], "val": hist["val"]}))
     save_contactnet_curve(out / "curve.png", hist)
@@ -244,8 +262,7 @@ def _bank_sequences(root: PoseRoot, cfg: PoseBankConfig) -> list[str]:
     requested = cfg.data.subjects
     if requested is None and cfg.data.sequences:
         requested = tuple(dict.fromkeys(s.split("/")[0] for s in cfg.data.sequences))
-    subjects = set(training_subjects(root, requested, allow, "the pose bank"))
-    seqs = [s for s in root.sequences() if s.split("/")[0] in subjects]
+    seqs = sequences_of(root, training_subjects(root, requested, allow, "the pose bank"))
     if cfg.data.sequences:
         seqs = [s for s in seqs if s in set(cfg.data.sequences)]
     return seqs
@@ -373,6 +390,7 @@ def build_pose_bank(cfg: PoseBankConfig, *, progress: bool = True) -> dict[str, 
     state = GraspState.cat(parts.states)
     info = {
         "data": str(root.data_root),
+        "dataset": cfg.data.dataset,
         "contactnet": str(cfg.data.contactnet),
         "per_sequence": cfg.data.per_sequence,
         "variants": cfg.data.variants,

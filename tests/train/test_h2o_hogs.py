@@ -34,8 +34,8 @@ from hogsa_loader.train import HogsConfig, HogsTrainer
 from hogsa_loader.train.hogs_data import FrameSelection
 from hogsa_loader.train.hogs_data_h2o import crop_image, load_h2o_hogs_data, square_box
 from hogsa_loader.train.hogs_source import mano_layers_from_dir, open_hogs_source
-from hogsa_loader.train.pom_config import ContactNetDataConfig
-from hogsa_loader.train.pom_jobs import open_pose_root
+from hogsa_loader.train.pom_config import BankDataConfig, ContactNetDataConfig, PoseBankConfig
+from hogsa_loader.train.pom_jobs import _bank_sequences, _split_subjects, open_pose_root
 from hogsa_world.h2o_export import EXPORT_RECORD, export_h2o_world, write_obj_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -394,6 +394,35 @@ def test_h2o_pose_root_reads_grasp_sequences(h2o_world, tiny_world, tmp_path):
     arctic = ContactNetDataConfig(root=str(tiny_world), mano_dir=str(root.mano_dir))
     with pytest.raises(UsageError, match="--mano-dir: only for --dataset h2o"):
         open_pose_root(arctic)
+    with pytest.raises(UsageError, match="--dataset h2o needs --mano-dir"):
+        open_pose_root(ContactNetDataConfig(root=str(root.root), dataset="h2o", object_mesh_dir=str(tmp_path)))
+
+
+def test_the_pose_stages_never_open_the_held_out_subject(h2o_world, tiny_world, tmp_path):
+    """subject4 (H2O's test subject) is listed but its labels are broken: the default ContactNet
+    and bank selections leave it out without reading them; asked for by name, it is refused."""
+    tree = tmp_path / "h2o"
+    tree.mkdir()
+    for item in h2o_world[0].iterdir():
+        (tree / item.name).symlink_to(item, target_is_directory=item.is_dir())
+    (tree / "subject4" / "h1" / "0" / "cam4").mkdir(parents=True)  # no labels at all
+    root = H2OPoseRoot(tree, ArcticRoot(tiny_world).mano_dir, tree / "object")
+    assert root.subjects() == ["subject1", "subject4"]
+    with pytest.raises(AssetError):
+        root.sequences("subject4")  # its labels cannot be read
+    data = {
+        "root": str(tree),
+        "dataset": "h2o",
+        "mano_dir": str(root.mano_dir),
+        "object_mesh_dir": str(tree / "object"),
+    }
+    fresh = open_pose_root(ContactNetDataConfig(**data))
+    assert _split_subjects(fresh, ContactNetDataConfig(**data)) == (["subject1"], [])
+    bank = PoseBankConfig(data=BankDataConfig(**data, contactnet="unused"))
+    assert _bank_sequences(fresh, bank) == ["subject1/book_h1_0"]
+    with pytest.raises(UsageError, match="subject4 \\(test\\) held out"):
+        asked = BankDataConfig(**data, contactnet="unused", subjects=("subject4",))
+        _bank_sequences(fresh, PoseBankConfig(data=asked))
 
 
 def test_a_rigid_object_has_no_top_part(h2o_world, tiny_world):
@@ -406,9 +435,9 @@ def test_a_rigid_object_has_no_top_part(h2o_world, tiny_world):
     centre = torch.tensor((tpl.verts.min(0) + tpl.verts.max(0)) / 2, dtype=torch.float32)
     pts = torch.stack([centre, centre + torch.tensor([0.0, 0.0, 0.5])])[None].requires_grad_()
     parts = objects.part_sdf(pts, ["book"], torch.zeros(1))
-    assert torch.all(parts[TOP] == ABSENT_PART_DISTANCE)
+    assert torch.all(parts[TOP] == ABSENT_PART_DISTANCE) and ABSENT_PART_DISTANCE == float("inf")
     d = objects.sdf(pts, ["book"], torch.zeros(1))
-    assert torch.equal(d, parts[BOTTOM]) and d[0, 0] < 0 < d[0, 1] < ABSENT_PART_DISTANCE
+    assert torch.equal(d, parts[BOTTOM]) and d[0, 0] < 0 < d[0, 1] < 1.0
     d.sum().backward()
     assert torch.isfinite(pts.grad).all() and pts.grad.abs().sum() > 0
 

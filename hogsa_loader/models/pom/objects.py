@@ -15,6 +15,7 @@ Frames (ARCTIC's): world ``p_w = R(ω) p_c + t``; the canonical frame of the bas
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -32,8 +33,8 @@ __all__ = ["ABSENT_PART_DISTANCE", "ObjectGeometry", "ObjectSet", "to_canonical"
 
 #: Voxel pitch of GraspTTA's intersection volume (m).
 VOLUME_PITCH = 0.005
-#: Signed distance of every point to a part an object does not have (m): far outside.
-ABSENT_PART_DISTANCE = 1.0
+#: Signed distance of every point to a part an object does not have: infinitely far outside.
+ABSENT_PART_DISTANCE = math.inf
 
 
 def to_canonical(points: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
