@@ -6,6 +6,8 @@ import fcntl
 import importlib
 import json
 import os
+import re
+import shlex
 import shutil
 import sys
 import types
@@ -21,6 +23,9 @@ from hypothesis import settings as hypothesis_settings
 from hogsa_loader.system import available_cores
 from hogsa_world.hand import synthetic_hand_pair
 from hogsa_world.mano_pickle import write_mano_pickle
+
+#: The repository.
+ROOT = Path(__file__).resolve().parents[1]
 
 # Each pytest-xdist worker gets its share of the cores, for its own torch and (through
 # OMP_NUM_THREADS, unless set) for the processes its tests start: more threads than cores make
@@ -38,6 +43,31 @@ if "PYTEST_XDIST_WORKER" in os.environ:  # (not in xdist's controller, whose env
 hypothesis_settings.register_profile("suite", derandomize=True, database=None, print_blob=True)
 hypothesis_settings.register_profile("random", database=None, print_blob=True)
 hypothesis_settings.load_profile(os.environ.get("HOGSA_HYPOTHESIS_PROFILE", "suite"))
+
+
+def page_commands(name: str, runner: str) -> list[list[str]]:
+    """The ``hogsa`` commands of the blocks of ``docs/<name>`` marked as run by ``runner``
+    (``<!-- block: run by <runner> ...``; continuation lines joined), as argument lists
+    without the leading ``hogsa``."""
+    lines = (ROOT / "docs" / name).read_text().splitlines()
+    commands = []
+    for i, line in enumerate(lines):
+        if line.startswith(f"<!-- block: run by {runner}"):
+            end = next(j for j in range(i + 2, len(lines)) if lines[j].startswith("```"))
+            text = re.sub(r"\\\n\s*", " ", "\n".join(lines[i + 2 : end]))
+            commands += [shlex.split(c)[1:] for c in text.splitlines() if c.startswith("hogsa ")]
+    assert commands, f"no block of docs/{name} is marked as run by {runner}"
+    return commands
+
+
+def placed(argv: list[str], paths: dict[str, Path]) -> list[str]:
+    """``argv`` with a page's stand-in paths (a key of ``paths``, or a key followed by
+    ``/...``) replaced by the real ones."""
+    out = []
+    for a in argv:
+        key = next((k for k in paths if a == k or a.startswith(k + "/")), None)
+        out.append(a if key is None else str(paths[key]) + a[len(key) :])
+    return out
 
 
 def job(name: str) -> types.SimpleNamespace:

@@ -3,41 +3,18 @@
 from __future__ import annotations
 
 import json
-import re
-import shlex
 from pathlib import Path
+
+from conftest import page_commands, placed
 
 from hogsa_loader.cli.main import main as hogsa
 
-ROOT = Path(__file__).resolve().parents[2]
-MARK = "<!-- block: run by tests/docs/test_pages.py"
-
-
-def page_commands(name: str) -> list[list[str]]:
-    """The ``hogsa`` commands of the blocks of ``docs/<name>`` this test runs (continuation
-    lines joined), as argument lists without the leading ``hogsa``."""
-    lines = (ROOT / "docs" / name).read_text().splitlines()
-    commands = []
-    for i, line in enumerate(lines):
-        if line.startswith(MARK):
-            end = next(j for j in range(i + 2, len(lines)) if lines[j].startswith("```"))
-            text = re.sub(r"\\\n\s*", " ", "\n".join(lines[i + 2 : end]))
-            commands += [shlex.split(c)[1:] for c in text.splitlines() if c.startswith("hogsa ")]
-    assert commands, f"no block of docs/{name} is marked as run by this test"
-    return commands
-
-
-def _placed(argv: list[str], paths: dict[str, Path]) -> list[str]:
-    """``argv`` with the page's placeholder paths (a key, or a key followed by ``/...``) replaced."""
-    out = []
-    for a in argv:
-        key = next((k for k in paths if a == k or a.startswith(k + "/")), None)
-        out.append(a if key is None else str(paths[key]) + a[len(key) :])
-    return out
+#: How the pages name this file in a block's marker.
+RUNNER = "tests/docs/test_pages.py"
 
 
 def test_h2o_page_commands_run_on_a_generated_world(tiny_world, tmp_path):
-    train_cmd, world_cmd, export_cmd = page_commands("h2o.md")
+    train_cmd, world_cmd, export_cmd = page_commands("h2o.md", RUNNER)
     # the suite's tiny world is the one `hogsa world --preset tiny` makes
     assert world_cmd[:3] == ["world", "--preset", "tiny"]
     info = json.loads((Path(tiny_world) / "arctic_data" / "data" / "meta" / "hogsa_world.json").read_text())
@@ -48,18 +25,18 @@ def test_h2o_page_commands_run_on_a_generated_world(tiny_world, tmp_path):
         "MANO": Path(tiny_world) / "body_models" / "mano",
         "runs": tmp_path / "runs",
     }
-    assert hogsa(_placed(export_cmd, paths) + ["--quiet"]) == 0
+    assert hogsa(placed(export_cmd, paths) + ["--quiet"]) == 0
     assert {"object", "subject1"} <= {p.name for p in (tmp_path / "H2O").iterdir()}
     toy = ["--optim-iters", "4", "--image-size", "32", "--max-eval", "1", "--run-eval-every", "0", "--quiet"]
-    assert hogsa(_placed(train_cmd, paths) + toy) == 0
+    assert hogsa(placed(train_cmd, paths) + toy) == 0
     metrics = json.loads((tmp_path / "runs" / "h2o_subject1_book" / "metrics.json").read_text())
     assert metrics["dataset"] == "h2o" and metrics["eval_views"] == [3] and metrics["psnr"] > 0
 
 
 def test_export_page_command_runs_on_a_generated_world(tiny_world, untrained_bundle, tmp_path):
-    (cmd,) = page_commands("export.md")
+    (cmd,) = page_commands("export.md", RUNNER)
     paths = {"build/bundle": untrained_bundle, "data": Path(tiny_world), "shards": tmp_path / "shards"}
-    argv = _placed(cmd, paths)
+    argv = placed(cmd, paths)
     small = {"--num": "8", "--shard-size": "4"}
     argv = [small.get(argv[i - 1], a) if i else a for i, a in enumerate(argv)]
     assert hogsa(argv + ["--batch-size", "4", "--render-size", "64", "--quiet"]) == 0

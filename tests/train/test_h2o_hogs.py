@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import importlib
 import json
-import re
-import shlex
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import job
+from conftest import job, page_commands, placed
 
 from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.conventions import project, transform
@@ -442,35 +440,17 @@ def test_a_rigid_object_has_no_top_part(h2o_world, tiny_world):
     assert torch.isfinite(pts.grad).all() and pts.grad.abs().sum() > 0
 
 
-def _page_commands(name: str) -> list[list[str]]:
-    """The ``hogsa`` commands of the blocks of ``docs/<name>`` marked as run by this file."""
-    lines = (ROOT / "docs" / name).read_text().splitlines()
-    out = []
-    for i, line in enumerate(lines):
-        if line.startswith("<!-- block: run by tests/train/test_h2o_hogs.py"):
-            end = next(j for j in range(i + 2, len(lines)) if lines[j].startswith("```"))
-            text = re.sub(r"\\\n\s*", " ", "\n".join(lines[i + 2 : end]))
-            out += [shlex.split(c)[1:] for c in text.splitlines() if c.startswith("hogsa ")]
-    return out
-
-
-def _placed(arg: str, paths: dict[str, Path]) -> str:
-    """``arg`` with a placeholder path of the page (``KEY`` or ``KEY/...``) replaced."""
-    key, _, rest = arg.partition("/")
-    return arg if key not in paths else str(paths[key] / rest) if rest else str(paths[key])
-
-
 def test_the_pages_contactnet_and_pose_bank_run_on_h2o(h2o_world, tiny_world, tmp_path):
     from hogsa_loader.cli.main import main as hogsa
 
     root = _pose_root(h2o_world, tiny_world)
-    cn_cmd, bank_cmd = _page_commands("h2o.md")
+    cn_cmd, bank_cmd = page_commands("h2o.md", "tests/train/test_h2o_hogs.py")
     paths = {"H2O": root.root, "MANO": root.mano_dir, "runs": tmp_path / "runs"}
-    placed = [[_placed(a, paths) for a in c] for c in (cn_cmd, bank_cmd)]
-    assert placed[0][:2] == ["train", "contactnet"] and placed[1][:2] == ["train", "bank"]
-    assert hogsa(placed[0] + ["--optim-iters", "10", "--run-val-every", "10", "--quiet"]) == 0
+    placed_cmds = [placed(c, paths) for c in (cn_cmd, bank_cmd)]
+    assert placed_cmds[0][:2] == ["train", "contactnet"] and placed_cmds[1][:2] == ["train", "bank"]
+    assert hogsa(placed_cmds[0] + ["--optim-iters", "10", "--run-val-every", "10", "--quiet"]) == 0
     toy = ["--per-sequence", "2", "--frame-margin", "2", "--pom-iters", "20", "--quiet"]
-    assert hogsa(placed[1] + toy) == 0
+    assert hogsa(placed_cmds[1] + toy) == 0
     bank = load_pose_bank(tmp_path / "runs" / "h2o_pose_bank")
     assert len(bank.sources) == 2 and bank.info["held_out_read"] == []
     assert {(s, q) for s, q, _ in bank.sources} == {("subject1", "book_h1_0")}
