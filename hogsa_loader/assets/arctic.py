@@ -22,7 +22,7 @@ from hogsa_loader.assets.conventions import ALLO_VIEWS, CROPPED_SIZE, EGO_IMAGE_
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.hands.mano_io import load_mano
 from hogsa_loader.assets.objects.articulated import ArticulatedObjectLayer
-from hogsa_loader.assets.objects.template import load_object_templates
+from hogsa_loader.assets.objects.template import ObjectTemplates
 from hogsa_loader.assets.types import CameraTrack, HandTrack, ObjectTrack, SequenceData
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.io.npy import NpyUnpickler, read_npy
@@ -391,7 +391,7 @@ class ArcticRoot:
         self.mano_dir: Path = root / MANO_SUBDIR
         self._misc: Optional[dict[str, SubjectMisc]] = None
         self._world_meta: Optional[WorldMeta] = None
-        self._templates: dict[bool, dict] = {}
+        self._templates: dict[bool, ObjectTemplates] = {}
         self._object_layer: Any = None
         self._mano_layers: dict[torch.dtype, dict] = {}
 
@@ -512,12 +512,13 @@ class ArcticRoot:
         return sorted(out)
 
     # ------------------------------------------------------------------ models
-    def object_templates(self, load_texture: bool = True) -> dict:
-        """``{name: ObjectTemplate}`` of ``meta/object_vtemplates`` (metres, cached)."""
+    def object_templates(self, load_texture: bool = True) -> ObjectTemplates:
+        """``{name: ObjectTemplate}`` of ``meta/object_vtemplates`` (metres), each object read when
+        first asked for (:class:`~hogsa_loader.assets.objects.template.ObjectTemplates`); one
+        mapping per ``load_texture``, kept (the untextured one takes what the textured one read)."""
         if load_texture not in self._templates:
-            if not load_texture and True in self._templates:
-                return self._templates[True]
-            self._templates[load_texture] = load_object_templates(self.meta_dir, load_texture=load_texture)
+            textured = self._templates.get(True) if not load_texture else None
+            self._templates[load_texture] = ObjectTemplates(self.meta_dir, load_texture, textured=textured)
         return self._templates[load_texture]
 
     def object_layer(self) -> Any:

@@ -25,6 +25,7 @@ __all__ = [
     "H2O_ACTION_MAX",
     "H2O_CAM_INTRINSICS_FILE",
     "H2O_COUNTS",
+    "H2O_CROP_SIZE",
     "H2O_EGO_CAMERA",
     "H2O_IMAGE_SIZE",
     "H2O_MANO_HAND_SLICES",
@@ -76,6 +77,9 @@ H2O_MANO_HAND_SLICES: dict[str, dict[str, slice]] = {
 
 #: Index of the head-mounted camera (``cam4``); ``cam0``..``cam3`` are static.
 H2O_EGO_CAMERA: int = 4
+#: Side (px) of the square crops this library makes of H2O's full frames: the default
+#: resolution of HOGS runs on H2O, and the crop side an H2O bundle records.
+H2O_CROP_SIZE = 256
 #: Full-resolution ``rgb/`` image size, (width, height).
 H2O_IMAGE_SIZE: tuple[int, int] = (1280, 720)
 #: Name of the per-camera intrinsics file.

@@ -8,6 +8,7 @@ the object meshes outside its root, so both folders are given.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, Optional
 
@@ -55,8 +56,8 @@ class H2OPoseRoot:
 
     Args:
         root: H2O root (``subject1``, ``subject2``, ...).
-        mano_dir: folder with ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl``.
-        object_mesh_dir: folder of the object meshes (``<name>/<name>.obj|.ply``).
+        mano_dir: folder with ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl`` (kept as an absolute path).
+        object_mesh_dir: folder of the object meshes (``<name>/<name>.obj|.ply``; absolute too).
 
     Raises:
         AssetError: a folder does not exist.
@@ -70,7 +71,8 @@ class H2OPoseRoot:
                 raise AssetError(self.root, f"an H2O root needs {what} (H2O keeps it outside the dataset)")
             if not Path(path).is_dir():
                 raise AssetError(path, f"{what} folder not found")
-        self.mano_dir, self.object_mesh_dir = Path(mano_dir), Path(object_mesh_dir)  # type: ignore[arg-type]
+        self.mano_dir = Path(os.path.abspath(mano_dir))  # type: ignore[arg-type]
+        self.object_mesh_dir = Path(os.path.abspath(object_mesh_dir))  # type: ignore[arg-type]
         self._ids: dict[str, dict[str, tuple[str, str, str, int]]] = {}
         self._mano_layers: dict[torch.dtype, dict] = {}
         self._templates: Optional[dict] = None

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
+from hogsa_loader.assets.roots import DATASETS, open_dataset_root
 from hogsa_loader.cli import checks
 from hogsa_loader.errors import HogsaError, UsageError
 from hogsa_loader.models.bundle import MANIFEST_NAME, load_bundle, write_bundle
@@ -39,7 +40,7 @@ def find_runs(folder: Path, depth: int = 2) -> list[Path]:
 def build_parser() -> argparse.ArgumentParser:
     """The flags of this command."""
     p = argparse.ArgumentParser(prog="python -m hogsa_loader.cli.build_bundle", description=__doc__.split("\n")[0])
-    p.add_argument("--data", required=True, help="ARCTIC(-format) data root the runs were trained on")
+    p.add_argument("--data", required=True, help="dataset root the runs were trained on (ARCTIC ./data, or H2O's)")
     p.add_argument("--hogs", required=True, help="a HOGS run folder, or a folder of run folders")
     p.add_argument("--out", required=True, help="bundle folder to write")
     p.add_argument("--srm", default=None, help="SRM checkpoint folder (a hogsa train srm run)")
@@ -50,7 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         help="pose-bank folders (hogsa train bank), comma-separated, distinct folder names",
     )
-    p.add_argument("--dataset", default="arctic")
+    p.add_argument("--dataset", default="arctic", choices=DATASETS, help="dataset format of --data")
+    p.add_argument("--mano-dir", default=None, help="H2O: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl")
+    p.add_argument("--object-mesh-dir", default=None, help="H2O: folder of the object meshes (<name>/<name>.obj|.ply)")
     p.add_argument("--overwrite", action="store_true", help="replace the bundle already in --out")
     checks.one_line_errors(p)
     return p
@@ -65,19 +68,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         checks.output_dir(args.out, "--out")
         if (Path(args.out) / MANIFEST_NAME).is_file() and not args.overwrite:
             raise UsageError(f"--out {args.out}: already holds a bundle (pass --overwrite to replace it)")
+        root = open_dataset_root(args.dataset, args.data, args.mano_dir, args.object_mesh_dir)
         runs = find_runs(Path(args.hogs))
         if not runs:
             raise UsageError(f"--hogs {args.hogs}: no finished HOGS run under it")
-        out = write_bundle(
-            args.out,
-            args.data,
-            runs,
-            srm=args.srm,
-            contactnet=args.contactnet,
-            pose_banks=args.pose_bank,
-            dataset=args.dataset,
-        )
-        bundle = load_bundle(out, data_root=args.data)
+        out = write_bundle(args.out, root, runs, srm=args.srm, contactnet=args.contactnet, pose_banks=args.pose_bank)
+        bundle = load_bundle(out, data_root=root)
     except (HogsaError, OSError) as exc:
         return checks.report("build_bundle", exc)
     print(

@@ -17,13 +17,13 @@ def face_normals(verts: Tensor, faces: Tensor) -> Tensor:
 
     Args:
         verts: (..., V, 3).
-        faces: (F, 3) int64.
+        faces: (F, 3) int64, on ``verts``' device.
 
     Returns:
         (..., F, 3).
     """
-    tri = verts[..., faces, :]  # (..., F, 3, 3)
-    return torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+    v0, v1, v2 = (verts.index_select(-2, faces[:, k]) for k in range(3))  # (..., F, 3) each
+    return torch.linalg.cross(v1 - v0, v2 - v0, dim=-1)
 
 
 def normalize(x: Tensor) -> Tensor:

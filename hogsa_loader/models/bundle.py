@@ -15,9 +15,11 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence, Union
 
 from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.h2o_io import H2O_CROP_SIZE
+from hogsa_loader.assets.h2o_poses import H2OPoseRoot
 from hogsa_loader.errors import AssetError, PathLike, read_json
 from hogsa_loader.io.atomic import atomic_write_json
 from hogsa_loader.io.hashing import sha256_file
@@ -40,6 +42,7 @@ __all__ = [
     "ExtraEntry",
     "write_bundle",
     "load_bundle",
+    "bundle_dataset",
 ]
 
 BUNDLE_FORMAT = "hogsa-bundle"
@@ -48,6 +51,9 @@ MANIFEST_NAME = "manifest.json"
 _PARTS = ("hand_right", "hand_left", "object")
 #: The shared manifest header of a bundle (no tensors file of its own).
 BUNDLE_HEADER = ManifestFormat(BUNDLE_FORMAT, BUNDLE_SCHEMA_VERSION, "a bundle", manifest_file=MANIFEST_NAME)
+#: A data root as the bundle functions take it: an ARCTIC(-format) root folder, an opened
+#: :class:`ArcticRoot`, or an H2O root with its MANO and mesh folders (:class:`H2OPoseRoot`).
+DataRoot = Union[PathLike, ArcticRoot, H2OPoseRoot]
 #: ``{"tensors": file name, "manifest": file name}`` of a run's light folder (``LIGHT_DIR``).
 _LIGHT_FILES = {"tensors": LIGHT_TENSORS, "manifest": LIGHT_MANIFEST}
 
@@ -124,8 +130,10 @@ class Bundle:
     format            ``"hogsa-bundle"``
     schema_version    2
     library_version   ``hogsa_loader.__version__`` of the writer
-    dataset           ``{"name": "arctic", "root": str, "subjects": [...], "cropped_size": int}``
-                      (``root`` is informational: the loader takes the data root as an argument)
+    dataset           ``{"name": "arctic" | "h2o", "root": str, "subjects": [...],
+                      "cropped_size": int}``, H2O also ``"mano_dir"`` and ``"object_mesh_dir"``
+                      (the folders are informational: the loader takes the data root as an
+                      argument)
     hand_model        ``{"source": str, "right": {"template_hash", "num_verts"},
                       "left": {...}}`` — the MANO(-schema) models the hands were trained on
     objects           ``{name: {"template_hash", "num_verts"}}`` — the object templates used
@@ -146,7 +154,8 @@ class Bundle:
 
     @property
     def dataset(self) -> str:
-        return str(self.manifest["dataset"]["name"])
+        """The dataset the bundle was built on (``"arctic"`` or ``"h2o"``)."""
+        return str(self.manifest["dataset"].get("name", "arctic"))
 
     @property
     def keys(self) -> list[tuple[str, str]]:
@@ -172,7 +181,7 @@ class Bundle:
             raise KeyError(f"bundle {self.path} has no HOGS run for {key}; it has {self.keys}")
         return HogsModel.from_run(self.hogs[key].path, mano_layers, object_templates, device=device).eval()
 
-    def check_data_root(self, data_root: PathLike) -> None:
+    def check_data_root(self, data_root: DataRoot) -> None:
         """Raise one :class:`AssetError` if ``data_root``'s hand model or object templates
         differ from the ones the bundle was built with."""
         problems = _check_root(self.manifest, data_root)
@@ -220,13 +229,35 @@ def _bundle_error(path: Path, problems: Sequence[str]) -> AssetError:
     return AssetError(path, f"invalid bundle ({n} problem{'s' if n != 1 else ''}):\n{lines}")
 
 
-def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
-    """Problems of ``data_root`` against the manifest's hand model and object hashes."""
+def _opened(data_root: DataRoot) -> Union[ArcticRoot, H2OPoseRoot]:
+    """``data_root`` opened: a folder as an :class:`ArcticRoot`; an opened root as it is."""
+    return data_root if isinstance(data_root, (ArcticRoot, H2OPoseRoot)) else ArcticRoot(data_root)
+
+
+def _dataset_of(root: Union[ArcticRoot, H2OPoseRoot]) -> str:
+    return "h2o" if isinstance(root, H2OPoseRoot) else "arctic"
+
+
+def _objects_dir(root: Union[ArcticRoot, H2OPoseRoot]) -> Path:
+    return root.object_mesh_dir if isinstance(root, H2OPoseRoot) else root.meta_dir
+
+
+def _check_root(manifest: Mapping[str, Any], data_root: DataRoot) -> list[str]:
+    """Problems of ``data_root`` against the manifest's dataset, hand model and object hashes."""
     problems: list[str] = []
+    built_on = manifest.get("dataset", {}).get("name", "arctic")
+    if built_on == "h2o" and not isinstance(data_root, H2OPoseRoot):
+        return [
+            f"the bundle was built on h2o: check it against H2OPoseRoot(root, mano_dir, object_mesh_dir), "
+            f"not {data_root}"
+        ]
     try:
-        root = ArcticRoot(data_root)
+        root = _opened(data_root)
+        if built_on != _dataset_of(root):
+            return [f"the bundle was built on {built_on}, the data root {root.data_root} is {_dataset_of(root)}"]
         hands = _hand_hashes(root.mano_layers())
-        objects = _object_hashes(root.object_templates(load_texture=False))
+        templates = root.object_templates(load_texture=False)
+        objects = _object_hashes({n: templates[n] for n in manifest.get("objects", {}) if n in templates})
     except AssetError as exc:
         return [f"data root {data_root}: {exc}"]
     for side in ("right", "left"):
@@ -240,7 +271,7 @@ def _check_root(manifest: Mapping[str, Any], data_root: PathLike) -> list[str]:
     for name, rec in manifest.get("objects", {}).items():
         if name not in objects:
             problems.append(
-                f"object template {name!r} used by the bundle is missing from the data root {root.meta_dir}"
+                f"object template {name!r} used by the bundle is missing from the data root {_objects_dir(root)}"
             )
         elif objects[name]["template_hash"] != rec.get("template_hash"):
             problems.append(
@@ -376,13 +407,12 @@ def _copy_run(run: Path, out: Path, rel: str) -> tuple[dict[str, dict[str, str]]
 
 def write_bundle(
     out: PathLike,
-    data_root: PathLike,
+    data_root: DataRoot,
     hogs_runs: Sequence[PathLike],
     *,
     srm: Optional[PathLike] = None,
     contactnet: Optional[PathLike] = None,
     pose_banks: Sequence[PathLike] = (),
-    dataset: str = "arctic",
 ) -> Path:
     """Write a bundle folder (layout: :class:`Bundle`) and return its path.
 
@@ -395,14 +425,15 @@ def write_bundle(
 
     Args:
         out: bundle folder (created).
-        data_root: the ARCTIC(-format) data root the runs were trained on.
+        data_root: the data root the runs were trained on: an ARCTIC(-format) root (a folder
+            or an :class:`ArcticRoot`), or an :class:`H2OPoseRoot` (H2O with its MANO and
+            mesh folders). The manifest records which.
         hogs_runs: run folders of ``hogsa train hogs`` (each with ``hand_right/``,
             ``hand_left/``, ``object/``).
         srm: optional SRM checkpoint folder.
         contactnet: optional ContactNet checkpoint folder.
         pose_banks: optional pose banks (folders of :func:`~hogsa_loader.models.pom.bank.save_pose_bank`);
             named by their folder name, which must be unique.
-        dataset: dataset name recorded in the manifest.
 
     Raises:
         AssetError: a run is not finished, does not match the data root, or two runs have
@@ -410,7 +441,7 @@ def write_bundle(
             checkpoint; two pose banks have the same name. All problems are listed in one error.
     """
     out = Path(out)
-    root = ArcticRoot(data_root)
+    root = _opened(data_root)
     layers = root.mano_layers()
     templates = root.object_templates()
     runs, problems = _collect_runs(hogs_runs, layers, templates)
@@ -425,7 +456,7 @@ def write_bundle(
         stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
         try:
             os.chmod(stage, 0o777 & ~_umask())
-            _write_bundle_files(stage, root, runs, layers, templates, srm, contactnet, pose_banks, dataset)
+            _write_bundle_files(stage, root, runs, layers, templates, srm, contactnet, pose_banks)
             _replace_folder(stage, out)
         except BaseException:
             shutil.rmtree(stage, ignore_errors=True)
@@ -462,16 +493,34 @@ def _replace_folder(new: Path, out: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
+def _dataset_record(root: Union[ArcticRoot, H2OPoseRoot], subjects: list[str]) -> dict[str, Any]:
+    """The manifest's ``dataset`` entry."""
+    if isinstance(root, H2OPoseRoot):
+        return {
+            "name": "h2o",
+            "root": str(root.data_root),
+            "subjects": subjects,
+            "cropped_size": H2O_CROP_SIZE,
+            "mano_dir": str(root.mano_dir),
+            "object_mesh_dir": str(root.object_mesh_dir),
+        }
+    return {
+        "name": "arctic",
+        "root": str(root.data_root),
+        "subjects": subjects,
+        "cropped_size": int(root.world_meta().cropped_size),
+    }
+
+
 def _write_bundle_files(
     out: Path,
-    root: ArcticRoot,
+    root: Union[ArcticRoot, H2OPoseRoot],
     runs: list,
     layers: Any,
     templates: Any,
     srm: Optional[PathLike],
     contactnet: Optional[PathLike],
     pose_banks: Sequence[PathLike],
-    dataset: str,
 ) -> None:
     """Copy the checkpoints into the empty folder ``out`` and write its manifest (last)."""
     hogs = []
@@ -479,17 +528,12 @@ def _write_bundle_files(
         rel = f"hogs/{sid}_{obj}"
         parts, light = _copy_run(run, out, rel)
         hogs.append({"subject": sid, "object": obj, "path": rel, "num_gaussians": n, "parts": parts, "light": light})
-    objects_all = _object_hashes(templates)
+    objects = _object_hashes({name: templates[name] for name in sorted({obj for _, obj, _, _ in runs})})
     manifest = {
         **BUNDLE_HEADER.head(),
-        "dataset": {
-            "name": dataset,
-            "root": str(root.data_root),
-            "subjects": sorted({sid for sid, _, _, _ in runs}),
-            "cropped_size": int(root.world_meta().cropped_size),
-        },
+        "dataset": _dataset_record(root, sorted({sid for sid, _, _, _ in runs})),
         "hand_model": {"source": str(root.mano_dir), **_hand_hashes(layers)},
-        "objects": {name: objects_all[name] for name in sorted({obj for _, obj, _, _ in runs})},
+        "objects": objects,
         "hogs": hogs,
         "srm": _extra(srm, out, "srm", "SRM checkpoint"),
         "contactnet": _extra(contactnet, out, "contactnet", "ContactNet checkpoint"),
@@ -544,6 +588,15 @@ def _check_files(base: Path, what: str, rec: Any, problems: list[str]) -> Option
         elif sha256_file(f) != sha:
             problems.append(f"{what}: file {f} does not match its sha256 in the manifest")
     return ExtraEntry(name=str(rec.get("name", what)), path=path, files=dict(rec["files"]))
+
+
+def bundle_dataset(path: PathLike) -> str:
+    """The dataset a bundle was built on (``manifest.json``'s ``dataset.name``).
+
+    Raises:
+        AssetError: the manifest is missing or malformed.
+    """
+    return str(_read_bundle_manifest(Path(path))["dataset"].get("name", "arctic"))
 
 
 def _read_bundle_manifest(path: Path) -> dict[str, Any]:
@@ -730,7 +783,7 @@ def _check_extra_entries(
     return srm, contactnet, banks
 
 
-def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_hashes: bool = True) -> Bundle:
+def load_bundle(path: PathLike, data_root: Optional[DataRoot] = None, *, verify_hashes: bool = True) -> Bundle:
     """Read and validate a bundle.
 
     Checks: ``manifest.json`` present, valid JSON, format and schema version; every HOGS
@@ -744,7 +797,8 @@ def load_bundle(path: PathLike, data_root: Optional[PathLike] = None, *, verify_
 
     Args:
         path: bundle folder.
-        data_root: optional ARCTIC(-format) data root to check against.
+        data_root: optional data root to check against (as :func:`write_bundle` takes it;
+            it must be of the dataset the bundle was built on).
         verify_hashes: hash every file (set False to skip the sha256 of large files).
 
     Returns:

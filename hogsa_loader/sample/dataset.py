@@ -26,7 +26,7 @@ from hogsa_loader.assets.arctic import ArcticRoot, protocol_views
 from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
 from hogsa_loader.compose import make_backgrounds
 from hogsa_loader.errors import AssetError, HogsaError, PathLike
-from hogsa_loader.models.bundle import Bundle, load_bundle
+from hogsa_loader.models.bundle import Bundle, bundle_dataset, load_bundle
 from hogsa_loader.models.gaussians.recombine import hands_run
 from hogsa_loader.models.srm import load_srm
 from hogsa_loader.models.srm.io import SRM_MANIFEST, read_srm_manifest
@@ -151,6 +151,13 @@ class HOGSADataset(IterableDataset):
         _refuse_overrides(config, backgrounds, poses, refiner)
         self.config = config
         self.data_root = data_root
+        built_on = bundle.dataset if isinstance(bundle, Bundle) else bundle_dataset(bundle)
+        if built_on != "arctic":
+            raise AssetError(
+                bundle.path if isinstance(bundle, Bundle) else bundle,
+                f"the bundle was built on {built_on}: HOGSADataset streams bundles of ARCTIC(-format) "
+                f"roots only (streaming {built_on} samples is not implemented)",
+            )
         self.bundle = bundle if isinstance(bundle, Bundle) else load_bundle(bundle, data_root=data_root)
         if isinstance(bundle, Bundle):
             self.bundle.check_data_root(data_root)

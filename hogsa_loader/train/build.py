@@ -25,16 +25,19 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 from hogsa_loader.assets.arctic import ArcticRoot
+from hogsa_loader.assets.h2o_poses import H2OPoseRoot
 from hogsa_loader.assets.protocol import held_out_subjects, training_subjects
+from hogsa_loader.assets.roots import DatasetRoot
 from hogsa_loader.errors import PathLike, UsageError
 from hogsa_loader.io.locks import FolderBusyError, writer_lock
 from hogsa_loader.models.bundle import BUNDLE_SCHEMA_VERSION, write_bundle
 from hogsa_loader.system import process_slot, rank_device
+from hogsa_loader.train.config import Dataset, dataset_field, mano_dir_field, object_mesh_dir_field
 from hogsa_loader.train.config import field_options as _opt
 from hogsa_loader.train.hogs_config import HogsConfig
 from hogsa_loader.train.hogs_trainer import HogsTrainer
 from hogsa_loader.train.pom_config import ContactNetJobConfig, PoseBankConfig
-from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet
+from hogsa_loader.train.pom_jobs import build_pose_bank, fit_contactnet, open_pose_root, sequences_of
 from hogsa_loader.train.srm_config import SRMTrainConfig
 from hogsa_loader.train.srm_trainer import SRMTrainer
 from hogsa_loader.train.stages import StageNode, StageRecords, in_stage_process, run_stage_graph, stage_key
@@ -49,6 +52,8 @@ SET_BY_BUILD = frozenset(
         ("hogs", "data", "object"),
         ("hogs", "data", "sequences"),
         ("hogs", "data", "dataset"),
+        ("hogs", "data", "mano_dir"),
+        ("hogs", "data", "object_mesh_dir"),
         ("hogs", "run", "out"),
         ("hogs", "run", "seed"),
         ("hogs", "run", "device"),
@@ -85,8 +90,15 @@ SET_BY_BUILD = frozenset(
 class BuildDataConfig:
     """The dataset root and what of it the models learn from."""
 
-    root: str = field(default="", metadata=_opt("dataset root (ARCTIC ./data)", required=True, name="data"))
-    protocol: str = field(default="p1", metadata=_opt("protocol whose training split the models learn from"))
+    root: str = field(
+        default="", metadata=_opt("dataset root (ARCTIC ./data, or the H2O root)", required=True, name="data")
+    )
+    dataset: Dataset = dataset_field()
+    mano_dir: Optional[str] = mano_dir_field()
+    object_mesh_dir: Optional[str] = object_mesh_dir_field()
+    protocol: str = field(
+        default="p1", metadata=_opt("ARCTIC protocol whose training split the models learn from (H2O has one)")
+    )
     pairs: Optional[tuple[str, ...]] = field(
         default=None, metadata=_opt("SUBJECT/OBJECT pairs to model (default: every pair of the training split)")
     )
@@ -208,16 +220,19 @@ def read_config(path: PathLike, base: Optional[BuildConfig] = None) -> BuildConf
 
 
 # ---------------------------------------------------------------------------- what to build
-def _training_sequences(root: ArcticRoot, protocol: str) -> list[str]:
-    """``sid/seq`` of the protocol's training split (a root without protocol files: every
-    sequence of a subject the dataset's protocol does not hold out)."""
-    if root.protocol_path(protocol).is_file():
+def _training_sequences(root: DatasetRoot, protocol: str) -> list[str]:
+    """``sid/seq`` of the protocol's training split (H2O, or an ARCTIC root without protocol
+    files: every sequence of a subject the dataset's protocol does not hold out, the others'
+    labels unread)."""
+    if isinstance(root, ArcticRoot) and root.protocol_path(protocol).is_file():
         return list(root.protocol(protocol)["train"])
     held = held_out_subjects(root)
+    if isinstance(root, H2OPoseRoot):
+        return sequences_of(root, [s for s in root.subjects() if s not in held])
     return [s for s in root.sequences() if s.split("/", 1)[0] not in held]
 
 
-def select_pairs(root: ArcticRoot, data: BuildDataConfig) -> list[tuple[str, str, list[str]]]:
+def select_pairs(root: DatasetRoot, data: BuildDataConfig) -> list[tuple[str, str, list[str]]]:
     """Sorted ``(subject, object, sequences)`` the build models: ``data.pairs`` (or every pair of
     the training split), each with the sequences of its split (all when a requested pair's
     subject is an allowed held-out one).
@@ -238,7 +253,7 @@ def select_pairs(root: ArcticRoot, data: BuildDataConfig) -> list[tuple[str, str
         training_subjects(root, sorted({s for s, _ in wanted}), allow, "hogsa build")
     seqs = _training_sequences(root, data.protocol)
     if allow:
-        seqs += [s for s in root.sequences() if s.split("/", 1)[0] in allow and s not in seqs]
+        seqs += [s for s in sequences_of(root, allow) if s not in seqs]
     pairs: dict[tuple[str, str], list[str]] = {}
     for sid_seq in seqs:
         sid, seq = sid_seq.split("/", 1)
@@ -255,11 +270,24 @@ def select_pairs(root: ArcticRoot, data: BuildDataConfig) -> list[tuple[str, str
     return [(sid, obj, sorted(s)) for (sid, obj), s in sorted(pairs.items())]
 
 
-def _hogs_sequences(seqs: list[str], like: Optional[tuple[str, ...]]) -> Optional[tuple[str, ...]]:
+def _hogs_sequences(
+    root: DatasetRoot, sid: str, seqs: list[str], like: Optional[tuple[str, ...]]
+) -> Optional[tuple[str, ...]]:
+    """The sequences HOGS trains a pair on: those ending in ``like`` (None: all of the pair's),
+    as its job names them (H2O: ``scene/seq``)."""
     if not like:
         return None
     chosen = tuple(s for s in seqs if s.split("_", 1)[1] in like)
+    if chosen and isinstance(root, H2OPoseRoot):
+        return tuple("/".join(root.h2o_sequence(f"{sid}/{s}")[1:3]) for s in chosen)
     return chosen or None  # a pair without the named sequences trains on all of its own
+
+
+def _dataset_fields(data: BuildDataConfig) -> dict[str, Any]:
+    """``dataset``, ``mano_dir`` and ``object_mesh_dir`` as every stage's data group takes them
+    (the folders absolute)."""
+    folders = {k: getattr(data, k) and os.path.abspath(getattr(data, k)) for k in ("mano_dir", "object_mesh_dir")}
+    return {"dataset": data.dataset, **folders}
 
 
 #: Fields the build sets that name folders: left out of the keys (a moved build stays valid).
@@ -301,7 +329,7 @@ _QUIET = False
 
 
 def _hogs_node(
-    cfg: BuildConfig, plan_out: Path, data: Path, k_data: str, pair: tuple[str, str, list[str]]
+    cfg: BuildConfig, root: DatasetRoot, plan_out: Path, data: Path, k_data: str, pair: tuple[str, str, list[str]]
 ) -> StageNode:
     sid, obj, seqs = pair
     run = plan_out / "runs" / "hogs" / f"{sid}_{obj}"
@@ -312,7 +340,8 @@ def _hogs_node(
             root=str(data),
             subject=sid,
             object=obj,
-            sequences=_hogs_sequences(seqs, cfg.data.sequences_like),
+            sequences=_hogs_sequences(root, sid, seqs, cfg.data.sequences_like),
+            **_dataset_fields(cfg.data),
         ),
         run=replace(cfg.hogs.run, out=str(run), seed=cfg.run.seed, device=cfg.run.device),
     )
@@ -328,7 +357,9 @@ def _hogs_node(
 def _contactnet_node(cfg: BuildConfig, cn: Path, data: Path, k_data: str, subjects: list[str]) -> StageNode:
     job = replace(
         cfg.contactnet,
-        data=replace(cfg.contactnet.data, root=str(data), allow_held_out=cfg.data.allow_held_out),
+        data=replace(
+            cfg.contactnet.data, root=str(data), allow_held_out=cfg.data.allow_held_out, **_dataset_fields(cfg.data)
+        ),
         optim=replace(cfg.contactnet.optim, seed=cfg.run.seed),
         run=replace(cfg.contactnet.run, out=str(cn)),
     )
@@ -350,6 +381,7 @@ def _bank_node(cfg: BuildConfig, bank: Path, data: Path, cn: StageNode, seqs: li
             contactnet=str(cn.outputs[0]),
             sequences=tuple(seqs),
             allow_held_out=cfg.data.allow_held_out,
+            **_dataset_fields(cfg.data),
         ),
         run=replace(cfg.bank.run, out=str(bank), seed=cfg.run.seed, device=cfg.run.device),
     )
@@ -394,12 +426,12 @@ def plan_build(config: BuildConfig, data_key: Optional[str] = None) -> _Plan:
         raise UsageError("--out: give the build folder")
     data = Path(os.path.abspath(config.data.root))
     out = Path(os.path.abspath(config.run.out))
-    root = ArcticRoot(data)
+    root = open_pose_root(replace(config.data, root=str(data)))
     pairs = select_pairs(root, config.data)
     k_data = data_key or stage_key("data", str(data))
     allow = list(config.data.allow_held_out or ())
     subjects = training_subjects(root, None, allow, "ContactNet")  # what ContactNet trains on
-    hogs = [_hogs_node(config, out, data, k_data, p) for p in pairs]
+    hogs = [_hogs_node(config, root, out, data, k_data, p) for p in pairs]
     cn = _contactnet_node(config, out / "runs" / "contactnet", data, k_data, subjects)
     bank = _bank_node(config, out / "runs" / "pose_bank", data, cn, [f"{s}/{q}" for s, _, qs in pairs for q in qs])
     srm = _srm_node(config, out, data, hogs)
@@ -411,7 +443,7 @@ def plan_build(config: BuildConfig, data_key: Optional[str] = None) -> _Plan:
         k_bundle,
         [bundle],
         lambda: str(
-            write_bundle(bundle, data, runs, srm=srm.outputs[0], contactnet=cn.outputs[0], pose_banks=[bank.outputs[0]])
+            write_bundle(bundle, root, runs, srm=srm.outputs[0], contactnet=cn.outputs[0], pose_banks=[bank.outputs[0]])
         ),
         needs=(*(n.name for n in hogs), "contactnet", "bank", "srm"),
     )

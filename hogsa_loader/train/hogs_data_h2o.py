@@ -21,7 +21,7 @@ from hogsa_loader.assets.conventions import (
     transform,
 )
 from hogsa_loader.assets.h2o import H2ORoot, read_h2o_rgb
-from hogsa_loader.assets.h2o_io import H2O_EGO_CAMERA
+from hogsa_loader.assets.h2o_io import H2O_CROP_SIZE, H2O_EGO_CAMERA
 from hogsa_loader.assets.objects.rigid import H2O_OBJECT_NAMES
 from hogsa_loader.assets.objects.template import ObjectTemplate
 from hogsa_loader.assets.types import SequenceData
@@ -52,8 +52,6 @@ __all__ = [
 H2O_VIEWS: tuple[int, ...] = (0, 1, 2, 3)
 #: Held-out camera by default.
 H2O_EVAL_VIEWS: tuple[int, ...] = (3,)
-#: Default training resolution, and the resolution ``margin`` is given at.
-H2O_CROP_SIZE = 256
 #: Box side / 2D extent of the projected meshes.
 CROP_ENLARGE_H2O = 1.3
 _MIN_SIDE_PX = 8.0

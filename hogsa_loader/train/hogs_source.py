@@ -17,14 +17,12 @@ from hogsa_loader.assets.h2o_meshes import h2o_class_name, h2o_mesh_provenance, 
 from hogsa_loader.assets.hands.mano import MANOLayer
 from hogsa_loader.assets.hands.mano_io import load_mano
 from hogsa_loader.assets.objects.template import ObjectTemplate
+from hogsa_loader.assets.roots import DATASETS
 from hogsa_loader.errors import PathLike
 from hogsa_loader.train.hogs_data import FrameSelection, HogsData, load_hogs_data
 from hogsa_loader.train.hogs_data_h2o import H2O_EVAL_VIEWS, H2O_VIEWS, load_h2o_hogs_data
 
 __all__ = ["DATASETS", "HogsSource", "open_hogs_source", "mano_layers_from_dir", "load_run_data"]
-
-#: Datasets a HOGS run can be trained on.
-DATASETS = ("arctic", "h2o")
 
 
 @dataclass
@@ -45,7 +43,7 @@ class HogsSource:
     dataset: str
     root: Any
     mano_layers: dict
-    object_templates: dict[str, ObjectTemplate]
+    object_templates: Mapping[str, ObjectTemplate]
     object_provenance: dict[str, str] = field(default_factory=dict)
     views: tuple[int, ...] = ALLO_VIEWS
     eval_views: tuple[int, ...] = (8,)

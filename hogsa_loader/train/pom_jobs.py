@@ -20,9 +20,8 @@ import torch
 from tqdm import tqdm
 
 from hogsa_loader.assets.arctic import ArcticRoot
-from hogsa_loader.assets.h2o_poses import H2OPoseRoot
 from hogsa_loader.assets.protocol import training_subjects
-from hogsa_loader.errors import UsageError
+from hogsa_loader.assets.roots import DatasetRoot, open_dataset_root
 from hogsa_loader.models.pom.bank import save_pose_bank
 from hogsa_loader.models.pom.contactnet import ContactNet, load_contactnet, save_contactnet
 from hogsa_loader.models.pom.hands import SIDES, HandInfo, hand_infos
@@ -87,29 +86,19 @@ def save_contactnet_curve(path: Path, hist: dict) -> None:
 
 
 #: A dataset root the pose stages read: ARCTIC, or H2O with its MANO and mesh folders.
-PoseRoot = Union[ArcticRoot, H2OPoseRoot]
+PoseRoot = DatasetRoot
 
 
 def open_pose_root(data: Union[ContactNetDataConfig, BankDataConfig]) -> PoseRoot:
-    """The root of a pose stage's ``data`` group: an :class:`ArcticRoot`, or for
-    ``dataset="h2o"`` an :class:`H2OPoseRoot` with ``mano_dir`` and ``object_mesh_dir``.
+    """The root of a pose stage's ``data`` group (:func:`~hogsa_loader.assets.roots.open_dataset_root`
+    of its ``dataset``, ``root``, ``mano_dir`` and ``object_mesh_dir``).
 
     Raises:
         UsageError: an H2O job lacks ``mano_dir`` or ``object_mesh_dir``, or an ARCTIC job is
             given one (ARCTIC's are in its root).
         AssetError: a folder is missing.
     """
-    if data.dataset == "h2o":
-        missing = [f"--{n.replace('_', '-')}" for n in ("mano_dir", "object_mesh_dir") if not getattr(data, n)]
-        if missing:
-            raise UsageError(
-                f"--dataset h2o needs {' and '.join(missing)} (H2O keeps MANO and its meshes outside its root)"
-            )
-        return H2OPoseRoot(data.root, data.mano_dir, data.object_mesh_dir)
-    extra = [f"--{n.replace('_', '-')}" for n in ("mano_dir", "object_mesh_dir") if getattr(data, n)]
-    if extra:
-        raise UsageError(f"{', '.join(extra)}: only for --dataset h2o (ARCTIC keeps its models in the data root)")
-    return ArcticRoot(data.root)
+    return open_dataset_root(data.dataset, data.root, data.mano_dir, data.object_mesh_dir)
 
 
 def sequences_of(root: PoseRoot, subjects: Sequence[str]) -> list[str]:

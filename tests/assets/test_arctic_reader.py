@@ -320,6 +320,39 @@ def test_models_from_root(root):
     assert root.object_layer().names == ["box", "laptop", "notebook"]
 
 
+def test_object_templates_read_only_the_objects_asked_for(arctic_world, tmp_path):
+    """Each object is read when first asked for: a broken template of another object does not
+    stop one that is asked for, and is reported (naming its file) when it is read; the
+    untextured mapping takes what the textured one read."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(arctic_world[0] / "arctic_data" / "data" / "meta", data / "arctic_data" / "data" / "meta")
+    broken = data / "arctic_data" / "data" / "meta" / "object_vtemplates" / "laptop" / "parts.json"
+    broken.write_text("[0, 1")
+    root = ArcticRoot(data)
+    textured = root.object_templates()
+    assert list(textured) == ["box", "laptop", "notebook"] and "laptop" in textured and "mug" not in textured
+    box = textured["box"]
+    assert box.verts.shape[0] > 0 and repr(textured).endswith("3 objects, 1 read)")
+    assert root.object_templates(load_texture=False)["box"] is box
+    import copy
+    import pickle
+
+    for twin in (copy.deepcopy(textured), pickle.loads(pickle.dumps(textured))):  # DataLoader workers
+        assert list(twin) == list(textured) and np.array_equal(twin["box"].verts, box.verts)
+    with pytest.raises(AssetError, match="parts.json"):
+        textured["laptop"]
+    with pytest.raises(KeyError):
+        textured["mug"]
+    from hogsa_loader.models.pom.objects import ObjectSet
+
+    plain = root.object_templates(load_texture=False)
+    assert ObjectSet(plain).templates is plain  # kept, not copied (a copy would read the broken one)
+    with pytest.raises(AssetError, match="parts.json"):
+        dict(root.object_templates(load_texture=False))  # reading all reads the broken one
+
+
 def test_shape_per_frame_is_accepted_and_reported(tmp_path):
     r, w = mini_root(tmp_path, F=30)
     mano, obj, ego = w["raw"]["s01/box_grab_01"]

@@ -1,9 +1,10 @@
 """``docs/real-arctic.md``, executed: every console command and the Python block, in order, on
 the generated test world treated as a user's ARCTIC root (``data`` in a fresh folder), with the
-settings file shrunk to toy sizes (the one edit step 2 invites). torchrun and srun each build
-into a folder of their own and must write the stages a single process writes; srun is played by
-two processes with the variables srun sets; ``--gpus`` starts its two processes on the torchrun
-build."""
+settings file shrunk to toy sizes (the one edit step 2 invites). torchrun's two processes and
+srun's two tasks build side by side into one folder of their own: the four processes of two
+launchers take each stage once between them and write the stages a single process writes; srun
+is played by two processes with the variables srun sets; ``--gpus`` starts its two processes on
+that build."""
 
 from __future__ import annotations
 
@@ -76,14 +77,15 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     assert len(single) == 5 and (tmp_path / "build" / "bundle" / "manifest.json").is_file()
     again = _run(hogsa + shlex.split(commands[1])[1:], tmp_path, env)
     assert "5 of 5 stages done" in again.stdout
-    # 5. several processes: torchrun, then srun (two tasks with srun's variables)
+    # 5. several processes: torchrun's two and srun's two tasks (with srun's variables), side by
+    # side in one folder of their own
     torchrun = shlex.split(commands[3])
-    argv = [sys.executable, "-m", "torch.distributed.run", *torchrun[1:], "--out", "build_torchrun"]
+    argv = [sys.executable, "-m", "torch.distributed.run", *torchrun[1:], "--out", "build_shared"]
     srun = shlex.split(commands[4])
     assert srun[1:3] == ["--ntasks", "2"] and srun[3] == "python"
-    task = [sys.executable, *srun[4:], "--out", "build_srun"]
+    task = [sys.executable, *srun[4:], "--out", "build_shared"]
 
-    def both():  # side by side (folders of their own): torchrun and srun's two tasks
+    def both():  # side by side: torchrun and srun's two tasks
         def start(cmd, extra_env):
             pipe = subprocess.PIPE
             return subprocess.Popen(cmd, cwd=tmp_path, env={**env, **extra_env}, stdout=pipe, stderr=pipe, text=True)
@@ -95,18 +97,18 @@ def test_the_walkthrough_runs_as_written(tiny_world, tmp_path):
     results = timed("torchrun + srun", both)
     assert [r[2] for r in results] == [0, 0, 0], [r[1][-2000:] for r in results]
     assert "process 0 of 2" in results[0][0] and "process 1 of 2" in results[0][0]
-    assert _records(tmp_path / "build_torchrun") == single
-    results = [(r[2], r[0], r[1]) for r in results[1:]]
-    assert _records(tmp_path / "build_srun") == single
-    built = [line for r in results for line in r[1].splitlines() if "] done in" in line]
-    assert len(built) == 5  # each stage once, across the two tasks
+    ranks = [re.findall(r"process ([01]) of 2", out) for out, _, _ in results[1:]]
+    assert sorted(r for found in ranks for r in set(found)) == ["0", "1"], ranks  # srun's two tasks
+    assert _records(tmp_path / "build_shared") == single
+    built = [line for r in results for line in r[0].splitlines() if "] done in" in line]
+    assert len(built) == 5  # each stage once, across the four processes
     # --gpus: two processes of this machine with torchrun's variables (the sharing above), here
-    # on the torchrun build, which they find complete
+    # on the shared build, which they find complete
     gpus = shlex.split(commands[5])
     assert gpus[-2:] == ["--gpus", "0,1"]
-    launched = timed("--gpus", lambda: _run(hogsa + gpus[1:] + ["--out", "build_torchrun"], tmp_path, env))
+    launched = timed("--gpus", lambda: _run(hogsa + gpus[1:] + ["--out", "build_shared"], tmp_path, env))
     assert "process 0 of 2" in launched.stdout and "process 1 of 2" in launched.stdout
-    assert _records(tmp_path / "build_torchrun") == single
+    assert _records(tmp_path / "build_shared") == single
     # 6. the Python block
     (code,) = _blocks("python")
     script = tmp_path / "train.py"

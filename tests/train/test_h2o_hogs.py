@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import importlib
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import job, page_commands, placed
+from conftest import job, page_commands, placed, tiny_build_config
 
 from hogsa_loader.assets.arctic import ArcticRoot
 from hogsa_loader.assets.conventions import project, transform
@@ -444,7 +445,7 @@ def test_the_pages_contactnet_and_pose_bank_run_on_h2o(h2o_world, tiny_world, tm
     from hogsa_loader.cli.main import main as hogsa
 
     root = _pose_root(h2o_world, tiny_world)
-    cn_cmd, bank_cmd = page_commands("h2o.md", "tests/train/test_h2o_hogs.py")
+    cn_cmd, bank_cmd, _ = page_commands("h2o.md", "tests/train/test_h2o_hogs.py")
     paths = {"H2O": root.root, "MANO": root.mano_dir, "runs": tmp_path / "runs"}
     placed_cmds = [placed(c, paths) for c in (cn_cmd, bank_cmd)]
     assert placed_cmds[0][:2] == ["train", "contactnet"] and placed_cmds[1][:2] == ["train", "bank"]
@@ -460,3 +461,57 @@ def test_the_pages_contactnet_and_pose_bank_run_on_h2o(h2o_world, tiny_world, tm
     for (_, _, f), trans in zip(bank.sources, bank.state.obj_trans):  # a perturbation of H2O's frame
         assert np.linalg.norm(trans.numpy() - sd.object.trans[f]) < 0.05
     assert torch.isfinite(bank.metrics["penetration_depth"]).all()
+
+
+def test_the_pages_build_writes_an_h2o_bundle(h2o_world, tiny_world, untrained_bundle, tmp_path, monkeypatch):
+    """``hogsa build --dataset h2o`` (the page's command with relative folders, toy settings from
+    a config file): every stage is built on H2O's data, the bundle records the dataset and its
+    folders (absolute) and checks against the H2O root; a bundle is refused against a root of
+    the other dataset, and ``HOGSADataset`` refuses an H2O bundle by name."""
+    import os
+
+    from hogsa_loader.cli.main import main as hogsa
+    from hogsa_loader.models.bundle import load_bundle
+    from hogsa_loader.sample.dataset import HOGSADataset
+    from hogsa_loader.train.build import config_toml
+
+    root = _pose_root(h2o_world, tiny_world)
+    (build_cmd,) = page_commands("h2o.md", "tests/train/test_h2o_hogs.py")[2:]
+    out = tmp_path / "build_h2o"
+    monkeypatch.chdir(tmp_path)
+    rel = {k: Path(os.path.relpath(v, tmp_path)) for k, v in {"H2O": root.root, "MANO": root.mano_dir}.items()}
+    argv = placed(build_cmd, {**rel, "build_h2o": Path("build_h2o")})
+    assert argv[0] == "build"
+    toml = tmp_path / "toy.toml"
+    toy = tiny_build_config(root.root, out, pairs=None)
+    toy = replace(  # the tree's sequence has 16 frames: every frame, and a short frame margin
+        toy,
+        hogs=replace(toy.hogs, data=replace(toy.hogs.data, frame_stride=1)),
+        bank=replace(toy.bank, data=replace(toy.bank.data, frame_margin=2)),
+    )
+    toml.write_text(config_toml(toy))
+    assert hogsa([*argv, "--config", str(toml), "--quiet"]) == 0
+    assert len(list((out / "stages").rglob("*.json"))) == 5  # hogs/subject1_book, contactnet, bank, srm, bundle
+    run_cfg = json.loads((out / "runs" / "hogs" / "subject1_book" / "config.json").read_text())
+    assert (run_cfg["dataset"], run_cfg["subject"], run_cfg["object"]) == ("h2o", "subject1", "book")
+    assert run_cfg["mano_dir"] == str(root.mano_dir) and run_cfg["sequences"] is None
+    bank = load_pose_bank(out / "runs" / "pose_bank")
+    assert bank.info["dataset"] == "h2o" and {(s, q) for s, q, _ in bank.sources} == {("subject1", "book_h1_0")}
+    manifest = json.loads((out / "bundle" / "manifest.json").read_text())
+    assert manifest["dataset"] == {
+        "name": "h2o",
+        "root": str(root.root),
+        "subjects": ["subject1"],
+        "cropped_size": 256,
+        "mano_dir": str(root.mano_dir),
+        "object_mesh_dir": str(root.object_mesh_dir),
+    }
+    assert list(manifest["objects"]) == ["book"] and manifest["srm"] and manifest["contactnet"]
+    bundle = load_bundle(out / "bundle", data_root=root)
+    assert bundle.dataset == "h2o" and bundle.keys == [("subject1", "book")]
+    with pytest.raises(AssetError, match=r"built on h2o: check it against H2OPoseRoot\(root, mano_dir"):
+        load_bundle(out / "bundle", data_root=tiny_world)
+    with pytest.raises(AssetError, match="built on arctic, the data root .* is h2o"):
+        load_bundle(untrained_bundle, data_root=root)
+    with pytest.raises(AssetError, match="built on h2o: HOGSADataset streams bundles of ARCTIC"):
+        HOGSADataset(out / "bundle", root.root)

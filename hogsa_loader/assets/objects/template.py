@@ -31,6 +31,7 @@ __all__ = [
     "BOTTOM",
     "BBOX_CORNER_ORDER",
     "ObjectTemplate",
+    "ObjectTemplates",
     "load_object_template",
     "load_object_templates",
     "read_object_meta",
@@ -626,3 +627,72 @@ def load_object_templates(
     for name in names:
         out[name] = load_object_template(root / name, name=name, object_meta=meta, load_texture=load_texture)
     return out
+
+
+class ObjectTemplates(Mapping[str, ObjectTemplate]):
+    """``{name: ObjectTemplate}`` of ``meta_dir/object_vtemplates``, each object read when it is
+    first asked for and then kept (a loader that models one object of ARCTIC's 11 reads that one).
+
+    The names (the sub-folders, in ARCTIC's object order) and ``object_meta.json`` are read when
+    the mapping is made; iterating over ``items()`` or ``values()`` reads every object.
+
+    Args:
+        meta_dir: ARCTIC's ``meta`` folder.
+        load_texture: also read the textured meshes when present.
+        textured: another mapping of the same folder made with ``load_texture=True``; an object
+            it has read is taken from it (a textured template carries everything an untextured
+            one does).
+
+    Raises:
+        AssetError: the folder or ``object_meta.json`` is unreadable (on creation); an
+            object's files are missing or malformed (when that object is read; names the file).
+    """
+
+    def __init__(
+        self, meta_dir: PathLike, load_texture: bool = True, textured: Optional["ObjectTemplates"] = None
+    ) -> None:
+        meta_dir = Path(meta_dir)
+        self.folder = meta_dir / VTEMPLATES_DIR
+        if not self.folder.is_dir():
+            raise AssetError(self.folder, "object template folder is missing")
+        meta_path = meta_dir / OBJECT_META_FILE
+        self._meta = read_object_meta(meta_path) if meta_path.is_file() else None
+        self._names = sort_names(p.name for p in self.folder.iterdir() if p.is_dir())
+        self.load_texture = bool(load_texture)
+        self._textured = textured
+        self._read: dict[str, ObjectTemplate] = {}
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:  # a copy (or a spawned worker's) gets its own lock
+        state = dict(self.__dict__)
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    def __getitem__(self, name: str) -> ObjectTemplate:
+        with self._lock:
+            if name not in self._read:
+                if name not in self._names:
+                    raise KeyError(name)
+                if self._textured is not None and name in self._textured._read:
+                    self._read[name] = self._textured._read[name]
+                else:
+                    self._read[name] = load_object_template(
+                        self.folder / name, name=name, object_meta=self._meta, load_texture=self.load_texture
+                    )
+            return self._read[name]
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names
+
+    def __repr__(self) -> str:
+        return f"ObjectTemplates({str(self.folder)!r}, {len(self)} objects, {len(self._read)} read)"

@@ -143,7 +143,8 @@ class ObjectSet:
     """Lazily built :class:`ObjectGeometry` of a set of templates, with batched queries.
 
     Args:
-        templates: ``{name: ObjectTemplate}`` (e.g. ``ArcticRoot.object_templates(False)``).
+        templates: ``{name: ObjectTemplate}`` (e.g. ``ArcticRoot.object_templates(False)``; kept,
+            not copied: an object's template is read when its geometry is first built).
         n_points: surface samples per object.
         sdf_voxel: SDF grid spacing (m).
         seed: sampling seed.
@@ -152,7 +153,7 @@ class ObjectSet:
     def __init__(
         self, templates: Mapping[str, ObjectTemplate], n_points: int = 2048, sdf_voxel: float = 0.002, seed: int = 0
     ) -> None:
-        self.templates = dict(templates)
+        self.templates = templates
         self.n_points = n_points
         self.sdf_voxel = sdf_voxel
         self.seed = seed
